@@ -1,0 +1,59 @@
+"""lodcast: volume rendering of large scalar volumes with transfer-function-driven level of detail.
+
+The public verbs are imported lazily so that `import lodcast` stays cheap (no OpenCL, no FastAPI).
+"""
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from lodcast.errors import (
+    LodcastError,
+    SourceError,
+    SourceNotFound,
+    StoreExists,
+    StoreInvalid,
+    StoreNotFound,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "__version__",
+    "ingest",
+    "open_store",
+    "render",
+    "Client",
+    "RenderResult",
+    "Scene",
+    "LodcastError",
+    "SourceError",
+    "SourceNotFound",
+    "StoreExists",
+    "StoreInvalid",
+    "StoreNotFound",
+]
+
+_LAZY = {
+    "ingest": ("lodcast.store.ingest", "ingest"),
+    "open_store": ("lodcast.store.store", "open_store"),
+    "render": ("lodcast.renderer.render", "render"),
+    "RenderResult": ("lodcast.renderer.render", "RenderResult"),
+    "Scene": ("lodcast.renderer.scene", "Scene"),
+    "Client": ("lodcast.service.client", "Client"),
+}
+
+if TYPE_CHECKING:  # pragma: no cover
+    from lodcast.renderer.render import RenderResult, render
+    from lodcast.renderer.scene import Scene
+    from lodcast.service.client import Client
+    from lodcast.store.ingest import ingest
+    from lodcast.store.store import open_store
+
+
+def __getattr__(name: str) -> Any:
+    try:
+        module, attr = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module 'lodcast' has no attribute {name!r}") from None
+    return getattr(importlib.import_module(module), attr)

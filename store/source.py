@@ -1,0 +1,52 @@
+"""What ingest reads: a scalar volume seen as a stack of z-slabs, whatever its file format.
+
+Every reader in `lodcast.store.readers` returns a `VolumeSource`. Ingest asks for slabs in increasing z order
+(`read(z0, z1)` with z0 equal to the previous z1), so a reader may stream (gzip, DICOM files one by one); peak
+memory then stays one slab, whatever the depth.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["VolumeSource", "SourceInfo", "SUPPORTED_DTYPES"]
+
+#: dtypes a store can hold; anything else (complex, object, bool, 64-bit ints beyond float64's exact range…) is refused.
+SUPPORTED_DTYPES = tuple(
+    np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
+)
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """Geometry and provenance of a source volume, in the store's (z, y, x) order and world units."""
+
+    shape: tuple[int, int, int]
+    dtype: np.dtype
+    spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    units: str = "millimeter"
+    format: str = ""
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+
+class VolumeSource(abc.ABC):
+    """A scalar 3D volume readable in z-slabs. Use as a context manager."""
+
+    info: SourceInfo
+
+    @abc.abstractmethod
+    def read(self, z0: int, z1: int) -> np.ndarray:
+        """Voxels [z0, z1) as an array of shape (z1 - z0, Y, X) and dtype `info.dtype`."""
+
+    def close(self) -> None:
+        """Release files; called once ingest is done."""
+
+    def __enter__(self) -> "VolumeSource":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
