@@ -1,0 +1,120 @@
+"""The `lodcast` command. Each subcommand is a small function; bad input exits 2 with a one-line reason."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+
+from lodcast.errors import LodcastError
+
+__all__ = ["main", "UsageError"]
+
+
+class UsageError(LodcastError, ValueError):
+    """A command-line argument is wrong; the message names it."""
+
+
+def _triple(kind: type, name: str) -> Callable[[str], tuple]:
+    def parse(text: str) -> tuple:
+        parts = [p for p in text.replace("x", ",").split(",") if p.strip()]
+        try:
+            values = tuple(kind(p) for p in parts)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be three comma-separated numbers z,y,x, got {text!r}") from None
+        if len(values) != 3:
+            raise argparse.ArgumentTypeError(f"{name} must be three comma-separated numbers z,y,x, got {text!r}")
+        return values
+
+    return parse
+
+
+# --- ingest / info -------------------------------------------------------------------------------------------
+
+def _add_ingest(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("ingest", help="convert a volume file (npy, raw, NRRD, NIfTI, TIFF, DICOM folder, zarr) into a lodcast store")
+    p.add_argument("src", help="source file, or a DICOM / TIFF series folder")
+    p.add_argument("dest", help="store to write (a folder, conventionally NAME.zarr)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing store at DEST")
+    p.add_argument("--format", help="source format when the extension does not tell (npy, raw, nrrd, nifti, tiff, dicom, zarr)")
+    p.add_argument("--shape", type=_triple(int, "--shape"), help="raw only: z,y,x")
+    p.add_argument("--dtype", help="raw only: numpy dtype name, e.g. uint16")
+    p.add_argument("--byte-order", choices=("little", "big"), default="little", help="raw only (default little)")
+    p.add_argument("--header-bytes", type=int, default=0, help="raw only: bytes to skip at the start")
+    p.add_argument("--spacing", type=_triple(float, "--spacing"), help="voxel spacing z,y,x in world units (overrides the file's)")
+    p.add_argument("--origin", type=_triple(float, "--origin"), help="world position z,y,x of voxel (0,0,0)'s centre")
+    p.add_argument("--index", type=int, help="which volume of a 4D series (time point or channel) to ingest")
+    p.add_argument("--block-size", type=int, default=32, help="block edge B in voxels, a power of two (default 32)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: when stderr is a terminal)")
+    p.set_defaults(func=_cmd_ingest)
+
+
+def _cmd_ingest(args: argparse.Namespace) -> int:
+    from lodcast.store.ingest import ingest
+
+    store = ingest(
+        args.src,
+        args.dest,
+        overwrite=args.overwrite,
+        format=args.format,
+        shape=args.shape,
+        dtype=args.dtype,
+        byte_order=args.byte_order,
+        header_bytes=args.header_bytes,
+        spacing=args.spacing,
+        origin=args.origin,
+        index=args.index,
+        block_size=args.block_size,
+        progress=args.progress,
+    )
+    print(json.dumps(store.summary(), indent=2))
+    return 0
+
+
+def _add_info(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="print a store's attributes, levels, blocks, shards and size on disk as JSON")
+    p.add_argument("store")
+    p.set_defaults(func=_cmd_info)
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from lodcast.store.store import open_store
+
+    print(json.dumps(open_store(args.store).summary(), indent=2))
+    return 0
+
+
+# --- entry point ---------------------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
+    parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_ingest, _add_info):
+        add(sub)
+    return parser
+
+
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)  # argparse itself exits 2 with its reason on malformed arguments
+    try:
+        return int(args.func(args) or 0)
+    except (LodcastError, FileNotFoundError, FileExistsError, ValueError) as exc:
+        # User errors: one line, exit 2, no traceback. Anything else is a bug and keeps its traceback.
+        print(f"lodcast {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"lodcast {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

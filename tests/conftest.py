@@ -1,0 +1,22 @@
+"""Shared fixtures. Real volumes live in ../shared/data beside the checkout (CI has it, users do not)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("LODCAST_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The folder of real test volumes. Outside CI its absence skips the test with a clear reason; in CI
+    (CI=true) it is an error, so that a test needing real data can never pass by not running."""
+    if not (SHARED_DATA / "README.md").is_file():
+        msg = f"real test volumes not found at {SHARED_DATA} (set LODCAST_SHARED_DATA or place ../shared/data beside the checkout)"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return SHARED_DATA
