@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["VolumeSource", "SourceInfo", "SUPPORTED_DTYPES"]
+__all__ = ["VolumeSource", "ArraySource", "SourceInfo", "SUPPORTED_DTYPES"]
 
 #: dtypes a store can hold; anything else (complex, object, bool, 64-bit ints beyond float64's exact range…) is refused.
 SUPPORTED_DTYPES = tuple(
@@ -50,3 +50,28 @@ class VolumeSource(abc.ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class ArraySource(VolumeSource):
+    """An in-memory (or memory-mapped) 3D array; 2D arrays are one slice thick."""
+
+    def __init__(self, array: np.ndarray, *, spacing=None, origin=None, units: str = "millimeter", format: str = "numpy"):
+        from lodcast.errors import SourceError
+
+        a = np.asarray(array) if not isinstance(array, np.memmap) else array
+        if a.ndim == 2:
+            a = a[None]
+        if a.ndim != 3:
+            raise SourceError(f"a volume must be a 3D array (z, y, x), got {a.ndim} dimensions with shape {a.shape}")
+        self._array = a
+        self.info = SourceInfo(
+            shape=tuple(int(s) for s in a.shape),  # type: ignore[arg-type]
+            dtype=a.dtype,
+            spacing=tuple(float(s) for s in (spacing or (1.0, 1.0, 1.0))),  # type: ignore[arg-type]
+            origin=tuple(float(s) for s in (origin or (0.0, 0.0, 0.0))),  # type: ignore[arg-type]
+            units=units,
+            format=format,
+        )
+
+    def read(self, z0: int, z1: int) -> np.ndarray:
+        return np.asarray(self._array[z0:z1])

@@ -1,0 +1,196 @@
+"""Per-block value histograms and their simplified piecewise-constant form (thesis §3.2.1, fig. 3.3).
+
+Histograms count every valid (non-NaN, non-padding) voxel of a block plus a one-voxel border taken from its
+neighbours, because interpolation near a block face reads those voxels too (thesis §3.5.2, paper IX). Bins span
+the volume's value range: one bin per integer value when an integer volume has at most `max_bins` values,
+otherwise `max_bins` equal bins with the last one closed.
+
+The simplified form is the least-squares-optimal segmentation of the histogram into at most K constant pieces,
+found exactly by dynamic programming. Two facts keep it fast: bins are compressed into runs of equal counts
+(an optimal boundary never falls strictly inside a run, because moving it through a run of equal values changes
+the two segments' squared error by a concave function of the position, so an end of the run is at least as
+good), and the dynamic programme runs vectorised over many blocks at once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Bins", "DEFAULT_BINS", "DEFAULT_SEGMENTS", "block_histograms", "simplify", "segmentation_sse", "expand"]
+
+DEFAULT_BINS = 256
+DEFAULT_SEGMENTS = 12
+
+
+@dataclass(frozen=True)
+class Bins:
+    """Histogram bins over a volume's value range [lo, hi]."""
+
+    lo: float
+    hi: float
+    count: int
+    integer: bool  # one bin per integer value, centred on it
+
+    @classmethod
+    def for_range(cls, lo: float, hi: float, integer: bool, max_bins: int = DEFAULT_BINS) -> "Bins":
+        if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
+            raise ValueError(f"value range must be finite with lo <= hi, got [{lo}, {hi}]")
+        if integer and hi - lo + 1 <= max_bins:
+            return cls(float(lo), float(hi), int(hi - lo) + 1, True)
+        if hi == lo:
+            return cls(float(lo), float(hi), 1, False)
+        return cls(float(lo), float(hi), max_bins, False)
+
+    @property
+    def edges(self) -> np.ndarray:
+        if self.integer:
+            return np.arange(self.count + 1, dtype=np.float64) + self.lo - 0.5
+        if self.count == 1:
+            return np.array([self.lo - 0.5, self.lo + 0.5])
+        return np.linspace(self.lo, self.hi, self.count + 1)
+
+    def index(self, values: np.ndarray) -> np.ndarray:
+        """Bin of each value as int32; NaN maps to -1 (counted nowhere)."""
+        v = np.asarray(values)
+        if self.integer:
+            idx = v.astype(np.int64, copy=False) - int(self.lo)
+            return np.clip(idx, 0, self.count - 1).astype(np.int32)
+        vf = v.astype(np.float64, copy=False)
+        if self.count == 1:
+            idx = np.zeros(vf.shape, np.int32)
+        else:
+            idx = np.floor((vf - self.lo) * (self.count / (self.hi - self.lo)))
+            idx = np.clip(np.nan_to_num(idx, nan=0.0), 0, self.count - 1).astype(np.int32)
+            # the product can round across an edge; the stored edges are the truth (as np.histogram does)
+            edges = self.edges
+            idx -= (vf < edges[idx]) & (idx > 0)
+            idx += (vf >= edges[idx + 1]) & (idx < self.count - 1)
+        idx[np.isnan(vf)] = -1
+        return idx
+
+    def to_dict(self) -> dict:
+        return {"lo": self.lo, "hi": self.hi, "count": self.count, "integer": self.integer}
+
+
+def block_histograms(bin_index: np.ndarray, block_size: int, n_bins: int) -> np.ndarray:
+    """Border-inclusive histograms of one block-slab.
+
+    `bin_index` holds the bin of every voxel of the slab's z-range widened by one voxel on each side where the
+    volume has one, with the true (unpadded) y and x extents. Returns counts (blocks_y, blocks_x, n_bins), uint32.
+    """
+    _, ny, nx = bin_index.shape
+    b = block_size
+    gy, gx = -(-ny // b), -(-nx // b)
+    out = np.zeros((gy, gx, n_bins), np.uint32)
+    for by in range(gy):
+        ys = slice(max(0, by * b - 1), min(ny, (by + 1) * b + 1))
+        for bx in range(gx):
+            xs = slice(max(0, bx * b - 1), min(nx, (bx + 1) * b + 1))
+            region = bin_index[:, ys, xs].ravel()
+            region = region[region >= 0]
+            out[by, bx] = np.bincount(region, minlength=n_bins)
+    return out
+
+
+def _runs(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Run starts (bin indices, with the final end appended) and run values of one histogram."""
+    change = np.flatnonzero(np.diff(h)) + 1
+    starts = np.concatenate(([0], change, [h.size]))
+    return starts, h[starts[:-1]]
+
+
+def simplify(hists: np.ndarray, segments: int = DEFAULT_SEGMENTS, group: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Optimal piecewise-constant approximation of each histogram with at most `segments` pieces.
+
+    Returns (starts, heights): starts (N, segments + 1) uint16 bin indices with starts[:, 0] = 0 and
+    starts[:, -1] = n_bins (equal neighbours mark unused, empty pieces), heights (N, segments) float32, the mean
+    count per bin of each piece. Minimises sum over bins of (h − piece height)².
+    """
+    hists = np.asarray(hists, np.float64)
+    n, n_bins = hists.shape
+    k = segments
+    starts = np.full((n, k + 1), n_bins, np.uint16)
+    starts[:, 0] = 0
+    heights = np.zeros((n, k), np.float32)
+    runs = [_runs(h) for h in hists]
+    order = np.argsort([len(v) for _, v in runs], kind="stable")
+    for g0 in range(0, n, group):
+        members = order[g0 : g0 + group]
+        _simplify_group([runs[i] for i in members], k, starts, heights, members)
+    return starts, heights
+
+
+def _simplify_group(runs: list, k: int, starts: np.ndarray, heights: np.ndarray, members: np.ndarray) -> None:
+    r = max(len(v) for _, v in runs)
+    g = len(runs)
+    length = np.zeros((g, r))
+    value = np.zeros((g, r))
+    for row, (s, v) in enumerate(runs):
+        length[row, : len(v)] = np.diff(s)
+        value[row, : len(v)] = v
+    # prefix sums over runs: count of bins, sum of counts, sum of squared counts
+    c = np.concatenate([np.zeros((g, 1)), np.cumsum(length, axis=1)], axis=1)
+    s1 = np.concatenate([np.zeros((g, 1)), np.cumsum(length * value, axis=1)], axis=1)
+    s2 = np.concatenate([np.zeros((g, 1)), np.cumsum(length * value * value, axis=1)], axis=1)
+
+    def cost(i: np.ndarray | slice, j: int) -> np.ndarray:
+        cnt = c[:, j : j + 1] - c[:, i]
+        t1 = s1[:, j : j + 1] - s1[:, i]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            e = s2[:, j : j + 1] - s2[:, i] - np.where(cnt > 0, t1 * t1 / cnt, 0.0)
+        return np.maximum(e, 0.0)
+
+    m_max = min(k, r)
+    d = np.full((m_max + 1, g, r + 1), np.inf)
+    arg = np.zeros((m_max + 1, g, r + 1), np.int32)
+    for j in range(1, r + 1):
+        d[1, :, j] = cost(slice(0, 1), j)[:, 0]
+    for m in range(2, m_max + 1):
+        for j in range(m, r + 1):
+            cand = d[m - 1, :, m - 1 : j] + cost(slice(m - 1, j), j)
+            best = np.argmin(cand, axis=1)
+            d[m, :, j] = cand[np.arange(g), best]
+            arg[m, :, j] = best + (m - 1)
+    # at most k pieces: the best piece count per block (fewer pieces when the runs are fewer or it is no worse)
+    total = d[1:, :, r]  # (m_max, g)
+    m_best = np.argmin(total, axis=0) + 1
+    for row in range(g):
+        s, v = runs[row]
+        bounds = [r]
+        j, m = r, int(m_best[row])
+        while m > 1:
+            j = int(arg[m, row, j])
+            bounds.append(j)
+            m -= 1
+        bounds.append(0)
+        bounds = bounds[::-1]
+        n_real = len(v)
+        bins = [int(s[min(b, n_real)]) for b in bounds]  # padded runs (zero length) sit past the end
+        out = members[row]
+        piece_count = len(bins) - 1
+        starts[out, : piece_count + 1] = bins
+        starts[out, piece_count + 1 :] = bins[-1]
+        for p in range(piece_count):
+            width = bins[p + 1] - bins[p]
+            if width > 0:
+                lo_run, hi_run = bounds[p], bounds[p + 1]
+                heights[out, p] = (s1[row, hi_run] - s1[row, lo_run]) / width
+
+
+def expand(starts: np.ndarray, heights: np.ndarray, n_bins: int) -> np.ndarray:
+    """The simplified histograms as per-bin counts, shape (N, n_bins) float64."""
+    starts = np.asarray(starts, np.int64)
+    n, k = heights.shape
+    out = np.zeros((n, n_bins))
+    bins = np.arange(n_bins)
+    for p in range(k):
+        inside = (bins[None, :] >= starts[:, p : p + 1]) & (bins[None, :] < starts[:, p + 1 : p + 2])
+        out += inside * heights[:, p : p + 1].astype(np.float64)
+    return out
+
+
+def segmentation_sse(hists: np.ndarray, starts: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """Squared error of each simplified histogram against its full histogram."""
+    hists = np.asarray(hists, np.float64)
+    return ((hists - expand(starts, heights, hists.shape[1])) ** 2).sum(axis=1)

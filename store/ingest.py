@@ -1,0 +1,374 @@
+"""Ingest: a source volume → a lodcast store (zarr v3), streamed in block-thick z-slabs.
+
+Pass 1 reads the source once, slab by slab: every level is built by average downsampling within each block
+(thesis §3.1: levels B, B/2, … 1 per block; padding by edge replication), written shard by shard, and the
+per-block min/max/mean/count gathered. Pass 2 reads level 0 back from the new store, slab by slab with a one-voxel
+halo, for the border-inclusive histograms, their simplified forms and the border-inclusive min/max, which need
+the volume's value range first. Peak memory is a few slabs whatever the depth.
+
+The store is written under a hidden temporary name beside the destination and renamed into place when complete,
+so a killed ingest never leaves anything at the destination that opens as a store.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import shutil
+import sys
+import uuid
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec, BloscShuffle
+
+from lodcast.errors import SourceError, StoreExists
+from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, block_histograms, simplify
+from lodcast.store.layout import Layout
+from lodcast.store.ome import multiscales
+from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
+from lodcast.store.store import FORMAT_VERSION, Store, open_store
+
+__all__ = ["ingest", "level_mean", "round_to_dtype"]
+
+
+def ingest(
+    source: str | os.PathLike[str] | np.ndarray | VolumeSource,
+    dest: str | os.PathLike[str],
+    *,
+    overwrite: bool = False,
+    block_size: int = 32,
+    progress: bool | None = None,
+    bins: int = DEFAULT_BINS,
+    segments: int = DEFAULT_SEGMENTS,
+    workers: int | None = None,
+    **reader_options: Any,
+) -> Store:
+    """Write `source` (a file or folder path, a NumPy array, or a VolumeSource) as a store at `dest`.
+
+    `reader_options` go to `lodcast.store.readers.open_source` (format, shape, dtype, byte_order, header_bytes,
+    spacing, origin, index); spacing and origin also apply to arrays. Raises SourceNotFound / SourceError for bad
+    input and StoreExists when `dest` exists and `overwrite` is false; nothing is left behind in either case.
+    """
+    dest = Path(dest)
+    if dest.exists() and not overwrite:
+        raise StoreExists(f"destination {dest} exists (use --overwrite to replace it)")
+    Layout((1, 1, 1), block_size)  # validates the block size before any file is opened
+    src = _open(source, reader_options)
+    try:
+        info = src.info
+        if np.dtype(info.dtype) not in SUPPORTED_DTYPES:
+            raise SourceError(
+                f"unsupported voxel type {np.dtype(info.dtype)}; expected one of {', '.join(d.name for d in SUPPORTED_DTYPES)}"
+            )
+        if len(info.shape) != 3 or min(info.shape) < 1:
+            raise SourceError(f"volume shape must have three non-empty axes (z, y, x), got {tuple(info.shape)}")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_partials(dest)
+        tmp = dest.parent / f".{dest.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        try:
+            label = type(source).__name__ if isinstance(source, (np.ndarray, VolumeSource)) else os.fspath(source)
+            _write(src, tmp, Layout(info.shape, block_size), bins, segments, workers, _show_progress(progress), label)
+            _move_into_place(tmp, dest, overwrite)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+    finally:
+        src.close()
+    return open_store(dest)
+
+
+# --- downsampling --------------------------------------------------------------------------------------------
+
+def level_mean(block_sums: np.ndarray, counts: np.ndarray | None, level: int) -> np.ndarray:
+    """Mean of each 2^level-cube from its sum (and its count of valid voxels when NaN were excluded)."""
+    if counts is None:
+        return block_sums / float(8**level)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, block_sums / np.maximum(counts, 1), np.nan)
+
+
+def round_to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Integer levels hold the float64 mean rounded half to even (np.rint), clipped to the type's range;
+    float levels keep the mean in their own precision."""
+    dtype = np.dtype(dtype)
+    if dtype.kind in "iu":
+        lim = np.iinfo(dtype)
+        return np.clip(np.rint(values), lim.min, lim.max).astype(dtype)
+    return values.astype(dtype)
+
+
+def _pool2(a: np.ndarray) -> np.ndarray:
+    z, y, x = a.shape
+    return a.reshape(z // 2, 2, y // 2, 2, x // 2, 2).sum(axis=(1, 3, 5))
+
+
+# --- pass 1: levels and interior statistics ------------------------------------------------------------------
+
+class _LevelWriter:
+    """Buffers level-k slabs until a whole shard depth is filled, then writes them: shards are written once."""
+
+    def __init__(self, array: zarr.Array, depth: int):
+        self.array = array
+        self.buffer = np.empty((min(depth, array.shape[0]),) + tuple(array.shape[1:]), array.dtype)
+        self.start = 0  # level z of buffer[0]
+        self.filled = 0
+
+    def add(self, rows: np.ndarray) -> None:
+        n = rows.shape[0]
+        self.buffer[self.filled : self.filled + n] = rows
+        self.filled += n
+        if self.filled == self.buffer.shape[0] or self.start + self.filled == self.array.shape[0]:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.filled:
+            self.array[self.start : self.start + self.filled] = self.buffer[: self.filled]
+            self.start += self.filled
+            self.filled = 0
+
+
+def _slab_levels(slab: np.ndarray, lay: Layout, bz: int) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
+    """Levels 1.. of one block-slab (each cut to its level's true extent) and its blocks' interior statistics."""
+    b = lay.block_size
+    zs, ny, nx = slab.shape
+    _, py, px = lay.padded_shape
+    padded = np.pad(slab, ((0, b - zs), (0, py - ny), (0, px - nx)), mode="edge") if (zs, ny, nx) != (b, py, px) else slab
+    values = padded.astype(np.float64)
+    counts = None
+    if slab.dtype.kind == "f":
+        valid = ~np.isnan(values)
+        if not valid.all():
+            counts = valid.astype(np.float64)
+            values[~valid] = 0.0
+    levels = []
+    for k in range(1, lay.n_levels):
+        values = _pool2(values)
+        counts = _pool2(counts) if counts is not None else None
+        mean = level_mean(values, counts, k)
+        lz, ly, lx = lay.level_shape(k)
+        e = lay.block_edge(k)
+        rows = min(e, lz - bz * e)
+        levels.append(round_to_dtype(mean[:rows, :ly, :lx], slab.dtype))
+    return levels, _interior_stats(slab, b)
+
+
+def _interior_stats(slab: np.ndarray, b: int) -> dict[str, np.ndarray]:
+    """min, max, sum and count of valid voxels per block of the slab (blocks_y, blocks_x), padding excluded."""
+    v = slab.astype(np.float64)
+    ys = np.arange(0, v.shape[1], b)
+    xs = np.arange(0, v.shape[2], b)
+    valid = ~np.isnan(v)
+
+    def per_block(ufunc: np.ufunc, a: np.ndarray) -> np.ndarray:
+        return ufunc.reduceat(ufunc.reduceat(ufunc.reduce(a, axis=0), ys, axis=0), xs, axis=1)
+
+    return {
+        "min": per_block(np.fmin, v),
+        "max": per_block(np.fmax, v),
+        "sum": per_block(np.add, np.where(valid, v, 0.0)),
+        "count": per_block(np.add, valid.astype(np.float64)),
+    }
+
+
+# --- the writer ----------------------------------------------------------------------------------------------
+
+def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: int,
+           workers: int | None, show: bool, source_label: str) -> None:
+    info = src.info
+    dtype = np.dtype(info.dtype)
+    gz, gy, gx = lay.grid
+    group = zarr.open_group(str(root), mode="w", zarr_format=3)
+    compressor = BloscCodec(cname="zstd", clevel=3, shuffle=BloscShuffle.bitshuffle if dtype.itemsize > 1 else BloscShuffle.shuffle)
+    writers = []
+    for k in range(lay.n_levels):
+        arr = group.create_array(
+            str(k), shape=lay.level_shape(k), dtype=dtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
+            compressors=compressor, fill_value=np.nan if dtype.kind == "f" else 0, dimension_names=("z", "y", "x"),
+        )
+        writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
+    stats = {name: np.full(lay.grid, np.nan) for name in ("min", "max", "mean", "count", "min_border", "max_border")}
+    pool = ThreadPoolExecutor(max_workers=workers or min(4, os.cpu_count() or 1))
+    bar = _progress(2 * gz, show, f"ingest {Path(source_label).name}")
+    try:
+        # pass 1: read ahead one slab on a worker thread while this one is downsampled
+        nan_count = 0
+        for bz, slab in enumerate(_prefetched(src, lay, pool)):
+            levels_fut = pool.submit(_slab_levels, slab, lay, bz)
+            writers[0].add(slab)
+            levels, st = levels_fut.result()
+            for w, rows in zip(writers[1:], levels):
+                w.add(rows)
+            stats["min"][bz], stats["max"][bz] = st["min"], st["max"]
+            stats["count"][bz] = st["count"]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                stats["mean"][bz] = np.where(st["count"] > 0, st["sum"] / np.maximum(st["count"], 1), np.nan)
+            nan_count += int(slab.size - st["count"].sum())
+            bar.update(1)
+        for w in writers:
+            w.flush()
+        finite = stats["count"] > 0
+        if not finite.any():
+            raise SourceError("the volume holds no valid voxel (every value is NaN)")
+        lo, hi = float(np.nanmin(stats["min"])), float(np.nanmax(stats["max"]))
+        bins = Bins.for_range(lo, hi, integer=dtype.kind in "iu", max_bins=n_bins)
+        seg = min(segments, bins.count)
+        blocks = group.create_group("blocks")
+        hist_arr = blocks.create_array("hist", shape=lay.grid + (bins.count,), dtype=np.uint32,
+                                       chunks=(1, gy, gx, bins.count), compressors=compressor, fill_value=0)
+        starts_arr = blocks.create_array("hist_starts", shape=lay.grid + (seg + 1,), dtype=np.uint16,
+                                         chunks=(1, gy, gx, seg + 1), fill_value=0)
+        heights_arr = blocks.create_array("hist_heights", shape=lay.grid + (seg,), dtype=np.float32,
+                                          chunks=(1, gy, gx, seg), fill_value=0)
+        # pass 2: border-inclusive histograms from level 0 of the new store, two slabs in flight
+        level0 = group["0"]
+        futures = [pool.submit(_slab_histograms, level0, lay, bins, seg, bz) for bz in range(min(2, gz))]
+        for bz in range(gz):
+            hist, starts, heights, mn, mx = futures[bz].result()
+            if bz + 2 < gz:
+                futures.append(pool.submit(_slab_histograms, level0, lay, bins, seg, bz + 2))
+            futures[bz] = None  # type: ignore[call-overload]
+            hist_arr[bz] = hist
+            starts_arr[bz] = starts
+            heights_arr[bz] = heights
+            stats["min_border"][bz], stats["max_border"][bz] = mn, mx
+            bar.update(1)
+        for name, values in stats.items():
+            blocks.create_array(name, data=values, chunks=lay.grid, fill_value=np.nan)
+    finally:
+        bar.close()
+        pool.shutdown(wait=True, cancel_futures=True)
+    group.attrs.update(_attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label))
+
+
+def _slab_histograms(level0: zarr.Array, lay: Layout, bins: Bins, seg: int, bz: int) -> tuple:
+    b = lay.block_size
+    z0, z1 = max(0, bz * b - 1), min(lay.shape[0], (bz + 1) * b + 1)
+    data = np.asarray(level0[z0:z1])
+    idx = bins.index(data)
+    hist = block_histograms(idx, b, bins.count)
+    gy, gx = hist.shape[:2]
+    starts, heights = simplify(hist.reshape(gy * gx, -1), seg)
+    v = data.astype(np.float64)
+    ys = [max(0, by * b - 1) for by in range(gy)]
+    xs = [max(0, bx * b - 1) for bx in range(gx)]
+    mn = np.full((gy, gx), np.nan)
+    mx = np.full((gy, gx), np.nan)
+    for by, y0 in enumerate(ys):
+        for bx, x0 in enumerate(xs):
+            region = v[:, y0 : (by + 1) * b + 1, x0 : (bx + 1) * b + 1]
+            if not np.isnan(region).all():
+                mn[by, bx], mx[by, bx] = np.nanmin(region), np.nanmax(region)
+    return hist, starts.reshape(gy, gx, -1), heights.reshape(gy, gx, -1), mn, mx
+
+
+def _prefetched(src: VolumeSource, lay: Layout, pool: ThreadPoolExecutor) -> Iterator[np.ndarray]:
+    b, depth = lay.block_size, lay.shape[0]
+    expected = tuple(lay.shape[1:])
+
+    def read(bz: int) -> np.ndarray:
+        z0, z1 = bz * b, min(depth, (bz + 1) * b)
+        slab = np.asarray(src.read(z0, z1))
+        if slab.shape != (z1 - z0,) + expected:
+            raise SourceError(f"reader returned a slab of shape {slab.shape} for z {z0}:{z1}, expected {(z1 - z0,) + expected}")
+        return slab
+
+    nxt = pool.submit(read, 0)
+    for bz in range(lay.grid[0]):
+        slab = nxt.result()
+        if bz + 1 < lay.grid[0]:
+            nxt = pool.submit(read, bz + 1)
+        yield slab
+
+
+def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[float, float], bins: Bins,
+                seg: int, nan_count: int, root: Path, source_label: str) -> dict[str, Any]:
+    import lodcast
+
+    info = src.info
+    name = root.name.split(".partial-")[0].lstrip(".").removesuffix(".zarr")
+    return {
+        "lodcast": {"format_version": FORMAT_VERSION},
+        "shape": list(lay.shape),
+        "dtype": dtype.name,
+        "spacing": list(info.spacing),
+        "origin": list(info.origin),
+        "units": info.units,
+        "block_size": lay.block_size,
+        "grid": list(lay.grid),
+        "levels": [
+            {"path": str(k), "shape": list(lay.level_shape(k)), "block_edge": lay.block_edge(k)} for k in range(lay.n_levels)
+        ],
+        "value_range": list(vrange),
+        "nan_count": nan_count,
+        "histogram": {"bins": bins.to_dict(), "segments": seg, "border": 1},
+        "downsampling": "mean within each block; integers rounded half to even; edge-replicated padding",
+        "source": {"path": source_label, "format": info.format, **info.provenance},
+        "provenance": {
+            "lodcast_version": lodcast.__version__,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "zarr_version": zarr.__version__,
+        },
+        "ome": multiscales(name, lay.n_levels, info.spacing, info.origin, info.units),
+    }
+
+
+# --- files ---------------------------------------------------------------------------------------------------
+
+def _open(source: Any, options: dict[str, Any]) -> VolumeSource:
+    if isinstance(source, VolumeSource):
+        return source
+    if isinstance(source, np.ndarray):
+        unknown = set(options) - {"spacing", "origin", "units"}
+        if unknown:
+            raise SourceError(f"options {sorted(unknown)} do not apply to an in-memory array")
+        return ArraySource(source, **{k: v for k, v in options.items() if v is not None})
+    from lodcast.store.readers import open_source
+
+    return open_source(source, **{k: v for k, v in options.items() if v is not None})
+
+
+def _remove_stale_partials(dest: Path) -> None:
+    """Partial stores of ingests that were killed (their process is gone) are removed."""
+    for p in dest.parent.glob(f".{dest.name}.partial-*"):
+        try:
+            pid = int(p.name.rsplit(".partial-", 1)[1].split("-")[0])
+        except (IndexError, ValueError):
+            continue
+        if not _alive(pid):
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _move_into_place(tmp: Path, dest: Path, overwrite: bool) -> None:
+    if not dest.exists():
+        os.rename(tmp, dest)
+        return
+    if not overwrite:
+        raise StoreExists(f"destination {dest} appeared while ingesting (use --overwrite to replace it)")
+    old = dest.parent / f".{dest.name}.replaced-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    os.rename(dest, old)
+    os.rename(tmp, dest)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _show_progress(progress: bool | None) -> bool:
+    return sys.stderr.isatty() if progress is None else progress
+
+
+def _progress(total: int, show: bool, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="slab", disable=not show, file=sys.stderr, leave=False)

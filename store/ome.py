@@ -1,0 +1,44 @@
+"""OME-Zarr 0.5 `multiscales` metadata for a store's level arrays, so napari, Neuroglancer and ome-zarr readers
+open the same store at the right scale and position."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+__all__ = ["multiscales"]
+
+_UNITS = {"mm": "millimeter", "um": "micrometer", "µm": "micrometer", "nm": "nanometer", "m": "meter", "cm": "centimeter"}
+
+
+def ome_unit(units: str) -> str:
+    """The OME (UDUNITS-2) name for a length unit, e.g. 'mm' -> 'millimeter'."""
+    return _UNITS.get(units, units)
+
+
+def multiscales(name: str, n_levels: int, spacing: Sequence[float], origin: Sequence[float], units: str) -> dict:
+    """The `ome` attribute block. Level k averages 2^k-cubes of level-0 voxels, so its scale is 2^k·spacing and its
+    first sample's centre sits (2^k − 1)/2 level-0 voxels past level 0's first centre."""
+    datasets = []
+    for k in range(n_levels):
+        f = float(1 << k)
+        datasets.append(
+            {
+                "path": str(k),
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": [s * f for s in spacing]},
+                    {"type": "translation", "translation": [o + s * (f - 1.0) / 2.0 for o, s in zip(origin, spacing)]},
+                ],
+            }
+        )
+    unit = ome_unit(units)
+    return {
+        "version": "0.5",
+        "multiscales": [
+            {
+                "name": name,
+                "axes": [{"name": a, "type": "space", "unit": unit} for a in ("z", "y", "x")],
+                "datasets": datasets,
+                "type": "mean",
+                "metadata": {"description": "flat multiresolution blocks averaged within each block (lodcast)"},
+            }
+        ],
+    }

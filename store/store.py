@@ -1,0 +1,192 @@
+"""Reading a lodcast store: a zarr v3 group of level arrays, per-block metadata arrays and attributes.
+
+Layout of a store (all written by `lodcast.store.ingest`):
+
+- attributes: `shape`, `dtype`, `spacing`, `origin` (z, y, x; world = index × spacing + origin at voxel centres),
+  `units`, `block_size`, `grid`, `levels` (one entry per level array), `value_range` (NaN-free), `histogram`
+  (bins and segment count), `nan_count`, `source` (what was read), `provenance` (who wrote it, when), and the
+  OME-Zarr 0.5 block under `ome`;
+- arrays `0` … `L`: level k, shape ceil(shape / 2^k), inner chunks of one block (or a cube of blocks once blocks
+  are under 16 samples across), grouped into shards by the sharding codec;
+- arrays under `blocks/`, indexed by block (z, y, x): `min`, `max`, `mean`, `count` over the block's own valid
+  voxels, `min_border`, `max_border` and `hist` over the block grown by one voxel into its neighbours, and the
+  simplified histogram `hist_starts` (bin index where each piece starts, plus the end) and `hist_heights`.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from lodcast.errors import StoreInvalid, StoreNotFound
+from lodcast.store.histogram import Bins
+from lodcast.store.layout import Layout
+
+__all__ = ["Store", "BlockStats", "open_store", "FORMAT_VERSION"]
+
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class BlockStats:
+    """Per-block statistics, each shaped like the block grid. NaN where a block has no valid voxel."""
+
+    min: np.ndarray
+    max: np.ndarray
+    mean: np.ndarray
+    count: np.ndarray
+    min_border: np.ndarray
+    max_border: np.ndarray
+
+
+class Store:
+    """An opened lodcast store. Cheap to create; arrays are read on demand."""
+
+    def __init__(self, group: zarr.Group, location: str):
+        self.group = group
+        self.location = location
+        a = dict(group.attrs)
+        try:
+            marker = a["lodcast"]
+            if marker.get("format_version") != FORMAT_VERSION:
+                raise StoreInvalid(f"{location}: store format version {marker.get('format_version')} is not {FORMAT_VERSION}")
+            self.attrs = a
+            self.shape: tuple[int, int, int] = tuple(int(v) for v in a["shape"])  # type: ignore[assignment]
+            self.dtype = np.dtype(a["dtype"])
+            self.spacing: tuple[float, float, float] = tuple(float(v) for v in a["spacing"])  # type: ignore[assignment]
+            self.origin: tuple[float, float, float] = tuple(float(v) for v in a["origin"])  # type: ignore[assignment]
+            self.units: str = a["units"]
+            self.block_size: int = int(a["block_size"])
+            self.value_range: tuple[float, float] = (float(a["value_range"][0]), float(a["value_range"][1]))
+            self.bins = Bins(**a["histogram"]["bins"])
+            self.segments = int(a["histogram"]["segments"])
+        except KeyError as exc:
+            raise StoreInvalid(f"{location} is not a complete lodcast store: attribute {exc} is missing") from None
+        self.layout = Layout(self.shape, self.block_size)
+
+    # --- geometry -------------------------------------------------------------------------------------------
+    @property
+    def n_levels(self) -> int:
+        return self.layout.n_levels
+
+    @property
+    def grid(self) -> tuple[int, int, int]:
+        return self.layout.grid
+
+    @property
+    def name(self) -> str:
+        return Path(self.location.rstrip("/")).name.removesuffix(".zarr")
+
+    @property
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-space box (lower, upper) corners in (z, y, x): half a voxel beyond the outermost centres."""
+        sp, org, shp = (np.asarray(v, np.float64) for v in (self.spacing, self.origin, self.shape))
+        return org - sp / 2, org + (shp - 0.5) * sp
+
+    # --- data -----------------------------------------------------------------------------------------------
+    def level(self, k: int) -> zarr.Array:
+        self.layout._check_level(k)
+        return self.group[str(k)]  # type: ignore[return-value]
+
+    def read_level(self, k: int) -> np.ndarray:
+        return np.asarray(self.level(k)[...])
+
+    def read_brick(self, k: int, block: tuple[int, int, int]) -> np.ndarray:
+        """Block `block` at level k as a full (B/2^k)³ brick; samples past the volume repeat the edge (the same
+        padding ingest averaged into the coarser levels)."""
+        region = self.layout.block_region(*block, level=k)
+        data = np.asarray(self.level(k)[region])
+        e = self.layout.block_edge(k)
+        pad = [(0, e - n) for n in data.shape]
+        return np.pad(data, pad, mode="edge") if any(p for _, p in pad) else data
+
+    @cached_property
+    def stats(self) -> BlockStats:
+        b = self.group["blocks"]
+        return BlockStats(**{f: np.asarray(b[f][...]) for f in ("min", "max", "mean", "count", "min_border", "max_border")})
+
+    @cached_property
+    def hist(self) -> np.ndarray:
+        """Border-inclusive histograms, shape grid + (bins,), uint32."""
+        return np.asarray(self.group["blocks/hist"][...])
+
+    @property
+    def hist_edges(self) -> np.ndarray:
+        return self.bins.edges
+
+    @cached_property
+    def hist_simplified(self) -> tuple[np.ndarray, np.ndarray]:
+        """(starts, heights): grid + (segments + 1,) bin indices and grid + (segments,) mean counts per bin."""
+        return np.asarray(self.group["blocks/hist_starts"][...]), np.asarray(self.group["blocks/hist_heights"][...])
+
+    # --- reporting ------------------------------------------------------------------------------------------
+    def bytes_on_disk(self) -> int | None:
+        """Size of every file of the store, or None for a remote store."""
+        root = Path(self.location)
+        if not root.is_dir():
+            return None
+        return sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
+
+    def summary(self) -> dict[str, Any]:
+        """What `lodcast info` prints."""
+        lay = self.layout
+        levels = [
+            {
+                "path": str(k),
+                "shape": list(lay.level_shape(k)),
+                "block_edge": lay.block_edge(k),
+                "chunks": list(lay.chunk_shape(k)),
+                "shards": list(lay.shard_shape(k)),
+                "shard_count": lay.shard_count(k),
+                "scale": [s * (1 << k) for s in self.spacing],
+            }
+            for k in range(lay.n_levels)
+        ]
+        return {
+            "path": self.location,
+            "shape": list(self.shape),
+            "dtype": self.dtype.name,
+            "spacing": list(self.spacing),
+            "origin": list(self.origin),
+            "units": self.units,
+            "block_size": self.block_size,
+            "levels": levels,
+            "value_range": list(self.value_range),
+            "nan_count": int(self.attrs.get("nan_count", 0)),
+            "grid": list(lay.grid),
+            "blocks": lay.n_blocks,
+            "shards": sum(lvl["shard_count"] for lvl in levels),
+            "bytes_on_disk": self.bytes_on_disk(),
+            "histogram": self.attrs["histogram"],
+            "source": self.attrs.get("source", {}),
+            "provenance": self.attrs.get("provenance", {}),
+        }
+
+    def __repr__(self) -> str:
+        return f"Store({self.location!r}, shape={self.shape}, dtype={self.dtype.name}, block_size={self.block_size})"
+
+
+def open_store(path_or_url: str | os.PathLike[str]) -> Store:
+    """Open a store written by `lodcast.ingest`: a local folder, or an fsspec URL (s3://…, https://…)."""
+    location = os.fspath(path_or_url)
+    is_url = "://" in location
+    if not is_url:
+        p = Path(location)
+        if not p.exists():
+            raise StoreNotFound(f"no store at {location}")
+        if not (p / "zarr.json").is_file():
+            raise StoreInvalid(f"{location} is not a lodcast store (no zarr.json: not a zarr v3 group)")
+    try:
+        group = zarr.open_group(location, mode="r")
+    except FileNotFoundError:
+        raise StoreNotFound(f"no store at {location}") from None
+    except Exception as exc:  # zarr raises several types for foreign or corrupt metadata
+        raise StoreInvalid(f"{location} is not a readable zarr v3 group: {exc}") from None
+    if "lodcast" not in group.attrs:
+        raise StoreInvalid(f"{location} is a zarr group but not a lodcast store (no 'lodcast' attribute)")
+    return Store(group, location)

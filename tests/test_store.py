@@ -1,0 +1,235 @@
+"""The brick store: levels against an independent float64 reference, statistics and histograms against brute
+force, optimal simplified histograms, addressing beyond 2^31 voxels, OME metadata, atomic writes."""
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+import lodcast
+from lodcast.errors import SourceError, StoreExists, StoreInvalid, StoreNotFound
+from lodcast.store.histogram import Bins, segmentation_sse, simplify
+from lodcast.store.layout import Layout
+
+
+def reference_level(volume: np.ndarray, block: int, k: int) -> np.ndarray:
+    """Level k the slow way: pad each axis to a multiple of the block by repeating the edge, average every
+    2^k-cube in float64 ignoring NaN, cut to ceil(shape / 2^k)."""
+    v = volume.astype(np.float64)
+    pad = [(0, (-s) % block) for s in v.shape]
+    v = np.pad(v, pad, mode="edge")
+    f = 1 << k
+    out_shape = [s // f for s in v.shape]
+    out = np.empty(out_shape)
+    for idx in itertools.product(*(range(n) for n in out_shape)):
+        cube = v[idx[0] * f : (idx[0] + 1) * f, idx[1] * f : (idx[1] + 1) * f, idx[2] * f : (idx[2] + 1) * f]
+        out[idx] = np.nanmean(cube) if not np.isnan(cube).all() else np.nan
+    return out[tuple(slice(0, -(-s // f)) for s in volume.shape)]
+
+
+def brute_border_hist(volume: np.ndarray, block: int, edges: np.ndarray) -> np.ndarray:
+    grid = [-(-s // block) for s in volume.shape]
+    out = np.zeros(grid + [len(edges) - 1], np.int64)
+    for b in itertools.product(*(range(g) for g in grid)):
+        region = volume[tuple(slice(max(0, i * block - 1), min(n, (i + 1) * block + 1)) for i, n in zip(b, volume.shape))]
+        vals = region[~np.isnan(region.astype(np.float64))].astype(np.float64)
+        out[b] = np.histogram(vals, bins=edges)[0]
+    return out
+
+
+def rounded(ref: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    return np.rint(ref) if np.dtype(dtype).kind in "iu" else ref
+
+
+CASES = [
+    ("odd", (33, 17, 5), np.uint16, 8),
+    ("thin", (1, 19, 23), np.int16, 8),
+    ("one_block", (16, 16, 16), np.uint8, 16),
+    ("float", (9, 20, 13), np.float32, 4),
+    ("float64", (5, 6, 7), np.float64, 4),
+]
+
+
+@pytest.mark.parametrize("name,shape,dtype,block", CASES, ids=[c[0] for c in CASES])
+def test_levels_stats_and_histograms_match_brute_force(tmp_path: Path, name, shape, dtype, block):
+    rng = np.random.default_rng(abs(hash(name)) % 2**32)
+    if np.dtype(dtype).kind == "f":
+        vol = (rng.standard_normal(shape) * 100).astype(dtype)
+        vol.flat[rng.integers(0, vol.size, 3)] = np.nan
+    else:
+        info = np.iinfo(dtype)
+        vol = rng.integers(max(info.min, -2000), min(info.max, 3000), shape).astype(dtype)
+    st = lodcast.ingest(vol, tmp_path / f"{name}.zarr", block_size=block, spacing=(0.3, 1.0, 5.0))
+    assert st.spacing == (0.3, 1.0, 5.0) and st.shape == shape and st.dtype == np.dtype(dtype)
+    # level 0 bit-exact (NaN where NaN)
+    np.testing.assert_array_equal(st.read_level(0), vol)
+    # every level against the float64 reference; integers rounded half to even, floats to their precision
+    for k in range(1, st.n_levels):
+        ref = rounded(reference_level(vol, block, k), dtype)
+        got = st.read_level(k).astype(np.float64)
+        assert got.shape == ref.shape
+        np.testing.assert_allclose(got, ref, rtol=1e-6 if dtype == np.float32 else 1e-12, atol=0, equal_nan=True)
+    # interior statistics: padding and NaN excluded
+    v64 = vol.astype(np.float64)
+    for b in itertools.product(*(range(g) for g in st.grid)):
+        cube = v64[tuple(slice(i * block, (i + 1) * block) for i in b)]
+        assert st.stats.count[b] == np.count_nonzero(~np.isnan(cube))
+        assert st.stats.min[b] == np.nanmin(cube) and st.stats.max[b] == np.nanmax(cube)
+        assert st.stats.mean[b] == pytest.approx(np.nanmean(cube), rel=1e-12)
+        border = v64[tuple(slice(max(0, i * block - 1), (i + 1) * block + 1) for i in b)]
+        assert st.stats.min_border[b] == np.nanmin(border) and st.stats.max_border[b] == np.nanmax(border)
+    # border-inclusive histograms equal a brute-force count with the stored edges
+    np.testing.assert_array_equal(st.hist, brute_border_hist(vol, block, st.hist_edges))
+    assert st.hist.sum() > 0
+    # value range is NaN-free
+    assert st.value_range == (float(np.nanmin(v64)), float(np.nanmax(v64)))
+
+
+def test_integer_levels_round_half_to_even(tmp_path: Path):
+    vol = np.zeros((2, 2, 4), np.uint8)
+    vol[:, :, :2] = [[[2, 3], [2, 3]], [[2, 3], [2, 3]]]  # mean 2.5 -> 2
+    vol[:, :, 2:] = [[[3, 4], [3, 4]], [[3, 4], [3, 4]]]  # mean 3.5 -> 4
+    st = lodcast.ingest(vol, tmp_path / "r.zarr", block_size=2)
+    np.testing.assert_array_equal(st.read_level(1)[0, 0], [2, 4])
+
+
+def test_constant_and_nan_volumes(tmp_path: Path):
+    st = lodcast.ingest(np.full((5, 6, 7), 42, np.int16), tmp_path / "c.zarr", block_size=4)
+    assert st.value_range == (42.0, 42.0) and st.bins.count == 1
+    assert (st.hist[..., 0] > 0).all()
+    with pytest.raises(SourceError, match="no valid voxel"):
+        lodcast.ingest(np.full((4, 4, 4), np.nan, np.float32), tmp_path / "n.zarr")
+    assert not (tmp_path / "n.zarr").exists() and not list(tmp_path.glob(".n.zarr*"))
+
+
+def test_simplified_histograms_are_optimal_against_brute_force():
+    rng = np.random.default_rng(7)
+
+    def brute(h: np.ndarray, k: int) -> float:
+        best = np.inf
+        for m in range(1, min(k, len(h)) + 1):
+            for cuts in itertools.combinations(range(1, len(h)), m - 1):
+                b = (0, *cuts, len(h))
+                best = min(best, sum(((h[b[i] : b[i + 1]] - h[b[i] : b[i + 1]].mean()) ** 2).sum() for i in range(m)))
+        return best
+
+    hists = []
+    for _ in range(150):
+        n = int(rng.integers(1, 12))
+        hists.append((rng.integers(0, 5, n) * (rng.random(n) < 0.6)).astype(np.float64))
+    for k in (1, 2, 3, 4):
+        for h in hists:
+            starts, heights = simplify(h[None], k)
+            assert starts[0, 0] == 0 and starts[0, -1] == len(h) and (np.diff(starts[0].astype(int)) >= 0).all()
+            assert segmentation_sse(h[None], starts, heights)[0] == pytest.approx(brute(h, k), abs=1e-9)
+
+
+def test_simplified_histograms_batch_equals_single_and_have_12_pieces():
+    rng = np.random.default_rng(3)
+    x = np.arange(256)
+    centres, widths = rng.uniform(20, 230, (40, 2, 1)), rng.uniform(3, 25, (40, 2, 1))
+    h = np.rint((1000 * np.exp(-0.5 * ((x - centres) / widths) ** 2)).sum(axis=1))  # block histograms: a few peaks
+    s_all, h_all = simplify(h, 12)
+    assert s_all.shape == (40, 13) and h_all.shape == (40, 12)
+    for i in (0, 17, 39):
+        s1, h1 = simplify(h[i : i + 1], 12)
+        np.testing.assert_array_equal(s1[0], s_all[i])
+        # more pieces never increase the error, and twelve pieces capture a few peaks far better than one
+        assert segmentation_sse(h[i : i + 1], s1, h1)[0] <= segmentation_sse(h[i : i + 1], *simplify(h[i : i + 1], 11))[0] + 1e-9
+    assert (segmentation_sse(h, s_all, h_all) < 0.1 * segmentation_sse(h, *simplify(h, 1))).all()
+
+
+def test_addressing_beyond_2_31_voxels():
+    lay = Layout((2048, 2048, 1024), 32)
+    assert lay.n_voxels == 2**32
+    last = lay.voxel_offset(2047, 2047, 1023)
+    assert last == 2**32 - 1 and isinstance(last, int)
+    assert lay.voxel_of_offset(last) == (2047, 2047, 1023)
+    z = np.array([0, 1024, 2047])
+    off = lay.voxel_offset(z, np.array([5, 2047, 2047]), np.array([7, 1023, 1023]))
+    assert off.dtype == np.int64 and off.tolist() == [5 * 1024 + 7, (1024 * 2048 + 2047) * 1024 + 1023, 2**32 - 1]
+    assert lay.grid == (64, 64, 32) and lay.n_blocks == 131072
+    bi = lay.block_index(np.array([63]), np.array([63]), np.array([31]))
+    assert bi.tolist() == [131071] and [c.tolist() for c in lay.block_coords(bi)] == [[63], [63], [31]]
+    assert lay.level_shape(5) == (64, 64, 32) and lay.voxel_offset(63, 63, 31, level=5) == 131071
+    # sub-ranges of the last block at level 0 are clipped correctly
+    assert lay.block_region(63, 63, 31, border=1) == (slice(2015, 2048), slice(2015, 2048), slice(991, 1024))
+
+
+def test_chunks_shards_and_ome_metadata(tmp_path: Path):
+    from ome_zarr_models.v05.image import Image
+
+    vol = np.random.default_rng(0).integers(0, 255, (70, 300, 40)).astype(np.uint8)
+    st = lodcast.ingest(vol, tmp_path / "v.zarr", spacing=(2.0, 0.5, 0.25), origin=(10.0, -5.0, 1.0))
+    for k in range(st.n_levels):
+        arr = st.level(k)
+        assert arr.shards == st.layout.shard_shape(k) and arr.chunks == st.layout.chunk_shape(k)
+        assert arr.chunks[0] == max(32 >> k, 16)
+    # coarser levels group more blocks per shard; level 0 here is 3 slabs x 2 shards across y
+    assert st.layout.shard_count(0) == 3 * 2 * 1 and st.layout.shard_count(st.n_levels - 1) == 1
+    shard_files = [p for p in (tmp_path / "v.zarr" / "0" / "c").rglob("*") if p.is_file()]
+    assert len(shard_files) == st.layout.shard_count(0)
+    image = Image.from_zarr(zarr.open_group(str(tmp_path / "v.zarr"), mode="r"))
+    ds = image.ome_attributes.multiscales[0].datasets
+    assert [d.path for d in ds] == [str(k) for k in range(st.n_levels)]
+    for k, d in enumerate(ds):
+        scale, trans = d.coordinateTransformations[0].scale, d.coordinateTransformations[1].translation
+        assert list(scale) == [2.0 * 2**k, 0.5 * 2**k, 0.25 * 2**k]
+        # the first level-k sample is the mean of level-0 samples 0 .. 2^k - 1: its centre is their centre
+        assert list(trans) == pytest.approx([o + s * (2**k - 1) / 2 for o, s in zip((10.0, -5.0, 1.0), (2.0, 0.5, 0.25))])
+
+
+def test_atomic_destination_and_errors(tmp_path: Path):
+    dest = tmp_path / "a.zarr"
+    first = lodcast.ingest(np.zeros((3, 4, 5), np.uint8), dest)
+    with pytest.raises(StoreExists):
+        lodcast.ingest(np.ones((3, 4, 5), np.uint8), dest)
+    assert (lodcast.open_store(dest).read_level(0) == 0).all()
+    lodcast.ingest(np.ones((3, 4, 5), np.uint8), dest, overwrite=True)
+    assert (lodcast.open_store(dest).read_level(0) == 1).all() and first.shape == (3, 4, 5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.zarr"]  # no temporary or replaced store left
+    with pytest.raises(SourceError, match="unsupported voxel type complex64"):
+        lodcast.ingest(np.zeros((2, 2, 2), np.complex64), tmp_path / "c.zarr")
+    with pytest.raises(SourceError, match="shape"):
+        lodcast.ingest(np.zeros((0, 2, 2), np.uint8), tmp_path / "e.zarr")
+    with pytest.raises(ValueError, match="power of two"):
+        lodcast.ingest(np.zeros((2, 2, 2), np.uint8), tmp_path / "b.zarr", block_size=24)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.zarr"]
+    with pytest.raises(StoreNotFound):
+        lodcast.open_store(tmp_path / "missing.zarr")
+    zarr.open_group(str(tmp_path / "plain.zarr"), mode="w", zarr_format=3)
+    with pytest.raises(StoreInvalid, match="not a lodcast store"):
+        lodcast.open_store(tmp_path / "plain.zarr")
+
+
+def test_read_brick_pads_with_edge(tmp_path: Path):
+    vol = np.arange(5 * 6 * 7, dtype=np.uint16).reshape(5, 6, 7)
+    st = lodcast.ingest(vol, tmp_path / "b.zarr", block_size=4)
+    brick = st.read_brick(0, (1, 1, 1))
+    np.testing.assert_array_equal(brick, np.pad(vol[4:, 4:, 4:], ((0, 3), (0, 2), (0, 1)), mode="edge"))
+    assert st.read_brick(2, (0, 0, 0)).shape == (1, 1, 1)
+
+
+def test_summary_has_the_info_keys(tmp_path: Path):
+    st = lodcast.ingest(np.zeros((40, 8, 8), np.int16), tmp_path / "s.zarr")
+    info = json.loads(json.dumps(st.summary()))
+    for key in ("shape", "dtype", "spacing", "origin", "block_size", "levels", "value_range", "blocks", "shards", "bytes_on_disk"):
+        assert key in info
+    assert info["blocks"] == 2 and info["bytes_on_disk"] > 0 and len(info["levels"]) == 6
+    assert info["shards"] == sum(lvl["shard_count"] for lvl in info["levels"])
+
+
+def test_bins_map_values_to_the_stored_edges():
+    b = Bins.for_range(-1.5, 2.5, integer=False, max_bins=8)
+    v = np.array([-1.5, -1.0, 0.0, 2.4999, 2.5, np.nan])
+    idx = b.index(v)
+    assert idx.tolist() == [0, 1, 3, 7, 7, -1]
+    edges = b.edges
+    for val, i in zip(v[:-1], idx[:-1]):
+        assert edges[i] <= val <= edges[i + 1]
+    bi = Bins.for_range(-3, 4, integer=True)
+    assert bi.count == 8 and bi.index(np.array([-3, 0, 4])).tolist() == [0, 3, 7]
