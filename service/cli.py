@@ -84,13 +84,39 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- service: serve / worker / submit / jobs (implemented in lodcast.service.commands) ----------------------
+
+def _add_serve(sub: argparse._SubParsersAction) -> None:
+    from lodcast.service.commands import add_serve
+
+    add_serve(sub)
+
+
+def _add_worker(sub: argparse._SubParsersAction) -> None:
+    from lodcast.service.commands import add_worker
+
+    add_worker(sub)
+
+
+def _add_submit(sub: argparse._SubParsersAction) -> None:
+    from lodcast.service.commands import add_submit
+
+    add_submit(sub)
+
+
+def _add_jobs(sub: argparse._SubParsersAction) -> None:
+    from lodcast.service.commands import add_jobs
+
+    add_jobs(sub)
+
+
 # --- entry point ---------------------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_ingest, _add_info):
+    for add in (_add_ingest, _add_info, _add_serve, _add_worker, _add_submit, _add_jobs):
         add(sub)
     return parser
 

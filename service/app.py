@@ -1,0 +1,307 @@
+"""The HTTP API (FastAPI). ``create_app(settings)`` builds everything; nothing is created at import time.
+
+Routes (DESIGN.md "Interfaces"): ``GET /healthz``; ``GET/POST /volumes``, ``GET/DELETE /volumes/{id}``,
+``POST /volumes/{id}/upload``; ``POST /volumes/{id}/render``; ``GET/POST /jobs``, ``GET/DELETE /jobs/{id}``,
+``GET /jobs/{id}/results/{n}``, ``GET /jobs/{id}/animation``; OpenAPI at ``/docs``.
+Every bad request is a 4xx whose JSON ``detail`` names the field (FastAPI's 422 list shape for bodies).
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import secrets
+import threading
+import uuid
+from contextlib import asynccontextmanager
+
+from typing import Annotated, Any, Literal
+
+from fastapi import Body, Depends, FastAPI, Header, Path as PathParam, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, JSONResponse, Response
+from pydantic import BaseModel, ConfigDict, Field
+
+import lodcast
+from lodcast.errors import LodcastError, StoreInvalid, StoreNotFound
+from lodcast.service.jobs import IngestJob, Job, animation_path, validate_job
+from lodcast.service.records import status_json
+from lodcast.service.rendering import RequestInvalid, encode, engine, parse_scene
+from lodcast.service.settings import Settings
+from lodcast.service.volumes import (
+    JOB_ID,
+    BadId,
+    VolumeNotFound,
+    delete_volume,
+    list_volumes,
+    volume_path,
+    volume_summary,
+)
+
+__all__ = ["create_app"]
+
+VolumeId = Annotated[str, PathParam(description="volume id: the store's folder name under the root", max_length=200)]
+JobId = Annotated[str, PathParam(description="job id (32 hex digits)", max_length=200)]
+
+
+class HttpError(Exception):
+    def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.status, self.detail, self.headers = status, detail, headers
+
+
+class IngestRequest(BaseModel):
+    """Register a volume by ingesting a server-side file (under a configured import root) as a job."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(max_length=128, description="volume id of the new store")
+    source: str = Field(min_length=1, max_length=4096)
+    overwrite: bool = False
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+def _finite(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item):  # numpy scalars
+        try:
+            return _finite(obj.item())
+        except (TypeError, ValueError):
+            return str(obj)
+    return obj
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    state: dict[str, Any] = {"jobs": None, "worker": None, "sem": None}
+    lock = threading.Lock()
+
+    def jobs() -> Any:
+        with lock:
+            if state["jobs"] is None:
+                from lodcast.service.queue import JobQueue
+
+                settings.root.mkdir(parents=True, exist_ok=True)
+                state["jobs"] = JobQueue(settings)
+            return state["jobs"]
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):  # type: ignore[no-untyped-def]
+        worker = None
+        if settings.workers > 0:
+            from lodcast.service.queue import Worker
+
+            worker = Worker(await run_in_threadpool(jobs), threads=settings.workers).start()
+            state["worker"] = worker
+        try:
+            yield
+        finally:
+            if worker is not None:
+                await run_in_threadpool(worker.stop)
+
+    app = FastAPI(
+        title="lodcast",
+        version=lodcast.__version__,
+        description="Volume rendering of large scalar volumes with transfer-function-driven level of detail.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.jobs = jobs
+
+    def semaphore() -> asyncio.Semaphore:
+        if state["sem"] is None:  # created inside the running loop; FIFO, so waiting renders are served fairly
+            state["sem"] = asyncio.Semaphore(settings.render_concurrency)
+        return state["sem"]
+
+    def require_token(authorization: Annotated[str | None, Header(description="Bearer TOKEN, when the service has one")] = None) -> None:
+        if not settings.token:
+            return
+        scheme, _, given = (authorization or "").partition(" ")
+        if scheme.lower() != "bearer" or not secrets.compare_digest(given.strip().encode(), settings.token.encode()):
+            raise HttpError(401, "Authorization: missing or wrong bearer token", {"WWW-Authenticate": "Bearer"})
+
+    write = [Depends(require_token)]
+
+    # --- errors -------------------------------------------------------------------------------------------------
+    @app.exception_handler(HttpError)
+    async def _http_error(request: Request, exc: HttpError) -> JSONResponse:
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(RequestInvalid)
+    async def _invalid(request: Request, exc: RequestInvalid) -> JSONResponse:
+        return JSONResponse({"detail": exc.errors}, status_code=422)
+
+    @app.exception_handler(VolumeNotFound)
+    async def _no_volume(request: Request, exc: VolumeNotFound) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+
+    @app.exception_handler(BadId)
+    async def _bad_id(request: Request, exc: BadId) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=400)
+
+    @app.exception_handler(LodcastError)
+    async def _lodcast_error(request: Request, exc: LodcastError) -> JSONResponse:
+        code = 404 if isinstance(exc, (StoreNotFound, FileNotFoundError)) else 409 if isinstance(exc, StoreInvalid) else 400
+        return JSONResponse({"detail": " ".join(str(exc).split()) or type(exc).__name__}, status_code=code)
+
+    # --- health / volumes ---------------------------------------------------------------------------------------
+    @app.get("/healthz", tags=["service"])
+    def healthz() -> dict[str, Any]:
+        return {"status": "ok", "version": lodcast.__version__, "queue": "redis" if settings.is_redis else "sqlite"}
+
+    @app.get("/volumes", tags=["volumes"])
+    def get_volumes() -> list[dict[str, Any]]:
+        out = []
+        for vid in list_volumes(settings.root):
+            try:
+                out.append(_finite(volume_summary(settings.root, vid)))
+            except (LodcastError, OSError, ValueError):
+                continue  # a folder that is not (yet) a complete store is not a volume
+        return out
+
+    @app.post("/volumes", status_code=202, tags=["volumes"], dependencies=write)
+    def post_volume(req: IngestRequest) -> dict[str, Any]:
+        job = IngestJob(kind="ingest", source=req.source, name=req.name, overwrite=req.overwrite, options=req.options)
+        validate_job(job, settings)
+        return status_json(jobs().submit(job))
+
+    @app.post("/volumes/{volume_id}/upload", status_code=202, tags=["volumes"], dependencies=write)
+    async def upload_volume(
+        volume_id: VolumeId,
+        request: Request,
+        format: Annotated[Literal["npy", "nrrd", "nifti", "tiff", "raw"], Query(description="source format")] = "npy",
+        overwrite: bool = False,
+        shape: Annotated[str | None, Query(max_length=100, description="raw only: z,y,x")] = None,
+        dtype: Annotated[str | None, Query(max_length=20, description="raw only")] = None,
+    ) -> dict[str, Any]:
+        options: dict[str, Any] = {"format": format}
+        if format == "raw":
+            try:
+                dims = tuple(int(p) for p in (shape or "").split(","))
+                if len(dims) != 3 or min(dims) < 1:
+                    raise ValueError
+            except ValueError:
+                raise RequestInvalid.one(("query", "shape"), "raw uploads need shape=z,y,x (three positive integers)") from None
+            if not dtype:
+                raise RequestInvalid.one(("query", "dtype"), "raw uploads need a dtype")
+            options.update(shape=dims, dtype=dtype)
+        uploads = settings.root / ".uploads"
+        uploads.mkdir(parents=True, exist_ok=True)
+        ext = {"nifti": "nii", "tiff": "tif"}.get(format, format)
+        dest = uploads / f"{uuid.uuid4().hex}.{ext}"
+        job = IngestJob(kind="ingest", source=str(dest), name=volume_id, overwrite=overwrite, options=options)
+        validate_job(job, settings, upload=dest)
+        declared = request.headers.get("content-length")
+        if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
+            raise HttpError(413, f"body: upload of {declared} bytes exceeds the limit of {settings.max_upload_bytes}")
+        size = 0
+        try:
+            with open(dest, "wb") as f:
+                async for chunk in request.stream():
+                    size += len(chunk)
+                    if size > settings.max_upload_bytes:
+                        raise HttpError(413, f"body: upload exceeds the limit of {settings.max_upload_bytes} bytes")
+                    f.write(chunk)
+            if size == 0:
+                raise RequestInvalid.one(("body",), "body: the upload is empty")
+        except BaseException:
+            dest.unlink(missing_ok=True)
+            raise
+        return status_json(await run_in_threadpool(jobs().submit, job, upload=dest))
+
+    @app.get("/volumes/{volume_id}", tags=["volumes"])
+    def get_volume(volume_id: VolumeId) -> dict[str, Any]:
+        try:
+            return _finite(volume_summary(settings.root, volume_id))
+        except StoreInvalid as exc:
+            raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
+
+    @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=write)
+    def del_volume(volume_id: VolumeId) -> dict[str, Any]:
+        path = volume_path(settings.root, volume_id)
+        engine().forget(path)
+        delete_volume(settings.root, volume_id)
+        return {"deleted": volume_id}
+
+    @app.post(
+        "/volumes/{volume_id}/render",
+        tags=["render"],
+        response_class=Response,
+        responses={200: {"content": {"image/png": {}, "application/octet-stream": {}},
+                         "description": "the image; the render report as JSON in the X-Lodcast-Report header"}},
+    )
+    async def render(volume_id: VolumeId, scene: Annotated[dict[str, Any], Body(description="a scene (DESIGN.md)")]) -> Response:
+        path = volume_path(settings.root, volume_id)
+        sc = parse_scene(scene, settings)
+        eng = engine()
+        async with semaphore():
+            try:
+                result = await run_in_threadpool(eng.render, path, sc)
+            except (StoreNotFound, StoreInvalid) as exc:
+                raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
+            except (ValueError, ArithmeticError) as exc:
+                raise HttpError(400, f"scene: {' '.join(str(exc).split())}") from None
+        data, media = await run_in_threadpool(encode, result, sc)
+        report = json.dumps(_finite(dict(result.report)), separators=(",", ":"), default=str)
+        return Response(content=data, media_type=media, headers={"X-Lodcast-Report": report})
+
+    # --- jobs ---------------------------------------------------------------------------------------------------
+    def get_record(job_id: str) -> dict[str, Any]:
+        if not JOB_ID.match(job_id):
+            raise HttpError(404, f"id: no job {job_id[:64]!r} (job ids are 32 hex digits)")
+        rec = jobs().get(job_id)
+        if rec is None:
+            raise HttpError(404, f"id: no job {job_id!r}")
+        return rec
+
+    @app.post("/jobs", status_code=202, tags=["jobs"], dependencies=write)
+    def post_job(job: Annotated[Job, Body(discriminator="kind")]) -> dict[str, Any]:
+        validate_job(job, settings)
+        return status_json(jobs().submit(job))
+
+    @app.get("/jobs", tags=["jobs"])
+    def get_jobs(
+        limit: Annotated[int, Query(ge=1, le=10_000)] = 100,
+        state_: Annotated[Literal["queued", "running", "done", "failed", "cancelled"] | None, Query(alias="state")] = None,
+    ) -> list[dict[str, Any]]:
+        return [status_json(r) for r in jobs().list(limit=limit, states=(state_,) if state_ else None)]
+
+    @app.get("/jobs/{job_id}", tags=["jobs"])
+    def get_job(job_id: JobId) -> dict[str, Any]:
+        return status_json(get_record(job_id))
+
+    @app.delete("/jobs/{job_id}", tags=["jobs"], dependencies=write)
+    def cancel_job(job_id: JobId) -> dict[str, Any]:
+        get_record(job_id)
+        return status_json(jobs().cancel(job_id) or get_record(job_id))
+
+    @app.get("/jobs/{job_id}/results/{n}", tags=["jobs"], response_class=FileResponse,
+             responses={200: {"content": {"image/png": {}, "application/octet-stream": {}}}})
+    def get_result(job_id: JobId, n: Annotated[int, PathParam(ge=0, le=10_000_000)]) -> FileResponse:
+        rec = get_record(job_id)
+        if n >= max(int(rec["total"] or 0), 0) or rec["kind"] == "ingest":
+            raise HttpError(404, f"n: job {job_id} has no result {n} (it has {0 if rec['kind'] == 'ingest' else rec['total']})")
+        d = jobs().job_dir(job_id)
+        for ext, media in (("png", "image/png"), ("npy", "application/octet-stream")):
+            p = d / f"frame_{n:05d}.{ext}"
+            if p.is_file():
+                return FileResponse(p, media_type=media, filename=p.name)
+        raise HttpError(404, f"n: result {n} of job {job_id} is not written yet (state {rec['state']})")
+
+    @app.get("/jobs/{job_id}/animation", tags=["jobs"], response_class=FileResponse,
+             responses={200: {"content": {"image/gif": {}, "video/mp4": {}}}})
+    def get_animation(job_id: JobId) -> FileResponse:
+        rec = get_record(job_id)
+        d = jobs().job_dir(job_id)
+        for fmt, media in (("gif", "image/gif"), ("mp4", "video/mp4")):
+            p = animation_path(d, fmt)
+            if p.is_file():
+                return FileResponse(p, media_type=media, filename=p.name)
+        raise HttpError(404, f"animation: job {job_id} has no animation (state {rec['state']})")
+
+
+    return app

@@ -1,0 +1,188 @@
+"""CLI subcommands of the service: ``serve``, ``worker``, ``submit``, ``jobs``. Imports stay lazy (no FastAPI
+until a command runs). They speak to a server (``--url``, default ``LODCAST_URL``) or, without one, to the local
+store root's embedded queue (``--root``, default ``LODCAST_ROOT``)."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = ["add_serve", "add_worker", "add_submit", "add_jobs"]
+
+
+def _settings(args: argparse.Namespace, **extra: Any) -> Any:
+    from lodcast.service.settings import Settings
+
+    kw: dict[str, Any] = {k: v for k, v in extra.items() if v is not None}
+    if getattr(args, "root", None):
+        kw["root"] = args.root
+    if getattr(args, "queue", None):
+        kw["queue"] = args.queue
+    settings = Settings(**kw)
+    if not getattr(args, "url", None) and not settings.root.is_dir():
+        raise ValueError(f"--root: {settings.root} is not a folder")
+    return settings
+
+
+def _url_opts(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--url", default=os.environ.get("LODCAST_URL"), help="server URL (default LODCAST_URL); without one, the local queue under --root")
+    p.add_argument("--token", default=None, help="bearer token (default LODCAST_TOKEN)")
+    p.add_argument("--root", default=None, help="store root for local use (default LODCAST_ROOT, else the current folder)")
+    p.add_argument("--queue", default=None, help="local use: queue URL (default: embedded SQLite; redis://host:port/db)")
+
+
+def _print(obj: Any) -> None:
+    print(json.dumps(obj, indent=2))
+
+
+# --- serve -----------------------------------------------------------------------------------------------------
+
+def add_serve(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="serve the HTTP API over the volumes under a store root (with an embedded job queue and worker)")
+    p.add_argument("--root", default=None, help="store root; volumes are stores directly under it (default LODCAST_ROOT, else .)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--queue", default=None, help="redis://host:port/db to share jobs with `lodcast worker`s on other hosts (default: embedded SQLite)")
+    p.add_argument("--workers", type=int, default=None, help="in-process job worker threads (default 1; 0 when workers run separately)")
+    p.add_argument("--render-concurrency", type=int, default=None, help="renders at once; more wait in order (default 2)")
+    p.add_argument("--import-root", action="append", default=None, help="folder POST /volumes may ingest from (repeatable)")
+    p.add_argument("--log-level", default="warning")
+    p.set_defaults(func=_cmd_serve)
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from lodcast.service.app import create_app
+
+    settings = _settings(args, workers=args.workers, render_concurrency=args.render_concurrency,
+                         import_roots=args.import_root)
+    if not (1 <= args.port <= 65535):
+        raise ValueError(f"--port: {args.port} is not a TCP port")
+    from lodcast.service.volumes import list_volumes
+
+    url = f"http://{args.host if ':' not in args.host else '[' + args.host + ']'}:{args.port}"
+    vols = list_volumes(settings.root)
+    example = vols[0] if vols else "VOLUME"
+    print(f"lodcast serving {len(vols)} volume(s) from {settings.root} at {url}  (API docs: {url}/docs; Ctrl-C stops)", flush=True)
+    auth = ' -H "Authorization: Bearer $LODCAST_TOKEN"' if settings.token else ""
+    print(f"  curl -s{auth} -X POST {url}/volumes/{example}/render -H 'Content-Type: application/json' \\\n"
+          f"       -d '{{\"camera\": {{\"azimuth\": 30, \"elevation\": 20}}, \"tf\": {{\"points\": "
+          f"[{{\"value\": 0, \"opacity\": 0}}, {{\"value\": 1000, \"opacity\": 0.5}}]}}}}' -o out.png", flush=True)
+    print(f"  python -c \"import lodcast; c = lodcast.Client('{url}'); print(c.volumes())\"", flush=True)
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+    return 0
+
+
+# --- worker ----------------------------------------------------------------------------------------------------
+
+def add_worker(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("worker", help="run batch jobs from the queue (SIGTERM / Ctrl-C: finish the frame, hand the job back)")
+    p.add_argument("--root", default=None, help="store root (default LODCAST_ROOT, else .); shared by every worker and the service")
+    p.add_argument("--queue", default=None, help="redis://host:port/db for a shared queue (default: the root's embedded SQLite queue)")
+    p.add_argument("--threads", type=int, default=1, help="jobs run at once by this process (default 1)")
+    p.set_defaults(func=_cmd_worker)
+
+
+def _cmd_worker(args: argparse.Namespace) -> int:
+    import logging
+
+    from lodcast.service.queue import JobQueue, Worker
+
+    if args.threads < 1:
+        raise ValueError(f"--threads: must be at least 1, got {args.threads}")
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    settings = _settings(args)
+    jq = JobQueue(settings)
+    print(f"lodcast worker {os.getpid()} on {'redis' if settings.is_redis else 'sqlite'} queue, root {settings.root}", file=sys.stderr, flush=True)
+    return Worker(jq, threads=args.threads).run_forever()
+
+
+# --- submit / jobs ---------------------------------------------------------------------------------------------
+
+def add_submit(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("submit", help="submit a batch job (JSON file, or - for stdin); prints its status")
+    p.add_argument("job", help="JOB.json, e.g. {\"kind\": \"turntable\", \"volume\": \"engine\", \"scene\": {...}, \"frames\": 36}")
+    p.add_argument("--wait", action="store_true", help="wait until it finishes (progress bar on a terminal)")
+    _url_opts(p)
+    p.set_defaults(func=_cmd_submit)
+
+
+def _read_job(path: str) -> Any:
+    try:
+        text = sys.stdin.read() if path == "-" else Path(path).read_text()
+    except OSError as exc:
+        raise ValueError(f"job: cannot read {path}: {exc.strerror or exc}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"job: {path} is not JSON ({exc.msg} at line {exc.lineno})") from None
+
+
+def _local(args: argparse.Namespace) -> Any:
+    from lodcast.service.queue import JobQueue
+
+    return JobQueue(_settings(args))
+
+
+def _client(args: argparse.Namespace) -> Any:
+    from lodcast.service.client import Client
+
+    return Client(args.url, token=args.token)
+
+
+def _cmd_submit(args: argparse.Namespace) -> int:
+    data = _read_job(args.job)
+    if args.url:
+        with _client(args) as c:
+            st = c.submit(data)
+            if args.wait:
+                st = c.wait(st["id"])
+    else:
+        from lodcast.service.jobs import parse_job, validate_job
+        from lodcast.service.records import status_json
+
+        jq = _local(args)
+        job = validate_job(parse_job(data), jq.settings)
+        rec = jq.submit(job)
+        st = status_json(jq.wait(rec["id"]) if args.wait else rec)
+    _print(st)
+    return 0 if st["state"] not in ("failed", "cancelled") else 1
+
+
+def add_jobs(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("jobs", help="list, show, cancel or wait for batch jobs")
+    p.add_argument("action", nargs="?", default="list", choices=("list", "show", "cancel", "wait"))
+    p.add_argument("id", nargs="?", help="job id (show, cancel, wait)")
+    p.add_argument("--state", choices=("queued", "running", "done", "failed", "cancelled"), help="list: only jobs in this state")
+    p.add_argument("--limit", type=int, default=50)
+    p.add_argument("--timeout", type=float, default=None, help="wait: give up after this many seconds")
+    _url_opts(p)
+    p.set_defaults(func=_cmd_jobs)
+
+
+def _cmd_jobs(args: argparse.Namespace) -> int:
+    if args.action != "list" and not args.id:
+        raise ValueError(f"id: `lodcast jobs {args.action}` needs a job id")
+    if args.url:
+        with _client(args) as c:
+            if args.action == "list":
+                _print(c.jobs(limit=args.limit, state=args.state))
+                return 0
+            st = {"show": c.job, "cancel": c.cancel}.get(args.action, lambda i: c.wait(i, timeout=args.timeout))(args.id)
+    else:
+        from lodcast.service.records import status_json
+
+        jq = _local(args)
+        if args.action == "list":
+            _print([status_json(r) for r in jq.list(limit=args.limit, states=(args.state,) if args.state else None)])
+            return 0
+        if jq.get(args.id) is None:
+            raise ValueError(f"id: no job {args.id!r} under {jq.settings.root}")
+        rec = {"show": jq.get, "cancel": jq.cancel}.get(args.action, lambda i: jq.wait(i, timeout=args.timeout))(args.id)
+        st = status_json(rec)
+    _print(st)
+    return 0

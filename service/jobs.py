@@ -1,0 +1,251 @@
+"""Job kinds (DESIGN.md: turntable, scenes, tf_sweep, volumes, ingest), their validation and their frames.
+
+A job is a list of frames, each one (volume, scene); frame n is written to ``ROOT/.jobs/<id>/frame_<n>.<fmt>``
+atomically (temporary name, then rename), so a frame file exists only when it is complete, and a resumed job
+renders only the frames whose file is missing.
+"""
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from lodcast.service.rendering import RequestInvalid, check_tf, parse_scene, scene_format
+from lodcast.service.volumes import BadId, VolumeNotFound, check_volume_id, safe_import_path, volume_path
+
+__all__ = [
+    "Job",
+    "TurntableJob",
+    "ScenesJob",
+    "TfSweepJob",
+    "VolumesJob",
+    "IngestJob",
+    "parse_job",
+    "validate_job",
+    "plan_frames",
+    "frame_path",
+    "frame_files",
+    "write_atomic",
+    "animation_path",
+]
+
+Scene = dict[str, Any]
+
+
+class _Job(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TurntableJob(_Job):
+    kind: Literal["turntable"]
+    volume: str = Field(max_length=128)
+    scene: Scene
+    frames: int = Field(36, ge=1)
+    start_azimuth: float = Field(0.0, ge=-360, le=360, description="degrees, azimuth of frame 0")
+    animation: Literal["gif", "mp4"] | None = Field(None, description="also encode the frames to an animated GIF or MP4")
+    fps: float = Field(12.0, gt=0, le=120)
+
+
+class ScenesJob(_Job):
+    kind: Literal["scenes"]
+    volume: str = Field(max_length=128)
+    scenes: list[Scene] = Field(min_length=1)
+
+
+class TfSweepJob(_Job):
+    kind: Literal["tf_sweep"]
+    volume: str = Field(max_length=128)
+    scene: Scene
+    tfs: list[dict[str, Any]] = Field(min_length=1)
+
+
+class VolumesJob(_Job):
+    kind: Literal["volumes"]
+    volumes: list[str] = Field(min_length=1)
+    scene: Scene
+
+
+class IngestJob(_Job):
+    kind: Literal["ingest"]
+    source: str = Field(min_length=1, max_length=4096, description="server-side path under a configured import root")
+    name: str = Field(max_length=128, description="volume id of the new store")
+    overwrite: bool = False
+    options: dict[str, Any] = Field(default_factory=dict, description="reader options (format, shape, dtype, spacing ...)")
+
+
+Job = Annotated[Union[TurntableJob, ScenesJob, TfSweepJob, VolumesJob, IngestJob], Field(discriminator="kind")]
+
+
+def parse_job(data: Any) -> Any:
+    from pydantic import TypeAdapter, ValidationError
+
+    from lodcast.service.rendering import _from_pydantic
+
+    try:
+        return TypeAdapter(Job).validate_python(data)
+    except ValidationError as exc:
+        raise _from_pydantic(exc, ("body",)) from None
+
+
+def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
+    """Check a parsed job against the store root and the caps; raises RequestInvalid / VolumeNotFound naming the field."""
+    def vol(v: str, loc: tuple) -> None:
+        try:
+            volume_path(settings.root, v, field=".".join(loc))
+        except (BadId, VolumeNotFound) as exc:
+            raise RequestInvalid.one(("body", *loc), str(exc).split(": ", 1)[-1]) from None
+
+    if isinstance(job, IngestJob):
+        try:
+            check_volume_id(job.name, "name")
+            volume_path(settings.root, job.name, must_exist=False, field="name")
+            if upload is None:
+                safe_import_path(job.source, settings.import_roots, "source")
+        except BadId as exc:
+            raise RequestInvalid.one(("body", exc.field), str(exc).split(": ", 1)[-1]) from None
+        if not job.overwrite and (settings.root / job.name).exists():
+            raise RequestInvalid.one(("body", "name"), f"volume {job.name!r} exists (set overwrite)")
+        return job
+    if isinstance(job, TurntableJob):
+        vol(job.volume, ("volume",))
+        if job.frames > settings.max_frames:
+            raise RequestInvalid.one(("body", "frames"), f"{job.frames} exceeds the service's cap of {settings.max_frames}")
+        parse_scene(job.scene, settings, ("body", "scene"))
+    elif isinstance(job, ScenesJob):
+        vol(job.volume, ("volume",))
+        _cap(len(job.scenes), settings, "scenes")
+        for i, s in enumerate(job.scenes):
+            parse_scene(s, settings, ("body", "scenes", i))
+    elif isinstance(job, TfSweepJob):
+        vol(job.volume, ("volume",))
+        _cap(len(job.tfs), settings, "tfs")
+        parse_scene(job.scene, settings, ("body", "scene"))
+        for i, tf in enumerate(job.tfs):
+            check_tf(tf, ("body", "tfs", i))
+    elif isinstance(job, VolumesJob):
+        _cap(len(job.volumes), settings, "volumes")
+        for i, v in enumerate(job.volumes):
+            vol(v, ("volumes", str(i)))
+        parse_scene(job.scene, settings, ("body", "scene"))
+    return job
+
+
+def _cap(n: int, settings: Any, field: str) -> None:
+    if n > settings.max_scenes:
+        raise RequestInvalid.one(("body", field), f"{n} items exceed the service's cap of {settings.max_scenes}")
+
+
+# --- frames ----------------------------------------------------------------------------------------------------
+
+def _turn(scene: Scene, azimuth: float) -> Scene:
+    """The scene seen from ``azimuth`` degrees: the convenience camera gets its azimuth replaced; a look-at camera
+    has its eye turned about the vertical axis (world z) through the target."""
+    out = dict(scene)
+    cam = dict(out.get("camera") or {})
+    if "eye" in cam and "target" in cam:
+        ex, ey, ez = (float(v) for v in cam["eye"])
+        tx, ty, tz = (float(v) for v in cam["target"])
+        a = math.radians(azimuth)
+        dx, dy = ex - tx, ey - ty
+        cam["eye"] = [tx + dx * math.cos(a) + dy * math.sin(a), ty - dx * math.sin(a) + dy * math.cos(a), ez]
+    else:
+        cam["azimuth"] = float(cam.get("azimuth", 0.0)) + azimuth
+    out["camera"] = cam
+    return out
+
+
+def plan_frames(job: Any) -> list[tuple[str, Scene]]:
+    """(volume id, scene dict) for every frame, in result order."""
+    if isinstance(job, TurntableJob):
+        return [(job.volume, _turn(job.scene, job.start_azimuth + 360.0 * i / job.frames)) for i in range(job.frames)]
+    if isinstance(job, ScenesJob):
+        return [(job.volume, s) for s in job.scenes]
+    if isinstance(job, TfSweepJob):
+        return [(job.volume, {**job.scene, "tf": tf}) for tf in job.tfs]
+    if isinstance(job, VolumesJob):
+        return [(v, job.scene) for v in job.volumes]
+    return []
+
+
+def frame_ext(scene: Any) -> str:
+    if isinstance(scene, dict):
+        return "npy" if scene.get("format") == "npy" else "png"
+    return scene_format(scene)
+
+
+def frame_path(job_dir: Path, n: int, ext: str) -> Path:
+    return Path(job_dir) / f"frame_{n:05d}.{ext}"
+
+
+def frame_files(job_dir: Path) -> list[Path]:
+    return sorted(Path(job_dir).glob("frame_*.*")) if Path(job_dir).is_dir() else []
+
+
+def animation_path(job_dir: Path, fmt: str) -> Path:
+    return Path(job_dir) / f"turntable.{fmt}"
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write to a temporary file in the same folder, fsync, then rename: the file is complete or absent."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def encode_animation(frames: list[Path], fmt: str, fps: float) -> bytes:
+    """Frames (PNG) to an animated GIF (Pillow) or an H.264/MPEG-4 MP4 (PyAV), over opaque black."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    images = []
+    for p in frames:
+        if p.suffix == ".npy":
+            rgba = np.load(p)
+            rgb = np.clip(rgba[..., :3], 0, 1)  # premultiplied: over black is the colour itself
+            images.append(Image.fromarray(np.round(rgb * 255).astype(np.uint8), "RGB"))
+        else:
+            im = Image.open(p).convert("RGBA")
+            bg = Image.new("RGBA", im.size, (0, 0, 0, 255))
+            images.append(Image.alpha_composite(bg, im).convert("RGB"))
+    buf = io.BytesIO()
+    if fmt == "gif":
+        images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+        return buf.getvalue()
+    import av
+
+    w, h = images[0].size
+    w2, h2 = w + (w % 2), h + (h % 2)  # yuv420p needs even sizes
+    with av.open(buf, mode="w", format="mp4") as out:
+        try:
+            stream = out.add_stream("libx264", rate=round(fps))
+        except Exception:  # a PyAV build without x264
+            stream = out.add_stream("mpeg4", rate=round(fps))
+        stream.width, stream.height, stream.pix_fmt = w2, h2, "yuv420p"
+        for im in images:
+            if (w2, h2) != (w, h):
+                canvas = Image.new("RGB", (w2, h2))
+                canvas.paste(im)
+                im = canvas
+            for packet in stream.encode(av.VideoFrame.from_image(im)):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    return buf.getvalue()
+

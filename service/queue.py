@@ -1,0 +1,330 @@
+"""Batch jobs on huey (SqliteHuey embedded, RedisHuey shared) with a crash-safe job record beside the queue.
+
+huey carries one message per job (the job id). Losing a message is what huey does when a worker dies mid-task, so
+the truth is the record (``records.py``): a worker *claims* a queued job by compare-and-set, refreshes a heartbeat
+while it runs, and checks before each frame that it still owns the job (a cancelled job stops within one frame). The
+reaper (at start-up and every ``reap_every_s``) turns running jobs whose heartbeat went stale back to queued and
+enqueues them again, and re-enqueues queued jobs whose message was lost; a duplicate message is harmless because only
+one claim succeeds. A resumed job renders only frames whose file is missing, and only the owner can mark it done, so
+it completes exactly once. The same code runs on both back ends.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import socket
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+from lodcast.service.jobs import (
+    IngestJob,
+    TurntableJob,
+    animation_path,
+    encode_animation,
+    frame_ext,
+    frame_path,
+    parse_job,
+    plan_frames,
+    write_atomic,
+)
+from lodcast.service.records import ACTIVE, Records, open_records
+from lodcast.service.rendering import encode, engine, parse_scene
+from lodcast.service.volumes import JOB_ID, volume_path
+
+__all__ = ["make_huey", "JobQueue", "Worker"]
+
+log = logging.getLogger("lodcast.service.queue")
+
+
+def make_huey(settings: Any) -> Any:
+    """SqliteHuey under the store root by default; RedisHuey when the queue setting is a redis:// URL."""
+    if settings.is_redis:
+        from huey import RedisHuey
+
+        return RedisHuey(name=settings.queue_name, url=settings.queue, results=False, blocking=True, read_timeout=1)
+    from huey import SqliteHuey
+
+    path = settings.sqlite_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return SqliteHuey(name=settings.queue_name, filename=str(path), results=False, strict_fifo=True, timeout=30)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join((str(exc) or type(exc).__name__).split())
+    return text[:2000]
+
+
+class JobQueue:
+    """Submit, inspect, cancel and run jobs. One per process (HTTP app, worker, CLI)."""
+
+    def __init__(self, settings: Any, records: Records | None = None) -> None:
+        self.settings = settings
+        self.records = records or open_records(settings)
+        self.huey = make_huey(settings)
+        self._task = self.huey.task(name="lodcast_job", retries=0)(self._execute)
+        self.stopping = threading.Event()
+        self.owner_prefix = f"{socket.gethostname()}:{os.getpid()}"
+
+    # --- client side ----------------------------------------------------------------------------------------
+    def job_dir(self, job_id: str) -> Path:
+        if not JOB_ID.match(job_id):
+            raise ValueError(f"id: invalid job id {job_id[:40]!r}")
+        return self.settings.jobs_dir / job_id
+
+    def submit(self, job: Any, *, upload: Path | None = None) -> dict[str, Any]:
+        job_id = uuid.uuid4().hex
+        spec = job.model_dump(mode="json")
+        if upload is not None:
+            spec["source"], spec["_upload"] = str(upload), True
+        now = time.time()
+        self.records.create({
+            "id": job_id, "kind": job.kind, "spec": json.dumps(spec), "state": "queued",
+            "total": len(plan_frames(job)) or 1, "created": now, "enqueued": now,
+        })
+        self._task(job_id)
+        return self.records.get(job_id)  # type: ignore[return-value]
+
+    def get(self, job_id: str) -> dict[str, Any] | None:
+        return self.records.get(job_id) if JOB_ID.match(job_id or "") else None
+
+    def list(self, limit: int = 100, states: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+        return self.records.list(limit=limit, states=states)
+
+    def cancel(self, job_id: str) -> dict[str, Any] | None:
+        """Mark the job cancelled (a queued job never starts, a running one stops before its next frame)."""
+        self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ACTIVE})
+        return self.get(job_id)
+
+    def wait(self, job_id: str, timeout: float | None = None, poll: float = 0.2) -> dict[str, Any]:
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            rec = self.get(job_id)
+            if rec is None:
+                raise KeyError(job_id)
+            if rec["state"] not in ACTIVE or (end is not None and time.monotonic() > end):
+                return rec
+            time.sleep(poll)
+
+    def _pending_ids(self) -> set[str]:
+        try:
+            return {str(t.args[0]) for t in self.huey.pending() if t.args}
+        except Exception:  # an unreadable message must not stop the reaper
+            log.exception("could not list pending messages")
+            return set()
+
+    def reap(self) -> list[str]:
+        """Re-enqueue running jobs whose heartbeat is stale and queued jobs whose message was lost."""
+        now = time.time()
+        stale = now - self.settings.stale_after_s
+        out: list[str] = []
+        pending: set[str] | None = None
+        for rec in self.records.list(limit=100_000, states=ACTIVE):
+            jid = rec["id"]
+            if rec["state"] == "running" and (rec["heartbeat"] or 0.0) < stale:
+                if self.records.update(
+                    jid, {"state": "queued", "owner": None, "enqueued": now},
+                    expect={"state": ("running",), "owner": (rec["owner"],), "heartbeat": (rec["heartbeat"],)},
+                ):
+                    log.warning("job %s: heartbeat stale (owner %s), re-enqueued", jid, rec["owner"])
+                    self._task(jid)
+                    out.append(jid)
+            elif rec["state"] == "queued" and (rec["enqueued"] or 0.0) < stale:
+                if pending is None:
+                    pending = self._pending_ids()
+                if jid not in pending and self.records.update(jid, {"enqueued": now}, expect={"state": ("queued",)}):
+                    log.warning("job %s: queued without a message, re-enqueued", jid)
+                    self._task(jid)
+                    out.append(jid)
+        return out
+
+    # --- worker side ----------------------------------------------------------------------------------------
+    def _execute(self, job_id: str) -> None:
+        rec = self.records.get(job_id)
+        if rec is None or rec["state"] != "queued":
+            return  # done, cancelled, or another worker's: a duplicate message
+        if self.stopping.is_set():
+            self._task(job_id)  # hand the message back for another worker
+            return
+        owner = f"{self.owner_prefix}:{uuid.uuid4().hex[:8]}"
+        now = time.time()
+        if not self.records.update(
+            job_id,
+            {"state": "running", "owner": owner, "heartbeat": now, "started": rec["started"] or now,
+             "attempts": int(rec["attempts"] or 0) + 1},
+            expect={"state": ("queued",)},
+        ):
+            return
+        beat = threading.Event()
+        hb = threading.Thread(target=self._heartbeat, args=(job_id, owner, beat), daemon=True, name=f"hb-{job_id[:8]}")
+        hb.start()
+        try:
+            outcome = self._run(job_id, owner, rec)
+            if outcome == "done":
+                cur = self.records.get(job_id) or rec
+                self.records.update(
+                    job_id,
+                    {"state": "done", "finished": time.time(), "done": cur["total"], "error": None,
+                     "completions": int(cur["completions"] or 0) + 1},
+                    expect={"state": ("running",), "owner": (owner,)},
+                )
+        except Exception as exc:  # the job's own failure: recorded, never retried
+            log.exception("job %s failed", job_id)
+            self.records.update(job_id, {"state": "failed", "error": _one_line(exc), "finished": time.time()},
+                                expect={"state": ("running",), "owner": (owner,)})
+        finally:
+            beat.set()
+            hb.join(timeout=5)
+
+    def _heartbeat(self, job_id: str, owner: str, stop: threading.Event) -> None:
+        while not stop.wait(self.settings.heartbeat_s):
+            try:
+                if not self.records.update(job_id, {"heartbeat": time.time()},
+                                           expect={"state": ("running",), "owner": (owner,)}):
+                    return
+            except Exception:
+                log.exception("heartbeat of job %s", job_id)
+
+    def _mine(self, job_id: str, owner: str) -> bool:
+        rec = self.records.get(job_id)
+        return bool(rec) and rec["state"] == "running" and rec["owner"] == owner
+
+    def _release(self, job_id: str, owner: str) -> None:
+        """Graceful stop: put the job back in the queue for another worker, keeping its frames."""
+        if self.records.update(job_id, {"state": "queued", "owner": None, "enqueued": time.time()},
+                               expect={"state": ("running",), "owner": (owner,)}):
+            self._task(job_id)
+
+    def _run(self, job_id: str, owner: str, rec: dict[str, Any]) -> str:
+        spec = json.loads(rec["spec"])
+        upload = bool(spec.pop("_upload", False))
+        job = parse_job(spec)
+        if isinstance(job, IngestJob):
+            return self._run_ingest(job_id, owner, job, rec, upload)
+        plan = plan_frames(job)
+        d = self.job_dir(job_id)
+        d.mkdir(parents=True, exist_ok=True)
+        exts = [frame_ext(s) for _, s in plan]
+        paths = [frame_path(d, i, e) for i, e in enumerate(exts)]
+
+        def count() -> int:
+            return sum(p.exists() for p in paths)
+
+        self.records.update(job_id, {"total": len(plan), "done": count()}, expect={"owner": (owner,)})
+        eng = engine()
+        for i, (vid, scene_dict) in enumerate(plan):
+            if paths[i].exists():
+                continue  # written before a crash or a release: never rendered twice
+            if not self._mine(job_id, owner):
+                return "lost"  # cancelled, or re-assigned after a stall
+            if self.stopping.is_set():
+                self._release(job_id, owner)
+                return "released"
+            scene = parse_scene(scene_dict, self.settings, ("scene",))
+            result = eng.render(volume_path(self.settings.root, vid), scene)
+            data, _ = encode(result, scene)
+            write_atomic(paths[i], data)
+            if self.settings.frame_delay_s:
+                time.sleep(self.settings.frame_delay_s)
+            self.records.update(job_id, {"done": count()}, expect={"state": ("running",), "owner": (owner,)})
+        if isinstance(job, TurntableJob) and job.animation:
+            out = animation_path(d, job.animation)
+            if not out.exists():
+                if not self._mine(job_id, owner):
+                    return "lost"
+                write_atomic(out, encode_animation(paths, job.animation, job.fps))
+        return "done" if self._mine(job_id, owner) else "lost"
+
+    def _run_ingest(self, job_id: str, owner: str, job: IngestJob, rec: dict[str, Any], upload: bool) -> str:
+        from lodcast.errors import StoreExists
+        from lodcast.store.ingest import ingest
+
+        dest = volume_path(self.settings.root, job.name, must_exist=False, field="name")
+        try:
+            ingest(job.source, dest, overwrite=job.overwrite, **job.options)
+        except StoreExists:
+            if int(rec["attempts"] or 0) < 1:  # a retry after a crash that happened after the rename: it is done
+                raise
+        if upload:
+            Path(job.source).unlink(missing_ok=True)
+        engine().forget(dest)
+        self.records.update(job_id, {"done": 1}, expect={"owner": (owner,)})
+        return "done" if self._mine(job_id, owner) else "lost"
+
+    def delete_results(self, job_id: str) -> None:
+        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+
+
+class Worker:
+    """Threads that take messages from huey and run them, plus the reaper. Used in-process by `lodcast serve`
+    and as the `lodcast worker` process."""
+
+    def __init__(self, jobs: JobQueue, threads: int = 1, reap: bool = True) -> None:
+        self.jobs = jobs
+        self.n = threads
+        self.reap = reap
+        self._threads: list[threading.Thread] = []
+
+    def start(self) -> "Worker":
+        if self.reap:
+            t = threading.Thread(target=self._reaper, daemon=True, name="lodcast-reaper")
+            t.start()
+            self._threads.append(t)
+        for i in range(self.n):
+            t = threading.Thread(target=self._loop, daemon=True, name=f"lodcast-worker-{i}")
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def _loop(self) -> None:
+        stopping = self.jobs.stopping
+        while not stopping.is_set():
+            try:
+                task = self.jobs.huey.dequeue()
+            except Exception:
+                log.exception("dequeue failed; retrying")
+                stopping.wait(1.0)
+                continue
+            if task is None:
+                if not self.jobs.settings.is_redis:
+                    stopping.wait(self.jobs.settings.poll_s)
+                continue
+            try:
+                self.jobs.huey.execute(task)
+            except Exception:
+                log.exception("task %s", task)
+
+    def _reaper(self) -> None:
+        stopping = self.jobs.stopping
+        while True:
+            try:
+                self.jobs.reap()
+            except Exception:
+                log.exception("reaper")
+            if stopping.wait(self.jobs.settings.reap_every_s):
+                return
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Graceful: running jobs stop before their next frame and go back to the queue."""
+        self.jobs.stopping.set()
+        end = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(timeout=max(0.0, end - time.monotonic()))
+
+    def run_forever(self) -> int:
+        """The `lodcast worker` main loop: SIGTERM / SIGINT stop gracefully."""
+        def handler(signum: int, frame: Any) -> None:
+            self.jobs.stopping.set()
+
+        signal.signal(signal.SIGTERM, handler)
+        signal.signal(signal.SIGINT, handler)
+        self.start()
+        while not self.jobs.stopping.wait(0.5):
+            pass
+        self.stop()
+        return 0

@@ -1,0 +1,264 @@
+"""Job records kept beside the queue: state, progress, heartbeat, owner, timings, error.
+
+huey moves task messages; it does not know whether a job's worker died. The record does: every state change is a
+compare-and-set (``update(..., expect=...)``), so that exactly one worker owns a running job, a cancelled job stays
+cancelled, and a job completes exactly once. Two back ends with one interface: a SQLite table (one machine) and a
+Redis hash per job plus a sorted set of ids (several hosts).
+"""
+from __future__ import annotations
+
+
+import sqlite3
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["FIELDS", "Records", "SqliteRecords", "RedisRecords", "open_records"]
+
+#: field -> type; every record has all of them. Times are Unix seconds (float) or None.
+FIELDS: dict[str, type] = {
+    "id": str,
+    "kind": str,
+    "spec": str,  # the job as submitted, JSON
+    "state": str,
+    "done": int,
+    "total": int,
+    "error": str,
+    "created": float,
+    "started": float,
+    "finished": float,
+    "heartbeat": float,
+    "enqueued": float,
+    "owner": str,
+    "attempts": int,
+    "completions": int,
+}
+ACTIVE = ("queued", "running")
+
+
+def _blank(rec: dict[str, Any]) -> dict[str, Any]:
+    out = {k: None for k in FIELDS}
+    out.update({"done": 0, "total": 0, "attempts": 0, "completions": 0})
+    out.update(rec)
+    return out
+
+
+class Records:
+    """Interface. ``expect`` maps a field to the tuple of values it must hold for the update to apply."""
+
+    def create(self, rec: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+    def get(self, job_id: str) -> dict[str, Any] | None:
+        raise NotImplementedError
+
+    def list(self, limit: int = 100, states: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+        raise NotImplementedError
+
+    def update(self, job_id: str, fields: dict[str, Any], expect: dict[str, tuple] | None = None) -> bool:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+# --- SQLite ----------------------------------------------------------------------------------------------------
+
+_SQL_TYPES = {str: "TEXT", int: "INTEGER", float: "REAL"}
+
+
+class SqliteRecords(Records):
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._local = threading.local()
+        cols = ", ".join(f"{k} {_SQL_TYPES[t]}" + (" PRIMARY KEY" if k == "id" else "") for k, t in FIELDS.items())
+        with self._conn() as c:
+            c.execute(f"CREATE TABLE IF NOT EXISTS jobs ({cols})")
+            c.execute("CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state)")
+
+    def _conn(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = sqlite3.connect(self.path, timeout=30, isolation_level=None, check_same_thread=False)
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA synchronous=NORMAL")
+            conn.row_factory = sqlite3.Row
+            self._local.conn = conn
+        return conn
+
+    def create(self, rec: dict[str, Any]) -> None:
+        rec = _blank(rec)
+        keys = list(FIELDS)
+        self._conn().execute(
+            f"INSERT INTO jobs ({', '.join(keys)}) VALUES ({', '.join('?' for _ in keys)})", [rec[k] for k in keys]
+        )
+
+    def get(self, job_id: str) -> dict[str, Any] | None:
+        row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return dict(row) if row else None
+
+    def list(self, limit: int = 100, states: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+        if states:
+            q = f"SELECT * FROM jobs WHERE state IN ({', '.join('?' for _ in states)}) ORDER BY created DESC LIMIT ?"
+            rows = self._conn().execute(q, (*states, limit)).fetchall()
+        else:
+            rows = self._conn().execute("SELECT * FROM jobs ORDER BY created DESC LIMIT ?", (limit,)).fetchall()
+        return [dict(r) for r in rows]
+
+    def update(self, job_id: str, fields: dict[str, Any], expect: dict[str, tuple] | None = None) -> bool:
+        for k in (*fields, *(expect or {})):
+            if k not in FIELDS:
+                raise KeyError(k)
+        sets = ", ".join(f"{k} = ?" for k in fields)
+        where, args = ["id = ?"], [*fields.values(), job_id]
+        for k, allowed in (expect or {}).items():
+            vals = [v for v in allowed if v is not None]
+            parts = []
+            if vals:
+                parts.append(f"{k} IN ({', '.join('?' for _ in vals)})")
+                args.extend(vals)
+            if len(vals) != len(allowed):
+                parts.append(f"{k} IS NULL")
+            where.append("(" + " OR ".join(parts or ["0"]) + ")")
+        cur = self._conn().execute(f"UPDATE jobs SET {sets} WHERE {' AND '.join(where)}", args)
+        return cur.rowcount == 1
+
+    def close(self) -> None:
+        conn = getattr(self._local, "conn", None)
+        if conn is not None:
+            conn.close()
+            self._local.conn = None
+
+
+# --- Redis -----------------------------------------------------------------------------------------------------
+
+# KEYS[1] = job hash. ARGV = n, then n pairs (field, allowed values each followed by '\x1f'), then field/value pairs.
+_CAS = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+local n = tonumber(ARGV[1])
+local i = 2
+for c = 1, n do
+  local f = ARGV[i]
+  local allowed = ARGV[i + 1]
+  i = i + 2
+  local v = redis.call('HGET', KEYS[1], f)
+  if not v then v = '' end
+  local ok = false
+  for a in string.gmatch(allowed, '([^\\31]*)\\31') do
+    if a == v then ok = true end
+  end
+  if not ok then return 0 end
+end
+local args = {}
+for j = i, #ARGV do table.insert(args, ARGV[j]) end
+if #args > 0 then redis.call('HSET', KEYS[1], unpack(args)) end
+return 1
+"""
+
+
+def _enc(v: Any) -> str:
+    return "" if v is None else repr(v) if isinstance(v, float) else str(v)
+
+
+def _dec(k: str, v: str | None) -> Any:
+    if v is None or v == "":
+        return 0 if FIELDS[k] is int and k in ("done", "total", "attempts", "completions") else None
+    t = FIELDS[k]
+    return t(float(v)) if t is int else t(v)
+
+
+class RedisRecords(Records):
+    def __init__(self, url: str, prefix: str = "lodcast") -> None:
+        import redis
+
+        self.client = redis.Redis.from_url(url, decode_responses=True)
+        self.prefix = prefix
+        self._cas = self.client.register_script(_CAS)
+
+    def _key(self, job_id: str) -> str:
+        return f"{self.prefix}:job:{job_id}"
+
+    @property
+    def _index(self) -> str:
+        return f"{self.prefix}:jobs"
+
+    def create(self, rec: dict[str, Any]) -> None:
+        rec = _blank(rec)
+        pipe = self.client.pipeline()
+        pipe.hset(self._key(rec["id"]), mapping={k: _enc(v) for k, v in rec.items()})
+        pipe.zadd(self._index, {rec["id"]: rec["created"] or time.time()})
+        pipe.execute()
+
+    def get(self, job_id: str) -> dict[str, Any] | None:
+        raw = self.client.hgetall(self._key(job_id))
+        if not raw:
+            return None
+        return {k: _dec(k, raw.get(k)) for k in FIELDS}
+
+    def list(self, limit: int = 100, states: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+        out: list[dict[str, Any]] = []
+        start, chunk = 0, max(limit, 100)
+        while len(out) < limit:
+            ids = self.client.zrevrange(self._index, start, start + chunk - 1)
+            if not ids:
+                break
+            start += chunk
+            pipe = self.client.pipeline()
+            for i in ids:
+                pipe.hgetall(self._key(i))
+            for raw in pipe.execute():
+                if not raw:
+                    continue
+                rec = {k: _dec(k, raw.get(k)) for k in FIELDS}
+                if states is None or rec["state"] in states:
+                    out.append(rec)
+                    if len(out) >= limit:
+                        break
+        return out
+
+    def update(self, job_id: str, fields: dict[str, Any], expect: dict[str, tuple] | None = None) -> bool:
+        args: list[str] = [str(len(expect or {}))]
+        for k, allowed in (expect or {}).items():
+            if k not in FIELDS:
+                raise KeyError(k)
+            args += [k, "".join(_enc(a) + "\x1f" for a in allowed)]
+        for k, v in fields.items():
+            if k not in FIELDS:
+                raise KeyError(k)
+            args += [k, _enc(v)]
+        return bool(self._cas(keys=[self._key(job_id)], args=args))
+
+    def close(self) -> None:
+        self.client.close()
+
+
+def open_records(settings: Any) -> Records:
+    if settings.is_redis:
+        return RedisRecords(settings.queue, prefix=settings.queue_name)
+    return SqliteRecords(settings.state_dir / "jobs.db" if settings.sqlite_path() == settings.state_dir / "queue.db"
+                         else settings.sqlite_path().with_name(settings.sqlite_path().stem + "-jobs.db"))
+
+
+def status_json(rec: dict[str, Any]) -> dict[str, Any]:
+    """The job status exactly as DESIGN.md's Interfaces section fixes it (times ISO 8601 UTC, or null)."""
+    from datetime import datetime, timezone
+
+    def iso(t: float | None) -> str | None:
+        return None if t is None else datetime.fromtimestamp(t, tz=timezone.utc).isoformat().replace("+00:00", "Z")
+
+    return {
+        "id": rec["id"],
+        "kind": rec["kind"],
+        "state": rec["state"],
+        "progress": {"done": int(rec["done"] or 0), "total": int(rec["total"] or 0)},
+        "error": rec["error"] or None,
+        "created": iso(rec["created"]),
+        "started": iso(rec["started"]),
+        "finished": iso(rec["finished"]),
+    }
+
+
+__all__ += ["status_json", "ACTIVE"]
+

@@ -1,0 +1,169 @@
+"""Scene validation against the service's caps, one renderer per process, image encoding.
+
+Shared by the HTTP layer and the job workers, so that a scene is judged the same way wherever it comes from and
+every render in a process goes through the same opened stores and the renderer's own caches.
+"""
+from __future__ import annotations
+
+import io
+import threading
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+from lodcast.errors import LodcastError
+
+__all__ = ["RequestInvalid", "parse_scene", "check_tf", "RenderEngine", "encode", "engine"]
+
+
+class RequestInvalid(LodcastError, ValueError):
+    """A request body is malformed; ``errors`` is in FastAPI's shape ({"loc", "msg", "type"}) and names the field."""
+
+    def __init__(self, errors: list[dict[str, Any]]) -> None:
+        self.errors = errors
+        first = errors[0] if errors else {"loc": [], "msg": "invalid"}
+        super().__init__(f"{'.'.join(str(p) for p in first['loc'] if p != 'body')}: {first['msg']}")
+
+    @classmethod
+    def one(cls, loc: tuple | list, msg: str, type_: str = "value_error") -> "RequestInvalid":
+        field = ".".join(str(p) for p in loc if p != "body")
+        return cls([{"loc": list(loc), "msg": f"{field}: {msg}" if field else msg, "type": type_}])
+
+
+def _from_pydantic(exc: Any, loc: tuple) -> RequestInvalid:
+    errs = []
+    for e in exc.errors(include_url=False):
+        where = [*loc, *e.get("loc", ())]
+        field = ".".join(str(p) for p in where if p != "body")
+        errs.append({"loc": where, "msg": f"{field}: {e.get('msg')}", "type": e.get("type", "value_error")})
+    return RequestInvalid(errs)
+
+
+def parse_scene(data: Any, settings: Any, loc: tuple = ("body",)) -> Any:
+    """Validate a scene (dict or Scene) with the shared pydantic model, then the service's caps."""
+    from pydantic import ValidationError
+
+    from lodcast.renderer.scene import Scene
+
+    if not isinstance(data, (dict, Scene)):
+        raise RequestInvalid.one(loc, "a scene must be a JSON object", "type_error")
+    try:
+        scene = data if isinstance(data, Scene) else Scene.model_validate(data)
+    except ValidationError as exc:
+        raise _from_pydantic(exc, loc) from None
+    except (ValueError, TypeError, LodcastError) as exc:
+        raise RequestInvalid.one(loc, str(exc)) from None
+    if scene.width > settings.max_width:
+        raise RequestInvalid.one((*loc, "width"), f"{scene.width} exceeds the service's cap of {settings.max_width}")
+    if scene.height > settings.max_height:
+        raise RequestInvalid.one((*loc, "height"), f"{scene.height} exceeds the service's cap of {settings.max_height}")
+    step = getattr(getattr(scene, "sampling", None), "step", None)
+    if step is not None and step < settings.min_step:
+        raise RequestInvalid.one((*loc, "sampling", "step"), f"{step} is below the service's minimum of {settings.min_step}")
+    return scene
+
+
+def check_tf(data: Any, loc: tuple) -> dict:
+    """Validate one transfer function by putting it in a minimal scene (the TF model lives in the scene module)."""
+    from pydantic import ValidationError
+
+    from lodcast.renderer.scene import Scene
+
+    if not isinstance(data, dict):
+        raise RequestInvalid.one(loc, "a transfer function must be a JSON object", "type_error")
+    try:
+        Scene.model_validate({"tf": data})
+    except ValidationError as exc:
+        errs = []
+        for e in exc.errors(include_url=False):
+            where = [*loc, *e.get("loc", ())[1:]]
+            field = ".".join(str(p) for p in where if p != "body")
+            errs.append({"loc": where, "msg": f"{field}: {e.get('msg')}", "type": e.get("type", "value_error")})
+        raise RequestInvalid(errs) from None
+    return data
+
+
+class RenderEngine:
+    """Per-process rendering: opened stores are kept (LRU) and every render goes through lodcast.render, whose
+    renderer keeps its brick cache and compiled programs at module level, shared by all requests of the process."""
+
+    def __init__(self, max_open: int = 32) -> None:
+        self._stores: OrderedDict[Path, Any] = OrderedDict()
+        self._lock = threading.Lock()
+        self._max_open = max_open
+
+    def store(self, path: Path) -> Any:
+        from lodcast.store.store import open_store
+
+        path = Path(path)
+        with self._lock:
+            st = self._stores.get(path)
+            if st is not None:
+                self._stores.move_to_end(path)
+                return st
+        st = open_store(path)
+        with self._lock:
+            self._stores[path] = st
+            while len(self._stores) > self._max_open:
+                self._stores.popitem(last=False)
+        return st
+
+    def forget(self, path: Path) -> None:
+        with self._lock:
+            self._stores.pop(Path(path), None)
+
+    def render(self, path: Path, scene: Any) -> Any:
+        from lodcast.renderer.render import render
+
+        return render(self.store(path), scene)
+
+
+_ENGINE: RenderEngine | None = None
+_ENGINE_LOCK = threading.Lock()
+
+
+def engine() -> RenderEngine:
+    """The process's render engine (created on first use, never at import)."""
+    global _ENGINE
+    with _ENGINE_LOCK:
+        if _ENGINE is None:
+            _ENGINE = RenderEngine()
+        return _ENGINE
+
+
+def scene_format(scene: Any) -> str:
+    fmt = getattr(scene, "format", "png") or "png"
+    return str(getattr(fmt, "value", fmt))
+
+
+def encode(result: Any, scene: Any) -> tuple[bytes, str]:
+    """The image bytes and media type: straight-alpha 8-bit PNG, or the float32 premultiplied RGBA as .npy."""
+    import numpy as np
+
+    rgba = np.asarray(result.rgba, dtype=np.float32)
+    if scene_format(scene) == "npy":
+        buf = io.BytesIO()
+        np.save(buf, rgba, allow_pickle=False)
+        return buf.getvalue(), "application/octet-stream"
+    return png_bytes(rgba), "image/png"
+
+
+def png_bytes(rgba: Any) -> bytes:
+    try:
+        from lodcast.renderer.image import encode_png  # the renderer's own conversion, when it offers one
+
+        out = encode_png(rgba)
+        if isinstance(out, (bytes, bytearray)):
+            return bytes(out)
+    except ImportError:
+        pass
+    import numpy as np
+    from PIL import Image
+
+    a = np.clip(rgba[..., 3:4], 0.0, 1.0)
+    rgb = np.where(a > 0, np.clip(rgba[..., :3], 0.0, None) / np.maximum(a, 1e-12), 0.0)
+    img = np.concatenate([np.clip(rgb, 0.0, 1.0), a], axis=-1)
+    img8 = np.round(img * 255.0).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(img8, "RGBA").save(buf, format="PNG")
+    return buf.getvalue()

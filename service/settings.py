@@ -1,0 +1,77 @@
+"""Service settings: environment variables (prefix ``LODCAST_``) or keyword arguments; nothing is read at import time."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["Settings"]
+
+
+class Settings(BaseSettings):
+    """Everything the HTTP service, the job queue and the workers need to agree on.
+
+    ``root`` is the store root: volumes are stores directly under it (their id is the folder name); job results,
+    the embedded SQLite queue and the job records live in hidden folders beside them (``.jobs/``, ``.lodcast/``).
+    """
+
+    model_config = SettingsConfigDict(env_prefix="LODCAST_", extra="ignore")
+
+    root: Path = Field(default=Path("."), description="store root (LODCAST_ROOT)")
+    token: str | None = Field(default=None, description="bearer token required on write endpoints (LODCAST_TOKEN)")
+    queue: str | None = Field(
+        default=None,
+        description="job queue: None or 'sqlite' for the embedded SQLite queue under ROOT/.lodcast, "
+        "'sqlite:///path/queue.db', or 'redis://host:port/db' (LODCAST_QUEUE)",
+    )
+    queue_name: str = Field(default="lodcast", description="queue / key prefix, so that several services can share one Redis")
+    import_roots: list[Path] = Field(default_factory=list, description="server-side folders POST /volumes may ingest from")
+
+    # caps on what one request may ask for
+    max_width: int = Field(default=4096, ge=1)
+    max_height: int = Field(default=4096, ge=1)
+    max_frames: int = Field(default=3600, ge=1)
+    max_scenes: int = Field(default=1000, ge=1, description="most scenes / TFs / volumes in one job")
+    min_step: float = Field(default=0.05, gt=0, description="smallest sampling step (voxels of the finest level)")
+    max_upload_bytes: int = Field(default=2 * 1024**3, ge=0)
+
+    # concurrency
+    render_concurrency: int = Field(default=2, ge=1, description="renders running at once; others wait in FIFO order")
+    workers: int = Field(default=1, ge=0, description="in-process job workers of `lodcast serve` (0: none)")
+
+    # crash safety
+    heartbeat_s: float = Field(default=2.0, gt=0, description="how often a running job refreshes its heartbeat")
+    stale_after_s: float = Field(default=15.0, gt=0, description="a running job whose heartbeat is older is re-enqueued")
+    reap_every_s: float = Field(default=5.0, gt=0, description="how often stale jobs are looked for")
+    poll_s: float = Field(default=0.2, gt=0, description="how often an idle worker polls the SQLite queue")
+    frame_delay_s: float = Field(default=0.0, ge=0, description="pause after each job frame (tests and demos only)")
+
+    @field_validator("root", mode="after")
+    @classmethod
+    def _absolute(cls, v: Path) -> Path:
+        return Path(v).expanduser().resolve()
+
+    @field_validator("import_roots", mode="after")
+    @classmethod
+    def _absolute_list(cls, v: list[Path]) -> list[Path]:
+        return [Path(p).expanduser().resolve() for p in v]
+
+    # --- derived paths --------------------------------------------------------------------------------------
+    @property
+    def state_dir(self) -> Path:
+        return self.root / ".lodcast"
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.root / ".jobs"
+
+    @property
+    def is_redis(self) -> bool:
+        return bool(self.queue) and str(self.queue).startswith(("redis://", "rediss://", "unix://"))
+
+    def sqlite_path(self) -> Path:
+        q = self.queue or ""
+        if q.startswith("sqlite://") and len(q) > len("sqlite://"):
+            return Path(q[len("sqlite://") :])  # sqlite:///abs/path.db
+        return self.state_dir / "queue.db"

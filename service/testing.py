@@ -1,0 +1,168 @@
+"""Helpers for the service's tests, benchmark and smoke script: a tiny volume, a real redis-server, a live
+`lodcast serve` / `lodcast worker` on loopback (each in its own process group, stopped by group)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+__all__ = [
+    "TINY_TF",
+    "tiny_scene",
+    "make_volume",
+    "free_port",
+    "redis_available",
+    "RedisServer",
+    "Proc",
+    "start_serve",
+    "start_worker",
+    "in_ci",
+]
+
+TINY_TF = {"points": [{"value": 0, "color": [0.2, 0.4, 1.0], "opacity": 0.0},
+                      {"value": 1000, "color": [1.0, 0.9, 0.8], "opacity": 0.6}]}
+
+
+def tiny_scene(size: int = 16, **extra: Any) -> dict[str, Any]:
+    return {"camera": {"azimuth": 30, "elevation": 20}, "width": size, "height": size, "tf": TINY_TF,
+            "sampling": {"step": 1.0}, **extra}
+
+
+def make_volume(root: Path, name: str = "tiny", n: int = 24, block_size: int = 8) -> Path:
+    """A Gaussian blob of n³ float32 voxels ingested as ROOT/NAME."""
+    import numpy as np
+
+    import lodcast
+
+    z, y, x = np.mgrid[:n, :n, :n].astype(np.float32)
+    c = (n - 1) / 2
+    v = (1000 * np.exp(-((z - c) ** 2 + (y - c) ** 2 + (x - c) ** 2) / (n * n / 10))).astype(np.float32)
+    lodcast.ingest(v, Path(root) / name, block_size=block_size)
+    return Path(root) / name
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def redis_available() -> str | None:
+    """Path of redis-server, or None."""
+    return shutil.which("redis-server") or next(
+        (p for p in ("/usr/bin/redis-server", "/usr/sbin/redis-server") if os.access(p, os.X_OK)), None)
+
+
+class Proc:
+    """A child process in its own session (process group); ``stop()`` signals the whole group."""
+
+    def __init__(self, args: list[str], env: dict[str, str] | None = None, log: Path | None = None) -> None:
+        self.args = args
+        self.log = log
+        out = open(log, "ab") if log else subprocess.DEVNULL
+        self.p = subprocess.Popen(args, env={**os.environ, **(env or {})}, stdout=out, stderr=subprocess.STDOUT,
+                                  stdin=subprocess.DEVNULL, start_new_session=True)
+        if log:
+            out.close()  # type: ignore[union-attr]
+
+    @property
+    def pid(self) -> int:
+        return self.p.pid
+
+    def kill(self, sig: int = signal.SIGKILL) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.p.pid, sig)
+
+    def stop(self, timeout: float = 15.0) -> int | None:
+        if self.p.poll() is None:
+            self.kill(signal.SIGTERM)
+            try:
+                self.p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                pass
+        self.kill(signal.SIGKILL)  # anything left in the group
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.p.wait(5)
+        return self.p.returncode
+
+    def tail(self, n: int = 4000) -> str:
+        if self.log and self.log.exists():
+            return self.log.read_text(errors="replace")[-n:]
+        return ""
+
+
+class RedisServer:
+    """A throwaway redis-server on a loopback port, with no persistence."""
+
+    def __init__(self, workdir: Path) -> None:
+        exe = redis_available()
+        if exe is None:
+            raise RuntimeError("redis-server not found (Debian package redis-server)")
+        self.port = free_port()
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        workdir.mkdir(parents=True, exist_ok=True)
+        self.proc = Proc([exe, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+                          "--dir", str(workdir)], log=workdir / "redis.log")
+        import redis
+
+        client = redis.Redis(host="127.0.0.1", port=self.port)
+        for _ in range(200):
+            try:
+                if client.ping():
+                    break
+            except redis.ConnectionError:
+                time.sleep(0.05)
+        else:
+            self.proc.stop()
+            raise RuntimeError(f"redis-server did not start: {self.proc.tail()}")
+        client.close()
+
+    def stop(self) -> None:
+        self.proc.stop()
+
+
+def _lodcast() -> list[str]:
+    return [sys.executable, "-m", "lodcast.service.cli"]
+
+
+def start_serve(root: Path, port: int, *, queue: str | None = None, env: dict[str, str] | None = None,
+                log: Path | None = None, extra: list[str] | None = None, wait: float = 60.0) -> Proc:
+    args = [*_lodcast(), "serve", "--root", str(root), "--port", str(port), *(["--queue", queue] if queue else []), *(extra or [])]
+    proc = Proc(args, env=env, log=log)
+    import httpx
+
+    end = time.monotonic() + wait
+    while time.monotonic() < end:
+        if proc.p.poll() is not None:
+            raise RuntimeError(f"lodcast serve exited {proc.p.returncode}: {proc.tail()}")
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            time.sleep(0.1)
+    proc.stop()
+    raise RuntimeError(f"lodcast serve did not answer within {wait} s: {proc.tail()}")
+
+
+def start_worker(root: Path, *, queue: str | None = None, env: dict[str, str] | None = None, log: Path | None = None) -> Proc:
+    return Proc([*_lodcast(), "worker", "--root", str(root), *(["--queue", queue] if queue else [])], env=env, log=log)
+
+
+@contextlib.contextmanager
+def running(*procs: Proc) -> Iterator[None]:
+    try:
+        yield
+    finally:
+        for p in procs:
+            p.stop()

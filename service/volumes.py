@@ -1,0 +1,139 @@
+"""Volume ids and paths under the store root: validation, traversal and symlink safety, listing, deletion.
+
+A volume is a store directly under the root; its id is the folder name. No request may name a path outside the
+root: ids are matched against a strict pattern, resolved, and checked to stay inside the root (a symlink that leads
+out of it is refused). Hidden folders (``.jobs``, ``.lodcast``) never match the pattern, so they are never volumes.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any
+
+from lodcast.errors import LodcastError
+
+__all__ = [
+    "VOLUME_ID",
+    "JOB_ID",
+    "BadId",
+    "OutsideRoot",
+    "VolumeNotFound",
+    "check_volume_id",
+    "volume_path",
+    "list_volumes",
+    "volume_summary",
+    "delete_volume",
+    "safe_import_path",
+]
+
+VOLUME_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+JOB_ID = re.compile(r"^[0-9a-f]{32}$")
+
+
+class BadId(LodcastError, ValueError):
+    """An id does not match its pattern."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+class OutsideRoot(BadId):
+    """A path resolves outside the folder it must stay in (traversal or symlink)."""
+
+
+class VolumeNotFound(LodcastError, FileNotFoundError):
+    def __init__(self, volume_id: str) -> None:
+        super().__init__(f"volume: no volume {volume_id!r} under the store root")
+        self.field = "volume"
+        self.volume_id = volume_id
+
+
+def check_volume_id(volume_id: Any, field: str = "volume") -> str:
+    if not isinstance(volume_id, str) or not VOLUME_ID.match(volume_id) or volume_id in (".", ".."):
+        raise BadId(field, f"{field}: invalid volume id {str(volume_id)[:140]!r} (expected {VOLUME_ID.pattern})")
+    return volume_id
+
+
+def _inside(path: Path, root: Path) -> bool:
+    try:
+        return path.resolve(strict=False).is_relative_to(root.resolve())
+    except (OSError, RuntimeError):  # symlink loops
+        return False
+
+
+def volume_path(root: Path, volume_id: Any, *, must_exist: bool = True, field: str = "volume") -> Path:
+    """The store folder of a volume, refusing bad ids and anything that resolves outside ``root``."""
+    vid = check_volume_id(volume_id, field)
+    root = Path(root).resolve()
+    path = root / vid
+    if not _inside(path, root):
+        raise OutsideRoot(field, f"{field}: {vid!r} resolves outside the store root")
+    if must_exist and not path.is_dir():
+        raise VolumeNotFound(vid)
+    return path
+
+
+def list_volumes(root: Path) -> list[str]:
+    """Ids of the folders directly under ``root`` that look like stores (a zarr group), sorted."""
+    root = Path(root).resolve()
+    out: list[str] = []
+    try:
+        entries = list(os.scandir(root))
+    except FileNotFoundError:
+        return out
+    for entry in entries:
+        if not VOLUME_ID.match(entry.name) or not entry.is_dir():
+            continue
+        path = root / entry.name
+        if not _inside(path, root):
+            continue
+        if (path / "zarr.json").is_file():
+            out.append(entry.name)
+    return sorted(out)
+
+
+def volume_summary(root: Path, volume_id: Any) -> dict[str, Any]:
+    """The store's attributes (``Store.summary()``) plus its id; raises VolumeNotFound / StoreInvalid."""
+    from lodcast.errors import StoreNotFound
+
+    path = volume_path(root, volume_id)
+    from lodcast.store.store import open_store
+
+    try:
+        summary = dict(open_store(path).summary())
+    except StoreNotFound:
+        raise VolumeNotFound(str(volume_id)) from None
+    summary.pop("path", None)  # the server's own filesystem layout is not the client's business
+    return {"id": str(volume_id), **summary}
+
+
+def delete_volume(root: Path, volume_id: Any) -> None:
+    """Remove a volume's store: renamed aside first (atomic), then deleted, so it never looks half there."""
+    path = volume_path(root, volume_id)
+    if path.is_symlink():
+        path.unlink()  # a link inside the root pointing at a store elsewhere: remove the link, never the target
+        return
+    trash = Path(root).resolve() / f".trash-{uuid.uuid4().hex}"
+    os.replace(path, trash)
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def safe_import_path(source: Any, import_roots: list[Path], field: str = "source") -> Path:
+    """A server-side source path for ingest; it must resolve inside one of the configured import roots."""
+    if not isinstance(source, str) or not source or "\x00" in source:
+        raise BadId(field, f"{field}: must be a non-empty path")
+    if not import_roots:
+        raise BadId(field, f"{field}: ingest from server-side paths is disabled (no import roots configured)")
+    p = Path(source)
+    for base in import_roots:
+        cand = p if p.is_absolute() else base / p
+        if _inside(cand, base):
+            resolved = cand.resolve()
+            if not resolved.exists():
+                raise BadId(field, f"{field}: {source!r} does not exist")
+            return resolved
+    raise OutsideRoot(field, f"{field}: {source!r} is outside the configured import roots")
