@@ -1,0 +1,86 @@
+"""Camera per DESIGN.md, in world (x, y, z) coordinates (x is the last array axis, z the first).
+
+Pixel (row i, column j), row 0 at the top, casts its ray through its centre: f = normalize(target − eye),
+r = normalize(f × up), u = r × f; perspective direction ∝ f + ((2(j+½)/W − 1)·tan(fov/2)·W/H)·r +
+((1 − 2(i+½)/H)·tan(fov/2))·u. Orthographic: parallel rays along f from the image plane through the eye, of
+height `view_height`. The orbit form puts the eye at azimuth/elevation around the box centre at `distance` times
+the bounding-sphere radius.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lodcast.renderer.scene import LookAtCamera, OrbitCamera
+
+__all__ = ["Frame", "box_world", "frame", "look_at", "orbit_eye", "pixel_rays"]
+
+
+def box_world(shape_zyx, spacing_zyx, origin_zyx) -> tuple[np.ndarray, np.ndarray]:
+    """The volume's box (lo, hi) in world xyz: origin − spacing/2 to origin + (shape − ½)·spacing."""
+    sh = np.asarray(shape_zyx, np.float64)[::-1]
+    sp = np.asarray(spacing_zyx, np.float64)[::-1]
+    org = np.asarray(origin_zyx, np.float64)[::-1]
+    return org - sp / 2, org + (sh - 0.5) * sp
+
+
+@dataclass(frozen=True)
+class Frame:
+    eye: np.ndarray  # xyz; orthographic: centre of the image plane
+    f: np.ndarray
+    r: np.ndarray
+    u: np.ndarray
+    half_w: float  # perspective: tan(fov/2)·W/H; orthographic: half the view width in world units
+    half_h: float
+    orthographic: bool
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def orbit_eye(cam: OrbitCamera, center: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(eye, up) of the orbit camera. `up` is the elevation tangent, equal to +z's direction in the view plane, so
+    the poles (elevation ±90°) stay well defined."""
+    a, e = np.radians(cam.azimuth), np.radians(cam.elevation)
+    d = np.array([np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
+    up = np.array([-np.sin(a) * np.sin(e), np.cos(a) * np.sin(e), np.cos(e)])
+    return center + d * radius * cam.distance, up
+
+
+def look_at(eye, target, up, fov: float, width: int, height: int, orthographic: bool = False,
+            view_height: float | None = None) -> Frame:
+    eye = np.asarray(eye, np.float64)
+    f = _unit(np.asarray(target, np.float64) - eye)
+    r = _unit(np.cross(f, np.asarray(up, np.float64)))
+    u = np.cross(r, f)
+    aspect = width / height
+    if orthographic:
+        hh = 0.5 * float(view_height)
+        return Frame(eye, f, r, u, hh * aspect, hh, True)
+    t = float(np.tan(np.radians(fov) / 2))
+    return Frame(eye, f, r, u, t * aspect, t, False)
+
+
+def frame(cam: LookAtCamera | OrbitCamera, width: int, height: int, box_lo: np.ndarray, box_hi: np.ndarray) -> Frame:
+    ortho = cam.projection == "orthographic"
+    if isinstance(cam, OrbitCamera):
+        center = (box_lo + box_hi) / 2
+        radius = 0.5 * float(np.linalg.norm(box_hi - box_lo))
+        eye, up = orbit_eye(cam, center, radius)
+        return look_at(eye, center, up, cam.fov, width, height, ortho, cam.view_height)
+    return look_at(cam.eye, cam.target, cam.up, cam.fov, width, height, ortho, cam.view_height)
+
+
+def pixel_rays(fr: Frame, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(origins, unit directions), each (H, W, 3) float64 — the host-side mirror of the kernel's ray setup."""
+    j = (2 * (np.arange(width) + 0.5) / width - 1)[None, :, None]
+    i = (1 - 2 * (np.arange(height) + 0.5) / height)[:, None, None]
+    if fr.orthographic:
+        org = fr.eye + j * fr.half_w * fr.r + i * fr.half_h * fr.u
+        d = np.broadcast_to(fr.f, org.shape)
+        return org, d.copy()
+    d = fr.f + j * fr.half_w * fr.r + i * fr.half_h * fr.u
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.broadcast_to(fr.eye, d.shape).copy(), d

@@ -1,0 +1,43 @@
+"""KernelConfig: everything that specialises the kernel, frozen, turned into `-D` options — the only way a
+scene changes the compiled code (no source pasting). Features a scene does not use are compiled out."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["KernelConfig", "PRECISE_SAMPLES"]
+
+#: Rays with more samples than this use compensated sums (the error of plain float32 sums grows with the count).
+PRECISE_SAMPLES = 4096
+
+
+@dataclass(frozen=True)
+class KernelConfig:
+    sampler: str = "full"  # "full": level 0 from a plain buffer. Issue 5 adds "atlas".
+    interpolation: str = "trilinear"  # atlas only: "nearest_block" | "interblock"
+    mode: str = "composite"  # "composite" | "mip"
+    orthographic: bool = False
+    ess: bool = True
+    jitter: bool = False
+    precise: bool = False
+    background: bool = False
+
+    def __post_init__(self) -> None:
+        if self.sampler not in ("full",):
+            raise ValueError(f"sampler {self.sampler!r} is not implemented")
+        if self.mode not in ("composite", "mip"):
+            raise ValueError(f"mode {self.mode!r} is not implemented")
+
+    def build_options(self) -> tuple[str, ...]:
+        opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]
+        if self.mode == "mip":
+            opts.append("-DLC_MODE_MIP")
+        for flag, name in (
+            (self.orthographic, "LC_ORTHO"),
+            (self.ess, "LC_ESS"),
+            (self.jitter, "LC_JITTER"),
+            (self.precise and self.mode == "composite", "LC_PRECISE"),
+            (self.background, "LC_BACKGROUND"),
+        ):
+            if flag:
+                opts.append(f"-D{name}")
+        return tuple(opts)

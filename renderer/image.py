@@ -1,0 +1,63 @@
+"""Image output: straight-alpha 8-bit PNG (Pillow) or the float32 premultiplied RGBA itself (.npy)."""
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from lodcast.errors import LodcastError
+
+__all__ = ["ImageError", "to_straight_rgba8", "png_bytes", "save_image", "format_for"]
+
+
+class ImageError(LodcastError, ValueError):
+    """Unsupported output format or unwritable destination."""
+
+
+def format_for(path: str | Path, format: str | None = None) -> str:
+    ext = Path(path).suffix.lower().lstrip(".")
+    fmt = (format or ext).lower()
+    if fmt not in ("png", "npy"):
+        raise ImageError(f"output {str(path)!r}: format must be png or npy (from the extension or --format), got {fmt or 'none'!r}")
+    if format and ext and ext in ("png", "npy") and ext != fmt:
+        raise ImageError(f"output {str(path)!r}: extension .{ext} contradicts format {fmt!r}")
+    return fmt
+
+
+def to_straight_rgba8(rgba: np.ndarray) -> np.ndarray:
+    """Premultiplied float RGBA -> straight-alpha uint8 (colour = C / A where A > 0, rounded to nearest)."""
+    a = np.clip(rgba[..., 3:4].astype(np.float64), 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(a > 0, rgba[..., :3] / np.where(a > 0, a, 1.0), 0.0)
+    out = np.concatenate([np.clip(c, 0.0, 1.0), a], axis=-1)
+    return np.round(np.nan_to_num(out) * 255.0).astype(np.uint8)
+
+
+def png_bytes(rgba: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(to_straight_rgba8(rgba), mode="RGBA").save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None) -> Path:
+    """Write atomically (temporary name, then rename): nothing is half-written."""
+    path = Path(path)
+    fmt = format_for(path, format)
+    if not path.parent.is_dir():
+        raise ImageError(f"output {str(path)!r}: folder {str(path.parent)!r} does not exist")
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        if fmt == "npy":
+            with open(tmp, "wb") as f:
+                np.save(f, np.ascontiguousarray(rgba, dtype=np.float32))
+        else:
+            tmp.write_bytes(png_bytes(rgba))
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise ImageError(f"output {str(path)!r}: {exc.strerror or exc}") from None
+    return path

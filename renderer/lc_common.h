@@ -1,0 +1,69 @@
+/* lc_common.h: ray setup, ray/box intersection, jitter and the full-resolution sampler, shared by
+ * raycast.cl and march_bare.cl. Voxel coordinates q have voxel centres at integers: q = (world - origin) / spacing.
+ */
+#ifndef LC_COMMON_H
+#define LC_COMMON_H
+#include "lc_types.h"
+
+/* Linear voxel offset: ulong so that volumes beyond 2^31 voxels address correctly
+ * (mirrored by lodcast.renderer.sampler.voxel_offset). */
+#define LC_OFFSET(x, y, z, nx, ny) (((ulong)(z) * (ulong)(ny) + (ulong)(y)) * (ulong)(nx) + (ulong)(x))
+
+inline uint lc_hash(uint x) {
+    x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
+    return x;
+}
+
+/* uniform in [0, 1), reproducible per (seed, pixel) */
+inline float lc_jitter(uint seed, uint pixel) {
+    return (float)(lc_hash(seed ^ lc_hash(pixel + 0x9e3779b9U)) >> 8) * (1.0f / 16777216.0f);
+}
+
+/* The ray of pixel (row i, column j): origin o, unit direction d (world). */
+inline void lc_pixel_ray(__constant const LcParams* P, int i, int j, float3* o, float3* d) {
+    float px = (2.0f * ((float)j + 0.5f) / (float)P->width - 1.0f) * P->half_w;
+    float py = (1.0f - 2.0f * ((float)i + 0.5f) / (float)P->height) * P->half_h;
+#ifdef LC_ORTHO
+    *o = P->eye.xyz + px * P->cam_r.xyz + py * P->cam_u.xyz;
+    *d = P->cam_f.xyz;
+#else
+    *o = P->eye.xyz;
+    *d = normalize(P->cam_f.xyz + px * P->cam_r.xyz + py * P->cam_u.xyz);
+#endif
+}
+
+/* Slab test in world space; returns the parameter interval [t0, t1] (t0 >= 0: rays start at the eye/image plane). */
+inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t0, float* t1) {
+    float3 inv = 1.0f / d;
+    float3 ta = (P->box_lo.xyz - o) * inv;
+    float3 tb = (P->box_hi.xyz - o) * inv;
+    float3 lo = fmin(ta, tb), hi = fmax(ta, tb);
+    float tn = fmax(fmax(lo.x, lo.y), lo.z);
+    float tf = fmin(fmin(hi.x, hi.y), hi.z);
+    *t0 = fmax(tn, 0.0f);
+    *t1 = tf;
+    return tf > *t0;
+}
+
+#ifdef LC_SAMPLER_FULL
+/* Trilinear between voxel centres, clamped to the edge in the half-voxel rim. Any NaN in the 8-voxel stencil
+ * yields NaN (the caller treats it as transparent). 1-voxel-thick axes work (the stencil collapses). */
+inline float lc_sample(__global const float* vol, int4 dims, float3 q) {
+    float3 c = clamp(q, (float3)(0.0f), convert_float3(dims.xyz - 1));
+    int x0 = (int)c.x, y0 = (int)c.y, z0 = (int)c.z;
+    float fx = c.x - (float)x0, fy = c.y - (float)y0, fz = c.z - (float)z0;
+    ulong dx = (x0 + 1 < dims.x) ? 1UL : 0UL;
+    ulong dy = (y0 + 1 < dims.y) ? (ulong)dims.x : 0UL;
+    ulong dz = (z0 + 1 < dims.z) ? (ulong)dims.x * (ulong)dims.y : 0UL;
+    ulong b = LC_OFFSET(x0, y0, z0, dims.x, dims.y);
+    float v000 = vol[b], v001 = vol[b + dx], v010 = vol[b + dy], v011 = vol[b + dy + dx];
+    b += dz;
+    float v100 = vol[b], v101 = vol[b + dx], v110 = vol[b + dy], v111 = vol[b + dy + dx];
+    float a0 = v000 + (v001 - v000) * fx, a1 = v010 + (v011 - v010) * fx;
+    float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
+    float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
+    return b0 + (b1 - b0) * fz;
+}
+#endif
+
+#endif

@@ -1,0 +1,37 @@
+/* lc_types.h: the parameter block shared by the host and every lodcast kernel.
+ *
+ * Mirrored field by field by lodcast.renderer.structs.PARAMS_DTYPE (NumPy); tests/test_renderer_structs.py
+ * checks size and every offset through a probe kernel. Vectors are float4/int4 (16-byte aligned, no float3
+ * padding surprises) and come first; scalars are 4 bytes each. World vectors are (x, y, z, unused) with x the
+ * last array axis. Append new fields at the end (keeping the size a multiple of 16) and mirror them.
+ */
+#ifndef LC_TYPES_H
+#define LC_TYPES_H
+
+typedef struct LcParams {
+    float4 eye;         /* world; orthographic: centre of the image plane */
+    float4 cam_f;       /* forward, right, up: orthonormal */
+    float4 cam_r;
+    float4 cam_u;
+    float4 box_lo;      /* world box: origin - spacing/2 ... origin + (shape - 1/2) spacing */
+    float4 box_hi;
+    float4 origin;      /* world position of voxel (0,0,0)'s centre */
+    float4 inv_spacing; /* 1 / spacing */
+    float4 background;  /* premultiplied: (r a, g a, b a, a) */
+    int4 dims;          /* voxels nx, ny, nz; w unused */
+    int4 grid;          /* blocks gx, gy, gz; w: block edge B in voxels of this level */
+    float half_w;       /* perspective: tan(fov/2) W/H; orthographic: half the view width (world) */
+    float half_h;       /* perspective: tan(fov/2);     orthographic: half the view height (world) */
+    float step;         /* world units */
+    float inv_unit;     /* 1 / TF opacity unit distance (world) */
+    float lut_lo;       /* LUT entry k holds the TF at value lut_lo + k / lut_scale */
+    float lut_scale;
+    int lut_n;
+    float early_term;   /* stop when accumulated opacity >= this */
+    int width;
+    int height;
+    uint seed;          /* jitter */
+    int max_samples;    /* per ray, host-checked bound (int arithmetic on sample indices stays in range) */
+} LcParams;
+
+#endif

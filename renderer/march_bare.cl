@@ -1,0 +1,23 @@
+/* march_bare.cl: the benchmark's yardstick. The same rays, box and trilinear sampler as raycast.cl, a fixed
+ * step, no transfer function, no compositing: the machine's practical limit for this access pattern. */
+#include "lc_common.h"
+
+__kernel void lc_march_bare(__constant const LcParams* P, __global const float* vol, __global float* out,
+                            __global uint* nsamples) {
+    const int j = get_global_id(0), i = get_global_id(1);
+    if (j >= P->width || i >= P->height) return;
+    float3 o, d;
+    lc_pixel_ray(P, i, j, &o, &d);
+    float t0, t1, acc = 0.0f;
+    uint n = 0;
+    if (lc_hit_box(P, o, d, &t0, &t1)) {
+        const float3 q0 = (o - P->origin.xyz) * P->inv_spacing.xyz;
+        const float3 dq = d * P->inv_spacing.xyz;
+        for (float t = t0 + 0.5f * P->step; t < t1; t += P->step) {
+            acc += lc_sample(vol, P->dims, q0 + t * dq);
+            n++;
+        }
+    }
+    out[(uint)i * (uint)P->width + (uint)j] = acc;
+    nsamples[(uint)i * (uint)P->width + (uint)j] = n;
+}

@@ -1,0 +1,14 @@
+/* probe.cl: reads every LcParams field back, so that tests can check NumPy's mirror of the layout. */
+#include "lc_types.h"
+
+__kernel void lc_probe(__constant const LcParams* P, __global float* f, __global int* n) {
+    const float4 v[9] = {P->eye, P->cam_f, P->cam_r, P->cam_u, P->box_lo, P->box_hi, P->origin,
+                         P->inv_spacing, P->background};
+    for (int k = 0; k < 9; ++k) vstore4(v[k], k, f);
+    f[36] = P->half_w; f[37] = P->half_h; f[38] = P->step; f[39] = P->inv_unit;
+    f[40] = P->lut_lo; f[41] = P->lut_scale; f[42] = P->early_term;
+    vstore4(P->dims, 0, n);
+    vstore4(P->grid, 1, n);
+    n[8] = P->lut_n; n[9] = P->width; n[10] = P->height; n[11] = (int)P->seed; n[12] = P->max_samples;
+    n[13] = (int)sizeof(LcParams);
+}

@@ -1,0 +1,158 @@
+"""OpenCL device selection and the program cache.
+
+Programs are built from the `.cl` files beside this module (our own `#include "..."` lines are resolved here, so
+no include path reaches the OpenCL compiler) and the `-D` options of a KernelConfig, and cached by
+sha256(source, options, platform, device, driver) — in memory for the process and on disk under the user cache
+directory (``$LODCAST_CACHE_DIR`` or platformdirs' ``user_cache_dir("lodcast")``/kernels) as device binaries,
+so a second process skips the compiler. Every `get_program` says where the program came from and, when it was
+built, how long that took.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pyopencl as cl
+
+from lodcast.errors import LodcastError
+
+__all__ = ["DeviceError", "Built", "get_context", "get_program", "kernel_source", "cache_dir", "device_info"]
+
+_HERE = Path(__file__).resolve().parent
+_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.M)
+_LOCK = threading.RLock()
+_CTX: tuple[cl.Context, cl.CommandQueue] | None = None
+_MEMO: dict[str, cl.Program] = {}
+
+
+class DeviceError(LodcastError, RuntimeError):
+    """No usable OpenCL device, or the volume does not fit on it."""
+
+
+@dataclass(frozen=True)
+class Built:
+    program: cl.Program
+    key: str
+    source: str  # "memory" | "disk" | "built"
+    build_ms: float  # compile (or binary load) time in this call; 0 for memory hits
+
+
+def cache_dir() -> Path:
+    env = os.environ.get("LODCAST_CACHE_DIR")
+    if env:
+        return Path(env) / "kernels"
+    import platformdirs
+
+    return Path(platformdirs.user_cache_dir("lodcast")) / "kernels"
+
+
+def get_context() -> tuple[cl.Context, cl.CommandQueue]:
+    """The process's context and profiling queue. Device: ``$LODCAST_DEVICE`` ("gpu", "cpu" or a substring of the
+    device name), else the first GPU, else the first CPU."""
+    global _CTX
+    with _LOCK:
+        if _CTX is None:
+            devices = []
+            try:
+                for p in cl.get_platforms():
+                    devices += [(p, d) for d in p.get_devices()]
+            except cl.Error as exc:
+                raise DeviceError(f"no OpenCL platform available: {exc}") from None
+            if not devices:
+                raise DeviceError("no OpenCL device available (install pocl-binary-distribution for the CPU)")
+            want = os.environ.get("LODCAST_DEVICE", "").lower()
+
+            def rank(pd):
+                _, d = pd
+                name = d.name.lower()
+                if want in ("gpu", "cpu"):
+                    match = bool(d.type & (cl.device_type.GPU if want == "gpu" else cl.device_type.CPU))
+                else:
+                    match = bool(want) and want in name
+                return (not match, not (d.type & cl.device_type.GPU))
+
+            _, dev = sorted(devices, key=rank)[0]
+            ctx = cl.Context([dev])
+            queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+            _CTX = (ctx, queue)
+        return _CTX
+
+
+def device_info() -> dict:
+    ctx, _ = get_context()
+    d = ctx.devices[0]
+    return {
+        "name": d.name.strip(),
+        "platform": d.platform.name.strip(),
+        "driver": d.driver_version.strip(),
+        "max_mem_alloc_size": int(d.max_mem_alloc_size),
+        "global_mem_size": int(d.global_mem_size),
+    }
+
+
+def kernel_source(name: str) -> str:
+    """The text of `name` (a .cl file beside this module) with our own quoted #includes inlined, once each."""
+    seen: set[str] = set()
+
+    def expand(fname: str) -> str:
+        if fname in seen:
+            return ""
+        seen.add(fname)
+        path = _HERE / fname
+        text = path.read_text()
+        return _INCLUDE.sub(lambda m: expand(m.group(1)), text)
+
+    return expand(name)
+
+
+def _key(src: str, options: tuple[str, ...], dev: cl.Device) -> str:
+    h = hashlib.sha256()
+    for part in (src, "\0".join(options), dev.platform.name, dev.platform.version, dev.name, dev.driver_version,
+                 dev.version, cl.VERSION_TEXT):
+        h.update(part.encode())
+        h.update(b"\x01")
+    return h.hexdigest()
+
+
+def get_program(name: str, options: tuple[str, ...] | list[str] = ()) -> Built:
+    """Program `name` (e.g. "raycast.cl") built with `options`, from memory, disk or the compiler."""
+    options = tuple(options)
+    ctx, _ = get_context()
+    dev = ctx.devices[0]
+    src = kernel_source(name)
+    key = _key(src, options, dev)
+    with _LOCK:
+        prg = _MEMO.get(key)
+        if prg is not None:
+            return Built(prg, key, "memory", 0.0)
+        t = time.perf_counter()
+        path = cache_dir() / f"{key}.bin"
+        prg = None
+        if path.is_file():
+            try:
+                prg = cl.Program(ctx, [dev], [path.read_bytes()]).build(options=list(options))
+                where = "disk"
+            except (cl.Error, OSError):
+                prg = None  # stale or corrupt binary: rebuild below
+        if prg is None:
+            try:
+                prg = cl.Program(ctx, src).build(options=list(options))
+            except cl.RuntimeError as exc:
+                raise DeviceError(f"building {name} with {' '.join(options)} failed: {exc}") from None
+            where = "built"
+            try:
+                binary = prg.get_info(cl.program_info.BINARIES)[0]
+                if binary:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_suffix(f".tmp{os.getpid()}")
+                    tmp.write_bytes(binary)
+                    os.replace(tmp, path)
+            except (cl.Error, OSError):
+                pass  # the disk cache is an optimisation only
+        _MEMO[key] = prg
+        return Built(prg, key, where, (time.perf_counter() - t) * 1e3)

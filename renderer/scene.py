@@ -1,0 +1,266 @@
+"""The Scene: one pydantic model shared by `lodcast.render`, the CLI, the HTTP API, jobs and the client.
+
+Field names and defaults follow DESIGN.md's scene JSON. Every validation error names its field
+(``SceneError: sampling.step: Input should be greater than 0``). Fields whose feature has not landed yet
+(tf2, shading, clip, adaptive sampling, pre-integration, quality other than ``full``) are *refused* with a
+message naming the field, never silently ignored: the check is one registry, ``LANDED``, which the issues that
+implement them extend.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from lodcast.errors import LodcastError
+
+__all__ = [
+    "SceneError",
+    "Scene",
+    "TransferFunction",
+    "TFPoint",
+    "LookAtCamera",
+    "OrbitCamera",
+    "Sampling",
+    "LANDED",
+    "parse_scene",
+]
+
+#: Features implemented so far. A scene that asks for anything else is refused, naming the field.
+#: Later issues add their names here ("quality", "tf2", "shading", "clip", "adaptive_object", ...).
+LANDED: set[str] = set()
+
+_PENDING = {
+    "quality": "only quality 'full' is implemented so far (level-of-detail selection lands with issue 5)",
+    "tf2": "a second transfer function is not implemented yet",
+    "shading": "shading is not implemented yet",
+    "clip": "clipping is not implemented yet",
+    "adaptive_object": "adaptive object-space sampling is not implemented yet (issue 5)",
+    "adaptive_screen": "adaptive screen-space sampling is not implemented yet",
+    "preintegration": "pre-integration is not implemented yet",
+}
+
+
+def _require_landed(feature: str) -> None:
+    if feature not in LANDED:
+        raise ValueError(f"{_PENDING[feature]}; leave it out or set it to its default")
+
+
+class SceneError(LodcastError, ValueError):
+    """A scene (or one of its parts) is invalid; the message names the field."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+
+
+class TFPoint(_Model):
+    value: Finite
+    color: tuple[Unit, Unit, Unit] = (1.0, 1.0, 1.0)
+    opacity: Unit = 1.0
+
+
+class TransferFunction(_Model):
+    """Piecewise linear over data values, constant outside; opacity per `unit_distance` world units
+    (None: the volume's smallest spacing)."""
+
+    points: list[TFPoint] = Field(min_length=1, max_length=4096)
+    unit_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+
+    @field_validator("points")
+    @classmethod
+    def _sorted(cls, pts: list[TFPoint]) -> list[TFPoint]:
+        for k in range(1, len(pts)):
+            if pts[k].value < pts[k - 1].value:
+                raise ValueError(
+                    f"control point values must be non-decreasing: point {k} has value {pts[k].value} "
+                    f"after {pts[k - 1].value}"
+                )
+        return pts
+
+
+class LookAtCamera(_Model):
+    eye: Vec3
+    target: Vec3
+    up: Vec3 = (0.0, 0.0, 1.0)
+    fov: Annotated[float, Field(gt=0.0, lt=180.0)] = 30.0
+    projection: Literal["perspective", "orthographic"] = "perspective"
+    view_height: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+
+    @model_validator(mode="after")
+    def _geometry(self) -> "LookAtCamera":
+        f = [t - e for t, e in zip(self.target, self.eye)]
+        nf = math.sqrt(sum(c * c for c in f))
+        if nf == 0.0:
+            raise ValueError("camera.target: equals camera.eye, there is no view direction")
+        nu = math.sqrt(sum(c * c for c in self.up))
+        if nu == 0.0:
+            raise ValueError("camera.up: must not be the zero vector")
+        cross = (
+            f[1] * self.up[2] - f[2] * self.up[1],
+            f[2] * self.up[0] - f[0] * self.up[2],
+            f[0] * self.up[1] - f[1] * self.up[0],
+        )
+        if math.sqrt(sum(c * c for c in cross)) <= 1e-9 * nf * nu:
+            raise ValueError("camera.up: parallel to the view direction (target - eye)")
+        if self.projection == "orthographic" and self.view_height is None:
+            raise ValueError("camera.view_height: required with projection 'orthographic'")
+        return self
+
+
+class OrbitCamera(_Model):
+    """Around the box centre: azimuth 0, elevation 0 looks from -y towards +y with +z up; azimuth turns towards
+    +x, elevation towards +z; distance in multiples of the box's bounding-sphere radius."""
+
+    azimuth: Finite = 0.0
+    elevation: Annotated[float, Field(ge=-90.0, le=90.0)] = 0.0
+    distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] = 2.5
+    fov: Annotated[float, Field(gt=0.0, lt=180.0)] = 30.0
+    projection: Literal["perspective", "orthographic"] = "perspective"
+    view_height: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+
+    @model_validator(mode="after")
+    def _ortho(self) -> "OrbitCamera":
+        if self.projection == "orthographic" and self.view_height is None:
+            raise ValueError("camera.view_height: required with projection 'orthographic'")
+        return self
+
+
+def _camera_kind(v: Any) -> str:
+    if isinstance(v, dict):
+        return "lookat" if ("eye" in v or "target" in v) else "orbit"
+    return "lookat" if isinstance(v, LookAtCamera) else "orbit"
+
+
+Camera = Annotated[
+    Union[Annotated[LookAtCamera, Tag("lookat")], Annotated[OrbitCamera, Tag("orbit")]],
+    Discriminator(_camera_kind),
+]
+
+
+class QualityReduction(_Model):
+    reduction: Annotated[float, Field(ge=1.0, allow_inf_nan=False)]
+
+
+class QualityBudget(_Model):
+    budget_mb: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+
+
+Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget]
+
+
+class Sampling(_Model):
+    """`step` is in voxels of the finest level: multiples of the smallest spacing."""
+
+    step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5
+    interpolation: Literal["nearest_block", "interblock"] = "interblock"
+    adaptive_object: bool = False
+    adaptive_screen: bool = False
+    preintegration: bool = False
+    jitter: bool = False
+    seed: Annotated[int, Field(ge=0, lt=2**32)] = 0
+    early_termination: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
+    empty_space_skipping: bool = True
+    priority_map: bool = True
+
+    @field_validator("adaptive_object", "adaptive_screen", "preintegration")
+    @classmethod
+    def _pending(cls, v: bool, info: Any) -> bool:
+        if v:
+            _require_landed(info.field_name)
+        return v
+
+
+class Scene(_Model):
+    camera: Camera = Field(default_factory=OrbitCamera)
+    width: Annotated[int, Field(ge=1, le=16384)] = 512
+    height: Annotated[int, Field(ge=1, le=16384)] = 512
+    tf: TransferFunction
+    tf2: TransferFunction | None = None
+    quality: Quality = "full"
+    sampling: Sampling = Field(default_factory=Sampling)
+    shading: Any = None
+    clip: Any = None
+    mode: Literal["composite", "mip"] = "composite"
+    background: tuple[Unit, Unit, Unit, Unit] = (0.0, 0.0, 0.0, 0.0)
+    format: Literal["png", "npy"] = "png"
+
+    @field_validator("quality")
+    @classmethod
+    def _quality(cls, v: Any) -> Any:
+        if v != "full":
+            _require_landed("quality")
+        return v
+
+    @field_validator("tf2", "shading", "clip")
+    @classmethod
+    def _pending(cls, v: Any, info: Any) -> Any:
+        if v is not None and v is not False:
+            _require_landed(info.field_name)
+        return v
+
+    # -- construction with one-line errors ---------------------------------------------------------------
+    @classmethod
+    def parse(cls, data: "Scene | dict | str | bytes | Path") -> "Scene":
+        """A Scene from a Scene, a dict, JSON text or a JSON file; raises SceneError naming the field."""
+        if isinstance(data, Scene):
+            return data
+        if isinstance(data, Path):
+            try:
+                data = data.read_text()
+            except OSError as exc:
+                raise SceneError(f"scene file {str(data)!r}: {exc.strerror or exc}") from None
+        if isinstance(data, (str, bytes)):
+            try:
+                data = json.loads(data)
+            except json.JSONDecodeError as exc:
+                raise SceneError(f"scene is not valid JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise SceneError(f"a scene must be a JSON object, got {type(data).__name__}")
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise SceneError(validation_message(exc)) from None
+
+
+def parse_scene(data: Any) -> Scene:
+    return Scene.parse(data)
+
+
+def validation_message(exc: ValidationError, prefix: str = "") -> str:
+    """One line naming the (first) bad field as a dotted path, e.g. ``sampling.step: Input should be ...``."""
+    errs = exc.errors(include_url=False)
+    if not errs:
+        return str(exc)
+    # inside a union pydantic reports every branch; the most specific one (deepest, not a mere tag mismatch) wins
+    weak = {"literal_error", "missing", "extra_forbidden", "model_type", "dict_type"}
+    e = min(errs, key=lambda x: (len(errs) > 1 and x.get("type") in weak, -len(x.get("loc", ()))))
+    loc = [str(p) for p in e.get("loc", ()) if p not in ("lookat", "orbit", "function-after[_ortho(), OrbitCamera]")]
+    # drop union-branch labels pydantic inserts (e.g. 'literal['full','lossless']', 'QualityReduction')
+    loc = [p for p in loc if not (p.startswith("literal[") or p[:1].isupper() or p.startswith("function-"))]
+    msg = str(e.get("msg", "invalid"))
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    where = "" if re.match(r"^[a-z_][a-z0-9_.]*: ", msg) else ".".join(loc)  # a validator may name it itself
+    text = f"{prefix}{where}: {msg}" if where else f"{prefix}{msg}"
+    if len(errs) > 1:
+        text += f" (and {len(errs) - 1} more error{'s' if len(errs) > 2 else ''})"
+    return " ".join(text.split())

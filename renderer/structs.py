@@ -1,0 +1,45 @@
+"""NumPy mirrors of the structs in lc_types.h (checked field by field by tests/test_renderer_structs.py)."""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["PARAMS_DTYPE", "new_params"]
+
+_V4F = (np.float32, (4,))
+_V4I = (np.int32, (4,))
+
+#: LcParams. Order, types and offsets must match lc_types.h exactly; append only.
+PARAMS_DTYPE = np.dtype(
+    [
+        ("eye", _V4F),
+        ("cam_f", _V4F),
+        ("cam_r", _V4F),
+        ("cam_u", _V4F),
+        ("box_lo", _V4F),
+        ("box_hi", _V4F),
+        ("origin", _V4F),
+        ("inv_spacing", _V4F),
+        ("background", _V4F),
+        ("dims", _V4I),
+        ("grid", _V4I),
+        ("half_w", np.float32),
+        ("half_h", np.float32),
+        ("step", np.float32),
+        ("inv_unit", np.float32),
+        ("lut_lo", np.float32),
+        ("lut_scale", np.float32),
+        ("lut_n", np.int32),
+        ("early_term", np.float32),
+        ("width", np.int32),
+        ("height", np.int32),
+        ("seed", np.uint32),
+        ("max_samples", np.int32),
+    ],
+    align=True,
+)
+assert PARAMS_DTYPE.itemsize == 224 and PARAMS_DTYPE.itemsize % 16 == 0
+
+
+def new_params() -> np.ndarray:
+    """A zeroed LcParams record (shape (1,), ready to upload)."""
+    return np.zeros(1, dtype=PARAMS_DTYPE)

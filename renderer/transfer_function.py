@@ -1,0 +1,152 @@
+"""Transfer function: evaluation (float64), exact opacity correction, the kernel's lookup table, and the
+per-block visibility used by empty-space skipping.
+
+DESIGN.md: piecewise linear over data values between control points, constant outside; sRGB colour composited
+as given; opacity `a` per *unit distance* (default: the smallest voxel spacing). A step of length Δ takes
+α = 1 − (1 − a)^(Δ/unit), computed as −expm1((Δ/unit)·log1p(−a)) so that it stays exact for a → 1 and Δ → 0.
+
+The kernel's LUT stores, per entry, the sRGB colour and the *extinction* σ = −log1p(−a) (a = 1 ↦ SIGMA_OPAQUE,
+a finite stand-in for +∞ that keeps interpolation free of inf − inf); the kernel interpolates linearly between
+entries and takes α = −expm1(−(Δ/unit)·σ). Entries are placed so that every control point inside the data range
+falls exactly on an entry when that fits in LUT_MAX entries (then the LUT's interpolant has the TF's kinks
+exactly where the TF has them); otherwise the spacing is at most 1/64 of the smallest gap between control points.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lodcast.renderer.scene import TransferFunction
+
+__all__ = [
+    "SIGMA_OPAQUE",
+    "LUT_MIN",
+    "LUT_MAX",
+    "Lut",
+    "evaluate",
+    "opacity_for_step",
+    "extinction",
+    "build_lut",
+    "unit_distance",
+]
+
+SIGMA_OPAQUE = 1.0e30  # extinction standing in for a = 1: exp(-r·1e30) == 0 for any r > 1e-20
+LUT_MIN = 1024
+LUT_MAX = 65536
+
+
+def unit_distance(tf: TransferFunction, spacing) -> float:
+    """World length over which opacity is given: the TF's own, else the smallest voxel spacing."""
+    return float(tf.unit_distance) if tf.unit_distance is not None else float(min(spacing))
+
+
+def evaluate(tf: TransferFunction, values) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb (..., 3), opacity (...)) in float64 at data values, piecewise linear, constant outside."""
+    v = np.asarray(values, dtype=np.float64)
+    xs = np.array([p.value for p in tf.points], dtype=np.float64)
+    cols = np.array([p.color for p in tf.points], dtype=np.float64)
+    ops = np.array([p.opacity for p in tf.points], dtype=np.float64)
+    rgb = np.stack([np.interp(v, xs, cols[:, c]) for c in range(3)], axis=-1)
+    return rgb, np.interp(v, xs, ops)
+
+
+def opacity_for_step(a, ratio) -> np.ndarray:
+    """α = 1 − (1 − a)^ratio for opacity `a` per unit distance and ratio = Δ/unit, exact for a → 1 and ratio → 0
+    (a = 1 gives 1 for any ratio > 0; ratio = 0 gives 0)."""
+    a = np.asarray(a, dtype=np.float64)
+    r = np.asarray(ratio, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = -np.expm1(r * np.log1p(-a))
+    out = np.where(r == 0.0, 0.0, out)
+    return np.where((a >= 1.0) & (r > 0.0), 1.0, out)
+
+
+def extinction(a) -> np.ndarray:
+    """σ = −log1p(−a) per unit distance (≥ 0), a = 1 ↦ SIGMA_OPAQUE."""
+    a = np.asarray(a, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        s = -np.log1p(-np.minimum(a, 1.0))
+    return np.minimum(s, SIGMA_OPAQUE)
+
+
+@dataclass(frozen=True)
+class Lut:
+    """Uniform table over [lo, lo + (n − 1)/scale]: entry k at value lo + k/scale."""
+
+    lo: float
+    scale: float  # entries per data unit
+    n: int
+    table: np.ndarray  # (n, 4) float32: r, g, b, σ
+    opacity: np.ndarray  # (n,) float64 TF opacity at the entries (what empty-space skipping tests)
+    exact: bool  # every in-range control point lies on an entry
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.lo + np.arange(self.n) / self.scale
+
+    def visible(self, vmin, vmax) -> np.ndarray:
+        """True where the LUT's interpolant has non-zero opacity somewhere on [vmin, vmax] (arrays, any shape).
+        Conservative: the index range is widened by one entry each side. Non-finite bounds (NaN-only blocks)
+        are invisible."""
+        vmin = np.asarray(vmin, dtype=np.float64)
+        vmax = np.asarray(vmax, dtype=np.float64)
+        ok = np.isfinite(vmin) & np.isfinite(vmax)
+        lo = np.where(ok, vmin, 0.0)
+        hi = np.where(ok, vmax, 0.0)
+        i0 = np.clip(np.floor((lo - self.lo) * self.scale) - 1, 0, self.n - 1).astype(np.int64)
+        i1 = np.clip(np.ceil((hi - self.lo) * self.scale) + 1, 0, self.n - 1).astype(np.int64)
+        nz = np.concatenate([[0], np.cumsum(self.opacity > 0.0)])
+        return ok & ((nz[i1 + 1] - nz[i0]) > 0)
+
+
+def _approx_gcd(gaps: np.ndarray, tol: float) -> float:
+    g = float(gaps[0])
+    for d in gaps[1:]:
+        a, b = max(g, float(d)), min(g, float(d))
+        while b > tol:
+            a, b = b, math.fmod(a, b)
+        g = a
+    return g
+
+
+def build_lut(tf: TransferFunction, value_range: tuple[float, float]) -> Lut:
+    """The kernel's table over the data range (see module doc for how its resolution is chosen)."""
+    lo, hi = float(value_range[0]), float(value_range[1])
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        lo, hi = 0.0, 1.0
+    if hi <= lo:
+        hi = lo + 1.0
+    span = hi - lo
+    xs = np.array(sorted({p.value for p in tf.points}), dtype=np.float64)
+    dup = len(xs) < len(tf.points) and any(
+        tf.points[k].value == tf.points[k - 1].value and lo <= tf.points[k].value <= hi for k in range(1, len(tf.points))
+    )
+    inside = xs[(xs >= lo) & (xs <= hi)]
+    h_target = span / (LUT_MIN - 1)
+    if len(inside) >= 2:
+        h_target = min(h_target, float(np.diff(inside).min()) / 64.0)
+    exact = False
+    n = 0
+    start = lo
+    if len(inside) >= 1:
+        gaps = np.diff(inside)
+        g = _approx_gcd(gaps, 1e-9 * span) if len(gaps) else span
+        if g > 1e-9 * span:
+            h = g / math.ceil(g / h_target - 1e-9)
+            start = float(inside[0]) - math.ceil((inside[0] - lo) / h - 1e-9) * h
+            n = int(math.ceil((hi - start) / h - 1e-9)) + 1
+            if 2 <= n <= LUT_MAX:
+                exact = not dup and bool(np.all(np.abs((inside - start) / h - np.round((inside - start) / h)) < 1e-6))
+            else:
+                n = 0
+    if not exact:
+        n = int(min(LUT_MAX, max(LUT_MIN, math.ceil(span / h_target) + 1)))
+        start, h = lo, span / (n - 1)
+    vals = start + np.arange(n) * h
+    rgb, a = evaluate(tf, vals)
+    table = np.empty((n, 4), np.float32)
+    table[:, :3] = rgb
+    table[:, 3] = extinction(a)
+    return Lut(lo=start, scale=1.0 / h, n=n, table=table, opacity=a, exact=exact)

@@ -1,0 +1,127 @@
+"""The renderer's view of a volume: geometry, block statistics and level-0 voxels — from a lodcast store, a path
+to one, or a NumPy array (tests, quick looks). All store access of the renderer goes through this module."""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["VolumeView", "as_volume", "block_minmax_border"]
+
+
+@dataclass
+class VolumeView:
+    shape: tuple[int, int, int]  # z, y, x
+    spacing: tuple[float, float, float]
+    origin: tuple[float, float, float]
+    block_size: int
+    value_range: tuple[float, float]
+    min_border: np.ndarray  # grid-shaped (gz, gy, gx) float64, block plus a one-voxel border; NaN = no finite voxel
+    max_border: np.ndarray
+    key: Any  # hashable identity for device-side caching; None: do not cache
+    _read0: Any = field(repr=False, default=None)
+    source: Any = field(repr=False, default=None)
+
+    @property
+    def grid(self) -> tuple[int, int, int]:
+        return tuple(int(g) for g in self.min_border.shape)  # type: ignore[return-value]
+
+    @property
+    def n_blocks(self) -> int:
+        return int(np.prod(self.grid))
+
+    @property
+    def n_voxels(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    def read_level0(self) -> np.ndarray:
+        return self._read0()
+
+
+def block_minmax_border(a: np.ndarray, B: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-block (min, max) over each B³ block plus a one-voxel border from its neighbours, ignoring NaN
+    (NaN where a block and its border hold no finite value)."""
+    grid = tuple(max(1, math.ceil(s / B)) for s in a.shape)
+    mn = np.full(grid, np.nan)
+    mx = np.full(grid, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for bz in range(grid[0]):
+            for by in range(grid[1]):
+                for bx in range(grid[2]):
+                    sl = tuple(slice(max(0, b * B - 1), (b + 1) * B + 1) for b in (bz, by, bx))
+                    blk = a[sl]
+                    mn[bz, by, bx] = np.nanmin(blk)
+                    mx[bz, by, bx] = np.nanmax(blk)
+    return mn, mx
+
+
+def _from_array(a: np.ndarray, spacing=None, origin=None, block_size: int = 32) -> VolumeView:
+    a = np.asarray(a)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3:
+        raise ValueError(f"a volume must be a 3D array (z, y, x), got shape {a.shape}")
+    mn, mx = block_minmax_border(a, block_size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lo, hi = float(np.nanmin(a)) if a.size else 0.0, float(np.nanmax(a)) if a.size else 0.0
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        lo, hi = 0.0, 0.0
+    return VolumeView(
+        shape=tuple(int(s) for s in a.shape),  # type: ignore[arg-type]
+        spacing=tuple(float(s) for s in (spacing or (1.0, 1.0, 1.0))),  # type: ignore[arg-type]
+        origin=tuple(float(s) for s in (origin or (0.0, 0.0, 0.0))),  # type: ignore[arg-type]
+        block_size=block_size,
+        value_range=(lo, hi),
+        min_border=mn,
+        max_border=mx,
+        key=None,
+        _read0=lambda: a,
+        source=a,
+    )
+
+
+def _from_store(s: Any) -> VolumeView:
+    st = s.stats
+    path = getattr(s, "path", None) or getattr(s, "url", None)
+    return VolumeView(
+        shape=tuple(int(v) for v in s.shape),  # type: ignore[arg-type]
+        spacing=tuple(float(v) for v in s.spacing),  # type: ignore[arg-type]
+        origin=tuple(float(v) for v in s.origin),  # type: ignore[arg-type]
+        block_size=int(s.block_size),
+        value_range=(float(s.value_range[0]), float(s.value_range[1])),
+        min_border=np.asarray(st.min_border, dtype=np.float64),
+        max_border=np.asarray(st.max_border, dtype=np.float64),
+        key=("store", str(path), _stamp(path)) if path is not None else None,
+        _read0=lambda: s.read_level(0),
+        source=s,
+    )
+
+
+def _stamp(path: Any) -> Any:
+    """Changes when a store is replaced at the same path (ingest writes a new folder and renames it)."""
+    try:
+        st = Path(str(path)).stat()
+        return (st.st_ino, st.st_mtime_ns)
+    except OSError:
+        return None
+
+
+def as_volume(obj: Any, *, spacing=None, origin=None) -> VolumeView:
+    """A VolumeView of a store, a store path, a VolumeView or a 3D NumPy array (spacing/origin for arrays)."""
+    if isinstance(obj, VolumeView):
+        return obj
+    if isinstance(obj, np.ndarray):
+        return _from_array(obj, spacing, origin)
+    if isinstance(obj, (str, Path)):
+        import lodcast
+
+        return _from_store(lodcast.open_store(obj))
+    if hasattr(obj, "read_level") and hasattr(obj, "stats"):
+        return _from_store(obj)
+    raise TypeError(f"cannot render a {type(obj).__name__}: pass a lodcast store, a store path or a 3D array")
