@@ -166,8 +166,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.post("/volumes", status_code=202, tags=["volumes"], dependencies=write)
     def post_volume(req: IngestRequest) -> dict[str, Any]:
         job = IngestJob(kind="ingest", source=req.source, name=req.name, overwrite=req.overwrite, options=req.options)
-        validate_job(job, settings)
-        return status_json(jobs().submit(job))
+        return status_json(jobs().submit(validate_job(job, settings)))
 
     @app.post("/volumes/{volume_id}/upload", status_code=202, tags=["volumes"], dependencies=write)
     async def upload_volume(
@@ -194,7 +193,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ext = {"nifti": "nii", "tiff": "tif"}.get(format, format)
         dest = uploads / f"{uuid.uuid4().hex}.{ext}"
         job = IngestJob(kind="ingest", source=str(dest), name=volume_id, overwrite=overwrite, options=options)
-        validate_job(job, settings, upload=dest)
+        job = validate_job(job, settings, upload=dest)
         declared = request.headers.get("content-length")
         if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
             raise HttpError(413, f"body: upload of {declared} bytes exceeds the limit of {settings.max_upload_bytes}")
@@ -260,8 +259,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.post("/jobs", status_code=202, tags=["jobs"], dependencies=write)
     def post_job(job: Annotated[Job, Body(discriminator="kind")]) -> dict[str, Any]:
-        validate_job(job, settings)
-        return status_json(jobs().submit(job))
+        return status_json(jobs().submit(validate_job(job, settings)))
 
     @app.get("/jobs", tags=["jobs"])
     def get_jobs(

@@ -112,11 +112,23 @@ def _add_jobs(sub: argparse._SubParsersAction) -> None:
 
 # --- entry point ---------------------------------------------------------------------------------------------
 
+def _add_render(sub: argparse._SubParsersAction) -> None:
+    from lodcast.renderer.cli_render import add_parser
+
+    add_parser(sub, _cmd_render)
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from lodcast.renderer.cli_render import run
+
+    return run(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_ingest, _add_info, _add_serve, _add_worker, _add_submit, _add_jobs):
+    for add in (_add_ingest, _add_info, _add_serve, _add_worker, _add_submit, _add_jobs, _add_render):
         add(sub)
     return parser
 

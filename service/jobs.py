@@ -103,13 +103,12 @@ def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
         try:
             check_volume_id(job.name, "name")
             volume_path(settings.root, job.name, must_exist=False, field="name")
-            if upload is None:
-                safe_import_path(job.source, settings.import_roots, "source")
+            source = str(upload) if upload is not None else str(safe_import_path(job.source, settings.import_roots, "source"))
         except BadId as exc:
             raise RequestInvalid.one(("body", exc.field), str(exc).split(": ", 1)[-1]) from None
         if not job.overwrite and (settings.root / job.name).exists():
             raise RequestInvalid.one(("body", "name"), f"volume {job.name!r} exists (set overwrite)")
-        return job
+        return job.model_copy(update={"source": source})
     if isinstance(job, TurntableJob):
         vol(job.volume, ("volume",))
         if job.frames > settings.max_frames:

@@ -149,21 +149,7 @@ def encode(result: Any, scene: Any) -> tuple[bytes, str]:
 
 
 def png_bytes(rgba: Any) -> bytes:
-    try:
-        from lodcast.renderer.image import encode_png  # the renderer's own conversion, when it offers one
+    """Straight-alpha 8-bit PNG through the renderer's own conversion (one definition of the 8-bit image)."""
+    from lodcast.renderer.image import png_bytes as _png
 
-        out = encode_png(rgba)
-        if isinstance(out, (bytes, bytearray)):
-            return bytes(out)
-    except ImportError:
-        pass
-    import numpy as np
-    from PIL import Image
-
-    a = np.clip(rgba[..., 3:4], 0.0, 1.0)
-    rgb = np.where(a > 0, np.clip(rgba[..., :3], 0.0, None) / np.maximum(a, 1e-12), 0.0)
-    img = np.concatenate([np.clip(rgb, 0.0, 1.0), a], axis=-1)
-    img8 = np.round(img * 255.0).astype(np.uint8)
-    buf = io.BytesIO()
-    Image.fromarray(img8, "RGBA").save(buf, format="PNG")
-    return buf.getvalue()
+    return _png(rgba)

@@ -36,14 +36,17 @@ def tiny_scene(size: int = 16, **extra: Any) -> dict[str, Any]:
 
 
 def make_volume(root: Path, name: str = "tiny", n: int = 24, block_size: int = 8) -> Path:
-    """A Gaussian blob of n³ float32 voxels ingested as ROOT/NAME."""
+    """Two Gaussian blobs in n³ float32 voxels (values 0..1000) ingested as ROOT/NAME."""
     import numpy as np
 
     import lodcast
 
     z, y, x = np.mgrid[:n, :n, :n].astype(np.float32)
     c = (n - 1) / 2
-    v = (1000 * np.exp(-((z - c) ** 2 + (y - c) ** 2 + (x - c) ** 2) / (n * n / 10))).astype(np.float32)
+    blob = 1000 * np.exp(-((z - c) ** 2 + (y - c) ** 2 + (x - c) ** 2) / (n * n / 10))
+    # an off-centre second blob, so that views from different azimuths differ
+    blob2 = 800 * np.exp(-((z - c) ** 2 + (y - 0.3 * n) ** 2 + (x - 0.8 * n) ** 2) / (n * n / 60))
+    v = np.maximum(blob, blob2).astype(np.float32)
     lodcast.ingest(v, Path(root) / name, block_size=block_size)
     return Path(root) / name
 

@@ -1,0 +1,302 @@
+"""Every HTTP endpoint, happy and bad paths, in process (FastAPI TestClient, embedded SQLite queue, in-process worker)."""
+from __future__ import annotations
+
+import io
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    from fastapi.testclient import TestClient
+
+from lodcast.service.app import create_app
+from lodcast.service.settings import Settings
+from lodcast.service.testing import TINY_TF, make_volume, tiny_scene
+
+TOKEN = "s3cret-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory: pytest.TempPathFactory):
+    base = tmp_path_factory.mktemp("svc")
+    root, imports, outside = base / "root", base / "imports", base / "outside"
+    for d in (root, imports, outside):
+        d.mkdir()
+    make_volume(root, "tiny")
+    make_volume(outside, "secret")
+    np.save(imports / "blob.npy", np.random.default_rng(0).random((12, 12, 12), dtype=np.float32))
+    (root / "escape").symlink_to(outside / "secret")  # a link leading out of the root
+    settings = Settings(root=root, token=TOKEN, import_roots=[imports], max_width=64, max_height=64, max_frames=50,
+                        min_step=0.25, max_upload_bytes=64 * 1024, workers=1, poll_s=0.05)
+    with TestClient(create_app(settings)) as client:
+        yield client, root, imports, outside
+
+
+def wait_job(client: TestClient, job_id: str, timeout: float = 120) -> dict:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        st = client.get(f"/jobs/{job_id}").json()
+        if st["state"] in ("done", "failed", "cancelled"):
+            return st
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} still {st['state']} after {timeout} s")
+
+
+def names_field(resp, field: str) -> bool:
+    return field in json.dumps(resp.json()["detail"])
+
+
+# --- health / volumes ------------------------------------------------------------------------------------------
+
+def test_healthz_and_docs(env):
+    client = env[0]
+    assert client.get("/healthz").json()["status"] == "ok"
+    assert client.get("/docs").status_code == 200
+    assert "/volumes/{volume_id}/render" in client.get("/openapi.json").json()["paths"]
+
+
+def test_list_and_show_volumes(env):
+    client = env[0]
+    listed = client.get("/volumes").json()
+    assert [v["id"] for v in listed] == ["tiny"]  # the symlink out of the root is not a volume
+    info = client.get("/volumes/tiny").json()
+    for key in ("shape", "dtype", "spacing", "origin", "block_size", "levels", "value_range", "blocks", "shards", "bytes_on_disk"):
+        assert key in info
+    assert info["shape"] == [24, 24, 24] and "path" not in info
+
+
+@pytest.mark.parametrize("vid", ["..", ".jobs", ".lodcast", "-x", "a" * 129, "escape", "a%2F..%2F..", "%2E%2E", "nope"])
+def test_bad_volume_ids_refused(env, vid):
+    client = env[0]
+    r = client.get(f"/volumes/{vid}")
+    assert 400 <= r.status_code < 500, (vid, r.status_code, r.text)
+    r = client.post(f"/volumes/{vid}/render", json=tiny_scene())
+    assert 400 <= r.status_code < 500
+    if r.status_code != 404 or r.json().get("detail") != "Not Found":  # the router's own 404 names no field
+        assert "volume" in r.text
+    r = client.delete(f"/volumes/{vid}", headers=AUTH)
+    assert 400 <= r.status_code < 500
+    assert (env[3] / "secret" / "zarr.json").is_file()  # nothing outside the root was touched
+
+
+# --- render ----------------------------------------------------------------------------------------------------
+
+def test_render_png_and_report(env):
+    client = env[0]
+    r = client.post("/volumes/tiny/render", json=tiny_scene(24))
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "image/png" and r.content[:8] == b"\x89PNG\r\n\x1a\n"
+    report = json.loads(r.headers["x-lodcast-report"])
+    for key in ("wall_ms", "kernel_ms", "bricks_read", "bricks_cached", "bricks_skipped", "reduction",
+                "predicted_delta_e", "samples", "build_options"):
+        assert key in report
+
+
+def test_render_npy_is_float_rgba(env):
+    client = env[0]
+    r = client.post("/volumes/tiny/render", json=tiny_scene(20, format="npy"))
+    assert r.status_code == 200, r.text
+    a = np.load(io.BytesIO(r.content))
+    assert a.shape == (20, 20, 4) and a.dtype == np.float32 and a[..., 3].max() > 0
+
+
+@pytest.mark.parametrize(
+    "patch, field",
+    [
+        ({"width": 65}, "width"),
+        ({"height": 1000}, "height"),
+        ({"sampling": {"step": 0.1}}, "step"),
+        ({"tf": {"points": [{"value": 0, "colour": [1, 1, 1]}]}}, "colour"),
+        ({"tf": {"points": []}}, "points"),
+        ({"tf": None}, "tf"),
+        ({"camera": {"fov": 500}}, "fov"),
+        ({"quality": "best"}, "quality"),
+        ({"format": "jpg"}, "format"),
+        ({"bogus": 1}, "bogus"),
+    ],
+)
+def test_render_bad_scene_names_field(env, patch, field):
+    client = env[0]
+    r = client.post("/volumes/tiny/render", json={**tiny_scene(), **patch})
+    assert r.status_code == 422, r.text
+    assert names_field(r, field)
+
+
+def test_render_malformed_bodies(env):
+    client = env[0]
+    r = client.post("/volumes/tiny/render", content=b"{not json", headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    assert client.post("/volumes/tiny/render", json=[1, 2]).status_code == 422
+    r = client.post("/volumes/tiny/render", json={"width": 8})
+    assert r.status_code == 422 and names_field(r, "tf")
+    r = client.post("/volumes/nope/render", json=tiny_scene())
+    assert r.status_code == 404 and "volume" in r.json()["detail"]
+
+
+# --- ingest / upload / delete ----------------------------------------------------------------------------------
+
+def test_ingest_from_import_root_then_delete(env):
+    client, root, imports, _ = env
+    body = {"name": "blob", "source": "blob.npy"}
+    assert client.post("/volumes", json=body).status_code == 401  # token required
+    r = client.post("/volumes", json=body, headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = wait_job(client, r.json()["id"])
+    assert st["state"] == "done" and st["kind"] == "ingest", st
+    assert "blob" in [v["id"] for v in client.get("/volumes").json()]
+    r = client.post("/volumes", json=body, headers=AUTH)  # exists
+    assert r.status_code == 422 and names_field(r, "name")
+    assert client.delete("/volumes/blob").status_code == 401
+    assert client.delete("/volumes/blob", headers=AUTH).status_code == 200
+    assert client.get("/volumes/blob").status_code == 404 and not (root / "blob").exists()
+
+
+@pytest.mark.parametrize(
+    "body, field",
+    [
+        ({"name": "x1", "source": "../outside/secret"}, "source"),
+        ({"name": "x1", "source": "/etc/passwd"}, "source"),
+        ({"name": "x1", "source": "missing.npy"}, "source"),
+        ({"name": "../x", "source": "blob.npy"}, "name"),
+        ({"name": ".jobs", "source": "blob.npy"}, "name"),
+        ({"name": "x1"}, "source"),
+        ({"name": "x1", "source": "blob.npy", "extra": 1}, "extra"),
+    ],
+)
+def test_ingest_bad_requests(env, body, field):
+    client = env[0]
+    r = client.post("/volumes", json=body, headers=AUTH)
+    assert r.status_code == 422, r.text
+    assert names_field(r, field)
+
+
+def test_upload(env):
+    client, root, imports, _ = env
+    buf = io.BytesIO()
+    np.save(buf, np.ones((10, 10, 10), np.float32))
+    r = client.post("/volumes/up1/upload?format=npy", content=buf.getvalue(), headers=AUTH)
+    assert r.status_code == 202, r.text
+    assert wait_job(client, r.json()["id"])["state"] == "done"
+    assert client.get("/volumes/up1").json()["shape"] == [10, 10, 10]
+    big = b"\0" * (65 * 1024)
+    r = client.post("/volumes/up2/upload?format=npy", content=big, headers=AUTH)
+    assert r.status_code == 413 and "body" in r.json()["detail"]
+    r = client.post("/volumes/up2/upload?format=npy", content=b"", headers=AUTH)
+    assert r.status_code == 422
+    r = client.post("/volumes/up2/upload?format=raw&dtype=uint8", content=b"\0" * 8, headers=AUTH)
+    assert r.status_code == 422 and names_field(r, "shape")
+    assert client.post("/volumes/up2/upload", content=b"x").status_code == 401
+    assert not list((root / ".uploads").glob("*")), "rejected uploads leave nothing behind"
+    client.delete("/volumes/up1", headers=AUTH)
+
+
+# --- jobs ------------------------------------------------------------------------------------------------------
+
+def test_turntable_job_with_gif(env):
+    client = env[0]
+    job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16), "frames": 4, "animation": "gif"}
+    assert client.post("/jobs", json=job).status_code == 401
+    r = client.post("/jobs", json=job, headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = r.json()
+    assert set(st) == {"id", "kind", "state", "progress", "error", "created", "started", "finished"}
+    assert st["progress"] == {"done": 0, "total": 4}
+    st = wait_job(client, st["id"])
+    assert st["state"] == "done" and st["progress"] == {"done": 4, "total": 4} and st["error"] is None, st
+    assert st["started"] and st["finished"]
+    frames = [client.get(f"/jobs/{st['id']}/results/{n}") for n in range(4)]
+    assert all(f.status_code == 200 and f.content[:4] == b"\x89PNG" for f in frames)
+    assert len({f.content for f in frames}) > 1  # the camera turns
+    gif = client.get(f"/jobs/{st['id']}/animation")
+    assert gif.status_code == 200 and gif.content[:3] == b"GIF"
+    r = client.get(f"/jobs/{st['id']}/results/4")
+    assert r.status_code == 404 and "n" in r.json()["detail"]
+    assert st["id"] in [j["id"] for j in client.get("/jobs").json()]
+    assert all(j["state"] == "done" for j in client.get("/jobs?state=done").json())
+
+
+@pytest.mark.parametrize("kind", ["scenes", "tf_sweep", "volumes"])
+def test_other_job_kinds(env, kind):
+    client = env[0]
+    tf2 = {"points": [{"value": 200, "color": [1, 0, 0], "opacity": 0.0}, {"value": 900, "color": [1, 0, 0], "opacity": 0.9}]}
+    job = {
+        "scenes": {"kind": "scenes", "volume": "tiny", "scenes": [tiny_scene(8), tiny_scene(12, format="npy")]},
+        "tf_sweep": {"kind": "tf_sweep", "volume": "tiny", "scene": tiny_scene(8), "tfs": [TINY_TF, tf2]},
+        "volumes": {"kind": "volumes", "volumes": ["tiny", "tiny"], "scene": tiny_scene(8)},
+    }[kind]
+    r = client.post("/jobs", json=job, headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = wait_job(client, r.json()["id"])
+    assert st["state"] == "done" and st["progress"] == {"done": 2, "total": 2}, st
+    last = client.get(f"/jobs/{st['id']}/results/1")
+    if kind == "scenes":
+        assert np.load(io.BytesIO(last.content)).shape == (12, 12, 4)
+    else:
+        assert last.content[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize(
+    "job, field",
+    [
+        ({"kind": "turntable", "volume": "nope", "scene": tiny_scene()}, "volume"),
+        ({"kind": "turntable", "volume": "../x", "scene": tiny_scene()}, "volume"),
+        ({"kind": "turntable", "volume": "tiny", "scene": tiny_scene(), "frames": 51}, "frames"),
+        ({"kind": "turntable", "volume": "tiny", "scene": tiny_scene(), "frames": 0}, "frames"),
+        ({"kind": "turntable", "volume": "tiny", "scene": {**tiny_scene(), "width": 100}}, "width"),
+        ({"kind": "turntable", "volume": "tiny"}, "scene"),
+        ({"kind": "spin", "volume": "tiny"}, "kind"),
+        ({"volume": "tiny"}, "kind"),
+        ({"kind": "scenes", "volume": "tiny", "scenes": []}, "scenes"),
+        ({"kind": "scenes", "volume": "tiny", "scenes": [tiny_scene(), {"tf": {"points": [{"value": "a"}]}}]}, "value"),
+        ({"kind": "tf_sweep", "volume": "tiny", "scene": tiny_scene(), "tfs": [{"points": [{"value": 1, "opacity": 2}]}]}, "opacity"),
+        ({"kind": "tf_sweep", "volume": "tiny", "scene": tiny_scene(), "tfs": [{"pts": []}]}, "pts"),
+        ({"kind": "volumes", "volumes": ["tiny", "escape"], "scene": tiny_scene()}, "volumes"),
+        ({"kind": "ingest", "source": "blob.npy", "name": "tiny"}, "name"),
+    ],
+)
+def test_bad_jobs_name_field(env, job, field):
+    client = env[0]
+    r = client.post("/jobs", json=job, headers=AUTH)
+    assert r.status_code == 422, r.text
+    assert names_field(r, field), r.text
+
+
+def test_unknown_and_malformed_job_ids(env):
+    client = env[0]
+    for jid in ("0" * 32, "nope", "../../etc"):
+        r = client.get(f"/jobs/{jid}")
+        assert r.status_code == 404
+        assert client.get(f"/jobs/{jid}/results/0").status_code == 404
+        assert client.delete(f"/jobs/{jid}", headers=AUTH).status_code == 404
+    assert client.get("/jobs/" + "0" * 32 + "/results/-1").status_code == 422
+    assert client.get("/jobs?limit=0").status_code == 422
+    assert client.get("/jobs?state=lost").status_code == 422
+
+
+def test_cancel_queued_job(env):
+    client = env[0]
+    # a job whose frames are slow enough to cancel while the worker is on it or it is still queued
+    job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(64), "frames": 50}
+    st = client.post("/jobs", json=job, headers=AUTH).json()
+    assert client.delete(f"/jobs/{st['id']}").status_code == 401
+    r = client.delete(f"/jobs/{st['id']}", headers=AUTH)
+    assert r.status_code == 200 and r.json()["state"] == "cancelled"
+    time.sleep(0.5)
+    st = client.get(f"/jobs/{st['id']}").json()
+    assert st["state"] == "cancelled" and st["progress"]["done"] < 50
+    # cancelling again is harmless and keeps the state
+    assert client.delete(f"/jobs/{st['id']}", headers=AUTH).json()["state"] == "cancelled"
+
+
+def test_no_token_configured_means_open(tmp_path: Path):
+    make_volume(tmp_path, "v")
+    with TestClient(create_app(Settings(root=tmp_path, token=None, workers=0))) as client:
+        r = client.post("/jobs", json={"kind": "turntable", "volume": "v", "scene": tiny_scene(), "frames": 2})
+        assert r.status_code == 202
+        assert client.delete(f"/jobs/{r.json()['id']}").json()["state"] == "cancelled"
