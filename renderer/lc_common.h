@@ -47,14 +47,16 @@ inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t
 
 #ifdef LC_SAMPLER_FULL
 /* Trilinear between voxel centres, clamped to the edge in the half-voxel rim. Any NaN in the 8-voxel stencil
- * yields NaN (the caller treats it as transparent). 1-voxel-thick axes work (the stencil collapses). */
+ * yields NaN (the caller treats it as transparent). 1-voxel-thick axes work (the stencil collapses).
+ * fx < 1 always (c.x <= nx - 1 and x0 = floor), so x0 + dx stays inside the volume. */
 inline float lc_sample(__global const float* vol, int4 dims, float3 q) {
     float3 c = clamp(q, (float3)(0.0f), convert_float3(dims.xyz - 1));
     int x0 = (int)c.x, y0 = (int)c.y, z0 = (int)c.z;
     float fx = c.x - (float)x0, fy = c.y - (float)y0, fz = c.z - (float)z0;
-    ulong dx = (x0 + 1 < dims.x) ? 1UL : 0UL;
-    ulong dy = (y0 + 1 < dims.y) ? (ulong)dims.x : 0UL;
-    ulong dz = (z0 + 1 < dims.z) ? (ulong)dims.x * (ulong)dims.y : 0UL;
+    /* the stencil is {floor, ceil} per axis: a voxel of zero weight is not read (matters for NaN in the rim) */
+    ulong dx = (fx > 0.0f) ? 1UL : 0UL;
+    ulong dy = (fy > 0.0f) ? (ulong)dims.x : 0UL;
+    ulong dz = (fz > 0.0f) ? (ulong)dims.x * (ulong)dims.y : 0UL;
     ulong b = LC_OFFSET(x0, y0, z0, dims.x, dims.y);
     float v000 = vol[b], v001 = vol[b + dx], v010 = vol[b + dy], v011 = vol[b + dy + dx];
     b += dz;

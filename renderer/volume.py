@@ -88,7 +88,7 @@ def _from_array(a: np.ndarray, spacing=None, origin=None, block_size: int = 32) 
 
 def _from_store(s: Any) -> VolumeView:
     st = s.stats
-    path = getattr(s, "path", None) or getattr(s, "url", None)
+    path = getattr(s, "location", None) or getattr(s, "path", None)
     return VolumeView(
         shape=tuple(int(v) for v in s.shape),  # type: ignore[arg-type]
         spacing=tuple(float(v) for v in s.spacing),  # type: ignore[arg-type]

@@ -1,0 +1,127 @@
+"""`lodcast render STORE -o OUT.png|OUT.npy [--scene scene.json] [--report out.json] [shortcuts]`.
+
+The scene file is the JSON scene of DESIGN.md; flag shortcuts override it (or build one from nothing, with
+--tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --step --mode --jitter --seed
+--background. --azimuth/--elevation/--distance make the camera the orbit form; --fov applies to either form.
+The output format follows OUT's extension. Bad input raises SceneError/ImageError (LodcastError + ValueError),
+which the CLI turns into exit code 2 and one line.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from lodcast.renderer.scene import SceneError
+
+__all__ = ["add_parser", "run", "scene_from_args"]
+
+
+def _floats(name: str, n: int):
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            vals = tuple(float(p) for p in text.split(",") if p.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be {n} comma-separated numbers, got {text!r}") from None
+        if len(vals) != n:
+            raise argparse.ArgumentTypeError(f"{name} must be {n} comma-separated numbers, got {text!r}")
+        return vals
+
+    return parse
+
+
+def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser:
+    p = sub.add_parser("render", help="render a store locally to PNG (straight alpha) or .npy (float32 premultiplied RGBA)")
+    p.add_argument("store", help="a lodcast store (folder written by `lodcast ingest`)")
+    p.add_argument("-o", "--output", required=True, help="image to write: OUT.png or OUT.npy")
+    p.add_argument("--scene", help="scene JSON file (DESIGN.md); the flags below override its fields")
+    p.add_argument("--report", help="write the render report (JSON) here")
+    p.add_argument("--tf", help="transfer function JSON file: {\"points\": [...], \"unit_distance\": d}")
+    p.add_argument("--width", type=int)
+    p.add_argument("--height", type=int)
+    p.add_argument("--azimuth", type=float, help="orbit camera: degrees, 0 looks from -y, turning towards +x")
+    p.add_argument("--elevation", type=float, help="orbit camera: degrees towards +z")
+    p.add_argument("--distance", type=float, help="orbit camera: multiples of the box's bounding-sphere radius")
+    p.add_argument("--fov", type=float, help="vertical field of view in degrees")
+    p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
+    p.add_argument("--mode", choices=("composite", "mip"))
+    p.add_argument("--jitter", action=argparse.BooleanOptionalAction, default=None, help="jittered ray start")
+    p.add_argument("--seed", type=int, help="jitter seed")
+    p.add_argument("--background", type=_floats("--background", 4), help="r,g,b,a in [0,1]")
+    p.set_defaults(func=func)
+    return p
+
+
+def _load_json(path: str, what: str) -> Any:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise SceneError(f"{what} {path!r}: no such file") from None
+    except OSError as exc:
+        raise SceneError(f"{what} {path!r}: {exc.strerror or exc}") from None
+    except json.JSONDecodeError as exc:
+        raise SceneError(f"{what} {path!r}: not valid JSON ({exc})") from None
+
+
+def scene_from_args(args: argparse.Namespace):
+    """The Scene the flags describe (validated; SceneError naming the field otherwise)."""
+    from lodcast.renderer.scene import Scene
+
+    data: dict[str, Any] = {}
+    if args.scene:
+        data = _load_json(args.scene, "--scene")
+        if not isinstance(data, dict):
+            raise SceneError(f"--scene {args.scene!r}: a scene must be a JSON object")
+    if args.tf:
+        data["tf"] = _load_json(args.tf, "--tf")
+    if "tf" not in data:
+        raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
+    for key in ("width", "height", "mode"):
+        if getattr(args, key) is not None:
+            data[key] = getattr(args, key)
+    if args.background is not None:
+        data["background"] = list(args.background)
+    cam = dict(data.get("camera") or {})
+    orbit = {k: getattr(args, k) for k in ("azimuth", "elevation", "distance") if getattr(args, k) is not None}
+    if orbit:
+        if "eye" in cam or "target" in cam:
+            cam = {k: v for k, v in cam.items() if k in ("fov", "projection", "view_height")}
+        cam.update(orbit)
+    if args.fov is not None:
+        cam["fov"] = args.fov
+    if cam:
+        data["camera"] = cam
+    sampling = dict(data.get("sampling") or {})
+    for key in ("step", "jitter", "seed"):
+        if getattr(args, key) is not None:
+            sampling[key] = getattr(args, key)
+    if sampling:
+        data["sampling"] = sampling
+    return Scene.parse(data)
+
+
+def run(args: argparse.Namespace) -> int:
+    from lodcast.renderer.image import format_for, save_image
+    from lodcast.renderer.render import render
+
+    fmt = format_for(args.output)
+    out = Path(args.output)
+    if not out.parent.is_dir():
+        raise SceneError(f"-o {args.output!r}: folder {str(out.parent)!r} does not exist")
+    if args.report and not Path(args.report).parent.is_dir():
+        raise SceneError(f"--report {args.report!r}: folder does not exist")
+    scene = scene_from_args(args)
+    result = render(args.store, scene)
+    save_image(out, result.rgba, fmt)
+    if args.report:
+        rp = Path(args.report)
+        tmp = rp.with_name(f".{rp.name}.tmp{os.getpid()}")
+        tmp.write_text(json.dumps(result.report, indent=2))
+        os.replace(tmp, rp)
+    r = result.report
+    print(f"wrote {out} ({scene.width}x{scene.height}, {fmt}) in {r['wall_ms']:.0f} ms "
+          f"(kernel {r['kernel_ms']:.1f} ms, {r['samples']} samples)", file=sys.stderr)
+    return 0
