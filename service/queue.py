@@ -209,6 +209,8 @@ class JobQueue:
         plan = plan_frames(job)
         d = self.job_dir(job_id)
         d.mkdir(parents=True, exist_ok=True)
+        for tmp in d.glob(".*.tmp"):  # a frame half-written by a worker that died: never a result
+            tmp.unlink(missing_ok=True)
         exts = [frame_ext(s) for _, s in plan]
         paths = [frame_path(d, i, e) for i, e in enumerate(exts)]
 
