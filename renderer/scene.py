@@ -44,7 +44,7 @@ __all__ = [
 LANDED: set[str] = set()
 
 _PENDING = {
-    "quality": "only quality 'full' is implemented so far (level-of-detail selection lands with issue 5)",
+    "quality": "quality other than 'full' is not implemented yet (level-of-detail selection lands with issue 5)",
     "tf2": "a second transfer function is not implemented yet",
     "shading": "shading is not implemented yet",
     "clip": "clipping is not implemented yet",

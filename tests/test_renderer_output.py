@@ -1,0 +1,99 @@
+"""Image output (PNG straight alpha 8-bit, .npy float32 premultiplied) and the `lodcast render` command."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from lodcast.renderer.image import ImageError, save_image, to_straight_rgba8
+
+TF = {"points": [{"value": 0.1, "color": [1, 0.5, 0], "opacity": 0.0}, {"value": 1, "color": [1, 0.5, 0], "opacity": 0.5}]}
+
+
+def test_png_is_straight_alpha_and_npy_premultiplied(tmp_path):
+    rgba = np.zeros((2, 3, 4), np.float32)
+    rgba[0, 0] = (0.25, 0.125, 0.0, 0.5)  # premultiplied: straight colour (0.5, 0.25, 0), alpha 0.5
+    rgba[1, 2] = (1.0, 1.0, 1.0, 1.0)
+    save_image(tmp_path / "a.png", rgba)
+    save_image(tmp_path / "a.npy", rgba)
+    png = np.asarray(Image.open(tmp_path / "a.png"))
+    assert png.shape == (2, 3, 4) and png.dtype == np.uint8
+    assert png[0, 0].tolist() == [128, 64, 0, 128]
+    assert png[1, 2].tolist() == [255, 255, 255, 255] and png[0, 1].tolist() == [0, 0, 0, 0]
+    back = np.load(tmp_path / "a.npy")
+    assert back.dtype == np.float32 and np.array_equal(back, rgba)
+    assert to_straight_rgba8(np.full((1, 1, 4), np.nan, np.float32)).tolist() == [[[0, 0, 0, 0]]]
+
+
+def test_bad_output_names_are_refused(tmp_path):
+    with pytest.raises(ImageError, match="png or npy"):
+        save_image(tmp_path / "a.jpg", np.zeros((1, 1, 4), np.float32))
+    with pytest.raises(ImageError, match="does not exist"):
+        save_image(tmp_path / "no" / "a.png", np.zeros((1, 1, 4), np.float32))
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> Path:
+    import lodcast
+
+    d = tmp_path_factory.mktemp("cli")
+    zz, yy, xx = np.mgrid[:16, :20, :24].astype(np.float32)
+    np.save(d / "v.npy", np.exp(-(((xx - 12) / 5) ** 2 + ((yy - 10) / 4) ** 2 + ((zz - 8) / 3) ** 2)).astype(np.float32))
+    lodcast.ingest(d / "v.npy", d / "v.zarr")
+    return d / "v.zarr"
+
+
+def lodcast_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lodcast.service.cli", *map(str, args)], capture_output=True,
+                          text=True, timeout=120)
+
+
+def test_cli_render_scene_file_flags_and_report(store, tmp_path):
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps({"tf": TF, "width": 24, "height": 16, "camera": {"azimuth": 10, "elevation": 5}}))
+    tf = tmp_path / "tf.json"
+    tf.write_text(json.dumps(TF))
+    p = lodcast_cli("render", store, "-o", tmp_path / "o.npy", "--scene", scene, "--report", tmp_path / "r.json",
+                    "--width", 20, "--step", 0.25)
+    assert p.returncode == 0, p.stderr
+    img = np.load(tmp_path / "o.npy")
+    assert img.shape == (16, 20, 4) and img.dtype == np.float32 and img[..., 3].max() > 0.05
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["width"] == 20 and rep["step_world"] == 0.25 and "build_options" in rep
+    p = lodcast_cli("render", store, "-o", tmp_path / "o.png", "--tf", tf, "--width", 12, "--height", 10,
+                    "--azimuth", 90, "--elevation", 30, "--distance", 3, "--fov", 40, "--mode", "mip")
+    assert p.returncode == 0, p.stderr
+    assert np.asarray(Image.open(tmp_path / "o.png")).shape == (10, 12, 4)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--scene", "{missing}"], "--scene"),
+    (["--tf", "{tf}", "--width", "0"], "width"),
+    (["--tf", "{tf}", "--step", "-1"], "sampling.step"),
+    (["--tf", "{tf}", "--fov", "200"], "camera.fov"),
+    ([], "tf:"),
+    (["--tf", "{tf}", "--out-of-range"], "unrecognized"),
+])
+def test_cli_render_bad_input_exits_2_with_one_line(store, tmp_path, args, needle):
+    tf = tmp_path / "tf.json"
+    tf.write_text(json.dumps(TF))
+    args = [a.format(tf=tf, missing=tmp_path / "nope.json") for a in args]
+    p = lodcast_cli("render", store, "-o", tmp_path / "o.png", *args)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert needle in lines[-1] and (len(lines) == 1 or "usage" in p.stderr)
+    assert not (tmp_path / "o.png").exists()
+
+
+def test_cli_render_bad_output_and_store(store, tmp_path):
+    tf = tmp_path / "tf.json"
+    tf.write_text(json.dumps(TF))
+    p = lodcast_cli("render", store, "-o", tmp_path / "o.gif", "--tf", tf)
+    assert p.returncode == 2 and "png or npy" in p.stderr
+    p = lodcast_cli("render", tmp_path / "nostore", "-o", tmp_path / "o.png", "--tf", tf)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1

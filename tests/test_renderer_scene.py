@@ -1,0 +1,109 @@
+"""Scene model: defaults per DESIGN.md, both camera forms, one-line errors naming the field, features that have
+not landed refused (never silently ignored)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from lodcast.errors import LodcastError
+from lodcast.renderer.scene import LookAtCamera, OrbitCamera, Scene, SceneError
+
+TF = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0}, {"value": 1500, "color": [1, 1, 1], "opacity": 0.8}]}
+
+
+def test_defaults_follow_design():
+    s = Scene.parse({"tf": TF})
+    assert (s.width, s.height, s.quality, s.mode, s.format) == (512, 512, "full", "composite", "png")
+    assert s.background == (0, 0, 0, 0) and s.tf2 is None and s.shading is None and s.clip is None
+    sp = s.sampling
+    assert (sp.step, sp.interpolation, sp.jitter, sp.early_termination, sp.priority_map) == (0.5, "interblock", False, 0.99, True)
+    assert isinstance(s.camera, OrbitCamera)
+
+
+def test_design_example_scene_parses():
+    s = Scene.parse({
+        "camera": {"eye": [1, 2, 3], "target": [0, 0, 0], "up": [0, 0, 1], "fov": 30}, "width": 64, "height": 32,
+        "tf": TF, "tf2": None, "quality": "full",
+        "sampling": {"step": 0.5, "interpolation": "interblock", "adaptive_object": False, "adaptive_screen": False,
+                     "preintegration": False, "jitter": False, "early_termination": 0.99, "priority_map": True},
+        "shading": None, "clip": None, "mode": "composite", "background": [0, 0, 0, 0], "format": "png"})
+    assert isinstance(s.camera, LookAtCamera) and s.width == 64
+
+
+@pytest.mark.parametrize("cam", [
+    {"eye": [0, -5, 0], "target": [0, 0, 0], "projection": "orthographic", "view_height": 3},
+    {"azimuth": 30, "elevation": 20, "distance": 3, "fov": 30},
+    {"azimuth": 0, "elevation": 90},
+])
+def test_camera_forms(cam):
+    Scene.parse({"tf": TF, "camera": cam})
+
+
+def test_parse_json_text_and_file(tmp_path):
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps({"tf": TF, "width": 7}))
+    assert Scene.parse(p).width == 7
+    assert Scene.parse(json.dumps({"tf": TF, "width": 9})).width == 9
+    with pytest.raises(SceneError, match="not valid JSON"):
+        Scene.parse("{")
+
+
+@pytest.mark.parametrize("patch, field", [
+    ({"width": 0}, "width"),
+    ({"height": "big"}, "height"),
+    ({"sampling": {"step": 0}}, "sampling.step"),
+    ({"sampling": {"early_termination": 1.5}}, "sampling.early_termination"),
+    ({"sampling": {"interpolation": "cubic"}}, "sampling.interpolation"),
+    ({"camera": {"eye": [0, 0, 0], "target": [0, 0, 0]}}, "camera.target"),
+    ({"camera": {"eye": [0, 0, 0], "target": [0, 0, 1], "up": [0, 0, 1]}}, "camera.up"),
+    ({"camera": {"eye": [0, 0, 0], "target": [1, 0, 0], "fov": 180}}, "camera.fov"),
+    ({"camera": {"eye": [0, 0, 0], "target": [1, 0, 0], "projection": "orthographic"}}, "camera.view_height"),
+    ({"camera": {"azimuth": 0, "elevation": 95}}, "camera.elevation"),
+    ({"camera": {"azimuth": 0, "distance": -1}}, "camera.distance"),
+    ({"tf": {"points": []}}, "tf.points"),
+    ({"tf": {"points": [{"value": 2}, {"value": 1}]}}, "tf.points"),
+    ({"tf": {"points": [{"value": 1, "opacity": 1.5}]}}, "tf.points.0.opacity"),
+    ({"tf": {"points": [{"value": 1, "color": [0, 0]}]}}, "tf.points.0.color"),
+    ({"tf": {"points": [{"value": 1}], "unit_distance": 0}}, "tf.unit_distance"),
+    ({"mode": "sum"}, "mode"),
+    ({"background": [0, 0, 2, 1]}, "background.2"),
+    ({"format": "jpg"}, "format"),
+    ({"bogus": 1}, "bogus"),
+    ({"quality": {"reduction": 0.5}}, "quality.reduction"),
+])
+def test_errors_name_the_field(patch, field):
+    with pytest.raises(SceneError) as ei:
+        Scene.parse({"tf": TF, **patch})
+    msg = str(ei.value)
+    assert msg.split(":")[0].startswith(field), msg
+    assert "\n" not in msg
+    assert isinstance(ei.value, LodcastError) and isinstance(ei.value, ValueError)
+
+
+def test_missing_tf_is_named():
+    with pytest.raises(SceneError, match=r"^tf: Field required"):
+        Scene.parse({})
+
+
+@pytest.mark.parametrize("patch, field", [
+    ({"tf2": TF}, "tf2"),
+    ({"shading": {"ambient": 0.2}}, "shading"),
+    ({"clip": {"planes": []}}, "clip"),
+    ({"quality": "lossless"}, "quality"),
+    ({"quality": {"reduction": 30}}, "quality"),
+    ({"quality": {"budget_mb": 64}}, "quality"),
+    ({"sampling": {"adaptive_object": True}}, "sampling.adaptive_object"),
+    ({"sampling": {"adaptive_screen": True}}, "sampling.adaptive_screen"),
+    ({"sampling": {"preintegration": True}}, "sampling.preintegration"),
+])
+def test_features_not_landed_are_refused(patch, field):
+    with pytest.raises(SceneError, match=rf"^{field}: .*not implemented"):
+        Scene.parse({"tf": TF, **patch})
+
+
+def test_scene_is_frozen_and_roundtrips():
+    s = Scene.parse({"tf": TF, "camera": {"azimuth": 10}})
+    with pytest.raises(Exception):
+        s.width = 3  # type: ignore[misc]
+    assert Scene.parse(s.model_dump(mode="json")) == s

@@ -1,0 +1,46 @@
+"""lc_types.h and its NumPy mirror agree: size, and every field read back by a probe kernel."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+
+from lodcast.renderer.program import get_context, get_program
+from lodcast.renderer.structs import PARAMS_DTYPE, new_params
+
+
+def test_params_dtype_size_and_alignment():
+    assert PARAMS_DTYPE.itemsize == 224
+    assert PARAMS_DTYPE.itemsize % 16 == 0
+    for name in ("eye", "cam_f", "box_lo", "background", "dims", "grid"):
+        assert PARAMS_DTYPE.fields[name][1] % 16 == 0, name  # float4/int4 are 16-byte aligned in OpenCL
+
+
+def test_every_field_reads_back_through_the_kernel():
+    ctx, queue = get_context()
+    p = new_params()
+    vec_f = ["eye", "cam_f", "cam_r", "cam_u", "box_lo", "box_hi", "origin", "inv_spacing", "background"]
+    for k, name in enumerate(vec_f):
+        p[name] = np.arange(4) + 10 * k + 0.5
+    p["dims"], p["grid"] = (1, 2, 3, 4), (5, 6, 7, 8)
+    scal_f = ["half_w", "half_h", "step", "inv_unit", "lut_lo", "lut_scale", "early_term"]
+    for k, name in enumerate(scal_f):
+        p[name] = 100.25 + k
+    p["lut_n"], p["width"], p["height"], p["seed"], p["max_samples"] = 11, 12, 13, 14, 15
+    mf = cl.mem_flags
+    d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
+    f = np.zeros(43, np.float32)
+    n = np.zeros(14, np.int32)
+    d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
+    d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
+    prg = get_program("probe.cl").program
+    cl.Kernel(prg, "lc_probe")(queue, (1,), None, d_p, d_f, d_n)
+    cl.enqueue_copy(queue, f, d_f)
+    cl.enqueue_copy(queue, n, d_n)
+    queue.finish()
+    assert n[13] == PARAMS_DTYPE.itemsize  # sizeof(LcParams) on the device
+    for k, name in enumerate(vec_f):
+        assert np.array_equal(f[4 * k:4 * k + 4], p[name][0]), name
+    for k, name in enumerate(scal_f):
+        assert f[36 + k] == p[name][0], name
+    assert n[:8].tolist() == [1, 2, 3, 4, 5, 6, 7, 8]
+    assert n[8:13].tolist() == [11, 12, 13, 14, 15]
