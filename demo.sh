@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# The main job: a virtual environment in .venv, lodcast installed into it, then `lodcast demo`, which fetches a
+# real MR head from a package registry, ingests it, renders it to PNG and serves it (Ctrl-C stops the server).
+set -euo pipefail
+cd "$(dirname "$0")"
+PY=${PYTHON:-python3}
+"$PY" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "lodcast needs Python >= 3.11, found " + sys.version.split()[0])'
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e .
+exec .venv/bin/lodcast demo "$@"

@@ -1,0 +1,12 @@
+#!/usr/bin/env bash
+# The test suite: a virtual environment in .venv with lodcast and its test extras, then pytest on 2 processes.
+# Tests that need the real volumes in ../shared/data or a redis-server binary skip with the reason when they are
+# missing (and fail instead under CI=true, where both must be present).
+set -euo pipefail
+cd "$(dirname "$0")"
+PY=${PYTHON:-python3}
+"$PY" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "lodcast needs Python >= 3.11, found " + sys.version.split()[0])'
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".[test]"
+exec .venv/bin/python -m pytest -n 2 "$@"

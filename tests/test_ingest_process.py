@@ -1,0 +1,97 @@
+"""Ingest as a process: killed at random moments it never leaves a valid-looking store; the CLI's exit codes,
+one-line errors and `info` output."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lodcast
+from lodcast.errors import LodcastError
+
+LODCAST = [sys.executable, "-m", "lodcast.service.cli"]
+
+
+def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([*LODCAST, *args], capture_output=True, text=True, timeout=300, cwd=cwd)
+
+
+def test_sigkill_at_random_moments_never_leaves_a_valid_store(tmp_path: Path):
+    src = tmp_path / "vol.npy"
+    rng = np.random.default_rng(11)
+    vol = rng.normal(1000, 300, (160, 128, 128)).astype(np.float32)
+    np.save(src, vol)
+    dest = tmp_path / "out.zarr"
+    # how long a whole ingest takes here, so that kills land before, during and around the final rename
+    t0 = time.perf_counter()
+    done = _cli("ingest", str(src), str(dest))
+    full = time.perf_counter() - t0
+    assert done.returncode == 0, done.stderr
+    shutil.rmtree(dest)
+    outcomes = {"absent": 0, "complete": 0}
+    for trial in range(12):
+        p = subprocess.Popen([*LODCAST, "ingest", str(src), str(dest), "--overwrite"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(float(rng.uniform(0.05, 1.1)) * full)
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+        if dest.exists():
+            # the rename happened: then it is the complete store
+            st = lodcast.open_store(dest)
+            np.testing.assert_array_equal(st.read_level(0), vol)
+            assert st.hist.sum() > 0 and np.isfinite(st.stats.max_border).all()
+            outcomes["complete"] += 1
+        else:
+            outcomes["absent"] += 1
+        # whatever was left is a hidden partial folder that does not open as a store
+        for leftover in tmp_path.glob(".out.zarr.*"):
+            with pytest.raises(LodcastError):
+                lodcast.open_store(leftover)
+    assert outcomes["absent"] >= 1, outcomes  # at least some kills landed mid-ingest
+    # the next ingest clears the partial stores of killed processes
+    ok = _cli("ingest", str(src), str(dest), "--overwrite")
+    assert ok.returncode == 0, ok.stderr
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_cli_errors_exit_2_with_one_line_and_leave_nothing(tmp_path: Path):
+    missing = _cli("ingest", str(tmp_path / "nope.nrrd"), str(tmp_path / "never.zarr"))
+    assert missing.returncode == 2
+    lines = missing.stderr.strip().splitlines()
+    assert len(lines) == 1 and "nope.nrrd" in lines[0]
+    assert not (tmp_path / "never.zarr").exists()
+
+    np.save(tmp_path / "c.npy", np.zeros((2, 3, 4), np.complex64))
+    bad = _cli("ingest", str(tmp_path / "c.npy"), str(tmp_path / "c.zarr"))
+    assert bad.returncode == 2 and "complex" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "c.zarr").exists()
+
+    np.save(tmp_path / "v.npy", np.arange(60, dtype=np.uint8).reshape(3, 4, 5))
+    assert _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr")).returncode == 0
+    again = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"))
+    assert again.returncode == 2 and "--overwrite" in again.stderr
+    assert _cli("info", str(tmp_path / "nothing.zarr")).returncode == 2
+    assert _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "w.zarr"), "--block-size", "12").returncode == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npy", "v.npy", "v.zarr"]
+
+
+def test_cli_info_prints_the_contract_keys(tmp_path: Path):
+    vol = np.arange(40 * 36 * 20, dtype=np.int16).reshape(40, 36, 20)
+    np.save(tmp_path / "v.npy", vol)
+    out = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"), "--spacing", "2,1,0.5")
+    assert out.returncode == 0, out.stderr
+    info = json.loads(_cli("info", str(tmp_path / "v.zarr")).stdout)
+    assert info["shape"] == [40, 36, 20] and info["dtype"] == "int16" and info["spacing"] == [2.0, 1.0, 0.5]
+    assert info["origin"] == [0.0, 0.0, 0.0] and info["block_size"] == 32
+    assert info["value_range"] == [0.0, float(vol.max())]
+    assert info["blocks"] == 2 * 2 * 1 and info["grid"] == [2, 2, 1]
+    assert [lvl["shape"] for lvl in info["levels"]][:3] == [[40, 36, 20], [20, 18, 10], [10, 9, 5]]
+    assert info["shards"] >= len(info["levels"]) and info["bytes_on_disk"] > 0
+    assert os.path.samefile(info["path"], tmp_path / "v.zarr")
