@@ -5,6 +5,7 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from lodcast.errors import LodcastError
 
@@ -110,6 +111,30 @@ def _add_jobs(sub: argparse._SubParsersAction) -> None:
     add_jobs(sub)
 
 
+# --- demo -----------------------------------------------------------------------------------------------------
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="fetch a real MR head from a package registry, ingest it and show what lodcast does")
+    p.add_argument("--out", default="demo-output", help="folder for the store and the pictures (default ./demo-output)")
+    p.set_defaults(func=_cmd_demo)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from lodcast.service.demo import fetch_demo_volume
+    from lodcast.store.ingest import ingest
+    from lodcast.store.store import open_store
+
+    out = Path(args.out)
+    vol = fetch_demo_volume()
+    print(f"demo volume: {vol.description}\n  file: {vol.path}\n  licence: {vol.licence}")
+    dest = out / f"{vol.name}.zarr"
+    store = open_store(dest) if dest.exists() else ingest(vol.path, dest, progress=None)
+    s = store.summary()
+    print(f"store: {dest}  shape {s['shape']} {s['dtype']}, spacing {s['spacing']}, {s['blocks']} blocks of {s['block_size']}^3, "
+          f"{len(s['levels'])} levels, {s['shards']} shard files, {s['bytes_on_disk'] / 1e6:.1f} MB on disk, value range {s['value_range']}")
+    return 0
+
+
 # --- entry point ---------------------------------------------------------------------------------------------
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
@@ -128,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_ingest, _add_info, _add_serve, _add_worker, _add_submit, _add_jobs, _add_render):
+    for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_demo):
         add(sub)
     return parser
 
