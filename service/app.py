@@ -44,6 +44,16 @@ VolumeId = Annotated[str, PathParam(description="volume id: the store's folder n
 JobId = Annotated[str, PathParam(description="job id (32 hex digits)", max_length=200)]
 
 
+EXAMPLE_SCENE = {
+    "camera": {"azimuth": 30, "elevation": 20, "distance": 2.5, "fov": 30},
+    "width": 256,
+    "height": 256,
+    "tf": {"points": [{"value": 0, "color": [0.2, 0.4, 1.0], "opacity": 0.0},
+                      {"value": 1000, "color": [1.0, 0.9, 0.8], "opacity": 0.6}]},
+    "format": "png",
+}
+
+
 class HttpError(Exception):
     def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None) -> None:
         super().__init__(detail)
@@ -233,7 +243,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         responses={200: {"content": {"image/png": {}, "application/octet-stream": {}},
                          "description": "the image; the render report as JSON in the X-Lodcast-Report header"}},
     )
-    async def render(volume_id: VolumeId, scene: Annotated[dict[str, Any], Body(description="a scene (DESIGN.md)")]) -> Response:
+    async def render(volume_id: VolumeId, scene: Annotated[dict[str, Any], Body(description="a scene (DESIGN.md)", examples=[EXAMPLE_SCENE])]) -> Response:
         path = volume_path(settings.root, volume_id)
         sc = parse_scene(scene, settings)
         eng = engine()
