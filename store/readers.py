@@ -109,15 +109,15 @@ def _finish(reader: _Reader, spacing: Sequence[float] | None, origin: Sequence[f
     dtype = _store_dtype(reader, name)
     if dtype != info.dtype.newbyteorder("="):
         prov["converted_to"] = dtype.name
-    file_spacing = info.spacing
-    if not all(math.isfinite(s) and s > 0 for s in file_spacing):
-        prov.setdefault("warnings", []).append(f"file spacing {list(file_spacing)} is not positive; 1 used instead")
-        file_spacing = tuple(s if math.isfinite(s) and s > 0 else 1.0 for s in file_spacing)
-    reader.info = dataclasses.replace(
-        info, dtype=dtype, provenance=prov,
-        spacing=_triple("spacing", spacing, positive=True) if spacing is not None else file_spacing,
-        origin=_triple("origin", origin, positive=False) if origin is not None else info.origin,
-    )
+    if spacing is not None:
+        spacing = _triple("spacing", spacing, positive=True)
+    elif all(math.isfinite(s) and s > 0 for s in info.spacing):
+        spacing = info.spacing
+    else:  # headers with zero spacing exist; a unit step keeps the volume usable
+        prov.setdefault("warnings", []).append(f"file spacing {list(info.spacing)} is not positive; 1 used instead")
+        spacing = tuple(s if math.isfinite(s) and s > 0 else 1.0 for s in info.spacing)
+    origin = _triple("origin", origin, positive=False) if origin is not None else info.origin
+    reader.info = dataclasses.replace(info, dtype=dtype, provenance=prov, spacing=spacing, origin=origin)
     return reader
 
 
@@ -125,6 +125,9 @@ def _store_dtype(reader: _Reader, name: str) -> np.dtype:
     dt = reader.info.dtype
     if dt.fields:
         raise SourceError(f"non-scalar data: {name} has voxels with fields {', '.join(dt.fields)}; expected one scalar per voxel")
+    supported = ", ".join(d.name for d in SUPPORTED_DTYPES)
+    if dt.kind not in "iuf":  # bool, complex, strings, objects, dates
+        raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported} (int64/uint64 when their values fit)")
     native = dt.newbyteorder("=")
     if native in SUPPORTED_DTYPES:
         return native
@@ -139,9 +142,7 @@ def _store_dtype(reader: _Reader, name: str) -> np.dtype:
             return np.dtype(np.float64)
         raise SourceError(f"{name} holds {native} values from {lo} to {hi}, which neither {narrow} nor float64 "
                           f"(integers up to ±2^53) holds exactly")
-    supported = ", ".join(d.name for d in SUPPORTED_DTYPES)
-    raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported} "
-                      f"(int64/uint64 when their values fit)")
+    raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported}")
 
 
 def _value_range(reader: _Reader) -> tuple[int, int]:
@@ -332,9 +333,9 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
             header = nrrd.read_header(f)
             data_start = f.tell()
         dtype = nrrd.reader._determine_datatype(header)  # pynrrd's own type table (with endian)
+        sizes, encoding = [int(s) for s in header["sizes"]], str(header["encoding"]).lower()
     except (nrrd.NRRDError, OSError, ValueError, KeyError, UnicodeDecodeError, StopIteration) as exc:
-        raise SourceError(f"{path} is not a readable NRRD file: {exc}") from None
-    sizes = [int(s) for s in header["sizes"]]
+        raise SourceError(f"{path} is not a readable NRRD file: {exc!s}") from None
     kinds = list(header.get("kinds", ["domain"] * len(sizes)))
     for axis, (size, kind) in enumerate(zip(sizes, kinds)):
         if size > 1 and kind is not None and str(kind).lower() not in _NRRD_SPATIAL:
@@ -343,12 +344,14 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
     keep = [a for a, kind in enumerate(kinds) if kind is None or str(kind).lower() in _NRRD_SPATIAL]
     if len(keep) == 4 and sizes[keep[3]] == 1:
         keep = keep[:3]
+    if any(str(kinds[a]).lower() == "time" for a in keep[:3]):
+        raise SourceError(f"NRRD file {path} has its time axis among the first three (kinds {kinds}); expected it last")
     # NRRD lists the fastest axis first: sizes (x, y, z, t) are a C-ordered (t, z, y, x) array
     shape4, t = _pick([sizes[a] for a in reversed(keep)], index, f"NRRD file {path}")
 
     spatial = keep[:3]
     directions = header.get("space directions")
-    provenance: dict[str, Any] = {"space": header.get("space"), "encoding": header["encoding"]}
+    provenance: dict[str, Any] = {"space": header.get("space"), "encoding": encoding}
     origin = [0.0, 0.0, 0.0]
     if directions is not None:
         d = np.asarray([directions[a] for a in spatial], dtype=float)
@@ -363,7 +366,7 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
         spacing = [float(header.get("spacings", [1.0] * len(sizes))[a]) for a in spatial]
     spacing += [1.0] * (3 - len(spacing))  # a 2D image is one slice of unit thickness
     units = header.get("space units")
-    info = _info(shape4[1:], dtype, "nrrd", path, spacing=spacing[::-1], origin=origin[::-1][-3:],
+    info = _info(shape4[1:], dtype, "nrrd", path, spacing=spacing[::-1], origin=origin[::-1],
                  units=_UNITS.get(str(units[0]), "millimeter") if units else "millimeter", **provenance)
 
     data_path, start = path, data_start
@@ -380,7 +383,6 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
             f.readline()
         start = f.tell()
     byte_skip = int(header.get("byte skip", header.get("byteskip", 0)))
-    encoding = str(header["encoding"]).lower()
     nbytes = math.prod(sizes) * dtype.itemsize
     if encoding == "raw":
         offset = data_path.stat().st_size - nbytes if byte_skip == -1 else start + byte_skip
@@ -447,7 +449,7 @@ class _NiftiReader(_Reader):
         # a chosen t, then 0 for the trailing singleton axes dropped above
         self._tail = ((t,) if len(shape) == 4 else ()) + (0,) * (len(img.shape) - len(shape))
         self._flat = len(shape) == 2
-        self._name = path
+        self._path = path
         slope, inter = float(getattr(self._proxy, "slope", 1.0)), float(getattr(self._proxy, "inter", 0.0))
         scaled = (slope, inter) != (1.0, 0.0)
         zooms = [float(z) for z in img.header.get_zooms()[:3]] + [1.0] * (3 - min(3, len(shape)))
@@ -467,7 +469,7 @@ class _NiftiReader(_Reader):
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
         # nibabel holds a few copies of what it reads (compressed bytes, scaled float64): ask for pieces of a
         # slab so that those stay small beside it
-        step = max(1, _READ_CHUNK // (out[:1].nbytes or 1))
+        step = max(1, _READ_CHUNK // out[0].nbytes)
         try:
             if self._flat:
                 out[0] = np.asarray(self._proxy[:, :]).T
@@ -476,7 +478,7 @@ class _NiftiReader(_Reader):
                 piece = self._proxy[(slice(None), slice(None), slice(z, min(z + step, z1))) + self._tail]
                 out[z - z0:z - z0 + piece.shape[2]] = np.asarray(piece).transpose(2, 1, 0)
         except (OSError, EOFError, ValueError, zlib.error) as exc:
-            raise SourceError(f"NIfTI data of {self._name} is corrupt or truncated: {exc}") from None
+            raise SourceError(f"NIfTI data of {self._path} is corrupt or truncated: {exc}") from None
         return out
 
     def close(self) -> None:
@@ -510,38 +512,39 @@ def _open_tiff(path: Path) -> Any:
 
 class _TiffFileReader(_Reader):
     """A multi-page TIFF: pages are z. ImageJ hyperstacks (TZYX, ZCYX…) take z from the Z axis and the other
-    non-singleton axis from `index`."""
+    non-singleton axis from `index`. Read through tifffile's zarr view, which also serves ImageJ files whose
+    pages after the first are not indexed."""
 
     def __init__(self, path: Path, index: int | None) -> None:
+        import zarr
+
         self._tif = _open_tiff(path)
         try:
-            series = self._tif.series[0]
+            series, page = self._tif.series[0], self._tif.pages[0]
             axes, shape = series.axes, series.shape
-            if "S" in axes or self._tif.pages[0].samplesperpixel > 1:
-                raise SourceError(f"non-scalar data: {path} is {self._tif.pages[0].photometric.name} with "
-                                  f"{self._tif.pages[0].samplesperpixel} samples per pixel; expected one (grayscale)")
+            if "S" in axes or page.samplesperpixel > 1:
+                raise SourceError(f"non-scalar data: {path} is {page.photometric.name} with {page.samplesperpixel} "
+                                  f"samples per pixel; expected one (grayscale)")
             lead = [a for a in range(len(shape) - 2) if shape[a] > 1]
             if len(lead) > 2:
                 raise SourceError(f"{path} has axes {axes} of sizes {_fmt(shape)}; expected z plus at most one "
                                   f"time or channel axis")
             z_axis = next((a for a in lead if axes[a] == "Z"), lead[-1] if lead else None)
-            others = [a for a in lead if a != z_axis]
-            stack = [shape[others[0]]] if others else []
-            shape4, t = _pick(stack + [shape[z_axis] if z_axis is not None else 1, *shape[-2:]], index, str(path))
-            self._z_axis, self._t_axis, self._t, self._lead = z_axis, (others or [None])[0], t, shape[:-2]
+            stack = [a for a in lead if a != z_axis]
+            shape4, t = _pick([shape[a] for a in stack] + [shape[z_axis] if lead else 1, *shape[-2:]], index, str(path))
+            self._select: list[Any] = [t if a in stack else 0 for a in range(len(shape) - 2)]
+            self._z_axis = z_axis
+            self._array = zarr.open(self._tif.aszarr(series=0), mode="r")
             self.info = _info(shape4[1:], series.dtype, "tiff", path, axes=axes, **_tiff_geometry(self._tif))
         except BaseException:
             self._tif.close()
             raise
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
-        coords = np.zeros((len(self._lead), z1 - z0), dtype=np.intp)
+        select = list(self._select)
         if self._z_axis is not None:
-            coords[self._z_axis] = np.arange(z0, z1)
-        if self._t_axis is not None:
-            coords[self._t_axis] = self._t
-        pages = np.ravel_multi_index(tuple(coords), self._lead) if self._lead else np.zeros(1, dtype=np.intp)
-        return self._tif.asarray(key=[int(p) for p in pages], series=0).reshape((z1 - z0,) + self.info.shape[1:])
+            select[self._z_axis] = slice(z0, z1)
+        return np.asarray(self._array[tuple(select)]).reshape((z1 - z0,) + self.info.shape[1:])
 
     def close(self) -> None:
         self._tif.close()
@@ -549,6 +552,16 @@ class _TiffFileReader(_Reader):
 
 def _natural(p: Path) -> list[Any]:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", p.name)]
+
+
+def _single_image(f: Path, folder: Path) -> tuple[tuple[int, ...], np.dtype, dict[str, Any]]:
+    with _open_tiff(f) as tif:
+        page = tif.pages[0]
+        if page.samplesperpixel > 1:
+            raise SourceError(f"non-scalar data: {f} has {page.samplesperpixel} samples per pixel; expected one (grayscale)")
+        if len(tif.pages) > 1:
+            raise SourceError(f"TIFF folder {folder} holds {f.name} with {len(tif.pages)} pages; expected one image per file")
+        return tuple(page.shape), np.dtype(page.dtype), _tiff_geometry(tif)
 
 
 class _TiffFolderReader(_Reader):
@@ -561,25 +574,13 @@ class _TiffFolderReader(_Reader):
             raise SourceError(f"no .tif/.tiff files in folder {path}")
         if index is not None:
             raise SourceError(f"index {index} given but TIFF folder {path} is a single 3D volume")
-        first: tuple[Any, ...] | None = None
-        geometry: dict[str, Any] = {}
-        for f in self._files:
-            with _open_tiff(f) as tif:
-                page = tif.pages[0]
-                image = (tuple(page.shape), np.dtype(page.dtype))
-                if page.samplesperpixel > 1:
-                    raise SourceError(f"non-scalar data: {f} has {page.samplesperpixel} samples per pixel; "
-                                      f"expected one (grayscale)")
-                if len(tif.pages) > 1:
-                    raise SourceError(f"TIFF folder {path} holds {f.name} with {len(tif.pages)} pages; "
-                                      f"expected one image per file")
-                if first is None:
-                    first, geometry = image, _tiff_geometry(tif)
-                elif image != first:
-                    raise SourceError(f"TIFF folder {path} has inconsistent images: {self._files[0].name} is "
-                                      f"{_fmt(first[0])} {first[1]} but {f.name} is {_fmt(image[0])} {image[1]}")
-        assert first is not None
-        self.info = _info((len(self._files), *first[0]), first[1], "tiff", path, files=len(self._files), **geometry)
+        shape, dtype, geometry = _single_image(self._files[0], path)
+        for f in self._files[1:]:
+            other = _single_image(f, path)
+            if other[:2] != (shape, dtype):
+                raise SourceError(f"TIFF folder {path} has inconsistent images: {self._files[0].name} is "
+                                  f"{_fmt(shape)} {dtype} but {f.name} is {_fmt(other[0])} {other[1]}")
+        self.info = _info((len(self._files), *shape), dtype, "tiff", path, files=len(self._files), **geometry)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         import tifffile
@@ -599,6 +600,25 @@ def _is_dicom(p: Path) -> bool:
 
 _PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1): np.int16,
                  (32, 0): np.uint32, (32, 1): np.int32}
+
+
+def _dicom_image(f: Path, ds: Any) -> tuple[int, int, int, int]:
+    """(rows, columns, bits allocated, pixel representation) of one grayscale single-frame file."""
+    if "Rows" not in ds or "Columns" not in ds:
+        raise SourceError(f"unreadable DICOM file {f}: no Rows/Columns (corrupt, or not an image)")
+    samples = int(ds.get("SamplesPerPixel", 1))
+    if samples != 1:
+        raise SourceError(f"non-scalar data: DICOM file {f} is {ds.get('PhotometricInterpretation', '?')} with "
+                          f"{samples} samples per pixel; expected one (grayscale)")
+    if int(ds.get("NumberOfFrames", 1) or 1) > 1:
+        raise SourceError(f"DICOM file {f} holds {ds.NumberOfFrames} frames; expected one slice per file")
+    rows, cols, bits = int(ds.Rows), int(ds.Columns), int(ds.get("BitsAllocated", 16))
+    syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+    need = rows * cols * bits // 8
+    if syntax is not None and not syntax.is_compressed and f.stat().st_size < need:
+        raise SourceError(f"DICOM file {f} is truncated: {f.stat().st_size} bytes, but its {rows}x{cols} pixels "
+                          f"of {bits} bits need {need}")
+    return rows, cols, bits, int(ds.get("PixelRepresentation", 0))
 
 
 class _DicomReader(_Reader):
@@ -652,31 +672,15 @@ class _DicomReader(_Reader):
 
     @staticmethod
     def _check_images(slices: list[tuple[Path, Any]]) -> tuple[int, int, np.dtype]:
-        f0, ds0 = slices[0]
-        first = None
-        for f, ds in slices:
-            if "Rows" not in ds or "Columns" not in ds:
-                raise SourceError(f"unreadable DICOM file {f}: no Rows/Columns (corrupt, or not an image)")
-            samples = int(ds.get("SamplesPerPixel", 1))
-            if samples != 1:
-                raise SourceError(f"non-scalar data: DICOM file {f} is {ds.get('PhotometricInterpretation', '?')} with "
-                                  f"{samples} samples per pixel; expected one (grayscale)")
-            if int(ds.get("NumberOfFrames", 1) or 1) > 1:
-                raise SourceError(f"DICOM file {f} holds {ds.NumberOfFrames} frames; expected one slice per file")
-            image = (int(ds.Rows), int(ds.Columns), int(ds.get("BitsAllocated", 16)), int(ds.get("PixelRepresentation", 0)))
-            if first is None:
-                first = image
-            elif image != first:
-                raise SourceError(f"DICOM series has inconsistent images: {f0.name} is {first[0]}x{first[1]} of "
-                                  f"{first[2]} bits but {f.name} is {image[0]}x{image[1]} of {image[2]} bits")
-            syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
-            need = image[0] * image[1] * image[2] // 8
-            if syntax is not None and not syntax.is_compressed and f.stat().st_size < need:
-                raise SourceError(f"DICOM file {f} is truncated: {f.stat().st_size} bytes, but its "
-                                  f"{image[0]}x{image[1]} pixels of {image[2]} bits need {need}")
-        assert first is not None
+        """Rows, columns and pixel type, the same in every file of the series."""
+        first = _dicom_image(*slices[0])
+        for f, ds in slices[1:]:
+            image = _dicom_image(f, ds)
+            if image != first:
+                raise SourceError(f"DICOM series has inconsistent images: {slices[0][0].name} is {first[0]}x{first[1]} "
+                                  f"of {first[2]} bits but {f.name} is {image[0]}x{image[1]} of {image[2]} bits")
         if (first[2], first[3]) not in _PIXEL_DTYPES:
-            raise SourceError(f"DICOM file {f0} has {first[2]}-bit pixels; expected 8, 16 or 32")
+            raise SourceError(f"DICOM file {slices[0][0]} has {first[2]}-bit pixels; expected 8, 16 or 32")
         return first[0], first[1], np.dtype(_PIXEL_DTYPES[first[2], first[3]])
 
     @staticmethod
@@ -759,49 +763,43 @@ class _ZarrReader(_Reader):
         except Exception as exc:  # zarr raises several types for folders that are not stores
             raise SourceError(f"{path} is not a readable zarr store: {exc}") from None
         provenance: dict[str, Any] = {}
-        spacing, origin, units = [1.0] * 3, [0.0] * 3, "millimeter"
         if isinstance(node, zarr.Array):
-            array = node
-            names = {2: "yx", 3: "zyx", 4: "tzyx"}.get(array.ndim)
-            if names is None:
-                _pick(array.shape, index, f"zarr array {path}")  # raises: wrong number of dimensions
-            axes: list[dict[str, Any]] = [{"name": n, "type": "space" if n in "zyx" else "time"} for n in names]
+            array, image, dataset = node, None, None
+            names = {2: "yx", 3: "zyx", 4: "tzyx"}.get(array.ndim) or _pick(array.shape, index, f"zarr array {path}")
+            axes: list[dict[str, Any]] = [{"name": n} for n in names]
         else:
-            attrs = dict(node.attrs)
-            ome = attrs.get("ome", attrs)
+            ome = dict(node.attrs)
+            ome = ome.get("ome", ome)  # 0.5 nests its metadata under "ome", 0.4 does not
             multiscales = ome.get("multiscales") if isinstance(ome, dict) else None
             if not multiscales:
                 raise SourceError(f"zarr group {path} has no OME-Zarr 'multiscales' metadata; expected a zarr array "
                                   f"or an OME-Zarr image")
-            image = multiscales[0]
-            dataset = image["datasets"][0]
+            image, dataset = multiscales[0], multiscales[0]["datasets"][0]
             try:
                 array = node[dataset["path"]]
             except KeyError:
                 raise SourceError(f"OME-Zarr {path} names dataset '{dataset['path']}', which does not exist") from None
             axes = [a if isinstance(a, dict) else {"name": a} for a in image.get("axes", [])] or \
                 [{"name": n} for n in "tczyx"[-array.ndim:]]
-            scale, translation = _ome_transform(dataset, image, array.ndim)
-            spatial = [k for k, a in enumerate(axes) if a.get("type") == "space" or a["name"] in ("z", "y", "x")][-3:]
-            spacing = [1.0] * (3 - len(spatial)) + [scale[k] for k in spatial]
-            origin = [0.0] * (3 - len(spatial)) + [translation[k] for k in spatial]
-            unit = axes[spatial[-1]].get("unit")
-            units = _UNITS.get(str(unit), str(unit)) if unit else units
-            provenance["ome_version"] = str(ome.get("version", image.get("version", "")))
-            provenance["dataset"] = str(dataset["path"])
-        self._array = array
-        n_spatial = sum(1 for a in axes if a.get("type") == "space" or a["name"] in ("z", "y", "x"))
-        if len(axes) != array.ndim or n_spatial not in (2, 3) or array.ndim - n_spatial > 2:
+            provenance.update(ome_version=str(ome.get("version", image.get("version", ""))), dataset=str(dataset["path"]))
+        spatial = [k for k, a in enumerate(axes) if a.get("type") == "space" or a["name"] in ("z", "y", "x")]
+        lead = array.ndim - len(spatial)
+        if len(axes) != array.ndim or len(spatial) not in (2, 3) or spatial != list(range(lead, array.ndim)) or lead > 2:
             raise SourceError(f"zarr {path} has axes {[a['name'] for a in axes]} for shape {_fmt(array.shape)}; "
                               f"expected z, y, x (or y, x) after at most a t and a c axis")
-        lead = array.ndim - n_spatial
         stacks = [k for k in range(lead) if array.shape[k] > 1]
         if len(stacks) > 1:
             raise SourceError(f"zarr {path} has axes {[a['name'] for a in axes]} of sizes {_fmt(array.shape)}; "
                               f"expected at most one non-singleton t or c axis (chosen by index)")
         shape4, t = _pick([array.shape[k] for k in stacks] + list(array.shape[lead:]), index, f"zarr {path}")
-        self._select = [t if k in stacks else 0 for k in range(lead)]
-        self._flat = n_spatial == 2
+        self._array, self._select, self._flat = array, [t if k in stacks else 0 for k in range(lead)], len(spatial) == 2
+        spacing, origin, units = [1.0] * 3, [0.0] * 3, "millimeter"
+        if image is not None:
+            scale, translation = _ome_transform(dataset, image, array.ndim)
+            pad = 3 - len(spatial)  # a 2D image is one slice of unit thickness
+            spacing, origin = [1.0] * pad + [scale[k] for k in spatial], [0.0] * pad + [translation[k] for k in spatial]
+            unit = axes[spatial[-1]].get("unit")
+            units = _UNITS.get(str(unit), str(unit)) if unit else units
         if index is not None:
             provenance["index"] = t
         self.info = _info(shape4[1:], array.dtype, "zarr", path, spacing=spacing, origin=origin, units=units,

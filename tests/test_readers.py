@@ -266,6 +266,14 @@ def test_nifti_oblique_4d_and_refusals(tmp_path: Path) -> None:
     nib.save(nib.Nifti1Image(series[..., :1], np.eye(4)), tmp_path / "one.nii")  # 4th axis of length 1
     with open_source(tmp_path / "one.nii") as src:
         check(src, series[..., 0].transpose(2, 1, 0))
+    flat = volume((6, 5), "int16")
+    nib.save(nib.Nifti1Image(flat, np.eye(4)), tmp_path / "flat.nii")
+    with open_source(tmp_path / "flat.nii") as src:
+        check(src, flat.T[None])
+    displacement = nib.Nifti1Image(volume((4, 5, 6, 3), "float32"), np.eye(4))
+    displacement.header.set_intent("vector")
+    nib.save(displacement, tmp_path / "disp.nii")
+    refused(r"non-scalar data: .* 4D with intent 'vector'", tmp_path / "disp.nii", index=0)
     vectors = nib.Nifti1Image(volume((4, 5, 6, 1, 3), "float32"), np.eye(4))
     vectors.header.set_intent("vector")
     nib.save(vectors, tmp_path / "vec.nii")
@@ -306,6 +314,20 @@ def test_tiff_hyperstack_and_refusals(tmp_path: Path) -> None:
     refused(r"4D .* 3 volumes", tmp_path / "h.tif")
     tifffile.imwrite(tmp_path / "rgb.tif", np.zeros((4, 6, 7, 3), np.uint8), photometric="rgb")
     refused(r"non-scalar data: .*rgb.tif is RGB with 3 samples per pixel", tmp_path / "rgb.tif")
+    truncated = volume((3, 5, 6, 7), "uint16")  # ImageJ files may index only their first page
+    tifffile.imwrite(tmp_path / "tr.tif", truncated, imagej=True, truncate=True, metadata={"axes": "TZYX"})
+    with tifffile.TiffFile(tmp_path / "tr.tif") as tif:
+        assert len(tif.pages) == 1
+    with open_source(tmp_path / "tr.tif", index=2) as src:
+        check(src, truncated[2])
+    zcyx = volume((5, 2, 6, 7), "int16")  # channels inside z: index picks the channel
+    tifffile.imwrite(tmp_path / "zc.tif", zcyx, imagej=True, metadata={"axes": "ZCYX"})
+    with open_source(tmp_path / "zc.tif", index=1) as src:
+        check(src, zcyx[:, 1])
+    single = volume((6, 7), "float32")
+    tifffile.imwrite(tmp_path / "single.tif", single)
+    with open_source(tmp_path / "single.tif") as src:
+        check(src, single[None])
     folder = tmp_path / "mixed"
     folder.mkdir()
     tifffile.imwrite(folder / "a1.tif", np.zeros((6, 7), np.uint16))
@@ -410,6 +432,11 @@ def test_dicom_refusals(tmp_path: Path) -> None:
     dicom_slice(twins / "a.dcm", np.zeros((4, 4)), 3.0)
     dicom_slice(twins / "b.dcm", np.zeros((4, 4)), 3.0)
     refused(r"two slices at position 3 mm \(a.dcm, b.dcm\)", twins)
+    single = tmp_path / "one.dcm"
+    dicom_slice(single, np.arange(20).reshape(4, 5), 7.0, intercept=0.0)
+    with open_source(single) as src:  # one file is a one-slice series
+        assert src.info.spacing == (2.0, 0.5, 0.25) and src.info.origin == (7.0, -20.0, -10.0)
+        check(src, np.arange(20, dtype=np.uint16).reshape(1, 4, 5))
     none = tmp_path / "none"
     none.mkdir()
     (none / "x.dcm").write_text("hello")
@@ -467,9 +494,17 @@ def test_ome_zarr_scale_translation_and_singletons(tmp_path: Path, version: str)
     refused(r"at most one non-singleton t or c axis", tmp_path / "tc.zarr")
 
 
-def test_zarr_group_without_ome_is_refused(tmp_path: Path) -> None:
+def test_zarr_refusals_and_2d(tmp_path: Path) -> None:
     zarr.open_group(tmp_path / "g.zarr", mode="w")
     refused(r"no OME-Zarr 'multiscales' metadata", tmp_path / "g.zarr")
+    zarr.create_array(tmp_path / "s.zarr", shape=(2, 3, 4), dtype=str)
+    refused(r"unsupported dtype StringDType\(\) in .*s.zarr; expected one of uint8", tmp_path / "s.zarr")
+    zarr.create_array(tmp_path / "five.zarr", shape=(1, 2, 3, 4, 5), dtype="uint8")
+    refused(r"5 dimensions \(shape 1x2x3x4x5\); expected 3", tmp_path / "five.zarr")
+    flat = volume((6, 5), "uint16")
+    zarr.create_array(tmp_path / "flat.zarr", shape=flat.shape, dtype=flat.dtype)[:] = flat
+    with open_source(tmp_path / "flat.zarr") as src:
+        check(src, flat[None])
 
 
 def test_lodcast_store_reads_back(tmp_path: Path) -> None:
@@ -508,6 +543,24 @@ def test_format_guessing_by_extension_and_content(tmp_path: Path) -> None:
     refused(r"a nifti source must be a file", empty, format="nifti")
     with pytest.raises(SourceNotFound, match=r"source not found: .*nope.nii"):
         open_source(tmp_path / "nope.nii")
+
+
+def test_reads_outside_the_volume_are_refused(tmp_path: Path) -> None:
+    np.save(tmp_path / "v.npy", np.zeros((4, 2, 2), np.uint8))
+    with open_source(tmp_path / "v.npy") as src:
+        with pytest.raises(SourceError, match=r"slab z 3:5 is outside the volume's z range 0:4"):
+            src.read(3, 5)
+        with pytest.raises(SourceError, match=r"slab z 2:1 is outside"):
+            src.read(2, 1)
+
+
+def test_zero_spacing_in_a_header_becomes_one(tmp_path: Path) -> None:
+    nrrd.write(str(tmp_path / "z.nrrd"), volume((5, 4, 3), "uint8"), {"spacings": [0.0, 2.0, 3.0]})
+    with open_source(tmp_path / "z.nrrd") as src:
+        assert src.info.spacing == (3.0, 2.0, 1.0)
+        assert "not positive" in src.info.provenance["warnings"][0]
+    with open_source(tmp_path / "z.nrrd", spacing=(1, 1, 0.5)) as src:  # the user's spacing wins, silently
+        assert src.info.spacing == (1.0, 1.0, 0.5) and "warnings" not in src.info.provenance
 
 
 def test_provenance_is_json(tmp_path: Path) -> None:
