@@ -124,10 +124,12 @@ def _finish(reader: _Reader, spacing: Sequence[float] | None, origin: Sequence[f
 def _store_dtype(reader: _Reader, name: str) -> np.dtype:
     dt = reader.info.dtype
     if dt.fields:
-        raise SourceError(f"non-scalar data: {name} has voxels with fields {', '.join(dt.fields)}; expected one scalar per voxel")
+        raise SourceError(f"non-scalar data: {name} has voxels with fields {', '.join(dt.fields)}; "
+                          f"expected one scalar per voxel")
     supported = ", ".join(d.name for d in SUPPORTED_DTYPES)
     if dt.kind not in "iuf":  # bool, complex, strings, objects, dates
-        raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported} (int64/uint64 when their values fit)")
+        raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported} "
+                          f"(int64/uint64 when their values fit)")
     native = dt.newbyteorder("=")
     if native in SUPPORTED_DTYPES:
         return native
@@ -163,6 +165,12 @@ def _triple(what: str, value: Sequence[float], positive: bool) -> tuple[float, f
         need = "positive " if positive else "finite "
         raise SourceError(f"{what} must be three {need}numbers (z, y, x), got {value!r}")
     return t  # type: ignore[return-value]
+
+
+def _tidy(value: float) -> float:
+    """A spacing computed from positions or direction vectors, without the last bits of rounding noise
+    (1.0000000000000007 is 1.0)."""
+    return float(f"{value:.12g}")
 
 
 def _fmt(shape: Sequence[int]) -> str:
@@ -297,7 +305,8 @@ def _npy(path: Path, index: int | None) -> _Reader:
 def _raw(path: Path, shape: Sequence[int] | None, dtype: Any, byte_order: str, header_bytes: int,
          index: int | None) -> _Reader:
     if shape is None or dtype is None:
-        raise SourceError(f"raw file {path} needs its shape (z, y, x) and dtype, e.g. shape=(42, 62, 48), dtype='uint8'")
+        raise SourceError(f"raw file {path} needs its shape (z, y, x) and dtype "
+                          f"(on the command line: --shape z,y,x --dtype uint16)")
     try:
         dims = tuple(int(s) for s in shape)
         dt = np.dtype(dtype)
@@ -355,7 +364,7 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
     origin = [0.0, 0.0, 0.0]
     if directions is not None:
         d = np.asarray([directions[a] for a in spatial], dtype=float)
-        spacing = list(np.linalg.norm(d, axis=1))
+        spacing = [_tidy(v) for v in np.linalg.norm(d, axis=1)]
         provenance["space_directions"] = d.tolist()
         o = header.get("space origin")
         if o is not None:
@@ -394,7 +403,8 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
     if decompress is None:
         raise SourceError(f"NRRD encoding '{encoding}' of {path} is not supported; expected raw, gzip or bzip2")
     if byte_skip < 0:
-        raise SourceError(f"NRRD {path}: byte skip {byte_skip} with {encoding} encoding is not supported; expected 0 or more")
+        raise SourceError(f"NRRD {path}: byte skip {byte_skip} with {encoding} encoding is not supported; "
+                          f"expected 0 or more")
 
     def opened() -> tuple[IO[bytes], IO[bytes]]:
         raw = open(data_path, "rb")
@@ -558,9 +568,11 @@ def _single_image(f: Path, folder: Path) -> tuple[tuple[int, ...], np.dtype, dic
     with _open_tiff(f) as tif:
         page = tif.pages[0]
         if page.samplesperpixel > 1:
-            raise SourceError(f"non-scalar data: {f} has {page.samplesperpixel} samples per pixel; expected one (grayscale)")
+            raise SourceError(f"non-scalar data: {f} has {page.samplesperpixel} samples per pixel; "
+                              f"expected one (grayscale)")
         if len(tif.pages) > 1:
-            raise SourceError(f"TIFF folder {folder} holds {f.name} with {len(tif.pages)} pages; expected one image per file")
+            raise SourceError(f"TIFF folder {folder} holds {f.name} with {len(tif.pages)} pages; "
+                              f"expected one image per file")
         return tuple(page.shape), np.dtype(page.dtype), _tiff_geometry(tif)
 
 
@@ -645,7 +657,8 @@ class _DicomReader(_Reader):
         provenance: dict[str, Any] = {"series_uid": uid, "warnings": []}
         if len(by_series) > 1:
             provenance["other_series"] = {u: len(v) for u, v in by_series.items() if u != uid}
-            provenance["warnings"].append(f"{len(by_series)} series in {path}; kept the largest, {uid} ({len(slices)} files)")
+            provenance["warnings"].append(f"{len(by_series)} series in {path}; "
+                                          f"kept the largest, {uid} ({len(slices)} files)")
         ny, nx, pixel_dtype = self._check_images(slices)
         slices, dz, origin = self._sort(slices, provenance)
         self._files = [f for f, _ in slices]
@@ -684,7 +697,8 @@ class _DicomReader(_Reader):
         return first[0], first[1], np.dtype(_PIXEL_DTYPES[first[2], first[3]])
 
     @staticmethod
-    def _sort(slices: list[tuple[Path, Any]], provenance: dict[str, Any]) -> tuple[list[tuple[Path, Any]], float, tuple[float, float, float]]:
+    def _sort(slices: list[tuple[Path, Any]],
+              provenance: dict[str, Any]) -> tuple[list[tuple[Path, Any]], float, tuple[float, float, float]]:
         """Slices in order along the normal of their orientation, z spacing and origin (z, y, x)."""
         first = slices[0][1]
         thickness = float(first.get("SpacingBetweenSlices", first.get("SliceThickness", 1.0)) or 1.0)
@@ -704,12 +718,12 @@ class _DicomReader(_Reader):
         steps = np.diff(depth)
         if len(steps) and steps.min() <= 1e-6 * max(1.0, abs(steps.max())):
             where = int(np.argmin(steps))
-            raise SourceError(f"DICOM series has two slices at position {depth[where]:g} mm "
-                              f"({slices[where][0].name}, {slices[where + 1][0].name}); expected one slice per position")
-        dz = float(steps.mean()) if len(steps) else thickness
+            raise SourceError(f"DICOM series has two slices at position {depth[where]:g} mm ({slices[where][0].name}, "
+                              f"{slices[where + 1][0].name}); expected one slice per position")
+        dz = _tidy(float(steps.mean())) if len(steps) else thickness
         if len(steps) and np.abs(steps - dz).max() > 0.01 * dz:
-            provenance["warnings"].append(f"slice positions are not evenly spaced ({steps.min():g} to {steps.max():g} mm); "
-                                          f"z spacing {thickness} taken from the header")
+            provenance["warnings"].append(f"slice positions are not evenly spaced ({steps.min():g} to "
+                                          f"{steps.max():g} mm); z spacing {thickness} taken from the header")
             dz = thickness
         ipp = [float(v) for v in slices[0][1].ImagePositionPatient]
         provenance["orientation"] = orientation.tolist()
@@ -743,7 +757,8 @@ class _DicomReader(_Reader):
             except Exception as exc:  # decoding errors come from pydicom and its image plugins
                 raise SourceError(f"cannot decode the pixels of DICOM file {f}: {exc}") from None
             if pixels.shape != self.info.shape[1:]:
-                raise SourceError(f"DICOM file {f} has pixels of shape {_fmt(pixels.shape)}; expected {_fmt(self.info.shape[1:])}")
+                raise SourceError(f"DICOM file {f} has pixels of shape {_fmt(pixels.shape)}; "
+                                  f"expected {_fmt(self.info.shape[1:])}")
             slope, intercept = self._rescale[k]
             out[k - z0] = pixels if (slope, intercept) == (1.0, 0.0) else pixels * slope + intercept
         return out
@@ -781,10 +796,11 @@ class _ZarrReader(_Reader):
                 raise SourceError(f"OME-Zarr {path} names dataset '{dataset['path']}', which does not exist") from None
             axes = [a if isinstance(a, dict) else {"name": a} for a in image.get("axes", [])] or \
                 [{"name": n} for n in "tczyx"[-array.ndim:]]
-            provenance.update(ome_version=str(ome.get("version", image.get("version", ""))), dataset=str(dataset["path"]))
+            provenance.update(ome_version=str(ome.get("version", image.get("version", ""))),
+                              dataset=str(dataset["path"]))
         spatial = [k for k, a in enumerate(axes) if a.get("type") == "space" or a["name"] in ("z", "y", "x")]
         lead = array.ndim - len(spatial)
-        if len(axes) != array.ndim or len(spatial) not in (2, 3) or spatial != list(range(lead, array.ndim)) or lead > 2:
+        if len(axes) != array.ndim or len(spatial) not in (2, 3) or spatial != list(range(lead, array.ndim)):
             raise SourceError(f"zarr {path} has axes {[a['name'] for a in axes]} for shape {_fmt(array.shape)}; "
                               f"expected z, y, x (or y, x) after at most a t and a c axis")
         stacks = [k for k in range(lead) if array.shape[k] > 1]
