@@ -345,15 +345,18 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
         sizes, encoding = [int(s) for s in header["sizes"]], str(header["encoding"]).lower()
     except (nrrd.NRRDError, OSError, ValueError, KeyError, UnicodeDecodeError, StopIteration) as exc:
         raise SourceError(f"{path} is not a readable NRRD file: {exc!s}") from None
-    kinds = list(header.get("kinds", ["domain"] * len(sizes)))
+    kinds = [str(k).lower() for k in header.get("kinds", ["domain"] * len(sizes))]
+    # components of a non-spatial kind (vector, RGB-color, list…) on the slowest axis are whole volumes one after
+    # another, which index can pick; anywhere else they are interleaved per voxel: non-scalar data
+    last = len(sizes) - 1
     for axis, (size, kind) in enumerate(zip(sizes, kinds)):
-        if size > 1 and kind is not None and str(kind).lower() not in _NRRD_SPATIAL:
+        if size > 1 and kind not in _NRRD_SPATIAL and axis != last:
             raise SourceError(f"non-scalar data: NRRD axis {axis} of {path} is '{kind}' of size {size}; "
                               f"expected scalar data")
-    keep = [a for a, kind in enumerate(kinds) if kind is None or str(kind).lower() in _NRRD_SPATIAL]
+    keep = [a for a, kind in enumerate(kinds) if kind in _NRRD_SPATIAL or (a == last and sizes[a] > 1)]
     if len(keep) == 4 and sizes[keep[3]] == 1:
         keep = keep[:3]
-    if any(str(kinds[a]).lower() == "time" for a in keep[:3]):
+    if any(kinds[a] == "time" for a in keep[:3]):
         raise SourceError(f"NRRD file {path} has its time axis among the first three (kinds {kinds}); expected it last")
     # NRRD lists the fastest axis first: sizes (x, y, z, t) are a C-ordered (t, z, y, x) array
     shape4, t = _pick([sizes[a] for a in reversed(keep)], index, f"NRRD file {path}")

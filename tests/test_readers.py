@@ -219,7 +219,12 @@ def test_nrrd_detached_spacings_oblique_and_4d(tmp_path: Path) -> None:
     refused(r"4D .* 3 volumes .* index=0\.\.2", tmp_path / "t.nrrd")
     rgb = volume((3, 4, 5, 6), "uint8")
     nrrd.write(str(tmp_path / "rgb.nrrd"), rgb, {"kinds": ["RGB-color", "domain", "domain", "domain"]})
-    refused(r"non-scalar data: NRRD axis 0 .* 'RGB-color' of size 3", tmp_path / "rgb.nrrd")
+    refused(r"non-scalar data: NRRD axis 0 .* 'rgb-color' of size 3", tmp_path / "rgb.nrrd")
+    gradients = volume((2, 5, 4, 6), "int16")  # a list axis last: volumes one after another (diffusion MR)
+    nrrd.write(str(tmp_path / "dwi.nrrd"), gradients.transpose(3, 2, 1, 0),
+               {"kinds": ["space", "space", "space", "list"], "encoding": "raw"})
+    with open_source(tmp_path / "dwi.nrrd", index=1) as src:
+        check(src, gradients[1])
 
 
 def test_nrrd_truncated_gzip_is_refused_on_read(tmp_path: Path) -> None:
