@@ -150,7 +150,8 @@ def _turn(scene: Scene, azimuth: float) -> Scene:
         tx, ty, tz = (float(v) for v in cam["target"])
         a = math.radians(azimuth)
         dx, dy = ex - tx, ey - ty
-        cam["eye"] = [tx + dx * math.cos(a) + dy * math.sin(a), ty - dx * math.sin(a) + dy * math.cos(a), ez]
+        # counter-clockwise about +z, as the orbit camera's azimuth turns (from -y towards +x)
+        cam["eye"] = [tx + dx * math.cos(a) - dy * math.sin(a), ty + dx * math.sin(a) + dy * math.cos(a), ez]
     else:
         cam["azimuth"] = float(cam.get("azimuth", 0.0)) + azimuth
     out["camera"] = cam
