@@ -617,7 +617,27 @@ _PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1):
                  (32, 0): np.uint32, (32, 1): np.int32}
 
 
-def _dicom_image(f: Path, ds: Any) -> tuple[int, int, int, int]:
+_DICOM_KEYWORDS = ("SeriesInstanceUID", "Rows", "Columns", "SamplesPerPixel", "PhotometricInterpretation",
+                   "NumberOfFrames", "BitsAllocated", "BitsStored", "PixelRepresentation", "PixelSpacing",
+                   "SliceThickness", "SpacingBetweenSlices", "ImagePositionPatient", "ImageOrientationPatient",
+                   "InstanceNumber", "RescaleSlope", "RescaleIntercept", "Modality", "SeriesDescription")
+
+
+def _dicom_header(f: Path) -> dict[str, Any]:
+    """The few header fields a series needs: a whole pydicom header is tens of kB, times thousands of slices."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(f, stop_before_pixels=True)
+        header = {k: ds.get(k) for k in _DICOM_KEYWORDS if ds.get(k) is not None}
+        syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+        header["compressed"] = syntax is None or syntax.is_compressed
+    except Exception as exc:  # pydicom raises many types on corrupt files
+        raise SourceError(f"unreadable DICOM file {f}: {exc}") from None
+    return header
+
+
+def _dicom_image(f: Path, ds: dict[str, Any]) -> tuple[int, int, int, int]:
     """(rows, columns, bits allocated, pixel representation) of one grayscale single-frame file."""
     if "Rows" not in ds or "Columns" not in ds:
         raise SourceError(f"unreadable DICOM file {f}: no Rows/Columns (corrupt, or not an image)")
@@ -626,11 +646,10 @@ def _dicom_image(f: Path, ds: Any) -> tuple[int, int, int, int]:
         raise SourceError(f"non-scalar data: DICOM file {f} is {ds.get('PhotometricInterpretation', '?')} with "
                           f"{samples} samples per pixel; expected one (grayscale)")
     if int(ds.get("NumberOfFrames", 1) or 1) > 1:
-        raise SourceError(f"DICOM file {f} holds {ds.NumberOfFrames} frames; expected one slice per file")
-    rows, cols, bits = int(ds.Rows), int(ds.Columns), int(ds.get("BitsAllocated", 16))
-    syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+        raise SourceError(f"DICOM file {f} holds {ds['NumberOfFrames']} frames; expected one slice per file")
+    rows, cols, bits = int(ds["Rows"]), int(ds["Columns"]), int(ds.get("BitsAllocated", 16))
     need = rows * cols * bits // 8
-    if syntax is not None and not syntax.is_compressed and f.stat().st_size < need:
+    if not ds["compressed"] and f.stat().st_size < need:
         raise SourceError(f"DICOM file {f} is truncated: {f.stat().st_size} bytes, but its {rows}x{cols} pixels "
                           f"of {bits} bits need {need}")
     return rows, cols, bits, int(ds.get("PixelRepresentation", 0))
@@ -641,20 +660,15 @@ class _DicomReader(_Reader):
     normal. Headers are read once; pixels only for the slab asked for. RescaleSlope/Intercept are applied."""
 
     def __init__(self, path: Path, index: int | None) -> None:
-        import pydicom
-
         if index is not None:
             raise SourceError(f"index {index} given but DICOM series {path} is a single 3D volume")
         files = [path] if path.is_file() else sorted(f for f in path.iterdir() if f.is_file() and _is_dicom(f))
         if not files or not _is_dicom(files[0]):
             raise SourceError(f"no DICOM files (with a DICM preamble) in {path}")
-        by_series: dict[str, list[tuple[Path, Any]]] = {}
+        by_series: dict[str, list[tuple[Path, dict[str, Any]]]] = {}
         for f in files:
-            try:
-                ds = pydicom.dcmread(f, stop_before_pixels=True)
-            except Exception as exc:  # pydicom raises many types on corrupt files
-                raise SourceError(f"unreadable DICOM file {f}: {exc}") from None
-            by_series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((f, ds))
+            header = _dicom_header(f)
+            by_series.setdefault(str(header.get("SeriesInstanceUID", "")), []).append((f, header))
         uid = max(sorted(by_series), key=lambda u: len(by_series[u]))
         slices = by_series[uid]
         provenance: dict[str, Any] = {"series_uid": uid, "warnings": []}
@@ -687,7 +701,7 @@ class _DicomReader(_Reader):
         self.info.provenance["dtype"] = pixel_dtype.name
 
     @staticmethod
-    def _check_images(slices: list[tuple[Path, Any]]) -> tuple[int, int, np.dtype]:
+    def _check_images(slices: list[tuple[Path, dict[str, Any]]]) -> tuple[int, int, np.dtype]:
         """Rows, columns and pixel type, the same in every file of the series."""
         first = _dicom_image(*slices[0])
         for f, ds in slices[1:]:
@@ -700,8 +714,8 @@ class _DicomReader(_Reader):
         return first[0], first[1], np.dtype(_PIXEL_DTYPES[first[2], first[3]])
 
     @staticmethod
-    def _sort(slices: list[tuple[Path, Any]],
-              provenance: dict[str, Any]) -> tuple[list[tuple[Path, Any]], float, tuple[float, float, float]]:
+    def _sort(slices: list[tuple[Path, dict[str, Any]]], provenance: dict[str, Any]
+              ) -> tuple[list[tuple[Path, dict[str, Any]]], float, tuple[float, float, float]]:
         """Slices in order along the normal of their orientation, z spacing and origin (z, y, x)."""
         first = slices[0][1]
         thickness = float(first.get("SpacingBetweenSlices", first.get("SliceThickness", 1.0)) or 1.0)
@@ -709,12 +723,12 @@ class _DicomReader(_Reader):
             provenance["warnings"].append("slices lack ImagePositionPatient/ImageOrientationPatient; "
                                           f"sorted by InstanceNumber, z spacing {thickness} from the header")
             return sorted(slices, key=lambda s: int(s[1].get("InstanceNumber", 0) or 0)), thickness, (0.0, 0.0, 0.0)
-        orientation = np.array([float(v) for v in first.ImageOrientationPatient])
+        orientation = np.array([float(v) for v in first["ImageOrientationPatient"]])
         for f, ds in slices:
-            if not np.allclose([float(v) for v in ds.ImageOrientationPatient], orientation, atol=1e-4):
+            if not np.allclose([float(v) for v in ds["ImageOrientationPatient"]], orientation, atol=1e-4):
                 raise SourceError(f"DICOM series mixes slice orientations: {f.name} differs from {slices[0][0].name}")
         normal = np.cross(orientation[:3], orientation[3:])
-        placed = sorted(((float(np.dot([float(v) for v in ds.ImagePositionPatient], normal)), f.name, f, ds)
+        placed = sorted(((float(np.dot([float(v) for v in ds["ImagePositionPatient"]], normal)), f.name, f, ds)
                          for f, ds in slices), key=lambda s: s[:2])
         slices = [(f, ds) for _, _, f, ds in placed]
         depth = [d for d, *_ in placed]
@@ -728,7 +742,7 @@ class _DicomReader(_Reader):
             provenance["warnings"].append(f"slice positions are not evenly spaced ({steps.min():g} to "
                                           f"{steps.max():g} mm); z spacing {thickness} taken from the header")
             dz = thickness
-        ipp = [float(v) for v in slices[0][1].ImagePositionPatient]
+        ipp = [float(v) for v in slices[0][1]["ImagePositionPatient"]]
         provenance["orientation"] = orientation.tolist()
         provenance["first_position"] = ipp
         # world (z, y, x) = index × spacing + origin holds only when rows run along +x, columns along +y
