@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_serve", "add_worker", "add_submit", "add_jobs"]
+__all__ = ["add_serve", "add_worker", "add_submit", "add_jobs", "serve_forever"]
 
 
 def _settings(args: argparse.Namespace, **extra: Any) -> Any:
@@ -54,26 +54,43 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
+    settings = _settings(args, workers=args.workers, render_concurrency=args.render_concurrency,
+                         import_roots=args.import_root)
+    return serve_forever(settings, host=args.host, port=args.port, log_level=args.log_level)
+
+
+def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 8000, log_level: str = "warning",
+                  root: str | os.PathLike[str] | None = None) -> int:
+    """Serve the API until Ctrl-C, after printing the URL, an example curl and a client snippet. Used by
+    `lodcast serve` and by anything that ends by serving (e.g. the demo): ``serve_forever(root="demo-output")``."""
     import uvicorn
 
     from lodcast.service.app import create_app
+    from lodcast.service.settings import Settings
+    from lodcast.service.volumes import list_volumes, volume_summary
 
-    settings = _settings(args, workers=args.workers, render_concurrency=args.render_concurrency,
-                         import_roots=args.import_root)
-    if not (1 <= args.port <= 65535):
-        raise ValueError(f"--port: {args.port} is not a TCP port")
-    from lodcast.service.volumes import list_volumes
-
-    url = f"http://{args.host if ':' not in args.host else '[' + args.host + ']'}:{args.port}"
+    if settings is None:
+        settings = Settings(**({"root": root} if root is not None else {}))
+    if not (1 <= int(port) <= 65535):
+        raise ValueError(f"--port: {port} is not a TCP port")
+    url = f"http://{host if ':' not in host else '[' + host + ']'}:{port}"
     vols = list_volumes(settings.root)
-    example = vols[0] if vols else "VOLUME"
-    print(f"lodcast serving {len(vols)} volume(s) from {settings.root} at {url}  (API docs: {url}/docs; Ctrl-C stops)", flush=True)
+    example, lo, hi = (vols[0] if vols else "VOLUME"), 0.0, 1000.0
+    if vols:
+        try:
+            lo, hi = (float(v) for v in volume_summary(settings.root, example)["value_range"])
+        except Exception:  # noqa: BLE001 - the example is a courtesy
+            pass
+    a, b = (round(lo + f * (hi - lo), 3) for f in (0.3, 0.9))
+    scene = json.dumps({"camera": {"azimuth": 30, "elevation": 20},
+                        "tf": {"points": [{"value": a, "opacity": 0.0}, {"value": b, "opacity": 0.6}]}})
     auth = ' -H "Authorization: Bearer $LODCAST_TOKEN"' if settings.token else ""
+    print(f"lodcast: serving {len(vols)} volume(s) from {settings.root} at {url}   (API docs {url}/docs; Ctrl-C stops)", flush=True)
     print(f"  curl -s{auth} -X POST {url}/volumes/{example}/render -H 'Content-Type: application/json' \\\n"
-          f"       -d '{{\"camera\": {{\"azimuth\": 30, \"elevation\": 20}}, \"tf\": {{\"points\": "
-          f"[{{\"value\": 0, \"opacity\": 0}}, {{\"value\": 1000, \"opacity\": 0.5}}]}}}}' -o out.png", flush=True)
-    print(f"  python -c \"import lodcast; c = lodcast.Client('{url}'); print(c.volumes())\"", flush=True)
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+          f"       -d '{scene}' -o {example}.png", flush=True)
+    print(f"  python3 - <<'EOF'\nimport lodcast\nc = lodcast.Client('{url}')\nr = c.render('{example}', {scene})\n"
+          f"print(r.rgba.shape, r.report['wall_ms'])\nEOF", flush=True)
+    uvicorn.run(create_app(settings), host=host, port=int(port), log_level=log_level)
     return 0
 
 
