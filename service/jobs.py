@@ -34,6 +34,8 @@ __all__ = [
 ]
 
 Scene = dict[str, Any]
+#: keyword options of lodcast.ingest an ingest job may pass (reader options and the block size)
+INGEST_OPTIONS = frozenset({"format", "shape", "dtype", "byte_order", "header_bytes", "spacing", "origin", "index", "block_size"})
 
 
 class _Job(BaseModel):
@@ -106,6 +108,9 @@ def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
             source = str(upload) if upload is not None else str(safe_import_path(job.source, settings.import_roots, "source"))
         except BadId as exc:
             raise RequestInvalid.one(("body", exc.field), str(exc).split(": ", 1)[-1]) from None
+        for key in job.options:
+            if key not in INGEST_OPTIONS:
+                raise RequestInvalid.one(("body", "options", key), f"unknown ingest option (known: {', '.join(sorted(INGEST_OPTIONS))})")
         if not job.overwrite and (settings.root / job.name).exists():
             raise RequestInvalid.one(("body", "name"), f"volume {job.name!r} exists (set overwrite)")
         return job.model_copy(update={"source": source})

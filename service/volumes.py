@@ -114,6 +114,8 @@ def volume_summary(root: Path, volume_id: Any) -> dict[str, Any]:
 def delete_volume(root: Path, volume_id: Any) -> None:
     """Remove a volume's store: renamed aside first (atomic), then deleted, so it never looks half there."""
     path = volume_path(root, volume_id)
+    if not (path / "zarr.json").is_file():  # only stores are volumes: never delete another folder under the root
+        raise VolumeNotFound(str(volume_id))
     if path.is_symlink():
         path.unlink()  # a link inside the root pointing at a store elsewhere: remove the link, never the target
         return

@@ -32,6 +32,8 @@ def env(tmp_path_factory: pytest.TempPathFactory):
     make_volume(outside, "secret")
     np.save(imports / "blob.npy", np.random.default_rng(0).random((12, 12, 12), dtype=np.float32))
     (root / "escape").symlink_to(outside / "secret")  # a link leading out of the root
+    (root / "notastore").mkdir()  # a folder that is not a store
+    (root / "afile").write_text("x")
     settings = Settings(root=root, token=TOKEN, import_roots=[imports], max_width=64, max_height=64, max_frames=50,
                         min_step=0.25, max_upload_bytes=64 * 1024, workers=1, poll_s=0.05)
     with TestClient(create_app(settings)) as client:
@@ -71,7 +73,8 @@ def test_list_and_show_volumes(env):
     assert info["shape"] == [24, 24, 24] and "path" not in info
 
 
-@pytest.mark.parametrize("vid", ["..", ".jobs", ".lodcast", "-x", "a" * 129, "escape", "a%2F..%2F..", "%2E%2E", "nope"])
+@pytest.mark.parametrize("vid", ["..", ".jobs", ".lodcast", "-x", "a" * 129, "escape", "a%2F..%2F..", "%2E%2E", "nope",
+                                 "notastore", "afile"])
 def test_bad_volume_ids_refused(env, vid):
     client = env[0]
     r = client.get(f"/volumes/{vid}")
@@ -167,6 +170,7 @@ def test_ingest_from_import_root_then_delete(env):
         ({"name": ".jobs", "source": "blob.npy"}, "name"),
         ({"name": "x1"}, "source"),
         ({"name": "x1", "source": "blob.npy", "extra": 1}, "extra"),
+        ({"name": "x1", "source": "blob.npy", "options": {"rm_rf": True}}, "rm_rf"),
     ],
 )
 def test_ingest_bad_requests(env, body, field):
