@@ -121,14 +121,41 @@ def throughput(root: Path, volume: str, summary: dict, queue: str | None, worker
         t0 = time.perf_counter()
         ids = [jq.submit(parse_job({"kind": "turntable", "volume": volume, "scene": scene_for(summary, size),
                                     "frames": frames, "start_azimuth": 7.0 * j}))["id"] for j in range(jobs)]
-        states = [jq.wait(i, timeout=1800, poll=0.05)["state"] for i in ids]
+        recs = [jq.wait(i, timeout=1800, poll=0.05) for i in ids]
         wall = time.perf_counter() - t0
+        states = [r["state"] for r in recs]
+        for r in recs:
+            if r["state"] != "done":
+                print(f"  job {r['id']} {r['state']}: {r['error']}", file=sys.stderr)
     finally:
         for p in procs:
             p.stop()
     done = sum(1 for s in states if s == "done")
-    return {"queue": "redis" if queue else "sqlite", "workers": workers, "jobs": jobs, "frames": jobs * frames,
-            "size": size, "jobs_done": done, "seconds": wall, "frames_per_s": jobs * frames / wall}
+    return {"queue": "redis" if queue else "sqlite", "workers": workers, "jobs": jobs, "frames": done * frames,
+            "size": size, "jobs_done": done, "seconds": wall, "frames_per_s": done * frames / wall}
+
+
+def run_latency(args: argparse.Namespace, root: Path, summary: dict, logs: Path, result: dict) -> None:
+    port = free_port()
+    env = {"LODCAST_RENDER_CONCURRENCY": str(args.render_concurrency), "LODCAST_TOKEN": "",
+           "LODCAST_MAX_WIDTH": "4096", "LODCAST_MAX_HEIGHT": "4096"}
+    serve = start_serve(root, port, env=env, log=logs / "serve.log", extra=["--workers", "0"])
+    url = f"http://127.0.0.1:{port}"
+    try:
+        with httpx.Client(base_url=url, timeout=600) as c:  # warm-up: kernel build and volume upload
+            r = c.post("/volumes/demo/render", json=scene_for(summary, args.size))
+            r.raise_for_status()
+            result["device"] = json.loads(r.headers["x-lodcast-report"]).get("device")
+        for clients in (1, 4, 8):
+            per = max(1, args.requests // clients)
+            row = latency(url, "demo", summary, clients, per, args.size)
+            result["latency"].append(row)
+            print(f"  latency {clients} client(s): p50 {row['p50_ms']:.0f} ms  p95 {row['p95_ms']:.0f} ms", file=sys.stderr)
+        if args.soak > 0:
+            result["soak"] = soak(url, "demo", summary, args.soak)
+            print(f"  soak: {result['soak']['requests']} requests, {result['soak']['errors']} errors", file=sys.stderr)
+    finally:
+        serve.stop()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -141,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=8, help="frames per job (default 8)")
     ap.add_argument("--soak", type=float, default=0.0, help="also run 8 clients for this many seconds (e.g. 30)")
     ap.add_argument("--render-concurrency", type=int, default=2)
+    ap.add_argument("--no-latency", action="store_true", help="skip the latency runs (and the soak)")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "bench_service.json"))
     args = ap.parse_args(argv)
 
@@ -163,26 +191,8 @@ def main(argv: list[str] | None = None) -> int:
 
         result: dict = {"volume": label, "shape": summary["shape"], "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
                         "render_concurrency": args.render_concurrency, "latency": [], "throughput": []}
-        port = free_port()
-        env = {"LODCAST_RENDER_CONCURRENCY": str(args.render_concurrency), "LODCAST_TOKEN": "",
-               "LODCAST_MAX_WIDTH": "4096", "LODCAST_MAX_HEIGHT": "4096"}
-        serve = start_serve(root, port, env=env, log=logs / "serve.log", extra=["--workers", "0"])
-        url = f"http://127.0.0.1:{port}"
-        try:
-            with httpx.Client(base_url=url, timeout=600) as c:  # warm-up: kernel build and volume upload
-                r = c.post("/volumes/demo/render", json=scene_for(summary, args.size))
-                r.raise_for_status()
-                result["device"] = json.loads(r.headers["x-lodcast-report"]).get("device")
-            for clients in (1, 4, 8):
-                per = max(1, args.requests // clients)
-                row = latency(url, "demo", summary, clients, per, args.size)
-                result["latency"].append(row)
-                print(f"  latency {clients} client(s): p50 {row['p50_ms']:.0f} ms  p95 {row['p95_ms']:.0f} ms", file=sys.stderr)
-            if args.soak > 0:
-                result["soak"] = soak(url, "demo", summary, args.soak)
-                print(f"  soak: {result['soak']['requests']} requests, {result['soak']['errors']} errors", file=sys.stderr)
-        finally:
-            serve.stop()
+        if not args.no_latency:
+            run_latency(args, root, summary, logs, result)
 
         redis = None
         queues: list[str | None] = [None]

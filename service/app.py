@@ -155,6 +155,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(LodcastError)
     async def _lodcast_error(request: Request, exc: LodcastError) -> JSONResponse:
+        if isinstance(exc, RuntimeError):  # the renderer's DeviceError: no usable device, kernel build failed
+            return JSONResponse({"detail": "render device: " + " ".join(str(exc).split())[:2000]}, status_code=503)
         code = 404 if isinstance(exc, (StoreNotFound, FileNotFoundError)) else 409 if isinstance(exc, StoreInvalid) else 400
         return JSONResponse({"detail": " ".join(str(exc).split()) or type(exc).__name__}, status_code=code)
 
