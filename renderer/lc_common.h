@@ -46,14 +46,16 @@ inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t
 }
 
 #ifdef LC_SAMPLER_FULL
-/* Trilinear between voxel centres, clamped to the edge in the half-voxel rim. Any NaN in the 8-voxel stencil
- * yields NaN (the caller treats it as transparent). 1-voxel-thick axes work (the stencil collapses).
- * fx < 1 always (c.x <= nx - 1 and x0 = floor), so x0 + dx stays inside the volume. */
-inline float lc_sample(__global const float* vol, int4 dims, float3 q) {
-    float3 c = clamp(q, (float3)(0.0f), convert_float3(dims.xyz - 1));
-    int x0 = (int)c.x, y0 = (int)c.y, z0 = (int)c.z;
-    float fx = c.x - (float)x0, fy = c.y - (float)y0, fz = c.z - (float)z0;
-    /* the stencil is {floor, ceil} per axis: a voxel of zero weight is not read (matters for NaN in the rim) */
+/* Trilinear between voxel centres, clamped to the edge in the half-voxel rim (qmax = dims - 1). Any NaN in the
+ * stencil yields NaN (the caller treats it as transparent). The stencil is {floor, ceil} per axis: a voxel of
+ * zero weight is not read (matters for NaN in the rim). 1-voxel-thick axes work (the stencil collapses).
+ * Written without builtins (clamp, fmin, ...): PoCL calls them out of line, which costs more than the sample. */
+inline float lc_sample(__global const float* vol, const int4 dims, const float3 qmax, float3 q) {
+    float cx = q.x > 0.0f ? (q.x < qmax.x ? q.x : qmax.x) : 0.0f;
+    float cy = q.y > 0.0f ? (q.y < qmax.y ? q.y : qmax.y) : 0.0f;
+    float cz = q.z > 0.0f ? (q.z < qmax.z ? q.z : qmax.z) : 0.0f;
+    int x0 = (int)cx, y0 = (int)cy, z0 = (int)cz;
+    float fx = cx - (float)x0, fy = cy - (float)y0, fz = cz - (float)z0;
     ulong dx = (fx > 0.0f) ? 1UL : 0UL;
     ulong dy = (fy > 0.0f) ? (ulong)dims.x : 0UL;
     ulong dz = (fz > 0.0f) ? (ulong)dims.x * (ulong)dims.y : 0UL;

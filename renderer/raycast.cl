@@ -13,107 +13,69 @@
  *
  * Sampling: the part [t0, t1] of the ray inside the box is cut into n = ceil((t1 - t0) / step) segments of
  * length step (the last one shorter, so the segments add up to t1 - t0 exactly); segment k is sampled once at
- * fraction u of its length (u = 1/2, or the pixel's jitter). The samples therefore lie on one lattice per ray,
+ * fraction u of its length (u = 1/2, or the pixel's jitter). The samples therefore lie on one lattice per ray
  * whether or not blocks are skipped: skipping changes nothing but which zero-contribution samples are taken.
- * A segment of length l with TF extinction s = -log1p(-a) (per unit distance) has opacity
- * alpha = -expm1(-(l / unit) s), exact for a -> 1 and l -> 0.
+ *
+ * The LUT's fourth channel depends on the mode (lodcast.renderer.transfer_function.Lut.kernel_table):
+ *   composite: alpha_step = 1 - (1 - a)^(step / unit), exact in float64 on the host, so the uniform segments
+ *              need no transcendental function; the last, shorter segment of fraction r of a step takes
+ *              1 - (1 - alpha_step)^r = -expm1(r log1p(-alpha_step)) (alpha_step = 1 stays 1);
+ *   LC_PRECISE: the segment's optical depth (step / unit) * (-log1p(-a)), alpha = -expm1(-depth);
+ *   MIP:       the TF opacity a as given.
+ * A later per-block step (adaptive sampling) uses the same two formulas with r = its step / step.
+ * Loops avoid OpenCL builtins such as clamp/fmin (PoCL calls them out of line) and read parameters from private
+ * copies (on the CPU device __constant and private memory may alias, so loads in loops are not hoisted).
  */
 #include "lc_common.h"
 
-typedef struct {
-    float t0, t1, dt, u, last;  /* last: start of the last segment */
-    int n;
-} LcSteps;
 
-typedef struct {
-    float3 C;      /* premultiplied colour */
-    float T;       /* transmittance */
-    float tau;     /* optical depth (LC_PRECISE) */
-    float tau_c;   /* Kahan compensations (LC_PRECISE) */
-    float3 C_c;
-    float vmax;    /* LC_MODE_MIP */
-    uint n;        /* samples taken */
-    int done;
-} LcAcc;
-
-/* World parameter of segment k's sample, and the segment's length. */
-inline float lc_pos(const LcSteps* S, int k, float* len) {
-    if (k < S->n - 1) {
-        *len = S->dt;
-        return S->t0 + ((float)k + S->u) * S->dt;
-    }
-    float l = S->t1 - S->last;
-    *len = l;
-    return S->last + S->u * l;
-}
-
-/* TF lookup: linear interpolation of (r, g, b, extinction) between LUT entries. */
-inline float4 lc_tf(__global const float4* lut, __constant const LcParams* P, float v) {
-    float f = clamp((v - P->lut_lo) * P->lut_scale, 0.0f, (float)(P->lut_n - 1));
-    int i0 = min((int)f, P->lut_n - 2);
-    float w = f - (float)i0;
-    float4 a = lut[i0], b = lut[i0 + 1];
-    return a + (b - a) * w;
-}
-
-/* Samples k, k+1, ... whose position is below t_lim; returns the first index not taken. */
-inline int lc_march(int k, float t_lim, const LcSteps* S, float3 q0, float3 dq, __global const float* vol,
-                    __global const float4* lut, __constant const LcParams* P, LcAcc* A) {
-    for (; k < S->n; ++k) {
-        float len;
-        float t = lc_pos(S, k, &len);
-        if (t >= t_lim) break;
-        float v = lc_sample(vol, P->dims, q0 + t * dq);
-        A->n++;
-        if (isnan(v)) continue;  /* a stencil touching a NaN voxel: transparent */
+/* One sample of value v on a segment of r steps: MIP keeps the maximum; compositing looks the TF up, takes the
+ * segment's opacity and composites front to back; done = 1 once the ray is (nearly) opaque. */
 #ifdef LC_MODE_MIP
-        A->vmax = fmax(A->vmax, v);
+#define LC_SAMPLE_BODY(v, r)                                                     \
+    if ((v) == (v)) vmax = (v) > vmax ? (v) : vmax;
 #else
-        float4 e = lc_tf(lut, P, v);
-        float d = len * P->inv_unit * e.w;
-        float alpha = -expm1(-d);
-        float w = A->T * alpha;
+#define LC_TF_LOOKUP(v, e)                                                       \
+    float4 e;                                                                    \
+    {                                                                            \
+        float f_ = ((v) - lut_lo) * lut_scale;                                   \
+        f_ = f_ > 0.0f ? (f_ < lut_fmax ? f_ : lut_fmax) : 0.0f;                 \
+        int i_ = (int)f_;                                                        \
+        i_ = i_ < lut_imax ? i_ : lut_imax;                                      \
+        const float4 e0_ = lut[i_], e1_ = lut[i_ + 1];                           \
+        e = e0_ + (e1_ - e0_) * (f_ - (float)i_);                                \
+    }
 #ifdef LC_PRECISE
-        float3 y3 = w * e.xyz - A->C_c;
-        float3 s3 = A->C + y3;
-        A->C_c = (s3 - A->C) - y3;
-        A->C = s3;
-        float y = d - A->tau_c;
-        float s = A->tau + y;
-        A->tau_c = (s - A->tau) - y;
-        A->tau = s;
-        A->T = exp(-A->tau);
-#else
-        A->C += w * e.xyz;
-        A->T -= w;
-#endif
-        if (1.0f - A->T >= P->early_term || A->T <= 0.0f) {
-            A->done = 1;
-            return k + 1;
-        }
-#endif
+#define LC_SAMPLE_BODY(v, r)                                                     \
+    if ((v) == (v)) {                                                            \
+        LC_TF_LOOKUP(v, e)                                                       \
+        const float depth = e.w * (r);                                           \
+        const float alpha = -expm1(-depth);                                      \
+        const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
+        const float3 s3 = C + y3;                                                \
+        C_c = (s3 - C) - y3;                                                     \
+        C = s3;                                                                  \
+        const float y = depth - tau_c;                                           \
+        const float s = tau + y;                                                 \
+        tau_c = (s - tau) - y;                                                   \
+        tau = s;                                                                 \
+        T = exp(-tau);                                                           \
+        done = T <= t_stop;                                                      \
     }
-    return k;
-}
-
-/* Can block `info` be skipped? Composite: info is 1 where the TF is non-zero somewhere on the block's
- * border-inclusive value range, else 0. MIP: info is the block's border-inclusive maximum. */
-inline int lc_block_empty(float info, const LcAcc* A) {
-#ifdef LC_MODE_MIP
-    return info <= A->vmax;
 #else
-    return info == 0.0f;
-#endif
-}
-
-#define LC_DDA_AXIS(c)                                                   \
-    if (dg.c > 0.0f) {                                                   \
-        st.c = 1; tn.c = ((float)(b.c + 1) - g0.c) / dg.c; td.c = 1.0f / dg.c;   \
-    } else if (dg.c < 0.0f) {                                            \
-        st.c = -1; tn.c = ((float)b.c - g0.c) / dg.c; td.c = -1.0f / dg.c;       \
-    } else {                                                             \
-        st.c = 0; tn.c = INFINITY; td.c = INFINITY;                      \
+#define LC_SAMPLE_BODY(v, r)                                                     \
+    if ((v) == (v)) {                                                            \
+        LC_TF_LOOKUP(v, e)                                                       \
+        float alpha = e.w;                                                       \
+        if ((r) != 1.0f)                                                         \
+            alpha = (r) <= 0.0f ? 0.0f : (alpha >= 1.0f ? 1.0f : -expm1((r) * log1p(-alpha))); \
+        const float wgt = T * alpha;                                             \
+        C += wgt * e.xyz;                                                        \
+        T -= wgt;                                                                \
+        done = T <= t_stop;                                                      \
     }
+#endif
+#endif
 
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
                         __global const float* block_info, __global float4* out, __global uint* nsamples) {
@@ -121,88 +83,134 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
 
-    LcAcc A;
-    A.C = (float3)(0.0f); A.T = 1.0f; A.tau = 0.0f; A.tau_c = 0.0f; A.C_c = (float3)(0.0f);
-    A.vmax = -INFINITY; A.n = 0; A.done = 0;
+    const int4 dims = P->dims;
+    const float3 qmax = convert_float3(dims.xyz - 1);
+    const float lut_lo = P->lut_lo, lut_scale = P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
+    const int lut_imax = P->lut_n - 2;
+    const float t_stop = 1.0f - P->early_term; /* terminate once transmittance <= this */
+
+    float3 C = (float3)(0.0f);
+    float T = 1.0f;
+#ifdef LC_PRECISE
+    float3 C_c = (float3)(0.0f);
+    float tau = 0.0f, tau_c = 0.0f;
+#endif
+    float vmax = -INFINITY;
+    uint taken = 0;
+    int done = 0;
 
     float3 o, d;
+    float t0, t1;
     lc_pixel_ray(P, i, j, &o, &d);
-    LcSteps S;
-    if (lc_hit_box(P, o, d, &S.t0, &S.t1)) {
-        S.dt = P->step;
-        S.n = (int)min(ceil((S.t1 - S.t0) / S.dt), (float)P->max_samples);
-        S.n = max(S.n, 1);
-        S.last = S.t0 + (float)(S.n - 1) * S.dt;
-        if (S.last >= S.t1) S.last = S.t1;
+    if (lc_hit_box(P, o, d, &t0, &t1)) {
+        const float dt = P->step;
+        float nf = ceil((t1 - t0) / dt);
+        nf = nf < 1.0f ? 1.0f : (nf > (float)P->max_samples ? (float)P->max_samples : nf);
+        const int n = (int)nf, nlast = n - 1;
+        float last = t0 + (float)nlast * dt; /* start of the last segment */
+        last = last < t1 ? last : t1;
+        const float len_last = t1 - last, r_last = len_last / dt;
 #ifdef LC_JITTER
-        S.u = lc_jitter(P->seed, pix);
+        const float u = lc_jitter(P->seed, pix);
 #else
-        S.u = 0.5f;
+        const float u = 0.5f;
 #endif
         const float3 q0 = (o - P->origin.xyz) * P->inv_spacing.xyz;
         const float3 dq = d * P->inv_spacing.xyz;
+#define LC_POS(kk) ((kk) < nlast ? t0 + ((float)(kk) + u) * dt : last + u * len_last)
+
         int k = 0;
 #ifdef LC_ESS
         /* 3D DDA over the block grid: block b covers voxel coordinates [b B - 1/2, (b + 1) B - 1/2). */
         const float B = (float)P->grid.w;
+        const int gx = P->grid.x, gy = P->grid.y, gz = P->grid.z;
         const float3 g0 = (q0 + 0.5f) / B, dg = dq / B;
-        const int3 gmax = P->grid.xyz - 1;
-        int3 b = clamp(convert_int3_rtn(g0 + S.t0 * dg), (int3)(0), gmax);
-        int3 st;
-        float3 tn, td;
-        LC_DDA_AXIS(x)
-        LC_DDA_AXIS(y)
-        LC_DDA_AXIS(z)
-        while (k < S.n && !A.done) {
-            const float tb = fmin(tn.x, fmin(tn.y, tn.z)); /* where the ray leaves block b */
-            const float info = block_info[(b.z * P->grid.y + b.y) * P->grid.x + b.x];
-            if (lc_block_empty(info, &A)) {
-                if (tb >= S.t1) { k = S.n; break; }
-                int kn = (int)clamp(ceil((tb - S.t0) / S.dt - S.u), (float)k, (float)(S.n - 1));
-                float len;
-                while (kn > k && lc_pos(&S, kn - 1, &len) >= tb) kn--;  /* guard against rounding */
-                while (kn < S.n && lc_pos(&S, kn, &len) < tb) kn++;
-                k = kn;
-            } else {
-                k = lc_march(k, tb, &S, q0, dq, vol, lut, P, &A);
-            }
-            if (tn.x <= tn.y && tn.x <= tn.z) {
-                b.x += st.x; tn.x += td.x;
-                if (b.x < 0 || b.x > gmax.x) break;
-            } else if (tn.y <= tn.z) {
-                b.y += st.y; tn.y += td.y;
-                if (b.y < 0 || b.y > gmax.y) break;
-            } else {
-                b.z += st.z; tn.z += td.z;
-                if (b.z < 0 || b.z > gmax.z) break;
-            }
-        }
-        /* samples the DDA did not reach because of rounding at the box exit */
-        if (!A.done && k < S.n) k = lc_march(k, INFINITY, &S, q0, dq, vol, lut, P, &A);
+        float3 ge = g0 + t0 * dg;
+        int bx = (int)floor(ge.x), by = (int)floor(ge.y), bz = (int)floor(ge.z);
+        bx = bx < 0 ? 0 : (bx >= gx ? gx - 1 : bx);
+        by = by < 0 ? 0 : (by >= gy ? gy - 1 : by);
+        bz = bz < 0 ? 0 : (bz >= gz ? gz - 1 : bz);
+        const int sx = dg.x > 0.0f ? 1 : (dg.x < 0.0f ? -1 : 0);
+        const int sy = dg.y > 0.0f ? 1 : (dg.y < 0.0f ? -1 : 0);
+        const int sz = dg.z > 0.0f ? 1 : (dg.z < 0.0f ? -1 : 0);
+        float tnx = sx ? ((float)(bx + (sx > 0)) - g0.x) / dg.x : INFINITY;
+        float tny = sy ? ((float)(by + (sy > 0)) - g0.y) / dg.y : INFINITY;
+        float tnz = sz ? ((float)(bz + (sz > 0)) - g0.z) / dg.z : INFINITY;
+        const float tdx = sx ? fabs(1.0f / dg.x) : INFINITY;
+        const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;
+        const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
+        int inside = 1;
+        while (k < n && !done) {
+            int k_end = n;
+            int skip = 0;
+            if (inside) {
+                const float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves block */
+                const float info = block_info[(bz * gy + by) * gx + bx];
+#ifdef LC_MODE_MIP
+                skip = info <= vmax; /* nothing here can exceed the maximum so far */
 #else
-        k = lc_march(k, INFINITY, &S, q0, dq, vol, lut, P, &A);
+                skip = info == 0.0f; /* TF opacity zero over the block's border-inclusive value range */
 #endif
+                if (tb < t1) {
+                    /* first sample at or after tb; positions are monotone in k */
+                    float kf = ceil((tb - t0) / dt - u);
+                    k_end = kf < (float)k ? k : (kf > (float)nlast ? nlast : (int)kf);
+                    while (k_end > k && LC_POS(k_end - 1) >= tb) k_end--;
+                    while (k_end < n && LC_POS(k_end) < tb) k_end++;
+                }
+                if (tnx <= tny && tnx <= tnz) {
+                    bx += sx; tnx += tdx; inside = bx >= 0 && bx < gx;
+                } else if (tny <= tnz) {
+                    by += sy; tny += tdy; inside = by >= 0 && by < gy;
+                } else {
+                    bz += sz; tnz += tdz; inside = bz >= 0 && bz < gz;
+                }
+            } /* else: rounding left samples beyond the grid's last block: march them */
+            if (skip) {
+                k = k_end;
+                continue;
+            }
+#else
+        {
+            const int k_end = n;
+#endif
+            const int k_begin = k;
+            /* uniform segments: no transcendental call in this loop (a call makes every live value spill) */
+            const int k_uni = k_end < nlast ? k_end : nlast;
+            for (; k < k_uni && !done; ++k) {
+                const float v = lc_sample(vol, dims, qmax, q0 + (t0 + ((float)k + u) * dt) * dq);
+                LC_SAMPLE_BODY(v, 1.0f)
+            }
+            if (k == nlast && k_end == n && !done) { /* the last, shorter segment */
+                const float v = lc_sample(vol, dims, qmax, q0 + (last + u * len_last) * dq);
+                ++k;
+                LC_SAMPLE_BODY(v, r_last)
+            }
+            taken += (uint)(k - k_begin);
+        }
+#undef LC_POS
     }
 
     float4 res;
 #ifdef LC_MODE_MIP
-    if (A.vmax > -INFINITY) {
-        float4 e = lc_tf(lut, P, A.vmax);
-        float a = -expm1(-e.w); /* the TF's opacity as given */
-        res = (float4)(e.xyz * a, a);
+    if (vmax > -INFINITY) {
+        float f = (vmax - lut_lo) * lut_scale;
+        f = f > 0.0f ? (f < lut_fmax ? f : lut_fmax) : 0.0f;
+        int i0 = (int)f;
+        i0 = i0 < lut_imax ? i0 : lut_imax;
+        const float4 e = lut[i0] + (lut[i0 + 1] - lut[i0]) * (f - (float)i0);
+        res = (float4)(e.xyz * e.w, e.w); /* the TF's colour and opacity, as given */
     } else {
         res = (float4)(0.0f);
     }
+#elif defined(LC_PRECISE)
+    res = (float4)(C, -expm1(-tau));
 #else
-#ifdef LC_PRECISE
-    res = (float4)(A.C, -expm1(-A.tau));
-#else
-    res = (float4)(A.C, 1.0f - A.T);
-#endif
+    res = (float4)(C, 1.0f - T);
 #endif
 #ifdef LC_BACKGROUND
     res += (1.0f - res.w) * P->background;
 #endif
     out[pix] = res;
-    nsamples[pix] = A.n;
+    nsamples[pix] = taken;
 }

@@ -24,7 +24,8 @@ from lodcast.renderer.structs import new_params
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.volume import VolumeView, as_volume
 
-__all__ = ["RenderResult", "render", "kernel_config", "block_info", "LOCAL_SIZE", "MAX_SAMPLES_PER_RAY"]
+__all__ = ["RenderResult", "Prepared", "render", "prepare", "launch", "kernel_config", "block_info", "LOCAL_SIZE",
+           "MAX_SAMPLES_PER_RAY"]
 
 LOCAL_SIZE = (8, 8)
 MAX_SAMPLES_PER_RAY = 2**30
@@ -93,16 +94,27 @@ def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: 
     return p.reshape(1)
 
 
-def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult:
-    """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path, or a 3D array with
-    optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad input."""
-    t_start = time.perf_counter()
+@dataclass(frozen=True)
+class Prepared:
+    """Everything a launch needs, computed on the host (also used by the benchmark's bare march)."""
+
+    scene: Scene
+    volume: VolumeView
+    lut: Lut
+    config: KernelConfig
+    params: np.ndarray  # (1,) PARAMS_DTYPE
+    block_info: np.ndarray
+    n_empty: int
+    step_world: float
+    unit: float
+
+
+def prepare(store: Any, scene: Any, *, spacing=None, origin=None) -> Prepared:
     scene = Scene.parse(scene)
     vol = as_volume(store, spacing=spacing, origin=origin)
     box = cam.box_world(vol.shape, vol.spacing, vol.origin)
     fr = cam.frame(scene.camera, scene.width, scene.height, *box)
-    min_sp = float(min(vol.spacing))
-    step_world = scene.sampling.step * min_sp
+    step_world = scene.sampling.step * float(min(vol.spacing))
     unit = unit_distance(scene.tf, vol.spacing)
     diag = float(np.linalg.norm(box[1] - box[0]))
     max_samples = int(math.ceil(diag / step_world)) + 2
@@ -113,24 +125,45 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult
         )
     lut = build_lut(scene.tf, vol.value_range)
     cfg = kernel_config(scene, fr.orthographic, max_samples)
-    options = cfg.build_options()
     info, n_empty = block_info(vol, lut, scene.mode)
+    params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples)
+    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit)
 
+
+def lut_table(pr: Prepared) -> np.ndarray:
+    """The LUT as the kernel built for this scene reads it (see raycast.cl)."""
+    if pr.config.mode == "mip":
+        return pr.lut.kernel_table("opacity")
+    ratio = pr.step_world / pr.unit
+    return pr.lut.kernel_table("depth" if pr.config.precise else "alpha", ratio)
+
+
+def launch(kern: cl.Kernel, width: int, height: int) -> cl.Event:
+    _, queue = get_context()
+    gsize = tuple(int(math.ceil(n / l) * l) for n, l in zip((width, height), LOCAL_SIZE))
+    return cl.enqueue_nd_range_kernel(queue, kern, gsize, LOCAL_SIZE)
+
+
+def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult:
+    """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path, or a 3D array with
+    optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad input."""
+    t_start = time.perf_counter()
+    pr = prepare(store, scene, spacing=spacing, origin=origin)
+    scene, vol, lut, cfg = pr.scene, pr.volume, pr.lut, pr.config
+    options = cfg.build_options()
     ctx, queue = get_context()
     built = get_program("raycast.cl", options)
     dvol, cached = upload_level0(vol)
     mf = cl.mem_flags
-    params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples)
     W, H = scene.width, scene.height
-    d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=params)
-    d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut.table)
-    d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=info)
+    d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.params)
+    d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
+    d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.block_info)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 16)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
     kern = cl.Kernel(built.program, "lc_render")
     kern.set_args(d_params, dvol.buffer, d_lut, d_info, d_out, d_n)
-    gsize = tuple(int(math.ceil(n / l) * l) for n, l in zip((W, H), LOCAL_SIZE))
-    ev = cl.enqueue_nd_range_kernel(queue, kern, gsize, LOCAL_SIZE)
+    ev = launch(kern, W, H)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
     cl.enqueue_copy(queue, rgba, d_out, wait_for=[ev])
@@ -138,7 +171,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult
     queue.finish()
     kernel_ms = (ev.profile.end - ev.profile.start) * 1e-6
     n_blocks = vol.n_blocks
-    skipped = n_empty if (cfg.ess and scene.mode == "composite") else 0
+    skipped = pr.n_empty if (cfg.ess and scene.mode == "composite") else 0
     report = {
         "wall_ms": (time.perf_counter() - t_start) * 1e3,
         "kernel_ms": kernel_ms,
@@ -155,8 +188,8 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult
         "quality": "full",
         "level": 0,
         "blocks": n_blocks,
-        "step_world": step_world,
-        "unit_distance": unit,
+        "step_world": pr.step_world,
+        "unit_distance": pr.unit,
         "lut_entries": lut.n,
         "lut_exact": lut.exact,
         "width": W,

@@ -5,9 +5,12 @@ DESIGN.md: piecewise linear over data values between control points, constant ou
 as given; opacity `a` per *unit distance* (default: the smallest voxel spacing). A step of length Δ takes
 α = 1 − (1 − a)^(Δ/unit), computed as −expm1((Δ/unit)·log1p(−a)) so that it stays exact for a → 1 and Δ → 0.
 
-The kernel's LUT stores, per entry, the sRGB colour and the *extinction* σ = −log1p(−a) (a = 1 ↦ SIGMA_OPAQUE,
-a finite stand-in for +∞ that keeps interpolation free of inf − inf); the kernel interpolates linearly between
-entries and takes α = −expm1(−(Δ/unit)·σ). Entries are placed so that every control point inside the data range
+The kernel's LUT stores, per entry, the sRGB colour and (compositing) the opacity of one step,
+α_Δ = 1 − (1 − a)^(Δ/unit), computed exactly in float64, so that tiny steps and a → 1 stay exact in float32 and
+the kernel needs no transcendental function per sample; a shorter segment (the ray's last) of fraction r of a step
+takes −expm1(r·log1p(−α_Δ)). Rays of very many samples (LC_PRECISE) get the step's optical depth (Δ/unit)·σ,
+σ = −log1p(−a) (a = 1 ↦ SIGMA_OPAQUE, a finite stand-in for +∞ that keeps interpolation free of inf − inf), and
+MIP the opacity as given. The kernel interpolates linearly between entries. Entries are placed so that every control point inside the data range
 falls exactly on an entry when that fits in LUT_MAX entries (then the LUT's interpolant has the TF's kinks
 exactly where the TF has them); otherwise the spacing is at most 1/64 of the smallest gap between control points.
 """
@@ -78,9 +81,32 @@ class Lut:
     lo: float
     scale: float  # entries per data unit
     n: int
-    table: np.ndarray  # (n, 4) float32: r, g, b, σ
+    rgb: np.ndarray  # (n, 3) float64 TF colour at the entries
     opacity: np.ndarray  # (n,) float64 TF opacity at the entries (what empty-space skipping tests)
     exact: bool  # every in-range control point lies on an entry
+
+    @property
+    def table(self) -> np.ndarray:
+        """(n, 4) float32: r, g, b and the extinction σ = −log1p(−a) per unit distance."""
+        return self.kernel_table("extinction")
+
+    def kernel_table(self, kind: str, ratio: float = 1.0) -> np.ndarray:
+        """(n, 4) float32 for the kernel: colour and, in the fourth channel, per `kind`:
+        "alpha": the opacity of one step of `ratio` = step/unit units, 1 − (1 − a)^ratio (exact, float64);
+        "depth": that step's optical depth ratio·σ; "extinction": σ; "opacity": a as given (MIP)."""
+        t = np.empty((self.n, 4), np.float32)
+        t[:, :3] = self.rgb
+        if kind == "alpha":
+            t[:, 3] = opacity_for_step(self.opacity, ratio)
+        elif kind == "depth":
+            t[:, 3] = np.minimum(extinction(self.opacity) * ratio, SIGMA_OPAQUE)
+        elif kind == "extinction":
+            t[:, 3] = extinction(self.opacity)
+        elif kind == "opacity":
+            t[:, 3] = self.opacity
+        else:
+            raise ValueError(f"unknown LUT kind {kind!r}")
+        return t
 
     @property
     def values(self) -> np.ndarray:
@@ -146,7 +172,4 @@ def build_lut(tf: TransferFunction, value_range: tuple[float, float]) -> Lut:
         start, h = lo, span / (n - 1)
     vals = start + np.arange(n) * h
     rgb, a = evaluate(tf, vals)
-    table = np.empty((n, 4), np.float32)
-    table[:, :3] = rgb
-    table[:, 3] = extinction(a)
-    return Lut(lo=start, scale=1.0 / h, n=n, table=table, opacity=a, exact=exact)
+    return Lut(lo=start, scale=1.0 / h, n=n, rgb=rgb, opacity=a, exact=exact)

@@ -113,6 +113,9 @@ def test_lut_table_holds_extinction_and_opaque_stand_in():
     lut = build_lut(t, (0, 1))
     assert lut.table.dtype == np.float32 and lut.table.shape == (lut.n, 4)
     assert lut.table[-1, 3] == np.float32(SIGMA_OPAQUE) and lut.table[0, 3] == 0
+    alpha = lut.kernel_table("alpha", 1e-4)
+    assert alpha[-1, 3] == 1.0 and alpha[0, 3] == 0 and alpha.dtype == np.float32
+    assert lut.kernel_table("opacity")[-1, 3] == 1.0
     assert np.isfinite(lut.table).all()
 
 

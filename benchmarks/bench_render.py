@@ -1,0 +1,161 @@
+"""Ray caster throughput at full resolution on the largest real volume (chest CT, 275×512×512), against a bare
+trilinear march (same rays, same sampler, no TF, no compositing) measured in the same run; plus the speed-ups
+of empty-space skipping and early ray termination on a sparse (bone) transfer function.
+
+    .venv/bin/python benchmarks/bench_render.py [--sizes 512 1024] [--repeat 3] [--json benchmarks/results/render.json]
+
+The CT is ingested once into benchmarks/results/ct_chest.zarr. Times are kernel times from OpenCL profiling
+events (median of --repeat runs after one warm-up); samples/s counts the samples the kernel actually took.
+Goal (issue 4): the renderer reaches >= 50% of the bare march's samples/s.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+
+HERE = Path(__file__).resolve().parent
+DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "data"))
+RESULTS = HERE / "results"
+
+CAMERA = {"azimuth": 30, "elevation": 15, "distance": 1.9, "fov": 30}
+# Soft tissue faint, bone stronger: every sample inside the body does TF work; rays mostly run to the far side.
+TF_DENSE = {"points": [
+    {"value": -1000, "color": [0.0, 0.0, 0.0], "opacity": 0.0},
+    {"value": -600, "color": [0.6, 0.3, 0.2], "opacity": 0.004},
+    {"value": 0, "color": [0.9, 0.5, 0.4], "opacity": 0.01},
+    {"value": 300, "color": [1.0, 0.9, 0.8], "opacity": 0.05},
+    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.5},
+]}
+# Bone only: air, lung and soft tissue are transparent (most blocks empty), bone nearly opaque.
+TF_SPARSE = {"points": [
+    {"value": 250, "color": [1.0, 0.9, 0.8], "opacity": 0.0},
+    {"value": 500, "color": [1.0, 0.95, 0.9], "opacity": 0.9},
+    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 1.0},
+]}
+
+
+def ensure_store() -> Path:
+    import lodcast
+
+    dest = RESULTS / "ct_chest.zarr"
+    if not dest.exists():
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        print(f"ingesting {DATA / 'ct_chest_dicom'} -> {dest} (once)", file=sys.stderr)
+        lodcast.ingest(DATA / "ct_chest_dicom", dest)
+    return dest
+
+
+def timed_render(store, scene: dict, repeat: int) -> dict:
+    from lodcast.renderer.render import render
+
+    render(store, scene)  # warm-up: program build, upload
+    runs = [render(store, scene) for _ in range(repeat)]
+    ms = statistics.median(r.report["kernel_ms"] for r in runs)
+    samples = runs[0].report["samples"]
+    return {"kernel_ms": ms, "wall_ms": statistics.median(r.report["wall_ms"] for r in runs), "samples": samples,
+            "samples_per_s": samples / (ms * 1e-3), "bricks_skipped": runs[0].report["bricks_skipped"],
+            "blocks": runs[0].report["blocks"], "build_options": runs[0].report["build_options"],
+            "alpha_mean": float(runs[0].rgba[..., 3].mean())}
+
+
+def timed_bare(store, scene: dict, repeat: int) -> dict:
+    from lodcast.renderer.program import get_context, get_program
+    from lodcast.renderer.render import launch, prepare
+    from lodcast.renderer.sampler import upload_level0
+
+    ctx, queue = get_context()
+    pr = prepare(store, scene)
+    W, H = pr.scene.width, pr.scene.height
+    opts = ("-DLC_SAMPLER_FULL",) + (("-DLC_ORTHO",) if pr.config.orthographic else ())
+    prg = get_program("march_bare.cl", opts).program
+    dvol, _ = upload_level0(pr.volume)
+    mf = cl.mem_flags
+    d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.params)
+    d_out = cl.Buffer(ctx, mf.WRITE_ONLY, W * H * 4)
+    d_n = cl.Buffer(ctx, mf.WRITE_ONLY, W * H * 4)
+    kern = cl.Kernel(prg, "lc_march_bare")
+    kern.set_args(d_p, dvol.buffer, d_out, d_n)
+    times = []
+    for k in range(repeat + 1):
+        ev = launch(kern, W, H)
+        ev.wait()
+        if k:
+            times.append((ev.profile.end - ev.profile.start) * 1e-6)
+    n = np.empty(W * H, np.uint32)
+    cl.enqueue_copy(queue, n, d_n)
+    queue.finish()
+    ms = statistics.median(times)
+    samples = int(n.sum(dtype=np.int64))
+    return {"kernel_ms": ms, "samples": samples, "samples_per_s": samples / (ms * 1e-3)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--step", type=float, default=0.5, help="sampling step in voxels (default 0.5)")
+    ap.add_argument("--json", type=Path, default=RESULTS / "render.json")
+    args = ap.parse_args(argv)
+
+    import lodcast
+    from lodcast.renderer.program import device_info
+
+    store = lodcast.open_store(ensure_store())
+    dev = device_info()
+    print(f"device: {dev['name']} ({dev['platform']}); volume {store.shape} {store.dtype}, step {args.step} voxel")
+    out = {"device": dev, "host": platform.node(), "volume": {"shape": list(store.shape), "dtype": str(store.dtype)},
+           "camera": CAMERA, "step": args.step, "rows": [], "speedups": []}
+    rows = []
+    for size in args.sizes:
+        base = {"camera": CAMERA, "width": size, "height": size, "format": "npy", "sampling": {"step": args.step}}
+        bare = timed_bare(store, {**base, "tf": TF_DENSE}, args.repeat)
+        rows.append({"case": "bare trilinear march", "size": size, **bare})
+        for name, tf, sampling in (
+            ("render, dense TF (ESS+ET on)", TF_DENSE, {}),
+            ("render, sparse TF (ESS+ET on)", TF_SPARSE, {}),
+            ("render, sparse TF, ESS off", TF_SPARSE, {"empty_space_skipping": False}),
+            ("render, sparse TF, ET off", TF_SPARSE, {"early_termination": 1.0}),
+            ("render, sparse TF, ESS+ET off", TF_SPARSE, {"empty_space_skipping": False, "early_termination": 1.0}),
+        ):
+            r = timed_render(store, {**base, "tf": tf, "sampling": {"step": args.step, **sampling}}, args.repeat)
+            r["vs_bare_samples_per_s"] = r["samples_per_s"] / bare["samples_per_s"]
+            rows.append({"case": name, "size": size, **r})
+        by = {r["case"]: r for r in rows if r["size"] == size}
+        both_off = by["render, sparse TF, ESS+ET off"]["kernel_ms"]
+        out["speedups"].append({
+            "size": size,
+            "ess": by["render, sparse TF, ESS off"]["kernel_ms"] / by["render, sparse TF (ESS+ET on)"]["kernel_ms"],
+            "et": by["render, sparse TF, ET off"]["kernel_ms"] / by["render, sparse TF (ESS+ET on)"]["kernel_ms"],
+            "both": both_off / by["render, sparse TF (ESS+ET on)"]["kernel_ms"],
+        })
+    out["rows"] = rows
+
+    hdr = f"{'case':34s} {'size':>5s} {'ms/frame':>9s} {'Msamples':>9s} {'Msamples/s':>11s} {'vs bare':>8s} {'skipped':>8s}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        vs = f"{100 * r['vs_bare_samples_per_s']:.0f}%" if "vs_bare_samples_per_s" in r else "-"
+        sk = f"{r['bricks_skipped']}/{r['blocks']}" if "blocks" in r else "-"
+        print(f"{r['case']:34s} {r['size']:5d} {r['kernel_ms']:9.1f} {r['samples'] / 1e6:9.1f} "
+              f"{r['samples_per_s'] / 1e6:11.1f} {vs:>8s} {sk:>8s}")
+    for s in out["speedups"]:
+        print(f"sparse TF at {s['size']}²: empty-space skipping ×{s['ess']:.2f} (with ET on), early termination "
+              f"×{s['et']:.2f} (with ESS on), both ×{s['both']:.2f} (against neither)")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    out["finished"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    args.json.write_text(json.dumps(out, indent=2))
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
