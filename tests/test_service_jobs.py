@@ -106,7 +106,7 @@ class BackendMixin:
         finally:
             w1.stop()
         rec = self.check_complete(jq, job_id, 16)
-        assert rec["attempts"] == 2, rec
+        assert rec["attempts"] >= 2, rec  # 2, or more if a loaded machine starved a heartbeat
 
     def test_service_restart_mid_job(self, root: Path, queue: str | None, tmp_path: Path):
         jq = self.local(root, queue)
