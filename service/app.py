@@ -11,6 +11,7 @@ import asyncio
 import json
 import math
 import secrets
+import sqlite3
 import threading
 import uuid
 from contextlib import asynccontextmanager
@@ -159,6 +160,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             return JSONResponse({"detail": "render device: " + " ".join(str(exc).split())[:2000]}, status_code=503)
         code = 404 if isinstance(exc, (StoreNotFound, FileNotFoundError)) else 409 if isinstance(exc, StoreInvalid) else 400
         return JSONResponse({"detail": " ".join(str(exc).split()) or type(exc).__name__}, status_code=code)
+
+    def _queue_down(request: Request, exc: Exception) -> JSONResponse:
+        return JSONResponse({"detail": f"queue: unavailable ({' '.join(str(exc).split())[:500]})"}, status_code=503)
+
+    app.add_exception_handler(sqlite3.OperationalError, _queue_down)
+    try:
+        import redis.exceptions
+
+        app.add_exception_handler(redis.exceptions.ConnectionError, _queue_down)
+        app.add_exception_handler(redis.exceptions.TimeoutError, _queue_down)
+    except ImportError:  # pragma: no cover - redis is a dependency
+        pass
 
     # --- health / volumes ---------------------------------------------------------------------------------------
     @app.get("/healthz", tags=["service"])

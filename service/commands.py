@@ -73,6 +73,10 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
         settings = Settings(**({"root": root} if root is not None else {}))
     if not (1 <= int(port) <= 65535):
         raise ValueError(f"--port: {port} is not a TCP port")
+    from lodcast.service.queue import JobQueue
+
+    settings.root.mkdir(parents=True, exist_ok=True)
+    JobQueue(settings).check()  # an unreachable Redis is a one-line error now, not a failing request later
     url = f"http://{host if ':' not in host else '[' + host + ']'}:{port}"
     vols = list_volumes(settings.root)
     example, lo, hi = (vols[0] if vols else "VOLUME"), 0.0, 1000.0
@@ -114,6 +118,7 @@ def _cmd_worker(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = _settings(args)
     jq = JobQueue(settings)
+    jq.check()
     print(f"lodcast worker {os.getpid()} on {'redis' if settings.is_redis else 'sqlite'} queue, root {settings.root}", file=sys.stderr, flush=True)
     return Worker(jq, threads=args.threads).run_forever()
 
@@ -142,7 +147,9 @@ def _read_job(path: str) -> Any:
 def _local(args: argparse.Namespace) -> Any:
     from lodcast.service.queue import JobQueue
 
-    return JobQueue(_settings(args))
+    jq = JobQueue(_settings(args))
+    jq.check()
+    return jq
 
 
 def _client(args: argparse.Namespace) -> Any:

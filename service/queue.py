@@ -71,6 +71,17 @@ class JobQueue:
         self.stopping = threading.Event()
         self.owner_prefix = f"{socket.gethostname()}:{os.getpid()}"
 
+    def check(self) -> None:
+        """Raise ValueError naming the queue when its back end cannot be reached (for a one-line CLI error)."""
+        try:
+            if self.settings.is_redis:
+                self.records.client.ping()  # type: ignore[attr-defined]
+            self.huey.pending_count()
+            self.records.list(limit=1)
+        except Exception as exc:  # noqa: BLE001 - any failure to reach the queue is the same user error
+            where = self.settings.queue if self.settings.is_redis else str(self.settings.sqlite_path())
+            raise ValueError(f"queue: cannot use {where}: {' '.join(str(exc).split())}") from None
+
     # --- client side ----------------------------------------------------------------------------------------
     def job_dir(self, job_id: str) -> Path:
         if not JOB_ID.match(job_id):
