@@ -108,3 +108,23 @@ def test_settings_from_environment(monkeypatch, tmp_path: Path):
     assert s.sqlite_path() == tmp_path.resolve() / ".lodcast" / "queue.db"
     assert Settings(queue="sqlite:///tmp/q.db").sqlite_path() == Path("/tmp/q.db")
     assert Settings(queue="redis://127.0.0.1:6379/0").is_redis
+
+
+def test_unreachable_queue_is_503_naming_it(tmp_path: Path):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from fastapi.testclient import TestClient
+
+    from lodcast.service.app import create_app
+    from lodcast.service.testing import make_volume, tiny_scene
+
+    make_volume(tmp_path, "v")
+    app = create_app(Settings(root=tmp_path, queue="redis://127.0.0.1:1/0", workers=0, token=None))
+    with TestClient(app) as client:
+        r = client.get("/jobs")
+        assert r.status_code == 503 and "queue" in r.json()["detail"]
+        r = client.post("/jobs", json={"kind": "turntable", "volume": "v", "scene": tiny_scene(), "frames": 2})
+        assert r.status_code == 503
+        assert client.get("/volumes/v").status_code == 200  # the rest of the API is unaffected
