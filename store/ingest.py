@@ -54,6 +54,7 @@ def ingest(
     input and StoreExists when `dest` exists and `overwrite` is false; nothing is left behind in either case.
     """
     dest = Path(dest)
+    _tame_malloc()
     if dest.exists() and not overwrite:
         raise StoreExists(f"destination {dest} exists (use --overwrite to replace it)")
     Layout((1, 1, 1), block_size)  # validates the block size before any file is opened
@@ -117,19 +118,26 @@ class _LevelWriter:
 
     def __init__(self, array: zarr.Array, depth: int):
         self.array = array
-        self.buffer = np.empty((min(depth, array.shape[0]),) + tuple(array.shape[1:]), array.dtype)
+        self.depth = min(depth, array.shape[0])
+        self.buffer: np.ndarray | None = None  # allocated on first use: level 0 never needs one
         self.start = 0  # level z of buffer[0]
         self.filled = 0
 
     def add(self, rows: np.ndarray) -> None:
         n = rows.shape[0]
+        if self.filled == 0 and (n == self.depth or self.start + n == self.array.shape[0]):
+            self.array[self.start : self.start + n] = rows  # a whole shard depth: no need to buffer
+            self.start += n
+            return
+        if self.buffer is None:
+            self.buffer = np.empty((self.depth,) + tuple(self.array.shape[1:]), self.array.dtype)
         self.buffer[self.filled : self.filled + n] = rows
         self.filled += n
-        if self.filled == self.buffer.shape[0] or self.start + self.filled == self.array.shape[0]:
+        if self.filled == self.depth or self.start + self.filled == self.array.shape[0]:
             self.flush()
 
     def flush(self) -> None:
-        if self.filled:
+        if self.filled and self.buffer is not None:
             self.array[self.start : self.start + self.filled] = self.buffer[: self.filled]
             self.start += self.filled
             self.filled = 0
@@ -221,6 +229,8 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             bar.update(1)
         for w in writers:
             w.flush()
+            w.buffer = None
+        del slab, parts  # pass 2 needs the memory
         if not (stats["count"] > 0).any():
             raise SourceError("the volume holds no valid voxel (every value is NaN)")
         lo, hi = float(np.nanmin(stats["min"])), float(np.nanmax(stats["max"]))
@@ -236,18 +246,26 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         # pass 2: level 0 read back slab by slab; each slab travels with its neighbours' facing slices
         level0 = group["0"]
         b = lay.block_size
-        slabs = _read_ahead(lambda z: np.asarray(level0[z * b : (z + 1) * b]), gz, reader)
-        pending: list = []
-        prev_last, cur = None, next(slabs)
+        # Each slab is counted alone: into its own blocks, and its first and last slices into the borders of
+        # the blocks above and below. A row of blocks is complete once its next slab is counted, so only the
+        # slab being counted and the one being decoded are alive.
+        read = lambda z: np.asarray(level0[z * b : (z + 1) * b])  # noqa: E731
+        acc: dict[int, list[np.ndarray]] = {}
+        task = pool.submit(_slab_histograms, read(0), lay, bins)
         for bz in range(gz):
-            nxt = next(slabs, None)
-            pending.append(pool.submit(_slab_histograms, prev_last, cur, None if nxt is None else nxt[:1], lay, bins, seg))
-            prev_last, cur = cur[-1:], nxt
-            while pending and (len(pending) > 1 or bz == gz - 1):
-                done = bz - len(pending) + 1
-                hist, starts, heights, mn, mx = pending.pop(0).result()
-                hist_arr[done], starts_arr[done], heights_arr[done] = hist, starts, heights
-                stats["min_border"][done], stats["max_border"][done] = mn, mx
+            nxt = read(bz + 1) if bz + 1 < gz else None
+            own, first, last = task.result()
+            if nxt is not None:
+                task = pool.submit(_slab_histograms, nxt, lay, bins)
+                del nxt
+            for row, part in ((bz, own), (bz - 1, first), (bz + 1, last)):
+                if 0 <= row < gz:
+                    _merge(acc, row, part)
+            for row in ([bz - 1] if bz > 0 else []) + ([bz] if bz == gz - 1 else []):
+                hist, mn, mx = acc.pop(row)
+                starts, heights = simplify(hist.reshape(gy * gx, -1), seg)
+                hist_arr[row], starts_arr[row], heights_arr[row] = hist, starts.reshape(gy, gx, -1), heights.reshape(gy, gx, -1)
+                stats["min_border"][row], stats["max_border"][row] = mn, mx
                 bar.update(1)
         for name, values in stats.items():
             blocks.create_array(name, data=values, chunks=lay.grid, fill_value=np.nan)
@@ -258,31 +276,42 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     group.attrs.update(_attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label))
 
 
-def _slab_histograms(before: np.ndarray | None, slab: np.ndarray, after: np.ndarray | None, lay: Layout,
-                     bins: Bins, seg: int) -> tuple:
-    """Border-inclusive histograms, their simplified forms and border min/max for one block-slab.
+def _merge(acc: dict[int, list[np.ndarray]], row: int, part: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    if row not in acc:
+        acc[row] = [part[0].copy(), part[1].copy(), part[2].copy()]
+        return
+    acc[row][0] += part[0]
+    acc[row][1] = np.fmin(acc[row][1], part[1])
+    acc[row][2] = np.fmax(acc[row][2], part[2])
 
-    Works a row of blocks at a time: the row's region already carries its z and y borders, and the x borders,
-    shared by two blocks, are counted by two extra bincounts over the border columns."""
+
+def _slab_histograms(slab: np.ndarray, lay: Layout, bins: Bins) -> tuple:
+    """A slab's counts for its own row of blocks, and those of its first and last slices, which are border
+    voxels of the rows of blocks above and below."""
+    return _layer_histograms(slab, lay, bins), _layer_histograms(slab[:1], lay, bins), _layer_histograms(slab[-1:], lay, bins)
+
+
+def _layer_histograms(layer: np.ndarray, lay: Layout, bins: Bins) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Histograms and min/max of every voxel of `layer` (any number of slices) that falls in each block of the
+    row or in its one-voxel border across y and x, as (blocks_y, blocks_x, bins) uint32 and two (blocks_y,
+    blocks_x) float64 arrays. The x borders, shared by two blocks, are counted by two extra bincounts over the
+    border columns; the y borders come with each row's band."""
     b = lay.block_size
-    _, ny, nx = slab.shape
+    _, ny, nx = layer.shape
     gy, gx = lay.grid[1:]
     nb = bins.count
-    layers = [a for a in (before, slab, after) if a is not None]
     block_of_x = np.arange(nx) // b
     left = np.arange(1, gx) * b - 1  # column left of block 1.., bordering it
     right = np.arange(1, gx) * b  # column right of block ..gx-2, bordering it
+    starts = np.arange(0, nx, b)
     hist = np.zeros((gy, gx, nb), np.uint32)
     mn = np.full((gy, gx), np.nan)
     mx = np.full((gy, gx), np.nan)
     for by in range(gy):
-        ys = slice(max(0, by * b - 1), min(ny, (by + 1) * b + 1))
-        region = np.concatenate([a[:, ys] for a in layers], axis=0)
+        region = layer[:, max(0, by * b - 1) : min(ny, (by + 1) * b + 1)]
         keys = bins.index(region).reshape(-1, nx)
         missing = keys < 0 if region.dtype.kind == "f" else None  # NaN voxels are counted nowhere
         keys += (block_of_x * nb).astype(keys.dtype)
-        if missing is not None:
-            keys[missing] = -1
         kl, kr = keys[:, left] + nb, keys[:, right] - nb  # border columns, counted again for their other block
         if missing is not None:
             keys, kl, kr = keys[~missing], kl[~missing[:, left]], kr[~missing[:, right]]
@@ -291,21 +320,13 @@ def _slab_histograms(before: np.ndarray | None, slab: np.ndarray, after: np.ndar
         counts += np.bincount(kr.ravel(), minlength=gx * nb)
         hist[by] = counts.reshape(gx, nb)
         flat = region.reshape(-1, nx)
-        if flat.dtype.kind == "f":
-            cmin, cmax = np.fmin.reduce(flat, axis=0), np.fmax.reduce(flat, axis=0)
-            lo_f, hi_f = np.fmin, np.fmax
-        else:
-            cmin, cmax = flat.min(axis=0), flat.max(axis=0)
-            lo_f, hi_f = np.minimum, np.maximum
-        starts = np.arange(0, nx, b)
+        lo_f, hi_f = (np.fmin, np.fmax) if flat.dtype.kind == "f" else (np.minimum, np.maximum)
+        cmin, cmax = lo_f.reduce(flat, axis=0), hi_f.reduce(flat, axis=0)
         bmin, bmax = lo_f.reduceat(cmin, starts).astype(np.float64), hi_f.reduceat(cmax, starts).astype(np.float64)
-        bmin[1:] = lo_f(bmin[1:], cmin[left])
-        bmax[1:] = hi_f(bmax[1:], cmax[left])
-        bmin[:-1] = lo_f(bmin[:-1], cmin[right])
-        bmax[:-1] = hi_f(bmax[:-1], cmax[right])
+        bmin[1:], bmax[1:] = lo_f(bmin[1:], cmin[left]), hi_f(bmax[1:], cmax[left])
+        bmin[:-1], bmax[:-1] = lo_f(bmin[:-1], cmin[right]), hi_f(bmax[:-1], cmax[right])
         mn[by], mx[by] = bmin, bmax
-    starts_, heights = simplify(hist.reshape(gy * gx, -1), seg)
-    return hist, starts_.reshape(gy, gx, -1), heights.reshape(gy, gx, -1), mn, mx
+    return hist, mn, mx
 
 
 def _read_slab(src: VolumeSource, lay: Layout, bz: int) -> np.ndarray:
@@ -406,6 +427,20 @@ def _move_into_place(tmp: Path, dest: Path, overwrite: bool) -> None:
     os.rename(dest, old)
     os.rename(tmp, dest)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _tame_malloc() -> None:
+    """Ingest allocates and frees slab-sized arrays on several threads. glibc then grows per-thread arenas and
+    raises its mmap threshold, so freed slabs stay resident: measured 2.3 GB peak RSS for a 1 GiB volume whose
+    live arrays never exceeded a few hundred MB. A fixed 1 MiB threshold returns every large array to the OS."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD (fixing it also turns off the dynamic adjustment)
+        libc.mallopt(-8, 2)  # M_ARENA_MAX
+    except (OSError, AttributeError):
+        pass  # not glibc: nothing to tune
 
 
 def _show_progress(progress: bool | None) -> bool:
