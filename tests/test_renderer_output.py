@@ -97,3 +97,14 @@ def test_cli_render_bad_output_and_store(store, tmp_path):
     assert p.returncode == 2 and "png or npy" in p.stderr
     p = lodcast_cli("render", tmp_path / "nostore", "-o", tmp_path / "o.png", "--tf", tf)
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1
+
+
+def test_demo_pictures_from_a_store(store, tmp_path):
+    from lodcast.renderer.demo import render_demo
+
+    lines = []
+    paths = render_demo(store, tmp_path / "demo", size=24, log=lines.append)
+    assert len(paths) >= 4 and all(p.is_file() and p.suffix == ".png" for p in paths)
+    assert all(p.with_name(p.stem + ".scene.json").is_file() for p in paths)
+    assert str(tmp_path / "demo") in lines[-1]
+    assert any(np.asarray(Image.open(p))[..., 3].max() > 0 for p in paths)
