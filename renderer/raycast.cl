@@ -18,11 +18,12 @@
  *
  * The LUT's fourth channel depends on the mode (lodcast.renderer.transfer_function.Lut.kernel_table):
  *   composite: alpha_step = 1 - (1 - a)^(step / unit), exact in float64 on the host, so the uniform segments
- *              need no transcendental function; the last, shorter segment of fraction r of a step takes
- *              1 - (1 - alpha_step)^r = -expm1(r log1p(-alpha_step)) (alpha_step = 1 stays 1);
+ *              need no transcendental function; the last, shorter segment of length l takes
+ *              -expm1(-(l / unit) sigma) from lut_ext, the extinction sigma = -log1p(-a) per entry (a = 1 maps
+ *              to a huge finite sigma, so alpha = 1);
  *   LC_PRECISE: the segment's optical depth (step / unit) * (-log1p(-a)), alpha = -expm1(-depth);
  *   MIP:       the TF opacity a as given.
- * A later per-block step (adaptive sampling) uses the same two formulas with r = its step / step.
+ * A later per-block step (adaptive sampling) takes alpha from lut_ext the same way (or a table per step).
  * Loops avoid OpenCL builtins such as clamp/fmin (PoCL calls them out of line) and read parameters from private
  * copies (on the CPU device __constant and private memory may alias, so loads in loops are not hoisted).
  */
@@ -37,13 +38,16 @@
 #else
 #define LC_TF_LOOKUP(v, e)                                                       \
     float4 e;                                                                    \
+    int i_;                                                                      \
+    float w_;                                                                    \
     {                                                                            \
         float f_ = ((v) - lut_lo) * lut_scale;                                   \
         f_ = f_ > 0.0f ? (f_ < lut_fmax ? f_ : lut_fmax) : 0.0f;                 \
-        int i_ = (int)f_;                                                        \
+        i_ = (int)f_;                                                            \
         i_ = i_ < lut_imax ? i_ : lut_imax;                                      \
+        w_ = f_ - (float)i_;                                                     \
         const float4 e0_ = lut[i_], e1_ = lut[i_ + 1];                           \
-        e = e0_ + (e1_ - e0_) * (f_ - (float)i_);                                \
+        e = e0_ + (e1_ - e0_) * w_;                                              \
     }
 #ifdef LC_PRECISE
 #define LC_SAMPLE_BODY(v, r)                                                     \
@@ -63,12 +67,16 @@
         done = T <= t_stop;                                                      \
     }
 #else
+/* r < 0: a uniform segment (alpha from the table); else the last segment's length in TF units (alpha from the
+ * extinction table: 1 - (1 - a)^r = -expm1(-r sigma), exact even where the step's alpha rounds to 1 in float32) */
 #define LC_SAMPLE_BODY(v, r)                                                     \
     if ((v) == (v)) {                                                            \
         LC_TF_LOOKUP(v, e)                                                       \
         float alpha = e.w;                                                       \
-        if ((r) != 1.0f)                                                         \
-            alpha = (r) <= 0.0f ? 0.0f : (alpha >= 1.0f ? 1.0f : -expm1((r) * log1p(-alpha))); \
+        if ((r) >= 0.0f) {                                                       \
+            const float sg_ = lut_ext[i_] + (lut_ext[i_ + 1] - lut_ext[i_]) * w_; \
+            alpha = -expm1(-(r) * sg_);                                          \
+        }                                                                        \
         const float wgt = T * alpha;                                             \
         C += wgt * e.xyz;                                                        \
         T -= wgt;                                                                \
@@ -78,7 +86,8 @@
 #endif
 
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
-                        __global const float* block_info, __global float4* out, __global uint* nsamples) {
+                        __global const float* lut_ext, __global const float* block_info, __global float4* out,
+                        __global uint* nsamples) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
@@ -109,7 +118,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         const int n = (int)nf, nlast = n - 1;
         float last = t0 + (float)nlast * dt; /* start of the last segment */
         last = last < t1 ? last : t1;
-        const float len_last = t1 - last, r_last = len_last / dt;
+        const float len_last = t1 - last, r_last = len_last / dt, len_last_units = len_last * P->inv_unit;
 #ifdef LC_JITTER
         const float u = lc_jitter(P->seed, pix);
 #else
@@ -179,12 +188,20 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             const int k_uni = k_end < nlast ? k_end : nlast;
             for (; k < k_uni && !done; ++k) {
                 const float v = lc_sample(vol, dims, qmax, q0 + (t0 + ((float)k + u) * dt) * dq);
+#ifdef LC_PRECISE
                 LC_SAMPLE_BODY(v, 1.0f)
+#else
+                LC_SAMPLE_BODY(v, -1.0f)
+#endif
             }
             if (k == nlast && k_end == n && !done) { /* the last, shorter segment */
                 const float v = lc_sample(vol, dims, qmax, q0 + (last + u * len_last) * dq);
                 ++k;
+#ifdef LC_PRECISE
                 LC_SAMPLE_BODY(v, r_last)
+#else
+                LC_SAMPLE_BODY(v, len_last_units)
+#endif
             }
             taken += (uint)(k - k_begin);
         }

@@ -158,11 +158,12 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult
     W, H = scene.width, scene.height
     d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.params)
     d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
+    d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lut.kernel_table("extinction")[:, 3]))
     d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.block_info)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 16)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
     kern = cl.Kernel(built.program, "lc_render")
-    kern.set_args(d_params, dvol.buffer, d_lut, d_info, d_out, d_n)
+    kern.set_args(d_params, dvol.buffer, d_lut, d_ext, d_info, d_out, d_n)
     ev = launch(kern, W, H)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
