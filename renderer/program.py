@@ -95,15 +95,16 @@ def device_info() -> dict:
     }
 
 
-def kernel_source(name: str) -> str:
-    """The text of `name` (a .cl file beside this module) with our own quoted #includes inlined, once each."""
+def kernel_source(name: str, folder: Path | None = None) -> str:
+    """The text of `name` (a .cl file beside this module, or in `folder`) with our own quoted #includes inlined,
+    once each."""
     seen: set[str] = set()
 
     def expand(fname: str) -> str:
         if fname in seen:
             return ""
         seen.add(fname)
-        path = _HERE / fname
+        path = (folder or _HERE) / fname
         text = path.read_text()
         return _INCLUDE.sub(lambda m: expand(m.group(1)), text)
 
@@ -119,12 +120,13 @@ def _key(src: str, options: tuple[str, ...], dev: cl.Device) -> str:
     return h.hexdigest()
 
 
-def get_program(name: str, options: tuple[str, ...] | list[str] = ()) -> Built:
-    """Program `name` (e.g. "raycast.cl") built with `options`, from memory, disk or the compiler."""
+def get_program(name: str, options: tuple[str, ...] | list[str] = (), folder: Path | None = None) -> Built:
+    """Program `name` (e.g. "raycast.cl", beside this module or in `folder`) built with `options`, from memory,
+    disk or the compiler."""
     options = tuple(options)
     ctx, _ = get_context()
     dev = ctx.devices[0]
-    src = kernel_source(name)
+    src = kernel_source(name, folder)
     key = _key(src, options, dev)
     with _LOCK:
         prg = _MEMO.get(key)

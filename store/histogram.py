@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 
@@ -94,14 +95,64 @@ def _runs(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, h[starts[:-1]]
 
 
-def simplify(hists: np.ndarray, segments: int = DEFAULT_SEGMENTS, group: int = 256) -> tuple[np.ndarray, np.ndarray]:
+def simplify(hists: np.ndarray, segments: int = DEFAULT_SEGMENTS, *, device: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Optimal piecewise-constant approximation of each histogram with at most `segments` pieces.
 
     Returns (starts, heights): starts (N, segments + 1) uint16 bin indices with starts[:, 0] = 0 and
     starts[:, -1] = n_bins (equal neighbours mark unused, empty pieces), heights (N, segments) float32, the mean
     count per bin of each piece. Minimises sum over bins of (h − piece height)².
+
+    Runs on the OpenCL device when one with float64 is available (`device=None`: use it if possible; True:
+    require it; False: NumPy). Both solve the same programme exactly; among segmentations of equal error they
+    may pick different ones.
     """
-    hists = np.asarray(hists, np.float64)
+    hists = np.asarray(hists)
+    if not 1 <= segments <= 64:
+        raise ValueError(f"segments must be in 1..64, got {segments}")
+    if device is not False and hists.shape[0]:
+        try:
+            return _simplify_device(hists, segments)
+        except ImportError:
+            if device:
+                raise
+        except Exception as exc:  # no OpenCL platform, no fp64: the NumPy path gives the same optimum
+            from lodcast.renderer.program import DeviceError
+
+            if device or not isinstance(exc, (DeviceError, RuntimeError)):
+                raise
+    return _simplify_numpy(hists.astype(np.float64), segments)
+
+
+def _simplify_device(hists: np.ndarray, k: int, batch: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    import pyopencl as cl
+
+    from lodcast.renderer.program import DeviceError, get_context, get_program
+
+    ctx, queue = get_context()
+    if "cl_khr_fp64" not in ctx.devices[0].extensions:
+        raise DeviceError("the OpenCL device has no float64")
+    kernel = cl.Kernel(get_program("segment.cl", (), folder=Path(__file__).resolve().parent).program, "segment")
+    n, nb = hists.shape
+    starts = np.empty((n, k + 1), np.uint16)
+    heights = np.empty((n, k), np.float32)
+    mf = cl.mem_flags
+    for b0 in range(0, n, batch):
+        h = np.ascontiguousarray(hists[b0 : b0 + batch], dtype=np.uint32)
+        m = h.shape[0]
+        hb = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=h)
+        scratch = cl.Buffer(ctx, mf.READ_WRITE, size=m * 5 * (nb + 1) * 8)
+        runs = cl.Buffer(ctx, mf.READ_WRITE, size=m * (nb + 1) * 4)
+        arg = cl.Buffer(ctx, mf.READ_WRITE, size=m * (k + 1) * (nb + 1) * 2)
+        sb = cl.Buffer(ctx, mf.WRITE_ONLY, size=m * (k + 1) * 2)
+        wb = cl.Buffer(ctx, mf.WRITE_ONLY, size=m * k * 4)
+        kernel(queue, (m,), None, hb, np.int32(nb), np.int32(k), np.int32(m), scratch, runs, arg, sb, wb)
+        cl.enqueue_copy(queue, starts[b0 : b0 + m], sb)
+        cl.enqueue_copy(queue, heights[b0 : b0 + m], wb)
+    queue.finish()
+    return starts, heights
+
+
+def _simplify_numpy(hists: np.ndarray, segments: int, group: int = 256) -> tuple[np.ndarray, np.ndarray]:
     n, n_bins = hists.shape
     k = segments
     starts = np.full((n, k + 1), n_bins, np.uint16)

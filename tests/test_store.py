@@ -106,7 +106,8 @@ def test_constant_and_nan_volumes(tmp_path: Path):
     assert not (tmp_path / "n.zarr").exists() and not list(tmp_path.glob(".n.zarr*"))
 
 
-def test_simplified_histograms_are_optimal_against_brute_force():
+@pytest.mark.parametrize("device", [True, False], ids=["opencl", "numpy"])
+def test_simplified_histograms_are_optimal_against_brute_force(device: bool):
     rng = np.random.default_rng(7)
 
     def brute(h: np.ndarray, k: int) -> float:
@@ -123,9 +124,16 @@ def test_simplified_histograms_are_optimal_against_brute_force():
         hists.append((rng.integers(0, 5, n) * (rng.random(n) < 0.6)).astype(np.float64))
     for k in (1, 2, 3, 4):
         for h in hists:
-            starts, heights = simplify(h[None], k)
+            starts, heights = simplify(h[None], k, device=device)
             assert starts[0, 0] == 0 and starts[0, -1] == len(h) and (np.diff(starts[0].astype(int)) >= 0).all()
             assert segmentation_sse(h[None], starts, heights)[0] == pytest.approx(brute(h, k), abs=1e-9)
+
+
+def test_simplified_histograms_opencl_and_numpy_agree_on_large_noisy_batches():
+    rng = np.random.default_rng(5)
+    h = rng.poisson(40, (300, 256)) * (rng.random((300, 256)) < 0.8)
+    on_device, in_numpy = simplify(h, 12, device=True), simplify(h, 12, device=False)
+    np.testing.assert_allclose(segmentation_sse(h, *on_device), segmentation_sse(h, *in_numpy), rtol=1e-12)
 
 
 def test_simplified_histograms_batch_equals_single_and_have_12_pieces():
