@@ -206,3 +206,17 @@ def test_store_render_reads_then_caches(tmp_path: Path, blob):
     assert r2.report["bricks_read"] == 0 and r2.report["bricks_cached"] == int(np.prod(store.grid))
     direct = render(blob, scene())
     assert np.allclose(r1.rgba, direct.rgba, atol=1e-6)
+
+
+@pytest.mark.parametrize("step", [0.3, 1.0, 2.0, 3.0, 10.0])
+@pytest.mark.parametrize("a, unit", [(0.3, 1.0), (0.999999, 4.0)])
+def test_last_shorter_segment_is_exact(step, a, unit):
+    """13 voxels do not divide into steps of 2, 3 or 10: the ray's last segment is shorter and must take its own
+    opacity (from the extinction, not the step's alpha, which rounds to 1 in float32 for a = 0.999999)."""
+    vol = np.full((6, 9, 13), 3.0, np.float32)
+    tf = {"points": [{"value": 0, "color": [0.2, 0.4, 0.6], "opacity": a}], "unit_distance": unit}
+    cam = {"eye": [-20, 4, 2.5], "target": [6, 4, 2.5], "projection": "orthographic", "view_height": 3}
+    r = render(vol, scene(tf=tf, camera=cam, width=2, height=2, sampling={"step": step, "early_termination": 1.0}))
+    want = 1 - (1 - a) ** (13 / unit)
+    assert np.abs(r.rgba[..., 3] - want).max() <= 1e-6
+    assert np.allclose(r.rgba[..., :3], np.array([0.2, 0.4, 0.6]) * r.rgba[..., 3:], atol=1e-6)
