@@ -112,7 +112,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float t0, t1;
     lc_pixel_ray(P, i, j, &o, &d);
     if (lc_hit_box(P, o, d, &t0, &t1)) {
-        const float dt = P->step;
+        const float dt = P->step, inv_dt = 1.0f / dt;
         float nf = ceil((t1 - t0) / dt);
         nf = nf < 1.0f ? 1.0f : (nf > (float)P->max_samples ? (float)P->max_samples : nf);
         const int n = (int)nf, nlast = n - 1;
@@ -162,7 +162,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
                 if (tb < t1) {
                     /* first sample at or after tb; positions are monotone in k */
-                    float kf = ceil((tb - t0) / dt - u);
+                    float kf = ceil((tb - t0) * inv_dt - u);
                     k_end = kf < (float)k ? k : (kf > (float)nlast ? nlast : (int)kf);
                     while (k_end > k && LC_POS(k_end - 1) >= tb) k_end--;
                     while (k_end < n && LC_POS(k_end) < tb) k_end++;

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -124,8 +124,10 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None) -> Prepared:
             f"({max_samples} samples per ray, at most {MAX_SAMPLES_PER_RAY})"
         )
     lut = build_lut(scene.tf, vol.value_range)
-    cfg = kernel_config(scene, fr.orthographic, max_samples)
     info, n_empty = block_info(vol, lut, scene.mode)
+    cfg = kernel_config(scene, fr.orthographic, max_samples)
+    if cfg.ess and scene.mode == "composite" and n_empty == 0:
+        cfg = replace(cfg, ess=False)  # no block can be skipped: compile the block walk out
     params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples)
     return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit)
 
@@ -172,7 +174,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult
     queue.finish()
     kernel_ms = (ev.profile.end - ev.profile.start) * 1e-6
     n_blocks = vol.n_blocks
-    skipped = pr.n_empty if (cfg.ess and scene.mode == "composite") else 0
+    skipped = pr.n_empty if (scene.sampling.empty_space_skipping and scene.mode == "composite") else 0
     report = {
         "wall_ms": (time.perf_counter() - t_start) * 1e3,
         "kernel_ms": kernel_ms,

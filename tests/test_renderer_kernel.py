@@ -64,7 +64,8 @@ def test_build_options_follow_the_scene():
 
 
 def test_render_reports_the_options_it_built_with():
-    vol = np.ones((4, 4, 4), np.float32)
+    vol = np.zeros((4, 4, 40), np.float32)
+    vol[..., :20] = 1.0  # two 32³ blocks along x; the second one is empty under TF_SPARSE
     cases = [
         ({}, {"-DLC_SAMPLER_FULL", "-DLC_ESS"}),
         ({"mode": "mip"}, {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_MODE_MIP"}),
@@ -77,6 +78,9 @@ def test_render_reports_the_options_it_built_with():
     for kw, want in cases:
         r = render(vol, scene(width=4, height=4, **kw))
         assert set(r.report["build_options"]) == want, kw
+    # nothing to skip: the block walk is compiled out
+    full = render(np.ones((4, 4, 4), np.float32), scene(width=4, height=4))
+    assert full.report["build_options"] == ["-DLC_SAMPLER_FULL"] and full.report["bricks_skipped"] == 0
 
 
 def test_empty_space_skipping_skips_blocks_and_changes_nothing(blob):
