@@ -9,18 +9,18 @@
  * (mirrored by lodcast.renderer.sampler.voxel_offset). */
 #define LC_OFFSET(x, y, z, nx, ny) (((ulong)(z) * (ulong)(ny) + (ulong)(y)) * (ulong)(nx) + (ulong)(x))
 
-inline uint lc_hash(uint x) {
+static inline uint lc_hash(uint x) {
     x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
     return x;
 }
 
 /* uniform in [0, 1), reproducible per (seed, pixel) */
-inline float lc_jitter(uint seed, uint pixel) {
+static inline float lc_jitter(uint seed, uint pixel) {
     return (float)(lc_hash(seed ^ lc_hash(pixel + 0x9e3779b9U)) >> 8) * (1.0f / 16777216.0f);
 }
 
 /* The ray of pixel (row i, column j): origin o, unit direction d (world). */
-inline void lc_pixel_ray(__constant const LcParams* P, int i, int j, float3* o, float3* d) {
+static inline void lc_pixel_ray(__constant const LcParams* P, int i, int j, float3* o, float3* d) {
     float px = (2.0f * ((float)j + 0.5f) / (float)P->width - 1.0f) * P->half_w;
     float py = (1.0f - 2.0f * ((float)i + 0.5f) / (float)P->height) * P->half_h;
 #ifdef LC_ORTHO
@@ -33,7 +33,7 @@ inline void lc_pixel_ray(__constant const LcParams* P, int i, int j, float3* o, 
 }
 
 /* Slab test in world space; returns the parameter interval [t0, t1] (t0 >= 0: rays start at the eye/image plane). */
-inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t0, float* t1) {
+static inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t0, float* t1) {
     float3 inv = 1.0f / d;
     float3 ta = (P->box_lo.xyz - o) * inv;
     float3 tb = (P->box_hi.xyz - o) * inv;
@@ -50,7 +50,7 @@ inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t
  * stencil yields NaN (the caller treats it as transparent). The stencil is {floor, ceil} per axis: a voxel of
  * zero weight is not read (matters for NaN in the rim). 1-voxel-thick axes work (the stencil collapses).
  * Written without builtins (clamp, fmin, ...): PoCL calls them out of line, which costs more than the sample. */
-inline float lc_sample(__global const float* vol, const int4 dims, const float3 qmax, float3 q) {
+static inline float lc_sample(__global const float* vol, const int4 dims, const float3 qmax, float3 q) {
     float cx = q.x > 0.0f ? (q.x < qmax.x ? q.x : qmax.x) : 0.0f;
     float cy = q.y > 0.0f ? (q.y < qmax.y ? q.y : qmax.y) : 0.0f;
     float cz = q.z > 0.0f ? (q.z < qmax.z ? q.z : qmax.z) : 0.0f;
