@@ -6,7 +6,8 @@ and on Redis. Optionally a soak: 8 clients rendering for N seconds, counting err
     .venv/bin/python benchmarks/bench_service.py --soak 30       # plus the 30-second 8-client soak
     .venv/bin/python benchmarks/bench_service.py --source FILE   # another volume (any format lodcast ingest reads)
 
-Writes benchmarks/results/bench_service.json (and prints the same JSON after the table).
+Writes benchmarks/results/bench_service.json (and prints the same JSON after the table); the service's and workers'
+logs stay in benchmarks/results/bench_service_logs/.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import statistics
 import sys
 import tempfile
@@ -58,7 +60,12 @@ def latency(url: str, volume: str, summary: dict, clients: int, per_client: int,
         with httpx.Client(base_url=url, timeout=600) as c:
             for k in range(per_client):
                 t0 = time.perf_counter()
-                r = c.post(f"/volumes/{volume}/render", json=scene_for(summary, size, 37.0 * k + 11.0 * i))
+                try:
+                    r = c.post(f"/volumes/{volume}/render", json=scene_for(summary, size, 37.0 * k + 11.0 * i))
+                except httpx.HTTPError as exc:
+                    with lock:
+                        errors.append(repr(exc))
+                    continue
                 dt = time.perf_counter() - t0
                 with lock:
                     (lat.append(dt) if r.status_code == 200 else errors.append(f"{r.status_code}: {r.text[:200]}"))
@@ -82,7 +89,7 @@ def soak(url: str, volume: str, summary: dict, seconds: float, clients: int = 8,
     def run(i: int) -> None:
         with httpx.Client(base_url=url, timeout=600) as c:
             k = 0
-            while time.monotonic() < end:
+            while time.monotonic() < end and len(errors) < 50:  # a dead server is reported, not hammered
                 try:
                     r = c.post(f"/volumes/{volume}/render", json=scene_for(summary, size, 13.0 * k + 45.0 * i))
                     if r.status_code != 200:
@@ -174,9 +181,11 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory(prefix="lodcast-bench-") as tmp:
         tmpd = Path(tmp)
-        root, logs = tmpd / "root", tmpd / "logs"
+        root = tmpd / "root"
         root.mkdir()
-        logs.mkdir()
+        logs = Path(args.out).parent / "bench_service_logs"  # kept after the run (server and worker logs)
+        shutil.rmtree(logs, ignore_errors=True)
+        logs.mkdir(parents=True)
         if args.source:
             src, label = Path(args.source), Path(args.source).name
         else:
