@@ -1,0 +1,180 @@
+"""The part every source reader shares: the `_Reader` base (a `VolumeSource` whose `read` checks the z range and
+converts what `_slab` returns to `info.dtype`), `_info` to build a `SourceInfo`, `_finish` which checks empty axes,
+settles the stored dtype (narrowing 64-bit integers after a value scan) and applies spacing/origin overrides, and the
+small helpers the format modules use: `_pick` for 2D/3D/4D shapes and `index`, exact and skipping reads from a
+stream, unit names and spacing tidying.
+"""
+from __future__ import annotations
+
+import abc
+import dataclasses
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from lodcast.errors import SourceError
+from lodcast.store.source import SUPPORTED_DTYPES, SourceInfo, VolumeSource
+
+
+_SLAB = 32  # ingest's block thickness, also the step of the 64-bit value scan
+_READ_CHUNK = 64 << 10  # bytes per read call, so that a decompressor's temporaries stay small beside a slab
+_UNITS = {"mm": "millimeter", "millimeter": "millimeter", "um": "micrometer", "µm": "micrometer",
+          "\\u00B5m": "micrometer", "micron": "micrometer", "micrometer": "micrometer", "nm": "nanometer",
+          "nanometer": "nanometer", "cm": "centimeter", "centimeter": "centimeter", "m": "meter", "meter": "meter"}
+
+
+class _Reader(VolumeSource):
+    """A reader sets `info` and returns slabs from `_slab` in any dtype that `info.dtype` holds exactly
+    (the file's byte order, or 64-bit integers whose range was checked); `read` converts."""
+
+    @abc.abstractmethod
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        """Voxels [z0, z1) as (z1 - z0, Y, X)."""
+
+    def read(self, z0: int, z1: int) -> np.ndarray:
+        depth = self.info.shape[0]
+        if not 0 <= z0 <= z1 <= depth:
+            raise SourceError(f"slab z {z0}:{z1} is outside the volume's z range 0:{depth}")
+        if z0 == z1:
+            return np.empty((0, *self.info.shape[1:]), self.info.dtype)
+        return np.ascontiguousarray(self._slab(z0, z1), dtype=self.info.dtype)
+
+
+def _info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spacing: Sequence[float] = (1.0, 1.0, 1.0),
+          origin: Sequence[float] = (0.0, 0.0, 0.0), units: str = "millimeter", **provenance: Any) -> SourceInfo:
+    return SourceInfo(
+        shape=tuple(int(s) for s in shape),  # type: ignore[arg-type]
+        dtype=np.dtype(dtype),
+        spacing=tuple(float(s) for s in spacing),  # type: ignore[arg-type]
+        origin=tuple(float(o) for o in origin),  # type: ignore[arg-type]
+        units=units,
+        format=fmt,
+        provenance={"format": fmt, "path": str(path), "dtype": str(np.dtype(dtype)), **provenance},
+    )
+
+
+def _finish(reader: _Reader, spacing: Sequence[float] | None, origin: Sequence[float] | None) -> _Reader:
+    """Checks what every format shares (empty axes, dtype), settles the stored dtype and applies user overrides."""
+    info = reader.info
+    name = info.provenance["path"]
+    if 0 in info.shape:
+        raise SourceError(f"{name} is empty: shape {_fmt(info.shape)} has an axis of length 0")
+    prov = dict(info.provenance)
+    dtype = _store_dtype(reader, name)
+    if dtype != info.dtype.newbyteorder("="):
+        prov["converted_to"] = dtype.name
+    if spacing is not None:
+        spacing = _triple("spacing", spacing, positive=True)
+    elif all(math.isfinite(s) and s > 0 for s in info.spacing):
+        spacing = info.spacing
+    else:  # headers with zero spacing exist; a unit step keeps the volume usable
+        prov.setdefault("warnings", []).append(f"file spacing {list(info.spacing)} is not positive; 1 used instead")
+        spacing = tuple(s if math.isfinite(s) and s > 0 else 1.0 for s in info.spacing)
+    origin = _triple("origin", origin, positive=False) if origin is not None else info.origin
+    reader.info = dataclasses.replace(info, dtype=dtype, provenance=prov, spacing=spacing, origin=origin)
+    return reader
+
+
+def _store_dtype(reader: _Reader, name: str) -> np.dtype:
+    dt = reader.info.dtype
+    if dt.fields:
+        raise SourceError(f"non-scalar data: {name} has voxels with fields {', '.join(dt.fields)}; "
+                          f"expected one scalar per voxel")
+    supported = ", ".join(d.name for d in SUPPORTED_DTYPES)
+    if dt.kind not in "iuf":  # bool, complex, strings, objects, dates
+        raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported} "
+                          f"(int64/uint64 when their values fit)")
+    native = dt.newbyteorder("=")
+    if native in SUPPORTED_DTYPES:
+        return native
+    if native == np.float16:  # float32 holds every float16 exactly
+        return np.dtype(np.float32)
+    if native.kind in "iu" and native.itemsize == 8:
+        lo, hi = _value_range(reader)
+        narrow = np.dtype(np.int32 if native.kind == "i" else np.uint32)
+        if np.iinfo(narrow).min <= lo and hi <= np.iinfo(narrow).max:
+            return narrow
+        if -(2**53) <= lo and hi <= 2**53:
+            return np.dtype(np.float64)
+        raise SourceError(f"{name} holds {native} values from {lo} to {hi}, which neither {narrow} nor float64 "
+                          f"(integers up to ±2^53) holds exactly")
+    raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported}")
+
+
+def _value_range(reader: _Reader) -> tuple[int, int]:
+    lo, hi = None, None
+    for z in range(0, reader.info.shape[0], _SLAB):
+        s = reader._slab(z, min(z + _SLAB, reader.info.shape[0]))
+        lo = int(s.min()) if lo is None else min(lo, int(s.min()))
+        hi = int(s.max()) if hi is None else max(hi, int(s.max()))
+    return lo, hi  # type: ignore[return-value]
+
+
+def _triple(what: str, value: Sequence[float], positive: bool) -> tuple[float, float, float]:
+    try:
+        t = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise SourceError(f"{what} must be three numbers (z, y, x), got {value!r}") from None
+    if len(t) != 3 or not all(math.isfinite(v) and (v > 0 or not positive) for v in t):
+        need = "positive " if positive else "finite "
+        raise SourceError(f"{what} must be three {need}numbers (z, y, x), got {value!r}")
+    return t  # type: ignore[return-value]
+
+
+def _tidy(value: float) -> float:
+    """A spacing computed from positions or direction vectors, without the last bits of rounding noise
+    (1.0000000000000007 is 1.0)."""
+    return float(f"{value:.12g}")
+
+
+def _fmt(shape: Sequence[int]) -> str:
+    return "x".join(str(int(s)) for s in shape)
+
+
+def _pick(shape: Sequence[int], index: int | None, what: str) -> tuple[tuple[int, int, int, int], int]:
+    """(t, z, y, x) and the chosen t for an array of 2 (one slice), 3 or 4 (t first) dimensions."""
+    shape = tuple(int(s) for s in shape)
+    if len(shape) == 4:
+        if shape[0] == 1 and index is None:
+            return shape, 0  # type: ignore[return-value]
+        if index is None:
+            raise SourceError(f"{what} is 4D ({_fmt(shape)}) with {shape[0]} volumes along its first axis; "
+                              f"choose one with index=0..{shape[0] - 1}")
+        if not 0 <= index < shape[0]:
+            raise SourceError(f"index {index} is out of range: {what} has {shape[0]} volumes (0..{shape[0] - 1})")
+        return shape, index  # type: ignore[return-value]
+    if index is not None:
+        raise SourceError(f"index {index} given but {what} is not a 4D series (shape {_fmt(shape)})")
+    if len(shape) == 3:
+        return (1,) + shape, 0  # type: ignore[return-value]
+    if len(shape) == 2:
+        return (1, 1) + shape, 0  # type: ignore[return-value]
+    raise SourceError(f"{what} has {len(shape)} dimensions (shape {_fmt(shape)}); expected 3 (z, y, x), "
+                      f"2 (one slice) or 4 with an index")
+
+
+def _read_exact(f: IO[bytes], out: np.ndarray, name: object) -> None:
+    view = memoryview(out.reshape(-1).view(np.uint8))
+    got = 0
+    while got < len(view):  # in pieces: decompressors hold a copy or two of what one call returns
+        n = f.readinto(view[got:got + _READ_CHUNK])
+        if not n:
+            raise SourceError(f"{name} ends early: {got} of the {len(view)} bytes wanted for a slab")
+        got += n
+
+
+def _skip(f: IO[bytes], n: int, name: object) -> None:
+    while n > 0:
+        chunk = f.read(min(n, 1 << 20))
+        if not chunk:
+            raise SourceError(f"{name} ends {n} bytes before the data it should hold")
+        n -= len(chunk)
+
+
+def _axis_aligned(m: np.ndarray) -> bool:
+    """Whether the rows of `m` point along +x, +y, +z: then index × spacing + origin is the world position."""
+    diag = np.diag(m)
+    return bool(np.all(diag > 0) and np.allclose(m, np.diag(diag), atol=1e-6 * float(np.abs(diag).max())))

@@ -1,0 +1,226 @@
+"""Arrays stored in one file as plain bytes: NumPy .npy, headerless raw and NRRD (raw, gzip or bzip2 encoded, with a
+detached data file or not). Uncompressed data is read with plain file reads per slab (`_BinaryReader`, in C or
+Fortran order, the latter in windows of `_WINDOW_BYTES` read from the package so that it can be tuned in one place);
+compressed streams are read forwards and restarted only when a caller goes back (`_StreamReader`).
+"""
+from __future__ import annotations
+
+import bz2
+import gzip
+import math
+import zlib
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+import lodcast.store.readers as _package
+from lodcast.errors import SourceError
+from lodcast.store.readers.base import (_UNITS, _Reader, _axis_aligned, _fmt, _info, _pick, _read_exact, _skip,
+                                        _tidy)
+from lodcast.store.source import SourceInfo
+
+
+class _BinaryReader(_Reader):
+    """A (t, z, y, x) array stored uncompressed at `offset`, in C or Fortran order."""
+
+    def __init__(self, path: Path, offset: int, shape4: tuple[int, int, int, int], dtype: np.dtype,
+                 fortran: bool, index: int, info: SourceInfo) -> None:
+        self._path, self._offset, self._shape4, self._dtype = path, offset, shape4, dtype
+        self._fortran, self._index, self.info = fortran, index, info
+
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        t, depth, ny, nx = self._shape4
+        out = np.empty((z1 - z0, ny, nx), self._dtype)
+        item = self._dtype.itemsize
+        with open(self._path, "rb") as f:
+            if not self._fortran:
+                f.seek(self._offset + (self._index * depth + z0) * ny * nx * item)
+                _read_exact(f, out, self._path)
+                return out
+            plane = t * depth * ny  # x is the slowest axis: one x holds every t, z, y
+            step = max(1, _package._WINDOW_BYTES // (plane * item))
+            for x0 in range(0, nx, step):
+                x1 = min(nx, x0 + step)
+                window = np.empty((x1 - x0, ny, depth, t), self._dtype)
+                f.seek(self._offset + x0 * plane * item)
+                _read_exact(f, window, self._path)
+                out[:, :, x0:x1] = window[:, :, z0:z1, self._index].transpose(2, 1, 0)
+        return out
+
+
+class _StreamReader(_Reader):
+    """A C-ordered (t, z, y, x) array in a forward-only stream (gzip, bzip2). `start` opens the file and returns it
+    with the decompressed stream positioned at the first voxel."""
+
+    def __init__(self, start: Callable[[], tuple[IO[bytes], IO[bytes]]], name: str,
+                 shape4: tuple[int, int, int, int], dtype: np.dtype, index: int, info: SourceInfo) -> None:
+        self._start, self._name, self._shape4, self._dtype, self._index = start, name, shape4, dtype, index
+        self.info = info
+        self._files: tuple[IO[bytes], IO[bytes]] | None = None
+        self._pos = 0
+
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        _, depth, ny, nx = self._shape4
+        target = (self._index * depth + z0) * ny * nx * self._dtype.itemsize
+        out = np.empty((z1 - z0, ny, nx), self._dtype)
+        try:
+            if self._files is None or target < self._pos:
+                self.close()
+                self._files, self._pos = self._start(), 0
+            stream = self._files[0]
+            _skip(stream, target - self._pos, self._name)
+            _read_exact(stream, out, self._name)
+        except (OSError, EOFError, zlib.error) as exc:
+            raise SourceError(f"{self._name} is corrupt: {exc}") from None
+        self._pos = target + out.nbytes
+        return out
+
+    def close(self) -> None:
+        if self._files is not None:
+            for f in self._files:
+                f.close()
+            self._files = None
+
+
+def _npy(path: Path, index: int | None) -> _Reader:
+    try:
+        mm = np.load(path, mmap_mode="r", allow_pickle=False)
+    except ValueError as exc:
+        if "Python objects" in str(exc):
+            raise SourceError(f"unsupported dtype object in {path}; expected a numeric array") from None
+        raise SourceError(f"{path} is not a readable .npy file: {exc}") from None
+    except (OSError, EOFError) as exc:
+        raise SourceError(f"{path} is not a readable .npy file: {exc}") from None
+    if not isinstance(mm, np.memmap):
+        raise SourceError(f"{path} is not a single .npy array (an .npz archive?)")
+    shape4, t = _pick(mm.shape, index, str(path))
+    # only the header is used: the slab reads are plain file reads
+    offset, dtype, fortran = mm.offset, mm.dtype, mm.ndim > 1 and mm.flags.f_contiguous and not mm.flags.c_contiguous
+    del mm
+    info = _info(shape4[1:], dtype, "npy", path, **({"index": t} if index is not None else {}))
+    if fortran:
+        info.provenance["order"] = "F"
+    return _BinaryReader(path, offset, shape4, dtype, fortran, t, info)
+
+
+def _raw(path: Path, shape: Sequence[int] | None, dtype: Any, byte_order: str, header_bytes: int,
+         index: int | None) -> _Reader:
+    if shape is None or dtype is None:
+        raise SourceError(f"raw file {path} needs its shape (z, y, x) and dtype "
+                          f"(on the command line: --shape z,y,x --dtype uint16)")
+    try:
+        dims = tuple(int(s) for s in shape)
+        dt = np.dtype(dtype)
+    except (TypeError, ValueError) as exc:
+        raise SourceError(f"raw file {path}: bad shape {shape!r} or dtype {dtype!r} ({exc})") from None
+    if any(d < 0 for d in dims):
+        raise SourceError(f"raw file {path}: shape {shape!r} has a negative axis")
+    orders = {"little": "<", "big": ">", "<": "<", ">": ">"}
+    if byte_order not in orders:
+        raise SourceError(f"byte_order must be 'little' or 'big', got {byte_order!r}")
+    if header_bytes < 0:
+        raise SourceError(f"header_bytes must be 0 or more, got {header_bytes}")
+    dt = dt.newbyteorder(orders[byte_order])
+    shape4, t = _pick(dims, index, f"raw file {path}")
+    size, need = path.stat().st_size, header_bytes + math.prod(dims) * dt.itemsize
+    if size != need:
+        head = f" ({header_bytes}-byte header + {need - header_bytes} bytes of voxels)" if header_bytes else ""
+        raise SourceError(f"raw file is {size} bytes but shape {_fmt(dims)} of {dt.name} needs {need} bytes{head}")
+    info = _info(shape4[1:], dt, "raw", path, byte_order=byte_order, header_bytes=header_bytes)
+    return _BinaryReader(path, header_bytes, shape4, dt, False, t, info)
+
+
+# --- NRRD -------------------------------------------------------------------------------------------------------
+
+_NRRD_SPATIAL = ("domain", "space", "time", "???", "none")
+
+
+def _nrrd(path: Path, index: int | None) -> _Reader:
+    import nrrd
+
+    try:
+        with open(path, "rb") as f:
+            header = nrrd.read_header(f)
+            data_start = f.tell()
+        dtype = nrrd.reader._determine_datatype(header)  # pynrrd's own type table (with endian)
+        sizes, encoding = [int(s) for s in header["sizes"]], str(header["encoding"]).lower()
+    except (nrrd.NRRDError, OSError, ValueError, KeyError, UnicodeDecodeError, StopIteration) as exc:
+        raise SourceError(f"{path} is not a readable NRRD file: {exc!s}") from None
+    kinds = [str(k).lower() for k in header.get("kinds", ["domain"] * len(sizes))]
+    # components of a non-spatial kind (vector, RGB-color, list…) on the slowest axis are whole volumes one after
+    # another, which index can pick; anywhere else they are interleaved per voxel: non-scalar data
+    last = len(sizes) - 1
+    for axis, (size, kind) in enumerate(zip(sizes, kinds)):
+        if size > 1 and kind not in _NRRD_SPATIAL and axis != last:
+            raise SourceError(f"non-scalar data: NRRD axis {axis} of {path} is '{kind}' of size {size}; "
+                              f"expected scalar data")
+    keep = [a for a, kind in enumerate(kinds) if kind in _NRRD_SPATIAL or (a == last and sizes[a] > 1)]
+    if len(keep) == 4 and sizes[keep[3]] == 1:
+        keep = keep[:3]
+    if any(kinds[a] == "time" for a in keep[:3]):
+        raise SourceError(f"NRRD file {path} has its time axis among the first three (kinds {kinds}); expected it last")
+    # NRRD lists the fastest axis first: sizes (x, y, z, t) are a C-ordered (t, z, y, x) array
+    shape4, t = _pick([sizes[a] for a in reversed(keep)], index, f"NRRD file {path}")
+
+    spatial = keep[:3]
+    directions = header.get("space directions")
+    provenance: dict[str, Any] = {"space": header.get("space"), "encoding": encoding}
+    origin = [0.0, 0.0, 0.0]
+    if directions is not None:
+        d = np.asarray([directions[a] for a in spatial], dtype=float)
+        spacing = [_tidy(v) for v in np.linalg.norm(d, axis=1)]
+        provenance["space_directions"] = d.tolist()
+        o = header.get("space origin")
+        if o is not None:
+            provenance["space_origin"] = [float(v) for v in o]
+            if d.shape == (3, 3) and _axis_aligned(d):
+                origin = [float(v) for v in o]
+    else:
+        spacing = [float(header.get("spacings", [1.0] * len(sizes))[a]) for a in spatial]
+    spacing += [1.0] * (3 - len(spacing))  # a 2D image is one slice of unit thickness
+    units = header.get("space units")
+    info = _info(shape4[1:], dtype, "nrrd", path, spacing=spacing[::-1], origin=origin[::-1],
+                 units=_UNITS.get(str(units[0]), "millimeter") if units else "millimeter", **provenance)
+
+    data_path, start = path, data_start
+    if "data file" in header or "datafile" in header:
+        name = str(header.get("data file", header.get("datafile")))
+        if name.startswith("LIST") or " " in name:
+            raise SourceError(f"NRRD {path} splits its data over several files ({name!r}); expected one data file")
+        data_path, start = path.parent / name, 0
+        if not data_path.is_file():
+            raise SourceError(f"data file {data_path} named by NRRD header {path} does not exist")
+    with open(data_path, "rb") as f:
+        f.seek(start)
+        for _ in range(int(header.get("line skip", header.get("lineskip", 0)))):
+            f.readline()
+        start = f.tell()
+    byte_skip = int(header.get("byte skip", header.get("byteskip", 0)))
+    nbytes = math.prod(sizes) * dtype.itemsize
+    if encoding == "raw":
+        offset = data_path.stat().st_size - nbytes if byte_skip == -1 else start + byte_skip
+        if offset < 0 or data_path.stat().st_size < offset + nbytes:
+            raise SourceError(f"NRRD data in {data_path} is {data_path.stat().st_size - max(offset, 0)} bytes but "
+                              f"sizes {_fmt(sizes)} of {dtype.name} need {nbytes}")
+        return _BinaryReader(data_path, offset, shape4, dtype, False, t, info)
+    decompress = {"gzip": _gunzip, "gz": _gunzip, "bzip2": bz2.BZ2File, "bz2": bz2.BZ2File}.get(encoding)
+    if decompress is None:
+        raise SourceError(f"NRRD encoding '{encoding}' of {path} is not supported; expected raw, gzip or bzip2")
+    if byte_skip < 0:
+        raise SourceError(f"NRRD {path}: byte skip {byte_skip} with {encoding} encoding is not supported; "
+                          f"expected 0 or more")
+
+    def opened() -> tuple[IO[bytes], IO[bytes]]:
+        raw = open(data_path, "rb")
+        raw.seek(start)
+        stream = decompress(raw)
+        _skip(stream, byte_skip, data_path)
+        return stream, raw
+
+    return _StreamReader(opened, str(data_path), shape4, dtype, t, info)
+
+
+def _gunzip(f: IO[bytes]) -> IO[bytes]:
+    return gzip.GzipFile(fileobj=f, mode="rb")  # type: ignore[return-value]

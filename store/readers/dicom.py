@@ -1,0 +1,190 @@
+"""DICOM series: a folder of single-frame grayscale files (or one file). Headers are read once, keeping only the few
+fields a series needs; the largest series is kept when several share a folder, slices are sorted along the normal of
+their orientation, RescaleSlope/Intercept are applied into the smallest type that holds every value, and pixels are
+decoded only for the slab asked for.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lodcast.errors import SourceError
+from lodcast.store.readers.base import _Reader, _fmt, _info, _tidy
+
+
+def _is_dicom(p: Path) -> bool:
+    try:
+        with open(p, "rb") as f:
+            return f.read(132)[128:] == b"DICM"
+    except OSError:
+        return False
+
+
+_PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1): np.int16,
+                 (32, 0): np.uint32, (32, 1): np.int32}
+
+
+_DICOM_KEYWORDS = ("SeriesInstanceUID", "Rows", "Columns", "SamplesPerPixel", "PhotometricInterpretation",
+                   "NumberOfFrames", "BitsAllocated", "BitsStored", "PixelRepresentation", "PixelSpacing",
+                   "SliceThickness", "SpacingBetweenSlices", "ImagePositionPatient", "ImageOrientationPatient",
+                   "InstanceNumber", "RescaleSlope", "RescaleIntercept", "Modality", "SeriesDescription")
+
+
+def _dicom_header(f: Path) -> dict[str, Any]:
+    """The few header fields a series needs: a whole pydicom header is tens of kB, times thousands of slices."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(f, stop_before_pixels=True)
+        header = {k: ds.get(k) for k in _DICOM_KEYWORDS if ds.get(k) is not None}
+        syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+        header["compressed"] = syntax is None or syntax.is_compressed
+    except Exception as exc:  # pydicom raises many types on corrupt files
+        raise SourceError(f"unreadable DICOM file {f}: {exc}") from None
+    return header
+
+
+def _dicom_image(f: Path, ds: dict[str, Any]) -> tuple[int, int, int, int]:
+    """(rows, columns, bits allocated, pixel representation) of one grayscale single-frame file."""
+    if "Rows" not in ds or "Columns" not in ds:
+        raise SourceError(f"unreadable DICOM file {f}: no Rows/Columns (corrupt, or not an image)")
+    samples = int(ds.get("SamplesPerPixel", 1))
+    if samples != 1:
+        raise SourceError(f"non-scalar data: DICOM file {f} is {ds.get('PhotometricInterpretation', '?')} with "
+                          f"{samples} samples per pixel; expected one (grayscale)")
+    if int(ds.get("NumberOfFrames", 1) or 1) > 1:
+        raise SourceError(f"DICOM file {f} holds {ds['NumberOfFrames']} frames; expected one slice per file")
+    rows, cols, bits = int(ds["Rows"]), int(ds["Columns"]), int(ds.get("BitsAllocated", 16))
+    need = rows * cols * bits // 8
+    if not ds["compressed"] and f.stat().st_size < need:
+        raise SourceError(f"DICOM file {f} is truncated: {f.stat().st_size} bytes, but its {rows}x{cols} pixels "
+                          f"of {bits} bits need {need}")
+    return rows, cols, bits, int(ds.get("PixelRepresentation", 0))
+
+
+class _DicomReader(_Reader):
+    """One DICOM series: a folder of single-frame files (or one file) with its slices sorted along the slice
+    normal. Headers are read once; pixels only for the slab asked for. RescaleSlope/Intercept are applied."""
+
+    def __init__(self, path: Path, index: int | None) -> None:
+        if index is not None:
+            raise SourceError(f"index {index} given but DICOM series {path} is a single 3D volume")
+        files = [path] if path.is_file() else sorted(f for f in path.iterdir() if f.is_file() and _is_dicom(f))
+        if not files or not _is_dicom(files[0]):
+            raise SourceError(f"no DICOM files (with a DICM preamble) in {path}")
+        by_series: dict[str, list[tuple[Path, dict[str, Any]]]] = {}
+        for f in files:
+            header = _dicom_header(f)
+            by_series.setdefault(str(header.get("SeriesInstanceUID", "")), []).append((f, header))
+        uid = max(sorted(by_series), key=lambda u: len(by_series[u]))
+        slices = by_series[uid]
+        provenance: dict[str, Any] = {"series_uid": uid, "warnings": []}
+        if len(by_series) > 1:
+            provenance["other_series"] = {u: len(v) for u, v in by_series.items() if u != uid}
+            provenance["warnings"].append(f"{len(by_series)} series in {path}; "
+                                          f"kept the largest, {uid} ({len(slices)} files)")
+        ny, nx, pixel_dtype = self._check_images(slices)
+        slices, dz, origin = self._sort(slices, provenance)
+        self._files = [f for f, _ in slices]
+        self._rescale = [(float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0))
+                         for _, ds in slices]
+        dtype = self._rescaled_dtype(pixel_dtype, int(slices[0][1].get("BitsStored", pixel_dtype.itemsize * 8)))
+        if dtype != pixel_dtype:
+            provenance["scaling"] = {"slope": sorted({s for s, _ in self._rescale}),
+                                     "intercept": sorted({i for _, i in self._rescale})}
+        first = slices[0][1]
+        pixel_spacing = first.get("PixelSpacing")
+        if pixel_spacing is None:
+            provenance["warnings"].append("no PixelSpacing; y and x spacing taken as 1")
+            pixel_spacing = (1.0, 1.0)
+        for key in ("Modality", "SeriesDescription"):
+            if key in first:
+                provenance[key.lower()] = str(first.get(key))
+        if not provenance["warnings"]:
+            del provenance["warnings"]
+        # PixelSpacing is (between rows, between columns) = (y, x)
+        self.info = _info((len(slices), ny, nx), dtype, "dicom", path, spacing=(dz, *map(float, pixel_spacing)),
+                          origin=origin, **provenance)
+        self.info.provenance["dtype"] = pixel_dtype.name
+
+    @staticmethod
+    def _check_images(slices: list[tuple[Path, dict[str, Any]]]) -> tuple[int, int, np.dtype]:
+        """Rows, columns and pixel type, the same in every file of the series."""
+        first = _dicom_image(*slices[0])
+        for f, ds in slices[1:]:
+            image = _dicom_image(f, ds)
+            if image != first:
+                raise SourceError(f"DICOM series has inconsistent images: {slices[0][0].name} is {first[0]}x{first[1]} "
+                                  f"of {first[2]} bits but {f.name} is {image[0]}x{image[1]} of {image[2]} bits")
+        if (first[2], first[3]) not in _PIXEL_DTYPES:
+            raise SourceError(f"DICOM file {slices[0][0]} has {first[2]}-bit pixels; expected 8, 16 or 32")
+        return first[0], first[1], np.dtype(_PIXEL_DTYPES[first[2], first[3]])
+
+    @staticmethod
+    def _sort(slices: list[tuple[Path, dict[str, Any]]], provenance: dict[str, Any]
+              ) -> tuple[list[tuple[Path, dict[str, Any]]], float, tuple[float, float, float]]:
+        """Slices in order along the normal of their orientation, z spacing and origin (z, y, x)."""
+        first = slices[0][1]
+        thickness = float(first.get("SpacingBetweenSlices", first.get("SliceThickness", 1.0)) or 1.0)
+        if not all("ImagePositionPatient" in ds and "ImageOrientationPatient" in ds for _, ds in slices):
+            provenance["warnings"].append("slices lack ImagePositionPatient/ImageOrientationPatient; "
+                                          f"sorted by InstanceNumber, z spacing {thickness} from the header")
+            return sorted(slices, key=lambda s: int(s[1].get("InstanceNumber", 0) or 0)), thickness, (0.0, 0.0, 0.0)
+        orientation = np.array([float(v) for v in first["ImageOrientationPatient"]])
+        for f, ds in slices:
+            if not np.allclose([float(v) for v in ds["ImageOrientationPatient"]], orientation, atol=1e-4):
+                raise SourceError(f"DICOM series mixes slice orientations: {f.name} differs from {slices[0][0].name}")
+        normal = np.cross(orientation[:3], orientation[3:])
+        placed = sorted(((float(np.dot([float(v) for v in ds["ImagePositionPatient"]], normal)), f.name, f, ds)
+                         for f, ds in slices), key=lambda s: s[:2])
+        slices = [(f, ds) for _, _, f, ds in placed]
+        depth = [d for d, *_ in placed]
+        steps = np.diff(depth)
+        if len(steps) and steps.min() <= 1e-6 * max(1.0, abs(steps.max())):
+            where = int(np.argmin(steps))
+            raise SourceError(f"DICOM series has two slices at position {depth[where]:g} mm ({slices[where][0].name}, "
+                              f"{slices[where + 1][0].name}); expected one slice per position")
+        dz = _tidy(float(steps.mean())) if len(steps) else thickness
+        if len(steps) and np.abs(steps - dz).max() > 0.01 * dz:
+            provenance["warnings"].append(f"slice positions are not evenly spaced ({steps.min():g} to "
+                                          f"{steps.max():g} mm); z spacing {thickness} taken from the header")
+            dz = thickness
+        ipp = [float(v) for v in slices[0][1]["ImagePositionPatient"]]
+        provenance["orientation"] = orientation.tolist()
+        provenance["first_position"] = ipp
+        # world (z, y, x) = index × spacing + origin holds only when rows run along +x, columns along +y
+        aligned = np.allclose(orientation, [1, 0, 0, 0, 1, 0], atol=1e-4)
+        return slices, dz, (ipp[2], ipp[1], ipp[0]) if aligned else (0.0, 0.0, 0.0)
+
+    def _rescaled_dtype(self, pixel: np.dtype, bits_stored: int) -> np.dtype:
+        """The stored pixels' type when nothing is rescaled; else the smallest of int16/int32 that holds every
+        rescaled value when slopes and intercepts are whole (CT Hounsfield units), float32 otherwise."""
+        if all(r == (1.0, 0.0) for r in self._rescale):
+            return pixel
+        signed = pixel.kind == "i"
+        lo, hi = (-(2 ** (bits_stored - 1)), 2 ** (bits_stored - 1) - 1) if signed else (0, 2**bits_stored - 1)
+        if all(s.is_integer() and i.is_integer() for s, i in self._rescale):
+            ends = [v for s, i in self._rescale for v in (s * lo + i, s * hi + i)]
+            for candidate in (np.int16, np.int32):
+                if np.iinfo(candidate).min <= min(ends) and max(ends) <= np.iinfo(candidate).max:
+                    return np.dtype(candidate)
+        return np.dtype(np.float32)
+
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        import pydicom
+
+        out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
+        for k in range(z0, z1):
+            f = self._files[k]
+            try:
+                pixels = pydicom.dcmread(f).pixel_array
+            except Exception as exc:  # decoding errors come from pydicom and its image plugins
+                raise SourceError(f"cannot decode the pixels of DICOM file {f}: {exc}") from None
+            if pixels.shape != self.info.shape[1:]:
+                raise SourceError(f"DICOM file {f} has pixels of shape {_fmt(pixels.shape)}; "
+                                  f"expected {_fmt(self.info.shape[1:])}")
+            slope, intercept = self._rescale[k]
+            out[k - z0] = pixels if (slope, intercept) == (1.0, 0.0) else pixels * slope + intercept
+        return out

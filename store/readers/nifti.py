@@ -1,0 +1,81 @@
+"""NIfTI-1/2 (and Analyze .hdr/.img pairs) through nibabel. The data axes (i, j, k) are the store's (x, y, z) with no
+reorientation; scaled data is stored as float32, 4D series give one volume chosen by `index` (vector-like intents are
+refused as non-scalar), and slabs are read in pieces so that nibabel's temporaries stay small beside them.
+"""
+from __future__ import annotations
+
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lodcast.errors import SourceError
+from lodcast.store.readers.base import _READ_CHUNK, _UNITS, _Reader, _axis_aligned, _fmt, _info, _pick
+
+
+_NIFTI_VECTOR_INTENTS = {"vector", "displacement vector", "rgb vector", "rgba vector", "quaternion",
+                         "symmetric matrix", "general matrix", "pointset", "triangle", "fnirt disp field"}
+
+
+class _NiftiReader(_Reader):
+    """NIfTI-1/2 (and Analyze) through nibabel. Data axes (i, j, k) are the store's (x, y, z): no reorientation, so
+    the store is exactly `transpose(data, (2, 1, 0))`. The proxy keeps its file open so that a .gz reads forwards."""
+
+    def __init__(self, path: Path, index: int | None) -> None:
+        import nibabel as nib
+
+        try:
+            img = nib.load(str(path), keep_file_open=True)
+            ondisk = img.get_data_dtype()
+        except Exception as exc:  # nibabel raises many types for files it cannot parse
+            raise SourceError(f"{path} is not a readable NIfTI file: {exc}") from None
+        shape = list(img.shape)
+        while len(shape) > 3 and shape[-1] == 1:
+            shape.pop()
+        intent = img.header.get_intent()[0] if hasattr(img.header, "get_intent") else "none"
+        if len(shape) > 4 or len(shape) < 2:
+            raise SourceError(f"NIfTI file {path} has {len(shape)} dimensions (shape {_fmt(shape)}, intent {intent}); "
+                              f"expected a scalar 3D volume, or 4D with an index")
+        if len(shape) == 4 and intent in _NIFTI_VECTOR_INTENTS:
+            raise SourceError(f"non-scalar data: NIfTI file {path} is 4D with intent '{intent}'; expected scalar data")
+        # nibabel's order is (x, y, z, t); _pick wants t first
+        shape4, t = _pick([shape[3], *shape[2::-1]] if len(shape) == 4 else shape[::-1], index, f"NIfTI file {path}")
+        self._proxy = img.dataobj
+        # a chosen t, then 0 for the trailing singleton axes dropped above
+        self._tail = ((t,) if len(shape) == 4 else ()) + (0,) * (len(img.shape) - len(shape))
+        self._flat = len(shape) == 2
+        self._path = path
+        slope, inter = float(getattr(self._proxy, "slope", 1.0)), float(getattr(self._proxy, "inter", 0.0))
+        scaled = (slope, inter) != (1.0, 0.0)
+        zooms = [float(z) for z in img.header.get_zooms()[:3]] + [1.0] * (3 - min(3, len(shape)))
+        affine = np.asarray(img.affine, dtype=float)
+        origin = affine[:3, 3][::-1] if _axis_aligned(affine[:3, :3]) else (0.0, 0.0, 0.0)
+        units = img.header.get_xyzt_units()[0] if hasattr(img.header, "get_xyzt_units") else "unknown"
+        provenance: dict[str, Any] = {"affine": affine.tolist(), "intent": intent}
+        if scaled:
+            provenance["scaling"] = {"slope": slope, "intercept": inter}
+        if index is not None:
+            provenance["index"] = t
+        self.info = _info(shape4[1:], np.float32 if scaled else ondisk, "nifti", path, spacing=zooms[::-1],
+                          origin=origin, units=_UNITS.get(units, "millimeter"), **provenance)
+        self.info.provenance["dtype"] = str(ondisk)
+
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
+        # nibabel holds a few copies of what it reads (compressed bytes, scaled float64): ask for pieces of a
+        # slab so that those stay small beside it
+        step = max(1, _READ_CHUNK // out[0].nbytes)
+        try:
+            if self._flat:
+                out[0] = np.asarray(self._proxy[:, :]).T
+                return out
+            for z in range(z0, z1, step):
+                piece = self._proxy[(slice(None), slice(None), slice(z, min(z + step, z1))) + self._tail]
+                out[z - z0:z - z0 + piece.shape[2]] = np.asarray(piece).transpose(2, 1, 0)
+        except (OSError, EOFError, ValueError, zlib.error) as exc:
+            raise SourceError(f"NIfTI data of {self._path} is corrupt or truncated: {exc}") from None
+        return out
+
+    def close(self) -> None:
+        self._proxy = None  # the proxy closes the file it kept open when it goes

@@ -1,0 +1,117 @@
+"""TIFF sources: a multi-page file (pages are z; ImageJ hyperstacks take z from their Z axis and one other
+non-singleton axis from `index`), read through tifffile's zarr view, or a folder of single-image TIFFs, one slice
+each in natural name order, of which only the slab's files are opened. ImageJ metadata gives spacing and units.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lodcast.errors import SourceError
+from lodcast.store.readers.base import _UNITS, _Reader, _fmt, _info, _pick
+
+
+def _tiff(path: Path, index: int | None) -> _Reader:
+    return _TiffFolderReader(path, index) if path.is_dir() else _TiffFileReader(path, index)
+
+
+def _tiff_geometry(tif: Any) -> dict[str, Any]:
+    """Spacing and units from ImageJ metadata (z `spacing`, y/x from the resolution tags); none otherwise."""
+    meta = tif.imagej_metadata if tif.is_imagej else None
+    if not meta:
+        return {}
+    xres, yres = tif.pages[0].resolution
+    spacing = (float(meta.get("spacing", 1.0)), 1.0 / yres if yres > 0 else 1.0, 1.0 / xres if xres > 0 else 1.0)
+    return {"spacing": spacing, "units": _UNITS.get(str(meta.get("unit", "")), "millimeter")}
+
+
+def _open_tiff(path: Path) -> Any:
+    import tifffile
+
+    try:
+        return tifffile.TiffFile(path)
+    except Exception as exc:  # tifffile raises many types for files it cannot parse
+        raise SourceError(f"{path} is not a readable TIFF file: {exc}") from None
+
+
+class _TiffFileReader(_Reader):
+    """A multi-page TIFF: pages are z. ImageJ hyperstacks (TZYX, ZCYX…) take z from the Z axis and the other
+    non-singleton axis from `index`. Read through tifffile's zarr view, which also serves ImageJ files whose
+    pages after the first are not indexed."""
+
+    def __init__(self, path: Path, index: int | None) -> None:
+        import zarr
+
+        self._tif = _open_tiff(path)
+        try:
+            series, page = self._tif.series[0], self._tif.pages[0]
+            axes, shape = series.axes, series.shape
+            if "S" in axes or page.samplesperpixel > 1:
+                raise SourceError(f"non-scalar data: {path} is {page.photometric.name} with {page.samplesperpixel} "
+                                  f"samples per pixel; expected one (grayscale)")
+            lead = [a for a in range(len(shape) - 2) if shape[a] > 1]
+            if len(lead) > 2:
+                raise SourceError(f"{path} has axes {axes} of sizes {_fmt(shape)}; expected z plus at most one "
+                                  f"time or channel axis")
+            z_axis = next((a for a in lead if axes[a] == "Z"), lead[-1] if lead else None)
+            stack = [a for a in lead if a != z_axis]
+            shape4, t = _pick([shape[a] for a in stack] + [shape[z_axis] if lead else 1, *shape[-2:]], index, str(path))
+            self._select: list[Any] = [t if a in stack else 0 for a in range(len(shape) - 2)]
+            self._z_axis = z_axis
+            self._array = zarr.open(self._tif.aszarr(series=0), mode="r")
+            self.info = _info(shape4[1:], series.dtype, "tiff", path, axes=axes, **_tiff_geometry(self._tif))
+        except BaseException:
+            self._tif.close()
+            raise
+
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        select = list(self._select)
+        if self._z_axis is not None:
+            select[self._z_axis] = slice(z0, z1)
+        return np.asarray(self._array[tuple(select)]).reshape((z1 - z0,) + self.info.shape[1:])
+
+    def close(self) -> None:
+        self._tif.close()
+
+
+def _natural(p: Path) -> list[Any]:
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", p.name)]
+
+
+def _single_image(f: Path, folder: Path) -> tuple[tuple[int, ...], np.dtype, dict[str, Any]]:
+    with _open_tiff(f) as tif:
+        page = tif.pages[0]
+        if page.samplesperpixel > 1:
+            raise SourceError(f"non-scalar data: {f} has {page.samplesperpixel} samples per pixel; "
+                              f"expected one (grayscale)")
+        if len(tif.pages) > 1:
+            raise SourceError(f"TIFF folder {folder} holds {f.name} with {len(tif.pages)} pages; "
+                              f"expected one image per file")
+        return tuple(page.shape), np.dtype(page.dtype), _tiff_geometry(tif)
+
+
+class _TiffFolderReader(_Reader):
+    """A folder of single-image TIFFs, one slice each, in natural name order (img2 before img10)."""
+
+    def __init__(self, path: Path, index: int | None) -> None:
+        self._files = sorted((f for f in path.iterdir() if f.suffix.lower() in (".tif", ".tiff") and f.is_file()),
+                             key=_natural)
+        if not self._files:
+            raise SourceError(f"no .tif/.tiff files in folder {path}")
+        if index is not None:
+            raise SourceError(f"index {index} given but TIFF folder {path} is a single 3D volume")
+        shape, dtype, geometry = _single_image(self._files[0], path)
+        for f in self._files[1:]:
+            other = _single_image(f, path)
+            if other[:2] != (shape, dtype):
+                raise SourceError(f"TIFF folder {path} has inconsistent images: {self._files[0].name} is "
+                                  f"{_fmt(shape)} {dtype} but {f.name} is {_fmt(other[0])} {other[1]}")
+        self.info = _info((len(self._files), *shape), dtype, "tiff", path, files=len(self._files), **geometry)
+
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        import tifffile
+
+        return np.stack([tifffile.imread(f).reshape(self.info.shape[1:]) for f in self._files[z0:z1]])
