@@ -191,4 +191,5 @@ def test_concurrent_clients_soak(server):
     for t in threads:
         t.join(SOAK_S + 120)
     assert not errors, errors
-    assert min(counts) >= 1, counts  # fair: nobody starved
+    assert min(counts) >= 1, counts
+    assert max(counts) <= 2 * min(counts) + 2, counts  # renders wait in arrival order: nobody is starved
