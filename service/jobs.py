@@ -61,7 +61,7 @@ class ScenesJob(_Job):
 class TfSweepJob(_Job):
     kind: Literal["tf_sweep"]
     volume: str = Field(max_length=128)
-    scene: Scene
+    scene: Scene = Field(default_factory=dict, description="the scene each TF is rendered in (its own tf is replaced)")
     tfs: list[dict[str, Any]] = Field(min_length=1)
 
 
@@ -127,9 +127,9 @@ def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
     elif isinstance(job, TfSweepJob):
         vol(job.volume, ("volume",))
         _cap(len(job.tfs), settings, "tfs")
-        parse_scene(job.scene, settings, ("body", "scene"))
         for i, tf in enumerate(job.tfs):
             check_tf(tf, ("body", "tfs", i))
+        parse_scene({**job.scene, "tf": job.tfs[0]}, settings, ("body", "scene"))
     elif isinstance(job, VolumesJob):
         _cap(len(job.volumes), settings, "volumes")
         for i, v in enumerate(job.volumes):

@@ -231,7 +231,8 @@ def test_other_job_kinds(env, kind):
     tf2 = {"points": [{"value": 200, "color": [1, 0, 0], "opacity": 0.0}, {"value": 900, "color": [1, 0, 0], "opacity": 0.9}]}
     job = {
         "scenes": {"kind": "scenes", "volume": "tiny", "scenes": [tiny_scene(8), tiny_scene(12, format="npy")]},
-        "tf_sweep": {"kind": "tf_sweep", "volume": "tiny", "scene": tiny_scene(8), "tfs": [TINY_TF, tf2]},
+        "tf_sweep": {"kind": "tf_sweep", "volume": "tiny", "scene": {k: v for k, v in tiny_scene(8).items() if k != "tf"},
+                     "tfs": [TINY_TF, tf2]},
         "volumes": {"kind": "volumes", "volumes": ["tiny", "tiny"], "scene": tiny_scene(8)},
     }[kind]
     r = client.post("/jobs", json=job, headers=AUTH)
@@ -260,6 +261,7 @@ def test_other_job_kinds(env, kind):
         ({"kind": "scenes", "volume": "tiny", "scenes": [tiny_scene(), {"tf": {"points": [{"value": "a"}]}}]}, "value"),
         ({"kind": "tf_sweep", "volume": "tiny", "scene": tiny_scene(), "tfs": [{"points": [{"value": 1, "opacity": 2}]}]}, "opacity"),
         ({"kind": "tf_sweep", "volume": "tiny", "scene": tiny_scene(), "tfs": [{"pts": []}]}, "pts"),
+        ({"kind": "tf_sweep", "volume": "tiny", "scene": {"width": 999}, "tfs": [TINY_TF]}, "width"),
         ({"kind": "volumes", "volumes": ["tiny", "escape"], "scene": tiny_scene()}, "volumes"),
         ({"kind": "ingest", "source": "blob.npy", "name": "tiny"}, "name"),
     ],
