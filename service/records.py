@@ -134,7 +134,8 @@ class SqliteRecords(Records):
 
 # --- Redis -----------------------------------------------------------------------------------------------------
 
-# KEYS[1] = job hash. ARGV = n, then n pairs (field, allowed values each followed by '\x1f'), then field/value pairs.
+# KEYS = job hash, active-id set, job id. ARGV = n, then n pairs (field, allowed values each followed by '\x1f'),
+# then field/value pairs.
 _CAS = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
 local n = tonumber(ARGV[1])
@@ -152,7 +153,17 @@ for c = 1, n do
   if not ok then return 0 end
 end
 local args = {}
-for j = i, #ARGV do table.insert(args, ARGV[j]) end
+for j = i, #ARGV, 2 do
+  table.insert(args, ARGV[j])
+  table.insert(args, ARGV[j + 1])
+  if ARGV[j] == 'state' then  -- keep the set of active (queued / running) job ids in step
+    if ARGV[j + 1] == 'queued' or ARGV[j + 1] == 'running' then
+      redis.call('SADD', KEYS[2], KEYS[3])
+    else
+      redis.call('SREM', KEYS[2], KEYS[3])
+    end
+  end
+end
 if #args > 0 then redis.call('HSET', KEYS[1], unpack(args)) end
 return 1
 """
@@ -184,11 +195,17 @@ class RedisRecords(Records):
     def _index(self) -> str:
         return f"{self.prefix}:jobs"
 
+    @property
+    def _active(self) -> str:
+        return f"{self.prefix}:active"
+
     def create(self, rec: dict[str, Any]) -> None:
         rec = _blank(rec)
         pipe = self.client.pipeline()
         pipe.hset(self._key(rec["id"]), mapping={k: _enc(v) for k, v in rec.items()})
         pipe.zadd(self._index, {rec["id"]: rec["created"] or time.time()})
+        if rec["state"] in ACTIVE:
+            pipe.sadd(self._active, rec["id"])
         pipe.execute()
 
     def get(self, job_id: str) -> dict[str, Any] | None:
@@ -197,7 +214,17 @@ class RedisRecords(Records):
             return None
         return {k: _dec(k, raw.get(k)) for k in FIELDS}
 
+    def _fetch(self, ids: list[str]) -> list[dict[str, Any]]:
+        pipe = self.client.pipeline()
+        for i in ids:
+            pipe.hgetall(self._key(i))
+        return [{k: _dec(k, raw.get(k)) for k in FIELDS} for raw in pipe.execute() if raw]
+
     def list(self, limit: int = 100, states: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+        if states and set(states) <= set(ACTIVE):  # the reaper's question: answered from the active set, not a scan
+            recs = [r for r in self._fetch(sorted(self.client.smembers(self._active))) if r["state"] in states]
+            recs.sort(key=lambda r: r["created"] or 0.0, reverse=True)
+            return recs[:limit]
         out: list[dict[str, Any]] = []
         start, chunk = 0, max(limit, 100)
         while len(out) < limit:
@@ -228,7 +255,7 @@ class RedisRecords(Records):
             if k not in FIELDS:
                 raise KeyError(k)
             args += [k, _enc(v)]
-        return bool(self._cas(keys=[self._key(job_id)], args=args))
+        return bool(self._cas(keys=[self._key(job_id), self._active, job_id], args=args))
 
     def close(self) -> None:
         self.client.close()

@@ -54,8 +54,28 @@ def test_import_roots(tmp_path: Path):
         safe_import_path("a.npy", [])
 
 
-def test_sqlite_records_compare_and_set(tmp_path: Path):
-    rec = SqliteRecords(tmp_path / "jobs.db")
+@pytest.fixture(params=["sqlite", "redis"])
+def records(request, tmp_path: Path):
+    if request.param == "sqlite":
+        yield SqliteRecords(tmp_path / "jobs.db")
+        return
+    from lodcast.service.records import RedisRecords
+    from lodcast.service.testing import RedisServer, in_ci, redis_available
+
+    if redis_available() is None:
+        msg = "redis-server not installed (Debian package redis-server)"
+        if in_ci():
+            pytest.fail(msg)
+        pytest.skip(msg)
+    server = RedisServer(tmp_path / "redis")
+    try:
+        yield RedisRecords(server.url, prefix="unit")
+    finally:
+        server.stop()
+
+
+def test_records_compare_and_set(records):
+    rec = records
     now = time.time()
     rec.create({"id": "a" * 32, "kind": "turntable", "spec": "{}", "state": "queued", "total": 3, "created": now})
     assert rec.update("a" * 32, {"state": "running", "owner": "w1"}, expect={"state": ("queued",)})
@@ -70,6 +90,13 @@ def test_sqlite_records_compare_and_set(tmp_path: Path):
     assert list(st) == ["id", "kind", "state", "progress", "error", "created", "started", "finished"]
     assert st["progress"] == {"done": 1, "total": 3} and st["created"].endswith("Z") and st["started"] is None
     assert [r["id"] for r in rec.list(states=("queued",))] == ["a" * 32] and rec.list(states=("done",)) == []
+    rec.create({"id": "b" * 32, "kind": "scenes", "spec": "{}", "state": "queued", "total": 1, "created": now + 1})
+    assert [r["id"] for r in rec.list(states=("queued", "running"))] == ["b" * 32, "a" * 32]  # newest first
+    assert rec.update("a" * 32, {"state": "done", "finished": now + 2}, expect={"state": ("queued", "running")})
+    assert [r["id"] for r in rec.list(states=("queued", "running"))] == ["b" * 32]
+    assert [r["id"] for r in rec.list(states=("done",))] == ["a" * 32]
+    assert [r["id"] for r in rec.list()] == ["b" * 32, "a" * 32]
+    assert rec.get("c" * 32) is None and not rec.update("c" * 32, {"state": "queued"})
 
 
 def test_turntable_lookat_turns_like_the_orbit_camera():
