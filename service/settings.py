@@ -1,10 +1,13 @@
 """Service settings: environment variables (prefix ``LODCAST_``) or keyword arguments; nothing is read at import time."""
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
+from typing import Annotated
 
 from pydantic import Field, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 __all__ = ["Settings"]
 
@@ -26,7 +29,10 @@ class Settings(BaseSettings):
         "'sqlite:///path/queue.db', or 'redis://host:port/db' (LODCAST_QUEUE)",
     )
     queue_name: str = Field(default="lodcast", description="queue / key prefix, so that several services can share one Redis")
-    import_roots: list[Path] = Field(default_factory=list, description="server-side folders POST /volumes may ingest from")
+    import_roots: Annotated[list[Path], NoDecode] = Field(
+        default_factory=list,
+        description="server-side folders POST /volumes may ingest from (env: a JSON list or os.pathsep-separated paths)",
+    )
 
     # caps on what one request may ask for
     max_width: int = Field(default=4096, ge=1)
@@ -51,6 +57,16 @@ class Settings(BaseSettings):
     @classmethod
     def _absolute(cls, v: Path) -> Path:
         return Path(v).expanduser().resolve()
+
+    @field_validator("import_roots", mode="before")
+    @classmethod
+    def _split_roots(cls, v: object) -> object:
+        if isinstance(v, str):
+            text = v.strip()
+            if text.startswith("["):
+                return json.loads(text)
+            return [p for p in text.split(os.pathsep) if p]
+        return v
 
     @field_validator("import_roots", mode="after")
     @classmethod
