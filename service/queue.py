@@ -263,6 +263,10 @@ class JobQueue:
         except StoreExists:
             if int(rec["attempts"] or 0) < 1:  # a retry after a crash that happened after the rename: it is done
                 raise
+        except Exception:
+            if upload:  # the job fails for good: the uploaded file is of no further use
+                Path(job.source).unlink(missing_ok=True)
+            raise
         if upload:
             Path(job.source).unlink(missing_ok=True)
         engine().forget(dest)

@@ -196,7 +196,12 @@ def test_upload(env):
     r = client.post("/volumes/up2/upload?format=raw&dtype=uint8", content=b"\0" * 8, headers=AUTH)
     assert r.status_code == 422 and names_field(r, "shape")
     assert client.post("/volumes/up2/upload", content=b"x").status_code == 401
-    assert not list((root / ".uploads").glob("*")), "rejected uploads leave nothing behind"
+    r = client.post("/volumes/up3/upload?format=npy", content=b"not an npy file", headers=AUTH)
+    assert r.status_code == 202  # accepted, then the ingest job fails with the reader's message
+    st = wait_job(client, r.json()["id"])
+    assert st["state"] == "failed" and st["error"], st
+    assert client.get("/volumes/up3").status_code == 404
+    assert not list((root / ".uploads").glob("*")), "rejected or failed uploads leave nothing behind"
     client.delete("/volumes/up1", headers=AUTH)
 
 
