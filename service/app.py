@@ -124,9 +124,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.jobs = jobs
 
     def semaphore() -> asyncio.Semaphore:
-        if state["sem"] is None:  # created inside the running loop; FIFO, so waiting renders are served fairly
-            state["sem"] = asyncio.Semaphore(settings.render_concurrency)
-        return state["sem"]
+        # created inside the running loop (one per loop: test clients may run several); FIFO, so waiting renders
+        # are served in arrival order
+        loop = asyncio.get_running_loop()
+        if state["sem"] is None or state["sem"][0] is not loop:
+            state["sem"] = (loop, asyncio.Semaphore(settings.render_concurrency))
+        return state["sem"][1]
 
     def require_token(authorization: Annotated[str | None, Header(description="Bearer TOKEN, when the service has one")] = None) -> None:
         if not settings.token:
