@@ -16,7 +16,8 @@
  * fraction u of its length (u = 1/2, or the pixel's jitter). The samples therefore lie on one lattice per ray
  * whether or not blocks are skipped: skipping changes nothing but which zero-contribution samples are taken.
  *
- * The LUT's fourth channel depends on the mode (lodcast.renderer.transfer_function.Lut.kernel_table):
+ * The LUT (lut_n entries plus a copy of the last, so that entry i + 1 exists for every i <= lut_n - 1) has a
+ * fourth channel that depends on the mode (lodcast.renderer.transfer_function.Lut.kernel_table):
  *   composite: alpha_step = 1 - (1 - a)^(step / unit), exact in float64 on the host, so the uniform segments
  *              need no transcendental function; the last, shorter segment of length l takes
  *              -expm1(-(l / unit) sigma) from lut_ext, the extinction sigma = -log1p(-a) per entry (a = 1 maps
@@ -41,10 +42,9 @@
     int i_;                                                                      \
     float w_;                                                                    \
     {                                                                            \
-        float f_ = ((v) - lut_lo) * lut_scale;                                   \
-        f_ = f_ > 0.0f ? (f_ < lut_fmax ? f_ : lut_fmax) : 0.0f;                 \
-        i_ = (int)f_;                                                            \
-        i_ = i_ < lut_imax ? i_ : lut_imax;                                      \
+        float f_ = (v) * lut_scale + lut_off;                                    \
+        f_ = f_ > 0.0f ? (f_ < lut_fmax ? f_ : lut_fmax) : 0.0f; /* NaN -> 0 */  \
+        i_ = (int)f_; /* <= n - 1; the table has a copy of entry n - 1 at n */   \
         w_ = f_ - (float)i_;                                                     \
         const float4 e0_ = lut[i_], e1_ = lut[i_ + 1];                           \
         e = e0_ + (e1_ - e0_) * w_;                                              \
@@ -94,8 +94,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 
     const int4 dims = P->dims;
     const float3 qmax = convert_float3(dims.xyz - 1);
-    const float lut_lo = P->lut_lo, lut_scale = P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
-    const int lut_imax = P->lut_n - 2;
+    const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float t_stop = 1.0f - P->early_term; /* terminate once transmittance <= this */
 
     float3 C = (float3)(0.0f);
@@ -211,10 +210,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float4 res;
 #ifdef LC_MODE_MIP
     if (vmax > -INFINITY) {
-        float f = (vmax - lut_lo) * lut_scale;
+        float f = vmax * lut_scale + lut_off;
         f = f > 0.0f ? (f < lut_fmax ? f : lut_fmax) : 0.0f;
         int i0 = (int)f;
-        i0 = i0 < lut_imax ? i0 : lut_imax;
         const float4 e = lut[i0] + (lut[i0 + 1] - lut[i0]) * (f - (float)i0);
         res = (float4)(e.xyz * e.w, e.w); /* the TF's colour and opacity, as given */
     } else {

@@ -253,14 +253,16 @@ def validation_message(exc: ValidationError, prefix: str = "") -> str:
     # inside a union pydantic reports every branch; the most specific one (deepest, not a mere tag mismatch) wins
     weak = {"literal_error", "missing", "extra_forbidden", "model_type", "dict_type"}
     e = min(errs, key=lambda x: (len(errs) > 1 and x.get("type") in weak, -len(x.get("loc", ()))))
-    loc = [str(p) for p in e.get("loc", ()) if p not in ("lookat", "orbit", "function-after[_ortho(), OrbitCamera]")]
-    # drop union-branch labels pydantic inserts (e.g. 'literal['full','lossless']', 'QualityReduction')
-    loc = [p for p in loc if not (p.startswith("literal[") or p[:1].isupper() or p.startswith("function-"))]
+    # drop the branch labels pydantic inserts into union paths ('lookat', "literal['full','lossless']",
+    # 'QualityReduction', 'function-after[...]')
+    loc = [str(p) for p in e.get("loc", ())]
+    loc = [p for p in loc if p not in ("lookat", "orbit") and not (p.startswith(("literal[", "function-")) or p[:1].isupper())]
     msg = str(e.get("msg", "invalid"))
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]
     where = "" if re.match(r"^[a-z_][a-z0-9_.]*: ", msg) else ".".join(loc)  # a validator may name it itself
     text = f"{prefix}{where}: {msg}" if where else f"{prefix}{msg}"
-    if len(errs) > 1:
-        text += f" (and {len(errs) - 1} more error{'s' if len(errs) > 2 else ''})"
+    others = {x.get("loc", ("",))[:1] for x in errs} - {e.get("loc", ("",))[:1]}  # other fields, not other branches
+    if others:
+        text += f" (and {len(others)} more field{'s' if len(others) > 1 else ''} invalid)"
     return " ".join(text.split())

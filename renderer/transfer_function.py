@@ -88,10 +88,11 @@ class Lut:
     @property
     def table(self) -> np.ndarray:
         """(n, 4) float32: r, g, b and the extinction σ = −log1p(−a) per unit distance."""
-        return self.kernel_table("extinction")
+        return self.kernel_table("extinction")[:-1]
 
     def kernel_table(self, kind: str, ratio: float = 1.0) -> np.ndarray:
-        """(n, 4) float32 for the kernel: colour and, in the fourth channel, per `kind`:
+        """(n + 1, 4) float32 for the kernel (the last entry repeated once, so that the kernel reads entries i and
+        i + 1 for any i <= n - 1 without a second clamp): colour and, in the fourth channel, per `kind`:
         "alpha": the opacity of one step of `ratio` = step/unit units, 1 − (1 − a)^ratio (exact, float64);
         "depth": that step's optical depth ratio·σ; "extinction": σ; "opacity": a as given (MIP)."""
         t = np.empty((self.n, 4), np.float32)
@@ -106,7 +107,7 @@ class Lut:
             t[:, 3] = self.opacity
         else:
             raise ValueError(f"unknown LUT kind {kind!r}")
-        return t
+        return np.concatenate([t, t[-1:]])
 
     @property
     def values(self) -> np.ndarray:
