@@ -116,6 +116,10 @@ def _add_jobs(sub: argparse._SubParsersAction) -> None:
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="fetch a real MR head from a package registry, ingest it and show what lodcast does")
     p.add_argument("--out", default="demo-output", help="folder for the store and the pictures (default ./demo-output)")
+    p.add_argument("--size", type=int, default=384, help="picture width and height in pixels (default 384)")
+    p.add_argument("--serve", action=argparse.BooleanOptionalAction, default=True, help="end by serving the volume over HTTP (default on)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
     p.set_defaults(func=_cmd_demo)
 
 
@@ -132,7 +136,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     s = store.summary()
     print(f"store: {dest}  shape {s['shape']} {s['dtype']}, spacing {s['spacing']}, {s['blocks']} blocks of {s['block_size']}^3, "
           f"{len(s['levels'])} levels, {s['shards']} shard files, {s['bytes_on_disk'] / 1e6:.1f} MB on disk, value range {s['value_range']}")
-    return 0
+    from lodcast.renderer.demo import render_demo
+
+    pictures = render_demo(store, out / "pictures", size=args.size)
+    print(f"{len(pictures)} pictures in {out / 'pictures'} (each with its scene as JSON: lodcast render {dest} --scene FILE -o OUT.png)")
+    if not args.serve:
+        return 0
+    from lodcast.service.commands import serve_forever
+
+    return serve_forever(root=out, host=args.host, port=args.port)
 
 
 # --- entry point ---------------------------------------------------------------------------------------------
