@@ -32,6 +32,10 @@ typedef struct LcParams {
     int height;
     uint seed;          /* jitter */
     int max_samples;    /* per ray, host-checked bound (int arithmetic on sample indices stays in range) */
+    float lut_vis_lo;   /* the LUT interpolant has non-zero opacity only for LUT coordinates f in */
+    float lut_vis_hi;   /* (lut_vis_lo, lut_vis_hi); samples outside are transparent without a lookup */
+    int pad0;
+    int pad1;
 } LcParams;
 
 #endif

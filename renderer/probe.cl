@@ -11,4 +11,5 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     vstore4(P->grid, 1, n);
     n[8] = P->lut_n; n[9] = P->width; n[10] = P->height; n[11] = (int)P->seed; n[12] = P->max_samples;
     n[13] = (int)sizeof(LcParams);
+    f[43] = P->lut_vis_lo; f[44] = P->lut_vis_hi;
 }

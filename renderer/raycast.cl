@@ -37,6 +37,9 @@
 #define LC_SAMPLE_BODY(v, r)                                                     \
     if ((v) == (v)) vmax = (v) > vmax ? (v) : vmax;
 #else
+/* Where the TF is zero (and for NaN) a sample is transparent: no lookup, no blend — exactly what the lookup and
+ * blend would give (alpha 0 adds nothing and leaves T unchanged). */
+#define lc_visible(v) (((v) * lut_scale + lut_off) > lut_vis_lo && ((v) * lut_scale + lut_off) < lut_vis_hi)
 #define LC_TF_LOOKUP(v, e)                                                       \
     float4 e;                                                                    \
     int i_;                                                                      \
@@ -51,7 +54,7 @@
     }
 #ifdef LC_PRECISE
 #define LC_SAMPLE_BODY(v, r)                                                     \
-    if ((v) == (v)) {                                                            \
+    if (lc_visible(v)) {                                                         \
         LC_TF_LOOKUP(v, e)                                                       \
         const float depth = e.w * (r);                                           \
         const float alpha = -expm1(-depth);                                      \
@@ -70,7 +73,7 @@
 /* r < 0: a uniform segment (alpha from the table); else the last segment's length in TF units (alpha from the
  * extinction table: 1 - (1 - a)^r = -expm1(-r sigma), exact even where the step's alpha rounds to 1 in float32) */
 #define LC_SAMPLE_BODY(v, r)                                                     \
-    if ((v) == (v)) {                                                            \
+    if (lc_visible(v)) {                                                         \
         LC_TF_LOOKUP(v, e)                                                       \
         float alpha = e.w;                                                       \
         if ((r) >= 0.0f) {                                                       \
@@ -95,6 +98,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     const int4 dims = P->dims;
     const float3 qmax = convert_float3(dims.xyz - 1);
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
+    const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
     const float t_stop = 1.0f - P->early_term; /* terminate once transmittance <= this */
 
     float3 C = (float3)(0.0f);

@@ -91,6 +91,7 @@ def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: 
     p["width"], p["height"] = scene.width, scene.height
     p["seed"] = scene.sampling.seed
     p["max_samples"] = max_samples
+    p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
     return p.reshape(1)
 
 

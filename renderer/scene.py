@@ -168,7 +168,10 @@ Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget]
 
 
 class Sampling(_Model):
-    """`step` is in voxels of the finest level: multiples of the smallest spacing."""
+    """`step` is in voxels of the finest level: multiples of the smallest spacing. `interpolation` chooses how
+    the brick atlas is sampled across blocks of different levels; at quality 'full' every block is at level 0 and
+    both choices are exactly trilinear interpolation. `priority_map` belongs to the dual-TF mode (tf2).
+    `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image."""
 
     step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5
     interpolation: Literal["nearest_block", "interblock"] = "interblock"

@@ -34,10 +34,14 @@ PARAMS_DTYPE = np.dtype(
         ("height", np.int32),
         ("seed", np.uint32),
         ("max_samples", np.int32),
+        ("lut_vis_lo", np.float32),
+        ("lut_vis_hi", np.float32),
+        ("pad0", np.int32),
+        ("pad1", np.int32),
     ],
     align=True,
 )
-assert PARAMS_DTYPE.itemsize == 224 and PARAMS_DTYPE.itemsize % 16 == 0
+assert PARAMS_DTYPE.itemsize == 240 and PARAMS_DTYPE.itemsize % 16 == 0
 
 
 def new_params() -> np.ndarray:

@@ -113,6 +113,14 @@ class Lut:
     def values(self) -> np.ndarray:
         return self.lo + np.arange(self.n) / self.scale
 
+    def visible_span(self) -> tuple[float, float]:
+        """Open interval of LUT coordinates f (entry index, fractional) where the linear interpolant of the
+        opacities is non-zero: (first non-zero entry − 1, last non-zero entry + 1); empty when all are zero."""
+        nz = np.flatnonzero(self.opacity > 0.0)
+        if not nz.size:
+            return float(self.n + 1), -2.0
+        return float(nz[0] - 1), float(nz[-1] + 1)
+
     def visible(self, vmin, vmax) -> np.ndarray:
         """True where the LUT's interpolant has non-zero opacity somewhere on [vmin, vmax] (arrays, any shape).
         Conservative: the index range is widened by one entry each side. Non-finite bounds (NaN-only blocks)

@@ -9,7 +9,7 @@ from lodcast.renderer.structs import PARAMS_DTYPE, new_params
 
 
 def test_params_dtype_size_and_alignment():
-    assert PARAMS_DTYPE.itemsize == 224
+    assert PARAMS_DTYPE.itemsize == 240
     assert PARAMS_DTYPE.itemsize % 16 == 0
     for name in ("eye", "cam_f", "box_lo", "background", "dims", "grid"):
         assert PARAMS_DTYPE.fields[name][1] % 16 == 0, name  # float4/int4 are 16-byte aligned in OpenCL
@@ -26,9 +26,10 @@ def test_every_field_reads_back_through_the_kernel():
     for k, name in enumerate(scal_f):
         p[name] = 100.25 + k
     p["lut_n"], p["width"], p["height"], p["seed"], p["max_samples"] = 11, 12, 13, 14, 15
+    p["lut_vis_lo"], p["lut_vis_hi"] = -3.5, 77.25
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    f = np.zeros(43, np.float32)
+    f = np.zeros(45, np.float32)
     n = np.zeros(14, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
@@ -44,3 +45,4 @@ def test_every_field_reads_back_through_the_kernel():
         assert f[36 + k] == p[name][0], name
     assert n[:8].tolist() == [1, 2, 3, 4, 5, 6, 7, 8]
     assert n[8:13].tolist() == [11, 12, 13, 14, 15]
+    assert f[43:45].tolist() == [-3.5, 77.25]

@@ -127,3 +127,19 @@ def test_visibility_uses_max_over_interval_not_endpoints():
     assert vis.tolist() == [True, False, False, False, False]
     # conservative at the edge of the support: a block reaching just into (4, 6) is visible
     assert lut.visible(np.array([0.0]), np.array([4.01]))[0]
+
+
+def test_visible_span_bounds_the_interpolants_support():
+    """The kernel skips lookup and blend for LUT coordinates outside visible_span(): the interpolated opacity
+    must be exactly zero there, and the span must not be empty where the TF is not."""
+    t = tf([{"value": 4, "opacity": 0}, {"value": 5, "opacity": 0.5}, {"value": 6, "opacity": 0}])
+    lut = build_lut(t, (0, 10))
+    lo, hi = lut.visible_span()
+    f = np.linspace(0, lut.n - 1, 200001)
+    i0 = np.minimum(f.astype(int), lut.n - 2)
+    w = f - i0
+    a = lut.opacity[i0] * (1 - w) + lut.opacity[i0 + 1] * w
+    assert np.all(a[(f <= lo) | (f >= hi)] == 0)
+    assert a[(f > lo) & (f < hi)].max() == 0.5
+    empty = build_lut(tf([{"value": 0, "opacity": 0}]), (0, 1)).visible_span()
+    assert empty[0] > empty[1]
