@@ -27,7 +27,8 @@ import numpy as np
 import pytest
 
 import lodcast
-from reference import analytic_slab_alpha, box_bounds, delta_e, orbit_to_lookat, reference_render
+from reference import analytic_slab_alpha, delta_e, orbit_to_lookat, reference_render
+from scenes import aim_at, axis_camera, centroid, const_tf, predicted_pixel
 
 TOL = 2e-3  # DESIGN/issue 4: float32 kernel vs float64 reference, max abs error on premultiplied RGBA
 STEPS = (0.125, 0.25, 0.5, 1.0, 2.0)  # "from 1/8 to 2 voxels"
@@ -77,63 +78,6 @@ def kernel(st: Any, scene: dict, step: float = 0.5, **sampling: Any) -> tuple[np
     return img.astype(np.float64), res.report
 
 
-def const_tf(a: float, color=(0.8, 0.5, 0.2), unit: float | None = None, lo: float = -10.0, hi: float = 10.0) -> dict:
-    tf = {"points": [{"value": lo, "color": list(color), "opacity": a}, {"value": hi, "color": list(color), "opacity": a}]}
-    if unit is not None:
-        tf["unit_distance"] = unit
-    return tf
-
-
-def axis_camera(axis: str, shape, spacing=(1, 1, 1), origin=(0, 0, 0), view_height: float | None = None) -> dict:
-    """Orthographic camera looking along +axis (world x, y or z) through the box centre."""
-    lo, hi = box_bounds(shape, spacing, origin)
-    c = (lo + hi) / 2
-    k = "xyz".index(axis)
-    eye = c.copy()
-    eye[k] = lo[k] - 10.0
-    up = [0.0, 0.0, 1.0] if axis != "z" else [0.0, 1.0, 0.0]
-    vh = view_height if view_height is not None else 0.4 * float(np.delete(hi - lo, k).min())
-    return {"eye": eye.tolist(), "target": c.tolist(), "up": up, "projection": "orthographic", "view_height": vh}
-
-
-def basis(cam: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    eye, tgt, up = (np.asarray(cam[k], float) for k in ("eye", "target", "up"))
-    f = (tgt - eye) / np.linalg.norm(tgt - eye)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    return eye, f, r, np.cross(r, f)
-
-
-def predicted_pixel(cam: dict, W: int, H: int, p: np.ndarray) -> tuple[float, float]:
-    """DESIGN.md's pixel formula inverted: the (row, col) whose ray passes through world point p."""
-    eye, f, r, u = basis(cam)
-    d = p - eye
-    if cam.get("projection") == "orthographic":
-        xc, yc = d @ r / (cam["view_height"] / 2), d @ u / (cam["view_height"] / 2)
-    else:
-        t = math.tan(math.radians(cam["fov"]) / 2)
-        xc, yc = d @ r / (d @ f) / t, d @ u / (d @ f) / t
-    return (1 - yc) * H / 2 - 0.5, (xc * H / W + 1) * W / 2 - 0.5
-
-
-def aim_at(p: np.ndarray, pixel: tuple[int, int], W: int, H: int, f0, up, dist: float, fov: float | None = None,
-           view_height: float | None = None) -> dict:
-    """A camera looking along f0 whose pixel (i, j) ray passes exactly through p (DESIGN.md's formula)."""
-    f = np.asarray(f0, float) / np.linalg.norm(f0)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    i, j = pixel
-    px, py = (2 * (j + 0.5) / W - 1) * W / H, 1 - 2 * (i + 0.5) / H
-    if view_height is None:
-        t = math.tan(math.radians(fov) / 2)
-        d = f + px * t * r + py * t * u
-        eye = p - dist * d / np.linalg.norm(d)
-        return {"eye": eye.tolist(), "target": (eye + dist * f).tolist(), "up": list(up), "fov": fov}
-    eye = p - dist * f - view_height / 2 * (px * r + py * u)
-    return {"eye": eye.tolist(), "target": (eye + dist * f).tolist(), "up": list(up), "projection": "orthographic", "view_height": view_height}
-
-
 def blob(shape=(20, 24, 28), centre=(15.0, 11.0, 10.0), radii=(6.0, 5.0, 4.0)) -> np.ndarray:
     zz, yy, xx = np.mgrid[: shape[0], : shape[1], : shape[2]].astype(float)
     (cx, cy, cz), (rx, ry, rz) = centre, radii
@@ -159,7 +103,7 @@ def test_constant_slab_any_step(store, axis: str, step: float) -> None:
     it would be off by ≥ 0.02)."""
     shape = (6, 9, 13)
     st = store("slab", np.full(shape, 3.0))
-    scene = {"camera": axis_camera(axis, shape), "width": 4, "height": 3, "tf": const_tf(0.3, unit=1.0)}
+    scene = {"camera": axis_camera(axis, shape), "width": 4, "height": 3, "tf": const_tf(0.3, unit=1.0, lo=-10.0, hi=10.0)}
     img, _ = kernel(st, scene, step)
     want = analytic_slab_alpha(0.3, {"x": 13, "y": 9, "z": 6}[axis], 1.0)
     assert np.abs(img[..., 3] - want).max() <= TOL
@@ -260,11 +204,6 @@ MARKER_TF = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"va
                         {"value": 1.0, "color": [1, 1, 1], "opacity": 1.0}]}
 
 
-def _centroid(a: np.ndarray) -> tuple[float, float]:
-    H, W = a.shape
-    return (a * np.arange(H)[:, None]).sum() / a.sum(), (a * np.arange(W)[None, :]).sum() / a.sum()
-
-
 @pytest.mark.parametrize("form", ["lookat", "orbit"])
 @pytest.mark.parametrize("projection", ["perspective", "orthographic"])
 def test_marker_voxel_on_predicted_pixel(store, form: str, projection: str) -> None:
@@ -286,7 +225,7 @@ def test_marker_voxel_on_predicted_pixel(store, form: str, projection: str) -> N
     img, _ = kernel(st, {"camera": cam, "width": W, "height": H, "tf": MARKER_TF}, 0.125)
     i, j = predicted_pixel(look, W, H, p)
     assert img[..., 3].max() > 0.5
-    ci, cj = _centroid(img[..., 3])
+    ci, cj = centroid(img[..., 3])
     assert abs(ci - i) < 0.25 and abs(cj - j) < 0.25, ((ci, cj), (i, j))
 
 
@@ -322,7 +261,7 @@ def test_near_opaque_thin_layer(store, step: float, unit: float) -> None:
     1.0000000e-6 ± 6e-8 relative…) or a clamp would show. rgb = c·A."""
     vol = np.full((1, 6, 6), 1.0)
     st = store("thin", vol)
-    scene = {"camera": axis_camera("z", vol.shape, view_height=2.0), "width": 3, "height": 3, "tf": const_tf(0.999999, (0.2, 0.4, 0.6), unit)}
+    scene = {"camera": axis_camera("z", vol.shape, view_height=2.0), "width": 3, "height": 3, "tf": const_tf(0.999999, (0.2, 0.4, 0.6), unit, lo=-10.0, hi=10.0)}
     img, _ = kernel(st, scene, step)
     want = 1 - (1 - 0.999999) ** (1 / unit)
     assert np.abs(img[..., 3] - want).max() <= TOL
@@ -335,7 +274,7 @@ def test_near_opaque_slab(store, a: float, step: float) -> None:
     """Through 13 voxels a = 0.999999 and a = 1 are opaque: A = 1 and rgb = c (within TOL), finite."""
     shape = (6, 9, 13)
     st = store("slab", np.full(shape, 3.0))
-    img, _ = kernel(st, {"camera": axis_camera("x", shape), "width": 3, "height": 3, "tf": const_tf(a, (0.1, 0.7, 0.4))}, step)
+    img, _ = kernel(st, {"camera": axis_camera("x", shape), "width": 3, "height": 3, "tf": const_tf(a, (0.1, 0.7, 0.4), lo=-10.0, hi=10.0)}, step)
     assert np.abs(img[..., 3] - 1.0).max() <= TOL
     assert np.abs(img[..., :3] - np.array([0.1, 0.7, 0.4])).max() <= TOL
 
@@ -365,7 +304,7 @@ def test_tiny_step(store) -> None:
     tiny opacities must still give the slab law, and the ramp must match the continuous reference."""
     shape = (6, 9, 13)
     st = store("slab", np.full(shape, 3.0))
-    img, rep = kernel(st, {"camera": axis_camera("x", shape), "width": 2, "height": 2, "tf": const_tf(0.3, unit=1.0)}, 1e-4)
+    img, rep = kernel(st, {"camera": axis_camera("x", shape), "width": 2, "height": 2, "tf": const_tf(0.3, unit=1.0, lo=-10.0, hi=10.0)}, 1e-4)
     want = analytic_slab_alpha(0.3, 13, 1.0)
     assert np.abs(img[..., 3] - want).max() <= TOL
     assert rep["samples"] >= 4 * 13 / 1e-4 * 0.99
@@ -383,7 +322,7 @@ def test_huge_step(store) -> None:
     shape = (6, 9, 13)
     st = store("slab", np.full(shape, 3.0))
     for axis, L in (("x", 13), ("y", 9), ("z", 6)):
-        img, _ = kernel(st, {"camera": axis_camera(axis, shape), "width": 3, "height": 2, "tf": const_tf(0.3, unit=1.0)}, 10.0)
+        img, _ = kernel(st, {"camera": axis_camera(axis, shape), "width": 3, "height": 2, "tf": const_tf(0.3, unit=1.0, lo=-10.0, hi=10.0)}, 10.0)
         assert np.abs(img[..., 3] - analytic_slab_alpha(0.3, L, 1.0)).max() <= TOL, axis
     img, _ = kernel(store("blob", blob()), BLOB_SCENE, 10.0)
     assert img[..., 3].max() > 0.05
@@ -400,7 +339,7 @@ def test_nan_plane(store, nan_x: int, clear: float) -> None:
     vol = np.full((4, 4, n), 2.0)
     vol[:, :, nan_x] = np.nan
     st = store(f"nanplane{nan_x}", vol)
-    img, _ = kernel(st, {"camera": axis_camera("x", vol.shape, view_height=2.0), "width": 3, "height": 3, "tf": const_tf(a, unit=1.0)}, step)
+    img, _ = kernel(st, {"camera": axis_camera("x", vol.shape, view_height=2.0), "width": 3, "height": 3, "tf": const_tf(a, unit=1.0, lo=-10.0, hi=10.0)}, step)
     bound = TOL + 2 * step * -math.log1p(-a)
     assert np.abs(img[..., 3] - analytic_slab_alpha(a, n - clear, 1.0)).max() <= bound
 
@@ -430,7 +369,7 @@ def test_one_voxel_thick_volume(store, step: float) -> None:
     vol = np.full((1, 6, 6), 5.0)
     spacing = (2.0, 1.0, 1.0)
     st = store("thin2", vol, spacing)
-    tf = const_tf(0.4, unit=1.0)
+    tf = const_tf(0.4, unit=1.0, lo=-10.0, hi=10.0)
     img, _ = kernel(st, {"camera": axis_camera("z", vol.shape, spacing, view_height=2.0), "width": 3, "height": 3, "tf": tf}, step)
     assert np.abs(img[..., 3] - analytic_slab_alpha(0.4, 2.0, 1.0)).max() <= TOL
     th = math.radians(30)
@@ -449,7 +388,7 @@ def test_anisotropic_slab(store, axis: str, length: float, step: float) -> None:
     shape, spacing, origin = (11, 9, 7), (0.3, 1.0, 5.0), (2.0, -4.0, 10.0)
     st = store("aniso_const", np.full(shape, 1.0), spacing, origin)
     img, _ = kernel(st, {"camera": axis_camera(axis, shape, spacing, origin, view_height=0.5), "width": 3, "height": 2,
-                         "tf": const_tf(0.05)}, step)
+                         "tf": const_tf(0.05, lo=-10.0, hi=10.0)}, step)
     assert np.abs(img[..., 3] - analytic_slab_alpha(0.05, length, 0.3)).max() <= TOL
 
 
@@ -546,7 +485,7 @@ def test_jitter_reproducible_and_exact_on_constant_regions(store, blob_ref: np.n
     shape = (6, 9, 13)
     st = store("slab", np.full(shape, 3.0))
     for step in (0.5, 2.0):
-        img, _ = kernel(st, {"camera": axis_camera("x", shape), "width": 4, "height": 3, "tf": const_tf(0.3, unit=1.0)}, step, jitter=True, seed=7)
+        img, _ = kernel(st, {"camera": axis_camera("x", shape), "width": 4, "height": 3, "tf": const_tf(0.3, unit=1.0, lo=-10.0, hi=10.0)}, step, jitter=True, seed=7)
         assert np.abs(img[..., 3] - analytic_slab_alpha(0.3, 13, 1.0)).max() <= TOL
     sb = store("blob", blob())
     a, _ = kernel(sb, BLOB_SCENE, 0.25, jitter=True, seed=3)

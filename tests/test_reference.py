@@ -23,37 +23,9 @@ from reference import (
     reference_render,
     sample_field,
 )
+from scenes import aim_at, axis_camera, basis, centroid, const_tf, predicted_pixel
 
 RED, BLUE = [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]
-
-
-def const_tf(a: float, color=(0.8, 0.5, 0.2), unit: float | None = None) -> dict:
-    tf = {"points": [{"value": -1e3, "color": list(color), "opacity": a}, {"value": 1e3, "color": list(color), "opacity": a}]}
-    if unit is not None:
-        tf["unit_distance"] = unit
-    return tf
-
-
-def axis_camera(axis: str, shape, spacing=(1, 1, 1), origin=(0, 0, 0), view_height: float | None = None) -> dict:
-    """Orthographic camera looking along +axis through the box centre (world axes x, y, z)."""
-    lo, hi = box_bounds(shape, spacing, origin)
-    c = (lo + hi) / 2
-    k = "xyz".index(axis)
-    eye = c.copy()
-    eye[k] = lo[k] - 10.0
-    up = [0.0, 0.0, 1.0] if axis != "z" else [0.0, 1.0, 0.0]
-    # default: small enough that every pixel of an image up to 2:1 sees the box across its full extent
-    vh = view_height if view_height is not None else 0.4 * float(np.delete(hi - lo, k).min())
-    return {"eye": eye.tolist(), "target": c.tolist(), "up": up, "projection": "orthographic", "view_height": vh}
-
-
-def basis(cam: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """DESIGN.md: f = normalize(target − eye), r = normalize(f × up), u = r × f (written out again here)."""
-    eye, tgt, up = (np.asarray(cam[k], float) for k in ("eye", "target", "up"))
-    f = (tgt - eye) / np.linalg.norm(tgt - eye)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    return eye, f, r, np.cross(r, f)
 
 
 def ortho_pixel_points(cam: dict, W: int, H: int) -> np.ndarray:
@@ -229,23 +201,6 @@ MARKER_TF = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"va
                         {"value": 1.0, "color": [1, 1, 1], "opacity": 1.0}]}
 
 
-def _predicted_pixel(cam: dict, W: int, H: int, p: np.ndarray) -> tuple[float, float]:
-    """DESIGN.md's pixel formula inverted, written out independently of reference.project_point."""
-    eye, f, r, u = basis(cam)
-    d = p - eye
-    if cam.get("projection") == "orthographic":
-        xc, yc = d @ r / (cam["view_height"] / 2), d @ u / (cam["view_height"] / 2)
-    else:
-        t = math.tan(math.radians(cam["fov"]) / 2)
-        xc, yc = d @ r / (d @ f) / t, d @ u / (d @ f) / t
-    return (1 - yc) * H / 2 - 0.5, (xc * H / W + 1) * W / 2 - 0.5
-
-
-def _centroid(a: np.ndarray) -> tuple[float, float]:
-    H, W = a.shape
-    return (a * np.arange(H)[:, None]).sum() / a.sum(), (a * np.arange(W)[None, :]).sum() / a.sum()
-
-
 @pytest.mark.parametrize("form", ["lookat", "orbit"])
 @pytest.mark.parametrize("projection", ["perspective", "orthographic"])
 def test_marker_voxel_lands_on_predicted_pixel(form: str, projection: str) -> None:
@@ -266,9 +221,9 @@ def test_marker_voxel_lands_on_predicted_pixel(form: str, projection: str) -> No
         look = cam
     img = reference_render(vol, {"camera": cam, "width": W, "height": H, "tf": MARKER_TF})
     a = img[..., 3]
-    i, j = _predicted_pixel(look, W, H, p)
+    i, j = predicted_pixel(look, W, H, p)
     assert 3 < i < H - 3 and 3 < j < W - 3
-    ci, cj = _centroid(a)
+    ci, cj = centroid(a)
     assert abs(ci - i) < 0.25 and abs(cj - j) < 0.25, ((ci, cj), (i, j))
     assert (a > 0.01).sum() < 40
     assert np.allclose(project_point(cam, W, H, p, vol.shape), (i, j), atol=1e-9)
@@ -342,25 +297,6 @@ def test_anisotropic_spacing_slab(axis: str, length: float) -> None:
     assert np.abs(img[..., 3] - analytic_slab_alpha(0.05, length, 0.3)).max() < 1e-11
 
 
-def aim_at(p: np.ndarray, pixel: tuple[int, int], W: int, H: int, f0, up, dist: float, fov: float | None = None,
-           view_height: float | None = None) -> dict:
-    """A camera looking along f0 whose pixel (i, j) ray passes exactly through world point p, built from
-    DESIGN.md's pixel formula: the basis depends only on f0 and up, so the eye is placed on that ray."""
-    f = np.asarray(f0, float) / np.linalg.norm(f0)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    i, j = pixel
-    px, py = (2 * (j + 0.5) / W - 1) * W / H, 1 - 2 * (i + 0.5) / H
-    if view_height is None:
-        t = math.tan(math.radians(fov) / 2)
-        d = f + px * t * r + py * t * u
-        eye = p - dist * d / np.linalg.norm(d)
-        return {"eye": eye.tolist(), "target": (eye + dist * f).tolist(), "up": list(up), "fov": fov}
-    eye = p - dist * f - view_height / 2 * (px * r + py * u)
-    return {"eye": eye.tolist(), "target": (eye + dist * f).tolist(), "up": list(up), "projection": "orthographic", "view_height": view_height}
-
-
 @pytest.mark.parametrize("projection", ["perspective", "orthographic"])
 def test_anisotropic_marker_exact_pixel(projection: str) -> None:
     """spacing (0.3, 1, 5), origin (1, 2, 3): the voxel (13, 4, 5) sits at world (x, y, z) = (28, 6, 4.9).
@@ -380,7 +316,7 @@ def test_anisotropic_marker_exact_pixel(projection: str) -> None:
     others = a.copy()
     others[pix] = 0
     assert others.max() < 0.999
-    assert np.allclose(_predicted_pixel(cam, W, H, p), pix, atol=1e-9)
+    assert np.allclose(predicted_pixel(cam, W, H, p), pix, atol=1e-9)
 
 
 # --------------------------------------------------------------------------------------- thin volumes
