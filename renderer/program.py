@@ -3,7 +3,7 @@
 Programs are built from the `.cl` files beside this module (our own `#include "..."` lines are resolved here, so
 no include path reaches the OpenCL compiler) and the `-D` options of a KernelConfig, and cached by
 sha256(source, options, platform, device, driver) — in memory for the process and on disk under the user cache
-directory (``$LODCAST_CACHE_DIR`` or platformdirs' ``user_cache_dir("lodcast")``/kernels) as device binaries,
+directory (see `cache_dir`) as device binaries,
 so a second process skips the compiler. Every `get_program` says where the program came from and, when it was
 built, how long that took.
 """
@@ -43,7 +43,9 @@ class Built:
 
 
 def cache_dir() -> Path:
-    env = os.environ.get("LODCAST_CACHE_DIR")
+    """``$LODCAST_CACHE_DIR/kernels``, else ``$LODCAST_CACHE/kernels`` (the variable the demo's downloads use),
+    else the platform's user cache directory for lodcast."""
+    env = os.environ.get("LODCAST_CACHE_DIR") or os.environ.get("LODCAST_CACHE")
     if env:
         return Path(env) / "kernels"
     import platformdirs
