@@ -40,14 +40,15 @@
 /* Where the TF is zero (and for NaN) a sample is transparent: no lookup, no blend — exactly what the lookup and
  * blend would give (alpha 0 adds nothing and leaves T unchanged). */
 #define lc_visible(v) (((v) * lut_scale + lut_off) > lut_vis_lo && ((v) * lut_scale + lut_off) < lut_vis_hi)
+/* only after lc_visible(v): that bounds f below lut_vis_hi <= lut_n, so only the lower clamp is needed */
 #define LC_TF_LOOKUP(v, e)                                                       \
     float4 e;                                                                    \
     int i_;                                                                      \
     float w_;                                                                    \
     {                                                                            \
         float f_ = (v) * lut_scale + lut_off;                                    \
-        f_ = f_ > 0.0f ? (f_ < lut_fmax ? f_ : lut_fmax) : 0.0f; /* NaN -> 0 */  \
-        i_ = (int)f_; /* <= n - 1; the table has a copy of entry n - 1 at n */   \
+        f_ = f_ > 0.0f ? f_ : 0.0f;                                              \
+        i_ = (int)f_; /* f_ < lut_vis_hi <= n: i_ <= n - 1, and entry n exists */ \
         w_ = f_ - (float)i_;                                                     \
         const float4 e0_ = lut[i_], e1_ = lut[i_ + 1];                           \
         e = e0_ + (e1_ - e0_) * w_;                                              \
@@ -129,6 +130,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
         const float3 q0 = (o - P->origin.xyz) * P->inv_spacing.xyz;
         const float3 dq = d * P->inv_spacing.xyz;
+        /* sample k < nlast sits at t = t0 + (k + u) dt, i.e. at voxel coordinates qu + k dqk */
+        const float3 qu = q0 + (t0 + u * dt) * dq, dqk = dt * dq;
 #define LC_POS(kk) ((kk) < nlast ? t0 + ((float)(kk) + u) * dt : last + u * len_last)
 
         int k = 0;
@@ -190,7 +193,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             /* uniform segments: no transcendental call in this loop (a call makes every live value spill) */
             const int k_uni = k_end < nlast ? k_end : nlast;
             for (; k < k_uni && !done; ++k) {
-                const float v = lc_sample(vol, dims, qmax, q0 + (t0 + ((float)k + u) * dt) * dq);
+                const float v = lc_sample(vol, dims, qmax, qu + (float)k * dqk);
 #ifdef LC_PRECISE
                 LC_SAMPLE_BODY(v, 1.0f)
 #else
