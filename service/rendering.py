@@ -30,12 +30,15 @@ class RequestInvalid(LodcastError, ValueError):
         return cls([{"loc": list(loc), "msg": f"{field}: {msg}" if field else msg, "type": type_}])
 
 
-def _from_pydantic(exc: Any, loc: tuple) -> RequestInvalid:
+def _from_pydantic(exc: Any, loc: tuple, drop: int = 0) -> RequestInvalid:
+    """FastAPI-shaped errors, each message starting with the field's dotted path (`drop` leading parts of
+    pydantic's own path are replaced by `loc`)."""
     errs = []
     for e in exc.errors(include_url=False):
-        where = [*loc, *e.get("loc", ())]
+        where = [*loc, *e.get("loc", ())[drop:]]
         field = ".".join(str(p) for p in where if p != "body")
-        errs.append({"loc": where, "msg": f"{field}: {e.get('msg')}", "type": e.get("type", "value_error")})
+        msg = str(e.get("msg", "invalid")).removeprefix("Value error, ")
+        errs.append({"loc": where, "msg": f"{field}: {msg}", "type": e.get("type", "value_error")})
     return RequestInvalid(errs)
 
 
@@ -74,12 +77,7 @@ def check_tf(data: Any, loc: tuple) -> dict:
     try:
         Scene.model_validate({"tf": data})
     except ValidationError as exc:
-        errs = []
-        for e in exc.errors(include_url=False):
-            where = [*loc, *e.get("loc", ())[1:]]
-            field = ".".join(str(p) for p in where if p != "body")
-            errs.append({"loc": where, "msg": f"{field}: {e.get('msg')}", "type": e.get("type", "value_error")})
-        raise RequestInvalid(errs) from None
+        raise _from_pydantic(exc, loc, drop=1) from None
     return data
 
 
