@@ -126,8 +126,7 @@ class _LevelWriter:
     def add(self, rows: np.ndarray) -> None:
         n = rows.shape[0]
         if self.filled == 0 and (n == self.depth or self.start + n == self.array.shape[0]):
-            self.array[self.start : self.start + n] = rows  # a whole shard depth: no need to buffer
-            self.start += n
+            self._write(rows)  # a whole shard depth: no need to buffer
             return
         if self.buffer is None:
             self.buffer = np.empty((self.depth,) + tuple(self.array.shape[1:]), self.array.dtype)
@@ -138,9 +137,16 @@ class _LevelWriter:
 
     def flush(self) -> None:
         if self.filled and self.buffer is not None:
-            self.array[self.start : self.start + self.filled] = self.buffer[: self.filled]
-            self.start += self.filled
+            self._write(self.buffer[: self.filled])
             self.filled = 0
+
+    def _write(self, rows: np.ndarray) -> None:
+        """One band of shards across y at a time: every call still writes whole shards, and zarr's encoding
+        temporaries stay a band's size rather than a slab's."""
+        band = self.array.shards[1]
+        for y0 in range(0, rows.shape[1], band):
+            self.array[self.start : self.start + rows.shape[0], y0 : y0 + band] = rows[:, y0 : y0 + band]
+        self.start += rows.shape[0]
 
 
 def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
@@ -249,7 +255,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         # Each slab is counted alone: into its own blocks, and its first and last slices into the borders of
         # the blocks above and below. A row of blocks is complete once its next slab is counted, so only the
         # slab being counted and the one being decoded are alive.
-        read = lambda z: np.asarray(level0[z * b : (z + 1) * b])  # noqa: E731
+        read = lambda z: _read_banded(level0, z * b, (z + 1) * b)  # noqa: E731
         acc: dict[int, list[np.ndarray]] = {}
         task = pool.submit(_slab_histograms, read(0), lay, bins)
         for bz in range(gz):
@@ -327,6 +333,16 @@ def _layer_histograms(layer: np.ndarray, lay: Layout, bins: Bins) -> tuple[np.nd
         bmin[:-1], bmax[:-1] = lo_f(bmin[:-1], cmin[right]), hi_f(bmax[:-1], cmax[right])
         mn[by], mx[by] = bmin, bmax
     return hist, mn, mx
+
+
+def _read_banded(array: zarr.Array, z0: int, z1: int) -> np.ndarray:
+    """array[z0:z1] read one band of shards across y at a time, so decoding temporaries stay a band's size."""
+    z1 = min(z1, array.shape[0])
+    out = np.empty((z1 - z0,) + tuple(array.shape[1:]), array.dtype)
+    band = array.shards[1]
+    for y0 in range(0, out.shape[1], band):
+        out[:, y0 : y0 + band] = array[z0:z1, y0 : y0 + band]
+    return out
 
 
 def _read_slab(src: VolumeSource, lay: Layout, bz: int) -> np.ndarray:
