@@ -111,6 +111,42 @@ def _add_jobs(sub: argparse._SubParsersAction) -> None:
     add_jobs(sub)
 
 
+# --- report -------------------------------------------------------------------------------------------------
+
+def _add_report(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("report", help="error against run time: one scene at every quality, interpolation and stepping, vs its reference")
+    p.add_argument("store")
+    p.add_argument("--scene", required=True, help="scene JSON (its quality and sampling options are swept)")
+    p.add_argument("-o", "--out", default="report", help="folder for report.md, report.json and report.png (default ./report)")
+    p.add_argument("--repeat", type=int, default=2, help="timed renders per configuration after a warm-up (default 2)")
+    p.add_argument("--no-adaptive", action="store_true", help="leave out adaptive object-space sampling")
+    p.add_argument("--no-naive", action="store_true", help="leave out naive adaptive stepping")
+    p.set_defaults(func=_cmd_report)
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from lodcast.renderer.quality_report import default_variants, run_report, table, write_report
+    from lodcast.renderer.scene import Scene
+    from lodcast.store.store import open_store
+
+    scene_path = Path(args.scene)
+    if not scene_path.is_file():
+        raise UsageError(f"--scene: no file {args.scene}")
+    try:
+        scene = json.loads(scene_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"--scene: {args.scene} is not JSON ({exc.msg} at line {exc.lineno})") from None
+    Scene.parse(scene)  # a bad scene fails here, naming the field, before any rendering
+    if args.repeat < 1:
+        raise UsageError(f"--repeat must be at least 1, got {args.repeat}")
+    store = open_store(args.store)
+    result = run_report(store, scene, default_variants(adaptive=not args.no_adaptive, naive=not args.no_naive), repeat=args.repeat)
+    paths = write_report(result, args.out)
+    print(table(result))
+    print(f"wrote {paths['table']}, {paths['json']} and {paths['plot']}")
+    return 0
+
+
 # --- demo -----------------------------------------------------------------------------------------------------
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
@@ -165,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_demo):
+    for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo):
         add(sub)
     return parser
 
