@@ -12,8 +12,10 @@ PRECISE_SAMPLES = 4096
 
 @dataclass(frozen=True)
 class KernelConfig:
-    sampler: str = "full"  # "full": level 0 from a plain buffer. Issue 5 adds "atlas".
+    sampler: str = "full"  # "full": level 0 from a plain buffer; "atlas": the LOD brick atlas (lc_atlas.h)
     interpolation: str = "trilinear"  # atlas only: "nearest_block" | "interblock"
+    adaptive: bool = False  # atlas only: adaptive object-space sampling, limited at block boundaries
+    adaptive_naive: bool = False  # with adaptive: the naive variant (benchmarks only)
     mode: str = "composite"  # "composite" | "mip"
     orthographic: bool = False
     ess: bool = True
@@ -22,13 +24,23 @@ class KernelConfig:
     background: bool = False
 
     def __post_init__(self) -> None:
-        if self.sampler not in ("full",):
+        if self.sampler not in ("full", "atlas"):
             raise ValueError(f"sampler {self.sampler!r} is not implemented")
+        if self.sampler == "atlas" and self.interpolation not in ("nearest_block", "interblock"):
+            raise ValueError(f"interpolation {self.interpolation!r} is not implemented for the atlas")
+        if (self.adaptive or self.adaptive_naive) and self.sampler != "atlas":
+            raise ValueError("adaptive object-space sampling needs the atlas sampler (a level-of-detail quality)")
         if self.mode not in ("composite", "mip"):
             raise ValueError(f"mode {self.mode!r} is not implemented")
 
     def build_options(self) -> tuple[str, ...]:
         opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]
+        if self.sampler == "atlas":
+            opts.append("-DLC_INTERP_II" if self.interpolation == "interblock" else "-DLC_INTERP_NB")
+            if self.adaptive or self.adaptive_naive:
+                opts.append("-DLC_ADAPTIVE")
+            if self.adaptive_naive:
+                opts.append("-DLC_ADAPTIVE_NAIVE")
         if self.mode == "mip":
             opts.append("-DLC_MODE_MIP")
         for flag, name in (

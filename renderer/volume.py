@@ -41,6 +41,17 @@ class VolumeView:
     def read_level0(self) -> np.ndarray:
         return self._read0()
 
+    @property
+    def has_levels(self) -> bool:
+        """Whether the coarser levels exist (a lodcast store), which level-of-detail rendering needs."""
+        return hasattr(self.source, "level") and hasattr(self.source, "layout")
+
+    def read_region(self, level: int, region: tuple) -> np.ndarray:
+        """Samples `region` (slices) of level `level` of the store (the brick loader's only read)."""
+        if not self.has_levels:
+            raise ValueError("level-of-detail rendering needs a lodcast store (an array has no coarser levels)")
+        return np.asarray(self.source.level(level)[region])
+
 
 def block_minmax_border(a: np.ndarray, B: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-block (min, max) over each B³ block plus a one-voxel border from its neighbours, ignoring NaN

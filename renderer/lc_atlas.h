@@ -1,0 +1,137 @@
+/* lc_atlas.h: sampling the multiresolution field (thesis §3.5) from the brick atlas through the block index map.
+ *
+ * Atlas: one float buffer, the selected bricks packed one after another (no sample replication); the brick of a
+ * level-k block holds n = B >> k samples per edge in C order (z, y, x). Index map: one ulong per block of the
+ * grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else (offset << 4) | (level + 1), offset
+ * the brick's first element in the atlas (64-bit, see lodcast.renderer.atlas.pack_index).
+ *
+ * Coordinates: q = voxel coordinates of level 0 (centres at integers); block coordinates p = (q + 1/2) / B, so
+ * block b covers p in [b, b + 1) and its level-k samples sit at intrablock coordinates (i + 1/2) / n.
+ *
+ * LC_INTERP_NB, nearest block (eq. 3.5): the intrablock coordinate is clamped to [delta, 1 - delta], delta = 1/(2n)
+ *   (half a sample of that block), then trilinear within the brick. In brick-sample units: l = (q + 1/2 - bB)/2^k
+ *   - 1/2 clamped to [0, n - 1].
+ * LC_INTERP_II, interblock interpolation (eq. 3.6 in 3D): the cell between the eight block centres around p has
+ *   corner c = floor(p + 1/2) and interblock coordinate p* = p - c in [-1/2, 1/2) (= frac(p + 1/2) - 1/2); its
+ *   blocks are c - 1 + s, s in {0,1}^3 (clamped to the grid: at the volume's faces the cell folds onto the face
+ *   blocks, which gives DESIGN's clamp to the edge). phi = sum_b w_b phi_b / sum_b w_b, phi_b the NB sample of
+ *   block b at p, and w_b = prod over the three axes of (e if s_axis = 1 else 1 - e), e the edge weight of the
+ *   edge of the cell's box that leaves b along that axis (the 2D weights of eq. 3.6, one more factor). Edge
+ *   weight between a lower block L and an upper block U (half-sample widths delta_L, delta_U):
+ *       e(x) = clamp((x + delta_L) / (delta_L + delta_U), 0, 1),   x = the axis' component of p*,
+ *   i.e. 0 up to L's last sample, 1 from U's first sample on, linear between the two. Properties (tested in
+ *   tests/test_lod_interblock.py): equal levels -> delta_L = delta_U = 1/(2n) and e is the trilinear fraction
+ *   between L's last and U's first sample, so phi is trilinear interpolation of that level; C0: every e is
+ *   continuous, e = 0 at x = -1/2 and 1 at x = +1/2 for any delta <= 1/2, so on a cell's face only the face's
+ *   blocks carry weight, with weights from edges that the neighbouring cell shares; sum_b w_b > 0 (the block
+ *   that holds p has w > 0: 1 - e > 0 for x < 0 and e > 0 for x >= 0 on every edge); 1-sample blocks: n = 1,
+ *   delta = 1/2, the NB sample is the block's value and e runs from that block's centre to the neighbour's.
+ * Missing blocks (index 0): a sample whose own block is missing is NaN (transparent: empty space, exactly what
+ *   the selection promises for a block left out); in II a missing neighbour gets weight 0 and the others are
+ *   renormalised (its delta taken as half a level-0 sample), so nothing is read from it and no data leaks into it.
+ */
+#ifndef LC_ATLAS_H
+#define LC_ATLAS_H
+
+typedef struct LcAtlasGeom {
+    int gx, gy, gz; /* block grid */
+    float B;        /* block edge in level-0 voxels */
+} LcAtlasGeom;
+
+/* NB sample of a loaded block (entry != 0) at level-0 voxel coordinates q. */
+static inline float lc_nb(__global const float* atlas, const ulong entry, const int bx, const int by, const int bz,
+                          const LcAtlasGeom g, const float3 q) {
+    const int lvl = (int)(entry & 15UL) - 1;
+    const ulong off = entry >> 4;
+    const int n = (int)g.B >> lvl;
+    const float s = 1.0f / (float)(1 << lvl);
+    const float nm = (float)(n - 1);
+    float lx = (q.x + 0.5f - (float)bx * g.B) * s - 0.5f;
+    float ly = (q.y + 0.5f - (float)by * g.B) * s - 0.5f;
+    float lz = (q.z + 0.5f - (float)bz * g.B) * s - 0.5f;
+    lx = lx > 0.0f ? (lx < nm ? lx : nm) : 0.0f;
+    ly = ly > 0.0f ? (ly < nm ? ly : nm) : 0.0f;
+    lz = lz > 0.0f ? (lz < nm ? lz : nm) : 0.0f;
+    const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
+    const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
+    const ulong dx = fx > 0.0f ? 1UL : 0UL;
+    const ulong dy = fy > 0.0f ? (ulong)n : 0UL;
+    const ulong dz = fz > 0.0f ? (ulong)n * (ulong)n : 0UL;
+    ulong b = off + ((ulong)z0 * (ulong)n + (ulong)y0) * (ulong)n + (ulong)x0;
+    const float v000 = atlas[b], v001 = atlas[b + dx], v010 = atlas[b + dy], v011 = atlas[b + dy + dx];
+    b += dz;
+    const float v100 = atlas[b], v101 = atlas[b + dx], v110 = atlas[b + dy], v111 = atlas[b + dy + dx];
+    const float a0 = v000 + (v001 - v000) * fx, a1 = v010 + (v011 - v010) * fx;
+    const float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
+    const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
+    return b0 + (b1 - b0) * fz;
+}
+
+static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
+
+#define LC_IMAP(x, y, z) imap[((ulong)(z) * (ulong)g.gy + (ulong)(y)) * (ulong)g.gx + (ulong)(x)]
+
+#ifdef LC_INTERP_II
+/* half-sample width of a block in level-0 voxels: 2^(level - 1); missing blocks: 1/2 */
+static inline float lc_half(const ulong entry) {
+    const int lvl = entry ? (int)(entry & 15UL) - 1 : 0;
+    return 0.5f * (float)(1 << lvl);
+}
+
+/* edge weight e(x) = clamp((x + hl) / (hl + hu), 0, 1), all in level-0 voxels */
+static inline float lc_edge(const float x, const float hl, const float hu) {
+    const float e = (x + hl) / (hl + hu);
+    return e > 0.0f ? (e < 1.0f ? e : 1.0f) : 0.0f;
+}
+#endif
+
+static inline float lc_sample_atlas(__global const float* atlas, __global const ulong* imap, const LcAtlasGeom g,
+                                    const float3 q) {
+    const float3 p = (q + 0.5f) / g.B;
+    const int bx = lc_clampi((int)floor(p.x), g.gx - 1);
+    const int by = lc_clampi((int)floor(p.y), g.gy - 1);
+    const int bz = lc_clampi((int)floor(p.z), g.gz - 1);
+    const ulong own = LC_IMAP(bx, by, bz);
+    if (!own) return NAN;
+#ifndef LC_INTERP_II
+    return lc_nb(atlas, own, bx, by, bz, g, q);
+#else
+    const float cxf = floor(p.x + 0.5f), cyf = floor(p.y + 0.5f), czf = floor(p.z + 0.5f);
+    /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
+    const float xs = q.x + 0.5f - cxf * g.B, ys = q.y + 0.5f - cyf * g.B, zs = q.z + 0.5f - czf * g.B;
+    const int cx = (int)cxf, cy = (int)cyf, cz = (int)czf;
+    const int X[2] = {lc_clampi(cx - 1, g.gx - 1), lc_clampi(cx, g.gx - 1)};
+    const int Y[2] = {lc_clampi(cy - 1, g.gy - 1), lc_clampi(cy, g.gy - 1)};
+    const int Z[2] = {lc_clampi(cz - 1, g.gz - 1), lc_clampi(cz, g.gz - 1)};
+    ulong E[8];
+    float h[8];
+    for (int s = 0; s < 8; ++s) {
+        E[s] = LC_IMAP(X[s & 1], Y[(s >> 1) & 1], Z[s >> 2]);
+        h[s] = lc_half(E[s]);
+    }
+    /* edge weights: x-edges join s and s|1 (s with bit 0 clear), y-edges s and s|2, z-edges s and s|4 */
+    float ex[4], ey[4], ez[4];
+    ex[0] = lc_edge(xs, h[0], h[1]); ex[1] = lc_edge(xs, h[2], h[3]);
+    ex[2] = lc_edge(xs, h[4], h[5]); ex[3] = lc_edge(xs, h[6], h[7]);
+    ey[0] = lc_edge(ys, h[0], h[2]); ey[1] = lc_edge(ys, h[1], h[3]);
+    ey[2] = lc_edge(ys, h[4], h[6]); ey[3] = lc_edge(ys, h[5], h[7]);
+    ez[0] = lc_edge(zs, h[0], h[4]); ez[1] = lc_edge(zs, h[1], h[5]);
+    ez[2] = lc_edge(zs, h[2], h[6]); ez[3] = lc_edge(zs, h[3], h[7]);
+    float wsum = 0.0f, acc = 0.0f;
+    for (int s = 0; s < 8; ++s) {
+        if (!E[s]) continue;
+        const int sx = s & 1, sy = (s >> 1) & 1, sz = s >> 2;
+        const float fx = ex[(s >> 1)];           /* x-edge index: (sy, sz) */
+        const float fy = ey[sx + 2 * sz];        /* y-edge index: (sx, sz) */
+        const float fz = ez[sx + 2 * sy];        /* z-edge index: (sx, sy) */
+        const float w = (sx ? fx : 1.0f - fx) * (sy ? fy : 1.0f - fy) * (sz ? fz : 1.0f - fz);
+        if (w > 0.0f) {
+            acc += w * lc_nb(atlas, E[s], X[sx], Y[sy], Z[sz], g, q);
+            wsum += w;
+        }
+    }
+    return acc / wsum;
+#endif
+}
+
+#endif
