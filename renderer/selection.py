@@ -1,0 +1,364 @@
+"""Level-of-detail selection under a memory budget (thesis §3.2.2, eq. 3.2) and the fig. 3.4 baselines.
+
+Levels are the store's: level 0 = full resolution (B³ samples per block), level L−1 = one sample per block,
+level −1 = not loaded. n(k) = (B >> k)³ samples; the atlas holds float32, 4 bytes per sample.
+
+The thesis' greedy: every block with non-zero significance starts at the coarsest level; a priority queue holds
+every transition γ → γ* from a block's current level to any finer allowed level, with priority
+
+    χ = (ζ(γ) − ζ(γ*)) / (n_γ* − n_γ)                                                         (eq. 3.2)
+
+the best transition is taken while the budget allows (here: the selection stops at the first best transition
+that does not fit), defunct transitions of that block are removed and its new ones inserted. Blocks of zero
+significance are never inserted. Ties are broken by block index (C order), then by the nearer target.
+
+Fast and exact equivalent (what `greedy` runs): from a block's current level the best transition goes to the
+vertex reached by the steepest chord (the lower convex hull of the block's (n, ζ) points); the chain of such
+steepest chords has non-increasing slopes (if the next chord were steeper, the chord skipping the middle vertex
+would have been steeper than the one taken). So the queue pops, across blocks, chords in the order of their
+slopes, each block's chords in chain order: sorting all chain chords by slope (stable, block-major, chain-minor
+for ties) and taking them until the first that does not fit gives the same levels as the queue. The cut-off is
+found with a weighted quickselect (O(M) over the M chords), not a full sort. A float rounding that would make a
+chain slope rise by an ulp is clamped to the previous slope, which is exactly when the queue would take that chord
+next. `tests/test_selection.py` checks this against a literal heapq implementation.
+
+Which blocks are loaded: a block is *TF-empty* (ζ = 0 and nothing visible: see significance.py) → −1, never
+read; a block outside the crop box → −1; a visible block of zero significance (constant value) is loaded at the
+coarsest level, which represents it exactly, and never refined.
+
+Predicted ΔE of a selection: the count-weighted RMS over loaded blocks of ζ at the chosen level,
+sqrt(Σ_i n_i ζ_i(γ_i)² / Σ_i n_i) with n_i the block's valid voxels: ζ is itself the RMS ΔE per voxel of the
+block, so this is the RMS per-voxel colour error (in T*, unit-slab colours) over every voxel that can be seen.
+It is a volume-space model of the image error (DESIGN.md's measured ΔE is a mean over pixels), reported beside
+it, not a bound on it. TF-empty blocks are excluded (they show nothing either way), as are blocks outside the crop.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from lodcast.renderer.significance import BlockMeta, block_significance, level_profile, meta_of_store
+
+__all__ = ["LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "BYTES_PER_SAMPLE", "MB"]
+
+BYTES_PER_SAMPLE = 4
+MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
+
+METHODS = ("tf", "tf_full_hist", "l2", "uniform")
+
+
+@dataclass(frozen=True)
+class LodSelection:
+    levels: np.ndarray  # grid-shaped int8: store level per block (0 = full), -1 = not loaded
+    zeta: np.ndarray  # grid + (n_levels,) float32: ΔE significance per block per level (0 at level 0)
+    predicted_delta_e: float
+    bytes: int  # atlas bytes of the selection (4 bytes per sample)
+    reduction: float  # full-resolution bytes / selection bytes (inf when nothing is loaded)
+    blocks_skipped: int  # blocks not loaded (zero significance or outside the crop)
+
+
+# --------------------------------------------------------------------------------------------- quality
+def parse_quality(quality: Any, full_bytes: int) -> tuple[str, float | None]:
+    """("full" | "lossless" | "budget", budget in bytes or None). Accepts the scene's strings, dicts and
+    pydantic quality objects."""
+    if hasattr(quality, "model_dump"):
+        quality = quality.model_dump()
+    if isinstance(quality, str):
+        if quality in ("full", "lossless"):
+            return quality, None
+        raise ValueError(f"quality: unknown quality {quality!r} (full, lossless, budget_mb or reduction)")
+    if isinstance(quality, dict):
+        if "budget_mb" in quality:
+            mb = float(quality["budget_mb"])
+            if not mb > 0:
+                raise ValueError("quality.budget_mb must be > 0")
+            return "budget", mb * MB
+        if "reduction" in quality:
+            r = float(quality["reduction"])
+            if not r >= 1.0:
+                raise ValueError("quality.reduction must be >= 1")
+            return "budget", full_bytes / r
+    raise ValueError(f"quality: cannot read {quality!r} (full, lossless, {{budget_mb: x}} or {{reduction: r}})")
+
+
+# --------------------------------------------------------------------------------------------- crop
+def crop_mask(grid, shape, spacing, origin, block_size: int, crop) -> np.ndarray:
+    """Grid-shaped bool: True where a block meets the crop box. `crop` = (lower, upper) in world (z, y, x) or
+    {"lower": …, "upper": …}. A block's box is its voxels' box (half a voxel beyond the outer centres) grown by one
+    voxel each side, so that every interpolation stencil of a sample inside the crop box is loaded."""
+    if isinstance(crop, dict):
+        lo, hi = crop.get("lower", crop.get("min")), crop.get("upper", crop.get("max"))
+    else:
+        lo, hi = crop
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    inside = []
+    for ax in range(3):
+        k = np.arange(grid[ax])
+        sp, org = float(spacing[ax]), float(origin[ax])
+        first = k * block_size
+        last = np.minimum((k + 1) * block_size, shape[ax]) - 1
+        b_lo = org + (first - 1.5) * sp
+        b_hi = org + (last + 1.5) * sp
+        inside.append((b_hi > lo[ax]) & (b_lo < hi[ax]))
+    return inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+
+
+# --------------------------------------------------------------------------------------------- greedy
+def _take_prefix(keys: np.ndarray, costs: np.ndarray, budget: int) -> np.ndarray:
+    """Boolean mask of the longest prefix, in the order (keys descending, index ascending), whose costs fit in
+    `budget` (stops at the first item that does not fit). Weighted quickselect: O(M)."""
+    m = keys.size
+    taken = np.zeros(m, bool)
+    remaining = int(budget)
+    cand = np.arange(m)
+    kc = keys
+    while cand.size > 4096:
+        mid = cand.size // 2
+        p = np.partition(kc, mid)[mid]
+        hi = kc > p
+        hi_idx = cand[hi]
+        c_hi = int(costs[hi_idx].sum())
+        if c_hi > remaining:
+            cand, kc = hi_idx, kc[hi]
+            continue
+        taken[hi_idx] = True
+        remaining -= c_hi
+        eq = kc == p
+        eq_idx = cand[eq]
+        cs = np.cumsum(costs[eq_idx])
+        k = int(np.searchsorted(cs, remaining, side="right"))
+        taken[eq_idx[:k]] = True
+        if k < eq_idx.size:
+            return taken
+        if eq_idx.size:
+            remaining -= int(cs[-1])
+        lo = kc < p
+        cand, kc = cand[lo], kc[lo]
+    order = np.argsort(-kc, kind="stable")
+    idx = cand[order]
+    cs = np.cumsum(costs[idx])
+    k = int(np.searchsorted(cs, remaining, side="right"))
+    taken[idx[:k]] = True
+    return taken
+
+
+def _chains_general(z: np.ndarray, maxlev: np.ndarray, nsamp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Steepest-chord chains for arbitrary ζ tables: (slopes (N, L−1) with −inf past the chain end, targets)."""
+    n, L = z.shape
+    rows = np.arange(n)
+    cur = np.full(n, L - 1, np.int64)
+    slopes = np.full((n, L - 1), -np.inf)
+    targets = np.full((n, L - 1), -1, np.int64)
+    for step in range(L - 1):
+        zc = z[rows, cur]
+        nc = nsamp[cur]
+        best = np.full(n, -np.inf)
+        best_to = cur.copy()
+        for d in range(1, L):
+            to = cur - d
+            ok = to >= maxlev
+            if not ok.any():
+                break
+            toc = np.maximum(to, 0)
+            with np.errstate(invalid="ignore"):
+                chi = (zc - z[rows, toc]) / (nsamp[toc] - nc)
+            better = ok & ((chi > best) | ((best == -np.inf) & (best_to == cur)))
+            best = np.where(better, chi, best)
+            best_to = np.where(better, to, best_to)
+        moved = best_to < cur
+        slopes[:, step] = np.where(moved, best, -np.inf)
+        targets[:, step] = np.where(moved, best_to, -1)
+        cur = best_to
+        if not moved.any():
+            break
+    return slopes, targets
+
+
+def _profile_chain(w: np.ndarray, nsamp: np.ndarray, m: int) -> list[int] | None:
+    """Steepest-chord chain of a shared profile w (ζ = ζ0·w) down to level m, if it is unambiguous (every
+    choice wins by a relative margin, so that any ζ0 > 0 gives the same chain in floating point); else None."""
+    L = w.size
+    cur, chain = L - 1, []
+    while cur > m:
+        chis = [((w[cur] - w[t]) / (nsamp[t] - nsamp[cur]), t) for t in range(cur - 1, m - 1, -1)]
+        best = max(c for c, _ in chis)
+        if not best > 0:
+            return None
+        close = [t for c, t in chis if c >= best * (1 - 1e-9)]
+        if len(close) != 1:
+            return None
+        cur = close[0]
+        chain.append(cur)
+    return chain
+
+
+def greedy(
+    zeta: np.ndarray,
+    maxlev: np.ndarray,
+    nsamp: np.ndarray,
+    budget_samples: float,
+    profile: np.ndarray | None = None,
+) -> np.ndarray:
+    """Levels (N,) int64 of the eq. 3.2 greedy for blocks that all start at the coarsest level L−1.
+
+    zeta (N, L): significance per level (store numbering); maxlev (N,): finest level each block may take;
+    nsamp (L,): samples per block per level; budget_samples: samples that may be added beyond the start.
+    profile: if every row is ζ0·profile, the chains are computed once per max level (faster)."""
+    z = np.asarray(zeta, np.float64)
+    n, L = z.shape
+    maxlev = np.asarray(maxlev, np.int64)
+    nsamp = np.asarray(nsamp, np.int64)
+    levels = np.full(n, L - 1, np.int64)
+    if n == 0 or L == 1:
+        return levels
+    slopes = targets = None
+    if profile is not None:
+        chains = {int(m): _profile_chain(np.asarray(profile, np.float64), nsamp, int(m)) for m in np.unique(maxlev)}
+        if all(c is not None for c in chains.values()):
+            slopes = np.full((n, L - 1), -np.inf)
+            targets = np.full((n, L - 1), -1, np.int64)
+            for m, chain in chains.items():
+                rows = np.flatnonzero(maxlev == m) if len(chains) > 1 else slice(None)
+                prev = L - 1
+                for step, to in enumerate(chain):
+                    zr = z[rows]
+                    slopes[rows, step] = (zr[:, prev] - zr[:, to]) / float(nsamp[to] - nsamp[prev])
+                    targets[rows, step] = to
+                    prev = to
+    if slopes is None:
+        slopes, targets = _chains_general(z, maxlev, nsamp)
+    slopes = np.minimum.accumulate(slopes, axis=1)  # clamp an ulp's rise (see module doc)
+    valid = targets >= 0
+    prev_lv = np.concatenate([np.full((n, 1), L - 1), np.where(valid, targets, L - 1)[:, :-1]], axis=1)
+    costs = np.where(valid, nsamp[np.maximum(targets, 0)] - nsamp[prev_lv], 0)
+    total = int(costs.sum())
+    if budget_samples >= total:
+        taken = valid
+    else:
+        flat_valid = valid.ravel()
+        sel = np.flatnonzero(flat_valid)
+        t = _take_prefix(slopes.ravel()[sel], costs.ravel()[sel], int(max(budget_samples, 0)))
+        taken = np.zeros(n * (L - 1), bool)
+        taken[sel[t]] = True
+        taken = taken.reshape(n, L - 1)
+    cnt = taken.sum(axis=1)
+    has = cnt > 0
+    levels[has] = targets[np.flatnonzero(has), cnt[has] - 1]
+    return levels
+
+
+# --------------------------------------------------------------------------------------------- entry
+def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray) -> float:
+    loaded = levels >= 0
+    if not loaded.any():
+        return 0.0
+    z = zeta_tab[np.flatnonzero(loaded), levels[loaded]].astype(np.float64)
+    w = np.nan_to_num(count[loaded].astype(np.float64))
+    if w.sum() <= 0:
+        return 0.0
+    return float(np.sqrt((w * z * z).sum() / w.sum()))
+
+
+def select_from_meta(
+    meta: BlockMeta,
+    tfs: Sequence[Any] | Any,
+    quality: Any,
+    *,
+    n_voxels: int,
+    block_size: int,
+    in_crop: np.ndarray | None = None,
+    max_level: np.ndarray | None = None,
+    method: str = "tf",
+) -> LodSelection:
+    """select_lod on flattened block metadata (what the benchmarks and tests drive directly)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown LOD method {method!r} (one of {', '.join(METHODS)})")
+    L = meta.n_levels
+    n = meta.n
+    nsamp = np.array([(block_size >> k) ** 3 for k in range(L)], np.int64)
+    full_bytes = int(n_voxels) * BYTES_PER_SAMPLE
+    kind, budget = parse_quality(quality, full_bytes)
+    crop = np.ones(n, bool) if in_crop is None else np.asarray(in_crop, bool).ravel()
+    maxlev = np.zeros(n, np.int64) if max_level is None else np.clip(np.asarray(max_level, np.int64).ravel(), 0, L - 1)
+    sig_method = "tf_full_hist" if method == "tf_full_hist" else "tf"
+    z0, visible = block_significance(meta, tfs, sig_method)
+    prof = level_profile(L)
+    zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
+    if kind == "full":
+        levels = np.where(crop, maxlev, -1)
+    else:
+        loaded = visible & crop
+        levels = np.where(loaded, L - 1, -1).astype(np.int64)
+        if method == "l2":
+            drive = zeta0_l2_cached(meta, visible)
+        else:
+            drive = z0
+        refine = loaded & (drive > 0) & (maxlev < L - 1)
+        base_samples = int(loaded.sum()) * int(nsamp[L - 1])
+        if kind == "lossless":
+            levels[refine] = maxlev[refine]
+        else:
+            budget_samples = int(budget // BYTES_PER_SAMPLE)
+            if budget_samples < base_samples:
+                from lodcast.renderer.scene import SceneError
+
+                raise SceneError(
+                    f"quality: the budget ({budget / MB:.4g} MB) is below the {base_samples * BYTES_PER_SAMPLE / MB:.4g} MB "
+                    "that every visible block at its coarsest level needs"
+                )
+            if method == "uniform":
+                for k in range(L):
+                    lv = np.maximum(k, maxlev[loaded])
+                    if int(nsamp[lv].sum()) <= budget_samples:
+                        levels[loaded] = lv
+                        break
+            else:
+                rows = np.flatnonzero(refine)
+                ztab = drive[rows, None] * prof[None, :]
+                levels[rows] = greedy(ztab, maxlev[rows], nsamp, budget_samples - base_samples, profile=prof)
+    loaded = levels >= 0
+    samples = int(nsamp[levels[loaded]].sum())
+    nbytes = samples * BYTES_PER_SAMPLE
+    return LodSelection(
+        levels=levels.astype(np.int8).reshape(meta.grid),
+        zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
+        predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, meta.count),
+        bytes=nbytes,
+        reduction=(full_bytes / nbytes) if nbytes else float("inf"),
+        blocks_skipped=int((~loaded).sum()),
+    )
+
+
+def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
+    from lodcast.renderer.significance import zeta0_l2
+
+    return zeta0_l2(meta, visible)
+
+
+def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np.ndarray | None = None) -> LodSelection:
+    """Select a level per block for `tfs` (one TF, or a list: ζ is the max over them) under `quality`
+    ("full" | "lossless" | {"budget_mb": x} | {"reduction": r}, or the scene's quality objects).
+
+    crop: world box (lower, upper) in (z, y, x), blocks outside it are not loaded. max_level: optional grid-shaped
+    finest level per block (0 = full allowed). method: "tf" (eq. 3.1 on simplified histograms), "tf_full_hist",
+    "l2" (data-error significance, same greedy) or "uniform" (one level for every loaded block, the finest that
+    fits). `zeta` and `predicted_delta_e` are always the ΔE significance (simplified, or full for tf_full_hist)."""
+    meta = meta_of_store(store)
+    in_crop = None
+    if crop is not None:
+        in_crop = crop_mask(store.grid, store.shape, store.spacing, store.origin, store.block_size, crop)
+    if isinstance(tfs, dict) or hasattr(tfs, "points"):
+        tfs = [tfs]
+    return select_from_meta(
+        meta,
+        tfs,
+        quality,
+        n_voxels=int(np.prod(store.shape, dtype=np.int64)),
+        block_size=store.block_size,
+        in_crop=in_crop,
+        max_level=max_level,
+        method=method,
+    )

@@ -1,0 +1,362 @@
+"""Transfer-function-based block significance (thesis §3.2.1, eq. 3.1) and its data-error baseline.
+
+ζ(0), the significance of a block at its coarsest level (one sample: the block mean s̄), is the RMS colour
+difference between the TF's colour at the mean and at every value the block holds::
+
+    ζ(0) = [ (1/n) Σ_s ΔE(T*(s̄), T*(s))² h(s) ]^½                                        (eq. 3.1)
+
+with h the block's border-inclusive histogram (the one-voxel border from the neighbours, because interpolation
+near a face reads those voxels too), n its total count, T* the TF in CIELUV and ΔE the CIE76 distance there.
+
+**How opacity enters the colour.** T*(s) is the CIELUV colour (colour-science, sRGB input, D65) of what a slab
+of constant value s and length one *unit distance* (the TF's opacity unit, DESIGN.md) contributes over black:
+the premultiplied colour rgb(s)·a(s), a being the TF opacity per unit distance (a slab of length `unit` takes
+opacity 1 − (1 − a)^1 = a, and its colour over black is rgb·a). Why: (1) a fully transparent value maps to black,
+L*u*v* = 0, so every value of a transparent range has the same T* and a block whose values all lie in one gives
+ΔE = 0 whatever the colours written at its control points; (2) a faint value weighs as little in the error as it
+does in the image, and a change of opacity alone (same rgb) is a change of colour; (3) it does not depend on the
+ray-marching step (opacity is per unit distance, not per sample). Colours are used as given (no linearisation),
+as the compositing does.
+
+Which blocks count as empty: a block is *TF-empty* when the TF opacity is zero over its whole border-inclusive
+value range [min_border, max_border] (exact test on the piecewise-linear opacity); its ζ is 0 and it is never
+read. A block whose value range is exactly one value (constant, border included) has ζ = 0 exactly: every level
+of it is exact (the average of a constant), so it is read at the coarsest level and never refined.
+
+Evaluation. T* is tabulated once per TF (colour-science on a few thousand values, never per block): at the
+histogram bin centres, and on a dense table (a uniform grid over the value range plus every control point and 16
+subdivisions of each interval between control points) in which T*(s̄) is interpolated linearly. With the
+simplified histogram (K piecewise-constant pieces, heights h_k = mean count per bin over bins [s_k, s_{k+1}))
+the sum is O(K) per block through prefix sums over bins of T*(b) and |T*(b)|²::
+
+    Σ_{b∈piece} |T̄ − T*(b)|² = w|T̄|² − 2 T̄·Σ T*(b) + Σ |T*(b)|²
+
+and Σ_k h_k (P(s_{k+1}) − P(s_k)) = Σ_j (h_{j−1} − h_j) P(s_j) (h_{−1} = h_K = 0): one gather of the 4-channel
+prefix table at the K + 1 starts and one small matrix product per block, in float64 (the expansion cancels:
+ζ² ≪ |T̄|²). The coefficients and gather indices depend only on the store and are cached per store, so a TF
+change costs only the per-TF part.
+
+Over levels (store numbering: level 0 = full resolution, level L−1 = one sample per block; the thesis numbers
+them the other way round), ζ is distributed linearly, as the thesis does: ζ(level k) = ζ(0)·k/(L−1), ζ0 at the
+one-sample level, zero at full resolution.
+"""
+from __future__ import annotations
+
+import warnings
+import weakref
+from dataclasses import dataclass
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from lodcast.renderer.scene import TransferFunction
+from lodcast.renderer.transfer_function import evaluate
+
+__all__ = [
+    "BlockMeta",
+    "TStar",
+    "srgb_to_luv",
+    "unit_slab_colour",
+    "tstar",
+    "as_tf",
+    "tf_visible",
+    "zeta0_simplified",
+    "zeta0_full",
+    "zeta0_l2",
+    "level_profile",
+    "zeta_levels",
+    "block_significance",
+    "meta_of_store",
+]
+
+DENSE_UNIFORM = 2048  # uniform entries of the dense T* table over the value range
+DENSE_SUBDIV = 16  # extra entries between consecutive control points
+DENSE_MAX = 16384  # cap on the dense table (colour-science costs ~0.35 µs per entry)
+
+
+# --------------------------------------------------------------------------------------------- colour
+def srgb_to_luv(rgb: np.ndarray) -> np.ndarray:
+    """CIELUV (D65, 2° observer) of sRGB colours in [0, 1] (clipped), float64, via colour-science."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import colour
+
+        xyz = colour.sRGB_to_XYZ(np.clip(np.asarray(rgb, np.float64), 0.0, 1.0))
+        return np.asarray(colour.XYZ_to_Luv(xyz, colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]), np.float64)
+
+
+def unit_slab_colour(tf: TransferFunction, values) -> np.ndarray:
+    """Premultiplied sRGB colour over black of a slab of one unit distance at each value: rgb·a."""
+    rgb, a = evaluate(tf, values)
+    return rgb * a[..., None]
+
+
+def as_tf(tf: Any) -> TransferFunction:
+    """A TransferFunction from the scene's model or its JSON dict."""
+    if isinstance(tf, TransferFunction):
+        return tf
+    if hasattr(tf, "model_dump"):
+        tf = tf.model_dump()
+    return TransferFunction.model_validate(tf)
+
+
+@dataclass(frozen=True)
+class TStar:
+    """T* of one TF, tabulated: at the bin centres (with a 4-channel prefix table over bins: L, u, v, |T*|²)
+    and on a dense value table for T*(s̄)."""
+
+    centres: np.ndarray  # (nb,) bin representative values
+    luv: np.ndarray  # (nb, 3) T* at the centres
+    prefix: np.ndarray  # (nb + 1, 4) prefix sums of [L, u, v, |T*|²] over bins
+    dense_values: np.ndarray  # (m,) increasing
+    dense_luv: np.ndarray  # (m, 3)
+
+    def at(self, values: np.ndarray) -> np.ndarray:
+        """T*(values) by linear interpolation in the dense table, (..., 3)."""
+        v = np.asarray(values, np.float64)
+        return np.stack([np.interp(v, self.dense_values, self.dense_luv[:, c]) for c in range(3)], axis=-1)
+
+
+def bin_centres(bins) -> np.ndarray:
+    e = bins.edges
+    return np.arange(bins.count, dtype=np.float64) + bins.lo if bins.integer else 0.5 * (e[:-1] + e[1:])
+
+
+def tstar(tf: TransferFunction, bins, value_range: tuple[float, float] | None = None) -> TStar:
+    """Tabulate T* of `tf` once (the only place colour-science runs per TF)."""
+    tf = as_tf(tf)
+    centres = bin_centres(bins)
+    lo, hi = (float(bins.lo), float(bins.hi)) if value_range is None else (float(value_range[0]), float(value_range[1]))
+    lo, hi = min(lo, centres[0]), max(hi, centres[-1])
+    xs = np.array([p.value for p in tf.points], np.float64)
+    inside = xs[(xs >= lo) & (xs <= hi)]
+    parts = [np.linspace(lo, hi, DENSE_UNIFORM + 1) if hi > lo else np.array([lo]), inside]
+    if len(inside) >= 2 and (len(inside) - 1) * DENSE_SUBDIV <= DENSE_MAX:
+        t = np.arange(1, DENSE_SUBDIV) / DENSE_SUBDIV
+        parts.append((inside[:-1, None] + np.diff(inside)[:, None] * t[None, :]).ravel())
+    dense = np.unique(np.concatenate(parts))
+    luv_all = srgb_to_luv(unit_slab_colour(tf, np.concatenate([centres, dense])))
+    luv, dense_luv = luv_all[: centres.size], luv_all[centres.size :]
+    q = np.concatenate([luv, (luv * luv).sum(axis=1, keepdims=True)], axis=1)
+    prefix = np.concatenate([np.zeros((1, 4)), np.cumsum(q, axis=0)], axis=0)
+    return TStar(centres, luv, prefix, dense, dense_luv)
+
+
+def tf_visible(tf: TransferFunction, vmin, vmax) -> np.ndarray:
+    """True where the TF opacity is non-zero somewhere on [vmin, vmax] (exact for the piecewise-linear TF,
+    constant outside its points). Non-finite bounds (no valid voxel) are invisible."""
+    tf = as_tf(tf)
+    vmin = np.asarray(vmin, np.float64)
+    vmax = np.asarray(vmax, np.float64)
+    ok = np.isfinite(vmin) & np.isfinite(vmax)
+    lo = np.where(ok, vmin, 0.0)
+    hi = np.where(ok, vmax, 0.0)
+    xs = np.array([p.value for p in tf.points], np.float64)
+    ops = np.array([p.opacity for p in tf.points], np.float64)
+    _, a_lo = evaluate(tf, lo)
+    _, a_hi = evaluate(tf, hi)
+    # a control point with opacity > 0 strictly inside (lo, hi) makes the range visible
+    pos = np.concatenate([[0], np.cumsum(ops > 0.0)])
+    i0 = np.searchsorted(xs, lo, side="right")
+    i1 = np.searchsorted(xs, hi, side="left")
+    inner = pos[np.maximum(i1, i0)] - pos[i0] > 0
+    return ok & ((a_lo > 0.0) | (a_hi > 0.0) | inner)
+
+
+# --------------------------------------------------------------------------------------------- block data
+@dataclass(frozen=True)
+class BlockMeta:
+    """What significance needs of a store, flattened over blocks (C order of the grid)."""
+
+    grid: tuple[int, int, int]
+    n_levels: int
+    bins: Any  # store.histogram.Bins
+    mean: np.ndarray  # (N,) float64, NaN when a block has no valid voxel
+    count: np.ndarray  # (N,) own valid voxels
+    min_border: np.ndarray  # (N,)
+    max_border: np.ndarray  # (N,)
+    starts: np.ndarray  # (N, K + 1) bin indices
+    heights: np.ndarray  # (N, K) mean count per bin
+    hist: Any = None  # (N, nb) full histograms, or a callable returning them (read on demand)
+
+    @property
+    def n(self) -> int:
+        return self.mean.size
+
+    def full_hist(self) -> np.ndarray:
+        h = self.hist() if callable(self.hist) else self.hist
+        if h is None:
+            raise ValueError("full histograms are not available")
+        return np.asarray(h).reshape(self.n, -1)
+
+
+_META_CACHE: "weakref.WeakKeyDictionary[Any, BlockMeta]" = weakref.WeakKeyDictionary()
+_PRE_CACHE: "weakref.WeakKeyDictionary[Any, _Pre]" = weakref.WeakKeyDictionary()
+
+
+def meta_of_store(store) -> BlockMeta:
+    """The store's block metadata, flattened (cached per store object)."""
+    try:
+        return _META_CACHE[store]
+    except (KeyError, TypeError):
+        pass
+    st = store.stats
+    starts, heights = store.hist_simplified
+    n = int(np.prod(store.grid))
+    meta = BlockMeta(
+        grid=tuple(store.grid),
+        n_levels=int(store.layout.n_levels),
+        bins=store.bins,
+        mean=np.asarray(st.mean, np.float64).ravel(),
+        count=np.asarray(st.count, np.float64).ravel(),
+        min_border=np.asarray(st.min_border, np.float64).ravel(),
+        max_border=np.asarray(st.max_border, np.float64).ravel(),
+        starts=np.asarray(starts).reshape(n, -1),
+        heights=np.asarray(heights).reshape(n, -1),
+        hist=lambda: store.hist,
+    )
+    try:
+        _META_CACHE[store] = meta
+    except TypeError:
+        pass
+    return meta
+
+
+@dataclass(frozen=True)
+class _Pre:
+    """TF-independent part of the O(K) evaluation: gather indices (N, K+1) and coefficients (N, 1, K+1)."""
+
+    idx: np.ndarray
+    coef: np.ndarray
+    total: np.ndarray  # (N,) n = Σ_k h_k w_k
+
+
+def _precompute(meta: BlockMeta) -> _Pre:
+    try:
+        return _PRE_CACHE[meta]
+    except (KeyError, TypeError):
+        pass
+    starts = np.asarray(meta.starts, np.intp)
+    h = np.asarray(meta.heights, np.float64)
+    n = h.shape[0]
+    hp = np.concatenate([np.zeros((n, 1)), h, np.zeros((n, 1))], axis=1)
+    coef = (hp[:, :-1] - hp[:, 1:])[:, None, :]  # c_j = h_{j-1} - h_j
+    total = (h * np.diff(starts, axis=1)).sum(axis=1)
+    pre = _Pre(np.ascontiguousarray(starts), np.ascontiguousarray(coef), total)
+    try:
+        _PRE_CACHE[meta] = pre
+    except TypeError:
+        pass
+    return pre
+
+
+def _zeta_from_sums(tbar: np.ndarray, s: np.ndarray, total: np.ndarray) -> np.ndarray:
+    """ζ = sqrt(|T̄|² − 2 T̄·A/n + B/n) from A = s[:, :3], B = s[:, 3]; 0 where n = 0."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z2 = (tbar * tbar).sum(axis=1) + ((s[:, 3] - 2.0 * (tbar * s[:, :3]).sum(axis=1)) / total)
+    z2 = np.where(total > 0, z2, 0.0)
+    return np.sqrt(np.maximum(z2, 0.0))
+
+
+def _blocks_to_eval(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
+    """Blocks whose ζ needs computing: visible and not constant (ζ = 0 exactly otherwise)."""
+    return visible & (meta.max_border > meta.min_border) & np.isfinite(meta.mean)
+
+
+def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndarray:
+    """ζ(0) per block (N,) float64 from the simplified histograms, O(K) per block (see module doc)."""
+    pre = _precompute(meta)
+    todo = _blocks_to_eval(meta, visible)
+    out = np.zeros(meta.n)
+    if not todo.any():
+        return out
+    sel = None if todo.mean() > 0.75 else np.flatnonzero(todo)
+    idx = pre.idx if sel is None else pre.idx[sel]
+    coef = pre.coef if sel is None else pre.coef[sel]
+    total = pre.total if sel is None else pre.total[sel]
+    mean = meta.mean if sel is None else meta.mean[sel]
+    table = np.ascontiguousarray(ts.prefix).view(np.dtype((np.void, 32))).ravel()  # one 32-byte row per bin edge
+    g = np.take(table, idx, axis=0).view(np.float64).reshape(idx.shape[0], idx.shape[1], 4)
+    sums = np.matmul(coef, g)[:, 0, :]
+    z = _zeta_from_sums(ts.at(np.nan_to_num(mean)), sums, total)
+    if sel is None:
+        return np.where(todo, z, 0.0)
+    out[sel] = z
+    return out
+
+
+def zeta0_full(meta: BlockMeta, ts: TStar, visible: np.ndarray, hist: np.ndarray | None = None, chunk: int = 8192) -> np.ndarray:
+    """ζ(0) from the full border-inclusive histograms (paper II's 'full histogram' variant; fig. 3.4 a)."""
+    h_all = meta.full_hist() if hist is None else np.asarray(hist).reshape(meta.n, -1)
+    todo = np.flatnonzero(_blocks_to_eval(meta, visible))
+    out = np.zeros(meta.n)
+    q = np.concatenate([ts.luv, (ts.luv**2).sum(axis=1, keepdims=True)], axis=1)  # (nb, 4)
+    for c0 in range(0, todo.size, chunk):
+        rows = todo[c0 : c0 + chunk]
+        h = h_all[rows].astype(np.float64)
+        sums = h @ q
+        out[rows] = _zeta_from_sums(ts.at(meta.mean[rows]), sums, h.sum(axis=1))
+    return out
+
+
+def zeta0_l2(meta: BlockMeta, visible: np.ndarray, hist: np.ndarray | None = None, chunk: int = 8192) -> np.ndarray:
+    """Data-error (L2) significance, fig. 3.4 c: RMS deviation of the data from the block mean,
+    sqrt((1/n) Σ_b h(b)(c_b − s̄)²) over the full border-inclusive histogram (bin centres c_b), in data units and
+    independent of the TF; TF-empty blocks still get 0 (they are skipped by every method alike)."""
+    h_all = meta.full_hist() if hist is None else np.asarray(hist).reshape(meta.n, -1)
+    todo = np.flatnonzero(_blocks_to_eval(meta, visible))
+    out = np.zeros(meta.n)
+    c = bin_centres(meta.bins)
+    for c0 in range(0, todo.size, chunk):
+        rows = todo[c0 : c0 + chunk]
+        h = h_all[rows].astype(np.float64)
+        n = h.sum(axis=1)
+        mu = meta.mean[rows]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m1 = (h @ (c - 0.0)) / n
+            m2 = (h @ (c * c)) / n
+        var = m2 - 2.0 * mu * m1 + mu * mu
+        out[rows] = np.sqrt(np.maximum(np.where(n > 0, var, 0.0), 0.0))
+    return out
+
+
+# --------------------------------------------------------------------------------------------- levels
+def level_profile(n_levels: int) -> np.ndarray:
+    """ζ(level k) / ζ(0) in store numbering: k/(L−1), 1 at the one-sample level, 0 at full resolution."""
+    if n_levels <= 1:
+        return np.zeros(max(n_levels, 1))
+    return np.arange(n_levels, dtype=np.float64) / (n_levels - 1)
+
+
+def zeta_levels(zeta0: np.ndarray, n_levels: int) -> np.ndarray:
+    """zeta0 shape + (n_levels,) float32, linear from ζ(0) at level L−1 to 0 at level 0."""
+    z0 = np.asarray(zeta0, np.float64)
+    return (z0[..., None] * level_profile(n_levels)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------- entry
+def block_significance(meta: BlockMeta, tfs: Sequence[Any] | Any, method: str = "tf") -> tuple[np.ndarray, np.ndarray]:
+    """(ζ(0) (N,) float64, visible (N,) bool) for one TF or several (ζ = max over TFs, visible = any).
+
+    method: "tf" (eq. 3.1, simplified histograms), "tf_full_hist" (full histograms), "l2" (data error)."""
+    if isinstance(tfs, (TransferFunction, dict)) or hasattr(tfs, "points"):
+        tfs = [tfs]
+    tfs = [as_tf(t) for t in tfs if t is not None]
+    if not tfs:
+        raise ValueError("at least one transfer function is needed")
+    visible = np.zeros(meta.n, bool)
+    for t in tfs:
+        visible |= tf_visible(t, meta.min_border, meta.max_border)
+    if method == "l2":
+        return zeta0_l2(meta, visible), visible
+    z = np.zeros(meta.n)
+    for t in tfs:
+        ts = tstar(t, meta.bins)
+        vis_t = tf_visible(t, meta.min_border, meta.max_border) if len(tfs) > 1 else visible
+        if method == "tf":
+            z = np.maximum(z, zeta0_simplified(meta, ts, vis_t))
+        elif method == "tf_full_hist":
+            z = np.maximum(z, zeta0_full(meta, ts, vis_t))
+        else:
+            raise ValueError(f"unknown significance method {method!r}")
+    return z, visible
