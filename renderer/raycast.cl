@@ -1,8 +1,16 @@
 /* raycast.cl: lodcast's ray caster. One work-item per pixel.
  *
  * Specialised only by -D options (lodcast.renderer.config.KernelConfig.build_options()):
- *   LC_SAMPLER_FULL   sample the full-resolution volume from a plain float buffer (the only sampler so far;
- *                     the brick atlas with nearest-block / interblock interpolation adds LC_SAMPLER_ATLAS)
+ *   LC_SAMPLER_FULL   sample the full-resolution volume from a plain float buffer
+ *   LC_SAMPLER_ATLAS  sample the multiresolution field from the brick atlas through the block index map
+ *                     (lc_atlas.h), with LC_INTERP_NB (nearest block, eq. 3.5) or LC_INTERP_II (interblock, eq. 3.6)
+ *   LC_ADAPTIVE       (atlas) adaptive object-space sampling (thesis §3.6.1): march half-block cells; in a cell
+ *                     whose step level is k (step_level: NB the block's level, II the finest of the eight blocks
+ *                     of the cell's interblock neighbourhood; -1 = skip) the step is step * 2^k, and the steps
+ *                     restart at every cell boundary (limited: a long step never runs into a finer block); each
+ *                     segment's opacity is corrected for its length (constant regions stay exact)
+ *   LC_ADAPTIVE_NAIVE with LC_ADAPTIVE: for comparison/benchmarks only: the step is chosen by the cell where it
+ *                     starts and is not cut at cell boundaries (it may run deep into a finer block)
  *   LC_MODE_MIP       maximum intensity projection (default: emission-absorption compositing)
  *   LC_ORTHO          orthographic projection (default: perspective)
  *   LC_ESS            empty-space skipping: march block by block (3D DDA over the block grid) and skip blocks
@@ -29,6 +37,12 @@
  * copies (on the CPU device __constant and private memory may alias, so loads in loops are not hoisted).
  */
 #include "lc_common.h"
+#ifdef LC_SAMPLER_ATLAS
+#include "lc_atlas.h"
+#define LC_SAMPLE(q) lc_sample_atlas(vol, imap, geom, (q))
+#else
+#define LC_SAMPLE(q) lc_sample(vol, dims, qmax, (q))
+#endif
 
 
 /* One sample of value v on a segment of r steps: MIP keeps the maximum; compositing looks the TF up, takes the
@@ -91,13 +105,17 @@
 
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
-                        __global uint* nsamples) {
+                        __global uint* nsamples, __global const ulong* imap, __global const char* step_level) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
 
     const int4 dims = P->dims;
     const float3 qmax = convert_float3(dims.xyz - 1);
+#ifdef LC_SAMPLER_ATLAS
+    LcAtlasGeom geom;
+    geom.gx = P->grid.x; geom.gy = P->grid.y; geom.gz = P->grid.z; geom.B = (float)P->grid.w;
+#endif
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
     const float t_stop = 1.0f - P->early_term; /* terminate once transmittance <= this */
@@ -134,6 +152,79 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         const float3 qu = q0 + (t0 + u * dt) * dq, dqk = dt * dq;
 #define LC_POS(kk) ((kk) < nlast ? t0 + ((float)(kk) + u) * dt : last + u * len_last)
 
+#ifdef LC_ADAPTIVE
+        /* 3D DDA over half-block cells: cell h covers voxel coordinates [h B/2 - 1/2, (h + 1) B/2 - 1/2), so each
+         * cell lies in one block and in one interblock neighbourhood (cell boundaries are block faces and block
+         * centres). step_level holds the cell's step level (grid 2G, C order z, y, x; -1: skip the cell). */
+        const float Hc = 0.5f * (float)P->grid.w;
+        const int hx = 2 * P->grid.x, hy = 2 * P->grid.y, hz = 2 * P->grid.z;
+        const float3 g0 = (q0 + 0.5f) / Hc, dg = dq / Hc;
+        const float3 ge = g0 + t0 * dg;
+        int bx = lc_clampi((int)floor(ge.x), hx - 1), by = lc_clampi((int)floor(ge.y), hy - 1);
+        int bz = lc_clampi((int)floor(ge.z), hz - 1);
+        const int sx = dg.x > 0.0f ? 1 : (dg.x < 0.0f ? -1 : 0);
+        const int sy = dg.y > 0.0f ? 1 : (dg.y < 0.0f ? -1 : 0);
+        const int sz = dg.z > 0.0f ? 1 : (dg.z < 0.0f ? -1 : 0);
+        float tnx = sx ? ((float)(bx + (sx > 0)) - g0.x) / dg.x : INFINITY;
+        float tny = sy ? ((float)(by + (sy > 0)) - g0.y) / dg.y : INFINITY;
+        float tnz = sz ? ((float)(bz + (sz > 0)) - g0.z) / dg.z : INFINITY;
+        const float tdx = sx ? fabs(1.0f / dg.x) : INFINITY;
+        const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;
+        const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
+        const float inv_unit = P->inv_unit;
+        float t = t0;
+        uint budget = (uint)P->max_samples * 2u + 64u;
+#ifdef LC_PRECISE
+#define LC_R(len) ((len) * inv_dt)
+#else
+#define LC_R(len) ((len) == dt ? -1.0f : (len) * inv_unit)
+#endif
+        while (t < t1 && !done && budget) {
+            --budget;
+            float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves the cell */
+            tb = tb < t1 ? tb : t1;
+            const int lvl = step_level[((ulong)lc_clampi(bz, hz - 1) * (ulong)hy + (ulong)lc_clampi(by, hy - 1)) *
+                                           (ulong)hx + (ulong)lc_clampi(bx, hx - 1)];
+#ifdef LC_ADAPTIVE_NAIVE
+            if (lvl >= 0) { /* one step of the starting cell's length, wherever it ends */
+                const float h = dt * (float)(1 << lvl);
+                const float len = t1 - t < h ? t1 - t : h;
+                const float v = LC_SAMPLE(q0 + (t + u * len) * dq);
+                ++taken;
+                LC_SAMPLE_BODY(v, LC_R(len))
+                t += len;
+            } else {
+                t = tb;
+            }
+            /* advance the DDA to the cell that holds t */
+            while (tb <= t && tb < t1) {
+                if (tnx <= tny && tnx <= tnz) { bx += sx; tnx += tdx; }
+                else if (tny <= tnz) { by += sy; tny += tdy; }
+                else { bz += sz; tnz += tdz; }
+                tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz);
+            }
+#else
+            if (lvl >= 0 && tb > t) { /* limited: segments of step * 2^lvl from t, the last one cut at tb */
+                const float h = dt * (float)(1 << lvl);
+                const int m = (int)ceil((tb - t) / h);
+                for (int s = 0; s < m && !done; ++s) {
+                    const float a = t + (float)s * h;
+                    float len = tb - a;
+                    len = len < h ? len : h;
+                    if (len <= 0.0f) break;
+                    const float v = LC_SAMPLE(q0 + (a + u * len) * dq);
+                    ++taken;
+                    LC_SAMPLE_BODY(v, LC_R(len))
+                }
+            }
+            t = tb;
+            if (tnx <= tny && tnx <= tnz) { bx += sx; tnx += tdx; }
+            else if (tny <= tnz) { by += sy; tny += tdy; }
+            else { bz += sz; tnz += tdz; }
+#endif
+        }
+#undef LC_R
+#else
         int k = 0;
 #ifdef LC_ESS
         /* 3D DDA over the block grid: block b covers voxel coordinates [b B - 1/2, (b + 1) B - 1/2). */
@@ -193,7 +284,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             /* uniform segments: no transcendental call in this loop (a call makes every live value spill) */
             const int k_uni = k_end < nlast ? k_end : nlast;
             for (; k < k_uni && !done; ++k) {
-                const float v = lc_sample(vol, dims, qmax, qu + (float)k * dqk);
+                const float v = LC_SAMPLE(qu + (float)k * dqk);
 #ifdef LC_PRECISE
                 LC_SAMPLE_BODY(v, 1.0f)
 #else
@@ -201,7 +292,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
             }
             if (k == nlast && k_end == n && !done) { /* the last, shorter segment */
-                const float v = lc_sample(vol, dims, qmax, q0 + (last + u * len_last) * dq);
+                const float v = LC_SAMPLE(q0 + (last + u * len_last) * dq);
                 ++k;
 #ifdef LC_PRECISE
                 LC_SAMPLE_BODY(v, r_last)
@@ -211,6 +302,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             }
             taken += (uint)(k - k_begin);
         }
+#endif /* LC_ADAPTIVE */
 #undef LC_POS
     }
 

@@ -1,8 +1,16 @@
 """`lodcast.render(store, scene) -> RenderResult`: one frame through the OpenCL ray caster.
 
-Until the LOD issue lands, quality 'full' reads level 0 only: bricks_read counts level-0 blocks uploaded by this
+Quality 'full' reads level 0 as one buffer (LC_SAMPLER_FULL): bricks_read counts level-0 blocks uploaded by this
 call, bricks_cached those already on the device, bricks_skipped the blocks empty-space skipping leaves out (TF
 opacity zero over their border-inclusive value range), reduction is 1 and predicted_delta_e 0.
+
+Any other quality ('lossless', {"budget_mb"}, {"reduction"}) selects a level per block (renderer/selection.py,
+thesis §3.2), packs the selected bricks into the atlas (renderer/atlas.py: bricks_read / bricks_cached count the
+bricks read from the store / found in the brick cache, bricks_skipped the blocks not loaded, level -1) and samples
+it with nearest-block or interblock interpolation (LC_SAMPLER_ATLAS, lc_atlas.h), optionally with adaptive
+object-space sampling (LC_ADAPTIVE). At quality 'full' adaptive sampling would change nothing (every block is
+level 0: the step is the base step everywhere), so the full-resolution path renders and the report says
+``"adaptive": false``.
 """
 from __future__ import annotations
 
@@ -15,6 +23,7 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
+from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
 from lodcast.renderer.config import PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.program import device_info, get_context, get_program
@@ -49,10 +58,14 @@ class RenderResult:
         return png_bytes(self.rgba)
 
 
-def kernel_config(scene: Scene, orthographic: bool, max_samples: int) -> KernelConfig:
+def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool = False) -> KernelConfig:
     s = scene.sampling
+    adaptive = lod and (s.adaptive_object or s.adaptive_naive)
     return KernelConfig(
-        sampler="full",
+        sampler="atlas" if lod else "full",
+        interpolation=s.interpolation if lod else "trilinear",
+        adaptive=adaptive,
+        adaptive_naive=lod and s.adaptive_naive,
         mode=scene.mode,
         orthographic=orthographic,
         ess=s.empty_space_skipping,
@@ -108,9 +121,56 @@ class Prepared:
     n_empty: int
     step_world: float
     unit: float
+    lod: "LodPlan | None" = None  # level-of-detail renders only
 
 
-def prepare(store: Any, scene: Any, *, spacing=None, origin=None) -> Prepared:
+@dataclass(frozen=True)
+class LodPlan:
+    levels: np.ndarray  # grid-shaped int8, store level per block, -1 = not loaded
+    reduction: float | None
+    predicted_delta_e: float | None
+    step_levels: np.ndarray | None  # adaptive sampling: int8 per half-block cell (atlas.step_levels)
+    selection: Any = None
+
+
+def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None) -> tuple[np.ndarray, Any]:
+    if levels is not None:
+        lv = np.ascontiguousarray(levels, dtype=np.int8)
+        if lv.shape != vol.grid:
+            raise SceneError(f"levels: shape {lv.shape} is not the block grid {vol.grid}")
+        return lv, None
+    if not vol.has_levels:
+        raise SceneError(f"quality: {scene.quality!r} needs a lodcast store (an array has only full resolution)")
+    from lodcast.renderer.selection import select_lod
+
+    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
+    quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
+    sel = select_lod(vol.source, tfs, quality)
+    return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
+
+
+def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
+              mode: str) -> tuple[LodPlan, np.ndarray, int]:
+    """The selection, the block info with unloaded blocks marked empty, and the number of empty blocks."""
+    lv, sel = _select(vol, scene, levels)
+    info = info.copy()
+    missing = lv < 0
+    info[missing] = -np.inf if mode == "mip" else 0.0
+    n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
+    B = vol.block_size
+    if sel is not None:
+        reduction, pred = float(sel.reduction), float(sel.predicted_delta_e)
+    else:
+        chosen = int(np.where(lv >= 0, (B >> np.maximum(lv.astype(np.int64), 0)) ** 3, 0).sum())
+        reduction, pred = (vol.n_blocks * B**3 / chosen if chosen else None), None
+    steps = None
+    if cfg.adaptive:
+        skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
+        steps = lod_atlas.step_levels(lv, scene.sampling.interpolation, skip)
+    return LodPlan(lv, reduction, pred, steps, sel), info, n_empty
+
+
+def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None) -> Prepared:
     scene = Scene.parse(scene)
     vol = as_volume(store, spacing=spacing, origin=origin)
     box = cam.box_world(vol.shape, vol.spacing, vol.origin)
@@ -126,11 +186,15 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None) -> Prepared:
         )
     lut = build_lut(scene.tf, vol.value_range)
     info, n_empty = block_info(vol, lut, scene.mode)
-    cfg = kernel_config(scene, fr.orthographic, max_samples)
+    lod = None
+    use_lod = levels is not None or scene.quality != "full"
+    cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod)
+    if use_lod:
+        lod, info, n_empty = _lod_plan(vol, scene, levels, info, cfg, scene.mode)
     if cfg.ess and scene.mode == "composite" and n_empty == 0:
         cfg = replace(cfg, ess=False)  # no block can be skipped: compile the block walk out
     params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples)
-    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit)
+    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod)
 
 
 def lut_table(pr: Prepared) -> np.ndarray:
@@ -147,17 +211,30 @@ def launch(kern: cl.Kernel, width: int, height: int) -> cl.Event:
     return cl.enqueue_nd_range_kernel(queue, kern, gsize, LOCAL_SIZE)
 
 
-def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult:
+def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None) -> RenderResult:
     """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path, or a 3D array with
-    optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad input."""
+    optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad input.
+    `levels` (grid-shaped, store level per block, -1 = not loaded) replaces the LOD selection (tests,
+    experiments): the atlas path renders it whatever the quality."""
     t_start = time.perf_counter()
-    pr = prepare(store, scene, spacing=spacing, origin=origin)
+    pr = prepare(store, scene, spacing=spacing, origin=origin, levels=levels)
     scene, vol, lut, cfg = pr.scene, pr.volume, pr.lut, pr.config
     options = cfg.build_options()
     ctx, queue = get_context()
     built = get_program("raycast.cl", options)
-    dvol, cached = upload_level0(vol)
     mf = cl.mem_flags
+    if pr.lod is None:
+        dvol, cached = upload_level0(vol)
+        d_vol, d_imap = dvol.buffer, cl.Buffer(ctx, mf.READ_ONLY, size=8)
+        upload_ms = 0.0 if cached else dvol.upload_ms
+        n_read, n_cached = (0, vol.n_blocks) if cached else (vol.n_blocks, 0)
+    else:
+        da = lod_atlas.device_atlas(vol, pr.lod.levels)
+        d_vol, d_imap = da.atlas, da.index
+        upload_ms = da.upload_ms
+        n_read, n_cached = da.read, da.cached
+    steps = pr.lod.step_levels if pr.lod is not None and pr.lod.step_levels is not None else np.zeros(8, np.int8)
+    d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)
     W, H = scene.width, scene.height
     d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.params)
     d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
@@ -166,7 +243,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 16)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
     kern = cl.Kernel(built.program, "lc_render")
-    kern.set_args(d_params, dvol.buffer, d_lut, d_ext, d_info, d_out, d_n)
+    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps)
     ev = launch(kern, W, H)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
@@ -175,22 +252,30 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None) -> RenderResult
     queue.finish()
     kernel_ms = (ev.profile.end - ev.profile.start) * 1e-6
     n_blocks = vol.n_blocks
-    skipped = pr.n_empty if (scene.sampling.empty_space_skipping and scene.mode == "composite") else 0
+    if pr.lod is None:
+        skipped = pr.n_empty if (scene.sampling.empty_space_skipping and scene.mode == "composite") else 0
+        reduction, pred, quality = 1.0, 0.0, "full"
+    else:
+        skipped = int(np.count_nonzero(pr.lod.levels < 0))
+        reduction, pred = pr.lod.reduction, pr.lod.predicted_delta_e
+        quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
     report = {
         "wall_ms": (time.perf_counter() - t_start) * 1e3,
         "kernel_ms": kernel_ms,
-        "bricks_read": 0 if cached else n_blocks,
-        "bricks_cached": n_blocks if cached else 0,
+        "bricks_read": n_read,
+        "bricks_cached": n_cached,
         "bricks_skipped": skipped,
-        "reduction": 1.0,
-        "predicted_delta_e": 0.0,
+        "reduction": reduction,
+        "predicted_delta_e": pred,
         "samples": int(nsamp.sum(dtype=np.int64)),
         "build_options": list(options),
         "program_cache": built.source,
         "build_ms": built.build_ms,
-        "upload_ms": 0.0 if cached else dvol.upload_ms,
-        "quality": "full",
-        "level": 0,
+        "upload_ms": upload_ms,
+        "quality": quality,
+        "level": 0 if pr.lod is None else None,
+        "interpolation": cfg.interpolation,
+        "adaptive": "naive" if cfg.adaptive_naive else ("limited" if cfg.adaptive else False),
         "blocks": n_blocks,
         "step_world": pr.step_world,
         "unit_distance": pr.unit,

@@ -41,7 +41,7 @@ __all__ = [
 
 #: Features implemented so far. A scene that asks for anything else is refused, naming the field.
 #: Later issues add their names here ("quality", "tf2", "shading", "clip", "adaptive_object", ...).
-LANDED: set[str] = set()
+LANDED: set[str] = {"quality", "adaptive_object"}  # issue 5: level of detail, adaptive object-space sampling
 
 _PENDING = {
     "quality": "quality other than 'full' is not implemented yet (level-of-detail selection lands with issue 5)",
@@ -171,11 +171,15 @@ class Sampling(_Model):
     """`step` is in voxels of the finest level: multiples of the smallest spacing. `interpolation` chooses how
     the brick atlas is sampled across blocks of different levels; at quality 'full' every block is at level 0 and
     both choices are exactly trilinear interpolation. `priority_map` belongs to the dual-TF mode (tf2).
-    `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image."""
+    `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image.
+    `adaptive_object`: adaptive object-space sampling at LOD qualities (thesis §3.6.1: the step grows with the
+    block's level, limited at block boundaries). `adaptive_naive` (for benchmarking only): the naive variant whose
+    steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks)."""
 
     step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5
     interpolation: Literal["nearest_block", "interblock"] = "interblock"
     adaptive_object: bool = False
+    adaptive_naive: bool = False
     adaptive_screen: bool = False
     preintegration: bool = False
     jitter: bool = False

@@ -90,16 +90,21 @@ def test_missing_tf_is_named():
     ({"tf2": TF}, "tf2"),
     ({"shading": {"ambient": 0.2}}, "shading"),
     ({"clip": {"planes": []}}, "clip"),
-    ({"quality": "lossless"}, "quality"),
-    ({"quality": {"reduction": 30}}, "quality"),
-    ({"quality": {"budget_mb": 64}}, "quality"),
-    ({"sampling": {"adaptive_object": True}}, "sampling.adaptive_object"),
     ({"sampling": {"adaptive_screen": True}}, "sampling.adaptive_screen"),
     ({"sampling": {"preintegration": True}}, "sampling.preintegration"),
 ])
 def test_features_not_landed_are_refused(patch, field):
     with pytest.raises(SceneError, match=rf"^{field}: .*not implemented"):
         Scene.parse({"tf": TF, **patch})
+
+
+@pytest.mark.parametrize("patch", [
+    {"quality": "lossless"}, {"quality": {"reduction": 30}}, {"quality": {"budget_mb": 64}},
+    {"sampling": {"adaptive_object": True}}, {"sampling": {"adaptive_naive": True}},
+    {"sampling": {"interpolation": "nearest_block"}},
+])
+def test_issue5_features_are_accepted(patch):
+    Scene.parse({"tf": TF, **patch})
 
 
 def test_scene_is_frozen_and_roundtrips():
