@@ -1,0 +1,143 @@
+"""LOD renders through the brick atlas (LC_SAMPLER_ATLAS) against the full-resolution path: every block at level 0
+gives the full-resolution image (interblock: everywhere; nearest block: where the trilinear stencil does not
+straddle a block face), unloaded blocks are empty space, the report carries the LOD keys."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import lodcast
+import lod_reference as ref
+from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer.render import render
+
+B = 16
+TF = {"points": [{"value": -1.0, "color": [1, 0, 0], "opacity": 0.0}, {"value": 1.0, "color": [0, 1, 0], "opacity": 0.08},
+                 {"value": 3.0, "color": [0.2, 0.3, 1], "opacity": 0.3}]}
+
+
+def _field(shape):
+    z, y, x = np.mgrid[0:shape[0], 0:shape[1], 0:shape[2]].astype(np.float64)
+    return (np.sin(x / 5.0) + np.cos(y / 7.0) + 1.5 * z / shape[0] + 0.2 * np.sin((x + y + z) / 3.0)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    # not a multiple of the block size on any axis: edge-padded bricks and DESIGN's rim clamp are exercised
+    return lodcast.ingest(_field((37, 45, 58)), tmp_path_factory.mktemp("lod") / "v.zarr", block_size=B,
+                          spacing=(1.2, 1.0, 0.9), progress=False)
+
+
+CAMERAS = [
+    {"azimuth": 30, "elevation": 20, "distance": 2.2},
+    {"azimuth": -110, "elevation": -35, "distance": 2.0, "projection": "orthographic", "view_height": 70},
+    {"azimuth": 0, "elevation": 90, "distance": 1.6, "fov": 40},
+]
+
+
+def _scene(cam, interp="interblock", **sampling):
+    return {"tf": TF, "width": 40, "height": 32, "camera": cam, "format": "npy",
+            "sampling": {"interpolation": interp, **sampling}}
+
+
+@pytest.mark.parametrize("cam", CAMERAS)
+def test_interblock_all_level0_equals_full_resolution(store, cam):
+    full = render(store, _scene(cam))
+    lod = render(store, _scene(cam), levels=np.zeros(store.grid, np.int8))
+    assert np.abs(lod.rgba - full.rgba).max() <= 1e-4
+    assert full.rgba[..., 3].max() > 0.3
+    r = lod.report
+    assert r["build_options"][:2] == ["-DLC_SAMPLER_ATLAS", "-DLC_INTERP_II"]
+    assert r["reduction"] == 1.0 and r["bricks_skipped"] == 0
+    assert r["bricks_read"] + r["bricks_cached"] == store.layout.n_blocks
+    assert abs(r["samples"] - full.report["samples"]) <= 1e-3 * full.report["samples"]
+    for k in ("wall_ms", "kernel_ms", "predicted_delta_e", "samples", "build_options"):
+        assert k in r
+
+
+def test_nearest_block_all_level0_equals_full_resolution_off_block_faces(tmp_path):
+    """NB clamps to [delta, 1 - delta] inside each block, so it differs from trilinear only within half a voxel of
+    an interior block face (where trilinear mixes the voxels on both sides). On a volume whose voxel layers on both
+    sides of every interior face are equal, trilinear is constant across that slab and NB renders the
+    full-resolution image."""
+    v = _field((40, 48, 50))
+    for axis in range(3):
+        for f in range(B, v.shape[axis], B):
+            idx = [slice(None)] * 3
+            src = list(idx)
+            idx[axis], src[axis] = f, f - 1
+            v[tuple(idx)] = v[tuple(src)]
+    st = lodcast.ingest(v, tmp_path / "v.zarr", block_size=B, progress=False)
+    for cam in CAMERAS[:2]:
+        full = render(st, _scene(cam, "nearest_block"))
+        lod = render(st, _scene(cam, "nearest_block"), levels=np.zeros(st.grid, np.int8))
+        assert "-DLC_INTERP_NB" in lod.report["build_options"]
+        assert np.abs(lod.rgba - full.rgba).max() <= 1e-4
+
+
+def test_nearest_block_differs_from_trilinear_only_in_the_face_slab():
+    rng = np.random.default_rng(11)
+    G, b = (2, 2, 3), 8
+    pyr = ref.pyramid(rng.random(tuple(g * b for g in G)), 4)
+    lv = np.zeros(G, np.int8)
+    pts = rng.uniform(-0.5, np.array([G[2], G[1], G[0]]) * b - 0.5, (3000, 3))
+    got = ref.probe(lv, ref.bricks_of(lv, pyr, b), b, pts, "nearest_block")
+    tri = np.array([ref.trilinear_level(pyr, 0, b, q) for q in pts])
+    # distance (in voxels) to the nearest interior block face along each axis
+    dist = np.min(np.stack([np.abs((pts[:, a] + 0.5) - np.clip(np.round((pts[:, a] + 0.5) / b), 1, [G[2], G[1], G[0]][a] - 1) * b)
+                            for a in range(3)]), axis=0)
+    off = dist >= 0.5
+    np.testing.assert_allclose(got[off], tri[off], atol=2e-6)
+    assert np.abs(got[~off] - tri[~off]).max() > 0.05  # and inside the slab it does differ
+
+
+@pytest.mark.parametrize("interp", ["interblock", "nearest_block"])
+def test_unloaded_blocks_are_empty_space_and_skipping_them_changes_nothing(store, interp):
+    rng = np.random.default_rng(3)
+    lv = rng.integers(-1, store.n_levels, store.grid).astype(np.int8)
+    lv[lv.shape[0] // 2] = -1  # a whole slab of blocks not loaded
+    cam = CAMERAS[0]
+    a = render(store, _scene(cam, interp), levels=lv)
+    b = render(store, _scene(cam, interp, empty_space_skipping=False), levels=lv)
+    assert np.abs(a.rgba - b.rgba).max() <= 1e-5  # NaN samples in unloaded blocks are transparent
+    assert a.report["bricks_skipped"] == int((lv < 0).sum())
+    assert a.report["samples"] < b.report["samples"]  # and they were skipped, not sampled
+    assert np.isfinite(a.rgba).all() and a.rgba[..., 3].max() > 0.05
+
+
+def test_mip_all_level0_equals_full(store):
+    sc = {**_scene(CAMERAS[1]), "mode": "mip"}
+    full = render(store, sc)
+    lod = render(store, sc, levels=np.zeros(store.grid, np.int8))
+    assert np.abs(lod.rgba - full.rgba).max() <= 1e-4
+
+
+def test_atlas_layout_and_max_alloc(store):
+    lv = np.random.default_rng(2).integers(-1, store.n_levels, store.grid).astype(np.int8)
+    ld = lod_atlas.load_bricks(lodcast.renderer.volume.as_volume(store), lv, lod_atlas.BrickCache(2**30))
+    atlas, index = lod_atlas.pack(lv, ld.bricks, B, max_bytes=2**30)
+    sizes = [(B >> int(k)) ** 3 for k in lv.ravel() if k >= 0]
+    assert atlas.size == sum(sizes) and index.dtype == np.uint64 and index.shape == lv.shape
+    for (z, y, x), k in np.ndenumerate(lv):  # every entry decodes to its brick, exactly
+        e = int(index[z, y, x])
+        if k < 0:
+            assert e == 0
+            continue
+        assert (e & 15) - 1 == k
+        n = B >> int(k)
+        np.testing.assert_array_equal(atlas[e >> 4:(e >> 4) + n**3].reshape(n, n, n), store.read_brick(int(k), (z, y, x)))
+    big = lod_atlas.pack_index(np.array([2**40 + 3]), np.array([2]))  # 64-bit offsets survive the packing
+    assert int(big[0]) >> 4 == 2**40 + 3 and int(big[0]) & 15 == 3
+    with pytest.raises(lodcast.renderer.program.DeviceError, match="CL_DEVICE_MAX_MEM_ALLOC_SIZE"):
+        lod_atlas.pack(lv, ld.bricks, B, max_bytes=atlas.nbytes - 4)
+    lod_atlas.pack(lv, ld.bricks, B, max_bytes=atlas.nbytes)  # exactly at the limit is fine
+
+
+def test_render_respects_the_device_max_alloc(store, monkeypatch):
+    lod_atlas.clear_device_atlas()
+    monkeypatch.setattr(lod_atlas, "max_alloc_bytes", lambda: 1024)
+    with pytest.raises(lodcast.renderer.program.DeviceError, match="largest allocation"):
+        render(store, _scene(CAMERAS[0]), levels=np.zeros(store.grid, np.int8))
+    assert lod_atlas.max_alloc_bytes() == 1024
+    monkeypatch.undo()
+    assert lod_atlas.max_alloc_bytes() == int(lodcast.renderer.program.device_info()["max_mem_alloc_size"])
