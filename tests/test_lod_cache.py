@@ -1,0 +1,114 @@
+"""The brick cache (renderer/atlas.py): camera changes read nothing, a new selection reads only the bricks it
+changes, reads are grouped by shard, the LRU is bounded by bytes, and one cache serves the whole process."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import lodcast
+from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer.render import render
+from lodcast.renderer.volume import as_volume
+
+B = 8
+TF = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 0.5, 0], "opacity": 0.2}]}
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    rng = np.random.default_rng(0)
+    v = rng.random((40, 48, 72)).astype(np.float32)
+    return lodcast.ingest(v, tmp_path_factory.mktemp("cache") / "v.zarr", block_size=B, progress=False)
+
+
+@pytest.fixture(autouse=True)
+def fresh():
+    lod_atlas.CACHE.clear()
+    lod_atlas.clear_device_atlas()
+    yield
+    lod_atlas.CACHE.clear()
+    lod_atlas.clear_device_atlas()
+
+
+def _scene(az, tf=TF):
+    return {"tf": tf, "width": 16, "height": 16, "camera": {"azimuth": az, "elevation": 15}, "format": "npy"}
+
+
+def _pairs(lv):
+    return {(int(k), z, y, x) for (z, y, x), k in np.ndenumerate(lv) if k >= 0}
+
+
+def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(store):
+    rng = np.random.default_rng(1)
+    lv1 = rng.integers(-1, store.n_levels, store.grid).astype(np.int8)
+    n1 = int((lv1 >= 0).sum())
+    r = render(store, _scene(0), levels=lv1).report
+    assert (r["bricks_read"], r["bricks_cached"], r["bricks_skipped"]) == (n1, 0, lv1.size - n1)
+    reads = lod_atlas.CACHE.reads
+    for az in (40, 170):  # camera only: nothing read, nothing packed again
+        r = render(store, _scene(az), levels=lv1).report
+        assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
+    lod_atlas.clear_device_atlas()  # also from the host cache alone (e.g. after another store was rendered)
+    r = render(store, _scene(80), levels=lv1).report
+    assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
+    assert lod_atlas.CACHE.reads == reads
+    # a changed selection (what a TF change does): only the bricks it changes are read
+    lv2 = lv1.copy()
+    change = rng.random(lv1.shape) < 0.3
+    lv2[change] = rng.integers(-1, store.n_levels, int(change.sum()))
+    new = _pairs(lv2) - _pairs(lv1)
+    assert new
+    r = render(store, _scene(80), levels=lv2).report
+    assert r["bricks_read"] == len(new) and r["bricks_cached"] == len(_pairs(lv2)) - len(new)
+    assert lod_atlas.CACHE.reads == reads + len(new)
+
+
+def test_tf_change_through_the_selection_reads_only_changed_bricks(store):
+    pytest.importorskip("lodcast.renderer.selection")
+    tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [0, 0.5, 1], "opacity": 0.6}]}
+    a = render(store, {**_scene(0), "quality": {"reduction": 8}})
+    b = render(store, {**_scene(90), "quality": {"reduction": 8}})
+    assert b.report["bricks_read"] == 0 and b.report["bricks_cached"] == a.report["bricks_read"]
+    c = render(store, {**_scene(90, tf2), "quality": {"reduction": 8}})
+    from lodcast.renderer.selection import select_lod
+    from lodcast.renderer.scene import Scene
+
+    l1 = select_lod(store, [Scene.parse(_scene(0)).tf], {"reduction": 8}).levels
+    l2 = select_lod(store, [Scene.parse(_scene(0, tf2)).tf], {"reduction": 8}).levels
+    assert c.report["bricks_read"] == len(_pairs(l2) - _pairs(l1))
+
+
+def test_reads_are_grouped_by_shard_and_run_in_parallel(store):
+    vol = as_volume(store)
+    lay = store.layout
+    lv = np.zeros(store.grid, np.int8)
+    lv[:, :, 5:] = 2
+    cache = lod_atlas.BrickCache(2**30)
+    ld = lod_atlas.load_bricks(vol, lv, cache)
+    shards = {(int(k), *(b * lay.block_edge(int(k)) // s for b, s in zip((z, y, x), lay.shard_shape(int(k)))))
+              for (z, y, x), k in np.ndenumerate(lv)}
+    assert ld.shards == len(shards) < ld.read == lv.size
+    for (z, y, x), k in list(np.ndenumerate(lv))[::7]:
+        np.testing.assert_array_equal(ld.bricks[(int(k), z, y, x)], store.read_brick(int(k), (z, y, x)))
+    again = lod_atlas.load_bricks(vol, lv, cache)
+    assert (again.read, again.cached, again.shards) == (0, lv.size, 0)
+
+
+def test_lru_is_bounded_by_bytes():
+    c = lod_atlas.BrickCache(3 * 4 * 64)  # three 4x4x4 float32 bricks
+    for i in range(5):
+        c.put(("s", 0, i), np.full((4, 4, 4), i, np.float32))
+    assert len(c) == 3 and c.nbytes == 3 * 256 and c.get(("s", 0, 0)) is None
+    c.get(("s", 0, 2))  # touched: survives the next insertion
+    c.put(("s", 0, 9), np.zeros((4, 4, 4), np.float32))
+    assert c.get(("s", 0, 2)) is not None and c.get(("s", 0, 3)) is None
+    c.put(("s", 1, 0), np.zeros((8, 8, 8), np.float32))  # larger than the whole cache: not kept
+    assert c.get(("s", 1, 0)) is None and c.nbytes <= c.max_bytes
+
+
+def test_one_cache_per_process(store, monkeypatch):
+    import importlib
+
+    assert lod_atlas.CACHE is importlib.import_module("lodcast.renderer.atlas").CACHE
+    monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "3")
+    assert lod_atlas._env_mb("LODCAST_BRICK_CACHE_MB", 1024) == 3 * 2**20
