@@ -76,15 +76,15 @@ def brute_zeta(tf: TransferFunction, hist: np.ndarray, centres: np.ndarray, mean
     return float(np.sqrt(acc / n)) if n > 0 else 0.0
 
 
-def synthetic_meta(rng: np.random.Generator, n: int, bins: Bins, n_levels: int = 6) -> BlockMeta:
+def synthetic_meta(rng: np.random.Generator, n: int, bins: Bins, n_levels: int = 6, sd_max: float = 0.15, clusters: int = 3) -> BlockMeta:
     """Random block histograms: each block a mixture of one to three Gaussian value clusters."""
     nb = bins.count
     centres = np.arange(nb) + bins.lo if bins.integer else 0.5 * (bins.edges[:-1] + bins.edges[1:])
     hists = np.zeros((n, nb), np.uint32)
     for i in range(n):
-        for _ in range(rng.integers(1, 4)):
+        for _ in range(rng.integers(1, clusters + 1)):
             mu = rng.uniform(bins.lo, bins.hi)
-            sd = rng.uniform(0.002, 0.15) * (bins.hi - bins.lo)
+            sd = rng.uniform(0.002, sd_max) * (bins.hi - bins.lo)
             vals = np.clip(rng.normal(mu, sd, rng.integers(50, 3000)), bins.lo, bins.hi)
             hists[i] += np.bincount(bins.index(vals), minlength=nb).astype(np.uint32)
     starts, heights = simplify(hists, 12, device=False)
