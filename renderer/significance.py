@@ -23,9 +23,10 @@ value range [min_border, max_border] (exact test on the piecewise-linear opacity
 read. A block whose value range is exactly one value (constant, border included) has ζ = 0 exactly: every level
 of it is exact (the average of a constant), so it is read at the coarsest level and never refined.
 
-Evaluation. T* is tabulated once per TF (colour-science on a few thousand values, never per block): at the
-histogram bin centres, and on a dense table (a uniform grid over the value range plus every control point and 16
-subdivisions of each interval between control points) in which T*(s̄) is interpolated linearly. With the
+Evaluation. T* is tabulated once per TF (colour-science on at most a few thousand values, never per block): at
+the histogram bin centres, and on the renderer's LUT grid (`build_lut`: uniform, every control point on an entry
+when that fits, capped at DENSE_MAX entries) in which T*(s̄) is interpolated linearly (measured against direct
+colour-science evaluation at the mean: ≤ 2e-4 ΔE in ζ on the tests' CT-like TF). With the
 simplified histogram (K piecewise-constant pieces, heights h_k = mean count per bin over bins [s_k, s_{k+1}))
 the sum is O(K) per block through prefix sums over bins of T*(b) and |T*(b)|²::
 
@@ -50,7 +51,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from lodcast.renderer.scene import TransferFunction
-from lodcast.renderer.transfer_function import evaluate
+from lodcast.renderer.transfer_function import build_lut, evaluate
 
 __all__ = [
     "BlockMeta",
@@ -69,9 +70,7 @@ __all__ = [
     "meta_of_store",
 ]
 
-DENSE_UNIFORM = 2048  # uniform entries of the dense T* table over the value range
-DENSE_SUBDIV = 16  # extra entries between consecutive control points
-DENSE_MAX = 16384  # cap on the dense table (colour-science costs ~0.35 µs per entry)
+DENSE_MAX = 8192  # cap on the dense T* table (colour-science costs ~0.35 µs per entry)
 
 
 # --------------------------------------------------------------------------------------------- colour
@@ -100,21 +99,43 @@ def as_tf(tf: Any) -> TransferFunction:
     return TransferFunction.model_validate(tf)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TStar:
     """T* of one TF, tabulated: at the bin centres (with a 4-channel prefix table over bins: L, u, v, |T*|²)
-    and on a dense value table for T*(s̄)."""
+    and on a dense uniform value table (entry k at lo + k/scale) for T*(s̄)."""
 
     centres: np.ndarray  # (nb,) bin representative values
     luv: np.ndarray  # (nb, 3) T* at the centres
     prefix: np.ndarray  # (nb + 1, 4) prefix sums of [L, u, v, |T*|²] over bins
-    dense_values: np.ndarray  # (m,) increasing
+    dense_lo: float
+    dense_scale: float  # entries per data unit
     dense_luv: np.ndarray  # (m, 3)
 
+    @property
+    def dense_values(self) -> np.ndarray:
+        return self.dense_lo + np.arange(self.dense_luv.shape[0]) / self.dense_scale
+
     def at(self, values: np.ndarray) -> np.ndarray:
-        """T*(values) by linear interpolation in the dense table, (..., 3)."""
+        """T*(values) by linear interpolation in the dense table (clamped at its ends), (..., 3)."""
         v = np.asarray(values, np.float64)
-        return np.stack([np.interp(v, self.dense_values, self.dense_luv[:, c]) for c in range(3)], axis=-1)
+        m = self.dense_luv.shape[0]
+        if m == 1:
+            return np.broadcast_to(self.dense_luv[0], v.shape + (3,)).copy()
+        f = np.clip((v - self.dense_lo) * self.dense_scale, 0.0, m - 1.0)
+        i = np.minimum(f.astype(np.intp), m - 2)
+        t = f - i
+        # one 48-byte row per cell: (T*[k], T*[k+1] − T*[k])
+        g = np.take(self._cells, i, axis=0).view(np.float64).reshape(v.shape + (2, 3))
+        return g[..., 0, :] + g[..., 1, :] * t[..., None]
+
+    @property
+    def _cells(self) -> np.ndarray:
+        c = self.__dict__.get("_cells_cache")
+        if c is None:
+            d = self.dense_luv
+            c = np.ascontiguousarray(np.concatenate([d[:-1], d[1:] - d[:-1]], axis=1)).view(np.dtype((np.void, 48))).ravel()
+            object.__setattr__(self, "_cells_cache", c)
+        return c
 
 
 def bin_centres(bins) -> np.ndarray:
@@ -123,23 +144,26 @@ def bin_centres(bins) -> np.ndarray:
 
 
 def tstar(tf: TransferFunction, bins, value_range: tuple[float, float] | None = None) -> TStar:
-    """Tabulate T* of `tf` once (the only place colour-science runs per TF)."""
+    """Tabulate T* of `tf` once (the only place colour-science runs per TF). The dense table is the renderer's
+    LUT grid (`build_lut`: uniform, with every control point inside the range on an entry when that fits, else
+    at least 64 entries per smallest control-point gap), or a uniform DENSE_MAX-entry grid when that is finer
+    than DENSE_MAX entries."""
     tf = as_tf(tf)
     centres = bin_centres(bins)
     lo, hi = (float(bins.lo), float(bins.hi)) if value_range is None else (float(value_range[0]), float(value_range[1]))
-    lo, hi = min(lo, centres[0]), max(hi, centres[-1])
-    xs = np.array([p.value for p in tf.points], np.float64)
-    inside = xs[(xs >= lo) & (xs <= hi)]
-    parts = [np.linspace(lo, hi, DENSE_UNIFORM + 1) if hi > lo else np.array([lo]), inside]
-    if len(inside) >= 2 and (len(inside) - 1) * DENSE_SUBDIV <= DENSE_MAX:
-        t = np.arange(1, DENSE_SUBDIV) / DENSE_SUBDIV
-        parts.append((inside[:-1, None] + np.diff(inside)[:, None] * t[None, :]).ravel())
-    dense = np.unique(np.concatenate(parts))
+    lo, hi = min(lo, float(centres[0])), max(hi, float(centres[-1]))
+    lut = build_lut(tf, (lo, hi))
+    if lut.n <= DENSE_MAX:
+        d_lo, d_scale, d_n = lut.lo, lut.scale, lut.n
+    else:
+        d_n = DENSE_MAX
+        d_lo, d_scale = lo, (d_n - 1) / (hi - lo)
+    dense = d_lo + np.arange(d_n) / d_scale
     luv_all = srgb_to_luv(unit_slab_colour(tf, np.concatenate([centres, dense])))
     luv, dense_luv = luv_all[: centres.size], luv_all[centres.size :]
     q = np.concatenate([luv, (luv * luv).sum(axis=1, keepdims=True)], axis=1)
     prefix = np.concatenate([np.zeros((1, 4)), np.cumsum(q, axis=0)], axis=0)
-    return TStar(centres, luv, prefix, dense, dense_luv)
+    return TStar(centres, luv, prefix, float(d_lo), float(d_scale), np.ascontiguousarray(dense_luv))
 
 
 def tf_visible(tf: TransferFunction, vmin, vmax) -> np.ndarray:
@@ -153,8 +177,8 @@ def tf_visible(tf: TransferFunction, vmin, vmax) -> np.ndarray:
     hi = np.where(ok, vmax, 0.0)
     xs = np.array([p.value for p in tf.points], np.float64)
     ops = np.array([p.opacity for p in tf.points], np.float64)
-    _, a_lo = evaluate(tf, lo)
-    _, a_hi = evaluate(tf, hi)
+    a_lo = np.interp(lo, xs, ops)
+    a_hi = np.interp(hi, xs, ops)
     # a control point with opacity > 0 strictly inside (lo, hi) makes the range visible
     pos = np.concatenate([[0], np.cumsum(ops > 0.0)])
     i0 = np.searchsorted(xs, lo, side="right")
@@ -164,7 +188,7 @@ def tf_visible(tf: TransferFunction, vmin, vmax) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- block data
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # identity hash: cached per object
 class BlockMeta:
     """What significance needs of a store, flattened over blocks (C order of the grid)."""
 
@@ -222,7 +246,7 @@ def meta_of_store(store) -> BlockMeta:
     return meta
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _Pre:
     """TF-independent part of the O(K) evaluation: gather indices (N, K+1) and coefficients (N, 1, K+1)."""
 
@@ -251,16 +275,23 @@ def _precompute(meta: BlockMeta) -> _Pre:
 
 
 def _zeta_from_sums(tbar: np.ndarray, s: np.ndarray, total: np.ndarray) -> np.ndarray:
-    """ζ = sqrt(|T̄|² − 2 T̄·A/n + B/n) from A = s[:, :3], B = s[:, 3]; 0 where n = 0."""
+    """ζ = sqrt(|T̄|² + (B − 2 T̄·A)/n) from A = s[:, :3], B = s[:, 3]; 0 where n = 0."""
+    w = np.empty_like(s)
+    np.multiply(tbar, -2.0, out=w[:, :3])
+    w[:, 3] = 1.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        z2 = (tbar * tbar).sum(axis=1) + ((s[:, 3] - 2.0 * (tbar * s[:, :3]).sum(axis=1)) / total)
-    z2 = np.where(total > 0, z2, 0.0)
-    return np.sqrt(np.maximum(z2, 0.0))
+        z2 = np.einsum("ij,ij->i", tbar, tbar) + np.einsum("ij,ij->i", w, s) / total
+    z2[~(total > 0)] = 0.0
+    np.maximum(z2, 0.0, out=z2)
+    return np.sqrt(z2, out=z2)
 
 
 def _blocks_to_eval(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
     """Blocks whose ζ needs computing: visible and not constant (ζ = 0 exactly otherwise)."""
     return visible & (meta.max_border > meta.min_border) & np.isfinite(meta.mean)
+
+
+_CHUNK = 8192
 
 
 def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndarray:
@@ -276,8 +307,12 @@ def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndar
     total = pre.total if sel is None else pre.total[sel]
     mean = meta.mean if sel is None else meta.mean[sel]
     table = np.ascontiguousarray(ts.prefix).view(np.dtype((np.void, 32))).ravel()  # one 32-byte row per bin edge
-    g = np.take(table, idx, axis=0).view(np.float64).reshape(idx.shape[0], idx.shape[1], 4)
-    sums = np.matmul(coef, g)[:, 0, :]
+    m = idx.shape[0]
+    sums = np.empty((m, 1, 4))
+    for a in range(0, m, _CHUNK):  # chunks keep the gathered rows in cache for the product
+        g = np.take(table, idx[a : a + _CHUNK], axis=0).view(np.float64).reshape(-1, idx.shape[1], 4)
+        np.matmul(coef[a : a + _CHUNK], g, out=sums[a : a + _CHUNK])
+    sums = sums[:, 0, :]
     z = _zeta_from_sums(ts.at(np.nan_to_num(mean)), sums, total)
     if sel is None:
         return np.where(todo, z, 0.0)

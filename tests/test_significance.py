@@ -2,7 +2,7 @@
 
 Brute force: a loop over bins, colour-science called per value (sRGB → XYZ → CIELUV, D65) on the unit-slab colour
 rgb·a, T* at the block mean evaluated directly (not interpolated). The library interpolates T*(s̄) in a dense
-table, which is where the stated tolerances come from (measured ≤ 1e-3 ΔE; asserted ≤ 5e-3 + 1e-4·ζ)."""
+table, which is where the stated tolerances come from (measured ≤ 2e-4 ΔE; asserted ≤ 5e-3 + 1e-4·ζ)."""
 from __future__ import annotations
 
 import warnings
