@@ -7,8 +7,9 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
   buffer ~2x faster than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else
   `DeviceError` says how much it needs and what the device allows;
 - the **index map**: one uint64 per block (C order of the grid): 0 for a block that is not loaded, else
-  ``(offset << 4) | (level + 1)``, offset = the brick's first element in the atlas (64-bit element offset);
-  read by lc_atlas.h;
+  ``(offset << 8) | ((nbmax + 1) << 4) | (level + 1)``, offset = the brick's first element in the atlas (element
+  offset, up to 2^56), nbmax = the coarsest level in the block's 3x3x3 neighbourhood (unloaded blocks count as
+  0; interblock sampling's interior fast path); read by lc_atlas.h;
 - the **step-level grid** for adaptive object-space sampling (half-block cells, see raycast.cl).
 
 Bricks come from a **brick cache** shared by every render of the process (module level, LRU by bytes, size
@@ -167,12 +168,30 @@ def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None) -
                      (time.perf_counter() - t) * 1e3)
 
 
-def pack_index(offset: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """Index map entries: 0 where level < 0, else (offset << 4) | (level + 1), as uint64."""
+def neighbourhood_max(levels: np.ndarray) -> np.ndarray:
+    """Per block: the largest level over its 3x3x3 neighbourhood (itself included; unloaded blocks count as 0)."""
+    lv = np.maximum(np.asarray(levels, np.int64), 0)
+    pad = np.pad(lv, 1, mode="edge")
+    out = lv.copy()
+    G = lv.shape
+    for dz in range(3):
+        for dy in range(3):
+            for dx in range(3):
+                np.maximum(out, pad[dz:dz + G[0], dy:dy + G[1], dx:dx + G[2]], out=out)
+    return out
+
+
+def pack_index(offset: np.ndarray, level: np.ndarray, nbmax: np.ndarray | None = None) -> np.ndarray:
+    """Index map entries: 0 where level < 0, else (offset << 8) | ((nbmax + 1) << 4) | (level + 1), as uint64
+    (nbmax defaults to the level itself)."""
     level = np.asarray(level, np.int64)
-    if level.max(initial=-1) > 14:
-        raise ValueError("levels above 14 do not fit the index map's 4-bit level field")
-    ent = (np.asarray(offset, np.uint64) << np.uint64(4)) | (level + 1).astype(np.uint64)
+    nbmax = level if nbmax is None else np.asarray(nbmax, np.int64)
+    if max(level.max(initial=-1), nbmax.max(initial=-1)) > 14:
+        raise ValueError("levels above 14 do not fit the index map's 4-bit level fields")
+    offset = np.asarray(offset, np.uint64)
+    if offset.size and int(offset.max()) >= 2**56:
+        raise ValueError("atlas offsets of 2^56 elements and more do not fit the index map")
+    ent = (offset << np.uint64(8)) | ((nbmax + 1).astype(np.uint64) << np.uint64(4)) | (level + 1).astype(np.uint64)
     return np.where(level >= 0, ent, np.uint64(MISSING)).astype(np.uint64)
 
 
@@ -198,7 +217,7 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
         z, y, x = np.unravel_index(i, levels.shape)
         o, n = int(offsets[i]), int(sizes[i])
         atlas[o:o + n] = bricks[(int(flat[i]), int(z), int(y), int(x))].ravel()
-    return atlas, pack_index(offsets, flat).reshape(levels.shape)
+    return atlas, pack_index(offsets, flat, neighbourhood_max(levels).ravel()).reshape(levels.shape)
 
 
 def step_levels(levels: np.ndarray, interpolation: str, skip: np.ndarray | None = None) -> np.ndarray:

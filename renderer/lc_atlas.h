@@ -2,8 +2,10 @@
  *
  * Atlas: one float buffer, the selected bricks packed one after another (no sample replication); the brick of a
  * level-k block holds n = B >> k samples per edge in C order (z, y, x). Index map: one ulong per block of the
- * grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else (offset << 4) | (level + 1), offset
- * the brick's first element in the atlas (64-bit, see lodcast.renderer.atlas.pack_index).
+ * grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else
+ * (offset << 8) | ((nbmax + 1) << 4) | (level + 1), offset the brick's first element in the atlas (64-bit), nbmax
+ * the coarsest level in the block's 3x3x3 neighbourhood (unloaded blocks count as level 0), which bounds every
+ * edge weight's ramp near the block: see lodcast.renderer.atlas.pack_index.
  *
  * Coordinates: q = voxel coordinates of level 0 (centres at integers); block coordinates p = (q + 1/2) / B, so
  * block b covers p in [b, b + 1) and its level-k samples sit at intrablock coordinates (i + 1/2) / n.
@@ -42,7 +44,7 @@ typedef struct LcAtlasGeom {
 static inline float lc_nb(__global const float* atlas, const ulong entry, const int bx, const int by, const int bz,
                           const LcAtlasGeom g, const float3 q) {
     const int lvl = (int)(entry & 15UL) - 1;
-    const ulong off = entry >> 4;
+    const ulong off = entry >> 8;
     const int n = (int)g.B >> lvl;
     const float s = 1.0f / (float)(1 << lvl);
     const float nm = (float)(n - 1);
@@ -87,16 +89,28 @@ static inline float lc_edge(const float x, const float hl, const float hu) {
 
 static inline float lc_sample_atlas(__global const float* atlas, __global const ulong* imap, const LcAtlasGeom g,
                                     const float3 q) {
-    const float3 p = (q + 0.5f) / g.B;
-    const int bx = lc_clampi((int)floor(p.x), g.gx - 1);
-    const int by = lc_clampi((int)floor(p.y), g.gy - 1);
-    const int bz = lc_clampi((int)floor(p.z), g.gz - 1);
+    /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
+     * PoCL's out-of-line floor() */
+    const float3 p = (q + 0.5f) * (1.0f / g.B);
+    const int bx = lc_clampi((int)p.x, g.gx - 1);
+    const int by = lc_clampi((int)p.y, g.gy - 1);
+    const int bz = lc_clampi((int)p.z, g.gz - 1);
     const ulong own = LC_IMAP(bx, by, bz);
     if (!own) return NAN;
 #ifndef LC_INTERP_II
     return lc_nb(atlas, own, bx, by, bz, g, q);
 #else
-    const float cxf = floor(p.x + 0.5f), cyf = floor(p.y + 0.5f), czf = floor(p.z + 0.5f);
+    {
+        /* interior fast path: at least hm (the largest half-sample width in the 3x3x3 neighbourhood) from every
+         * face of the own block, every edge weight of the cell is 0 or 1 towards the own block, so only it carries
+         * weight and phi is its NB sample (the thesis' II two-pass idea: NB inside the sample boundaries) */
+        const float hm = 0.5f * (float)(1 << ((int)((own >> 4) & 15UL) - 1));
+        const float ox = q.x + 0.5f - (float)bx * g.B, oy = q.y + 0.5f - (float)by * g.B;
+        const float oz = q.z + 0.5f - (float)bz * g.B;
+        if (ox >= hm && oy >= hm && oz >= hm && g.B - ox >= hm && g.B - oy >= hm && g.B - oz >= hm)
+            return lc_nb(atlas, own, bx, by, bz, g, q);
+    }
+    const float cxf = (float)(int)(p.x + 0.5f), cyf = (float)(int)(p.y + 0.5f), czf = (float)(int)(p.z + 0.5f);
     /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
     const float xs = q.x + 0.5f - cxf * g.B, ys = q.y + 0.5f - cyf * g.B, zs = q.z + 0.5f - czf * g.B;
     const int cx = (int)cxf, cy = (int)cyf, cz = (int)czf;

@@ -124,10 +124,12 @@ def test_atlas_layout_and_max_alloc(store):
             assert e == 0
             continue
         assert (e & 15) - 1 == k
+        nb = np.maximum(lv, 0)[max(z - 1, 0):z + 2, max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].max()
+        assert ((e >> 4) & 15) - 1 == nb
         n = B >> int(k)
-        np.testing.assert_array_equal(atlas[e >> 4:(e >> 4) + n**3].reshape(n, n, n), store.read_brick(int(k), (z, y, x)))
+        np.testing.assert_array_equal(atlas[e >> 8:(e >> 8) + n**3].reshape(n, n, n), store.read_brick(int(k), (z, y, x)))
     big = lod_atlas.pack_index(np.array([2**40 + 3]), np.array([2]))  # 64-bit offsets survive the packing
-    assert int(big[0]) >> 4 == 2**40 + 3 and int(big[0]) & 15 == 3
+    assert int(big[0]) >> 8 == 2**40 + 3 and int(big[0]) & 15 == 3
     with pytest.raises(lodcast.renderer.program.DeviceError, match="CL_DEVICE_MAX_MEM_ALLOC_SIZE"):
         lod_atlas.pack(lv, ld.bricks, B, max_bytes=atlas.nbytes - 4)
     lod_atlas.pack(lv, ld.bricks, B, max_bytes=atlas.nbytes)  # exactly at the limit is fine
