@@ -85,6 +85,17 @@
         done = T <= t_stop;                                                      \
     }
 #else
+#ifdef LC_ADAPTIVE
+/* adaptive: r = -1 - k (k >= 1) is a whole step of step * 2^k: alpha from row k of lut_ext (the host appends one
+ * alpha table per level after the extinction row), no transcendental call */
+#define LC_LEVEL_ALPHA(r)                                                        \
+        else if ((r) < -1.5f) {                                                  \
+            const int o_ = (int)(-1.0f - (r)) * lut_row + i_;                    \
+            alpha = lut_ext[o_] + (lut_ext[o_ + 1] - lut_ext[o_]) * w_;          \
+        }
+#else
+#define LC_LEVEL_ALPHA(r)
+#endif
 /* r < 0: a uniform segment (alpha from the table); else the last segment's length in TF units (alpha from the
  * extinction table: 1 - (1 - a)^r = -expm1(-r sigma), exact even where the step's alpha rounds to 1 in float32) */
 #define LC_SAMPLE_BODY(v, r)                                                     \
@@ -95,6 +106,7 @@
             const float sg_ = lut_ext[i_] + (lut_ext[i_ + 1] - lut_ext[i_]) * w_; \
             alpha = -expm1(-(r) * sg_);                                          \
         }                                                                        \
+        LC_LEVEL_ALPHA(r)                                                        \
         const float wgt = T * alpha;                                             \
         C += wgt * e.xyz;                                                        \
         T -= wgt;                                                                \
@@ -177,7 +189,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #ifdef LC_PRECISE
 #define LC_R(len) ((len) * inv_dt)
 #else
-#define LC_R(len) ((len) == dt ? -1.0f : (len) * inv_unit)
+#define LC_R(len) ((len) == h ? -1.0f - (float)lvl : (len) * inv_unit)
+        const int lut_row = P->lut_n + 1;
 #endif
         while (t < t1 && !done && budget) {
             --budget;

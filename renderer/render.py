@@ -205,6 +205,16 @@ def lut_table(pr: Prepared) -> np.ndarray:
     return pr.lut.kernel_table("depth" if pr.config.precise else "alpha", ratio)
 
 
+def ext_table(pr: Prepared) -> np.ndarray:
+    """lut_ext: the extinction per LUT entry; with adaptive sampling (composite, not LC_PRECISE) followed by one
+    row per level k >= 1 holding the alpha of a whole step of step * 2^k (exact, float64 on the host)."""
+    rows = [pr.lut.kernel_table("extinction")[:, 3]]
+    if pr.config.adaptive and pr.config.mode == "composite" and not pr.config.precise:
+        ratio = pr.step_world / pr.unit
+        rows += [pr.lut.kernel_table("alpha", ratio * 2**k)[:, 3] for k in range(1, int(pr.volume.block_size).bit_length())]
+    return np.ascontiguousarray(np.concatenate(rows), dtype=np.float32)
+
+
 def launch(kern: cl.Kernel, width: int, height: int) -> cl.Event:
     _, queue = get_context()
     gsize = tuple(int(math.ceil(n / l) * l) for n, l in zip((width, height), LOCAL_SIZE))
@@ -238,7 +248,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     W, H = scene.width, scene.height
     d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.params)
     d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
-    d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lut.kernel_table("extinction")[:, 3]))
+    d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ext_table(pr))
     d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.block_info)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 16)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
