@@ -143,3 +143,29 @@ def test_render_respects_the_device_max_alloc(store, monkeypatch):
     assert lod_atlas.max_alloc_bytes() == 1024
     monkeypatch.undo()
     assert lod_atlas.max_alloc_bytes() == int(lodcast.renderer.program.device_info()["max_mem_alloc_size"])
+
+
+@pytest.mark.parametrize("quality", ["lossless", {"reduction": 4}, {"budget_mb": 0.05}])
+def test_quality_goes_through_the_selection(store, quality):
+    pytest.importorskip("lodcast.renderer.selection")
+    from lodcast.renderer.selection import select_lod
+    from lodcast.renderer.scene import Scene
+
+    sc = {**_scene(CAMERAS[0]), "quality": quality}
+    r = render(store, sc)
+    sel = select_lod(store, [Scene.parse(sc).tf], quality)
+    rep = r.report
+    assert rep["reduction"] == pytest.approx(float(sel.reduction))
+    assert rep["predicted_delta_e"] == pytest.approx(float(sel.predicted_delta_e))
+    assert rep["bricks_skipped"] == int((np.asarray(sel.levels) < 0).sum())
+    assert rep["bricks_read"] + rep["bricks_cached"] == int((np.asarray(sel.levels) >= 0).sum())
+    assert rep["quality"] == quality and "-DLC_SAMPLER_ATLAS" in rep["build_options"]
+    assert np.isfinite(r.rgba).all() and r.rgba[..., 3].max() > 0.05
+    if quality == "lossless":  # every non-zero block at full level: the full-resolution image (II)
+        full = render(store, _scene(CAMERAS[0]))
+        assert np.abs(r.rgba - full.rgba).max() <= 1e-4
+
+
+def test_lod_quality_on_an_array_is_refused():
+    with pytest.raises(lodcast.renderer.scene.SceneError, match="^quality: .*lodcast store"):
+        render(np.zeros((8, 8, 8), np.float32), {"tf": TF, "width": 4, "height": 4, "quality": "lossless"})
