@@ -107,41 +107,63 @@ def crop_mask(grid, shape, spacing, origin, block_size: int, crop) -> np.ndarray
 
 
 # --------------------------------------------------------------------------------------------- greedy
+def _mark(taken: np.ndarray, cand: np.ndarray | None, mask: np.ndarray) -> None:
+    if cand is None:
+        taken |= mask
+    else:
+        taken[cand[mask]] = True
+
+
 def _take_prefix(keys: np.ndarray, costs: np.ndarray, budget: int) -> np.ndarray:
     """Boolean mask of the longest prefix, in the order (keys descending, index ascending), whose costs fit in
-    `budget` (stops at the first item that does not fit). Weighted quickselect: O(M)."""
+    `budget` (stops at the first item that does not fit).
+
+    A weighted selection in O(M): each round estimates the cut from a strided sample and splits the candidates
+    into keys above a band around it (taken whole if they fit), the band, and keys below; it then continues in
+    the one part that holds the cut. Only the last few thousand candidates are sorted (stably)."""
     m = keys.size
-    taken = np.zeros(m, bool)
+    kc = np.asarray(keys, np.float64)
+    cc = np.asarray(costs, np.int64)
     remaining = int(budget)
-    cand = np.arange(m)
-    kc = keys
-    while cand.size > 4096:
-        mid = cand.size // 2
-        p = np.partition(kc, mid)[mid]
-        hi = kc > p
-        hi_idx = cand[hi]
-        c_hi = int(costs[hi_idx].sum())
+    taken = np.zeros(m, bool)
+    cand = None  # None: every item (masks on the full arrays, no index arrays), else ascending indices
+    while kc.size > 4096:
+        step = kc.size // 8192 + 1
+        sample_k = kc[::step]
+        so = np.argsort(-sample_k, kind="stable")
+        sk = sample_k[so]
+        scum = np.cumsum(cc[::step][so]) * step
+        pos = int(np.searchsorted(scum, remaining, side="right"))
+        w = 32 + int(4 * np.sqrt(sk.size))
+        p_hi = sk[max(pos - w, 0)]
+        p_lo = sk[min(pos + w, sk.size - 1)]
+        hi = kc > p_hi
+        c_hi = int(np.dot(hi.view(np.uint8).astype(np.int64), cc))
         if c_hi > remaining:
-            cand, kc = hi_idx, kc[hi]
-            continue
-        taken[hi_idx] = True
-        remaining -= c_hi
-        eq = kc == p
-        eq_idx = cand[eq]
-        cs = np.cumsum(costs[eq_idx])
-        k = int(np.searchsorted(cs, remaining, side="right"))
-        taken[eq_idx[:k]] = True
-        if k < eq_idx.size:
-            return taken
-        if eq_idx.size:
-            remaining -= int(cs[-1])
-        lo = kc < p
-        cand, kc = cand[lo], kc[lo]
+            part = hi
+        else:
+            band = (kc >= p_lo) & ~hi
+            c_band = int(np.dot(band.view(np.uint8).astype(np.int64), cc))
+            if c_band > remaining - c_hi:
+                if c_hi == 0 and c_band == int(cc.sum()):  # no progress (everything in the band): sort it
+                    break
+                _mark(taken, cand, hi)
+                remaining -= c_hi
+                part = band
+            else:
+                sel = hi | band
+                _mark(taken, cand, sel)
+                remaining -= c_hi + c_band
+                part = ~sel
+        idx = np.flatnonzero(part)
+        cand = idx if cand is None else cand[idx]
+        kc, cc = kc[idx], cc[idx]
+    if cand is None:
+        cand = np.arange(m)
     order = np.argsort(-kc, kind="stable")
-    idx = cand[order]
-    cs = np.cumsum(costs[idx])
+    cs = np.cumsum(cc[order])
     k = int(np.searchsorted(cs, remaining, side="right"))
-    taken[idx[:k]] = True
+    taken[cand[order[:k]]] = True
     return taken
 
 
@@ -214,40 +236,52 @@ def greedy(
     levels = np.full(n, L - 1, np.int64)
     if n == 0 or L == 1:
         return levels
-    slopes = targets = None
+    slopes = targets = costs = None
     if profile is not None:
-        chains = {int(m): _profile_chain(np.asarray(profile, np.float64), nsamp, int(m)) for m in np.unique(maxlev)}
+        classes = np.flatnonzero(np.bincount(np.clip(maxlev, 0, L - 1), minlength=L))
+        chains = {int(m): _profile_chain(np.asarray(profile, np.float64), nsamp, int(m)) for m in classes}
         if all(c is not None for c in chains.values()):
+            zt = np.ascontiguousarray(z.T)  # (L, N): contiguous columns
             slopes = np.full((n, L - 1), -np.inf)
             targets = np.full((n, L - 1), -1, np.int64)
+            costs = np.zeros((n, L - 1), np.int64)
             for m, chain in chains.items():
                 rows = np.flatnonzero(maxlev == m) if len(chains) > 1 else slice(None)
                 prev = L - 1
                 for step, to in enumerate(chain):
-                    zr = z[rows]
-                    slopes[rows, step] = (zr[:, prev] - zr[:, to]) / float(nsamp[to] - nsamp[prev])
+                    dn = int(nsamp[to] - nsamp[prev])
+                    if len(chains) > 1:
+                        slopes[rows, step] = (zt[prev, rows] - zt[to, rows]) / float(dn)
+                    else:
+                        np.divide(zt[prev] - zt[to], float(dn), out=slopes[:, step])
                     targets[rows, step] = to
+                    costs[rows, step] = dn
                     prev = to
     if slopes is None:
         slopes, targets = _chains_general(z, maxlev, nsamp)
-    slopes = np.minimum.accumulate(slopes, axis=1)  # clamp an ulp's rise (see module doc)
+    for j in range(1, L - 1):  # clamp an ulp's rise (see module doc); column-wise, -inf past a chain's end stays
+        np.minimum(slopes[:, j], slopes[:, j - 1], out=slopes[:, j])
     valid = targets >= 0
-    prev_lv = np.concatenate([np.full((n, 1), L - 1), np.where(valid, targets, L - 1)[:, :-1]], axis=1)
-    costs = np.where(valid, nsamp[np.maximum(targets, 0)] - nsamp[prev_lv], 0)
+    if costs is None:
+        costs = np.zeros((n, L - 1), np.int64)
+        prev = np.full(n, L - 1, np.int64)
+        for j in range(L - 1):
+            tj = targets[:, j]
+            vj = tj >= 0
+            costs[:, j] = np.where(vj, nsamp[np.maximum(tj, 0)] - nsamp[prev], 0)
+            prev = np.where(vj, tj, prev)
     total = int(costs.sum())
     if budget_samples >= total:
-        taken = valid
+        cnt = valid.sum(axis=1)
     else:
-        flat_valid = valid.ravel()
-        sel = np.flatnonzero(flat_valid)
-        t = _take_prefix(slopes.ravel()[sel], costs.ravel()[sel], int(max(budget_samples, 0)))
-        taken = np.zeros(n * (L - 1), bool)
-        taken[sel[t]] = True
-        taken = taken.reshape(n, L - 1)
-    cnt = taken.sum(axis=1)
-    has = cnt > 0
-    levels[has] = targets[np.flatnonzero(has), cnt[has] - 1]
-    return levels
+        # invalid items (past a chain's end) have key -inf: they sort after every valid item, and the cut falls
+        # before them because the valid items alone exceed the budget
+        t = _take_prefix(slopes.ravel(), np.maximum(costs, 1).ravel(), int(max(budget_samples, 0))).reshape(n, L - 1)
+        cnt = np.zeros(n, np.int64)
+        for j in range(L - 1):
+            cnt += t[:, j]
+    pick = np.maximum(cnt - 1, 0)
+    return np.where(cnt > 0, np.take_along_axis(targets, pick[:, None], axis=1)[:, 0], L - 1)
 
 
 # --------------------------------------------------------------------------------------------- entry
