@@ -43,8 +43,10 @@ one-sample level, zero at full resolution.
 """
 from __future__ import annotations
 
+import os
 import warnings
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
 
@@ -253,6 +255,7 @@ class _Pre:
     idx: np.ndarray
     coef: np.ndarray
     total: np.ndarray  # (N,) n = Σ_k h_k w_k
+    last: np.ndarray | None  # (N,) coefficient of P(nb) when the starts run from 0 to nb (gathered otherwise)
 
 
 def _precompute(meta: BlockMeta) -> _Pre:
@@ -266,7 +269,14 @@ def _precompute(meta: BlockMeta) -> _Pre:
     hp = np.concatenate([np.zeros((n, 1)), h, np.zeros((n, 1))], axis=1)
     coef = (hp[:, :-1] - hp[:, 1:])[:, None, :]  # c_j = h_{j-1} - h_j
     total = (h * np.diff(starts, axis=1)).sum(axis=1)
-    pre = _Pre(np.ascontiguousarray(starts), np.ascontiguousarray(coef), total)
+    last = None
+    nb = int(meta.bins.count)
+    if starts.shape[1] > 2 and np.all(starts[:, 0] == 0) and np.all(starts[:, -1] == nb):
+        # what ingest writes: the first start is bin 0 (P(0) = 0: no term) and the last is the end (P(nb) is one
+        # vector for every block: c_K·P(nb) without a gather); only the K − 1 inner starts are gathered
+        last = np.ascontiguousarray(coef[:, 0, -1])
+        starts, coef = starts[:, 1:-1], coef[:, :, 1:-1]
+    pre = _Pre(np.ascontiguousarray(starts), np.ascontiguousarray(coef), total, last)
     try:
         _PRE_CACHE[meta] = pre
     except TypeError:
@@ -291,11 +301,12 @@ def _blocks_to_eval(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
     return visible & (meta.max_border > meta.min_border) & np.isfinite(meta.mean)
 
 
-_CHUNK = 8192
+_CHUNK = 16384
 
 
 def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndarray:
-    """ζ(0) per block (N,) float64 from the simplified histograms, O(K) per block (see module doc)."""
+    """ζ(0) per block (N,) float64 from the simplified histograms, O(K) per block (see module doc). Chunks of
+    blocks run on a small thread pool (NumPy releases the GIL in the gather and the batched product)."""
     pre = _precompute(meta)
     todo = _blocks_to_eval(meta, visible)
     out = np.zeros(meta.n)
@@ -306,18 +317,43 @@ def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndar
     coef = pre.coef if sel is None else pre.coef[sel]
     total = pre.total if sel is None else pre.total[sel]
     mean = meta.mean if sel is None else meta.mean[sel]
+    last = pre.last if (pre.last is None or sel is None) else pre.last[sel]
     table = np.ascontiguousarray(ts.prefix).view(np.dtype((np.void, 32))).ravel()  # one 32-byte row per bin edge
+    p_end = ts.prefix[-1]
     m = idx.shape[0]
     sums = np.empty((m, 1, 4))
-    for a in range(0, m, _CHUNK):  # chunks keep the gathered rows in cache for the product
-        g = np.take(table, idx[a : a + _CHUNK], axis=0).view(np.float64).reshape(-1, idx.shape[1], 4)
-        np.matmul(coef[a : a + _CHUNK], g, out=sums[a : a + _CHUNK])
-    sums = sums[:, 0, :]
-    z = _zeta_from_sums(ts.at(np.nan_to_num(mean)), sums, total)
+
+    def work(a: int) -> None:
+        e = min(a + _CHUNK, m)
+        g = np.take(table, idx[a:e], axis=0).view(np.float64).reshape(e - a, idx.shape[1], 4)
+        np.matmul(coef[a:e], g, out=sums[a:e])
+
+    starts = range(0, m, _CHUNK)
+    if m > 2 * _CHUNK and _pool() is not None:
+        list(_pool().map(work, starts))
+    else:
+        for a in starts:
+            work(a)
+    s4 = sums[:, 0, :]
+    if last is not None:
+        s4 += last[:, None] * p_end
+    z = _zeta_from_sums(ts.at(np.nan_to_num(mean)), s4, total)
     if sel is None:
-        return np.where(todo, z, 0.0)
+        z[~todo] = 0.0
+        return z
     out[sel] = z
     return out
+
+
+_POOL: list = []
+
+
+def _pool():
+    """A small shared thread pool (None on a single core)."""
+    if not _POOL:
+        n = min(4, os.cpu_count() or 1)
+        _POOL.append(ThreadPoolExecutor(n, thread_name_prefix="lodcast-significance") if n > 1 else None)
+    return _POOL[0]
 
 
 def zeta0_full(meta: BlockMeta, ts: TStar, visible: np.ndarray, hist: np.ndarray | None = None, chunk: int = 8192) -> np.ndarray:
