@@ -40,20 +40,9 @@ typedef struct LcAtlasGeom {
     float B;        /* block edge in level-0 voxels */
 } LcAtlasGeom;
 
-/* NB sample of a loaded block (entry != 0) at level-0 voxel coordinates q. */
-static inline float lc_nb(__global const float* atlas, const ulong entry, const int bx, const int by, const int bz,
-                          const LcAtlasGeom g, const float3 q) {
-    const int lvl = (int)(entry & 15UL) - 1;
-    const ulong off = entry >> 8;
-    const int n = (int)g.B >> lvl;
-    const float s = 1.0f / (float)(1 << lvl);
-    const float nm = (float)(n - 1);
-    float lx = (q.x + 0.5f - (float)bx * g.B) * s - 0.5f;
-    float ly = (q.y + 0.5f - (float)by * g.B) * s - 0.5f;
-    float lz = (q.z + 0.5f - (float)bz * g.B) * s - 0.5f;
-    lx = lx > 0.0f ? (lx < nm ? lx : nm) : 0.0f;
-    ly = ly > 0.0f ? (ly < nm ? ly : nm) : 0.0f;
-    lz = lz > 0.0f ? (lz < nm ? lz : nm) : 0.0f;
+/* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]. */
+static inline float lc_brick(__global const float* atlas, const ulong off, const int n, const float lx,
+                             const float ly, const float lz) {
     const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
     const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
     const ulong dx = fx > 0.0f ? 1UL : 0UL;
@@ -67,6 +56,22 @@ static inline float lc_nb(__global const float* atlas, const ulong entry, const 
     const float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
     const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
     return b0 + (b1 - b0) * fz;
+}
+
+/* NB sample of a loaded block (entry != 0) at level-0 voxel coordinates q. */
+static inline float lc_nb(__global const float* atlas, const ulong entry, const int bx, const int by, const int bz,
+                          const LcAtlasGeom g, const float3 q) {
+    const int lvl = (int)(entry & 15UL) - 1;
+    const int n = (int)g.B >> lvl;
+    const float s = 1.0f / (float)(1 << lvl);
+    const float nm = (float)(n - 1);
+    float lx = (q.x + 0.5f - (float)bx * g.B) * s - 0.5f;
+    float ly = (q.y + 0.5f - (float)by * g.B) * s - 0.5f;
+    float lz = (q.z + 0.5f - (float)bz * g.B) * s - 0.5f;
+    lx = lx > 0.0f ? (lx < nm ? lx : nm) : 0.0f;
+    ly = ly > 0.0f ? (ly < nm ? ly : nm) : 0.0f;
+    lz = lz > 0.0f ? (lz < nm ? lz : nm) : 0.0f;
+    return lc_brick(atlas, entry >> 8, n, lx, ly, lz);
 }
 
 static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
@@ -145,6 +150,58 @@ static inline float lc_sample_atlas(__global const float* atlas, __global const 
         }
     }
     return acc / wsum;
+#endif
+}
+
+/* A block the ray marches through (raycast.cl sets it up once per block/cell of its DDA): brick coordinates are
+ * l = q s + c there; NB clamps l to [0, n - 1]; II takes the brick directly where l lies in [lo, hi] (the interior
+ * fast path above: every edge weight saturated) and the full interblock sum elsewhere. n = 0: no block (the
+ * general sampler). Samples come out exactly as lc_sample_atlas gives them (NB: up to which of two blocks a
+ * sample within rounding of their common face is assigned to). */
+typedef struct LcBlk {
+    ulong off;
+    int n;
+    float s, lo, hi;
+    float3 c;
+} LcBlk;
+
+static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, const int bx, const int by, const int bz) {
+    LcBlk b;
+    const ulong ent = LC_IMAP(bx, by, bz);
+    b.n = 0;
+    b.off = 0;
+    b.s = 1.0f; b.lo = 0.0f; b.hi = -1.0f;
+    b.c = (float3)(0.0f);
+    if (!ent) return b;
+    const int lvl = (int)(ent & 15UL) - 1;
+    b.off = ent >> 8;
+    b.n = (int)g.B >> lvl;
+    b.s = 1.0f / (float)(1 << lvl);
+    b.c = ((float3)(0.5f) - (float3)((float)bx, (float)by, (float)bz) * g.B) * b.s - 0.5f;
+#ifdef LC_INTERP_II
+    const float hm = 0.5f * (float)(1 << ((int)((ent >> 4) & 15UL) - 1));
+    b.lo = hm * b.s - 0.5f;
+    b.hi = (float)b.n - 0.5f - hm * b.s;
+#else
+    b.lo = 0.0f;
+    b.hi = (float)(b.n - 1);
+#endif
+    return b;
+}
+
+static inline float lc_sample_blk(__global const float* atlas, __global const ulong* imap, const LcAtlasGeom g,
+                                  const LcBlk b, const float3 q) {
+    float3 l = q * b.s + b.c;
+#ifdef LC_INTERP_II
+    if (l.x >= b.lo && l.y >= b.lo && l.z >= b.lo && l.x <= b.hi && l.y <= b.hi && l.z <= b.hi)
+        return lc_brick(atlas, b.off, b.n, l.x, l.y, l.z);
+    return lc_sample_atlas(atlas, imap, g, q);
+#else
+    if (!b.n) return lc_sample_atlas(atlas, imap, g, q);
+    l.x = l.x > 0.0f ? (l.x < b.hi ? l.x : b.hi) : 0.0f;
+    l.y = l.y > 0.0f ? (l.y < b.hi ? l.y : b.hi) : 0.0f;
+    l.z = l.z > 0.0f ? (l.z < b.hi ? l.z : b.hi) : 0.0f;
+    return lc_brick(atlas, b.off, b.n, l.x, l.y, l.z);
 #endif
 }
 

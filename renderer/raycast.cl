@@ -40,8 +40,11 @@
 #ifdef LC_SAMPLER_ATLAS
 #include "lc_atlas.h"
 #define LC_SAMPLE(q) lc_sample_atlas(vol, imap, geom, (q))
+/* inside the block (or adaptive cell) the march is in: its brick set up once (lc_blk), see lc_atlas.h */
+#define LC_SAMPLE_B(q) lc_sample_blk(vol, imap, geom, blk, (q))
 #else
 #define LC_SAMPLE(q) lc_sample(vol, dims, qmax, (q))
+#define LC_SAMPLE_B(q) LC_SAMPLE(q)
 #endif
 
 
@@ -127,6 +130,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #ifdef LC_SAMPLER_ATLAS
     LcAtlasGeom geom;
     geom.gx = P->grid.x; geom.gy = P->grid.y; geom.gz = P->grid.z; geom.B = (float)P->grid.w;
+    LcBlk blk;
+    blk.n = 0; blk.off = 0; blk.s = 1.0f; blk.lo = 0.0f; blk.hi = -1.0f; blk.c = (float3)(0.0f);
 #endif
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
@@ -219,13 +224,14 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #else
             if (lvl >= 0 && tb > t) { /* limited: segments of step * 2^lvl from t, the last one cut at tb */
                 const float h = dt * (float)(1 << lvl);
+                blk = lc_blk(imap, geom, lc_clampi(bx, hx - 1) >> 1, lc_clampi(by, hy - 1) >> 1, lc_clampi(bz, hz - 1) >> 1);
                 const int m = (int)ceil((tb - t) / h);
                 for (int s = 0; s < m && !done; ++s) {
                     const float a = t + (float)s * h;
                     float len = tb - a;
                     len = len < h ? len : h;
                     if (len <= 0.0f) break;
-                    const float v = LC_SAMPLE(q0 + (a + u * len) * dq);
+                    const float v = LC_SAMPLE_B(q0 + (a + u * len) * dq);
                     ++taken;
                     LC_SAMPLE_BODY(v, LC_R(len))
                 }
@@ -265,6 +271,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             if (inside) {
                 const float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves block */
                 const float info = block_info[(bz * gy + by) * gx + bx];
+#ifdef LC_SAMPLER_ATLAS
+                blk = lc_blk(imap, geom, bx, by, bz);
+#endif
 #ifdef LC_MODE_MIP
                 skip = info <= vmax; /* nothing here can exceed the maximum so far */
 #else
@@ -284,7 +293,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                 } else {
                     bz += sz; tnz += tdz; inside = bz >= 0 && bz < gz;
                 }
-            } /* else: rounding left samples beyond the grid's last block: march them */
+            }
+#ifdef LC_SAMPLER_ATLAS
+            else blk.n = 0; /* rounding left samples beyond the grid's last block: march them (general sampler) */
+#endif
             if (skip) {
                 k = k_end;
                 continue;
@@ -297,7 +309,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             /* uniform segments: no transcendental call in this loop (a call makes every live value spill) */
             const int k_uni = k_end < nlast ? k_end : nlast;
             for (; k < k_uni && !done; ++k) {
-                const float v = LC_SAMPLE(qu + (float)k * dqk);
+                const float v = LC_SAMPLE_B(qu + (float)k * dqk);
 #ifdef LC_PRECISE
                 LC_SAMPLE_BODY(v, 1.0f)
 #else
@@ -305,7 +317,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
             }
             if (k == nlast && k_end == n && !done) { /* the last, shorter segment */
-                const float v = LC_SAMPLE(q0 + (last + u * len_last) * dq);
+                const float v = LC_SAMPLE_B(q0 + (last + u * len_last) * dq);
                 ++k;
 #ifdef LC_PRECISE
                 LC_SAMPLE_BODY(v, r_last)

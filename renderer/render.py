@@ -191,7 +191,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod)
     if use_lod:
         lod, info, n_empty = _lod_plan(vol, scene, levels, info, cfg, scene.mode)
-    if cfg.ess and scene.mode == "composite" and n_empty == 0:
+    if cfg.ess and scene.mode == "composite" and n_empty == 0 and cfg.sampler == "full":
         cfg = replace(cfg, ess=False)  # no block can be skipped: compile the block walk out
     params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples)
     return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod)
