@@ -9,6 +9,8 @@ range spans 3–220 bins, its simplified histogram 12 pieces inside that range (
 "all visible" (opacity > 0 everywhere: every block evaluated, the worst case) and a skin + bone CT TF (air and
 the gap between skin and bone transparent). Timings are medians; "warm" = a TF change on a store already seen
 (the TF-independent gather indices and coefficients are cached per store), "cold" includes computing them.
+The significance runs its gather + batched product on a thread pool of min(4, cores) threads: on a shared
+2-core machine the numbers move by ±30 % with the other load.
 """
 from __future__ import annotations
 
@@ -56,7 +58,6 @@ def synthetic(n: int, seed: int = 0) -> BlockMeta:
     edges = bins.edges
     vmin, vmax = edges[lo], edges[hi] - 1e-6
     mean = vmin + rng.random(n) * (vmax - vmin)
-    gz = max(1, round(n ** (1 / 3)))
     return BlockMeta((1, 1, n), 6, bins, mean, np.full(n, 32768.0), vmin, vmax, starts.astype(np.uint16), heights, None)
 
 

@@ -18,13 +18,24 @@ steepest chords has non-increasing slopes (if the next chord were steeper, the c
 would have been steeper than the one taken). So the queue pops, across blocks, chords in the order of their
 slopes, each block's chords in chain order: sorting all chain chords by slope (stable, block-major, chain-minor
 for ties) and taking them until the first that does not fit gives the same levels as the queue. The cut-off is
-found with a weighted quickselect (O(M) over the M chords), not a full sort. A float rounding that would make a
+found by a sample-guided weighted selection (O(M) over the M chords; only a few thousand around the cut are
+sorted), not a full sort. A float rounding that would make a
 chain slope rise by an ulp is clamped to the previous slope, which is exactly when the queue would take that chord
 next. `tests/test_selection.py` checks this against a literal heapq implementation.
 
 Which blocks are loaded: a block is *TF-empty* (ζ = 0 and nothing visible: see significance.py) → −1, never
 read; a block outside the crop box → −1; a visible block of zero significance (constant value) is loaded at the
-coarsest level, which represents it exactly, and never refined.
+coarsest level, which represents it exactly, and never refined. (The thesis says zero-significance blocks are
+not loaded; read literally that would punch holes where a block is visible but uniform in the TF's colour — a
+constant block, or one whose values all lie where the TF is constant. Such a block costs one sample.)
+
+Quality: "full" = every block in the crop at level 0 (the reference; nothing skipped); "lossless" (virtually
+lossless) = unlimited budget: every block of non-zero significance at its finest allowed level; {"budget_mb": x}
+(MiB, 2^20 bytes) or {"reduction": r} (budget = full-resolution bytes of the whole volume at 4 bytes per voxel
+÷ r). A budget below what every visible block needs at its coarsest level raises SceneError naming `quality`.
+Bytes count whole bricks (B >> k)³, padding included, so "full" on a volume that is not a multiple of B reports a
+reduction slightly below 1. Crop: a block is dropped when its box grown by one voxel misses the crop box;
+`max_level` (grid-shaped) limits the finest level per block (e.g. for blocks cut by the crop).
 
 Predicted ΔE of a selection: the count-weighted RMS over loaded blocks of ζ at the chosen level,
 sqrt(Σ_i n_i ζ_i(γ_i)² / Σ_i n_i) with n_i the block's valid voxels: ζ is itself the RMS ΔE per voxel of the
