@@ -213,10 +213,11 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
         )
     atlas = np.empty(max(total, 1), np.float32)
     flat = lv.ravel()
-    for i in np.flatnonzero(flat >= 0).tolist():
-        z, y, x = np.unravel_index(i, levels.shape)
+    sel = np.flatnonzero(flat >= 0)
+    zz, yy, xx = np.unravel_index(sel, levels.shape)
+    for i, k, z, y, x in zip(sel.tolist(), flat[sel].tolist(), zz.tolist(), yy.tolist(), xx.tolist()):
         o, n = int(offsets[i]), int(sizes[i])
-        atlas[o:o + n] = bricks[(int(flat[i]), int(z), int(y), int(x))].ravel()
+        atlas[o:o + n] = bricks[(k, z, y, x)].ravel()
     return atlas, pack_index(offsets, flat, neighbourhood_max(levels).ravel()).reshape(levels.shape)
 
 

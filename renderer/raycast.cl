@@ -190,7 +190,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
         const float inv_unit = P->inv_unit;
         float t = t0;
-        uint budget = (uint)P->max_samples * 2u + 64u;
+        /* iterations: at most one per sample plus one per cell crossed (a safety bound, never reached) */
+        uint budget = (uint)P->max_samples * 2u + 4u * (uint)(hx + hy + hz) + 64u;
 #ifdef LC_PRECISE
 #define LC_R(len) ((len) * inv_dt)
 #else

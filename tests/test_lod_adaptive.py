@@ -113,3 +113,11 @@ def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
             np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 80, atol=2e-5)
             n_cells, cell = 10, B / 2
             assert r.report["samples"] == n_cells * int(np.ceil(cell / (step * 2**level) - 1e-6)) * W * H
+
+
+def test_huge_steps_still_cross_every_cell(store):
+    """A step longer than the volume: one sample per cell, and the march still reaches the far side."""
+    cam = _cam((1, 0, 0))
+    r = render(store, _scene(cam, step=500.0, adaptive_object=True, early_termination=1.0), levels=LEVELS)
+    assert r.report["samples"] == 6 * W * H  # blocks 1, 2, 3: two cells each, one (cut) step per cell
+    np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 16, atol=2e-5)
