@@ -220,6 +220,10 @@ _META_CACHE: "weakref.WeakKeyDictionary[Any, BlockMeta]" = weakref.WeakKeyDictio
 _PRE_CACHE: "weakref.WeakKeyDictionary[Any, _Pre]" = weakref.WeakKeyDictionary()
 
 
+def _hist_reader(ref):
+    return lambda: ref().hist
+
+
 def meta_of_store(store) -> BlockMeta:
     """The store's block metadata, flattened (cached per store object)."""
     try:
@@ -239,7 +243,7 @@ def meta_of_store(store) -> BlockMeta:
         max_border=np.asarray(st.max_border, np.float64).ravel(),
         starts=np.asarray(starts).reshape(n, -1),
         heights=np.asarray(heights).reshape(n, -1),
-        hist=lambda: store.hist,
+        hist=_hist_reader(weakref.ref(store)),  # weak: the cache's value must not keep its key alive
     )
     try:
         _META_CACHE[store] = meta
