@@ -233,3 +233,55 @@ def test_two_tfs_take_the_max_and_levels_are_linear(metas) -> None:
 def test_luv_of_black_white() -> None:
     luv = srgb_to_luv(np.array([[0.0, 0, 0], [1, 1, 1]]))
     np.testing.assert_allclose(luv, [[0, 0, 0], [100, 0, 0]], atol=0.02)  # colour-science D65 white: u*, v* ~ 0.01
+
+
+def test_tf_visible_matches_dense_sampling_on_random_tfs() -> None:
+    """The interval test against sampling the opacity densely on [lo, hi] (plus the control points inside)."""
+    from lodcast.renderer.transfer_function import evaluate
+
+    rng = np.random.default_rng(8)
+    for _ in range(200):
+        m = int(rng.integers(1, 7))
+        xs = np.sort(rng.integers(0, 20, m)).astype(float)
+        ops = np.where(rng.random(m) < 0.5, 0.0, rng.random(m))
+        tf = TransferFunction.model_validate({"points": [{"value": x, "opacity": a} for x, a in zip(xs, ops)]})
+        if np.any(np.diff(xs) == 0):
+            continue  # steps: value at the repeated point is a convention, covered by the invisible-ends logic
+        lo = rng.integers(-3, 23, 50).astype(float) + rng.choice([0.0, 0.5], 50)
+        hi = lo + rng.choice([0.0, 0.25, 1.0, 3.0, 10.0], 50)
+        got = tf_visible(tf, lo, hi)
+        for i in range(50):
+            vals = np.concatenate([np.linspace(lo[i], hi[i], 401), xs[(xs >= lo[i]) & (xs <= hi[i])]])
+            want = bool(np.any(evaluate(tf, vals)[1] > 0))
+            assert got[i] == want, (xs, ops, lo[i], hi[i])
+
+
+def test_tf_visible_with_steps_is_never_wrongly_invisible() -> None:
+    """Repeated control values (steps): a range touching the value where opacity steps up counts as visible."""
+    tf = TransferFunction.model_validate(
+        {"points": [{"value": 0, "opacity": 0.0}, {"value": 10, "opacity": 0.0}, {"value": 10, "opacity": 1.0},
+                    {"value": 20, "opacity": 1.0}, {"value": 20, "opacity": 0.0}]}
+    )
+    lo = np.array([0.0, 0.0, 5.0, 20.0, 21.0, 9.0, 25.0])
+    hi = np.array([9.9, 10.0, 12.0, 30.0, 30.0, 9.5, 25.0])
+    assert tf_visible(tf, lo, hi).tolist() == [False, True, True, True, False, False, False]
+
+
+def test_numpy_and_scipy_paths_agree(metas, monkeypatch) -> None:
+    """The O(K) sums as one SciPy CSR product and as the NumPy gather + batched product: 1e-12 relative."""
+    import dataclasses
+
+    pytest.importorskip("scipy")
+    meta = metas["float_bins"]
+    ts = tstar(SKIN_BONE, meta.bins)
+    vis = np.ones(meta.n, bool)
+    small = dataclasses.replace(meta)
+    a = zeta0_simplified(small, ts, vis)
+    monkeypatch.setenv("LODCAST_SIGNIFICANCE_NUMPY", "1")
+    big = dataclasses.replace(meta)  # a new object: a new per-store cache entry
+    b = zeta0_simplified(big, ts, vis)
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    # and a subset of visible blocks (the row-selection branch) on both paths
+    vis2 = np.arange(meta.n) % 3 == 0
+    np.testing.assert_allclose(zeta0_simplified(big, ts, vis2), np.where(vis2, a, 0.0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(zeta0_simplified(small, ts, vis2), np.where(vis2, a, 0.0), rtol=1e-12, atol=1e-12)
