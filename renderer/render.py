@@ -11,6 +11,11 @@ it with nearest-block or interblock interpolation (LC_SAMPLER_ATLAS, lc_atlas.h)
 object-space sampling (LC_ADAPTIVE). At quality 'full' adaptive sampling would change nothing (every block is
 level 0: the step is the base step everywhere), so the full-resolution path renders and the report says
 ``"adaptive": false``.
+
+Blocks the selection leaves out (level -1: zero significance, the TF is transparent over their border-inclusive
+value range) are empty space: the block walk skips them, a sample inside one is NaN (transparent), and interblock
+interpolation gives them weight 0 (lc_atlas.h), so nothing leaks into or out of them. Empty-space skipping on the
+LOD path also skips loaded blocks whose border-inclusive range is invisible, as at full resolution.
 """
 from __future__ import annotations
 
