@@ -28,7 +28,9 @@ the histogram bin centres, and on the renderer's LUT grid (`build_lut`: uniform,
 when that fits, capped at DENSE_MAX entries) in which T*(s̄) is interpolated linearly (measured against direct
 colour-science evaluation at the mean: ≤ 2e-4 ΔE in ζ on the tests' CT-like TF). With the
 simplified histogram (K piecewise-constant pieces, heights h_k = mean count per bin over bins [s_k, s_{k+1}))
-the sum is O(K) per block through prefix sums over bins of T*(b) and |T*(b)|²::
+the sum is O(K) per block (the pieces restricted to the block's exact value range [min_border, max_border], which
+the store keeps beside the histogram: see `effective_starts`; on a CT chest this brings the simplified ζ from
+5.4 to 1.5 ΔE RMS of the full-histogram ζ for a bone TF) through prefix sums over bins of T*(b) and |T*(b)|²::
 
     Σ_{b∈piece} |T̄ − T*(b)|² = w|T̄|² − 2 T̄·Σ T*(b) + Σ |T*(b)|²
 
@@ -37,7 +39,7 @@ prefix table at the K + 1 starts and one small matrix product per block, in floa
 ζ² ≪ |T̄|²). Over all blocks that is one sparse × dense product M·P, M (N × (bins + 1)) holding each block's
 coefficients at its starts: with SciPy installed it runs as a CSR product (one C loop), else as a NumPy gather +
 batched product in chunks on a small thread pool (LODCAST_SIGNIFICANCE_NUMPY=1 forces the latter; both agree to
-1e-12). The coefficients, indices and M depend only on the store and are cached per store, so a TF change costs
+rounding: ζ² within 1e-12 relative + 1e-8). The coefficients, indices and M depend only on the store and are cached per store, so a TF change costs
 only the per-TF part. Visibility is one searchsorted against the TF's zero-opacity intervals.
 
 Over levels (store numbering: level 0 = full resolution, level L−1 = one sample per block; the thesis numbers
@@ -74,6 +76,7 @@ __all__ = [
     "zeta_levels",
     "block_significance",
     "meta_of_store",
+    "effective_starts",
 ]
 
 DENSE_MAX = 8192  # cap on the dense T* table (colour-science costs ~0.35 µs per entry)
@@ -321,12 +324,26 @@ def _csr(starts: np.ndarray, coef: np.ndarray, width: int):
     return m
 
 
+def effective_starts(meta: BlockMeta) -> np.ndarray:
+    """The simplified histograms' starts (N, K + 1) restricted to each block's exact border-inclusive value range:
+    clipped to [bin(min_border), bin(max_border) + 1], so that no piece places counts in bins the block has no
+    value in (a piece fitted over a long sparse tail spreads its mean height over the whole tail; the block's
+    min and max are stored exactly beside the histogram). Blocks without a valid voxel keep theirs."""
+    starts = np.asarray(meta.starts, np.intp)
+    ok = np.isfinite(meta.min_border) & np.isfinite(meta.max_border)
+    if not ok.any():
+        return starts
+    lo = np.where(ok, meta.bins.index(np.where(ok, meta.min_border, meta.bins.lo)), 0).astype(np.intp)
+    hi = np.where(ok, meta.bins.index(np.where(ok, meta.max_border, meta.bins.lo)) + 1, meta.bins.count).astype(np.intp)
+    return np.clip(starts, lo[:, None], hi[:, None])
+
+
 def _precompute(meta: BlockMeta) -> _Pre:
     try:
         return _PRE_CACHE[meta]
     except (KeyError, TypeError):
         pass
-    starts = np.asarray(meta.starts, np.intp)
+    starts = effective_starts(meta)
     h = np.asarray(meta.heights, np.float64)
     n = h.shape[0]
     hp = np.concatenate([np.zeros((n, 1)), h, np.zeros((n, 1))], axis=1)
@@ -335,7 +352,7 @@ def _precompute(meta: BlockMeta) -> _Pre:
     csr = _csr(starts, coef[:, 0, :], int(meta.bins.count) + 1)
     last = None
     nb = int(meta.bins.count)
-    if starts.shape[1] > 2 and np.all(starts[:, 0] == 0) and np.all(starts[:, -1] == nb):
+    if starts.shape[1] > 2 and np.all(starts[:, 0] == 0) and np.all(starts[:, -1] == nb):  # (unclipped starts)
         # what ingest writes: the first start is bin 0 (P(0) = 0: no term) and the last is the end (P(nb) is one
         # vector for every block: c_K·P(nb) without a gather); only the K − 1 inner starts are gathered
         last = np.ascontiguousarray(coef[:, 0, -1])

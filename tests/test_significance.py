@@ -13,6 +13,7 @@ import pytest
 from lodcast.renderer.significance import (
     BlockMeta,
     block_significance,
+    effective_starts,
     level_profile,
     srgb_to_luv,
     tf_visible,
@@ -137,15 +138,17 @@ def test_simplified_O_K_equals_direct_sum_over_expanded_histogram(metas) -> None
         ts = tstar(SKIN_BONE, meta.bins)
         vis = np.ones(meta.n, bool)
         fast = zeta0_simplified(meta, ts, vis)
-        ex = expand(meta.starts, meta.heights, meta.bins.count)
+        ex = expand(effective_starts(meta), meta.heights, meta.bins.count)
         direct = np.zeros(meta.n)
         tbar = ts.at(meta.mean)
         for i in range(meta.n):
             d2 = ((ts.luv - tbar[i]) ** 2).sum(axis=1)
             direct[i] = np.sqrt((ex[i] * d2).sum() / ex[i].sum())
-        np.testing.assert_allclose(fast, direct, rtol=1e-9, atol=1e-9)
+        # compared as ζ²: the expansion |T̄|² − 2T̄·A/n + B/n cancels (|T̄|² ~ 1e4), so ζ² carries ~1e-11 absolute
+        # rounding, which is 1e-9 in ζ only near ζ = 0
+        np.testing.assert_allclose(fast**2, direct**2, rtol=1e-9, atol=1e-8)
         # and the full-histogram routine on the expanded histograms gives the same numbers
-        np.testing.assert_allclose(zeta0_full(meta, ts, vis, hist=ex), direct, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(zeta0_full(meta, ts, vis, hist=ex) ** 2, direct**2, rtol=1e-9, atol=1e-8)
 
 
 def test_simplified_significance_against_brute_force_and_close_to_full(metas) -> None:
@@ -153,12 +156,12 @@ def test_simplified_significance_against_brute_force_and_close_to_full(metas) ->
     ts = tstar(SKIN_BONE, meta.bins)
     vis = np.ones(meta.n, bool)
     fast = zeta0_simplified(meta, ts, vis)
-    ex = expand(meta.starts, meta.heights, meta.bins.count)
+    ex = expand(effective_starts(meta), meta.heights, meta.bins.count)
     want = np.array([brute_zeta(SKIN_BONE, ex[i], ts.centres, meta.mean[i]) for i in range(meta.n)])
     np.testing.assert_allclose(fast, want, rtol=TOL_REL, atol=TOL_ABS)
-    # the simplified histogram approximates the full one (thesis: 'only marginally' worse): within 25 % RMS
+    # the simplified histogram approximates the full one (thesis: 'only marginally' worse): within 15 % RMS
     full = zeta0_full(meta, ts, vis)
-    assert np.sqrt(np.mean((fast - full) ** 2)) <= 0.25 * np.sqrt(np.mean(full**2))
+    assert np.sqrt(np.mean((fast - full) ** 2)) <= 0.15 * np.sqrt(np.mean(full**2))
 
 
 def test_transparent_ranges_give_zero_and_are_invisible() -> None:
@@ -268,7 +271,8 @@ def test_tf_visible_with_steps_is_never_wrongly_invisible() -> None:
 
 
 def test_numpy_and_scipy_paths_agree(metas, monkeypatch) -> None:
-    """The O(K) sums as one SciPy CSR product and as the NumPy gather + batched product: 1e-12 relative."""
+    """The O(K) sums as one SciPy CSR product and as the NumPy gather + batched product: ζ² within 1e-12
+    relative + 1e-8 absolute (summation order differs; see the cancellation note above)."""
     import dataclasses
 
     pytest.importorskip("scipy")
@@ -280,8 +284,23 @@ def test_numpy_and_scipy_paths_agree(metas, monkeypatch) -> None:
     monkeypatch.setenv("LODCAST_SIGNIFICANCE_NUMPY", "1")
     big = dataclasses.replace(meta)  # a new object: a new per-store cache entry
     b = zeta0_simplified(big, ts, vis)
-    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a**2, b**2, rtol=1e-12, atol=1e-8)
     # and a subset of visible blocks (the row-selection branch) on both paths
     vis2 = np.arange(meta.n) % 3 == 0
-    np.testing.assert_allclose(zeta0_simplified(big, ts, vis2), np.where(vis2, a, 0.0), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(zeta0_simplified(small, ts, vis2), np.where(vis2, a, 0.0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(zeta0_simplified(big, ts, vis2) ** 2, np.where(vis2, a, 0.0) ** 2, rtol=1e-12, atol=1e-8)
+    np.testing.assert_array_equal(zeta0_simplified(small, ts, vis2), np.where(vis2, a, 0.0))
+
+
+def test_effective_starts_keep_the_pieces_inside_the_value_range(metas) -> None:
+    meta = metas["float_bins"]
+    st = effective_starts(meta)
+    ex = expand(st, meta.heights, meta.bins.count)
+    lo, hi = meta.bins.index(meta.min_border), meta.bins.index(meta.max_border)
+    b = np.arange(meta.bins.count)
+    outside = (b[None, :] < lo[:, None]) | (b[None, :] > hi[:, None])
+    assert np.all(ex[outside] == 0.0)
+    full = np.asarray(meta.hist, np.float64)
+    assert np.all(full[outside] == 0.0)  # the full histograms have nothing there either
+    # inside the range the pieces are unchanged
+    ex0 = expand(meta.starts, meta.heights, meta.bins.count)
+    np.testing.assert_array_equal(ex[~outside], ex0[~outside])
