@@ -222,24 +222,23 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
 
 
 def step_levels(levels: np.ndarray, interpolation: str, skip: np.ndarray | None = None) -> np.ndarray:
-    """Adaptive sampling's step level per half-block cell (grid 2G, C order, int8; -1: skip the cell). A cell
-    lies in block h >> 1; its interblock neighbourhood is the blocks c - 1 and c per axis, c = (h + 1) >> 1.
-    nearest_block: the block's level; interblock: the finest loaded level among the eight blocks of the
-    neighbourhood (thesis §3.6.1: the minimum over the neighbouring blocks). Cells of skipped blocks (`skip`,
-    and every level -1 block) are -1."""
+    """Adaptive sampling's step level per cell (C order, int8; -1: skip the cell). interblock: half-block cells
+    (grid 2G): cell h lies in block h >> 1 and its interblock neighbourhood is the blocks c - 1 and c per axis,
+    c = (h + 1) >> 1; its level is the finest loaded level among those eight blocks (thesis §3.6.1: the minimum
+    over the neighbouring blocks). nearest_block: the cells are the blocks (grid G), each with its own level.
+    Cells of skipped blocks (`skip`, and every level -1 block) are -1."""
     lv = np.asarray(levels).astype(np.int64)
     G = lv.shape
-    own = [np.arange(2 * g) >> 1 for g in G]
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
-    if interpolation == "interblock":
-        big = np.where(lv < 0, 99, lv)
-        c = [(np.arange(2 * g) + 1) >> 1 for g in G]
-        out = np.full(tuple(2 * g for g in G), 99, np.int64)
-        for s in range(8):
-            ix = [np.clip(c[a] - 1 + ((s >> (2 - a)) & 1), 0, G[a] - 1) for a in range(3)]
-            out = np.minimum(out, big[np.ix_(*ix)])
-    else:
-        out = lv[np.ix_(*own)].copy()
+    if interpolation != "interblock":
+        return np.ascontiguousarray(np.where(off, -1, lv).astype(np.int8))
+    own = [np.arange(2 * g) >> 1 for g in G]
+    big = np.where(lv < 0, 99, lv)
+    c = [(np.arange(2 * g) + 1) >> 1 for g in G]
+    out = np.full(tuple(2 * g for g in G), 99, np.int64)
+    for s in range(8):
+        ix = [np.clip(c[a] - 1 + ((s >> (2 - a)) & 1), 0, G[a] - 1) for a in range(3)]
+        out = np.minimum(out, big[np.ix_(*ix)])
     out[off[np.ix_(*own)]] = -1
     out[out >= 99] = -1
     return np.ascontiguousarray(out.astype(np.int8))

@@ -170,11 +170,19 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #define LC_POS(kk) ((kk) < nlast ? t0 + ((float)(kk) + u) * dt : last + u * len_last)
 
 #ifdef LC_ADAPTIVE
-        /* 3D DDA over half-block cells: cell h covers voxel coordinates [h B/2 - 1/2, (h + 1) B/2 - 1/2), so each
-         * cell lies in one block and in one interblock neighbourhood (cell boundaries are block faces and block
-         * centres). step_level holds the cell's step level (grid 2G, C order z, y, x; -1: skip the cell). */
+        /* 3D DDA over cells. II: half-block cells, cell h covers voxel coordinates [h B/2 - 1/2, (h + 1) B/2 - 1/2),
+         * so each cell lies in one block and in one interblock neighbourhood (cell boundaries are block faces and
+         * block centres); NB: the blocks. step_level holds the cell's step level (grid 2G for II, G for NB, C order
+         * z, y, x; -1: skip the cell). */
+#ifdef LC_INTERP_II
         const float Hc = 0.5f * (float)P->grid.w;
         const int hx = 2 * P->grid.x, hy = 2 * P->grid.y, hz = 2 * P->grid.z;
+#define LC_CELL_BLOCK(c) ((c) >> 1)
+#else /* nearest block: the step level is constant over a block, so the cells are the blocks */
+        const float Hc = (float)P->grid.w;
+        const int hx = P->grid.x, hy = P->grid.y, hz = P->grid.z;
+#define LC_CELL_BLOCK(c) (c)
+#endif
         const float3 g0 = (q0 + 0.5f) / Hc, dg = dq / Hc;
         const float3 ge = g0 + t0 * dg;
         int bx = lc_clampi((int)floor(ge.x), hx - 1), by = lc_clampi((int)floor(ge.y), hy - 1);
@@ -225,16 +233,32 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #else
             if (lvl >= 0 && tb > t) { /* limited: segments of step * 2^lvl from t, the last one cut at tb */
                 const float h = dt * (float)(1 << lvl);
-                blk = lc_blk(imap, geom, lc_clampi(bx, hx - 1) >> 1, lc_clampi(by, hy - 1) >> 1, lc_clampi(bz, hz - 1) >> 1);
-                const int m = (int)ceil((tb - t) / h);
-                for (int s = 0; s < m && !done; ++s) {
-                    const float a = t + (float)s * h;
+                blk = lc_blk(imap, geom, LC_CELL_BLOCK(lc_clampi(bx, hx - 1)), LC_CELL_BLOCK(lc_clampi(by, hy - 1)),
+                             LC_CELL_BLOCK(lc_clampi(bz, hz - 1)));
+                const float span = tb - t;
+                int m = (int)ceil(span / h); /* segments; all whole but the last */
+                m = m < 1 ? 1 : m;
+                const float3 qa = q0 + (t + u * h) * dq, dqh = h * dq;
+#ifdef LC_PRECISE
+                const float r_whole = (float)(1 << lvl);
+#else
+                const float r_whole = -1.0f - (float)lvl;
+#endif
+                int s = 0;
+                for (; s < m - 1 && !done; ++s) { /* whole steps: alpha from the level's table */
+                    const float v = LC_SAMPLE_B(qa + (float)s * dqh);
+                    LC_SAMPLE_BODY(v, r_whole)
+                }
+                taken += (uint)s;
+                if (!done) { /* the last segment, cut at the cell boundary */
+                    const float a = t + (float)(m - 1) * h;
                     float len = tb - a;
                     len = len < h ? len : h;
-                    if (len <= 0.0f) break;
-                    const float v = LC_SAMPLE_B(q0 + (a + u * len) * dq);
-                    ++taken;
-                    LC_SAMPLE_BODY(v, LC_R(len))
+                    if (len > 0.0f) {
+                        const float v = LC_SAMPLE_B(q0 + (a + u * len) * dq);
+                        ++taken;
+                        LC_SAMPLE_BODY(v, LC_R(len))
+                    }
                 }
             }
             t = tb;
@@ -244,6 +268,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
         }
 #undef LC_R
+#undef LC_CELL_BLOCK
 #else
         int k = 0;
 #ifdef LC_ESS

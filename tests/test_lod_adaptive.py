@@ -76,12 +76,16 @@ def test_limited_adaptive_samples_the_fine_block_over_its_whole_length(store, f)
 
 
 def test_samples_landing_in_the_fine_block_along_x(store):
-    """Along +x every ray crosses block 1 (two half-block cells, one coarse step each), the fine block (two cells
-    of 8 voxels: ceil(8 / 0.7) = 12 base steps each) and block 3 (two coarse steps); blocks 0 and 4 are empty
-    (skipped). Limited: exactly 28 samples per ray, 24 of them inside the fine block."""
+    """Along +x every ray crosses block 1 (NB: one cell of 16 voxels, a coarse step of 11.2 and a cut one), the
+    fine block (ceil(16 / 0.7) = 23 base steps, the last cut at its far face) and block 3 (two steps); blocks 0
+    and 4 are empty (skipped). Limited: exactly 27 samples per ray, 23 of them inside the fine block. With II the
+    cells are half blocks and the halves next to the fine block take its step (their interblock neighbourhood
+    holds it): 1 + 12 + 2 x 12 + 12 + 1 = 50."""
     cam = _cam((1, 0, 0))
     lim = render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
-    assert lim.report["samples"] == 28 * W * H
+    assert lim.report["samples"] == 27 * W * H
+    ii = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
+    assert ii.report["samples"] == 50 * W * H
     naive = render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
     assert naive.report["samples"] < lim.report["samples"]
 
@@ -119,5 +123,5 @@ def test_huge_steps_still_cross_every_cell(store):
     """A step longer than the volume: one sample per cell, and the march still reaches the far side."""
     cam = _cam((1, 0, 0))
     r = render(store, _scene(cam, step=500.0, adaptive_object=True, early_termination=1.0), levels=LEVELS)
-    assert r.report["samples"] == 6 * W * H  # blocks 1, 2, 3: two cells each, one (cut) step per cell
+    assert r.report["samples"] == 3 * W * H  # NB: blocks 1, 2, 3, one (cut) step each
     np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 16, atol=2e-5)
