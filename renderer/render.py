@@ -164,7 +164,7 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
     B = vol.block_size
     if sel is not None:
-        reduction, pred = float(sel.reduction), float(sel.predicted_delta_e)
+        reduction, pred = (float(sel.reduction) if math.isfinite(sel.reduction) else None), float(sel.predicted_delta_e)  # None: nothing loaded (JSON has no inf)
     else:
         chosen = int(np.where(lv >= 0, (B >> np.maximum(lv.astype(np.int64), 0)) ** 3, 0).sum())
         reduction, pred = (vol.n_blocks * B**3 / chosen if chosen else None), None
