@@ -70,4 +70,25 @@ static inline float lc_sample(__global const float* vol, const int4 dims, const 
 }
 #endif
 
+/* 3D DDA over a grid of nx x ny x nz cells of `cell` voxels each (cell c covers voxel coordinates
+ * [c cell - 1/2, (c + 1) cell - 1/2)), for the ray q0 + t dq entered at t0. Declares the cell (bx, by, bz), clamped
+ * into the grid, the step signs (sx, sy, sz), the ray parameters of the next face crossings (tnx, tny, tnz) and
+ * their increments (tdx, tdy, tdz). Shared by the empty-space-skipping block walk and the adaptive cell walk. */
+#define LC_DDA_BEGIN(cell, nx, ny, nz)                                                                         \
+    const float3 g0 = (q0 + 0.5f) / (cell), dg = dq / (cell);                                               \
+    const float3 ge = g0 + t0 * dg;                                                                         \
+    int bx = (int)floor(ge.x), by = (int)floor(ge.y), bz = (int)floor(ge.z);                                \
+    bx = bx < 0 ? 0 : (bx >= (nx) ? (nx) - 1 : bx);                                                         \
+    by = by < 0 ? 0 : (by >= (ny) ? (ny) - 1 : by);                                                         \
+    bz = bz < 0 ? 0 : (bz >= (nz) ? (nz) - 1 : bz);                                                         \
+    const int sx = dg.x > 0.0f ? 1 : (dg.x < 0.0f ? -1 : 0);                                                \
+    const int sy = dg.y > 0.0f ? 1 : (dg.y < 0.0f ? -1 : 0);                                                \
+    const int sz = dg.z > 0.0f ? 1 : (dg.z < 0.0f ? -1 : 0);                                                \
+    float tnx = sx ? ((float)(bx + (sx > 0)) - g0.x) / dg.x : INFINITY;                                     \
+    float tny = sy ? ((float)(by + (sy > 0)) - g0.y) / dg.y : INFINITY;                                     \
+    float tnz = sz ? ((float)(bz + (sz > 0)) - g0.z) / dg.z : INFINITY;                                     \
+    const float tdx = sx ? fabs(1.0f / dg.x) : INFINITY;                                                    \
+    const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;                                                    \
+    const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
+
 #endif

@@ -184,19 +184,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         const int hx = P->grid.x, hy = P->grid.y, hz = P->grid.z;
 #define LC_CELL_BLOCK(c) (c)
 #endif
-        const float3 g0 = (q0 + 0.5f) / Hc, dg = dq / Hc;
-        const float3 ge = g0 + t0 * dg;
-        int bx = lc_clampi((int)floor(ge.x), hx - 1), by = lc_clampi((int)floor(ge.y), hy - 1);
-        int bz = lc_clampi((int)floor(ge.z), hz - 1);
-        const int sx = dg.x > 0.0f ? 1 : (dg.x < 0.0f ? -1 : 0);
-        const int sy = dg.y > 0.0f ? 1 : (dg.y < 0.0f ? -1 : 0);
-        const int sz = dg.z > 0.0f ? 1 : (dg.z < 0.0f ? -1 : 0);
-        float tnx = sx ? ((float)(bx + (sx > 0)) - g0.x) / dg.x : INFINITY;
-        float tny = sy ? ((float)(by + (sy > 0)) - g0.y) / dg.y : INFINITY;
-        float tnz = sz ? ((float)(bz + (sz > 0)) - g0.z) / dg.z : INFINITY;
-        const float tdx = sx ? fabs(1.0f / dg.x) : INFINITY;
-        const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;
-        const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
+        LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
         float t = t0;
         /* iterations: at most one per sample plus one per cell crossed (a safety bound, never reached) */
@@ -276,21 +264,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         /* 3D DDA over the block grid: block b covers voxel coordinates [b B - 1/2, (b + 1) B - 1/2). */
         const float B = (float)P->grid.w;
         const int gx = P->grid.x, gy = P->grid.y, gz = P->grid.z;
-        const float3 g0 = (q0 + 0.5f) / B, dg = dq / B;
-        float3 ge = g0 + t0 * dg;
-        int bx = (int)floor(ge.x), by = (int)floor(ge.y), bz = (int)floor(ge.z);
-        bx = bx < 0 ? 0 : (bx >= gx ? gx - 1 : bx);
-        by = by < 0 ? 0 : (by >= gy ? gy - 1 : by);
-        bz = bz < 0 ? 0 : (bz >= gz ? gz - 1 : bz);
-        const int sx = dg.x > 0.0f ? 1 : (dg.x < 0.0f ? -1 : 0);
-        const int sy = dg.y > 0.0f ? 1 : (dg.y < 0.0f ? -1 : 0);
-        const int sz = dg.z > 0.0f ? 1 : (dg.z < 0.0f ? -1 : 0);
-        float tnx = sx ? ((float)(bx + (sx > 0)) - g0.x) / dg.x : INFINITY;
-        float tny = sy ? ((float)(by + (sy > 0)) - g0.y) / dg.y : INFINITY;
-        float tnz = sz ? ((float)(bz + (sz > 0)) - g0.z) / dg.z : INFINITY;
-        const float tdx = sx ? fabs(1.0f / dg.x) : INFINITY;
-        const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;
-        const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
+        LC_DDA_BEGIN(B, gx, gy, gz)
         int inside = 1;
         while (k < n && !done) {
             int k_end = n;
