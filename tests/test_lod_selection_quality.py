@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
 
 import lodcast
 from lodcast.renderer.image_error import delta_e_stats
