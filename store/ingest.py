@@ -55,6 +55,8 @@ def ingest(
     """
     dest = Path(dest)
     _tame_malloc()
+    if dest.parent.is_dir():
+        _remove_stale_partials(dest)  # first: it may put back a store that a killed `--overwrite` had moved aside
     if dest.exists() and not overwrite:
         raise StoreExists(f"destination {dest} exists (use --overwrite to replace it)")
     Layout((1, 1, 1), block_size)  # validates the block size before any file is opened
@@ -68,7 +70,6 @@ def ingest(
         if len(info.shape) != 3 or min(info.shape) < 1:
             raise SourceError(f"volume shape must have three non-empty axes (z, y, x), got {tuple(info.shape)}")
         dest.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_partials(dest)
         tmp = dest.parent / f".{dest.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
             label = type(source).__name__ if isinstance(source, (np.ndarray, VolumeSource)) else os.fspath(source)
@@ -413,14 +414,20 @@ def _open(source: Any, options: dict[str, Any]) -> VolumeSource:
 
 
 def _remove_stale_partials(dest: Path) -> None:
-    """Partial stores of ingests that were killed (their process is gone) are removed."""
-    for p in dest.parent.glob(f".{dest.name}.partial-*"):
-        try:
-            pid = int(p.name.rsplit(".partial-", 1)[1].split("-")[0])
-        except (IndexError, ValueError):
-            continue
-        if not _alive(pid):
-            shutil.rmtree(p, ignore_errors=True)
+    """Leftovers of ingests that were killed (their process is gone): partial stores are removed; a replaced
+    store whose successor never arrived is put back, so a kill during `--overwrite` loses nothing."""
+    for kind in ("partial", "replaced"):
+        for p in dest.parent.glob(f".{dest.name}.{kind}-*"):
+            try:
+                pid = int(p.name.rsplit(f".{kind}-", 1)[1].split("-")[0])
+            except (IndexError, ValueError):
+                continue
+            if _alive(pid):
+                continue
+            if kind == "replaced" and not dest.exists():
+                os.rename(p, dest)
+            else:
+                shutil.rmtree(p, ignore_errors=True)
 
 
 def _alive(pid: int) -> bool:
@@ -439,6 +446,8 @@ def _move_into_place(tmp: Path, dest: Path, overwrite: bool) -> None:
         return
     if not overwrite:
         raise StoreExists(f"destination {dest} appeared while ingesting (use --overwrite to replace it)")
+    # the old store goes to a hidden name first; a kill between the two renames leaves it there, and the next
+    # ingest to this destination puts it back (see _remove_stale_partials)
     old = dest.parent / f".{dest.name}.replaced-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     os.rename(dest, old)
     os.rename(tmp, dest)

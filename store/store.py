@@ -179,6 +179,10 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
         p = Path(location)
         if not p.exists():
             raise StoreNotFound(f"no store at {location}")
+        if p.name.startswith(".") and (".partial-" in p.name or ".replaced-" in p.name):
+            # ingest's hidden folders: a store being written (renamed into place only after its last write) or
+            # one being replaced and deleted; either may look whole at a given instant
+            raise StoreInvalid(f"{location} is a temporary folder of an unfinished ingest, not a store")
         if not (p / "zarr.json").is_file():
             raise StoreInvalid(f"{location} is not a lodcast store (no zarr.json: not a zarr v3 group)")
     try:

@@ -50,7 +50,8 @@ def test_sigkill_at_random_moments_never_leaves_a_valid_store(tmp_path: Path):
             outcomes["complete"] += 1
         else:
             outcomes["absent"] += 1
-        # whatever was left is a hidden partial folder that does not open as a store
+        # whatever was left is a hidden partial folder that does not open as a store, even when the kill landed
+        # after its last write and before the rename
         for leftover in tmp_path.glob(".out.zarr.*"):
             with pytest.raises(LodcastError):
                 lodcast.open_store(leftover)
@@ -95,3 +96,22 @@ def test_cli_info_prints_the_contract_keys(tmp_path: Path):
     assert [lvl["shape"] for lvl in info["levels"]][:3] == [[40, 36, 20], [20, 18, 10], [10, 9, 5]]
     assert info["shards"] >= len(info["levels"]) and info["bytes_on_disk"] > 0
     assert os.path.samefile(info["path"], tmp_path / "v.zarr")
+
+
+def test_a_store_moved_aside_by_a_killed_overwrite_is_put_back(tmp_path: Path):
+    old = np.arange(4 * 5 * 6, dtype=np.uint16).reshape(4, 5, 6)
+    dest = tmp_path / "v.zarr"
+    lodcast.ingest(old, dest, progress=False)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    # what `--overwrite` leaves when killed between moving the old store aside and renaming the new one in
+    aside = tmp_path / f".v.zarr.replaced-{dead.pid}-0123abcd"
+    os.rename(dest, aside)
+    partial = tmp_path / f".v.zarr.partial-{dead.pid}-4567cdef"
+    partial.mkdir()
+    with pytest.raises(LodcastError):
+        lodcast.open_store(aside)
+    with pytest.raises(lodcast.errors.StoreExists):
+        lodcast.ingest(old + 1, dest, progress=False)  # the old store is back, so this needs --overwrite
+    np.testing.assert_array_equal(lodcast.open_store(dest).read_level(0), old)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.zarr"]
