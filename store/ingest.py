@@ -250,13 +250,17 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                                          chunks=(1, gy, gx, seg + 1), fill_value=0)
         heights_arr = blocks.create_array("hist_heights", shape=lay.grid + (seg,), dtype=np.float32,
                                           chunks=(1, gy, gx, seg), fill_value=0)
-        # pass 2: level 0 read back slab by slab; each slab travels with its neighbours' facing slices
+        # pass 2: level 0 slab by slab (from the source again when that is cheap, else read back from the store);
+        # each slab travels with its neighbours' facing slices
         level0 = group["0"]
         b = lay.block_size
         # Each slab is counted alone: into its own blocks, and its first and last slices into the borders of
         # the blocks above and below. A row of blocks is complete once its next slab is counted, so only the
         # slab being counted and the one being decoded are alive.
-        read = lambda z: _read_banded(level0, z * b, (z + 1) * b)  # noqa: E731
+        if src.rereads_cheaply:
+            read = lambda z: _read_slab(src, lay, z)  # noqa: E731
+        else:
+            read = lambda z: _read_banded(level0, z * b, (z + 1) * b)  # noqa: E731
         acc: dict[int, list[np.ndarray]] = {}
         task = pool.submit(_slab_histograms, read(0), lay, bins)
         for bz in range(gz):
@@ -457,12 +461,14 @@ def _move_into_place(tmp: Path, dest: Path, overwrite: bool) -> None:
 def _tame_malloc() -> None:
     """Ingest allocates and frees slab-sized arrays on several threads. glibc then grows per-thread arenas and
     raises its mmap threshold, so freed slabs stay resident: measured 2.3 GB peak RSS for a 1 GiB volume whose
-    live arrays never exceeded a few hundred MB. A fixed 1 MiB threshold returns every large array to the OS."""
+    live arrays never exceeded a few hundred MB. A fixed threshold returns every large array to the OS; at
+    16 MiB rather than 1 MiB, row-of-blocks temporaries stay on the heap, which cut system time by a third
+    (chest CT 36 -> 44 MB/s) for 350 MB peak RSS on the 1 GiB volume (344 MB at 1 MiB)."""
     try:
         import ctypes
 
         libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD (fixing it also turns off the dynamic adjustment)
+        libc.mallopt(-3, 16 << 20)  # M_MMAP_THRESHOLD (fixing it also turns off the dynamic adjustment)
         libc.mallopt(-8, 2)  # M_ARENA_MAX
     except (OSError, AttributeError):
         pass  # not glibc: nothing to tune

@@ -37,6 +37,9 @@ class VolumeSource(abc.ABC):
     """A scalar 3D volume readable in z-slabs. Use as a context manager."""
 
     info: SourceInfo
+    # True when reading a slab again costs about what reading raw bytes does (arrays, plain binary files,
+    # uncompressed DICOM): ingest's second pass then reads the source again instead of decompressing level 0
+    rereads_cheaply: bool = False
 
     @abc.abstractmethod
     def read(self, z0: int, z1: int) -> np.ndarray:
@@ -54,6 +57,8 @@ class VolumeSource(abc.ABC):
 
 class ArraySource(VolumeSource):
     """An in-memory (or memory-mapped) 3D array; 2D arrays are one slice thick."""
+
+    rereads_cheaply = True
 
     def __init__(self, array: np.ndarray, *, spacing=None, origin=None, units: str = "millimeter", format: str = "numpy"):
         from lodcast.errors import SourceError

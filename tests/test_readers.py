@@ -415,6 +415,28 @@ def test_dicom_float_rescale_several_series_and_uneven_spacing(tmp_path: Path) -
         np.testing.assert_array_equal(read_all(src)[:, 0, 0], [-1024, -1023, -1022, -1021])
 
 
+@pytest.mark.parametrize("signed", [False, True])
+@pytest.mark.parametrize("syntax", ["1.2.840.10008.1.2", "1.2.840.10008.1.2.1"])
+def test_dicom_pixels_read_directly_match_pydicom(tmp_path: Path, signed: bool, syntax: str) -> None:
+    """Uncompressed pixels are read from the file at their offset: with junk in the unused high bits, 12-bit
+    signed and unsigned data must come out exactly as pydicom decodes them (masked, sign from bit 11), with
+    rescaling off so that nothing hides a difference."""
+    raw = RNG.integers(0, 65536, (3, 70, 9)).astype(np.uint16)  # 630 pixels: above and below the defer size
+    for k in range(3):
+        path = tmp_path / f"{k}.dcm"
+        dicom_slice(path, raw[k], float(k), intercept=0.0)
+        ds = pydicom.dcmread(path)
+        ds.PixelRepresentation = int(signed)
+        ds.file_meta.TransferSyntaxUID = syntax
+        ds.save_as(path, implicit_vr=syntax == "1.2.840.10008.1.2", little_endian=True)
+    expected = np.stack([pydicom.dcmread(tmp_path / f"{k}.dcm").pixel_array for k in range(3)])
+    assert expected.dtype == (np.int16 if signed else np.uint16)
+    assert (expected.astype(np.int64) != raw.astype(np.int64)).any()  # the high bits did change something
+    with open_source(tmp_path) as src:
+        assert all(layout is not None for layout in src._native_layout)  # the direct path is the one tested
+        check(src, expected)
+
+
 @pytest.mark.filterwarnings("ignore:Invalid value for VR UI")
 def test_dicom_refusals(tmp_path: Path) -> None:
     sizes = tmp_path / "sizes"

@@ -25,6 +25,8 @@ from lodcast.store.source import SourceInfo
 class _BinaryReader(_Reader):
     """A (t, z, y, x) array stored uncompressed at `offset`, in C or Fortran order."""
 
+    rereads_cheaply = True
+
     def __init__(self, path: Path, offset: int, shape4: tuple[int, int, int, int], dtype: np.dtype,
                  fortran: bool, index: int, info: SourceInfo) -> None:
         self._path, self._offset, self._shape4, self._dtype = path, offset, shape4, dtype

@@ -29,18 +29,27 @@ _PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1):
 _DICOM_KEYWORDS = ("SeriesInstanceUID", "Rows", "Columns", "SamplesPerPixel", "PhotometricInterpretation",
                    "NumberOfFrames", "BitsAllocated", "BitsStored", "PixelRepresentation", "PixelSpacing",
                    "SliceThickness", "SpacingBetweenSlices", "ImagePositionPatient", "ImageOrientationPatient",
-                   "InstanceNumber", "RescaleSlope", "RescaleIntercept", "Modality", "SeriesDescription")
+                   "InstanceNumber", "RescaleSlope", "RescaleIntercept", "Modality", "SeriesDescription", "HighBit")
+
+
+# uncompressed little-endian syntaxes, whose pixels lie as plain bytes at a known offset
+_NATIVE_SYNTAXES = ("1.2.840.10008.1.2", "1.2.840.10008.1.2.1")
 
 
 def _dicom_header(f: Path) -> dict[str, Any]:
-    """The few header fields a series needs: a whole pydicom header is tens of kB, times thousands of slices."""
+    """The few header fields a series needs (a whole pydicom header is tens of kB, times thousands of slices),
+    and where the pixel data start when they are stored uncompressed."""
     import pydicom
 
     try:
-        ds = pydicom.dcmread(f, stop_before_pixels=True)
+        # deferring large values skips the pixel data but still records their file offset
+        ds = pydicom.dcmread(f, defer_size=4096)
         header = {k: ds.get(k) for k in _DICOM_KEYWORDS if ds.get(k) is not None}
         syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
         header["compressed"] = syntax is None or syntax.is_compressed
+        if syntax in _NATIVE_SYNTAXES and "PixelData" in ds:
+            item = ds.get_item("PixelData")  # a raw element when small, a deferred DataElement when large
+            header["pixel_offset"] = int(item.value_tell if hasattr(item, "value_tell") else item.file_tell)
     except Exception as exc:  # pydicom raises many types on corrupt files
         raise SourceError(f"unreadable DICOM file {f}: {exc}") from None
     return header
@@ -88,6 +97,9 @@ class _DicomReader(_Reader):
         ny, nx, pixel_dtype = self._check_images(slices)
         slices, dz, origin = self._sort(slices, provenance)
         self._files = [f for f, _ in slices]
+        self._pixel_dtype = pixel_dtype
+        self._native_layout = [self._native_of(ds, pixel_dtype) for _, ds in slices]
+        self.rereads_cheaply = all(layout is not None for layout in self._native_layout)
         self._rescale = [(float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0))
                          for _, ds in slices]
         dtype = self._rescaled_dtype(pixel_dtype, int(slices[0][1].get("BitsStored", pixel_dtype.itemsize * 8)))
@@ -108,6 +120,15 @@ class _DicomReader(_Reader):
         self.info = _info((len(slices), ny, nx), dtype, "dicom", path, spacing=(dz, *map(float, pixel_spacing)),
                           origin=origin, **provenance)
         self.info.provenance["dtype"] = pixel_dtype.name
+
+    @staticmethod
+    def _native_of(ds: dict[str, Any], pixel_dtype: np.dtype) -> tuple[int, int] | None:
+        """(pixel offset, bits stored) when the pixels can be read straight from the file, else None."""
+        stored = int(ds.get("BitsStored", pixel_dtype.itemsize * 8))
+        high = int(ds.get("HighBit", stored - 1))
+        if "pixel_offset" not in ds or high != stored - 1 or not 0 < stored <= pixel_dtype.itemsize * 8:
+            return None  # unusual bit layouts are left to pydicom
+        return ds["pixel_offset"], stored
 
     @staticmethod
     def _check_images(slices: list[tuple[Path, dict[str, Any]]]) -> tuple[int, int, np.dtype]:
@@ -173,18 +194,43 @@ class _DicomReader(_Reader):
         return np.dtype(np.float32)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
-        import pydicom
-
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
         for k in range(z0, z1):
             f = self._files[k]
-            try:
-                pixels = pydicom.dcmread(f).pixel_array
-            except Exception as exc:  # decoding errors come from pydicom and its image plugins
-                raise SourceError(f"cannot decode the pixels of DICOM file {f}: {exc}") from None
-            if pixels.shape != self.info.shape[1:]:
-                raise SourceError(f"DICOM file {f} has pixels of shape {_fmt(pixels.shape)}; "
-                                  f"expected {_fmt(self.info.shape[1:])}")
+            pixels = self._native(k) if self._native_layout[k] is not None else self._decoded(f)
             slope, intercept = self._rescale[k]
             out[k - z0] = pixels if (slope, intercept) == (1.0, 0.0) else pixels * slope + intercept
         return out
+
+    def _decoded(self, f: Path) -> np.ndarray:
+        import pydicom
+
+        try:
+            pixels = pydicom.dcmread(f).pixel_array
+        except Exception as exc:  # decoding errors come from pydicom and its image plugins
+            raise SourceError(f"cannot decode the pixels of DICOM file {f}: {exc}") from None
+        if pixels.shape != self.info.shape[1:]:
+            raise SourceError(f"DICOM file {f} has pixels of shape {_fmt(pixels.shape)}; "
+                              f"expected {_fmt(self.info.shape[1:])}")
+        return pixels
+
+    def _native(self, k: int) -> np.ndarray:
+        """Uncompressed pixels read straight from the file (several times faster than parsing it again with
+        pydicom), with pydicom's handling of unused high bits: masked off, and the sign taken from bit
+        BitsStored - 1 for signed data."""
+        f = self._files[k]
+        offset, stored = self._native_layout[k]
+        dtype = np.dtype(self._pixel_dtype).newbyteorder("<")
+        count = int(np.prod(self.info.shape[1:]))
+        pixels = np.fromfile(f, dtype, count=count, offset=offset)
+        if pixels.size != count:
+            raise SourceError(f"cannot decode the pixels of DICOM file {f}: it ends after {pixels.size} of its "
+                              f"{count} pixels")
+        pixels = pixels.reshape(self.info.shape[1:]).astype(self._pixel_dtype, copy=False)
+        unused = dtype.itemsize * 8 - stored
+        if unused > 0:
+            if dtype.kind == "i":
+                pixels = (pixels << unused) >> unused  # arithmetic shift: sign-extends from the stored sign bit
+            else:
+                pixels &= (1 << stored) - 1
+        return pixels
