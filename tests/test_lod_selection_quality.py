@@ -30,7 +30,37 @@ def test_tf_selection_beats_l2_and_uniform_at_64_to_1(tmp_path: Path, shared_dat
         reductions[method] = sel.reduction
     # every method keeps at least the 64:1 budget (uniform steps in whole levels, so it reduces more)
     assert min(reductions.values()) >= 63.5, reductions
-    # measured here: tf 12.6, l2 16.0, uniform 21.1; the ordering is the claim, held with a 10 % margin. (On the chest
-    # CT with a bone TF the ordering does not hold: tf 22.2 vs l2 16.0; see the issue 5 note.)
+    # measured here: tf 12.6, l2 16.0, uniform 21.1; the ordering is the claim, held with a 10 % margin
     assert errors["tf"] < 0.9 * errors["l2"], errors
     assert errors["tf"] < 0.9 * errors["uniform"], errors
+
+
+# chest CT (ct_chest_dicom, 275x512x512 HU): bone, and the thin skin band between air and fat
+CT_TFS = {
+    "bone": ({"points": [{"value": 250, "color": [0.9, 0.85, 0.75], "opacity": 0.0},
+                         {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
+                         {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}, 0.9),
+    "skin": ({"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
+                         {"value": -400, "color": [0.9, 0.7, 0.6], "opacity": 0.3},
+                         {"value": -200, "color": [0.9, 0.7, 0.6], "opacity": 0.0}]}, 0.95),
+}
+
+
+def test_fig_3_4_ordering_on_the_chest_ct_with_the_thesis_block_size(tmp_path: Path, shared_data: Path):
+    """The same claim on a patient CT, with the thesis' 16³ blocks. Measured at 128²: bone tf 9.2, l2 11.7,
+    uniform 22.8; skin tf 13.3, l2 14.4, uniform 16.7 (margins 10 % and 5 %). With lodcast's default 32³ blocks
+    the bone case reverses (tf 18.6 vs l2 14.2 at 256²): a 32³ block holding a few rib voxels has a small RMS ΔE
+    and is coarsened whole, see the issue 5 note."""
+    store = lodcast.ingest(shared_data / "ct_chest_dicom", tmp_path / "ct16.zarr", block_size=16, progress=False)
+    for name, (tf, margin) in CT_TFS.items():
+        scene = {"camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "width": 128, "height": 128, "tf": tf,
+                 "format": "npy", "sampling": {"step": 0.5, "interpolation": "nearest_block"}}
+        ref = lodcast.render(store, {**scene, "sampling": {"step": 0.25}})
+        errors = {}
+        for method in ("tf", "l2", "uniform"):
+            sel = select_lod(store, [Scene.parse(scene).tf], {"reduction": 64}, method=method)
+            assert sel.reduction >= 63.5, (name, method, sel.reduction)
+            img = lodcast.render(store, {**scene, "quality": {"reduction": 64}}, levels=sel.levels)
+            errors[method] = delta_e_stats(img.rgba, ref.rgba)["mean"]
+        assert errors["tf"] < margin * errors["l2"], (name, errors)
+        assert errors["tf"] < margin * errors["uniform"], (name, errors)

@@ -439,10 +439,14 @@ def test_dicom_pixels_read_directly_match_pydicom(tmp_path: Path, signed: bool, 
 
 @pytest.mark.filterwarnings("ignore:Invalid value for VR UI")
 def test_dicom_refusals(tmp_path: Path) -> None:
-    sizes = tmp_path / "sizes"
-    sizes.mkdir()
-    dicom_slice(sizes / "a.dcm", np.zeros((8, 8)), 0.0)
-    dicom_slice(sizes / "b.dcm", np.zeros((8, 6)), 1.0)
+    def pair(name: str, first: tuple, second: tuple) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        dicom_slice(folder / "a.dcm", *first)
+        dicom_slice(folder / "b.dcm", *second)
+        return folder
+
+    sizes = pair("sizes", (np.zeros((8, 8)), 0.0), (np.zeros((8, 6)), 1.0))
     refused(r"inconsistent images: a.dcm is 8x8 of 16 bits but b.dcm is 8x6", sizes)
     corrupt = tmp_path / "corrupt"
     corrupt.mkdir()
@@ -462,10 +466,7 @@ def test_dicom_refusals(tmp_path: Path) -> None:
     rgb.mkdir()
     dicom_slice(rgb / "a.dcm", np.zeros((4, 4, 3)), 0.0, samples=3)
     refused(r"non-scalar data: DICOM file .* RGB with 3 samples per pixel", rgb)
-    twins = tmp_path / "twins"
-    twins.mkdir()
-    dicom_slice(twins / "a.dcm", np.zeros((4, 4)), 3.0)
-    dicom_slice(twins / "b.dcm", np.zeros((4, 4)), 3.0)
+    twins = pair("twins", (np.zeros((4, 4)), 3.0), (np.zeros((4, 4)), 3.0))
     refused(r"two slices at position 3 mm \(a.dcm, b.dcm\)", twins)
     single = tmp_path / "one.dcm"
     dicom_slice(single, np.arange(20).reshape(4, 5), 7.0, intercept=0.0)
