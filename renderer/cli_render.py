@@ -39,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p.add_argument("-o", "--output", required=True, help="image to write: OUT.png or OUT.npy")
     p.add_argument("--scene", help="scene JSON file (DESIGN.md); the flags below override its fields")
     p.add_argument("--report", help="write the render report (JSON) here")
-    p.add_argument("--tf", help="transfer function JSON file: {\"points\": [...], \"unit_distance\": d}")
+    p.add_argument("--tf", help="transfer function JSON file ({\"points\": [...], \"unit_distance\": d}) or a CT "
+                   "preset in Hounsfield units: ct-bone, ct-skin")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--azimuth", type=float, help="orbit camera: degrees, 0 looks from -y, turning towards +x")
@@ -76,7 +77,9 @@ def scene_from_args(args: argparse.Namespace):
         if not isinstance(data, dict):
             raise SceneError(f"--scene {args.scene!r}: a scene must be a JSON object")
     if args.tf:
-        data["tf"] = _load_json(args.tf, "--tf")
+        from lodcast.renderer.transfer_function import CT_PRESETS
+
+        data["tf"] = CT_PRESETS[args.tf] if args.tf in CT_PRESETS else _load_json(args.tf, "--tf")
     if "tf" not in data:
         raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
     for key in ("width", "height", "mode"):

@@ -33,7 +33,19 @@ __all__ = [
     "extinction",
     "build_lut",
     "unit_distance",
+    "CT_PRESETS",
 ]
+
+# Transfer functions for CT in Hounsfield units (`lodcast render --tf ct-bone`): bone, and the thin skin band
+# between air and fat; the LOD benchmarks and the fig. 3.4 test measure with these two.
+CT_PRESETS: dict[str, dict] = {
+    "ct-bone": {"points": [{"value": 250, "color": [0.9, 0.85, 0.75], "opacity": 0.0},
+                           {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
+                           {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]},
+    "ct-skin": {"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
+                           {"value": -400, "color": [0.9, 0.7, 0.6], "opacity": 0.3},
+                           {"value": -200, "color": [0.9, 0.7, 0.6], "opacity": 0.0}]},
+}
 
 SIGMA_OPAQUE = 1.0e30  # extinction standing in for a = 1: exp(-r·1e30) == 0 for any r > 1e-20
 LUT_MIN = 1024

@@ -10,6 +10,7 @@ import lodcast
 from lodcast.renderer.image_error import delta_e_stats
 from lodcast.renderer.scene import Scene
 from lodcast.renderer.selection import select_lod
+from lodcast.renderer.transfer_function import CT_PRESETS
 
 # engine.nii.gz (Open SciVis "Engine", industrial CT): an opaque TF on the dense metal parts
 TF = {"points": [{"value": 150, "color": [1.0, 0.8, 0.5], "opacity": 0.0},
@@ -35,15 +36,8 @@ def test_tf_selection_beats_l2_and_uniform_at_64_to_1(tmp_path: Path, shared_dat
     assert errors["tf"] < 0.9 * errors["uniform"], errors
 
 
-# chest CT (ct_chest_dicom, 275x512x512 HU): bone, and the thin skin band between air and fat
-CT_TFS = {
-    "bone": ({"points": [{"value": 250, "color": [0.9, 0.85, 0.75], "opacity": 0.0},
-                         {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
-                         {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}, 0.9),
-    "skin": ({"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
-                         {"value": -400, "color": [0.9, 0.7, 0.6], "opacity": 0.3},
-                         {"value": -200, "color": [0.9, 0.7, 0.6], "opacity": 0.0}]}, 0.95),
-}
+# chest CT (ct_chest_dicom, 275x512x512 HU) with the CT presets, each with the margin its ordering holds by
+CT_MARGINS = {"ct-bone": 0.9, "ct-skin": 0.95}
 
 
 def test_fig_3_4_ordering_on_the_chest_ct_with_the_thesis_block_size(tmp_path: Path, shared_data: Path):
@@ -52,7 +46,8 @@ def test_fig_3_4_ordering_on_the_chest_ct_with_the_thesis_block_size(tmp_path: P
     the bone case reverses (tf 18.6 vs l2 14.2 at 256²): a 32³ block holding a few rib voxels has a small RMS ΔE
     and is coarsened whole, see the issue 5 note."""
     store = lodcast.ingest(shared_data / "ct_chest_dicom", tmp_path / "ct16.zarr", block_size=16, progress=False)
-    for name, (tf, margin) in CT_TFS.items():
+    for name, margin in CT_MARGINS.items():
+        tf = CT_PRESETS[name]
         scene = {"camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "width": 128, "height": 128, "tf": tf,
                  "format": "npy", "sampling": {"step": 0.5, "interpolation": "nearest_block"}}
         ref = lodcast.render(store, {**scene, "sampling": {"step": 0.25}})

@@ -71,6 +71,28 @@ def test_cli_render_scene_file_flags_and_report(store, tmp_path):
     assert np.asarray(Image.open(tmp_path / "o.png")).shape == (10, 12, 4)
 
 
+def test_cli_tf_preset_renders_as_its_points(tmp_path):
+    """`--tf ct-bone` is the preset's points: the same image as the same TF given as a file, and a volume in
+    Hounsfield units shows bone (1000 HU) and hides soft tissue (40 HU)."""
+    import lodcast
+    from lodcast.renderer.transfer_function import CT_PRESETS
+
+    hu = np.full((12, 16, 16), 40, np.int16)
+    hu[4:8, 5:11, 5:11] = 1000
+    lodcast.ingest(hu, tmp_path / "hu.zarr", progress=False)
+    tf = tmp_path / "bone.json"
+    tf.write_text(json.dumps(CT_PRESETS["ct-bone"]))
+    images = []
+    for arg in ("ct-bone", tf):
+        p = lodcast_cli("render", tmp_path / "hu.zarr", "-o", tmp_path / "o.npy", "--tf", arg, "--width", 16,
+                        "--height", 16, "--azimuth", 0, "--elevation", 0)
+        assert p.returncode == 0, p.stderr
+        images.append(np.load(tmp_path / "o.npy"))
+    np.testing.assert_array_equal(images[0], images[1])
+    alpha = images[0][..., 3]
+    assert alpha[8, 8] > 0.9 and alpha[0, 0] == 0.0
+
+
 @pytest.mark.parametrize("args, needle", [
     (["--scene", "{missing}"], "--scene"),
     (["--tf", "{tf}", "--width", "0"], "width"),
