@@ -154,6 +154,21 @@ class JobQueue:
                     out.append(jid)
         return out
 
+    def expire(self) -> list[str]:
+        """Delete jobs that ended more than `keep_jobs_s` ago: results first, then the record, so that a crash
+        between the two leaves a record that the next call finds again (never results without a record)."""
+        keep = self.settings.keep_jobs_s
+        if not keep:
+            return []
+        gone = []
+        for jid in self.records.finished_before(time.time() - keep):
+            self.delete_results(jid)
+            if self.records.delete_final(jid):
+                gone.append(jid)
+        if gone:
+            log.info("deleted %d jobs that ended more than %.0f s ago", len(gone), keep)
+        return gone
+
     # --- worker side ----------------------------------------------------------------------------------------
     def _execute(self, job_id: str) -> None:
         rec = self.records.get(job_id)
@@ -318,9 +333,13 @@ class Worker:
 
     def _reaper(self) -> None:
         stopping = self.jobs.stopping
+        expired_at = float("-inf")
         while True:
             try:
                 self.jobs.reap()
+                if time.monotonic() - expired_at >= self.jobs.settings.expire_every_s:
+                    expired_at = time.monotonic()
+                    self.jobs.expire()
             except Exception:
                 log.exception("reaper")
             if stopping.wait(self.jobs.settings.reap_every_s):

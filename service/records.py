@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FIELDS", "Records", "SqliteRecords", "RedisRecords", "open_records"]
+__all__ = ["FIELDS", "ACTIVE", "FINAL", "Records", "SqliteRecords", "RedisRecords", "open_records"]
 
 #: field -> type; every record has all of them. Times are Unix seconds (float) or None.
 FIELDS: dict[str, type] = {
@@ -35,6 +35,7 @@ FIELDS: dict[str, type] = {
     "completions": int,
 }
 ACTIVE = ("queued", "running")
+FINAL = ("done", "failed", "cancelled")
 
 
 def _blank(rec: dict[str, Any]) -> dict[str, Any]:
@@ -57,6 +58,14 @@ class Records:
         raise NotImplementedError
 
     def update(self, job_id: str, fields: dict[str, Any], expect: dict[str, tuple] | None = None) -> bool:
+        raise NotImplementedError
+
+    def finished_before(self, cutoff: float, limit: int = 1000) -> list[str]:
+        """Ids of jobs in a final state that finished before `cutoff` (Unix seconds)."""
+        raise NotImplementedError
+
+    def delete_final(self, job_id: str) -> bool:
+        """Remove the record if the job is in a final state (never a queued or running one)."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -125,6 +134,19 @@ class SqliteRecords(Records):
         cur = self._conn().execute(f"UPDATE jobs SET {sets} WHERE {' AND '.join(where)}", args)
         return cur.rowcount == 1
 
+    def finished_before(self, cutoff: float, limit: int = 1000) -> list[str]:
+        rows = self._conn().execute(
+            f"SELECT id FROM jobs WHERE state IN ({', '.join('?' for _ in FINAL)}) AND finished < ? LIMIT ?",
+            (*FINAL, cutoff, limit),
+        ).fetchall()
+        return [r["id"] for r in rows]
+
+    def delete_final(self, job_id: str) -> bool:
+        cur = self._conn().execute(
+            f"DELETE FROM jobs WHERE id = ? AND state IN ({', '.join('?' for _ in FINAL)})", (job_id, *FINAL)
+        )
+        return cur.rowcount == 1
+
     def close(self) -> None:
         conn = getattr(self._local, "conn", None)
         if conn is not None:
@@ -169,6 +191,20 @@ return 1
 """
 
 
+# KEYS = job hash, index; ARGV = job id, then the final states
+_DELETE_FINAL = """
+local state = redis.call('HGET', KEYS[1], 'state')
+for i = 2, #ARGV do
+  if state == ARGV[i] then
+    redis.call('DEL', KEYS[1])
+    redis.call('ZREM', KEYS[2], ARGV[1])
+    return 1
+  end
+end
+return 0
+"""
+
+
 def _enc(v: Any) -> str:
     return "" if v is None else repr(v) if isinstance(v, float) else str(v)
 
@@ -187,6 +223,7 @@ class RedisRecords(Records):
         self.client = redis.Redis.from_url(url, decode_responses=True)
         self.prefix = prefix
         self._cas = self.client.register_script(_CAS)
+        self._delete_final = self.client.register_script(_DELETE_FINAL)
 
     def _key(self, job_id: str) -> str:
         return f"{self.prefix}:job:{job_id}"
@@ -256,6 +293,22 @@ class RedisRecords(Records):
                 raise KeyError(k)
             args += [k, _enc(v)]
         return bool(self._cas(keys=[self._key(job_id), self._active, job_id], args=args))
+
+    def finished_before(self, cutoff: float, limit: int = 1000) -> list[str]:
+        # the index is scored by creation: a job that finished before the cutoff was created before it
+        out: list[str] = []
+        start, chunk = 0, 500
+        while len(out) < limit:
+            ids = self.client.zrangebyscore(self._index, "-inf", cutoff, start=start, num=chunk)
+            if not ids:
+                break
+            start += chunk
+            out += [r["id"] for r in self._fetch(ids)
+                    if r["state"] in FINAL and r["finished"] is not None and r["finished"] < cutoff]
+        return out[:limit]
+
+    def delete_final(self, job_id: str) -> bool:
+        return bool(self._delete_final(keys=[self._key(job_id), self._index], args=[job_id, *FINAL]))
 
     def close(self) -> None:
         self.client.close()

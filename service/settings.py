@@ -52,6 +52,9 @@ class Settings(BaseSettings):
     reap_every_s: float = Field(default=5.0, gt=0, description="how often stale jobs are looked for")
     poll_s: float = Field(default=0.2, gt=0, description="how often an idle worker polls the SQLite queue")
     frame_delay_s: float = Field(default=0.0, ge=0, description="pause after each job frame (tests and demos only)")
+    keep_jobs_s: float = Field(default=7 * 86400, ge=0, description="finished, failed and cancelled jobs (record "
+                               "and results) are deleted this long after they end; 0 keeps them forever")
+    expire_every_s: float = Field(default=60.0, gt=0, description="how often the reaper deletes expired jobs")
 
     @field_validator("root", mode="after")
     @classmethod

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from lodcast.service.jobs import parse_job
-from lodcast.service.queue import JobQueue
+from lodcast.service.queue import JobQueue, Worker
 from lodcast.service.settings import Settings
 from lodcast.service.testing import (
     RedisServer,
@@ -169,6 +169,32 @@ class BackendMixin:
             wait_for(lambda: jq.get(nxt)["state"] == "done", timeout=60, what="next job")
         finally:
             w.stop()
+
+
+    def test_ended_jobs_expire_with_their_results(self, root: Path, queue: str | None):
+        jq = self.local(root, queue)
+        done = self.submit(jq, frames=1)
+        worker = Worker(jq, threads=1, reap=False).start()
+        try:
+            wait_for(lambda: jq.get(done)["state"] == "done", timeout=60, what="job done")
+        finally:
+            worker.stop()
+        assert jq.job_dir(done).is_dir()
+        cancelled = self.submit(jq, frames=2)
+        jq.cancel(cancelled)
+        queued = self.submit(jq, frames=2)  # no worker runs it: it stays queued, however old
+        jq.records.update(queued, {"finished": 0.0})  # even with a finish time, an active job is never expired
+
+        def with_keep(keep: float) -> JobQueue:
+            return JobQueue(Settings(**{**jq.settings.model_dump(), "keep_jobs_s": keep}))
+
+        assert with_keep(0).expire() == []  # 0 keeps everything
+        assert with_keep(3600).expire() == []  # nothing ended an hour ago
+        time.sleep(1.1)
+        assert sorted(with_keep(1.0).expire()) == sorted([done, cancelled])
+        assert jq.get(done) is None and jq.get(cancelled) is None and not jq.job_dir(done).exists()
+        assert jq.get(queued)["state"] == "queued"
+        assert [r["id"] for r in jq.list()] == [queued]
 
 
 class TestSqlite(BackendMixin):
