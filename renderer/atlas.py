@@ -12,19 +12,19 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
   0; interblock sampling's interior fast path); read by lc_atlas.h;
 - the **step-level grid** for adaptive object-space sampling (half-block cells, see raycast.cl).
 
-Bricks come from a **brick cache** shared by every render of the process (module level, LRU by bytes, size
+Bricks come from a **brick cache** shared by every render of the process (`brick_cache()`, LRU by bytes, size
 ``LODCAST_BRICK_CACHE_MB``, default 1024): only missing bricks are read, in parallel (a thread pool, one task per
 shard: the bricks of one shard are read together, as one region, since the number of requests dominates I/O), so a
 camera change reads nothing and a TF change reads only the bricks whose level changed. The device buffers of the
-last selection are kept too (same store and levels: nothing is packed or uploaded again).
+selections stay in the device cache too (`sampler.device_cache`: same store and levels, nothing is packed or
+uploaded again).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
-import threading
 import time
-from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -32,76 +32,38 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
+from lodcast.renderer.cache import ByteLru, env_mb
 from lodcast.renderer.program import DeviceError, get_context
+from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
 
-__all__ = ["BrickCache", "CACHE", "AtlasLoad", "DeviceAtlas", "load_bricks", "pack", "pack_index", "step_levels",
-           "device_atlas", "max_alloc_bytes", "clear_device_atlas"]
+__all__ = ["BrickCache", "brick_cache", "AtlasLoad", "DeviceAtlas", "load_bricks", "pack", "pack_index",
+           "step_levels", "device_atlas", "max_alloc_bytes"]
 
 MISSING = 0
 
 
-def _env_mb(name: str, default: float) -> int:
-    try:
-        return int(float(os.environ.get(name, default)) * 2**20)
-    except ValueError:
-        return int(default * 2**20)
-
-
-class BrickCache:
-    """Thread-safe LRU of bricks (float32 arrays) keyed by (store key, level, bz, by, bx), bounded by bytes."""
+class BrickCache(ByteLru):
+    """Bricks (float32 arrays) keyed by (store key, level, bz, by, bx), LRU by bytes; counts the bricks read."""
 
     def __init__(self, max_bytes: int):
-        self.max_bytes = int(max_bytes)
-        self._d: OrderedDict[tuple, np.ndarray] = OrderedDict()
-        self._bytes = 0
-        self._lock = threading.Lock()
+        super().__init__(max_bytes)
         self.reads = 0  # bricks read from stores since creation (tests count these)
 
-    @property
-    def nbytes(self) -> int:
-        return self._bytes
-
-    def __len__(self) -> int:
-        return len(self._d)
-
-    def get(self, key: tuple) -> np.ndarray | None:
-        with self._lock:
-            a = self._d.get(key)
-            if a is not None:
-                self._d.move_to_end(key)
-            return a
-
-    def put(self, key: tuple, a: np.ndarray) -> None:
-        with self._lock:
-            old = self._d.pop(key, None)
-            if old is not None:
-                self._bytes -= old.nbytes
-            if a.nbytes > self.max_bytes:
-                return
-            self._d[key] = a
-            self._bytes += a.nbytes
-            while self._bytes > self.max_bytes and self._d:
-                _, ev = self._d.popitem(last=False)
-                self._bytes -= ev.nbytes
-
-    def clear(self) -> None:
-        with self._lock:
-            self._d.clear()
-            self._bytes = 0
-
-    def resize(self, max_bytes: int) -> None:
-        with self._lock:
-            self.max_bytes = int(max_bytes)
-            while self._bytes > self.max_bytes and self._d:
-                _, ev = self._d.popitem(last=False)
-                self._bytes -= ev.nbytes
+    def put(self, key: tuple, a: np.ndarray) -> None:  # type: ignore[override]
+        super().put(key, a, a.nbytes)
 
 
-#: The process's brick cache (the service relies on one per process, shared by all renders).
-CACHE = BrickCache(_env_mb("LODCAST_BRICK_CACHE_MB", 1024))
-_POOL = ThreadPoolExecutor(max_workers=max(1, int(os.environ.get("LODCAST_READ_THREADS", "8"))),
-                           thread_name_prefix="lodcast-bricks")
+@functools.cache
+def brick_cache() -> BrickCache:
+    """The process's brick cache, shared by all renders (``LODCAST_BRICK_CACHE_MB``, default 1024)."""
+    return BrickCache(env_mb("LODCAST_BRICK_CACHE_MB", 1024))
+
+
+@functools.cache
+def _read_pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=max(1, int(os.environ.get("LODCAST_READ_THREADS", "8"))),
+                              thread_name_prefix="lodcast-bricks")
 
 
 @dataclass(frozen=True)
@@ -134,7 +96,7 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
 def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None) -> AtlasLoad:
     """Every brick `levels` selects, from `cache` (default: the process's) or read from the store (missing ones
     only, grouped by shard, shards read in parallel); read bricks enter the cache."""
-    cache = CACHE if cache is None else cache
+    cache = brick_cache() if cache is None else cache
     t = time.perf_counter()
     lay = Layout(tuple(vol.shape), int(vol.block_size))
     levels = np.asarray(levels)
@@ -154,7 +116,7 @@ def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None) -
         sh = lay.shard_shape(k)
         groups.setdefault((k, z * e // sh[0], y * e // sh[1], x * e // sh[2]), []).append((z, y, x))
     n_cached = len(bricks)
-    futs = [_POOL.submit(_read_group, vol, lay, g[0], blks) for g, blks in sorted(groups.items())]
+    futs = [_read_pool().submit(_read_group, vol, lay, g[0], blks) for g, blks in sorted(groups.items())]
     n_read = 0
     for f in futs:
         got = f.result()
@@ -264,24 +226,14 @@ class DeviceAtlas:
     reused: bool  # the device buffers of the previous render were reused
 
 
-_DEV_LOCK = threading.Lock()
-_DEV: dict = {}  # one entry: (vol key, levels digest) -> DeviceAtlas
-
-
-def clear_device_atlas() -> None:
-    with _DEV_LOCK:
-        _DEV.clear()
-
-
 def device_atlas(vol: Any, levels: np.ndarray, *, max_bytes: int | None = None,
                  cache: BrickCache | None = None) -> DeviceAtlas:
-    """The atlas and index map of `levels` on the device (reused when the last render had the same store and
-    levels, else loaded through the brick cache, packed and uploaded)."""
+    """The atlas and index map of `levels` on the device (kept in the device cache: reused when a recent render
+    had the same store and levels, else loaded through the brick cache, packed and uploaded)."""
     levels = np.ascontiguousarray(levels, dtype=np.int8)
-    key = (vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest()) if vol.key is not None else None
+    key = ("atlas", vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest()) if vol.key is not None else None
     n_sel = int(np.count_nonzero(levels >= 0))
-    with _DEV_LOCK:
-        hit = _DEV.get(key) if key is not None else None
+    hit = device_cache().get(key) if key is not None else None
     if hit is not None:
         return DeviceAtlas(hit.atlas, hit.index, hit.index_host, hit.nbytes, n_sel, 0, n_sel,
                            int(levels.size - n_sel), 0.0, 0.0, True)
@@ -297,7 +249,5 @@ def device_atlas(vol: Any, levels: np.ndarray, *, max_bytes: int | None = None,
     da = DeviceAtlas(d_atlas, d_index, index, atlas.nbytes, n_sel, ld.read, ld.cached, ld.skipped, ld.read_ms,
                      (time.perf_counter() - t) * 1e3, False)
     if key is not None:
-        with _DEV_LOCK:
-            _DEV.clear()
-            _DEV[key] = da
+        device_cache().put(key, da, atlas.nbytes + index.nbytes)
     return da

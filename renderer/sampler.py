@@ -1,22 +1,29 @@
-"""Device-side voxels for the kernel's sampler. Full resolution for now: level 0 as one float32 buffer (on
-PoCL trilinear from a plain buffer measured ~2x faster than from a 3D image), kept on the device between renders
-of the same store. The brick atlas of the LOD issue replaces this module's upload, not the kernel interface."""
+"""Device-side voxels kept between renders: level 0 as one float32 buffer for quality "full" (on PoCL trilinear
+from a plain buffer measured ~2x faster than from a 3D image), and the device cache that keeps those buffers and
+the LOD atlases (`atlas.device_atlas`) resident, LRU by bytes (``LODCAST_DEVICE_CACHE_MB``, default 1024): a service
+alternating between a few volumes or selections uploads nothing. The newest entry stays even when it alone exceeds
+the budget (the next render of the same volume is the likeliest); a render holds its own reference to the buffers
+it uses, so evicting an entry in use is safe."""
 from __future__ import annotations
 
-import threading
+import functools
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
 
+from lodcast.renderer.cache import ByteLru, env_mb
 from lodcast.renderer.program import DeviceError, get_context
 from lodcast.renderer.volume import VolumeView
 
-__all__ = ["DeviceVolume", "upload_level0", "voxel_offset", "clear_cache"]
+__all__ = ["DeviceVolume", "upload_level0", "voxel_offset", "device_cache"]
 
-_LOCK = threading.Lock()
-_CACHE: dict = {}  # key -> DeviceVolume; one entry (the last store rendered)
+
+@functools.cache
+def device_cache() -> ByteLru:
+    """The process's device cache (level-0 volumes and LOD atlases)."""
+    return ByteLru(env_mb("LODCAST_DEVICE_CACHE_MB", 1024), keep_last=True)
 
 
 @dataclass(frozen=True)
@@ -34,11 +41,6 @@ def voxel_offset(z, y, x, shape_zyx) -> np.ndarray:
     return (z * ny + y) * nx + x
 
 
-def clear_cache() -> None:
-    with _LOCK:
-        _CACHE.clear()
-
-
 def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
     """(device volume, whether it came from the cache). Raises DeviceError when level 0 exceeds the device's
     largest allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)."""
@@ -51,9 +53,10 @@ def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
             f"allocation ({limit / 2**30:.2f} GiB, CL_DEVICE_MAX_MEM_ALLOC_SIZE); quality 'full' cannot render it "
             "on this device"
         )
-    with _LOCK:
-        if vol.key is not None and vol.key in _CACHE:
-            return _CACHE[vol.key], True
+    key = ("level0", vol.key)
+    hit = device_cache().get(key) if vol.key is not None else None
+    if hit is not None:
+        return hit, True
     t = time.perf_counter()
     data = np.ascontiguousarray(vol.read_level0(), dtype=np.float32)
     if tuple(data.shape) != tuple(vol.shape):
@@ -63,7 +66,5 @@ def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
     queue.finish()
     dv = DeviceVolume(buf, (vol.shape[2], vol.shape[1], vol.shape[0]), data.nbytes, (time.perf_counter() - t) * 1e3)
     if vol.key is not None:
-        with _LOCK:
-            _CACHE.clear()
-            _CACHE[vol.key] = dv
+        device_cache().put(key, dv, dv.nbytes)
     return dv, False

@@ -7,7 +7,9 @@ import pytest
 
 import lodcast
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer.cache import ByteLru, env_mb
 from lodcast.renderer.render import render
+from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import as_volume
 
 B = 8
@@ -23,11 +25,11 @@ def store(tmp_path_factory):
 
 @pytest.fixture(autouse=True)
 def fresh():
-    lod_atlas.CACHE.clear()
-    lod_atlas.clear_device_atlas()
+    lod_atlas.brick_cache().clear()
+    device_cache().clear()
     yield
-    lod_atlas.CACHE.clear()
-    lod_atlas.clear_device_atlas()
+    lod_atlas.brick_cache().clear()
+    device_cache().clear()
 
 
 def _scene(az, tf=TF):
@@ -44,14 +46,14 @@ def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(
     n1 = int((lv1 >= 0).sum())
     r = render(store, _scene(0), levels=lv1).report
     assert (r["bricks_read"], r["bricks_cached"], r["bricks_skipped"]) == (n1, 0, lv1.size - n1)
-    reads = lod_atlas.CACHE.reads
+    reads = lod_atlas.brick_cache().reads
     for az in (40, 170):  # camera only: nothing read, nothing packed again
         r = render(store, _scene(az), levels=lv1).report
         assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
-    lod_atlas.clear_device_atlas()  # also from the host cache alone (e.g. after another store was rendered)
+    device_cache().clear()  # also from the host cache alone (e.g. after the device cache evicted it)
     r = render(store, _scene(80), levels=lv1).report
     assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
-    assert lod_atlas.CACHE.reads == reads
+    assert lod_atlas.brick_cache().reads == reads
     # a changed selection (what a TF change does): only the bricks it changes are read
     lv2 = lv1.copy()
     change = rng.random(lv1.shape) < 0.3
@@ -60,7 +62,7 @@ def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(
     assert new
     r = render(store, _scene(80), levels=lv2).report
     assert r["bricks_read"] == len(new) and r["bricks_cached"] == len(_pairs(lv2)) - len(new)
-    assert lod_atlas.CACHE.reads == reads + len(new)
+    assert lod_atlas.brick_cache().reads == reads + len(new)
 
 
 def test_tf_change_through_the_selection_reads_only_changed_bricks(store):
@@ -107,8 +109,32 @@ def test_lru_is_bounded_by_bytes():
 
 
 def test_one_cache_per_process(store, monkeypatch):
-    import importlib
-
-    assert lod_atlas.CACHE is importlib.import_module("lodcast.renderer.atlas").CACHE
+    assert lod_atlas.brick_cache() is lod_atlas.brick_cache() and device_cache() is device_cache()
     monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "3")
-    assert lod_atlas._env_mb("LODCAST_BRICK_CACHE_MB", 1024) == 3 * 2**20
+    assert env_mb("LODCAST_BRICK_CACHE_MB", 1024) == 3 * 2**20
+    monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "lots")
+    assert env_mb("LODCAST_BRICK_CACHE_MB", 1024) == 1024 * 2**20
+
+
+def test_device_cache_keeps_several_volumes_and_always_the_newest(tmp_path):
+    """Alternating renders of two stores upload each once (level 0 for "full", the atlas for an LOD selection);
+    a budget smaller than one entry still keeps the newest."""
+    stores = [lodcast.ingest(np.random.default_rng(i).random((24, 24, 24)).astype(np.float32),
+                             tmp_path / f"{i}.zarr", block_size=B, progress=False) for i in range(2)]
+    full = {**_scene(0), "quality": "full"}
+    lossless = {**_scene(0), "quality": "lossless"}
+    for st in stores:
+        for scene in (full, lossless):
+            first = render(st, scene).report
+            assert first["bricks_read"] > 0 and first["bricks_cached"] == 0, first
+    for st in stores:  # all four entries still resident: nothing read again
+        for scene in (full, lossless):
+            again = render(st, scene).report
+            assert again["bricks_read"] == 0 and again["bricks_cached"] > 0, again
+    assert len(device_cache()) == 4
+    tiny = ByteLru(100, keep_last=True)
+    tiny.put("a", "A", 60)
+    tiny.put("b", "B", 1000)  # over the budget on its own: kept, and "a" evicted
+    assert tiny.get("b") == "B" and tiny.get("a") is None and len(tiny) == 1
+    tiny.put("c", "C", 10)
+    assert tiny.get("c") == "C" and tiny.get("b") is None

@@ -10,6 +10,7 @@ import lodcast
 import lod_reference as ref
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer.render import render
+from lodcast.renderer.sampler import device_cache
 
 B = 16
 TF = {"points": [{"value": -1.0, "color": [1, 0, 0], "opacity": 0.0}, {"value": 1.0, "color": [0, 1, 0], "opacity": 0.08},
@@ -136,7 +137,7 @@ def test_atlas_layout_and_max_alloc(store):
 
 
 def test_render_respects_the_device_max_alloc(store, monkeypatch):
-    lod_atlas.clear_device_atlas()
+    device_cache().clear()
     monkeypatch.setattr(lod_atlas, "max_alloc_bytes", lambda: 1024)
     with pytest.raises(lodcast.renderer.program.DeviceError, match="largest allocation"):
         render(store, _scene(CAMERAS[0]), levels=np.zeros(store.grid, np.int8))

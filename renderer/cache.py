@@ -1,0 +1,75 @@
+"""Byte-bounded LRU caches shared by every render in a process: host bricks (`atlas.brick_cache`) and device
+buffers (`sampler.device_cache`). Each is made on first use, sized from the environment then."""
+from __future__ import annotations
+
+import os
+import threading
+from collections import OrderedDict
+from typing import Any
+
+__all__ = ["ByteLru", "env_mb"]
+
+
+def env_mb(name: str, default: float) -> int:
+    """Bytes from an environment variable in MiB (the default when unset or not a number)."""
+    try:
+        return int(float(os.environ.get(name, default)) * 2**20)
+    except ValueError:
+        return int(default * 2**20)
+
+
+class ByteLru:
+    """Thread-safe LRU bounded by the bytes of its values. `keep_last`: the newest entry stays even when it alone
+    exceeds the bound (else an entry larger than the bound is not kept at all)."""
+
+    def __init__(self, max_bytes: int, keep_last: bool = False):
+        self.max_bytes = int(max_bytes)
+        self.keep_last = keep_last
+        self._d: OrderedDict[Any, tuple[Any, int]] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    @property
+    def nbytes(self) -> int:
+        return self._bytes
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def __contains__(self, key: Any) -> bool:
+        return key in self._d
+
+    def get(self, key: Any) -> Any:
+        with self._lock:
+            hit = self._d.get(key)
+            if hit is None:
+                return None
+            self._d.move_to_end(key)
+            return hit[0]
+
+    def put(self, key: Any, value: Any, nbytes: int) -> None:
+        with self._lock:
+            old = self._d.pop(key, None)
+            if old is not None:
+                self._bytes -= old[1]
+            if nbytes > self.max_bytes and not self.keep_last:
+                return
+            self._d[key] = (value, int(nbytes))
+            self._bytes += int(nbytes)
+            self._evict()
+
+    def clear(self) -> None:
+        with self._lock:
+            self._d.clear()
+            self._bytes = 0
+
+    def resize(self, max_bytes: int) -> None:
+        with self._lock:
+            self.max_bytes = int(max_bytes)
+            self._evict()
+
+    def _evict(self) -> None:
+        floor = 1 if self.keep_last else 0
+        while self._bytes > self.max_bytes and len(self._d) > floor:
+            _, (_, n) = self._d.popitem(last=False)
+            self._bytes -= n
