@@ -23,18 +23,11 @@ import numpy as np
 
 from lodcast.renderer.selection import greedy, select_from_meta
 from lodcast.renderer.significance import BlockMeta, _precompute, block_significance, level_profile, _PRE_CACHE
+from lodcast.renderer.transfer_function import CT_PRESETS
 from lodcast.store.histogram import Bins
 
 ALL_VISIBLE = {"points": [{"value": -1000, "color": [0.2, 0.3, 0.9], "opacity": 0.05}, {"value": 3000, "color": [1, 1, 0.8], "opacity": 0.9}]}
-SKIN_BONE = {
-    "points": [
-        {"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
-        {"value": -300, "color": [0.9, 0.7, 0.6], "opacity": 0.25},
-        {"value": 100, "color": [0.8, 0.3, 0.3], "opacity": 0.0},
-        {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-        {"value": 900, "color": [1.0, 1.0, 1.0], "opacity": 0.9},
-    ]
-}
+SKIN_BONE = CT_PRESETS["ct-skin-bone"]
 
 
 def synthetic(n: int, seed: int = 0) -> BlockMeta:

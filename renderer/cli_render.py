@@ -40,7 +40,7 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p.add_argument("--scene", help="scene JSON file (DESIGN.md); the flags below override its fields")
     p.add_argument("--report", help="write the render report (JSON) here")
     p.add_argument("--tf", help="transfer function JSON file ({\"points\": [...], \"unit_distance\": d}) or a CT "
-                   "preset in Hounsfield units: ct-bone, ct-skin")
+                   "preset in Hounsfield units: ct-bone, ct-skin, ct-skin-bone")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--azimuth", type=float, help="orbit camera: degrees, 0 looks from -y, turning towards +x")

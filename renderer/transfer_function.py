@@ -36,8 +36,8 @@ __all__ = [
     "CT_PRESETS",
 ]
 
-# Transfer functions for CT in Hounsfield units (`lodcast render --tf ct-bone`): bone, and the thin skin band
-# between air and fat; the LOD benchmarks and the fig. 3.4 test measure with these two.
+# Transfer functions for CT in Hounsfield units (`lodcast render --tf ct-bone`): bone, the thin skin band between
+# air and fat, and both; the LOD benchmarks and tests measure with these.
 CT_PRESETS: dict[str, dict] = {
     "ct-bone": {"points": [{"value": 250, "color": [0.9, 0.85, 0.75], "opacity": 0.0},
                            {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
@@ -45,6 +45,12 @@ CT_PRESETS: dict[str, dict] = {
     "ct-skin": {"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
                            {"value": -400, "color": [0.9, 0.7, 0.6], "opacity": 0.3},
                            {"value": -200, "color": [0.9, 0.7, 0.6], "opacity": 0.0}]},
+    # translucent skin and opaque bone, with air, fat and the gap to bone transparent
+    "ct-skin-bone": {"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
+                                {"value": -300, "color": [0.9, 0.7, 0.6], "opacity": 0.25},
+                                {"value": 100, "color": [0.8, 0.3, 0.3], "opacity": 0.0},
+                                {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
+                                {"value": 900, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]},
 }
 
 SIGMA_OPAQUE = 1.0e30  # extinction standing in for a = 1: exp(-r·1e30) == 0 for any r > 1e-20

@@ -23,21 +23,12 @@ from lodcast.renderer.significance import (
     zeta_levels,
 )
 from lodcast.renderer.scene import TransferFunction
+from lodcast.renderer.transfer_function import CT_PRESETS
 from lodcast.store.histogram import Bins, expand, simplify
 
 TOL_ABS, TOL_REL = 5e-3, 1e-4
 
-SKIN_BONE = TransferFunction.model_validate(
-    {
-        "points": [
-            {"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
-            {"value": -300, "color": [0.9, 0.7, 0.6], "opacity": 0.25},
-            {"value": 100, "color": [0.8, 0.3, 0.3], "opacity": 0.0},
-            {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-            {"value": 900, "color": [1.0, 1.0, 1.0], "opacity": 0.9},
-        ]
-    }
-)
+SKIN_BONE = TransferFunction.model_validate(CT_PRESETS["ct-skin-bone"])
 
 
 _LUV_CACHE: dict = {}
