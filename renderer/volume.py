@@ -55,20 +55,35 @@ class VolumeView:
 
 def block_minmax_border(a: np.ndarray, B: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-block (min, max) over each B³ block plus a one-voxel border from its neighbours, ignoring NaN
-    (NaN where a block and its border hold no finite value)."""
+    (NaN where a block and its border hold no finite value). A box's extremum is separable, so it is taken one
+    axis at a time, each reduction shrinking the array B-fold: no copy of the volume, no loop over blocks."""
     grid = tuple(max(1, math.ceil(s / B)) for s in a.shape)
-    mn = np.full(grid, np.nan)
-    mx = np.full(grid, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        for bz in range(grid[0]):
-            for by in range(grid[1]):
-                for bx in range(grid[2]):
-                    sl = tuple(slice(max(0, b * B - 1), (b + 1) * B + 1) for b in (bz, by, bx))
-                    blk = a[sl]
-                    mn[bz, by, bx] = np.nanmin(blk)
-                    mx[bz, by, bx] = np.nanmax(blk)
-    return mn, mx
+    if a.size == 0:
+        return np.full(grid, np.nan), np.full(grid, np.nan)
+    out = []
+    for fn in (np.fmin, np.fmax):
+        r = a
+        for axis in (2, 1, 0):
+            r = _axis_window(r, B, axis, fn)
+        out.append(r.astype(np.float64))
+    return out[0], out[1]
+
+
+def _axis_window(a: np.ndarray, B: int, axis: int, fn: np.ufunc) -> np.ndarray:
+    """fn (np.fmin / np.fmax) along `axis` over each block's window [b·B − 1, (b + 1)·B + 1)."""
+    a = np.moveaxis(a, axis, -1)
+    n = a.shape[-1]
+    g, full = math.ceil(n / B), n // B
+    parts = []
+    if full:
+        parts.append(fn.reduce(a[..., : full * B].reshape(*a.shape[:-1], full, B), axis=-1))
+    if full < g:
+        parts.append(fn.reduce(a[..., full * B :], axis=-1)[..., None])
+    r = np.concatenate(parts, axis=-1) if len(parts) > 1 else parts[0]
+    if g > 1:
+        r[..., 1:] = fn(r[..., 1:], a[..., B - 1 : (g - 1) * B : B])  # the previous block's last voxel
+        r[..., :-1] = fn(r[..., :-1], a[..., B : g * B : B])  # the next block's first voxel
+    return np.moveaxis(r, -1, axis)
 
 
 def _from_array(a: np.ndarray, spacing=None, origin=None, block_size: int = 32) -> VolumeView:

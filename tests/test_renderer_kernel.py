@@ -15,7 +15,7 @@ from lodcast.renderer.render import render
 from lodcast.renderer.sampler import upload_level0, voxel_offset
 from lodcast.renderer.transfer_function import evaluate
 from lodcast.renderer.scene import TransferFunction
-from lodcast.renderer.volume import VolumeView
+from lodcast.renderer.volume import VolumeView, block_minmax_border
 
 REPORT_KEYS = {"wall_ms", "kernel_ms", "bricks_read", "bricks_cached", "bricks_skipped", "reduction",
                "predicted_delta_e", "samples", "build_options"}
@@ -81,6 +81,32 @@ def test_render_reports_the_options_it_built_with():
     # nothing to skip: the block walk is compiled out
     full = render(np.ones((4, 4, 4), np.float32), scene(width=4, height=4))
     assert full.report["build_options"] == ["-DLC_SAMPLER_FULL"] and full.report["bricks_skipped"] == 0
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_block_border_ranges_of_an_array_equal_a_block_by_block_scan(seed):
+    """What empty-space skipping decides from, for arrays rendered without a store: random shapes (ragged last
+    blocks, 1-voxel axes), float with NaN (some blocks all NaN) and integer types, against a loop over blocks."""
+    rng = np.random.default_rng(seed)
+    B = int(rng.choice([2, 4, 8]))
+    shape = tuple(int(rng.integers(1, 3 * B + 2)) for _ in range(3))
+    if seed % 3 == 2:
+        a = rng.integers(-500, 500, shape).astype(np.int16)
+    else:
+        a = rng.normal(0, 1, shape).astype(np.float32)
+        a[rng.random(shape) < 0.3] = np.nan
+        if seed % 3 == 1:
+            a[: min(shape[0], B + 2)] = np.nan  # whole blocks and their borders without a finite value
+    mn, mx = block_minmax_border(a, B)
+    grid = tuple(-(-s // B) for s in shape)
+    assert mn.shape == mx.shape == grid and mn.dtype == np.float64
+    v = a.astype(np.float64)
+    for b in np.ndindex(grid):
+        win = v[tuple(slice(max(0, i * B - 1), (i + 1) * B + 1) for i in b)]
+        if np.isnan(win).all():
+            assert np.isnan(mn[b]) and np.isnan(mx[b]), b
+        else:
+            assert (mn[b], mx[b]) == (np.nanmin(win), np.nanmax(win)), b
 
 
 def test_empty_space_skipping_skips_blocks_and_changes_nothing(blob):
