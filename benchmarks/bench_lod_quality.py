@@ -7,7 +7,8 @@ The chest CT (../shared/data/ct_chest_dicom, 275x512x512 HU) is ingested once pe
 thesis, 32³ lodcast's default) under benchmarks/results/. For each CT preset TF (ct-bone, ct-skin) the scene
 (size², azimuth 30°, elevation 15°, step ½ voxel) is rendered by `lodcast.renderer.quality_report` against its
 reference (full resolution, step ¼, DESIGN.md's ΔE over the footprint), and at 64:1 the TF-based selection is
-compared with data-error (L2) selection and uniform level reduction (thesis fig. 3.4). Targets (issue 5):
+compared with data-error (L2) selection and uniform level reduction (thesis fig. 3.4; the four images side by
+side in benchmarks/results/fig_3_4_b{B}_{tf}.png). Targets (issue 5):
 virtually lossless ≥ 5:1 at mean ΔE ≤ 0.5; 30:1 at mean ΔE ≤ 2.5; TF beats L2 and uniform at 64:1; adaptive
 object-space sampling ≥ the cube root of the reduction faster than the same selection sampled fully, adding
 ≤ 0.5 mean ΔE. Timings are kernel milliseconds, the fastest of `repeat` after a warm-up, on whatever OpenCL
@@ -21,6 +22,8 @@ import os
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "data"))
@@ -54,9 +57,10 @@ def chest_store(block: int):
     return lodcast.ingest(DATA / "ct_chest_dicom", dest, block_size=block, overwrite=True)
 
 
-def fig_3_4(store, scene: dict, reference) -> dict[str, float]:
-    """Mean ΔE at 64:1 for TF-based, L2 and uniform selection (nearest-block sampling, as the thesis' figure)."""
-    out = {}
+def fig_3_4(store, scene: dict, reference, picture: Path) -> dict[str, float]:
+    """Mean ΔE at 64:1 for TF-based, L2 and uniform selection (nearest-block sampling, as the thesis' figure),
+    and the four images side by side in `picture`."""
+    out, images = {}, {"reference": reference.rgba}
     for method in ("tf", "l2", "uniform"):
         sel = select_lod(store, [scene["tf"]], {"reduction": 64}, method=method)
         img = lodcast.render(store, {**scene, "quality": {"reduction": 64},
@@ -64,7 +68,25 @@ def fig_3_4(store, scene: dict, reference) -> dict[str, float]:
                              levels=sel.levels)
         out[method] = delta_e_stats(img.rgba, reference.rgba)["mean"]
         out[f"{method}_reduction"] = sel.reduction
+        images[f"{method}, {sel.reduction:.0f}:1, mean ΔE {out[method]:.1f}"] = img.rgba
+    montage(images, picture)
     return out
+
+
+def montage(images: dict[str, np.ndarray], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(images), figsize=(3.2 * len(images), 3.6))
+    for ax, (title, rgba) in zip(axes, images.items()):
+        ax.imshow(np.clip(rgba[..., :3], 0, 1))  # premultiplied over black
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def summarise(rows: list[dict], fig: dict[str, float]) -> dict[str, object]:
@@ -134,7 +156,7 @@ def main() -> None:
             print(f"== block {block}, {name}", file=sys.stderr, flush=True)
             report = run_report(store, scene, VARIANTS, repeat=args.repeat)
             reference = lodcast.render(store, reference_scene(scene, store))
-            fig = fig_3_4(store, scene, reference)
+            fig = fig_3_4(store, scene, reference, RESULTS / f"fig_3_4_b{block}_{name}.png")
             results.append({"block": block, "tf": name, "rows": report["rows"], "device": report["device"],
                             "summary": summarise(report["rows"], fig)})
     print_summary(results)
