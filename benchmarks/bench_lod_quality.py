@@ -1,10 +1,10 @@
 """Issue 5's figures on the real chest CT: what each LOD speed-up costs in image error.
 
-    .venv/bin/python benchmarks/bench_lod_quality.py [--blocks 16 32] [--size 256] [--repeat 2]
+    .venv/bin/python benchmarks/bench_lod_quality.py [--blocks 8 16 32] [--size 256] [--repeat 2]
                                                      [--json benchmarks/results/lod_quality.json]
 
-The chest CT (../shared/data/ct_chest_dicom, 275x512x512 HU) is ingested once per block size (16³ as in the
-thesis, 32³ lodcast's default) under benchmarks/results/. For each CT preset TF (ct-bone, ct-skin) the scene
+The chest CT (../shared/data/ct_chest_dicom, 275x512x512 HU) is ingested once per block size (8³; 16³ as in the
+thesis, 32³ lodcast's default) under benchmarks/results/. For each CT preset TF (ct-bone, ct-skin, ct-skin-bone) the scene
 (size², azimuth 30°, elevation 15°, step ½ voxel) is rendered by `lodcast.renderer.quality_report` against its
 reference (full resolution, step ¼, DESIGN.md's ΔE over the footprint), and at 64:1 the TF-based selection is
 compared with data-error (L2) selection and uniform level reduction (thesis fig. 3.4; the four images side by
@@ -139,7 +139,7 @@ def print_summary(results: list[dict]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--blocks", type=int, nargs="+", default=[16, 32])
+    ap.add_argument("--blocks", type=int, nargs="+", default=[8, 16, 32])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--json", type=Path, default=RESULTS / "lod_quality.json")
