@@ -50,7 +50,7 @@ class VolumeView:
         """Samples `region` (slices) of level `level` of the store (the brick loader's only read)."""
         if not self.has_levels:
             raise ValueError("level-of-detail rendering needs a lodcast store (an array has no coarser levels)")
-        return np.asarray(self.source.level(level)[region])
+        return self.source.read_region(level, region)
 
 
 def block_minmax_border(a: np.ndarray, B: int) -> tuple[np.ndarray, np.ndarray]:

@@ -93,14 +93,21 @@ class Store:
         self.layout._check_level(k)
         return self.group[str(k)]  # type: ignore[return-value]
 
+    def read_region(self, k: int, region: tuple = ...) -> np.ndarray:  # type: ignore[assignment]
+        """Samples `region` (a tuple of slices, or ... for all) of level k."""
+        # zarr decodes one inner chunk at a time unless batched: for a whole level of the chest CT at 16³ blocks
+        # (9,400 chunks) batching 256 measured 4.1 -> 2.7 s, at 8³ blocks (143,000 chunks) 30 -> 20 s
+        with zarr.config.set({"codec_pipeline.batch_size": 256}):
+            return np.asarray(self.level(k)[region])
+
     def read_level(self, k: int) -> np.ndarray:
-        return np.asarray(self.level(k)[...])
+        return self.read_region(k)
 
     def read_brick(self, k: int, block: tuple[int, int, int]) -> np.ndarray:
         """Block `block` at level k as a full (B/2^k)³ brick; samples past the volume repeat the edge (the same
         padding ingest averaged into the coarser levels)."""
         region = self.layout.block_region(*block, level=k)
-        data = np.asarray(self.level(k)[region])
+        data = self.read_region(k, region)
         e = self.layout.block_edge(k)
         pad = [(0, e - n) for n in data.shape]
         return np.pad(data, pad, mode="edge") if any(p for _, p in pad) else data
