@@ -223,7 +223,7 @@ class DeviceAtlas:
     skipped: int
     read_ms: float
     upload_ms: float
-    reused: bool  # the device buffers of the previous render were reused
+    reused: bool  # the device buffers of a recent render with the same store and levels were reused
 
 
 def device_atlas(vol: Any, levels: np.ndarray, *, max_bytes: int | None = None,

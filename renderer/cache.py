@@ -36,9 +36,6 @@ class ByteLru:
     def __len__(self) -> int:
         return len(self._d)
 
-    def __contains__(self, key: Any) -> bool:
-        return key in self._d
-
     def get(self, key: Any) -> Any:
         with self._lock:
             hit = self._d.get(key)
@@ -62,11 +59,6 @@ class ByteLru:
         with self._lock:
             self._d.clear()
             self._bytes = 0
-
-    def resize(self, max_bytes: int) -> None:
-        with self._lock:
-            self.max_bytes = int(max_bytes)
-            self._evict()
 
     def _evict(self) -> None:
         floor = 1 if self.keep_last else 0
