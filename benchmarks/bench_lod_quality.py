@@ -154,8 +154,8 @@ def main() -> None:
             scene = {"width": args.size, "height": args.size, "tf": tf, "format": "npy",
                      "camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "sampling": {"step": 0.5}}
             print(f"== block {block}, {name}", file=sys.stderr, flush=True)
-            report = run_report(store, scene, VARIANTS, repeat=args.repeat)
             reference = lodcast.render(store, reference_scene(scene, store))
+            report = run_report(store, scene, VARIANTS, repeat=args.repeat, reference=reference)
             fig = fig_3_4(store, scene, reference, RESULTS / f"fig_3_4_b{block}_{name}.png")
             results.append({"block": block, "tf": name, "rows": report["rows"], "device": report["device"],
                             "summary": summarise(report["rows"], fig)})

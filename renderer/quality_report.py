@@ -76,15 +76,16 @@ def reference_scene(scene: dict, store: Any) -> dict:
 
 
 def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = None, repeat: int = 2,
-               log=None) -> dict[str, Any]:
-    """Render the reference and every variant; return rows of error and time."""
+               log=None, reference: Any = None) -> dict[str, Any]:
+    """Render every variant (and the reference, unless `reference`, the RenderResult of `reference_scene`, is
+    given); return rows of error and time."""
     from lodcast.renderer.render import render
 
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     variants = list(variants if variants is not None else default_variants())
     ref_scene = reference_scene(scene, store)
     t = time.perf_counter()
-    ref = render(store, ref_scene)
+    ref = reference if reference is not None else render(store, ref_scene)
     log(f"reference: step {ref_scene['sampling']['step']} voxel, {ref.report['wall_ms']:.0f} ms")
     rows = []
     for i, v in enumerate(variants, 1):

@@ -45,6 +45,11 @@ def test_report_measures_error_against_the_step_quarter_reference(tmp_path: Path
     # step 2 against step 1/4 on a smooth blob: visible but bounded error (second-order in the step)
     assert 0.05 < row["delta_e_mean"] < 3.0 and row["footprint"] > 200
     assert row["kernel_ms"] > 0 and row["speedup_vs_full"] == pytest.approx(1.0)
+    # a reference rendered by the caller is used as given: an empty image makes every pixel of the variant error
+    given = lodcast.render(store, reference_scene(scene, store))
+    given.rgba[:] = 0.0
+    (other,) = run_report(store, scene, [Variant("full")], repeat=1, log=lambda m: None, reference=given)["rows"]
+    assert other["delta_e_mean"] > 10 * row["delta_e_mean"]
     paths = write_report(result, tmp_path / "rep")
     assert json.loads(paths["json"].read_text())["rows"][0]["label"] == "full resolution"
     assert "| full resolution |" in paths["table"].read_text()
