@@ -15,7 +15,6 @@ import datetime as _dt
 import os
 import shutil
 import sys
-import uuid
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -30,7 +29,7 @@ from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simpli
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
-from lodcast.store.store import FORMAT_VERSION, Store, open_store
+from lodcast.store.store import FORMAT_VERSION, Store, open_store, parse_temp_name, temp_path
 
 __all__ = ["ingest", "level_mean", "round_to_dtype"]
 
@@ -70,7 +69,7 @@ def ingest(
         if len(info.shape) != 3 or min(info.shape) < 1:
             raise SourceError(f"volume shape must have three non-empty axes (z, y, x), got {tuple(info.shape)}")
         dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.parent / f".{dest.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        tmp = temp_path(dest, "partial")
         try:
             label = type(source).__name__ if isinstance(source, (np.ndarray, VolumeSource)) else os.fspath(source)
             # batching lets zarr compress many inner chunks of a shard concurrently (measured 1.4x on writes)
@@ -375,7 +374,7 @@ def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[f
     import lodcast
 
     info = src.info
-    name = root.name.split(".partial-")[0].lstrip(".").removesuffix(".zarr")
+    name = (parse_temp_name(root.name) or (root.name,))[0].removesuffix(".zarr")
     return {
         "lodcast": {"format_version": FORMAT_VERSION},
         "shape": list(lay.shape),
@@ -420,18 +419,14 @@ def _open(source: Any, options: dict[str, Any]) -> VolumeSource:
 def _remove_stale_partials(dest: Path) -> None:
     """Leftovers of ingests that were killed (their process is gone): partial stores are removed; a replaced
     store whose successor never arrived is put back, so a kill during `--overwrite` loses nothing."""
-    for kind in ("partial", "replaced"):
-        for p in dest.parent.glob(f".{dest.name}.{kind}-*"):
-            try:
-                pid = int(p.name.rsplit(f".{kind}-", 1)[1].split("-")[0])
-            except (IndexError, ValueError):
-                continue
-            if _alive(pid):
-                continue
-            if kind == "replaced" and not dest.exists():
-                os.rename(p, dest)
-            else:
-                shutil.rmtree(p, ignore_errors=True)
+    for p in dest.parent.glob(f".{dest.name}.*"):
+        parsed = parse_temp_name(p.name)
+        if parsed is None or parsed[0] != dest.name or _alive(parsed[2]):
+            continue
+        if parsed[1] == "replaced" and not dest.exists():
+            os.rename(p, dest)
+        else:
+            shutil.rmtree(p, ignore_errors=True)
 
 
 def _alive(pid: int) -> bool:
@@ -452,7 +447,7 @@ def _move_into_place(tmp: Path, dest: Path, overwrite: bool) -> None:
         raise StoreExists(f"destination {dest} appeared while ingesting (use --overwrite to replace it)")
     # the old store goes to a hidden name first; a kill between the two renames leaves it there, and the next
     # ingest to this destination puts it back (see _remove_stale_partials)
-    old = dest.parent / f".{dest.name}.replaced-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    old = temp_path(dest, "replaced")
     os.rename(dest, old)
     os.rename(tmp, dest)
     shutil.rmtree(old, ignore_errors=True)

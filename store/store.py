@@ -15,6 +15,8 @@ Layout of a store (all written by `lodcast.store.ingest`):
 from __future__ import annotations
 
 import os
+import re
+import uuid
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -178,6 +180,23 @@ class Store:
         return f"Store({self.location!r}, shape={self.shape}, dtype={self.dtype.name}, block_size={self.block_size})"
 
 
+# Ingest's hidden folders beside a destination DEST: `.DEST.partial-PID-HEX`, the store being written (renamed into
+# place only after its last write), and `.DEST.replaced-PID-HEX`, the store an `--overwrite` moved aside.
+_TEMP_NAME = re.compile(r"^\.(?P<dest>.+)\.(?P<kind>partial|replaced)-(?P<pid>\d+)-[0-9a-f]{8}$")
+
+
+def temp_path(dest: Path, kind: str) -> Path:
+    """A new hidden folder of `kind` ("partial" or "replaced") for this process beside `dest`."""
+    assert kind in ("partial", "replaced")
+    return dest.parent / f".{dest.name}.{kind}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+
+def parse_temp_name(name: str) -> tuple[str, str, int] | None:
+    """(destination name, kind, owner pid) of an ingest's hidden folder name; None for any other name."""
+    m = _TEMP_NAME.match(name)
+    return (m["dest"], m["kind"], int(m["pid"])) if m else None
+
+
 def open_store(path_or_url: str | os.PathLike[str]) -> Store:
     """Open a store written by `lodcast.ingest`: a local folder, or an fsspec URL (s3://…, https://…)."""
     location = os.fspath(path_or_url)
@@ -186,9 +205,7 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
         p = Path(location)
         if not p.exists():
             raise StoreNotFound(f"no store at {location}")
-        if p.name.startswith(".") and (".partial-" in p.name or ".replaced-" in p.name):
-            # ingest's hidden folders: a store being written (renamed into place only after its last write) or
-            # one being replaced and deleted; either may look whole at a given instant
+        if parse_temp_name(p.name) is not None:  # may look whole at a given instant, yet is not a store
             raise StoreInvalid(f"{location} is a temporary folder of an unfinished ingest, not a store")
         if not (p / "zarr.json").is_file():
             raise StoreInvalid(f"{location} is not a lodcast store (no zarr.json: not a zarr v3 group)")
