@@ -26,7 +26,7 @@ import hashlib
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -38,7 +38,7 @@ from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
 
 __all__ = ["BrickCache", "brick_cache", "AtlasLoad", "DeviceAtlas", "load_bricks", "pack", "pack_index",
-           "step_levels", "device_atlas", "max_alloc_bytes"]
+           "pack_std", "step_levels", "device_atlas", "max_alloc_bytes"]
 
 MISSING = 0
 
@@ -76,12 +76,15 @@ class AtlasLoad:
     read_ms: float
 
 
-def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, int]]) -> dict:
-    """The bricks `blocks` (all in one shard of `level`), read as one region and cut into edge-padded bricks."""
+def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, int]], what: str = "mean") -> dict:
+    """The bricks `blocks` (all in one shard of `level`), read as one region and cut into edge-padded bricks:
+    the values ("mean") or the standard deviations behind them ("std", float16)."""
     regs = [lay.block_region(*b, level=level) for b in blocks]
     lo = [min(r[a].start for r in regs) for a in range(3)]
     hi = [max(r[a].stop for r in regs) for a in range(3)]
-    data = vol.read_region(level, tuple(slice(l, h) for l, h in zip(lo, hi)))
+    region = tuple(slice(l, h) for l, h in zip(lo, hi))
+    data = vol.read_region(level, region) if what == "mean" else vol.read_std_region(level, region)
+    dtype = np.float32 if what == "mean" else np.float16
     e = lay.block_edge(level)
     out = {}
     for b, r in zip(blocks, regs):
@@ -89,22 +92,23 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
         pad = [(0, e - n) for n in sub.shape]
         if any(p for _, p in pad):
             sub = np.pad(sub, pad, mode="edge")
-        out[(level, *b)] = np.ascontiguousarray(sub, dtype=np.float32)
+        out[(level, *b)] = np.ascontiguousarray(sub, dtype=dtype)
     return out
 
 
-def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None) -> AtlasLoad:
+def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean") -> AtlasLoad:
     """Every brick `levels` selects, from `cache` (default: the process's) or read from the store (missing ones
-    only, grouped by shard, shards read in parallel); read bricks enter the cache."""
+    only, grouped by shard, shards read in parallel); read bricks enter the cache. what="std": the standard
+    deviations of the coarse bricks (level >= 1; level 0 has none) instead of the values."""
     cache = brick_cache() if cache is None else cache
     t = time.perf_counter()
     lay = Layout(tuple(vol.shape), int(vol.block_size))
     levels = np.asarray(levels)
     if levels.shape != lay.grid:
         raise ValueError(f"level grid has shape {levels.shape}, the volume's block grid is {lay.grid}")
-    bz, by, bx = np.nonzero(levels >= 0)
+    bz, by, bx = np.nonzero(levels >= (0 if what == "mean" else 1))
     lv = levels[bz, by, bx].astype(np.int64)
-    base = ("bricks", vol.key)
+    base = ("bricks" if what == "mean" else "std", vol.key)
     bricks: dict = {}
     groups: dict[tuple, list] = {}
     for k, z, y, x in zip(lv.tolist(), bz.tolist(), by.tolist(), bx.tolist()):
@@ -116,7 +120,7 @@ def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None) -
         sh = lay.shard_shape(k)
         groups.setdefault((k, z * e // sh[0], y * e // sh[1], x * e // sh[2]), []).append((z, y, x))
     n_cached = len(bricks)
-    futs = [_read_pool().submit(_read_group, vol, lay, g[0], blks) for g, blks in sorted(groups.items())]
+    futs = [_read_pool().submit(_read_group, vol, lay, g[0], blks, what) for g, blks in sorted(groups.items())]
     n_read = 0
     for f in futs:
         got = f.result()
@@ -126,7 +130,7 @@ def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None) -
             if vol.key is not None:
                 cache.put((base, *key), a)
     cache.reads += n_read
-    return AtlasLoad(bricks, n_read, n_cached, int(levels.size - lv.size), len(futs),
+    return AtlasLoad(bricks, n_read, n_cached, int(np.count_nonzero(levels < 0)), len(futs),
                      (time.perf_counter() - t) * 1e3)
 
 
@@ -157,14 +161,21 @@ def pack_index(offset: np.ndarray, level: np.ndarray, nbmax: np.ndarray | None =
     return np.where(level >= 0, ent, np.uint64(MISSING)).astype(np.uint64)
 
 
+def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks)."""
+    lv = np.asarray(levels).astype(np.int64)
+    sizes = np.where(lv >= 0, (block_size >> np.maximum(lv, 0)) ** 3, 0).ravel()
+    offsets = np.zeros(sizes.size, np.int64)
+    np.cumsum(sizes[:-1], out=offsets[1:])
+    return sizes, offsets
+
+
 def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(atlas float32 1D, index map uint64 grid-shaped). Bricks are packed in C order of the grid. Raises
     DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation)."""
     levels = np.asarray(levels)
     lv = levels.astype(np.int64)
-    sizes = np.where(lv >= 0, (block_size >> np.maximum(lv, 0)) ** 3, 0).ravel()
-    offsets = np.zeros(sizes.size, np.int64)
-    np.cumsum(sizes[:-1], out=offsets[1:])
+    sizes, offsets = _offsets(levels, block_size)
     total = int(sizes.sum())
     limit = max_alloc_bytes() if max_bytes is None else int(max_bytes)
     if total * 4 > limit:
@@ -181,6 +192,18 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
         o, n = int(offsets[i]), int(sizes[i])
         atlas[o:o + n] = bricks[(k, z, y, x)].ravel()
     return atlas, pack_index(offsets, flat, neighbourhood_max(levels).ravel()).reshape(levels.shape)
+
+
+def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
+    """The standard deviations beside the atlas (float16, same offsets as `pack`): coarse bricks from
+    `std_bricks` ((level, bz, by, bx) -> brick), zeros for level 0 (the kernel never reads those)."""
+    sizes, offsets = _offsets(levels, block_size)
+    out = np.zeros(max(int(sizes.sum()), 1), np.float16)
+    for (k, z, y, x), a in std_bricks.items():
+        i = int(np.ravel_multi_index((z, y, x), np.asarray(levels).shape))
+        o, n = int(offsets[i]), int(sizes[i])
+        out[o:o + n] = np.asarray(a, np.float16).ravel()
+    return out
 
 
 def step_levels(levels: np.ndarray, interpolation: str, skip: np.ndarray | None = None) -> np.ndarray:
@@ -214,6 +237,7 @@ def max_alloc_bytes() -> int:
 @dataclass(frozen=True)
 class DeviceAtlas:
     atlas: cl.Buffer
+    std: cl.Buffer | None  # the standard deviations beside the atlas (float16), for distribution classification
     index: cl.Buffer
     index_host: np.ndarray
     nbytes: int  # atlas bytes
@@ -226,28 +250,36 @@ class DeviceAtlas:
     reused: bool  # the device buffers of a recent render with the same store and levels were reused
 
 
-def device_atlas(vol: Any, levels: np.ndarray, *, max_bytes: int | None = None,
+def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
                  cache: BrickCache | None = None) -> DeviceAtlas:
     """The atlas and index map of `levels` on the device (kept in the device cache: reused when a recent render
-    had the same store and levels, else loaded through the brick cache, packed and uploaded)."""
+    had the same store and levels, else loaded through the brick cache, packed and uploaded); `with_std`: also the
+    standard deviations of the coarse bricks, for distribution classification."""
     levels = np.ascontiguousarray(levels, dtype=np.int8)
-    key = ("atlas", vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest()) if vol.key is not None else None
+    key = (("atlas", vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest(), with_std)
+           if vol.key is not None else None)
     n_sel = int(np.count_nonzero(levels >= 0))
     hit = device_cache().get(key) if key is not None else None
     if hit is not None:
-        return DeviceAtlas(hit.atlas, hit.index, hit.index_host, hit.nbytes, n_sel, 0, n_sel,
-                           int(levels.size - n_sel), 0.0, 0.0, True)
+        return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
+    t_read = time.perf_counter()
     ld = load_bricks(vol, levels, cache)
     atlas, index = pack(levels, ld.bricks, int(vol.block_size), max_bytes)
+    sig = pack_std(levels, load_bricks(vol, levels, cache, what="std").bricks, int(vol.block_size)) if with_std else None
     t = time.perf_counter()
     ctx, queue = get_context()
     mf = cl.mem_flags
     d_atlas = cl.Buffer(ctx, mf.READ_ONLY, size=atlas.nbytes)
     cl.enqueue_copy(queue, d_atlas, atlas)
+    d_std = None
+    if sig is not None:
+        d_std = cl.Buffer(ctx, mf.READ_ONLY, size=sig.nbytes)
+        cl.enqueue_copy(queue, d_std, sig)
     d_index = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=index)
     queue.finish()
-    da = DeviceAtlas(d_atlas, d_index, index, atlas.nbytes, n_sel, ld.read, ld.cached, ld.skipped, ld.read_ms,
-                     (time.perf_counter() - t) * 1e3, False)
+    nbytes = atlas.nbytes + (sig.nbytes if sig is not None else 0)
+    da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, ld.read, ld.cached, ld.skipped,
+                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False)
     if key is not None:
-        device_cache().put(key, da, atlas.nbytes + index.nbytes)
+        device_cache().put(key, da, nbytes + index.nbytes)
     return da

@@ -16,6 +16,7 @@ class KernelConfig:
     interpolation: str = "trilinear"  # atlas only: "nearest_block" | "interblock"
     adaptive: bool = False  # atlas only: adaptive object-space sampling, limited at block boundaries
     adaptive_naive: bool = False  # with adaptive: the naive variant (benchmarks only)
+    distribution: bool = False  # atlas, composite: classify coarse samples by their distribution (LC_DIST)
     mode: str = "composite"  # "composite" | "mip"
     orthographic: bool = False
     ess: bool = True
@@ -32,6 +33,8 @@ class KernelConfig:
             raise ValueError("adaptive object-space sampling needs the atlas sampler (a level-of-detail quality)")
         if self.mode not in ("composite", "mip"):
             raise ValueError(f"mode {self.mode!r} is not implemented")
+        if self.distribution and (self.sampler != "atlas" or self.mode != "composite"):
+            raise ValueError("distribution classification needs the atlas sampler and composite mode")
 
     def build_options(self) -> tuple[str, ...]:
         opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]
@@ -41,6 +44,8 @@ class KernelConfig:
                 opts.append("-DLC_ADAPTIVE")
             if self.adaptive_naive:
                 opts.append("-DLC_ADAPTIVE_NAIVE")
+            if self.distribution:
+                opts.append("-DLC_DIST")
         if self.mode == "mip":
             opts.append("-DLC_MODE_MIP")
         for flag, name in (

@@ -40,27 +40,41 @@ typedef struct LcAtlasGeom {
     float B;        /* block edge in level-0 voxels */
 } LcAtlasGeom;
 
-/* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]. */
-static inline float lc_brick(__global const float* atlas, const ulong off, const int n, const float lx,
-                             const float ly, const float lz) {
+/* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]:
+ * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (half floats)
+ * at the same offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
+static inline float2 lc_brick(__global const float* atlas, __global const half* sig, const ulong off, const int n,
+                              const int coarse, const float lx, const float ly, const float lz) {
     const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
     const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
     const ulong dx = fx > 0.0f ? 1UL : 0UL;
     const ulong dy = fy > 0.0f ? (ulong)n : 0UL;
     const ulong dz = fz > 0.0f ? (ulong)n * (ulong)n : 0UL;
-    ulong b = off + ((ulong)z0 * (ulong)n + (ulong)y0) * (ulong)n + (ulong)x0;
-    const float v000 = atlas[b], v001 = atlas[b + dx], v010 = atlas[b + dy], v011 = atlas[b + dy + dx];
-    b += dz;
-    const float v100 = atlas[b], v101 = atlas[b + dx], v110 = atlas[b + dy], v111 = atlas[b + dy + dx];
-    const float a0 = v000 + (v001 - v000) * fx, a1 = v010 + (v011 - v010) * fx;
-    const float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
-    const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
-    return b0 + (b1 - b0) * fz;
+    const ulong b = off + ((ulong)z0 * (ulong)n + (ulong)y0) * (ulong)n + (ulong)x0, c = b + dz;
+    float v000 = atlas[b], v001 = atlas[b + dx], v010 = atlas[b + dy], v011 = atlas[b + dy + dx];
+    float v100 = atlas[c], v101 = atlas[c + dx], v110 = atlas[c + dy], v111 = atlas[c + dy + dx];
+    float a0 = v000 + (v001 - v000) * fx, a1 = v010 + (v011 - v010) * fx;
+    float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
+    float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
+    float2 out = (float2)(b0 + (b1 - b0) * fz, 0.0f);
+#ifdef LC_DIST
+    if (coarse) {
+        v000 = vload_half(b, sig); v001 = vload_half(b + dx, sig);
+        v010 = vload_half(b + dy, sig); v011 = vload_half(b + dy + dx, sig);
+        v100 = vload_half(c, sig); v101 = vload_half(c + dx, sig);
+        v110 = vload_half(c + dy, sig); v111 = vload_half(c + dy + dx, sig);
+        a0 = v000 + (v001 - v000) * fx; a1 = v010 + (v011 - v010) * fx;
+        a2 = v100 + (v101 - v100) * fx; a3 = v110 + (v111 - v110) * fx;
+        b0 = a0 + (a1 - a0) * fy; b1 = a2 + (a3 - a2) * fy;
+        out.y = b0 + (b1 - b0) * fz;
+    }
+#endif
+    return out;
 }
 
 /* NB sample of a loaded block (entry != 0) at level-0 voxel coordinates q. */
-static inline float lc_nb(__global const float* atlas, const ulong entry, const int bx, const int by, const int bz,
-                          const LcAtlasGeom g, const float3 q) {
+static inline float2 lc_nb(__global const float* atlas, __global const half* sig, const ulong entry, const int bx,
+                           const int by, const int bz, const LcAtlasGeom g, const float3 q) {
     const int lvl = (int)(entry & 15UL) - 1;
     const int n = (int)g.B >> lvl;
     const float s = 1.0f / (float)(1 << lvl);
@@ -71,7 +85,7 @@ static inline float lc_nb(__global const float* atlas, const ulong entry, const 
     lx = lx > 0.0f ? (lx < nm ? lx : nm) : 0.0f;
     ly = ly > 0.0f ? (ly < nm ? ly : nm) : 0.0f;
     lz = lz > 0.0f ? (lz < nm ? lz : nm) : 0.0f;
-    return lc_brick(atlas, entry >> 8, n, lx, ly, lz);
+    return lc_brick(atlas, sig, entry >> 8, n, lvl > 0, lx, ly, lz);
 }
 
 static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
@@ -92,8 +106,8 @@ static inline float lc_edge(const float x, const float hl, const float hu) {
 }
 #endif
 
-static inline float lc_sample_atlas(__global const float* atlas, __global const ulong* imap, const LcAtlasGeom g,
-                                    const float3 q) {
+static inline float2 lc_sample_atlas(__global const float* atlas, __global const half* sig,
+                                     __global const ulong* imap, const LcAtlasGeom g, const float3 q) {
     /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
      * PoCL's out-of-line floor() */
     const float3 p = (q + 0.5f) * (1.0f / g.B);
@@ -101,9 +115,9 @@ static inline float lc_sample_atlas(__global const float* atlas, __global const 
     const int by = lc_clampi((int)p.y, g.gy - 1);
     const int bz = lc_clampi((int)p.z, g.gz - 1);
     const ulong own = LC_IMAP(bx, by, bz);
-    if (!own) return NAN;
+    if (!own) return (float2)(NAN, 0.0f);
 #ifndef LC_INTERP_II
-    return lc_nb(atlas, own, bx, by, bz, g, q);
+    return lc_nb(atlas, sig, own, bx, by, bz, g, q);
 #else
     {
         /* interior fast path: at least hm (the largest half-sample width in the 3x3x3 neighbourhood) from every
@@ -113,7 +127,7 @@ static inline float lc_sample_atlas(__global const float* atlas, __global const 
         const float ox = q.x + 0.5f - (float)bx * g.B, oy = q.y + 0.5f - (float)by * g.B;
         const float oz = q.z + 0.5f - (float)bz * g.B;
         if (ox >= hm && oy >= hm && oz >= hm && g.B - ox >= hm && g.B - oy >= hm && g.B - oz >= hm)
-            return lc_nb(atlas, own, bx, by, bz, g, q);
+            return lc_nb(atlas, sig, own, bx, by, bz, g, q);
     }
     const float cxf = (float)(int)(p.x + 0.5f), cyf = (float)(int)(p.y + 0.5f), czf = (float)(int)(p.z + 0.5f);
     /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
@@ -136,7 +150,8 @@ static inline float lc_sample_atlas(__global const float* atlas, __global const 
     ey[2] = lc_edge(ys, h[4], h[6]); ey[3] = lc_edge(ys, h[5], h[7]);
     ez[0] = lc_edge(zs, h[0], h[4]); ez[1] = lc_edge(zs, h[1], h[5]);
     ez[2] = lc_edge(zs, h[2], h[6]); ez[3] = lc_edge(zs, h[3], h[7]);
-    float wsum = 0.0f, acc = 0.0f;
+    float wsum = 0.0f;
+    float2 acc = (float2)(0.0f);
     for (int s = 0; s < 8; ++s) {
         if (!E[s]) continue;
         const int sx = s & 1, sy = (s >> 1) & 1, sz = s >> 2;
@@ -145,7 +160,7 @@ static inline float lc_sample_atlas(__global const float* atlas, __global const 
         const float fz = ez[sx + 2 * sy];        /* z-edge index: (sx, sy) */
         const float w = (sx ? fx : 1.0f - fx) * (sy ? fy : 1.0f - fy) * (sz ? fz : 1.0f - fz);
         if (w > 0.0f) {
-            acc += w * lc_nb(atlas, E[s], X[sx], Y[sy], Z[sz], g, q);
+            acc += w * lc_nb(atlas, sig, E[s], X[sx], Y[sy], Z[sz], g, q);
             wsum += w;
         }
     }
@@ -161,6 +176,7 @@ static inline float lc_sample_atlas(__global const float* atlas, __global const 
 typedef struct LcBlk {
     ulong off;
     int n;
+    int coarse; /* level >= 1: has standard deviations */
     float s, lo, hi;
     float3 c;
 } LcBlk;
@@ -169,6 +185,7 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     LcBlk b;
     const ulong ent = LC_IMAP(bx, by, bz);
     b.n = 0;
+    b.coarse = 0;
     b.off = 0;
     b.s = 1.0f; b.lo = 0.0f; b.hi = -1.0f;
     b.c = (float3)(0.0f);
@@ -176,6 +193,7 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     const int lvl = (int)(ent & 15UL) - 1;
     b.off = ent >> 8;
     b.n = (int)g.B >> lvl;
+    b.coarse = lvl > 0;
     b.s = 1.0f / (float)(1 << lvl);
     b.c = ((float3)(0.5f) - (float3)((float)bx, (float)by, (float)bz) * g.B) * b.s - 0.5f;
 #ifdef LC_INTERP_II
@@ -189,19 +207,19 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     return b;
 }
 
-static inline float lc_sample_blk(__global const float* atlas, __global const ulong* imap, const LcAtlasGeom g,
-                                  const LcBlk b, const float3 q) {
+static inline float2 lc_sample_blk(__global const float* atlas, __global const half* sig, __global const ulong* imap,
+                                   const LcAtlasGeom g, const LcBlk b, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II
     if (l.x >= b.lo && l.y >= b.lo && l.z >= b.lo && l.x <= b.hi && l.y <= b.hi && l.z <= b.hi)
-        return lc_brick(atlas, b.off, b.n, l.x, l.y, l.z);
-    return lc_sample_atlas(atlas, imap, g, q);
+        return lc_brick(atlas, sig, b.off, b.n, b.coarse, l.x, l.y, l.z);
+    return lc_sample_atlas(atlas, sig, imap, g, q);
 #else
-    if (!b.n) return lc_sample_atlas(atlas, imap, g, q);
+    if (!b.n) return lc_sample_atlas(atlas, sig, imap, g, q);
     l.x = l.x > 0.0f ? (l.x < b.hi ? l.x : b.hi) : 0.0f;
     l.y = l.y > 0.0f ? (l.y < b.hi ? l.y : b.hi) : 0.0f;
     l.z = l.z > 0.0f ? (l.z < b.hi ? l.z : b.hi) : 0.0f;
-    return lc_brick(atlas, b.off, b.n, l.x, l.y, l.z);
+    return lc_brick(atlas, sig, b.off, b.n, b.coarse, l.x, l.y, l.z);
 #endif
 }
 

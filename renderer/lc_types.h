@@ -34,8 +34,12 @@ typedef struct LcParams {
     int max_samples;    /* per ray, host-checked bound (int arithmetic on sample indices stays in range) */
     float lut_vis_lo;   /* the LUT interpolant has non-zero opacity only for LUT coordinates f in */
     float lut_vis_hi;   /* (lut_vis_lo, lut_vis_hi); samples outside are transparent without a lookup */
+    int dist_n;         /* distribution table (LC_DIST): entries per row (plus one repeated), */
+    int dist_rows;      /* rows (plus one repeated); entry i of row j: value dist_lo + i / dist_scale, */
+    float dist_lo;      /* standard deviation std_max (j / (rows - 1))^2, i.e. j = sqrt(std) dist_sscale */
+    float dist_scale;
+    float dist_sscale;
     int pad0;
-    int pad1;
 } LcParams;
 
 #endif

@@ -12,4 +12,6 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     n[8] = P->lut_n; n[9] = P->width; n[10] = P->height; n[11] = (int)P->seed; n[12] = P->max_samples;
     n[13] = (int)sizeof(LcParams);
     f[43] = P->lut_vis_lo; f[44] = P->lut_vis_hi;
+    n[14] = P->dist_n; n[15] = P->dist_rows;
+    f[45] = P->dist_lo; f[46] = P->dist_scale; f[47] = P->dist_sscale;
 }

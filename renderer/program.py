@@ -55,10 +55,18 @@ def cache_dir() -> Path:
 
 def get_context() -> tuple[cl.Context, cl.CommandQueue]:
     """The process's context and profiling queue. Device: ``$LODCAST_DEVICE`` ("gpu", "cpu" or a substring of the
-    device name), else the first GPU, else the first CPU."""
+    device name), else the first GPU, else the first CPU; a device whose compiler cannot build a trivial kernel
+    is passed over for the next one (PoCL's LLVM 14, bundled with pyopencl's wheels, rejects CPUs it does not
+    know, e.g. AMD Zen 5: "unknown target CPU 'generic'"; Debian's pocl-opencl-icd builds there).
+
+    The OpenCL ICD loader bundled with pyopencl's wheels sees only its own PoCL unless OCL_ICD_VENDORS says
+    otherwise: when unset, the system's vendor folder /etc/OpenCL/vendors is added, so GPU drivers and a system
+    PoCL are found too."""
     global _CTX
     with _LOCK:
         if _CTX is None:
+            if "OCL_ICD_VENDORS" not in os.environ and os.path.isdir("/etc/OpenCL/vendors"):
+                os.environ["OCL_ICD_VENDORS"] = "/etc/OpenCL/vendors"
             devices = []
             try:
                 for p in cl.get_platforms():
@@ -78,10 +86,20 @@ def get_context() -> tuple[cl.Context, cl.CommandQueue]:
                     match = bool(want) and want in name
                 return (not match, not (d.type & cl.device_type.GPU))
 
-            _, dev = sorted(devices, key=rank)[0]
-            ctx = cl.Context([dev])
-            queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
-            _CTX = (ctx, queue)
+            failures = []
+            for _, dev in sorted(devices, key=rank):
+                ctx = cl.Context([dev])
+                try:
+                    cl.Program(ctx, "__kernel void lc_ok(__global int* a) { a[0] = 1; }").build()
+                except cl.Error as exc:
+                    failures.append(f"{dev.name.strip()} ({dev.platform.version.strip()}): {str(exc).splitlines()[-1] if str(exc) else exc}")
+                    continue
+                queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+                _CTX = (ctx, queue)
+                break
+            else:
+                raise DeviceError("no OpenCL device can build a kernel: " + "; ".join(failures)
+                                  + " (on Debian/Ubuntu: apt-get install pocl-opencl-icd)")
         return _CTX
 
 

@@ -12,7 +12,11 @@
  *                     per-level alpha table, the cut one from the extinction): constant regions stay exact
  *   LC_ADAPTIVE_NAIVE with LC_ADAPTIVE: for comparison/benchmarks only: the step is chosen by the cell where it
  *                     starts and is not cut at cell boundaries (it may run deep into a finer block)
- *   LC_MODE_MIP       maximum intensity projection (default: emission-absorption compositing)
+ *   LC_DIST           (atlas, composite) classification by distribution: coarse samples carry the standard
+ *                     deviation of the level-0 values behind them (sig, beside the atlas) and are classified by
+ *                     their expected extinction and colour (dtab; lc_classify.h)
+ *   LC_MODE_MIP       maximum intensity projection (default: emission-absorption compositing; MIP keeps the mean
+ *                     of coarse samples: the store keeps no coarse maximum)
  *   LC_ORTHO          orthographic projection (default: perspective)
  *   LC_ESS            empty-space skipping: march block by block (3D DDA over the block grid) and skip blocks
  *                     whose block_info says nothing there can contribute, without sampling them
@@ -40,88 +44,22 @@
 #include "lc_common.h"
 #ifdef LC_SAMPLER_ATLAS
 #include "lc_atlas.h"
-#define LC_SAMPLE(q) lc_sample_atlas(vol, imap, geom, (q))
+/* (value, standard deviation) of the multiresolution field at q */
+#define LC_SAMPLE(q) lc_sample_atlas(vol, sig, imap, geom, (q))
 /* inside the block (or adaptive cell) the march is in: its brick set up once (lc_blk), see lc_atlas.h */
-#define LC_SAMPLE_B(q) lc_sample_blk(vol, imap, geom, blk, (q))
+#define LC_SAMPLE_B(q) lc_sample_blk(vol, sig, imap, geom, blk, (q))
 #else
-#define LC_SAMPLE(q) lc_sample(vol, dims, qmax, (q))
+#define LC_SAMPLE(q) ((float2)(lc_sample(vol, dims, qmax, (q)), 0.0f))
 #define LC_SAMPLE_B(q) LC_SAMPLE(q)
 #endif
 
 
-/* One sample of value v on a segment of r steps: MIP keeps the maximum; compositing looks the TF up, takes the
- * segment's opacity and composites front to back; done = 1 once the ray is (nearly) opaque. */
-#ifdef LC_MODE_MIP
-#define LC_SAMPLE_BODY(v, r)                                                     \
-    if ((v) == (v)) vmax = (v) > vmax ? (v) : vmax;
-#else
-/* Where the TF is zero (and for NaN) a sample is transparent: no lookup, no blend — exactly what the lookup and
- * blend would give (alpha 0 adds nothing and leaves T unchanged). */
-#define lc_visible(v) (((v) * lut_scale + lut_off) > lut_vis_lo && ((v) * lut_scale + lut_off) < lut_vis_hi)
-/* only after lc_visible(v): that bounds f below lut_vis_hi <= lut_n, so only the lower clamp is needed */
-#define LC_TF_LOOKUP(v, e)                                                       \
-    float4 e;                                                                    \
-    int i_;                                                                      \
-    float w_;                                                                    \
-    {                                                                            \
-        float f_ = (v) * lut_scale + lut_off;                                    \
-        f_ = f_ > 0.0f ? f_ : 0.0f;                                              \
-        i_ = (int)f_; /* f_ < lut_vis_hi <= n: i_ <= n - 1, and entry n exists */ \
-        w_ = f_ - (float)i_;                                                     \
-        const float4 e0_ = lut[i_], e1_ = lut[i_ + 1];                           \
-        e = e0_ + (e1_ - e0_) * w_;                                              \
-    }
-#ifdef LC_PRECISE
-#define LC_SAMPLE_BODY(v, r)                                                     \
-    if (lc_visible(v)) {                                                         \
-        LC_TF_LOOKUP(v, e)                                                       \
-        const float depth = e.w * (r);                                           \
-        const float alpha = -expm1(-depth);                                      \
-        const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
-        const float3 s3 = C + y3;                                                \
-        C_c = (s3 - C) - y3;                                                     \
-        C = s3;                                                                  \
-        const float y = depth - tau_c;                                           \
-        const float s = tau + y;                                                 \
-        tau_c = (s - tau) - y;                                                   \
-        tau = s;                                                                 \
-        T = exp(-tau);                                                           \
-        done = T <= t_stop;                                                      \
-    }
-#else
-#ifdef LC_ADAPTIVE
-/* adaptive: r = -1 - k (k >= 1) is a whole step of step * 2^k: alpha from row k of lut_ext (the host appends one
- * alpha table per level after the extinction row), no transcendental call */
-#define LC_LEVEL_ALPHA(r)                                                        \
-        else if ((r) < -1.5f) {                                                  \
-            const int o_ = (int)(-1.0f - (r)) * lut_row + i_;                    \
-            alpha = lut_ext[o_] + (lut_ext[o_ + 1] - lut_ext[o_]) * w_;          \
-        }
-#else
-#define LC_LEVEL_ALPHA(r)
-#endif
-/* r < 0: a uniform segment (alpha from the table); else the last segment's length in TF units (alpha from the
- * extinction table: 1 - (1 - a)^r = -expm1(-r sigma), exact even where the step's alpha rounds to 1 in float32) */
-#define LC_SAMPLE_BODY(v, r)                                                     \
-    if (lc_visible(v)) {                                                         \
-        LC_TF_LOOKUP(v, e)                                                       \
-        float alpha = e.w;                                                       \
-        if ((r) >= 0.0f) {                                                       \
-            const float sg_ = lut_ext[i_] + (lut_ext[i_ + 1] - lut_ext[i_]) * w_; \
-            alpha = -expm1(-(r) * sg_);                                          \
-        }                                                                        \
-        LC_LEVEL_ALPHA(r)                                                        \
-        const float wgt = T * alpha;                                             \
-        C += wgt * e.xyz;                                                        \
-        T -= wgt;                                                                \
-        done = T <= t_stop;                                                      \
-    }
-#endif
-#endif
+#include "lc_classify.h"
 
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
-                        __global uint* nsamples, __global const ulong* imap, __global const char* step_level) {
+                        __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
+                        __global const half* sig, __global const float4* dtab) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
@@ -137,6 +75,12 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
     const float t_stop = 1.0f - P->early_term; /* terminate once transmittance <= this */
+#ifdef LC_DIST
+    const float dist_scale = P->dist_scale, dist_off = -P->dist_lo * P->dist_scale;
+    const float dist_fmax = (float)(P->dist_n - 1), dist_jmax = (float)(P->dist_rows - 1);
+    const float dist_sscale = P->dist_sscale, dt_u = P->step * P->inv_unit;
+    const int dist_row = P->dist_n + 1;
+#endif
 
     float3 C = (float3)(0.0f);
     float T = 1.0f;
@@ -205,9 +149,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             if (lvl >= 0) { /* one step of the starting cell's length, wherever it ends */
                 const float h = dt * (float)(1 << lvl);
                 const float len = t1 - t < h ? t1 - t : h;
-                const float v = LC_SAMPLE(q0 + (t + u * len) * dq);
+                const float2 vs = LC_SAMPLE(q0 + (t + u * len) * dq);
                 ++taken;
-                LC_SAMPLE_BODY(v, LC_R(len))
+                LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len))
                 t += len;
             } else {
                 t = tb;
@@ -235,8 +179,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
                 int s = 0;
                 for (; s < m - 1 && !done; ++s) { /* whole steps: alpha from the level's table */
-                    const float v = LC_SAMPLE_B(qa + (float)s * dqh);
-                    LC_SAMPLE_BODY(v, r_whole)
+                    const float2 vs = LC_SAMPLE_B(qa + (float)s * dqh);
+                    LC_SAMPLE_BODY(vs.x, vs.y, r_whole)
                 }
                 taken += (uint)s;
                 if (!done) { /* the last segment, cut at the cell boundary */
@@ -244,9 +188,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                     float len = tb - a;
                     len = len < h ? len : h;
                     if (len > 0.0f) {
-                        const float v = LC_SAMPLE_B(q0 + (a + u * len) * dq);
+                        const float2 vs = LC_SAMPLE_B(q0 + (a + u * len) * dq);
                         ++taken;
-                        LC_SAMPLE_BODY(v, LC_R(len))
+                        LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len))
                     }
                 }
             }
@@ -310,20 +254,20 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             /* uniform segments: no transcendental call in this loop (a call makes every live value spill) */
             const int k_uni = k_end < nlast ? k_end : nlast;
             for (; k < k_uni && !done; ++k) {
-                const float v = LC_SAMPLE_B(qu + (float)k * dqk);
+                const float2 vs = LC_SAMPLE_B(qu + (float)k * dqk);
 #ifdef LC_PRECISE
-                LC_SAMPLE_BODY(v, 1.0f)
+                LC_SAMPLE_BODY(vs.x, vs.y, 1.0f)
 #else
-                LC_SAMPLE_BODY(v, -1.0f)
+                LC_SAMPLE_BODY(vs.x, vs.y, -1.0f)
 #endif
             }
             if (k == nlast && k_end == n && !done) { /* the last, shorter segment */
-                const float v = LC_SAMPLE_B(q0 + (last + u * len_last) * dq);
+                const float2 vs = LC_SAMPLE_B(q0 + (last + u * len_last) * dq);
                 ++k;
 #ifdef LC_PRECISE
-                LC_SAMPLE_BODY(v, r_last)
+                LC_SAMPLE_BODY(vs.x, vs.y, r_last)
 #else
-                LC_SAMPLE_BODY(v, len_last_units)
+                LC_SAMPLE_BODY(vs.x, vs.y, len_last_units)
 #endif
             }
             taken += (uint)(k - k_begin);

@@ -30,6 +30,7 @@ import pyopencl as cl
 
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
+from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.program import device_info, get_context, get_program
 from lodcast.renderer.sampler import upload_level0
@@ -63,7 +64,10 @@ class RenderResult:
         return png_bytes(self.rgba)
 
 
-def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool = False) -> KernelConfig:
+def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool = False,
+                  distribution: bool = False) -> KernelConfig:
+    """`distribution`: whether the volume keeps the distributions behind its coarse voxels (the scene decides
+    whether to use them)."""
     s = scene.sampling
     adaptive = lod and (s.adaptive_object or s.adaptive_naive)
     return KernelConfig(
@@ -71,6 +75,7 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
         interpolation=s.interpolation if lod else "trilinear",
         adaptive=adaptive,
         adaptive_naive=lod and s.adaptive_naive,
+        distribution=lod and distribution and s.classification == "distribution" and scene.mode == "composite",
         mode=scene.mode,
         orthographic=orthographic,
         ess=s.empty_space_skipping,
@@ -91,7 +96,7 @@ def block_info(vol: VolumeView, lut: Lut, mode: str) -> tuple[np.ndarray, int]:
 
 
 def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: Lut, step_world: float,
-                 unit: float, max_samples: int) -> np.ndarray:
+                 unit: float, max_samples: int, dist: DistTable | None) -> np.ndarray:
     p = new_params()[0]
     xyz = lambda v: (*[float(c) for c in v], 0.0)  # noqa: E731
     p["eye"], p["cam_f"], p["cam_r"], p["cam_u"] = xyz(fr.eye), xyz(fr.f), xyz(fr.r), xyz(fr.u)
@@ -110,6 +115,9 @@ def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: 
     p["seed"] = scene.sampling.seed
     p["max_samples"] = max_samples
     p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
+    if dist is not None:
+        p["dist_n"], p["dist_rows"] = dist.n, dist.rows
+        p["dist_lo"], p["dist_scale"], p["dist_sscale"] = dist.lo, dist.scale, dist.std_scale
     return p.reshape(1)
 
 
@@ -127,6 +135,7 @@ class Prepared:
     step_world: float
     unit: float
     lod: "LodPlan | None" = None  # level-of-detail renders only
+    dist: DistTable | None = None  # distribution classification (LC_DIST) only
 
 
 @dataclass(frozen=True)
@@ -193,13 +202,16 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     info, n_empty = block_info(vol, lut, scene.mode)
     lod = None
     use_lod = levels is not None or scene.quality != "full"
-    cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod)
+    cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution)
     if use_lod:
         lod, info, n_empty = _lod_plan(vol, scene, levels, info, cfg, scene.mode)
+        if cfg.distribution and not (lod.levels > 0).any():
+            cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
     if cfg.ess and scene.mode == "composite" and n_empty == 0 and cfg.sampler == "full":
         cfg = replace(cfg, ess=False)  # no block can be skipped: compile the block walk out
-    params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples)
-    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod)
+    dist = cached_dist_table(scene.tf, vol.value_range, vol.std_max) if cfg.distribution else None
+    params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples, dist)
+    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist)
 
 
 def lut_table(pr: Prepared) -> np.ndarray:
@@ -218,6 +230,17 @@ def ext_table(pr: Prepared) -> np.ndarray:
         ratio = pr.step_world / pr.unit
         rows += [pr.lut.kernel_table("alpha", ratio * 2**k)[:, 3] for k in range(1, int(pr.volume.block_size).bit_length())]
     return np.ascontiguousarray(np.concatenate(rows), dtype=np.float32)
+
+
+def _classification(pr: Prepared) -> str:
+    """How coarse samples were classified, for the report."""
+    if pr.config.distribution:
+        return "distribution"
+    if pr.lod is None or not (pr.lod.levels > 0).any():
+        return "point (every sample at level 0)"
+    if pr.scene.sampling.classification == "distribution" and pr.scene.mode == "composite" and not pr.volume.has_distribution:
+        return "mean (this store keeps no distributions, format 1: re-ingest it for distribution classification)"
+    return "mean"
 
 
 def launch(kern: cl.Kernel, width: int, height: int) -> cl.Event:
@@ -244,7 +267,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         upload_ms = 0.0 if cached else dvol.upload_ms
         n_read, n_cached = (0, vol.n_blocks) if cached else (vol.n_blocks, 0)
     else:
-        da = lod_atlas.device_atlas(vol, pr.lod.levels)
+        da = lod_atlas.device_atlas(vol, pr.lod.levels, with_std=cfg.distribution)
         d_vol, d_imap = da.atlas, da.index
         upload_ms = da.upload_ms
         n_read, n_cached = da.read, da.cached
@@ -258,7 +281,10 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 16)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
     kern = cl.Kernel(built.program, "lc_render")
-    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps)
+    d_sig = da.std if cfg.distribution else cl.Buffer(ctx, mf.READ_ONLY, size=8)
+    d_dtab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.dist.kernel_table()) if pr.dist is not None
+              else cl.Buffer(ctx, mf.READ_ONLY, size=16))
+    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab)
     ev = launch(kern, W, H)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
@@ -290,6 +316,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "quality": quality,
         "level": 0 if pr.lod is None else None,
         "interpolation": cfg.interpolation,
+        "classification": _classification(pr),
         "adaptive": "naive" if cfg.adaptive_naive else ("limited" if cfg.adaptive else False),
         "blocks": n_blocks,
         "step_world": pr.step_world,

@@ -172,12 +172,16 @@ class Sampling(_Model):
     the brick atlas is sampled across blocks of different levels; at quality 'full' every block is at level 0 and
     both choices are exactly trilinear interpolation. `priority_map` belongs to the dual-TF mode (tf2).
     `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image.
+    `classification`: how a coarse sample (level >= 1) is classified: "distribution" (default) by the expected
+    extinction and colour under the distribution of the level-0 values it stands for (kept by the store), "mean"
+    by the TF at its mean value; at level 0 both are the same.
     `adaptive_object`: adaptive object-space sampling at LOD qualities (thesis §3.6.1: the step grows with the
     block's level, limited at block boundaries). `adaptive_naive` (for benchmarking only): the naive variant whose
     steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks)."""
 
     step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5
     interpolation: Literal["nearest_block", "interblock"] = "interblock"
+    classification: Literal["distribution", "mean"] = "distribution"
     adaptive_object: bool = False
     adaptive_naive: bool = False
     adaptive_screen: bool = False

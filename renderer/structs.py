@@ -36,12 +36,16 @@ PARAMS_DTYPE = np.dtype(
         ("max_samples", np.int32),
         ("lut_vis_lo", np.float32),
         ("lut_vis_hi", np.float32),
+        ("dist_n", np.int32),
+        ("dist_rows", np.int32),
+        ("dist_lo", np.float32),
+        ("dist_scale", np.float32),
+        ("dist_sscale", np.float32),
         ("pad0", np.int32),
-        ("pad1", np.int32),
     ],
     align=True,
 )
-assert PARAMS_DTYPE.itemsize == 240 and PARAMS_DTYPE.itemsize % 16 == 0
+assert PARAMS_DTYPE.itemsize == 256 and PARAMS_DTYPE.itemsize % 16 == 0
 
 
 def new_params() -> np.ndarray:

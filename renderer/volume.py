@@ -46,6 +46,19 @@ class VolumeView:
         """Whether the coarser levels exist (a lodcast store), which level-of-detail rendering needs."""
         return hasattr(self.source, "level") and hasattr(self.source, "layout")
 
+    @property
+    def has_distribution(self) -> bool:
+        """Whether the store keeps the standard deviation behind its coarse voxels (format >= 2)."""
+        return self.has_levels and bool(getattr(self.source, "has_distribution", False))
+
+    @property
+    def std_max(self) -> float:
+        return float(getattr(self.source, "std_max", 0.0)) if self.has_distribution else 0.0
+
+    def read_std_region(self, level: int, region: tuple) -> np.ndarray:
+        """Standard deviations behind `region` of level `level` (the brick loader's read for classification)."""
+        return self.source.read_std_region(level, region)
+
     def read_region(self, level: int, region: tuple) -> np.ndarray:
         """Samples `region` (slices) of level `level` of the store (the brick loader's only read)."""
         if not self.has_levels:

@@ -31,7 +31,7 @@ from lodcast.store.ome import multiscales
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
 from lodcast.store.store import FORMAT_VERSION, Store, open_store, parse_temp_name, temp_path
 
-__all__ = ["ingest", "level_mean", "round_to_dtype"]
+__all__ = ["ingest", "level_mean", "round_to_dtype", "std_dtype"]
 
 
 def ingest(
@@ -104,6 +104,13 @@ def round_to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return values.astype(dtype)
 
 
+def std_dtype(dtype: np.dtype) -> np.dtype:
+    """Storage type of the per-voxel standard deviations: float16 for integers of up to 16 bits (a spread of
+    such values is at most 32768, inside float16's range, kept to 2^-11 relative), float32 otherwise."""
+    dtype = np.dtype(dtype)
+    return np.dtype(np.float16) if dtype.kind in "iu" and dtype.itemsize <= 2 else np.dtype(np.float32)
+
+
 def _pool2(a: np.ndarray) -> np.ndarray:
     """Sums of 2×2×2 cubes (pairwise adds of strided views: several times faster than a 6-D reshape-sum)."""
     a = a[0::2] + a[1::2]
@@ -149,9 +156,11 @@ class _LevelWriter:
         self.start += rows.shape[0]
 
 
-def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list[np.ndarray], dict[str, np.ndarray]]:
+def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, np.ndarray]]:
     """Levels 1.. of one row of blocks (block row `by` of block-slab `bz`), each cut to its level's true extent,
-    and the row's interior statistics. Working per row keeps the float64 temporaries to a few MB."""
+    the standard deviation of the level-0 values behind every coarse voxel (NaN and edge padding left out: the
+    distribution a coarse sample stands for), and the row's interior statistics, with the per-block mean
+    within-voxel variance of every level. Working per row keeps the float64 temporaries to a few MB."""
     b = lay.block_size
     strip = slab[:, by * b : (by + 1) * b]
     zs, ny, nx = strip.shape
@@ -165,16 +174,45 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list
         if not valid.all():
             counts = valid.astype(np.float64)
             values[~valid] = 0.0
-    levels = []
+    # the spread counts real voxels only: padding replicates the edge, which would shrink it
+    real = counts
+    if padded is not strip:
+        real = np.zeros(padded.shape, np.float64)
+        real[:zs, :ny, :nx] = 1.0
+        if counts is not None:
+            real *= counts
+    sq = np.square(values, dtype=np.float64)
+    s1 = None
+    if real is not None:
+        sq *= real
+        s1 = values * real
+    levels, stds = [], []
+    block_var = np.zeros((lay.grid[2], lay.n_levels))
     for k in range(1, lay.n_levels):
         values = _pool2(values).astype(np.float64, copy=False)
         counts = _pool2(counts) if counts is not None else None
+        sq = _pool2(sq)
         mean = level_mean(values, counts, k)
+        if real is None:
+            n = float(8**k)
+            var = sq / n - np.square(values / n)
+        else:
+            s1, real = _pool2(s1), _pool2(real)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                var = np.where(real > 0, sq / np.maximum(real, 1e-300) - np.square(s1 / np.maximum(real, 1e-300)), 0.0)
+        np.maximum(var, 0.0, out=var)  # rounding of E[v²] − E[v]² for constant cubes
         lz, ly, lx = lay.level_shape(k)
         e = lay.block_edge(k)
         rows, cols = min(e, lz - bz * e), min(e, ly - by * e)
         levels.append(round_to_dtype(mean[:rows, :cols, :lx], slab.dtype))
-    return levels, _interior_stats(strip, b)
+        v = var[:rows, :cols, :lx]
+        stds.append(np.sqrt(v))
+        starts = np.arange(0, lx, e)
+        widths = np.diff(np.append(starts, lx))
+        block_var[:, k] = np.add.reduceat(v.sum(axis=(0, 1)), starts) / (rows * cols * widths)
+    stats = _interior_stats(strip, b)
+    stats["level_var"] = block_var
+    return levels, stds, stats
 
 
 def _interior_stats(strip: np.ndarray, b: int) -> dict[str, np.ndarray]:
@@ -214,7 +252,19 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             compressors=compressor, fill_value=np.nan if dtype.kind == "f" else 0, dimension_names=("z", "y", "x"),
         )
         writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
+    std_writers = []
+    std_group = group.create_group("std")
+    sdtype = std_dtype(dtype)
+    for k in range(1, lay.n_levels):
+        arr = std_group.create_array(
+            str(k), shape=lay.level_shape(k), dtype=sdtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
+            compressors=BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle), fill_value=0,
+            dimension_names=("z", "y", "x"),
+        )
+        std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
     stats = {name: np.full(lay.grid, np.nan) for name in ("min", "max", "mean", "count", "min_border", "max_border")}
+    level_var = np.zeros(lay.grid + (lay.n_levels,))
+    std_max = 0.0
     pool = ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1)
     reader = ThreadPoolExecutor(max_workers=1)  # sources are read in order, one slab ahead
     bar = _progress(2 * gz, show, f"ingest {Path(source_label).name}")
@@ -226,14 +276,19 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             writers[0].add(slab)
             parts = [f.result() for f in rows]
             for k, w in enumerate(writers[1:]):
-                w.add(np.concatenate([levels[k] for levels, _ in parts], axis=1))
-            st = {key: np.stack([p[1][key] for p in parts]) for key in ("min", "max", "sum", "count")}
+                w.add(np.concatenate([levels[k] for levels, _, _ in parts], axis=1))
+            for k, w in enumerate(std_writers):
+                sd = np.concatenate([stds[k] for _, stds, _ in parts], axis=1)
+                std_max = max(std_max, float(sd.max(initial=0.0)))
+                w.add(sd.astype(sdtype))
+            st = {key: np.stack([p[2][key] for p in parts]) for key in ("min", "max", "sum", "count", "level_var")}
+            level_var[bz] = st["level_var"]
             stats["min"][bz], stats["max"][bz], stats["count"][bz] = st["min"], st["max"], st["count"]
             with np.errstate(invalid="ignore", divide="ignore"):
                 stats["mean"][bz] = np.where(st["count"] > 0, st["sum"] / np.maximum(st["count"], 1), np.nan)
             nan_count += int(slab.size - st["count"].sum())
             bar.update(1)
-        for w in writers:
+        for w in writers + std_writers:
             w.flush()
             w.buffer = None
         del slab, parts  # pass 2 needs the memory
@@ -279,11 +334,12 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                 bar.update(1)
         for name, values in stats.items():
             blocks.create_array(name, data=values, chunks=lay.grid, fill_value=np.nan)
+        blocks.create_array("level_std", data=np.sqrt(level_var), chunks=lay.grid + (lay.n_levels,), fill_value=0.0)
     finally:
         bar.close()
         reader.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
-    group.attrs.update(_attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label))
+    group.attrs.update(_attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label, std_max))
 
 
 def _merge(acc: dict[int, list[np.ndarray]], row: int, part: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
@@ -370,7 +426,7 @@ def _read_ahead(read, count: int, reader: ThreadPoolExecutor) -> Iterator[np.nda
 
 
 def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[float, float], bins: Bins,
-                seg: int, nan_count: int, root: Path, source_label: str) -> dict[str, Any]:
+                seg: int, nan_count: int, root: Path, source_label: str, std_max: float) -> dict[str, Any]:
     import lodcast
 
     info = src.info
@@ -391,6 +447,8 @@ def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[f
         "nan_count": nan_count,
         "histogram": {"bins": bins.to_dict(), "segments": seg, "border": 1},
         "downsampling": "mean within each block; integers rounded half to even; edge-replicated padding",
+        "distribution": {"kind": "gaussian", "std": "std/{level}", "dtype": std_dtype(dtype).name, "std_max": std_max,
+                         "block_level_std": "blocks/level_std"},
         "source": {"path": source_label, "format": info.format, **info.provenance},
         "provenance": {
             "lodcast_version": lodcast.__version__,

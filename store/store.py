@@ -31,7 +31,10 @@ from lodcast.store.layout import Layout
 
 __all__ = ["Store", "BlockStats", "open_store", "FORMAT_VERSION"]
 
-FORMAT_VERSION = 1
+#: 2: adds the distribution behind every coarse voxel (`std/{level}`, `blocks/level_std`). Stores of format 1
+#: still open and render; they have no distributions, so coarse samples are classified at their mean.
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -55,8 +58,12 @@ class Store:
         a = dict(group.attrs)
         try:
             marker = a["lodcast"]
-            if marker.get("format_version") != FORMAT_VERSION:
-                raise StoreInvalid(f"{location}: store format version {marker.get('format_version')} is not {FORMAT_VERSION}")
+            self.format_version = marker.get("format_version")
+            if self.format_version not in READABLE_VERSIONS:
+                raise StoreInvalid(
+                    f"{location}: store format version {self.format_version} is not one of {READABLE_VERSIONS}: "
+                    "re-ingest it with this lodcast"
+                )
             self.attrs = a
             self.shape: tuple[int, int, int] = tuple(int(v) for v in a["shape"])  # type: ignore[assignment]
             self.dtype = np.dtype(a["dtype"])
@@ -105,6 +112,27 @@ class Store:
     def read_level(self, k: int) -> np.ndarray:
         return self.read_region(k)
 
+    @property
+    def has_distribution(self) -> bool:
+        """Whether the store keeps the spread of the level-0 values behind every coarse voxel (format >= 2)."""
+        return self.format_version >= 2
+
+    @property
+    def std_max(self) -> float:
+        """The largest stored standard deviation (0 for a format-1 store)."""
+        return float(self.attrs.get("distribution", {}).get("std_max", 0.0)) if self.has_distribution else 0.0
+
+    def read_std_region(self, k: int, region: tuple = ...) -> np.ndarray:  # type: ignore[assignment]
+        """Standard deviation of the level-0 values behind each sample of `region` of level k (NaN and edge
+        padding left out; zeros at level 0 and for a format-1 store, which keeps no distributions)."""
+        self.layout._check_level(k)
+        if k == 0 or not self.has_distribution:
+            full = self.layout.level_shape(k)
+            sl = (slice(None),) * 3 if region is ... else region
+            return np.zeros(tuple(len(range(*s.indices(n))) for s, n in zip(sl, full)), np.float32)
+        with zarr.config.set({"codec_pipeline.batch_size": 256}):
+            return np.asarray(self.group[f"std/{k}"][region])
+
     def read_brick(self, k: int, block: tuple[int, int, int]) -> np.ndarray:
         """Block `block` at level k as a full (B/2^k)³ brick; samples past the volume repeat the edge (the same
         padding ingest averaged into the coarser levels)."""
@@ -118,6 +146,12 @@ class Store:
     def stats(self) -> BlockStats:
         b = self.group["blocks"]
         return BlockStats(**{f: np.asarray(b[f][...]) for f in ("min", "max", "mean", "count", "min_border", "max_border")})
+
+    @cached_property
+    def level_std(self) -> np.ndarray | None:
+        """Per block and level, grid + (levels,): the RMS over the block's coarse voxels of their standard
+        deviation (level 0: 0). None for a format-1 store."""
+        return np.asarray(self.group["blocks/level_std"][...]) if self.has_distribution else None
 
     @cached_property
     def hist(self) -> np.ndarray:

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pyopencl as cl
 
-from lodcast.renderer.atlas import pack
+from lodcast.renderer.atlas import pack, pack_std
 from lodcast.renderer.program import get_context, get_program
 
 
@@ -105,21 +105,24 @@ def trilinear_level(pyr, k: int, B: int, q) -> float:
     return _trilinear(pyr[k], tuple((q[a] + 0.5) / s - 0.5 for a in range(3)))
 
 
-def probe(levels: np.ndarray, bricks: dict, B: int, pts: np.ndarray, interp: str = "interblock") -> np.ndarray:
-    """The kernel's sampler (lc_atlas.h through atlas_probe.cl) at pts (N, 3) = (x, y, z)."""
+def probe(levels: np.ndarray, bricks: dict, B: int, pts: np.ndarray, interp: str = "interblock",
+          std_bricks: dict | None = None) -> np.ndarray:
+    """The kernel's sampler (lc_atlas.h through atlas_probe.cl) at pts (N, 3) = (x, y, z): the values, or with
+    `std_bricks` (value, standard deviation) pairs (N, 2) as the distribution sampler (LC_DIST) gives them."""
     ctx, queue = get_context()
-    opt = "-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB"
-    prg = get_program("atlas_probe.cl", [opt]).program
+    opts = ["-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB"] + (["-DLC_DIST"] if std_bricks else [])
+    prg = get_program("atlas_probe.cl", opts).program
     atlas, idx = pack(levels, {k: np.asarray(v, np.float32) for k, v in bricks.items()}, B, max_bytes=2**31)
+    sig = pack_std(levels, std_bricks or {}, B)
     p4 = np.zeros((len(pts), 4), np.float32)
     p4[:, :3] = pts
     mf = cl.mem_flags
-    bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (atlas, idx, p4)]
-    out = np.zeros(len(pts), np.float32)
+    bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (atlas, sig, idx, p4)]
+    out = np.zeros((len(pts), 2), np.float32)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
     G = levels.shape
-    cl.Kernel(prg, "lc_probe_atlas")(queue, (len(pts),), None, bufs[0], bufs[1],
-                                     np.array([G[2], G[1], G[0], B], np.int32), bufs[2], d_out, np.int32(len(pts)))
+    cl.Kernel(prg, "lc_probe_atlas")(queue, (len(pts),), None, bufs[0], bufs[1], bufs[2],
+                                     np.array([G[2], G[1], G[0], B], np.int32), bufs[3], d_out, np.int32(len(pts)))
     cl.enqueue_copy(queue, out, d_out)
     queue.finish()
-    return out
+    return out if std_bricks else out[:, 0]

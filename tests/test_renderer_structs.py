@@ -9,7 +9,7 @@ from lodcast.renderer.structs import PARAMS_DTYPE, new_params
 
 
 def test_params_dtype_size_and_alignment():
-    assert PARAMS_DTYPE.itemsize == 240
+    assert PARAMS_DTYPE.itemsize == 256
     assert PARAMS_DTYPE.itemsize % 16 == 0
     for name in ("eye", "cam_f", "box_lo", "background", "dims", "grid"):
         assert PARAMS_DTYPE.fields[name][1] % 16 == 0, name  # float4/int4 are 16-byte aligned in OpenCL
@@ -27,10 +27,12 @@ def test_every_field_reads_back_through_the_kernel():
         p[name] = 100.25 + k
     p["lut_n"], p["width"], p["height"], p["seed"], p["max_samples"] = 11, 12, 13, 14, 15
     p["lut_vis_lo"], p["lut_vis_hi"] = -3.5, 77.25
+    p["dist_n"], p["dist_rows"] = 16, 17
+    p["dist_lo"], p["dist_scale"], p["dist_sscale"] = -1024.5, 0.25, 3.75
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    f = np.zeros(45, np.float32)
-    n = np.zeros(14, np.int32)
+    f = np.zeros(48, np.float32)
+    n = np.zeros(16, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
     prg = get_program("probe.cl").program
@@ -46,3 +48,5 @@ def test_every_field_reads_back_through_the_kernel():
     assert n[:8].tolist() == [1, 2, 3, 4, 5, 6, 7, 8]
     assert n[8:13].tolist() == [11, 12, 13, 14, 15]
     assert f[43:45].tolist() == [-3.5, 77.25]
+    assert n[14:16].tolist() == [16, 17]
+    assert f[45:48].tolist() == [-1024.5, 0.25, 3.75]

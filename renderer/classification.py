@@ -1,0 +1,159 @@
+"""Classification of coarse samples by the distribution of the level-0 values they stand for.
+
+A level-k voxel of a store is the mean of a 2^k-cube of level-0 voxels; the store also keeps their standard
+deviation (`std/{k}`). Classifying the mean, T(E[s]), loses thin opaque structures: the average of cortical bone
+and soft tissue is a value the TF shows as nearly transparent. Classification by distribution (Younesy, Möller and
+Carr, EuroVis 2006) takes the expectation of the optical properties instead, under a Gaussian N(mean, std²) of the
+values behind the sample:
+
+    σ̄(m, s) = E[σ_t(v)],        ε̄(m, s) = E[σ_t(v) · rgb(v)],        v ~ N(m, s²)
+
+with σ_t = −ln(1 − a) the extinction per unit distance. The kernel composites in extinction form, α = 1 − exp(−σ̄·l)
+for a segment of l units, with colour ε̄/σ̄; a perpendicular ray through a one-voxel slab keeps its optical depth
+at every level (the slab's share of a coarse voxel times the coarse voxel's length), which the mean loses.
+
+The table is exact in float64 for the kernel's point classification: σ_t and σ_t·rgb piecewise linear between the
+LUT entries (the kernel's interpolant, constant beyond the ends). The expectation of a piecewise-linear function
+under a Gaussian is a discrete convolution of its entries with the Gaussian-blurred hat function,
+K(d) = R(d + 1) − 2R(d) + R(d − 1), R(x) = s·φ(x/s) + x·Φ(x/s) (s = std / entry spacing), evaluated by FFT.
+An opacity of 1 has infinite extinction, and any Gaussian tail reaching it would make its voxel opaque: in the
+table the extinction is capped at EXT_CAP per unit distance (opacity 1 − e^−30 over one unit), which only the
+distribution path sees (a level-0 sample, std 0, is classified exactly as before).
+
+Axes: the mean axis is the LUT's (entry k at lo + k/scale; a LUT of more than DIST_MAX_ENTRIES entries is
+subsampled); the std axis is quadratic, s_j = std_max·(j/(J − 1))², so that the kernel finds j from √std with
+one multiply and the rows are dense where the classification changes fastest, near std = 0.
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from lodcast.renderer.transfer_function import Lut, build_lut, extinction
+
+__all__ = ["EXT_CAP", "DIST_STD_ROWS", "DIST_MAX_ENTRIES", "DistTable", "dist_table", "cached_dist_table",
+           "gaussian_expectation"]
+
+EXT_CAP = 30.0
+DIST_STD_ROWS = 64
+DIST_MAX_ENTRIES = 4096
+
+
+@dataclass(frozen=True)
+class DistTable:
+    """σ̄ and colour ε̄/σ̄ over (std row j, mean entry i); entry i at value lo + i/scale, row j at
+    std_max·(j/(rows − 1))²."""
+
+    lo: float
+    scale: float
+    n: int
+    std_max: float
+    rows: int
+    ext: np.ndarray  # (rows, n) float64 expected extinction per unit distance
+    emission: np.ndarray  # (rows, n, 3) float64 expected extinction × colour
+    rgb: np.ndarray  # (n, 3) the TF colour at the entries (the point classification's)
+
+    @property
+    def stds(self) -> np.ndarray:
+        return self.std_max * (np.arange(self.rows) / max(self.rows - 1, 1)) ** 2
+
+    @property
+    def std_scale(self) -> float:
+        """Row coordinate per √std: j = √std · std_scale."""
+        return (self.rows - 1) / np.sqrt(self.std_max) if self.std_max > 0 else 0.0
+
+    def colour(self) -> np.ndarray:
+        """ε̄/σ̄ (rows, n, 3); where σ̄ = 0 the colour of the point classification (nothing is emitted there, and
+        the row std = 0 then equals the LUT's colours exactly)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = self.emission / self.ext[..., None]
+        return np.where(self.ext[..., None] > 0, c, self.rgb[None])
+
+    def kernel_table(self) -> np.ndarray:
+        """(rows + 1, n + 1, 4) float32: colour and σ̄, the last entry and the last row repeated once so that the
+        kernel's bilinear lookup reads (i + 1, j + 1) without a clamp."""
+        t = np.empty((self.rows, self.n, 4), np.float32)
+        t[..., :3] = self.colour()
+        t[..., 3] = self.ext
+        t = np.concatenate([t, t[:, -1:]], axis=1)
+        return np.ascontiguousarray(np.concatenate([t, t[-1:]], axis=0))
+
+    def lookup(self, mean, std) -> tuple[np.ndarray, np.ndarray]:
+        """(colour (..., 3), σ̄ (...)) as the kernel's bilinear lookup gives them (float64, for tests and
+        significance)."""
+        m = np.asarray(mean, np.float64)
+        s = np.asarray(std, np.float64)
+        fi = np.clip((m - self.lo) * self.scale, 0.0, self.n - 1.0)
+        fj = np.clip(np.sqrt(np.maximum(s, 0.0)) * self.std_scale, 0.0, self.rows - 1.0)
+        i = np.minimum(fi.astype(np.intp), max(self.n - 2, 0))
+        j = np.minimum(fj.astype(np.intp), max(self.rows - 2, 0))
+        wi, wj = fi - i, fj - j
+        t = self.kernel_table().astype(np.float64)
+        i1, j1 = i + (self.n > 1), j + (self.rows > 1)
+        e = ((t[j, i] * (1 - wi)[..., None] + t[j, i1] * wi[..., None]) * (1 - wj)[..., None]
+             + (t[j1, i] * (1 - wi)[..., None] + t[j1, i1] * wi[..., None]) * wj[..., None])
+        return e[..., :3], e[..., 3]
+
+
+def _blurred_hat(s: float) -> np.ndarray:
+    """K(d) for d = −R … R: the expectation of the hat function at offset d under N(0, s²) (entry units)."""
+    if s <= 0.0:
+        return np.ones(1)
+    from scipy.special import ndtr
+
+    r = int(np.ceil(8.0 * s)) + 2
+    x = np.arange(-r - 1, r + 2, dtype=np.float64)
+    z = x / s
+    ramp = s * np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi) + x * ndtr(z)  # E[(x + s Z)_+]
+    k = ramp[2:] - 2.0 * ramp[1:-1] + ramp[:-2]
+    return k / k.sum()  # the mass beyond 8 s (1e-15) goes back to the kernel
+
+
+def gaussian_expectation(values: np.ndarray, s: float) -> np.ndarray:
+    """E[g(i + s Z)] at every entry i of g (..., n) (piecewise linear between entries, constant beyond the ends):
+    the convolution with the blurred hat function, by FFT."""
+    g = np.asarray(values, np.float64)
+    k = _blurred_hat(s)
+    r = (k.size - 1) // 2
+    if r == 0:
+        return g.copy()
+    from scipy.signal import fftconvolve
+
+    ext = np.concatenate([np.repeat(g[..., :1], r, axis=-1), g, np.repeat(g[..., -1:], r, axis=-1)], axis=-1)
+    return fftconvolve(ext, np.broadcast_to(k, g.shape[:-1] + k.shape), mode="valid", axes=-1)
+
+
+def dist_table(lut: Lut, std_max: float, rows: int = DIST_STD_ROWS) -> DistTable:
+    """The distribution table of a TF's LUT for standard deviations up to `std_max` (data units)."""
+    stride = int(np.ceil(lut.n / DIST_MAX_ENTRIES))
+    idx = np.arange(0, lut.n, stride)
+    n = idx.size
+    h = stride / lut.scale  # data units per table entry
+    sigma = np.minimum(extinction(lut.opacity[idx]), EXT_CAP)
+    rgb = lut.rgb[idx]
+    chan = np.concatenate([sigma[None], (sigma[:, None] * rgb).T], axis=0)  # (4, n)
+    std_max = float(std_max) if np.isfinite(std_max) and std_max > 0 else 0.0
+    rows = rows if std_max > 0 else 1
+    stds = std_max * (np.arange(rows) / max(rows - 1, 1)) ** 2
+    out = np.empty((rows, 4, n))
+    for j, sd in enumerate(stds):
+        out[j] = gaussian_expectation(chan, sd / h)
+    # FFT rounding leaves ~1e-16 of the largest value where the expectation is 0: zero it, so that the kernel's
+    # visibility test (σ̄ > 0) still skips what is far from every visible value
+    out[out < 1e-13 * max(float(chan.max()), 1e-300)] = 0.0
+    return DistTable(lut.lo, lut.scale / stride, n, std_max, rows, out[:, 0, :], np.moveaxis(out[:, 1:, :], 1, 2), rgb)
+
+
+@functools.lru_cache(maxsize=32)
+def _cached(tf_json: str, lo: float, hi: float, std_max: float) -> DistTable:
+    from lodcast.renderer.scene import TransferFunction
+
+    return dist_table(build_lut(TransferFunction.model_validate_json(tf_json), (lo, hi)), std_max)
+
+
+def cached_dist_table(tf, value_range: tuple[float, float], std_max: float) -> DistTable:
+    """dist_table of the LUT the renderer builds for `tf` over `value_range`, kept for the process's recent TFs
+    (a turntable or a camera sweep builds it once)."""
+    return _cached(tf.model_dump_json(), float(value_range[0]), float(value_range[1]), float(std_max))

@@ -1,0 +1,148 @@
+/* lc_classify.h: classification and compositing of one sample (the integrator's step), for raycast.cl.
+ *
+ * LC_SAMPLE_BODY(v, sd, r): a sample of value v, standard deviation sd of the level-0 values behind it (0 at level
+ * 0 and without LC_DIST) on a segment described by r (see raycast.cl's header: r < 0 a whole step of the level
+ * -1 - r, r >= 0 the last segment's length in TF units; LC_PRECISE: r is the segment's length in steps). MIP keeps
+ * the maximum of v; compositing classifies and composites front to back; done = 1 once the ray is (nearly) opaque.
+ *
+ * LC_DIST, classification by distribution (lodcast.renderer.classification): a sample with sd > 0 takes the
+ * expected extinction and colour under N(v, sd^2) from the 2D table dtab (bilinear in value and sqrt(sd)) and
+ * composites in extinction form, alpha = 1 - exp(-ext * length): exact for any segment length, so adaptive steps
+ * need no per-level table. sd = 0 takes the point classification below, unchanged.
+ * Uses, from the kernel: lut, lut_ext, lut_scale, lut_off, lut_vis_lo, lut_vis_hi, (LC_DIST) dtab, dist_*, dt_u,
+ * and the ray state C, T, done (LC_PRECISE: C_c, tau, tau_c; MIP: vmax).
+ */
+#ifndef LC_CLASSIFY_H
+#define LC_CLASSIFY_H
+
+#ifdef LC_DIST
+/* length in TF units of the segment r describes */
+#ifdef LC_PRECISE
+#define LC_LEN_UNITS(r) ((r) * dt_u)
+#else
+#define LC_LEN_UNITS(r) ((r) >= 0.0f ? (r) : dt_u * (float)(1 << (int)(-1.0f - (r))))
+#endif
+#define LC_DIST_LOOKUP(v, sd, e)                                                 \
+    float4 e;                                                                    \
+    {                                                                            \
+        float fi_ = (v) * dist_scale + dist_off;                                 \
+        fi_ = fi_ > 0.0f ? (fi_ < dist_fmax ? fi_ : dist_fmax) : 0.0f;           \
+        float fj_ = sqrt(sd) * dist_sscale;                                      \
+        fj_ = fj_ < dist_jmax ? fj_ : dist_jmax;                                 \
+        const int ii_ = (int)fi_, jj_ = (int)fj_;                                \
+        const float wi_ = fi_ - (float)ii_, wj_ = fj_ - (float)jj_;              \
+        __global const float4* r0_ = dtab + jj_ * dist_row + ii_;               \
+        const float4 a_ = r0_[0] + (r0_[1] - r0_[0]) * wi_;                      \
+        const float4 b_ = r0_[dist_row] + (r0_[dist_row + 1] - r0_[dist_row]) * wi_; \
+        e = a_ + (b_ - a_) * wj_;                                                \
+    }
+#ifdef LC_PRECISE
+#define LC_DIST_COMPOSITE(e, r)                                                  \
+    {                                                                            \
+        const float depth = e.w * LC_LEN_UNITS(r);                               \
+        const float alpha = -expm1(-depth);                                      \
+        const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
+        const float3 s3 = C + y3;                                                \
+        C_c = (s3 - C) - y3;                                                     \
+        C = s3;                                                                  \
+        const float y = depth - tau_c;                                           \
+        const float s = tau + y;                                                 \
+        tau_c = (s - tau) - y;                                                   \
+        tau = s;                                                                 \
+        T = exp(-tau);                                                           \
+        done = T <= t_stop;                                                      \
+    }
+#else
+#define LC_DIST_COMPOSITE(e, r)                                                  \
+    {                                                                            \
+        const float wgt = T * -expm1(-e.w * LC_LEN_UNITS(r));                    \
+        C += wgt * e.xyz;                                                        \
+        T -= wgt;                                                                \
+        done = T <= t_stop;                                                      \
+    }
+#endif
+/* a coarse sample (sd > 0, not NaN): by its distribution; else falls through to the point classification */
+#define LC_DIST_BODY(v, sd, r)                                                   \
+    if ((sd) > 0.0f) {                                                           \
+        if ((v) == (v)) {                                                        \
+            LC_DIST_LOOKUP(v, sd, e)                                             \
+            if (e.w > 0.0f) LC_DIST_COMPOSITE(e, r)                              \
+        }                                                                        \
+    } else
+#else
+#define LC_DIST_BODY(v, sd, r)
+#endif
+
+/* One sample of value v on a segment of r steps: MIP keeps the maximum; compositing looks the TF up, takes the
+ * segment's opacity and composites front to back; done = 1 once the ray is (nearly) opaque. */
+#ifdef LC_MODE_MIP
+#define LC_SAMPLE_BODY(v, sd, r)                                                 \
+    if ((v) == (v)) vmax = (v) > vmax ? (v) : vmax;
+#else
+/* Where the TF is zero (and for NaN) a sample is transparent: no lookup, no blend — exactly what the lookup and
+ * blend would give (alpha 0 adds nothing and leaves T unchanged). */
+#define lc_visible(v) (((v) * lut_scale + lut_off) > lut_vis_lo && ((v) * lut_scale + lut_off) < lut_vis_hi)
+/* only after lc_visible(v): that bounds f below lut_vis_hi <= lut_n, so only the lower clamp is needed */
+#define LC_TF_LOOKUP(v, e)                                                       \
+    float4 e;                                                                    \
+    int i_;                                                                      \
+    float w_;                                                                    \
+    {                                                                            \
+        float f_ = (v) * lut_scale + lut_off;                                    \
+        f_ = f_ > 0.0f ? f_ : 0.0f;                                              \
+        i_ = (int)f_; /* f_ < lut_vis_hi <= n: i_ <= n - 1, and entry n exists */ \
+        w_ = f_ - (float)i_;                                                     \
+        const float4 e0_ = lut[i_], e1_ = lut[i_ + 1];                           \
+        e = e0_ + (e1_ - e0_) * w_;                                              \
+    }
+#ifdef LC_PRECISE
+#define LC_SAMPLE_BODY(v, sd, r)                                                 \
+    LC_DIST_BODY(v, sd, r)                                                       \
+    if (lc_visible(v)) {                                                         \
+        LC_TF_LOOKUP(v, e)                                                       \
+        const float depth = e.w * (r);                                           \
+        const float alpha = -expm1(-depth);                                      \
+        const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
+        const float3 s3 = C + y3;                                                \
+        C_c = (s3 - C) - y3;                                                     \
+        C = s3;                                                                  \
+        const float y = depth - tau_c;                                           \
+        const float s = tau + y;                                                 \
+        tau_c = (s - tau) - y;                                                   \
+        tau = s;                                                                 \
+        T = exp(-tau);                                                           \
+        done = T <= t_stop;                                                      \
+    }
+#else
+#ifdef LC_ADAPTIVE
+/* adaptive: r = -1 - k (k >= 1) is a whole step of step * 2^k: alpha from row k of lut_ext (the host appends one
+ * alpha table per level after the extinction row), no transcendental call */
+#define LC_LEVEL_ALPHA(r)                                                        \
+        else if ((r) < -1.5f) {                                                  \
+            const int o_ = (int)(-1.0f - (r)) * lut_row + i_;                    \
+            alpha = lut_ext[o_] + (lut_ext[o_ + 1] - lut_ext[o_]) * w_;          \
+        }
+#else
+#define LC_LEVEL_ALPHA(r)
+#endif
+/* r < 0: a uniform segment (alpha from the table); else the last segment's length in TF units (alpha from the
+ * extinction table: 1 - (1 - a)^r = -expm1(-r sigma), exact even where the step's alpha rounds to 1 in float32) */
+#define LC_SAMPLE_BODY(v, sd, r)                                                 \
+    LC_DIST_BODY(v, sd, r)                                                       \
+    if (lc_visible(v)) {                                                         \
+        LC_TF_LOOKUP(v, e)                                                       \
+        float alpha = e.w;                                                       \
+        if ((r) >= 0.0f) {                                                       \
+            const float sg_ = lut_ext[i_] + (lut_ext[i_ + 1] - lut_ext[i_]) * w_; \
+            alpha = -expm1(-(r) * sg_);                                          \
+        }                                                                        \
+        LC_LEVEL_ALPHA(r)                                                        \
+        const float wgt = T * alpha;                                             \
+        C += wgt * e.xyz;                                                        \
+        T -= wgt;                                                                \
+        done = T <= t_stop;                                                      \
+    }
+#endif
+#endif
+
+#endif

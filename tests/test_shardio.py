@@ -1,0 +1,209 @@
+"""lodcast.store.shardio: the shard-level reader returns exactly what zarr-python returns for the arrays ingest writes."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import zarr
+from zarr.codecs import BloscCodec, BloscShuffle, BytesCodec
+
+from lodcast.store import shardio
+from lodcast.store.shardio import ShardedReader, fast_reader
+
+BITSHUFFLE = BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.bitshuffle)
+SHUFFLE = BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle)
+
+
+def _data(shape: tuple[int, ...], dtype: str, seed: int = 0) -> np.ndarray:
+    """Smooth-ish values with noise, in the dtype's range (floats carry a few NaN)."""
+    rng = np.random.default_rng(seed)
+    z, y, x = np.meshgrid(*(np.linspace(0, 3, n) for n in shape), indexing="ij")
+    v = np.sin(z * 2 + y) * np.cos(x * 3 - y) + 0.1 * rng.standard_normal(shape)
+    dt = np.dtype(dtype)
+    if dt.kind in "iu":
+        info = np.iinfo(dt)
+        lo, hi = max(info.min, -30000), min(info.max, 60000)
+        return np.clip((v + 1.3) / 2.6 * (hi - lo) + lo, lo, hi).astype(dt)
+    out = v.astype(dt)
+    out.flat[rng.choice(out.size, 5, replace=False)] = np.nan
+    return out
+
+
+def _array(root, name, shape, dtype, chunks, shards, compressors=BITSHUFFLE, data=True, **kw) -> zarr.Array:
+    group = zarr.open_group(root, mode="a")
+    fill = np.nan if np.dtype(dtype).kind == "f" else 0
+    arr = group.create_array(name, shape=shape, dtype=dtype, chunks=chunks, shards=shards, compressors=compressors,
+                             fill_value=kw.pop("fill_value", fill), dimension_names=("z", "y", "x"), **kw)
+    if data:
+        arr[...] = _data(shape, dtype)
+    return zarr.open_group(root, mode="r")[name]  # read back as the store does: a read-only LocalStore
+
+
+def _same(reader: ShardedReader, arr: zarr.Array, region: tuple[slice, ...]) -> None:
+    got, want = reader.read_region(region), np.asarray(arr[region])
+    assert got.dtype == want.dtype and got.shape == want.shape, (region, got.dtype, want.dtype, got.shape, want.shape)
+    assert np.array_equal(got, want, equal_nan=want.dtype.kind == "f"), region
+
+
+def _random_regions(shape: tuple[int, ...], n: int, seed: int) -> list[tuple[slice, ...]]:
+    rng = np.random.default_rng(seed)
+    regions = []
+    for _ in range(n):
+        bounds = [np.sort(rng.integers(0, s + 1, 2)) for s in shape]
+        regions.append(tuple(slice(int(a), int(b) if b > a else int(a) + 1) for a, b in bounds))
+    return regions
+
+
+CASES = [  # shape, dtype, chunks, shards, compressors
+    ((37, 50, 29), "uint16", (8, 8, 8), (16, 16, 16), BITSHUFFLE),
+    ((33, 70, 65), "uint8", (16, 16, 16), (16, 32, 32), SHUFFLE),
+    ((20, 30, 45), "int16", (4, 4, 4), (8, 16, 16), SHUFFLE),
+    ((25, 19, 40), "float16", (8, 8, 8), (8, 16, 24), BITSHUFFLE),
+    ((17, 40, 33), "float32", (8, 8, 8), (16, 16, 16), BITSHUFFLE),
+    ((9, 12, 30), "float64", (4, 4, 4), (8, 8, 8), SHUFFLE),
+    ((48, 64, 64), "uint16", (16, 16, 16), (16, 64, 64), BITSHUFFLE),  # multiples of chunks and shards
+    ((21, 22, 23), "uint16", (4, 4, 4), (8, 8, 8), None),  # bytes only, no compressor
+]
+
+
+@pytest.mark.parametrize("shape,dtype,chunks,shards,compressors", CASES, ids=[f"{c[1]}-{c[0]}" for c in CASES])
+def test_regions_match_zarr(tmp_path, shape, dtype, chunks, shards, compressors):
+    arr = _array(tmp_path, "a", shape, dtype, chunks, shards, compressors)
+    reader = fast_reader(arr)
+    assert reader is not None
+    full = tuple(slice(None) for _ in shape)
+    _same(reader, arr, full)
+    _same(reader, arr, tuple(slice(0, c) for c in chunks))  # one chunk
+    last = tuple(slice((s - 1) // c * c, s) for s, c in zip(shape, chunks))  # the partial corner chunk
+    _same(reader, arr, last)
+    across = tuple(slice(max(0, sh - 3), min(s, sh + 3)) for s, sh in zip(shape, shards))  # crosses shard faces
+    _same(reader, arr, across)
+    _same(reader, arr, (slice(-5, None), slice(2, -2), slice(None, 7)))  # negative and open bounds
+    for region in _random_regions(shape, 60, seed=len(shape) * 7 + sum(shape)):
+        _same(reader, arr, region)
+
+
+def test_never_written_chunks_and_shards_read_as_fill(tmp_path):
+    for dtype, fill in (("uint16", 7), ("float32", np.nan), ("int16", -3)):
+        name = f"sparse_{dtype}"
+        group = zarr.open_group(tmp_path, mode="a")
+        arr = group.create_array(name, shape=(40, 50, 60), dtype=dtype, chunks=(8, 8, 8), shards=(16, 16, 16),
+                                 compressors=BITSHUFFLE, fill_value=fill)
+        arr[3:11, 20:37, 5:30] = _data((8, 17, 25), dtype, seed=1)  # part of a few shards; most shards absent
+        arr[16:24, 16:24, 16:24] = fill  # a chunk equal to the fill value: zarr does not store it
+        arr = zarr.open_group(tmp_path, mode="r")[name]
+        assert len(os.listdir(tmp_path / name / "c")) < 3  # shards that were never written have no file
+        reader = fast_reader(arr)
+        _same(reader, arr, (slice(None),) * 3)
+        for region in _random_regions(arr.shape, 40, seed=3):
+            _same(reader, arr, region)
+        assert np.array_equal(reader.read_region((slice(30, 40), slice(40, 50), slice(50, 60))),
+                              np.full((10, 10, 10), fill, dtype), equal_nan=True)
+
+
+def test_all_empty_array(tmp_path):
+    arr = _array(tmp_path, "empty", (10, 20, 30), "float32", (4, 4, 4), (8, 8, 8), data=False)
+    out = fast_reader(arr).read_region((slice(None),) * 3)
+    assert out.shape == (10, 20, 30) and np.isnan(out).all()
+
+
+def test_big_endian_serializer_and_dtype(tmp_path):
+    group = zarr.open_group(tmp_path, mode="a")
+    for name, dtype in (("be_bytes", "uint16"), ("be_dtype", ">i2")):
+        arr = group.create_array(name, shape=(18, 20, 22), dtype=dtype, chunks=(4, 4, 4), shards=(8, 8, 8),
+                                 serializer=BytesCodec(endian="big"), compressors=SHUFFLE, fill_value=0)
+        arr[...] = _data((18, 20, 22), dtype)
+        arr = zarr.open_group(tmp_path, mode="r")[name]
+        reader = fast_reader(arr)
+        for region in [(slice(None),) * 3] + _random_regions(arr.shape, 20, seed=5):
+            _same(reader, arr, region)
+
+
+def test_index_at_start(tmp_path):
+    arr = _array(tmp_path, "start", (20, 21, 22), "uint16", (4, 4, 4), {"shape": (8, 8, 8), "index_location": "start"})
+    assert arr.metadata.to_dict()["codecs"][0]["configuration"]["index_location"] == "start"
+    reader = fast_reader(arr)
+    for region in [(slice(None),) * 3] + _random_regions(arr.shape, 20, seed=6):
+        _same(reader, arr, region)
+
+
+def test_layout_shaped_level(tmp_path):
+    """A level array as ingest lays it out (block 16: chunks 16³, shards (16, 128, 128)), shape not a multiple."""
+    arr = _array(tmp_path, "0", (40, 150, 140), "uint16", (16, 16, 16), (16, 128, 128))
+    reader = fast_reader(arr)
+    _same(reader, arr, (slice(16, 32), slice(0, 128), slice(0, 128)))  # exactly one shard
+    _same(reader, arr, (slice(None),) * 3)
+    for region in _random_regions(arr.shape, 30, seed=7):
+        _same(reader, arr, region)
+
+
+def test_rewritten_shard_is_reread(tmp_path):
+    arr = _array(tmp_path, "w", (16, 16, 16), "uint16", (8, 8, 8), (16, 16, 16))
+    reader = fast_reader(arr)
+    before = reader.read_region((slice(None),) * 3)
+    writable = zarr.open_group(tmp_path, mode="a")["w"]
+    writable[0:8, 0:8, 0:8] = 1  # shard rewritten with a different layout; index cache keyed by mtime and size
+    new = zarr.open_group(tmp_path, mode="r")["w"]
+    _same(reader, new, (slice(None),) * 3)
+    assert not np.array_equal(before, reader.read_region((slice(None),) * 3))
+
+
+def test_non_unit_step_falls_back_to_zarr(tmp_path):
+    arr = _array(tmp_path, "s", (20, 20, 20), "uint8", (4, 4, 4), (8, 8, 8))
+    _same(fast_reader(arr), arr, (slice(0, 20, 2), slice(None), slice(1, 19, 3)))
+
+
+def test_bad_region_is_refused(tmp_path):
+    arr = _array(tmp_path, "r", (8, 8, 8), "uint8", (4, 4, 4), (8, 8, 8))
+    with pytest.raises(TypeError):
+        fast_reader(arr).read_region((slice(None), slice(None)))
+    with pytest.raises(TypeError):
+        fast_reader(arr).read_region((0, slice(None), slice(None)))
+
+
+def test_corrupt_index_is_detected(tmp_path):
+    if shardio._crc32c is None:
+        pytest.skip("no crc32c implementation: the index checksum is not verified")
+    arr = _array(tmp_path, "c", (8, 8, 8), "uint16", (4, 4, 4), (8, 8, 8))
+    shard = tmp_path / "c" / "c" / "0" / "0" / "0"
+    raw = bytearray(shard.read_bytes())
+    raw[-10] ^= 0xFF  # inside the index, before the checksum
+    shard.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="checksum"):
+        fast_reader(arr).read_region((slice(None),) * 3)
+
+
+def test_unsupported_arrays_return_none(tmp_path):
+    group = zarr.open_group(tmp_path, mode="a")
+    unsharded = group.create_array("plain", shape=(10, 10, 10), dtype="uint16", chunks=(4, 4, 4), compressors=BITSHUFFLE)
+    assert fast_reader(unsharded) is None
+    zstd_inner = group.create_array("zstd", shape=(10, 10, 10), dtype="uint16", chunks=(4, 4, 4), shards=(8, 8, 8))
+    assert fast_reader(zstd_inner) is None  # zarr's default compressor (zstd codec) is not handled
+    transposed = group.create_array("t", shape=(10, 10, 10), dtype="uint16", chunks=(4, 4, 4), shards=(8, 8, 8),
+                                    filters=[zarr.codecs.TransposeCodec(order=(2, 1, 0))], compressors=BITSHUFFLE)
+    assert fast_reader(transposed) is None
+    memory = zarr.open_group(zarr.storage.MemoryStore(), mode="w")
+    in_memory = memory.create_array("m", shape=(10, 10, 10), dtype="uint16", chunks=(4, 4, 4), shards=(8, 8, 8),
+                                    compressors=BITSHUFFLE)
+    assert fast_reader(in_memory) is None
+    v2 = zarr.open_array(tmp_path / "v2", mode="w", shape=(10, 10, 10), chunks=(4, 4, 4), dtype="uint16", zarr_format=2)
+    assert fast_reader(v2) is None
+    assert fast_reader(np.zeros((4, 4, 4))) is None
+
+
+def test_work_units_tile_the_region_once(tmp_path):
+    """The pieces a region is split into cover each of its chunks exactly once and never straddle a shard."""
+    arr = _array(tmp_path, "u", (70, 300, 260), "uint8", (8, 8, 8), (16, 64, 64), data=False)
+    reader = fast_reader(arr)
+    for region in _random_regions(arr.shape, 30, seed=9) + [(slice(None),) * 3]:
+        lo = tuple(s.indices(n)[0] for s, n in zip(region, arr.shape))
+        hi = tuple(s.indices(n)[1] for s, n in zip(region, arr.shape))
+        hits = np.zeros([-(-n // 8) for n in arr.shape], np.int32)
+        for c0, c1 in reader._units(lo, hi):
+            assert all(a < b for a, b in zip(c0, c1))
+            assert all(a // p == (b - 1) // p for a, b, p in zip(c0, c1, (2, 8, 8)))
+            hits[tuple(slice(a, b) for a, b in zip(c0, c1))] += 1
+        want = np.zeros_like(hits)
+        want[tuple(slice(a // 8, -(-b // 8)) for a, b in zip(lo, hi))] = 1
+        assert np.array_equal(hits, want)
