@@ -77,6 +77,7 @@ class Store:
         except KeyError as exc:
             raise StoreInvalid(f"{location} is not a complete lodcast store: attribute {exc} is missing") from None
         self.layout = Layout(self.shape, self.block_size)
+        self._readers: dict[str, Any] = {}  # array path -> ShardedReader, or False: zarr-python reads it
 
     # --- geometry -------------------------------------------------------------------------------------------
     @property
@@ -104,10 +105,22 @@ class Store:
 
     def read_region(self, k: int, region: tuple = ...) -> np.ndarray:  # type: ignore[assignment]
         """Samples `region` (a tuple of slices, or ... for all) of level k."""
+        return self._read(str(k), region)
+
+    def _read(self, path: str, region: tuple) -> np.ndarray:
+        """A region of the array at `path`: local stores through the shard-level reader (store/shardio.py: 8-10x
+        zarr-python's per-chunk cost on 16³ and 8³ blocks), others through zarr-python."""
+        reader = self._readers.get(path)
+        if reader is None:
+            from lodcast.store.shardio import fast_reader
+
+            reader = self._readers[path] = fast_reader(self.group[path]) or False
+        if reader is not False:
+            return reader.read_region(tuple(slice(None) for _ in range(3)) if region is ... else region)
         # zarr decodes one inner chunk at a time unless batched: for a whole level of the chest CT at 16³ blocks
         # (9,400 chunks) batching 256 measured 4.1 -> 2.7 s, at 8³ blocks (143,000 chunks) 30 -> 20 s
         with zarr.config.set({"codec_pipeline.batch_size": 256}):
-            return np.asarray(self.level(k)[region])
+            return np.asarray(self.group[path][region])
 
     def read_level(self, k: int) -> np.ndarray:
         return self.read_region(k)
@@ -130,8 +143,7 @@ class Store:
             full = self.layout.level_shape(k)
             sl = (slice(None),) * 3 if region is ... else region
             return np.zeros(tuple(len(range(*s.indices(n))) for s, n in zip(sl, full)), np.float32)
-        with zarr.config.set({"codec_pipeline.batch_size": 256}):
-            return np.asarray(self.group[f"std/{k}"][region])
+        return self._read(f"std/{k}", region)
 
     def read_brick(self, k: int, block: tuple[int, int, int]) -> np.ndarray:
         """Block `block` at level k as a full (B/2^k)³ brick; samples past the volume repeat the edge (the same
