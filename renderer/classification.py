@@ -33,15 +33,16 @@ import numpy as np
 
 from lodcast.renderer.transfer_function import Lut, build_lut, extinction
 
-__all__ = ["EXT_CAP", "DIST_STD_ROWS", "DIST_MAX_ENTRIES", "DistTable", "dist_table", "cached_dist_table",
+__all__ = ["EXT_CAP", "EXT_ZERO", "DIST_STD_ROWS", "DIST_MAX_ENTRIES", "DistTable", "dist_table", "cached_dist_table",
            "gaussian_expectation"]
 
 EXT_CAP = 30.0
+EXT_ZERO = 1e-7
 DIST_STD_ROWS = 64
 DIST_MAX_ENTRIES = 4096
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # identity hash: cached per object
 class DistTable:
     """σ̄ and colour ε̄/σ̄ over (std row j, mean entry i); entry i at value lo + i/scale, row j at
     std_max·(j/(rows − 1))²."""
@@ -72,13 +73,22 @@ class DistTable:
         return np.where(self.ext[..., None] > 0, c, self.rgb[None])
 
     def kernel_table(self) -> np.ndarray:
-        """(rows + 1, n + 1, 4) float32: colour and σ̄, the last entry and the last row repeated once so that the
-        kernel's bilinear lookup reads (i + 1, j + 1) without a clamp."""
+        """(rows + 2, n + 1, 4) float32: colour and σ̄, the last entry and the last row repeated once so that the
+        kernel's bilinear lookup reads (i + 1, j + 1) without a clamp; then one row of visible spans: entry j holds
+        (first, last) entry index where σ̄ > 0 in row j or j + 1, so that the kernel skips the lookup outside."""
         t = np.empty((self.rows, self.n, 4), np.float32)
         t[..., :3] = self.colour()
         t[..., 3] = self.ext
         t = np.concatenate([t, t[:, -1:]], axis=1)
-        return np.ascontiguousarray(np.concatenate([t, t[-1:]], axis=0))
+        t = np.concatenate([t, t[-1:]], axis=0)
+        spans = np.zeros((1, self.n + 1, 4), np.float32)
+        spans[0, :, 0], spans[0, :, 1] = self.n + 1.0, -2.0  # empty rows: nothing is visible
+        vis = self.ext > 0
+        vis = vis | np.concatenate([vis[1:], vis[-1:]], axis=0)
+        for j in np.flatnonzero(vis.any(axis=1)):
+            nz = np.flatnonzero(vis[j])
+            spans[0, j, :2] = nz[0], nz[-1]
+        return np.ascontiguousarray(np.concatenate([t, spans], axis=0))
 
     def lookup(self, mean, std) -> tuple[np.ndarray, np.ndarray]:
         """(colour (..., 3), σ̄ (...)) as the kernel's bilinear lookup gives them (float64, for tests and
@@ -90,7 +100,7 @@ class DistTable:
         i = np.minimum(fi.astype(np.intp), max(self.n - 2, 0))
         j = np.minimum(fj.astype(np.intp), max(self.rows - 2, 0))
         wi, wj = fi - i, fj - j
-        t = self.kernel_table().astype(np.float64)
+        t = self.kernel_table()[:-1].astype(np.float64)
         i1, j1 = i + (self.n > 1), j + (self.rows > 1)
         e = ((t[j, i] * (1 - wi)[..., None] + t[j, i1] * wi[..., None]) * (1 - wj)[..., None]
              + (t[j1, i] * (1 - wi)[..., None] + t[j1, i1] * wi[..., None]) * wj[..., None])
@@ -140,9 +150,10 @@ def dist_table(lut: Lut, std_max: float, rows: int = DIST_STD_ROWS) -> DistTable
     out = np.empty((rows, 4, n))
     for j, sd in enumerate(stds):
         out[j] = gaussian_expectation(chan, sd / h)
-    # FFT rounding leaves ~1e-16 of the largest value where the expectation is 0: zero it, so that the kernel's
-    # visibility test (σ̄ > 0) still skips what is far from every visible value
-    out[out < 1e-13 * max(float(chan.max()), 1e-300)] = 0.0
+    # FFT rounding leaves ~1e-16 of the largest value where the expectation is 0, and a Gaussian's far tail adds
+    # extinctions no image can show: below EXT_ZERO per unit distance (opacity 1e-4 over a thousand units) it is
+    # zeroed, so that the kernel's visible spans skip what only a far tail reaches
+    np.copyto(out, 0.0, where=(out[:, :1, :] < EXT_ZERO))
     return DistTable(lut.lo, lut.scale / stride, n, std_max, rows, out[:, 0, :], np.moveaxis(out[:, 1:, :], 1, 2), rgb)
 
 

@@ -9,19 +9,23 @@
  * expected extinction and colour under N(v, sd^2) from the 2D table dtab (bilinear in value and sqrt(sd)) and
  * composites in extinction form, alpha = 1 - exp(-ext * length): exact for any segment length, so adaptive steps
  * need no per-level table. sd = 0 takes the point classification below, unchanged.
- * Uses, from the kernel: lut, lut_ext, lut_scale, lut_off, lut_vis_lo, lut_vis_hi, (LC_DIST) dtab, dist_*, dt_u,
- * and the ray state C, T, done (LC_PRECISE: C_c, tau, tau_c; MIP: vmax).
+ * Compositing also adds up vis_len, the transmittance-weighted length (TF units) of the visible segments: how
+ * many unit slabs the pixel's colour is made of, which turns a per-voxel colour error into an image error
+ * (lodcast.renderer.selection.image_delta_e).
+ * Uses, from the kernel: lut, lut_ext, lut_scale, lut_off, lut_vis_lo, lut_vis_hi, dt_u, (LC_DIST) dtab, dist_*,
+ * and the ray state C, T, done, vis_len (LC_PRECISE: C_c, tau, tau_c; MIP: vmax).
  */
 #ifndef LC_CLASSIFY_H
 #define LC_CLASSIFY_H
 
-#ifdef LC_DIST
 /* length in TF units of the segment r describes */
 #ifdef LC_PRECISE
 #define LC_LEN_UNITS(r) ((r) * dt_u)
 #else
 #define LC_LEN_UNITS(r) ((r) >= 0.0f ? (r) : dt_u * (float)(1 << (int)(-1.0f - (r))))
 #endif
+
+#ifdef LC_DIST
 #define LC_DIST_LOOKUP(v, sd, e)                                                 \
     float4 e;                                                                    \
     {                                                                            \
@@ -41,6 +45,7 @@
     {                                                                            \
         const float depth = e.w * LC_LEN_UNITS(r);                               \
         const float alpha = -expm1(-depth);                                      \
+        vis_len += T * LC_LEN_UNITS(r);                                          \
         const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
         const float3 s3 = C + y3;                                                \
         C_c = (s3 - C) - y3;                                                     \
@@ -55,16 +60,23 @@
 #else
 #define LC_DIST_COMPOSITE(e, r)                                                  \
     {                                                                            \
-        const float wgt = T * -expm1(-e.w * LC_LEN_UNITS(r));                    \
+        vis_len += T * LC_LEN_UNITS(r);                                          \
+        const float wgt = T * (1.0f - native_exp(-e.w * LC_LEN_UNITS(r)));       \
         C += wgt * e.xyz;                                                        \
         T -= wgt;                                                                \
         done = T <= t_stop;                                                      \
     }
 #endif
-/* a coarse sample (sd > 0, not NaN): by its distribution; else falls through to the point classification */
+/* a coarse sample (sd > 0, not NaN): by its distribution; else falls through to the point classification.
+ * The row after the table holds, per row pair (j, j + 1), the span of entries where the expected extinction is
+ * non-zero: outside it the sample is transparent without the bilinear lookup. */
 #define LC_DIST_BODY(v, sd, r)                                                   \
     if ((sd) > 0.0f) {                                                           \
-        if ((v) == (v)) {                                                        \
+        float fj0_ = sqrt(sd) * dist_sscale;                                     \
+        fj0_ = fj0_ < dist_jmax ? fj0_ : dist_jmax;                              \
+        const float4 sp_ = dtab[dist_spans + (int)fj0_];                         \
+        const float fi0_ = (v) * dist_scale + dist_off;                          \
+        if (fi0_ > sp_.x - 1.0f && fi0_ < sp_.y + 1.0f) {                        \
             LC_DIST_LOOKUP(v, sd, e)                                             \
             if (e.w > 0.0f) LC_DIST_COMPOSITE(e, r)                              \
         }                                                                        \
@@ -102,6 +114,7 @@
         LC_TF_LOOKUP(v, e)                                                       \
         const float depth = e.w * (r);                                           \
         const float alpha = -expm1(-depth);                                      \
+        vis_len += T * LC_LEN_UNITS(r);                                          \
         const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
         const float3 s3 = C + y3;                                                \
         C_c = (s3 - C) - y3;                                                     \
@@ -137,6 +150,7 @@
             alpha = -expm1(-(r) * sg_);                                          \
         }                                                                        \
         LC_LEVEL_ALPHA(r)                                                        \
+        vis_len += T * LC_LEN_UNITS(r);                                          \
         const float wgt = T * alpha;                                             \
         C += wgt * e.xyz;                                                        \
         T -= wgt;                                                                \

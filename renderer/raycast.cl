@@ -59,7 +59,7 @@
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
-                        __global const half* sig, __global const float4* dtab) {
+                        __global const ushort* sig, __global const float4* dtab, __global float* vis_out) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
@@ -75,11 +75,12 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
     const float t_stop = 1.0f - P->early_term; /* terminate once transmittance <= this */
+    const float dt_u = P->step * P->inv_unit; /* a base step in TF units */
 #ifdef LC_DIST
     const float dist_scale = P->dist_scale, dist_off = -P->dist_lo * P->dist_scale;
     const float dist_fmax = (float)(P->dist_n - 1), dist_jmax = (float)(P->dist_rows - 1);
-    const float dist_sscale = P->dist_sscale, dt_u = P->step * P->inv_unit;
-    const int dist_row = P->dist_n + 1;
+    const float dist_sscale = P->dist_sscale;
+    const int dist_row = P->dist_n + 1, dist_spans = (P->dist_rows + 1) * dist_row;
 #endif
 
     float3 C = (float3)(0.0f);
@@ -89,6 +90,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float tau = 0.0f, tau_c = 0.0f;
 #endif
     float vmax = -INFINITY;
+    float vis_len = 0.0f;
     uint taken = 0;
     int done = 0;
 
@@ -297,4 +299,5 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
     out[pix] = res;
     nsamples[pix] = taken;
+    vis_out[pix] = vis_len;
 }

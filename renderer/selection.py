@@ -45,12 +45,14 @@ it, not a bound on it. TF-empty blocks are excluded (they show nothing either wa
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
-from lodcast.renderer.significance import BlockMeta, block_significance, level_profile, meta_of_store
+from lodcast.renderer.level_error import level_zeta
+from lodcast.renderer.significance import BlockMeta, block_significance, level_profile, meta_of_store, tf_visible
 
 __all__ = ["LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "BYTES_PER_SAMPLE", "MB"]
 
@@ -58,6 +60,14 @@ BYTES_PER_SAMPLE = 4
 MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
 
 METHODS = ("tf", "tf_full_hist", "l2", "uniform")
+#: "lossless" with per-level significance: every block at the coarsest level whose ζ (RMS unit-slab ΔE per voxel)
+#: stays within this of level 0 (LODCAST_LOSSLESS_ZETA overrides it for experiments)
+LOSSLESS_ZETA = float(os.environ.get("LODCAST_LOSSLESS_ZETA", "0.5"))
+#: image-space calibration of the predicted ΔE (see module doc): measured on the chest CT (ct-bone, ct-skin,
+#: ct-skin-bone, two views, 5:1 ... 100:1), mean ΔE ≈ IMAGE_GAIN · RMS(ζ / ā), ā a block's opacity-weighted mean
+#: opacity (translucent structures add up colour errors over ~1/ā unit slabs along a ray; opaque ones show one)
+IMAGE_GAIN = 1.3
+MIN_OPACITY = 0.05
 
 
 @dataclass(frozen=True)
@@ -296,7 +306,10 @@ def greedy(
 
 
 # --------------------------------------------------------------------------------------------- entry
-def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray) -> float:
+def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray, opac: np.ndarray | None = None) -> float:
+    """The selection's predicted image ΔE (see module doc): the count-weighted RMS of ζ at the chosen levels;
+    with the blocks' opacity moments (N, 2) known, times IMAGE_GAIN / ā, ā the opacity-weighted mean opacity of
+    every loaded voxel."""
     loaded = levels >= 0
     if not loaded.any():
         return 0.0
@@ -304,7 +317,11 @@ def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray) -> f
     w = np.nan_to_num(count[loaded].astype(np.float64))
     if w.sum() <= 0:
         return 0.0
-    return float(np.sqrt((w * z * z).sum() / w.sum()))
+    rms = float(np.sqrt((w * z * z).sum() / w.sum()))
+    if opac is None:
+        return rms
+    m1, m2 = (w[:, None] * opac[loaded]).sum(axis=0)
+    return IMAGE_GAIN * rms / max(m2 / m1 if m1 > 0 else 1.0, MIN_OPACITY)
 
 
 def select_from_meta(
@@ -317,6 +334,7 @@ def select_from_meta(
     in_crop: np.ndarray | None = None,
     max_level: np.ndarray | None = None,
     method: str = "tf",
+    classification: str = "distribution",
 ) -> LodSelection:
     """select_lod on flattened block metadata (what the benchmarks and tests drive directly)."""
     if method not in METHODS:
@@ -331,7 +349,19 @@ def select_from_meta(
     sig_method = "tf_full_hist" if method == "tf_full_hist" else "tf"
     z0, visible = block_significance(meta, tfs, sig_method)
     prof = level_profile(L)
-    zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
+    per_level = meta.level_std is not None and method == "tf"
+    opac = None
+    if per_level:  # what each level will show under the kernel's classification (level_error.py)
+        zeta_tab = np.zeros((n, L))
+        opac = np.zeros((n, 2))
+        for t in ([tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs):
+            vis_t = tf_visible(t, meta.min_border, meta.max_border)
+            z_t, o_t = level_zeta(meta, t, vis_t, meta.value_range, meta.std_max, classification)
+            zeta_tab = np.maximum(zeta_tab, z_t)
+            opac = np.maximum(opac, o_t)
+        zeta_tab = zeta_tab.astype(np.float32)
+    else:
+        zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
     if kind == "full":
         levels = np.where(crop, maxlev, -1)
     else:
@@ -343,7 +373,13 @@ def select_from_meta(
             drive = z0
         refine = loaded & (drive > 0) & (maxlev < L - 1)
         base_samples = int(loaded.sum()) * int(nsamp[L - 1])
-        if kind == "lossless":
+        if kind == "lossless" and per_level:
+            # the coarsest level each block shows within LOSSLESS_ZETA of its level-0 colours
+            # (levels finer than a block's max level count as fine: they are not allowed anyway)
+            ok = (zeta_tab <= LOSSLESS_ZETA) | (np.arange(L)[None, :] < maxlev[:, None])
+            first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
+            levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
+        elif kind == "lossless":
             levels[refine] = maxlev[refine]
         else:
             budget_samples = int(budget // BYTES_PER_SAMPLE)
@@ -360,6 +396,10 @@ def select_from_meta(
                     if int(nsamp[lv].sum()) <= budget_samples:
                         levels[loaded] = lv
                         break
+            elif per_level:
+                refine &= zeta_tab.max(axis=1) > 0
+                rows = np.flatnonzero(refine)
+                levels[rows] = greedy(zeta_tab[rows].astype(np.float64), maxlev[rows], nsamp, budget_samples - base_samples)
             else:
                 rows = np.flatnonzero(refine)
                 ztab = drive[rows, None] * prof[None, :]
@@ -370,7 +410,7 @@ def select_from_meta(
     return LodSelection(
         levels=levels.astype(np.int8).reshape(meta.grid),
         zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
-        predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, meta.count),
+        predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, meta.count, opac),
         bytes=nbytes,
         reduction=(full_bytes / nbytes) if nbytes else float("inf"),
         blocks_skipped=int((~loaded).sum()),
@@ -383,7 +423,8 @@ def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
     return zeta0_l2(meta, visible)
 
 
-def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np.ndarray | None = None) -> LodSelection:
+def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np.ndarray | None = None,
+               classification: str = "distribution") -> LodSelection:
     """Select a level per block for `tfs` (one TF, or a list: ζ is the max over them) under `quality`
     ("full" | "lossless" | {"budget_mb": x} | {"reduction": r}, or the scene's quality objects).
 
@@ -406,4 +447,5 @@ def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np
         in_crop=in_crop,
         max_level=max_level,
         method=method,
+        classification=classification,
     )

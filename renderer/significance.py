@@ -249,6 +249,9 @@ class BlockMeta:
     starts: np.ndarray  # (N, K + 1) bin indices
     heights: np.ndarray  # (N, K) mean count per bin
     hist: Any = None  # (N, nb) full histograms, or a callable returning them (read on demand)
+    level_std: np.ndarray | None = None  # (N, L) RMS spread of each block's level-k voxels; None: format-1 store
+    value_range: tuple[float, float] | None = None
+    std_max: float = 0.0
 
     @property
     def n(self) -> int:
@@ -289,6 +292,9 @@ def meta_of_store(store) -> BlockMeta:
         starts=np.asarray(starts).reshape(n, -1),
         heights=np.asarray(heights).reshape(n, -1),
         hist=_hist_reader(weakref.ref(store)),  # weak: the cache's value must not keep its key alive
+        level_std=None if getattr(store, "level_std", None) is None else np.asarray(store.level_std, np.float64).reshape(n, -1),
+        value_range=tuple(float(v) for v in store.value_range),
+        std_max=float(getattr(store, "std_max", 0.0)),
     )
     try:
         _META_CACHE[store] = meta

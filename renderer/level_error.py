@@ -1,0 +1,112 @@
+"""Significance per level under the classification the kernel will actually use (eq. 3.1 generalised).
+
+The thesis' ζ(0) compares the TF colour at a block's mean with the colours of its histogram, and spreads it
+linearly over the levels. With classification by distribution (classification.py) a coarse block no longer shows
+T*(mean): its level-k voxels show the Gaussian-classified colour of their own means and spreads. What a block
+loses at level k is then modelled from its histogram h and the store's per-block, per-level spread s_k (the RMS
+over the block's level-k voxels of the standard deviation of the level-0 values behind each):
+
+    ζ(k)² = (1/n) Σ_v h(v) |T*(v) − T̃(m̄ + ρ_k (v − m̄), s_k)|²,       ρ_k = √(1 − s_k² / s_top²)
+
+T* is the unit-slab colour in CIELUV (significance.py), T̃(m, s) the unit-slab colour of the distribution
+classification (1 − e^−σ̄)·ε̄/σ̄ at mean m and spread s ("mean" classification: s = 0, T̃ = T*), m̄ the block mean and
+s_top the spread at the one-sample level (the block's own standard deviation). A level-0 value v maps to the
+level-k mean m̄ + ρ_k (v − m̄): the law of total variance splits the block's variance s_top² into the part the
+level-k means keep (s_top² − s_k²) and the part inside each voxel (s_k²). The two ends are exact: level 0
+(s = 0, ρ = 1) gives ζ = 0, and the one-sample level (ρ = 0) gives the RMS difference between every value's
+colour and the single colour the block shows, which for mean classification is eq. 3.1 itself. In between it is a
+model (a value's level-k mean is taken as a shrunk copy of the value), and it knows what the mean loses: a thin
+bright structure among dark voxels keeps its colour under distribution classification and loses it under the
+mean.
+
+The sum runs over the simplified histogram's pieces (restricted to the block's border-inclusive value range) with
+three Gauss–Legendre nodes per piece; T* and T̃ are bilinear lookups in one CIELUV table per TF over the
+distribution table's (mean, √spread) grid, so the per-block work is O(K) table lookups per level.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+
+from lodcast.renderer.classification import DistTable, cached_dist_table
+from lodcast.renderer.significance import BlockMeta, as_tf, effective_starts, srgb_to_luv
+
+__all__ = ["level_zeta", "luv_table"]
+
+_NODES = np.array([-np.sqrt(3 / 5), 0.0, np.sqrt(3 / 5)])
+_WEIGHTS = np.array([5 / 9, 8 / 9, 5 / 9]) / 2.0  # on [−1, 1], normalised to the piece width
+_CHUNK = 8192
+
+
+@functools.lru_cache(maxsize=32)
+def _luv(table: DistTable) -> np.ndarray:
+    """CIELUV of the unit-slab colour (rows, n, 3) of a distribution table."""
+    alpha = -np.expm1(-table.ext)
+    return srgb_to_luv(alpha[..., None] * table.colour())
+
+
+def luv_table(tf: Any, value_range: tuple[float, float], std_max: float) -> tuple[DistTable, np.ndarray]:
+    """The distribution table of `tf` and its unit-slab colours in CIELUV (cached per TF)."""
+    t = cached_dist_table(as_tf(tf), value_range, std_max)
+    return t, _luv(t)
+
+
+def _lookup(t: DistTable, luv: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of `luv` (rows, n, 3) at (mean, std), as the kernel's table lookup."""
+    fi = np.clip((mean - t.lo) * t.scale, 0.0, t.n - 1.0)
+    i = np.minimum(fi.astype(np.intp), max(t.n - 2, 0))
+    wi = (fi - i)[..., None]
+    i1 = i + (t.n > 1)
+    if t.rows == 1 or not np.any(std > 0):
+        row = luv[0]
+        return row[i] + (row[i1] - row[i]) * wi
+    fj = np.clip(np.sqrt(np.maximum(std, 0.0)) * t.std_scale, 0.0, t.rows - 1.0)
+    j = np.minimum(fj.astype(np.intp), t.rows - 2)
+    wj = (fj - j)[..., None]
+    a = luv[j, i] + (luv[j, i1] - luv[j, i]) * wi
+    b = luv[j + 1, i] + (luv[j + 1, i1] - luv[j + 1, i]) * wi
+    return a + (b - a) * wj
+
+
+def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
+               classification: str = "distribution") -> tuple[np.ndarray, np.ndarray]:
+    """(ζ(k) per block and level (N, L) float64: 0 at level 0, 0 for invisible and constant blocks; per block the
+    mean TF opacity and the mean squared TF opacity over its values (N, 2), 0 for blocks not evaluated)."""
+    assert meta.level_std is not None, "level_zeta needs a store with per-level spreads (format >= 2)"
+    assert classification in ("distribution", "mean")
+    n_lv = meta.n_levels
+    out = np.zeros((meta.n, n_lv))
+    opac = np.zeros((meta.n, 2))
+    todo = np.flatnonzero(visible & (meta.max_border > meta.min_border) & np.isfinite(meta.mean))
+    if todo.size == 0 or n_lv == 1:
+        return out, opac
+    from lodcast.renderer.transfer_function import evaluate
+
+    tf = as_tf(tf)
+    t, luv = luv_table(tf, value_range, std_max)
+    edges = meta.bins.edges
+    starts = effective_starts(meta)
+    for c0 in range(0, todo.size, _CHUNK):
+        rows = todo[c0 : c0 + _CHUNK]
+        st = starts[rows]
+        lo, hi = edges[st[:, :-1]], edges[st[:, 1:]]  # (m, K) value interval of each piece
+        w = (st[:, 1:] - st[:, :-1]) * meta.heights[rows].astype(np.float64)  # voxels in each piece
+        total = w.sum(axis=1)
+        x = 0.5 * (lo + hi)[..., None] + 0.5 * (hi - lo)[..., None] * _NODES  # (m, K, 3) values
+        wq = (w[..., None] * _WEIGHTS * 2.0) / np.maximum(total, 1e-300)[:, None, None]
+        tstar = _lookup(t, luv, x, np.zeros_like(x))
+        a = evaluate(tf, x)[1]
+        opac[rows, 0] = (wq * a).sum(axis=(1, 2))
+        opac[rows, 1] = (wq * a * a).sum(axis=(1, 2))
+        mbar = meta.mean[rows][:, None, None]
+        s = np.asarray(meta.level_std[rows], np.float64)  # (m, L)
+        s_top = np.maximum(s[:, -1], 1e-300)
+        for k in range(1, n_lv):
+            rho = np.sqrt(np.clip(1.0 - (s[:, k] / s_top) ** 2, 0.0, 1.0))[:, None, None]
+            sk = s[:, k][:, None, None] * np.ones_like(x) if classification == "distribution" else np.zeros_like(x)
+            shown = _lookup(t, luv, mbar + rho * (x - mbar), sk)
+            d2 = ((tstar - shown) ** 2).sum(axis=-1)
+            out[rows, k] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0))
+    return out, opac
