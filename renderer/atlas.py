@@ -48,7 +48,8 @@ class BrickCache(ByteLru):
 
     def __init__(self, max_bytes: int):
         super().__init__(max_bytes)
-        self.reads = 0  # bricks read from stores since creation (tests count these)
+        self.reads = 0  # bricks of values read from stores since creation (tests count these)
+        self.std_reads = 0  # bricks of standard deviations read
 
     def put(self, key: tuple, a: np.ndarray) -> None:  # type: ignore[override]
         super().put(key, a, a.nbytes)
@@ -78,13 +79,15 @@ class AtlasLoad:
 
 def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, int]], what: str = "mean") -> dict:
     """The bricks `blocks` (all in one shard of `level`), read as one region and cut into edge-padded bricks:
-    the values ("mean") or the standard deviations behind them ("std", float16)."""
+    the values ("mean") or the standard deviations behind them ("std", float16 in units of vol.std_unit)."""
     regs = [lay.block_region(*b, level=level) for b in blocks]
     lo = [min(r[a].start for r in regs) for a in range(3)]
     hi = [max(r[a].stop for r in regs) for a in range(3)]
     region = tuple(slice(l, h) for l, h in zip(lo, hi))
-    data = vol.read_region(level, region) if what == "mean" else vol.read_std_region(level, region)
-    dtype = np.float32 if what == "mean" else np.float16
+    if what == "mean":
+        data, dtype = vol.read_region(level, region), np.float32
+    else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
+        data, dtype = vol.read_std_region(level, region) / np.float32(vol.std_unit), np.float16
     e = lay.block_edge(level)
     out = {}
     for b, r in zip(blocks, regs):
@@ -129,14 +132,19 @@ def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
             bricks[key] = a
             if vol.key is not None:
                 cache.put((base, *key), a)
-    cache.reads += n_read
+    if what == "mean":
+        cache.reads += n_read
+    else:
+        cache.std_reads += n_read
     return AtlasLoad(bricks, n_read, n_cached, int(np.count_nonzero(levels < 0)), len(futs),
                      (time.perf_counter() - t) * 1e3)
 
 
 def neighbourhood_max(levels: np.ndarray) -> np.ndarray:
-    """Per block: the largest level over its 3x3x3 neighbourhood (itself included; unloaded blocks count as 0)."""
-    lv = np.maximum(np.asarray(levels, np.int64), 0)
+    """Per block: the largest value over its 3x3x3 neighbourhood (itself included). Levels: unloaded blocks
+    (-1) count as 0; float arrays (block infos) are taken as they are."""
+    levels = np.asarray(levels)
+    lv = np.maximum(levels.astype(np.int64), 0) if levels.dtype.kind in "iu" else levels
     pad = np.pad(lv, 1, mode="edge")
     out = lv.copy()
     G = lv.shape

@@ -3,21 +3,22 @@
 The thesis' ζ(0) compares the TF colour at a block's mean with the colours of its histogram, and spreads it
 linearly over the levels. With classification by distribution (classification.py) a coarse block no longer shows
 T*(mean): its level-k voxels show the Gaussian-classified colour of their own means and spreads. What a block
-loses at level k is then modelled from its histogram h and the store's per-block, per-level spread s_k (the RMS
-over the block's level-k voxels of the standard deviation of the level-0 values behind each):
+loses at level k is modelled from its histogram h and the store's per-block, per-level spread s_k (the RMS over
+the block's level-k voxels of the standard deviation of the level-0 values behind each):
 
-    ζ(k)² = (1/n) Σ_v h(v) |T*(v) − T̃(m̄ + ρ_k (v − m̄), s_k)|²,       ρ_k = √(1 − s_k² / s_top²)
+    ζ(k)² = (1/n_vis) Σ_v h(v) |T*(v) − T̃(v, s_k)|²,        n_vis = max(visible voxels, n / B)
 
 T* is the unit-slab colour in CIELUV (significance.py), T̃(m, s) the unit-slab colour of the distribution
-classification (1 − e^−σ̄)·ε̄/σ̄ at mean m and spread s ("mean" classification: s = 0, T̃ = T*), m̄ the block mean and
-s_top the spread at the one-sample level (the block's own standard deviation). A level-0 value v maps to the
-level-k mean m̄ + ρ_k (v − m̄): the law of total variance splits the block's variance s_top² into the part the
-level-k means keep (s_top² − s_k²) and the part inside each voxel (s_k²). The two ends are exact: level 0
-(s = 0, ρ = 1) gives ζ = 0, and the one-sample level (ρ = 0) gives the RMS difference between every value's
-colour and the single colour the block shows, which for mean classification is eq. 3.1 itself. In between it is a
-model (a value's level-k mean is taken as a shrunk copy of the value), and it knows what the mean loses: a thin
-bright structure among dark voxels keeps its colour under distribution classification and loses it under the
-mean.
+classification (1 − e^−σ̄)·ε̄/σ̄ at mean m and spread s: every value is seen through the spread of the level-k voxel
+that holds it, so a block whose colours change within s_k of its values loses them, and one whose TF is flat
+there keeps them ("mean" classification: T̃ = T*(m) at the coarse mean, the value shrunk towards the block mean
+by √(1 − s_k²/s_top²), the law of total variance's share of the level-k means). Level 0 (s = 0) gives ζ = 0.
+
+Normalising by the visible voxels rather than all of them is what the image needs: a thin visible structure (skin,
+a vessel wall, a rib's cortex) is a small share of its block's voxels but covers the block's whole projection, so
+its error is not diluted by the transparent rest; the floor n / B is a one-voxel sheet across the block.
+Measured on the chest CT (NB, 128², 10/30/64:1), this ranked better than comparing with the colour at the coarse
+mean (fig. 3.4 sums 56.8 against 62.9 mean ΔE over bone, skin and skin-bone).
 
 The sum runs over the simplified histogram's pieces (restricted to the block's border-inclusive value range) with
 three Gauss–Legendre nodes per piece; T* and T̃ are bilinear lookups in one CIELUV table per TF over the
@@ -98,15 +99,19 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
         wq = (w[..., None] * _WEIGHTS * 2.0) / np.maximum(total, 1e-300)[:, None, None]
         tstar = _lookup(t, luv, x, np.zeros_like(x))
         a = evaluate(tf, x)[1]
+        vis_frac = (wq * (a > 0)).sum(axis=(1, 2))
         opac[rows, 0] = (wq * a).sum(axis=(1, 2))
         opac[rows, 1] = (wq * a * a).sum(axis=(1, 2))
         mbar = meta.mean[rows][:, None, None]
         s = np.asarray(meta.level_std[rows], np.float64)  # (m, L)
         s_top = np.maximum(s[:, -1], 1e-300)
+        sheet = np.maximum(vis_frac, 1.0 / (1 << (n_lv - 1)))  # n_vis / n, at least a one-voxel sheet
         for k in range(1, n_lv):
-            rho = np.sqrt(np.clip(1.0 - (s[:, k] / s_top) ** 2, 0.0, 1.0))[:, None, None]
-            sk = s[:, k][:, None, None] * np.ones_like(x) if classification == "distribution" else np.zeros_like(x)
-            shown = _lookup(t, luv, mbar + rho * (x - mbar), sk)
+            if classification == "distribution":
+                shown = _lookup(t, luv, x, s[:, k][:, None, None] * np.ones_like(x))
+            else:
+                rho = np.sqrt(np.clip(1.0 - (s[:, k] / s_top) ** 2, 0.0, 1.0))[:, None, None]
+                shown = _lookup(t, luv, mbar + rho * (x - mbar), np.zeros_like(x))
             d2 = ((tstar - shown) ** 2).sum(axis=-1)
-            out[rows, k] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0))
+            out[rows, k] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0) / sheet)
     return out, opac

@@ -34,7 +34,7 @@ from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.program import device_info, get_context, get_program
 from lodcast.renderer.sampler import upload_level0
-from lodcast.renderer.scene import Scene, SceneError
+from lodcast.renderer.scene import QualityBudget, QualityReduction, Scene, SceneError
 from lodcast.renderer.structs import new_params
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.volume import VolumeView, as_volume
@@ -69,7 +69,10 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
     """`distribution`: whether the volume keeps the distributions behind its coarse voxels (the scene decides
     whether to use them)."""
     s = scene.sampling
-    adaptive = lod and (s.adaptive_object is not False or s.adaptive_naive)
+    # default (None): on at the budgeted qualities, where coarse levels are chosen to save time; off at "lossless",
+    # which promises the full-resolution image (adaptive steps added 0.27 mean ΔE there on the chest CT)
+    auto = isinstance(scene.quality, (QualityReduction, QualityBudget))
+    adaptive = lod and (s.adaptive_object is True or (s.adaptive_object is None and auto) or s.adaptive_naive)
     return KernelConfig(
         sampler="atlas" if lod else "full",
         interpolation=s.interpolation if lod else "trilinear",
@@ -117,7 +120,9 @@ def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: 
     p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
     if dist is not None:
         p["dist_n"], p["dist_rows"] = dist.n, dist.rows
-        p["dist_lo"], p["dist_scale"], p["dist_sscale"] = dist.lo, dist.scale, dist.std_scale
+        # the atlas holds standard deviations in units of vol.std_unit; the kernel only takes their square root
+        p["dist_lo"], p["dist_scale"] = dist.lo, dist.scale
+        p["dist_sscale"] = dist.std_scale * math.sqrt(vol.std_unit)
     return p.reshape(1)
 
 
@@ -165,12 +170,21 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None) -> tuple[n
 
 
 def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
-              mode: str) -> tuple[LodPlan, np.ndarray, int]:
-    """The selection, the block info with unloaded blocks marked empty, and the number of empty blocks."""
+              mode: str) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
+    """The selection, the block info with unloaded blocks marked empty, the number of empty blocks, and the kernel
+    configuration (the default adaptive sampling is dropped when every block is at level 0)."""
     lv, sel = _select(vol, scene, levels)
+    if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
+        cfg = replace(cfg, adaptive=False)  # the default: every block at level 0 leaves nothing to step over
     info = info.copy()
     missing = lv < 0
     info[missing] = -np.inf if mode == "mip" else 0.0
+    # interblock interpolation reaches half a sample of a coarse block (2^(k-1) voxels) past its faces, further
+    # than the one-voxel border of the block ranges: where a coarse block is near, a block may show what its
+    # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
+    near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing
+    if near_coarse.any() and scene.sampling.interpolation == "interblock":  # nearest block reads its own block only
+        info = np.where(near_coarse, lod_atlas.neighbourhood_max(info), info).astype(np.float32)
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
     B = vol.block_size
     if sel is not None:
@@ -182,7 +196,7 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     if cfg.adaptive:
         skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
         steps = lod_atlas.step_levels(lv, scene.sampling.interpolation, skip)
-    return LodPlan(lv, reduction, pred, steps, sel), info, n_empty
+    return LodPlan(lv, reduction, pred, steps, sel), info, n_empty, cfg
 
 
 def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None) -> Prepared:
@@ -205,7 +219,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     use_lod = levels is not None or scene.quality != "full"
     cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution)
     if use_lod:
-        lod, info, n_empty = _lod_plan(vol, scene, levels, info, cfg, scene.mode)
+        lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode)
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
     if cfg.ess and scene.mode == "composite" and n_empty == 0 and cfg.sampler == "full":

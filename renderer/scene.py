@@ -176,9 +176,10 @@ class Sampling(_Model):
     extinction and colour under the distribution of the level-0 values it stands for (kept by the store), "mean"
     by the TF at its mean value; at level 0 both are the same.
     `adaptive_object`: adaptive object-space sampling at LOD qualities (thesis §3.6.1: the step grows with the
-    block's level, limited at block boundaries); left out (null), it is on at every LOD quality — a coarse level
-    holds no detail a finer step could find, and without it a reduction saves memory but no time — and off at
-    'full', where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
+    block's level, limited at block boundaries); left out (null), it is on at the budgeted qualities
+    (`{"reduction": r}`, `{"budget_mb": m}`) — a coarse level holds no detail a finer step could find, and without
+    it a reduction saves memory but no time — and off at 'lossless' (which promises the full-resolution image)
+    and at 'full', where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
     steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks)."""
 
     step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5

@@ -60,8 +60,9 @@ BYTES_PER_SAMPLE = 4
 MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
 
 METHODS = ("tf", "tf_full_hist", "l2", "uniform")
-#: "lossless" with per-level significance: every block at the coarsest level whose ζ (RMS unit-slab ΔE per voxel)
-#: stays within this of level 0 (LODCAST_LOSSLESS_ZETA overrides it for experiments)
+#: "lossless" with per-level significance: every block at the coarsest level whose ζ (RMS unit-slab ΔE per voxel),
+#: scaled to the image as the predicted ΔE is (IMAGE_GAIN / ā), stays within this of level 0
+#: (LODCAST_LOSSLESS_ZETA overrides it for experiments)
 LOSSLESS_ZETA = float(os.environ.get("LODCAST_LOSSLESS_ZETA", "0.5"))
 #: image-space calibration of the predicted ΔE (see module doc): measured on the chest CT (ct-bone, ct-skin,
 #: ct-skin-bone, two views, 5:1 ... 100:1), mean ΔE ≈ IMAGE_GAIN · RMS(ζ / ā), ā a block's opacity-weighted mean
@@ -318,10 +319,15 @@ def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray, opac
     if w.sum() <= 0:
         return 0.0
     rms = float(np.sqrt((w * z * z).sum() / w.sum()))
-    if opac is None:
-        return rms
+    return rms if opac is None else rms * _image_gain(opac, count, loaded)
+
+
+def _image_gain(opac: np.ndarray, count: np.ndarray, loaded: np.ndarray) -> float:
+    """IMAGE_GAIN / ā, ā the opacity-weighted mean TF opacity over the voxels of the `loaded` blocks (from the
+    blocks' opacity moments (N, 2))."""
+    w = np.nan_to_num(count[loaded].astype(np.float64))
     m1, m2 = (w[:, None] * opac[loaded]).sum(axis=0)
-    return IMAGE_GAIN * rms / max(m2 / m1 if m1 > 0 else 1.0, MIN_OPACITY)
+    return IMAGE_GAIN / max(m2 / m1 if m1 > 0 else 1.0, MIN_OPACITY)
 
 
 def select_from_meta(
@@ -376,7 +382,8 @@ def select_from_meta(
         if kind == "lossless" and per_level:
             # the coarsest level each block shows within LOSSLESS_ZETA of its level-0 colours
             # (levels finer than a block's max level count as fine: they are not allowed anyway)
-            ok = (zeta_tab <= LOSSLESS_ZETA) | (np.arange(L)[None, :] < maxlev[:, None])
+            gain = _image_gain(opac, meta.count, loaded)
+            ok = (zeta_tab * gain <= LOSSLESS_ZETA) | (np.arange(L)[None, :] < maxlev[:, None])
             first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
             levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
         elif kind == "lossless":

@@ -55,6 +55,12 @@ class VolumeView:
     def std_max(self) -> float:
         return float(getattr(self.source, "std_max", 0.0)) if self.has_distribution else 0.0
 
+    @property
+    def std_unit(self) -> float:
+        """The unit in which the device holds standard deviations (as float16): std_max / 32768, so that any data
+        unit keeps float16's 2^-11 relative precision (a float volume in metres or in micro-units alike)."""
+        return self.std_max / 32768.0 if self.std_max > 0 else 1.0
+
     def read_std_region(self, level: int, region: tuple) -> np.ndarray:
         """Standard deviations behind `region` of level `level` (the brick loader's read for classification)."""
         return self.source.read_std_region(level, region)

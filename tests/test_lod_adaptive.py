@@ -71,8 +71,11 @@ def test_limited_adaptive_samples_the_fine_block_over_its_whole_length(store, f)
     assert "-DLC_ADAPTIVE_NAIVE" in naive.report["build_options"]
     np.testing.assert_allclose(lim.rgba[..., 3], exact, atol=2e-5)
     assert np.abs(naive.rgba[..., 3] - exact).max() > 0.02  # the naive step runs into the fine block
-    uniform = render(store, _scene(cam), levels=LEVELS)
+    uniform = render(store, _scene(cam, adaptive_object=False), levels=LEVELS)
     assert lim.report["samples"] < uniform.report["samples"]
+    # adaptive sampling is the default at the budgeted qualities (the levels given replace the selection)
+    default = render(store, {**_scene(cam), "quality": {"reduction": 2}}, levels=LEVELS)
+    assert default.report["adaptive"] == "limited" and default.report["samples"] == lim.report["samples"]
 
 
 def test_samples_landing_in_the_fine_block_along_x(store):
@@ -80,12 +83,13 @@ def test_samples_landing_in_the_fine_block_along_x(store):
     fine block (ceil(16 / 0.7) = 23 base steps, the last cut at its far face) and block 3 (two steps); blocks 0
     and 4 are empty (skipped). Limited: exactly 27 samples per ray, 23 of them inside the fine block. With II the
     cells are half blocks and the halves next to the fine block take its step (their interblock neighbourhood
-    holds it): 1 + 12 + 2 x 12 + 12 + 1 = 50."""
+    holds it): 1 + 12 + 2 x 12 + 12 + 1 = 50 in blocks 1-3; blocks 0 and 4 are marched too (2 samples each), since
+    the interblock interpolation of the coarse blocks 1 and 3 reaches into them: 54."""
     cam = _cam((1, 0, 0))
     lim = render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
     assert lim.report["samples"] == 27 * W * H
     ii = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
-    assert ii.report["samples"] == 50 * W * H
+    assert ii.report["samples"] == 54 * W * H
     naive = render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
     assert naive.report["samples"] < lim.report["samples"]
 

@@ -38,8 +38,8 @@ def test_tf_selection_beats_l2_and_uniform_at_64_to_1(tmp_path: Path, shared_dat
     assert errors["tf"] < 0.9 * errors["uniform"], errors
 
 
-# chest CT (ct_chest_dicom, 275x512x512 HU) with the CT presets, each with the margin its ordering holds by
-CT_MARGINS = {"ct-bone": 0.9, "ct-skin": 0.95}
+# chest CT (ct_chest_dicom, 275x512x512 HU) with the CT presets: (margin over l2, margin over uniform)
+CT_MARGINS = {"ct-bone": (0.98, 0.8), "ct-skin": (0.98, 0.88)}
 
 
 @pytest.fixture(scope="module")
@@ -50,12 +50,13 @@ def ct16(tmp_path_factory: pytest.TempPathFactory, shared_data: Path):
 
 
 def test_fig_3_4_ordering_on_the_chest_ct_with_the_thesis_block_size(ct16):
-    """The same claim on a patient CT, with the thesis' 16³ blocks. Measured at 128²: bone tf 9.2, l2 11.7,
-    uniform 22.8; skin tf 13.3, l2 14.4, uniform 16.7 (margins 10 % and 5 %). With lodcast's default 32³ blocks
-    the bone case reverses (tf 18.6 vs l2 14.2 at 256²): a 32³ block holding a few rib voxels has a small RMS ΔE
-    and is coarsened whole, see the issue 5 note."""
+    """The same claim on a patient CT, with the thesis' 16³ blocks, every image classified by distribution (the
+    default) and the TF selection by the per-level significance of level_error.py. Measured at 128²: bone tf 4.68,
+    l2 4.92, uniform 6.38; skin tf 13.2, l2 13.8, uniform 16.0. (Under mean classification the same ordering read
+    bone 9.2 / 11.7 / 22.8.) With skin-bone the ordering does not hold (tf 9.1, l2 8.5, uniform 8.8): see the
+    issue 9 note."""
     store = ct16
-    for name, margin in CT_MARGINS.items():
+    for name, (m_l2, m_uniform) in CT_MARGINS.items():
         tf = CT_PRESETS[name]
         scene = {"camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "width": 128, "height": 128, "tf": tf,
                  "format": "npy", "sampling": {"step": 0.5, "interpolation": "nearest_block"}}
@@ -66,21 +67,23 @@ def test_fig_3_4_ordering_on_the_chest_ct_with_the_thesis_block_size(ct16):
             assert sel.reduction >= 63.5, (name, method, sel.reduction)
             img = lodcast.render(store, {**scene, "quality": {"reduction": 64}}, levels=sel.levels)
             errors[method] = delta_e_stats(img.rgba, ref.rgba)["mean"]
-        assert errors["tf"] < margin * errors["l2"], (name, errors)
-        assert errors["tf"] < margin * errors["uniform"], (name, errors)
+        assert errors["tf"] < m_l2 * errors["l2"], (name, errors)
+        assert errors["tf"] < m_uniform * errors["uniform"], (name, errors)
 
 
-def test_virtually_lossless_is_exact(ct16):
-    """Virtually lossless (every block the TF can see, at full resolution, and nothing else) with interblock
-    interpolation gives the full-resolution image: a block left out has a border-inclusive range where the TF is
-    zero, so its neighbours' facing voxels are transparent too and nothing interpolates across. On the chest CT
-    with the bone preset that leaves out 4.3:1 of the data at 16³ blocks (7.3:1 at 8³: bench_lod_quality.py)."""
+def test_virtually_lossless_is_virtually_exact(ct16):
+    """Virtually lossless: every block the TF can see, at the coarsest level whose per-voxel significance stays
+    predicted within 0.5 ΔE of level 0 (selection.LOSSLESS_ZETA), and nothing else. A block left out has a
+    border-inclusive range where the TF is zero, so its neighbours' facing voxels are transparent too and nothing
+    interpolates across. On the chest CT with the bone preset, measured: 4.8:1 at 16³ blocks, mean ΔE 0.09 against
+    full resolution (every visible block at level 0 gave 4.3:1 and the same image to 1e-4)."""
     scene = {"camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "width": 128, "height": 128,
              "tf": CT_PRESETS["ct-bone"], "format": "npy", "sampling": {"step": 0.5}}
     full = lodcast.render(ct16, scene)
     lossless = lodcast.render(ct16, {**scene, "quality": "lossless",
                                      "sampling": {"step": 0.5, "interpolation": "interblock"}})
-    assert lossless.report["reduction"] >= 4.0, lossless.report["reduction"]
+    assert lossless.report["reduction"] >= 4.6, lossless.report["reduction"]
     assert lossless.report["bricks_skipped"] > 0.6 * ct16.layout.n_blocks
     assert full.rgba[..., 3].max() > 0.9  # the bone is there to be lost
-    np.testing.assert_allclose(lossless.rgba, full.rgba, atol=1e-4, rtol=0)
+    de = delta_e_stats(lossless.rgba, full.rgba)
+    assert de["mean"] <= 0.2 and de["p95"] <= 1.0, de
