@@ -64,10 +64,11 @@ METHODS = ("tf", "tf_full_hist", "l2", "uniform")
 #: scaled to the image as the predicted ΔE is (IMAGE_GAIN / ā), stays within this of level 0
 #: (LODCAST_LOSSLESS_ZETA overrides it for experiments)
 LOSSLESS_ZETA = float(os.environ.get("LODCAST_LOSSLESS_ZETA", "0.5"))
-#: image-space calibration of the predicted ΔE (see module doc): measured on the chest CT (ct-bone, ct-skin,
-#: ct-skin-bone, two views, 5:1 ... 100:1), mean ΔE ≈ IMAGE_GAIN · RMS(ζ / ā), ā a block's opacity-weighted mean
-#: opacity (translucent structures add up colour errors over ~1/ā unit slabs along a ray; opaque ones show one)
-IMAGE_GAIN = 1.3
+#: image-space calibration of the predicted ΔE (see module doc): fitted on the chest CT (ct-bone, ct-skin,
+#: ct-skin-bone, two views, lossless ... 100:1, geometric mean of measured / predicted = 1): mean ΔE ≈
+#: IMAGE_GAIN · RMS(ζ) / ā, ā the opacity-weighted mean opacity of the loaded voxels (translucent structures add
+#: colour errors up over ~1/ā unit slabs along a ray; opaque ones show about one)
+IMAGE_GAIN = 0.72
 MIN_OPACITY = 0.05
 
 
