@@ -105,7 +105,7 @@ def _axis_window(a: np.ndarray, B: int, axis: int, fn: np.ufunc) -> np.ndarray:
     return np.moveaxis(r, -1, axis)
 
 
-def _from_array(a: np.ndarray, spacing=None, origin=None, block_size: int = 32) -> VolumeView:
+def _from_array(a: np.ndarray, spacing=None, origin=None, block_size: int = 16) -> VolumeView:
     a = np.asarray(a)
     if a.ndim == 2:
         a = a[None]

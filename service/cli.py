@@ -45,7 +45,7 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spacing", type=_triple(float, "--spacing"), help="voxel spacing z,y,x in world units (overrides the file's)")
     p.add_argument("--origin", type=_triple(float, "--origin"), help="world position z,y,x of voxel (0,0,0)'s centre")
     p.add_argument("--index", type=int, help="which volume of a 4D series (time point or channel) to ingest")
-    p.add_argument("--block-size", type=int, default=32, help="block edge B in voxels, a power of two (default 32)")
+    p.add_argument("--block-size", type=int, default=16, help="block edge B in voxels, a power of two (default 16)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: when stderr is a terminal)")
     p.set_defaults(func=_cmd_ingest)
 

@@ -39,7 +39,7 @@ def ingest(
     dest: str | os.PathLike[str],
     *,
     overwrite: bool = False,
-    block_size: int = 32,
+    block_size: int = 16,
     progress: bool | None = None,
     bins: int = DEFAULT_BINS,
     segments: int = DEFAULT_SEGMENTS,

@@ -26,7 +26,7 @@ SHARD_BLOCKS_YX = 8
 @dataclass(frozen=True)
 class Layout:
     shape: tuple[int, int, int]
-    block_size: int = 32
+    block_size: int = 16
 
     def __post_init__(self) -> None:
         b = self.block_size

@@ -249,7 +249,7 @@ def test_store_select_lod_end_to_end(tmp_path) -> None:
     rng = np.random.default_rng(0)
     z, y, x = np.meshgrid(*(np.arange(64),) * 3, indexing="ij")
     vol = np.where((z - 32) ** 2 + (y - 32) ** 2 + (x - 32) ** 2 < 20**2, 500, -900) + rng.normal(0, 20, (64, 64, 64))
-    store = lodcast.ingest(vol.astype(np.int16), tmp_path / "s.zarr", progress=False)
+    store = lodcast.ingest(vol.astype(np.int16), tmp_path / "s.zarr", progress=False, block_size=32)
     tf = {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 600, "color": [1, 0.8, 0.7], "opacity": 0.8}]}
     sel = select_lod(store, [tf], "lossless")
     assert sel.levels.shape == store.grid and sel.zeta.shape == store.grid + (store.n_levels,)

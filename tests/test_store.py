@@ -177,11 +177,14 @@ def test_chunks_shards_and_ome_metadata(tmp_path: Path):
     from ome_zarr_models.v05.image import Image
 
     vol = np.random.default_rng(0).integers(0, 255, (70, 300, 40)).astype(np.uint8)
-    st = lodcast.ingest(vol, tmp_path / "v.zarr", spacing=(2.0, 0.5, 0.25), origin=(10.0, -5.0, 1.0))
+    st = lodcast.ingest(vol, tmp_path / "v.zarr", spacing=(2.0, 0.5, 0.25), origin=(10.0, -5.0, 1.0), block_size=32)
     for k in range(st.n_levels):
         arr = st.level(k)
         assert arr.shards == st.layout.shard_shape(k) and arr.chunks == st.layout.chunk_shape(k)
         assert arr.chunks[0] == max(32 >> k, 16)
+        if k:  # the spread behind each coarse voxel: the same chunks and shards as its level
+            sd = st.group[f"std/{k}"]
+            assert sd.shards == arr.shards and sd.chunks == arr.chunks and sd.shape == arr.shape
     # coarser levels group more blocks per shard; level 0 here is 3 slabs x 2 shards across y
     assert st.layout.shard_count(0) == 3 * 2 * 1 and st.layout.shard_count(st.n_levels - 1) == 1
     shard_files = [p for p in (tmp_path / "v.zarr" / "0" / "c").rglob("*") if p.is_file()]
@@ -229,10 +232,11 @@ def test_read_brick_pads_with_edge(tmp_path: Path):
 
 def test_summary_has_the_info_keys(tmp_path: Path):
     st = lodcast.ingest(np.zeros((40, 8, 8), np.int16), tmp_path / "s.zarr")
+    assert st.block_size == 16  # DESIGN's default, the thesis' choice
     info = json.loads(json.dumps(st.summary()))
     for key in ("shape", "dtype", "spacing", "origin", "block_size", "levels", "value_range", "blocks", "shards", "bytes_on_disk"):
         assert key in info
-    assert info["blocks"] == 2 and info["bytes_on_disk"] > 0 and len(info["levels"]) == 6
+    assert info["blocks"] == 3 and info["bytes_on_disk"] > 0 and len(info["levels"]) == 5
     assert info["shards"] == sum(lvl["shard_count"] for lvl in info["levels"])
 
 
