@@ -7,9 +7,10 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
   buffer ~2x faster than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else
   `DeviceError` says how much it needs and what the device allows;
 - the **index map**: one uint64 per block (C order of the grid): 0 for a block that is not loaded, else
-  ``(offset << 8) | ((nbmax + 1) << 4) | (level + 1)``, offset = the brick's first element in the atlas (element
-  offset, up to 2^56), nbmax = the coarsest level in the block's 3x3x3 neighbourhood (unloaded blocks count as
-  0; interblock sampling's interior fast path); read by lc_atlas.h;
+  ``(offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1)``, offset = the brick's
+  first element in the atlas (element offset, up to 2^48), s_a = the coarsest level among the 3x3 blocks of the
+  block's own slice across axis a (unloaded blocks count as 0): interblock sampling's fast path, see
+  lc_atlas.h; read by lc_atlas.h;
 - the **step-level grid** for adaptive object-space sampling (half-block cells, see raycast.cl).
 
 Bricks come from a **brick cache** shared by every render of the process (`brick_cache()`, LRU by bytes, size
@@ -38,7 +39,7 @@ from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
 
 __all__ = ["BrickCache", "brick_cache", "AtlasLoad", "DeviceAtlas", "load_bricks", "pack", "pack_index",
-           "pack_std", "step_levels", "device_atlas", "max_alloc_bytes"]
+           "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes"]
 
 MISSING = 0
 
@@ -155,17 +156,42 @@ def neighbourhood_max(levels: np.ndarray) -> np.ndarray:
     return out
 
 
-def pack_index(offset: np.ndarray, level: np.ndarray, nbmax: np.ndarray | None = None) -> np.ndarray:
-    """Index map entries: 0 where level < 0, else (offset << 8) | ((nbmax + 1) << 4) | (level + 1), as uint64
-    (nbmax defaults to the level itself)."""
+def slice_max(levels: np.ndarray) -> np.ndarray:
+    """(grid + (3,)): per block and axis a (x, y, z), the largest level among the 3x3 blocks of its own slice
+    across a (itself and the 8 neighbours that share its a-coordinate; unloaded blocks count as 0)."""
+    lv = np.maximum(np.asarray(levels).astype(np.int64), 0)
+    pad = np.pad(lv, 1, mode="edge")
+    G = lv.shape
+    out = np.empty(G + (3,), np.int64)
+    for a, ax in enumerate((2, 1, 0)):  # x, y, z: the slice keeps array axis ax fixed
+        m = lv.copy()
+        for d1 in range(3):
+            for d2 in range(3):
+                off = [d1, d2]
+                idx = [slice(1, 1 + G[i]) if i == ax else None for i in range(3)]
+                k = 0
+                for i in range(3):
+                    if i != ax:
+                        idx[i] = slice(off[k], off[k] + G[i])
+                        k += 1
+                np.maximum(m, pad[tuple(idx)], out=m)
+        out[..., a] = m
+    return out
+
+
+def pack_index(offset: np.ndarray, level: np.ndarray, slices: np.ndarray | None = None) -> np.ndarray:
+    """Index map entries: 0 where level < 0, else (offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) |
+    ((sx + 1) << 4) | (level + 1), as uint64; slices (..., 3) = slice_max per axis (default: the level itself)."""
     level = np.asarray(level, np.int64)
-    nbmax = level if nbmax is None else np.asarray(nbmax, np.int64)
-    if max(level.max(initial=-1), nbmax.max(initial=-1)) > 14:
+    sl = np.repeat(level[..., None], 3, axis=-1) if slices is None else np.asarray(slices, np.int64)
+    if max(level.max(initial=-1), sl.max(initial=-1)) > 14:
         raise ValueError("levels above 14 do not fit the index map's 4-bit level fields")
     offset = np.asarray(offset, np.uint64)
-    if offset.size and int(offset.max()) >= 2**56:
-        raise ValueError("atlas offsets of 2^56 elements and more do not fit the index map")
-    ent = (offset << np.uint64(8)) | ((nbmax + 1).astype(np.uint64) << np.uint64(4)) | (level + 1).astype(np.uint64)
+    if offset.size and int(offset.max()) >= 2**48:
+        raise ValueError("atlas offsets of 2^48 elements and more do not fit the index map")
+    ent = (offset << np.uint64(16)) | (level + 1).astype(np.uint64)
+    for a in range(3):
+        ent |= (sl[..., a] + 1).astype(np.uint64) << np.uint64(4 + 4 * a)
     return np.where(level >= 0, ent, np.uint64(MISSING)).astype(np.uint64)
 
 
@@ -199,7 +225,7 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
     for i, k, z, y, x in zip(sel.tolist(), flat[sel].tolist(), zz.tolist(), yy.tolist(), xx.tolist()):
         o, n = int(offsets[i]), int(sizes[i])
         atlas[o:o + n] = bricks[(k, z, y, x)].ravel()
-    return atlas, pack_index(offsets, flat, neighbourhood_max(levels).ravel()).reshape(levels.shape)
+    return atlas, pack_index(offsets, flat, slice_max(levels).reshape(-1, 3)).reshape(levels.shape)
 
 
 def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:

@@ -3,9 +3,9 @@
  * Atlas: one float buffer, the selected bricks packed one after another (no sample replication); the brick of a
  * level-k block holds n = B >> k samples per edge in C order (z, y, x). Index map: one ulong per block of the
  * grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else
- * (offset << 8) | ((nbmax + 1) << 4) | (level + 1), offset the brick's first element in the atlas (64-bit), nbmax
- * the coarsest level in the block's 3x3x3 neighbourhood (unloaded blocks count as level 0), which bounds every
- * edge weight's ramp near the block: see lodcast.renderer.atlas.pack_index.
+ * (offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1), offset the brick's first
+ * element in the atlas (48 bits), s_a the coarsest level among the 3x3 blocks of the block's own slice across axis
+ * a (unloaded blocks count as level 0): see the fast path below and lodcast.renderer.atlas.pack_index.
  *
  * Coordinates: q = voxel coordinates of level 0 (centres at integers); block coordinates p = (q + 1/2) / B, so
  * block b covers p in [b, b + 1) and its level-k samples sit at intrablock coordinates (i + 1/2) / n.
@@ -93,7 +93,7 @@ static inline float2 lc_nb(__global const float* atlas, __global const ushort* s
     lx = lx > 0.0f ? (lx < nm ? lx : nm) : 0.0f;
     ly = ly > 0.0f ? (ly < nm ? ly : nm) : 0.0f;
     lz = lz > 0.0f ? (lz < nm ? lz : nm) : 0.0f;
-    return lc_brick(atlas, sig, entry >> 8, n, lvl > 0, lx, ly, lz);
+    return lc_brick(atlas, sig, entry >> 16, n, lvl > 0, lx, ly, lz);
 }
 
 static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
@@ -101,6 +101,11 @@ static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v >
 #define LC_IMAP(x, y, z) imap[((ulong)(z) * (ulong)g.gy + (ulong)(y)) * (ulong)g.gx + (ulong)(x)]
 
 #ifdef LC_INTERP_II
+/* half-sample width of the level in the 4-bit field at `shift` of an entry, in level-0 voxels: 2^(level - 1) */
+static inline float lc_hw(const ulong entry, const int shift) {
+    return 0.5f * (float)(1 << ((int)((entry >> shift) & 15UL) - 1));
+}
+
 /* half-sample width of a block in level-0 voxels: 2^(level - 1); missing blocks: 1/2 */
 static inline float lc_half(const ulong entry) {
     const int lvl = entry ? (int)(entry & 15UL) - 1 : 0;
@@ -128,13 +133,17 @@ static inline float2 lc_sample_atlas(__global const float* atlas, __global const
     return lc_nb(atlas, sig, own, bx, by, bz, g, q);
 #else
     {
-        /* interior fast path: at least hm (the largest half-sample width in the 3x3x3 neighbourhood) from every
-         * face of the own block, every edge weight of the cell is 0 or 1 towards the own block, so only it carries
-         * weight and phi is its NB sample (the thesis' II two-pass idea: NB inside the sample boundaries) */
-        const float hm = 0.5f * (float)(1 << ((int)((own >> 4) & 15UL) - 1));
+        /* interior fast path (the thesis' II two-pass idea: NB inside the sample boundaries). A block b other than
+         * the own one differs from it along some axis a; its weight has the factor of the a-edge joining b to the
+         * block b' of the cell that shares the own block's a-coordinate, and that factor is 0 once the sample is at
+         * least b''s half-sample width from the a-face (e = 0 for x <= -delta_L, 1 for x >= delta_U, the side
+         * of b' being the own side). b' lies in the own block's slice across a, so at least hm_a (the largest
+         * half-sample width of that 3x3 slice) from both a-faces on every axis, only the own block carries
+         * weight and phi is its NB sample. */
+        const float hx = lc_hw(own, 4), hy = lc_hw(own, 8), hz = lc_hw(own, 12);
         const float ox = q.x + 0.5f - (float)bx * g.B, oy = q.y + 0.5f - (float)by * g.B;
         const float oz = q.z + 0.5f - (float)bz * g.B;
-        if (ox >= hm && oy >= hm && oz >= hm && g.B - ox >= hm && g.B - oy >= hm && g.B - oz >= hm)
+        if (ox >= hx && oy >= hy && oz >= hz && g.B - ox >= hx && g.B - oy >= hy && g.B - oz >= hz)
             return lc_nb(atlas, sig, own, bx, by, bz, g, q);
     }
     const float cxf = (float)(int)(p.x + 0.5f), cyf = (float)(int)(p.y + 0.5f), czf = (float)(int)(p.z + 0.5f);
@@ -175,7 +184,7 @@ static inline float2 lc_sample_atlas(__global const float* atlas, __global const
             for (int c = 0; c < 8; ++c) {
                 const int xi = xs_[c & 1], yi = ys_[(c >> 1) & 1], zi = zs_[c >> 2];
                 const int sel = (xi / n == X[1]) | ((yi / n == Y[1]) << 1) | ((zi / n == Z[1]) << 2);
-                const ulong o = (E[sel] >> 8) + ((ulong)(zi % n) * (ulong)n + (ulong)(yi % n)) * (ulong)n + (ulong)(xi % n);
+                const ulong o = (E[sel] >> 16) + ((ulong)(zi % n) * (ulong)n + (ulong)(yi % n)) * (ulong)n + (ulong)(xi % n);
                 v[c] = atlas[o];
 #ifdef LC_DIST
                 d[c] = lvl > 0 ? lc_f16(sig[o]) : 0.0f;
@@ -235,7 +244,8 @@ typedef struct LcBlk {
     ulong off;
     int n;
     int coarse; /* level >= 1: has standard deviations */
-    float s, lo, hi;
+    float s;
+    float3 lo, hi;
     float3 c;
 } LcBlk;
 
@@ -245,22 +255,22 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.n = 0;
     b.coarse = 0;
     b.off = 0;
-    b.s = 1.0f; b.lo = 0.0f; b.hi = -1.0f;
+    b.s = 1.0f; b.lo = (float3)(0.0f); b.hi = (float3)(-1.0f);
     b.c = (float3)(0.0f);
     if (!ent) return b;
     const int lvl = (int)(ent & 15UL) - 1;
-    b.off = ent >> 8;
+    b.off = ent >> 16;
     b.n = (int)g.B >> lvl;
     b.coarse = lvl > 0;
     b.s = 1.0f / (float)(1 << lvl);
     b.c = ((float3)(0.5f) - (float3)((float)bx, (float)by, (float)bz) * g.B) * b.s - 0.5f;
 #ifdef LC_INTERP_II
-    const float hm = 0.5f * (float)(1 << ((int)((ent >> 4) & 15UL) - 1));
+    const float3 hm = (float3)(lc_hw(ent, 4), lc_hw(ent, 8), lc_hw(ent, 12));
     b.lo = hm * b.s - 0.5f;
     b.hi = (float)b.n - 0.5f - hm * b.s;
 #else
-    b.lo = 0.0f;
-    b.hi = (float)(b.n - 1);
+    b.lo = (float3)(0.0f);
+    b.hi = (float3)((float)(b.n - 1));
 #endif
     return b;
 }
@@ -269,14 +279,14 @@ static inline float2 lc_sample_blk(__global const float* atlas, __global const u
                                    const LcAtlasGeom g, const LcBlk b, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II
-    if (l.x >= b.lo && l.y >= b.lo && l.z >= b.lo && l.x <= b.hi && l.y <= b.hi && l.z <= b.hi)
+    if (l.x >= b.lo.x && l.y >= b.lo.y && l.z >= b.lo.z && l.x <= b.hi.x && l.y <= b.hi.y && l.z <= b.hi.z)
         return lc_brick(atlas, sig, b.off, b.n, b.coarse, l.x, l.y, l.z);
     return lc_sample_atlas(atlas, sig, imap, g, q);
 #else
     if (!b.n) return lc_sample_atlas(atlas, sig, imap, g, q);
-    l.x = l.x > 0.0f ? (l.x < b.hi ? l.x : b.hi) : 0.0f;
-    l.y = l.y > 0.0f ? (l.y < b.hi ? l.y : b.hi) : 0.0f;
-    l.z = l.z > 0.0f ? (l.z < b.hi ? l.z : b.hi) : 0.0f;
+    l.x = l.x > 0.0f ? (l.x < b.hi.x ? l.x : b.hi.x) : 0.0f;
+    l.y = l.y > 0.0f ? (l.y < b.hi.y ? l.y : b.hi.y) : 0.0f;
+    l.z = l.z > 0.0f ? (l.z < b.hi.z ? l.z : b.hi.z) : 0.0f;
     return lc_brick(atlas, sig, b.off, b.n, b.coarse, l.x, l.y, l.z);
 #endif
 }

@@ -70,7 +70,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     LcAtlasGeom geom;
     geom.gx = P->grid.x; geom.gy = P->grid.y; geom.gz = P->grid.z; geom.B = (float)P->grid.w;
     LcBlk blk;
-    blk.n = 0; blk.off = 0; blk.s = 1.0f; blk.lo = 0.0f; blk.hi = -1.0f; blk.c = (float3)(0.0f);
+    blk.n = 0; blk.off = 0; blk.s = 1.0f; blk.lo = (float3)(0.0f); blk.hi = (float3)(-1.0f); blk.c = (float3)(0.0f);
 #endif
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
