@@ -25,6 +25,25 @@
 #define LC_LEN_UNITS(r) ((r) >= 0.0f ? (r) : dt_u * (float)(1 << (int)(-1.0f - (r))))
 #endif
 
+#ifdef LC_PRECISE
+/* compensated (Kahan) sums of colour and optical depth for a segment of optical depth `depth` and colour `col` */
+#define LC_KAHAN_COMPOSITE(depth, col, r)                                        \
+    {                                                                            \
+        const float alpha = -expm1(-(depth));                                    \
+        vis_len += T * LC_LEN_UNITS(r);                                          \
+        const float3 y3 = (T * alpha) * (col) - C_c;                             \
+        const float3 s3 = C + y3;                                                \
+        C_c = (s3 - C) - y3;                                                     \
+        C = s3;                                                                  \
+        const float y = (depth) - tau_c;                                         \
+        const float s = tau + y;                                                 \
+        tau_c = (s - tau) - y;                                                   \
+        tau = s;                                                                 \
+        T = exp(-tau);                                                           \
+        done = T <= t_stop;                                                      \
+    }
+#endif
+
 #ifdef LC_DIST
 #define LC_DIST_LOOKUP(v, sd, e)                                                 \
     float4 e;                                                                    \
@@ -43,19 +62,8 @@
 #ifdef LC_PRECISE
 #define LC_DIST_COMPOSITE(e, r)                                                  \
     {                                                                            \
-        const float depth = e.w * LC_LEN_UNITS(r);                               \
-        const float alpha = -expm1(-depth);                                      \
-        vis_len += T * LC_LEN_UNITS(r);                                          \
-        const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
-        const float3 s3 = C + y3;                                                \
-        C_c = (s3 - C) - y3;                                                     \
-        C = s3;                                                                  \
-        const float y = depth - tau_c;                                           \
-        const float s = tau + y;                                                 \
-        tau_c = (s - tau) - y;                                                   \
-        tau = s;                                                                 \
-        T = exp(-tau);                                                           \
-        done = T <= t_stop;                                                      \
+        const float depth_ = e.w * LC_LEN_UNITS(r);                              \
+        LC_KAHAN_COMPOSITE(depth_, e.xyz, r)                                     \
     }
 #else
 #define LC_DIST_COMPOSITE(e, r)                                                  \
@@ -112,19 +120,8 @@
     LC_DIST_BODY(v, sd, r)                                                       \
     if (lc_visible(v)) {                                                         \
         LC_TF_LOOKUP(v, e)                                                       \
-        const float depth = e.w * (r);                                           \
-        const float alpha = -expm1(-depth);                                      \
-        vis_len += T * LC_LEN_UNITS(r);                                          \
-        const float3 y3 = (T * alpha) * e.xyz - C_c;                             \
-        const float3 s3 = C + y3;                                                \
-        C_c = (s3 - C) - y3;                                                     \
-        C = s3;                                                                  \
-        const float y = depth - tau_c;                                           \
-        const float s = tau + y;                                                 \
-        tau_c = (s - tau) - y;                                                   \
-        tau = s;                                                                 \
-        T = exp(-tau);                                                           \
-        done = T <= t_stop;                                                      \
+        const float depth_ = e.w * (r);                                          \
+        LC_KAHAN_COMPOSITE(depth_, e.xyz, r)                                     \
     }
 #else
 #ifdef LC_ADAPTIVE

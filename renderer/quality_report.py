@@ -32,18 +32,21 @@ class Variant:
     quality: Any  # "full" | "lossless" | {"reduction": r} | {"budget_mb": m}
     interpolation: str = "interblock"
     adaptive: str = "off"  # "off" | "limited" | "naive"
+    classification: str = "distribution"  # of coarse samples: "distribution" | "mean"
 
     @property
     def label(self) -> str:
         q = self.quality if isinstance(self.quality, str) else ", ".join(f"{k} {v}" for k, v in self.quality.items())
         if self.quality == "full":
             return "full resolution" + ("" if self.adaptive == "off" else f", adaptive {self.adaptive}")
-        return f"{q}, {self.interpolation.replace('_', ' ')}" + ("" if self.adaptive == "off" else f", adaptive {self.adaptive}")
+        return (f"{q}, {self.interpolation.replace('_', ' ')}" + ("" if self.adaptive == "off" else f", adaptive {self.adaptive}")
+                + ("" if self.classification == "distribution" else f", by {self.classification}"))
 
     def apply(self, scene: dict) -> dict:
         sampling = dict(scene.get("sampling") or {})
         if self.quality != "full":
             sampling["interpolation"] = self.interpolation
+            sampling["classification"] = self.classification
         sampling["adaptive_object"] = self.adaptive != "off"
         if self.adaptive == "naive":
             sampling["adaptive_naive"] = True
@@ -53,10 +56,12 @@ class Variant:
 
 
 def default_variants(adaptive: bool = True, naive: bool = True) -> list[Variant]:
-    """The sweep of issue 5: qualities × interpolation × adaptive stepping."""
+    """The sweep: qualities × interpolation × adaptive stepping, and interblock classified by the mean beside the
+    default classification by distribution."""
     qualities: list[Any] = ["lossless"] + [{"reduction": r} for r in REDUCTIONS]
     out = [Variant("full")]
     for q in qualities:
+        out.append(Variant(q, "interblock", classification="mean"))
         for interp in ("nearest_block", "interblock"):
             out.append(Variant(q, interp))
             if adaptive:
@@ -100,6 +105,7 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
         rep = best.report
         rows.append({
             "label": v.label, "quality": v.quality, "interpolation": v.interpolation, "adaptive": v.adaptive,
+            "classification": v.classification,
             "reduction": rep.get("reduction"), "predicted_delta_e": rep.get("predicted_delta_e"),
             "delta_e_mean": de["mean"], "delta_e_p95": de["p95"], "delta_e_max": de["max"], "footprint": de["footprint"],
             "wall_ms": rep["wall_ms"], "kernel_ms": rep["kernel_ms"], "samples": rep.get("samples"),
@@ -143,7 +149,8 @@ def plot(result: dict[str, Any], path: Path) -> Path:
     markers = {("nearest_block", "off"): "s", ("interblock", "off"): "o", ("nearest_block", "limited"): "D",
                ("interblock", "limited"): "^", ("nearest_block", "naive"): "x", ("interblock", "naive"): "+"}
     for key, marker in markers.items():
-        rows = [r for r in result["rows"] if (r["interpolation"], r["adaptive"]) == key and r["quality"] != "full"]
+        rows = [r for r in result["rows"] if (r["interpolation"], r["adaptive"]) == key and r["quality"] != "full"
+                and r.get("classification", "distribution") == "distribution"]
         if rows:
             ax.scatter([r["kernel_ms"] for r in rows], [r["delta_e_mean"] for r in rows], marker=marker,
                        label=f"{key[0].replace('_', ' ')}, adaptive {key[1]} (measured mean)")
@@ -156,6 +163,10 @@ def plot(result: dict[str, Any], path: Path) -> Path:
                     q = r["quality"]
                     ax.annotate("lossless" if q == "lossless" else f"{q.get('reduction', '')}:1", (r["kernel_ms"], r["delta_e_mean"]),
                                 fontsize=7, xytext=(3, 3), textcoords="offset points")
+    by_mean = [r for r in result["rows"] if r.get("classification") == "mean"]
+    if by_mean:
+        ax.scatter([r["kernel_ms"] for r in by_mean], [r["delta_e_mean"] for r in by_mean], marker="v", color="grey",
+                   label="interblock, classified by the mean")
     for r in result["rows"]:
         if r["quality"] == "full":
             ax.scatter([r["kernel_ms"]], [r["delta_e_mean"]], marker="*", s=140, color="black",

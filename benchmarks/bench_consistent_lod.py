@@ -1,0 +1,174 @@
+"""Issue 9's figures: consistent level of detail on real CTs (distribution classification, per-level significance,
+predicted ΔE, LOD that pays for itself, first-render times).
+
+    .venv/bin/python benchmarks/bench_consistent_lod.py [--sizes 256 512] [--repeat 3]
+                                                        [--json benchmarks/results/consistent_lod.json]
+
+Volumes: the chest CT (../shared/data/ct_chest_dicom, 275x512x512 HU, presets ct-bone, ct-skin, ct-skin-bone) and
+the engine CT (engine.nii.gz, 128x256x256, an opaque metal TF), ingested with the default 16³ blocks (and 8³ for
+the first-render times) under benchmarks/results/. Every image is compared with its reference (full resolution,
+step ¼, DESIGN.md's ΔE over the footprint). Kernel times are the fastest of `repeat` after a warm-up, on the first
+OpenCL device; the machine is shared, so compare ratios within one run. Prints markdown tables and writes JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "data"))
+RESULTS = HERE / "results"
+
+import lodcast  # noqa: E402
+from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
+from lodcast.renderer.selection import select_lod  # noqa: E402
+from lodcast.renderer.transfer_function import CT_PRESETS  # noqa: E402
+
+ENGINE_TF = {"points": [{"value": 150, "color": [1.0, 0.8, 0.5], "opacity": 0.0},
+                        {"value": 200, "color": [1.0, 0.9, 0.7], "opacity": 0.8},
+                        {"value": 255, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
+QUALITIES = ["lossless", {"reduction": 5}, {"reduction": 10}, {"reduction": 30}, {"reduction": 100}]
+
+
+def store_of(name: str, source: Path, block: int = 16):
+    dest = RESULTS / f"{name}_b{block}.zarr"
+    if dest.exists():
+        st = lodcast.open_store(dest)
+        if st.block_size == block and st.has_distribution:
+            return st
+    return lodcast.ingest(source, dest, block_size=block, overwrite=True)
+
+
+def best(store, scene: dict, repeat: int, levels=None):
+    lodcast.render(store, scene, levels=levels)
+    runs = [lodcast.render(store, scene, levels=levels) for _ in range(repeat)]
+    return min(runs, key=lambda r: r.report["kernel_ms"])
+
+
+def qlabel(q) -> str:
+    return q if isinstance(q, str) else f"{q['reduction']:g}:1"
+
+
+def sweep(store, scene: dict, repeat: int) -> dict:
+    """Default settings at every quality against full resolution; uniform levels by mean and by distribution;
+    TF selection against L2 and uniform; adaptive sampling on and off."""
+    ref = lodcast.render(store, {**scene, "sampling": {"step": 0.25}})
+    full = best(store, scene, repeat)
+    out = {"full_ms": full.report["kernel_ms"], "full_samples": full.report["samples"],
+           "full_delta_e": delta_e_stats(full.rgba, ref.rgba)["mean"], "rows": [], "uniform": [], "fig34": []}
+    for q in QUALITIES:
+        r = best(store, {**scene, "quality": q}, repeat)
+        d = delta_e_stats(r.rgba, ref.rgba)
+        row = {"quality": qlabel(q), "reduction": r.report["reduction"], "delta_e": d["mean"], "p95": d["p95"],
+               "predicted": r.report["predicted_delta_e"], "kernel_ms": r.report["kernel_ms"],
+               "speed_vs_full": out["full_ms"] / r.report["kernel_ms"], "samples_vs_full": r.report["samples"] / out["full_samples"]}
+        if q != "lossless":  # adaptive sampling's share: the same selection at fixed steps, and nearest block
+            fixed = best(store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
+            nb = best(store, {**scene, "quality": q, "sampling": {"interpolation": "nearest_block"}}, repeat)
+            row.update(fixed_ms=fixed.report["kernel_ms"], fixed_delta_e=delta_e_stats(fixed.rgba, ref.rgba)["mean"],
+                       nb_ms=nb.report["kernel_ms"], nb_delta_e=delta_e_stats(nb.rgba, ref.rgba)["mean"])
+        out["rows"].append(row)
+    vis = select_lod(store, [scene["tf"]], "lossless").levels >= 0
+    for k in (1, 2):  # every visible block at one level: the data bound of each classification
+        lv = np.where(vis, k, -1).astype(np.int8)
+        red = float(np.prod(store.shape)) / (int(vis.sum()) * (store.block_size >> k) ** 3)
+        e = {cls: delta_e_stats(lodcast.render(store, {**scene, "quality": {"reduction": 2},
+                                                       "sampling": {"classification": cls, "adaptive_object": False}},
+                                               levels=lv).rgba, ref.rgba)["mean"] for cls in ("mean", "distribution")}
+        out["uniform"].append({"level": k, "reduction": red, **e})
+    for red in (10, 30, 64):  # thesis fig. 3.4 and issue 9: TF selection against L2 and uniform
+        e = {}
+        for method in ("tf", "l2", "uniform"):
+            sel = select_lod(store, [scene["tf"]], {"reduction": red}, method=method)
+            img = lodcast.render(store, {**scene, "quality": {"reduction": red}}, levels=sel.levels)
+            e[method], e[f"{method}_reduction"] = delta_e_stats(img.rgba, ref.rgba)["mean"], sel.reduction
+        out["fig34"].append({"reduction": red, **e})
+    return out
+
+
+def first_render(path: Path, scene: dict) -> float:
+    """Wall ms of the first lossless render of a store in a fresh process (empty brick cache; kernels from the
+    disk cache after a warm-up in another process)."""
+    code = ("import json, sys, time, lodcast; t = time.perf_counter(); "
+            "r = lodcast.render(sys.argv[1], json.loads(sys.argv[2])); print((time.perf_counter() - t) * 1e3)")
+    args = [sys.executable, "-c", code, str(path), json.dumps({**scene, "quality": "lossless"})]
+    subprocess.run(args, check=True, capture_output=True)  # builds the kernels into the disk cache
+    return float(subprocess.run(args, check=True, capture_output=True, text=True).stdout.split()[-1])
+
+
+def spearman(a, b) -> float:
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--json", type=Path, default=RESULTS / "consistent_lod.json")
+    a = ap.parse_args()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    chest = store_of("ct_chest", DATA / "ct_chest_dicom")
+    engine = store_of("engine", DATA / "engine.nii.gz")
+    cases = [("chest CT", chest, name, CT_PRESETS[name]) for name in ("ct-bone", "ct-skin", "ct-skin-bone")]
+    cases.append(("engine CT", engine, "engine-metal", ENGINE_TF))
+    result = {"device": None, "cases": []}
+    for size in a.sizes:
+        for vol, store, tfname, tf in cases:
+            scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": size, "height": size, "tf": tf, "format": "npy"}
+            res = sweep(store, scene, a.repeat)
+            res.update(volume=vol, tf=tfname, size=size)
+            result["cases"].append(res)
+            print(f"{vol} {tfname} {size}²: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    result["device"] = lodcast.render(chest, {"tf": CT_PRESETS["ct-bone"], "width": 8, "height": 8}).report["device"]
+    scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": 256, "height": 256, "tf": CT_PRESETS["ct-bone"]}
+    result["first_render_ms"] = {f"{b}^3": first_render(store_of("ct_chest", DATA / "ct_chest_dicom", b).location, scene)
+                                 for b in (16, 8)}
+    pairs = [(r["delta_e"], r["predicted"], r["reduction"]) for c in result["cases"] for r in c["rows"]]
+    result["prediction"] = {
+        "spearman": spearman([p[0] for p in pairs], [p[1] for p in pairs]),
+        "worst_factor_at_5_or_more": max(max(m / p, p / m) for m, p, red in pairs if red >= 4.99 and m > 0 and p > 0),
+    }
+    a.json.write_text(json.dumps(result, indent=2, default=float))
+    print(report(result))
+    print(f"\nJSON: {a.json}  ({time.perf_counter() - t0:.0f} s)")
+
+
+def report(res: dict) -> str:
+    lines = [f"device: {res['device']}", ""]
+    for c in res["cases"]:
+        lines += [f"### {c['volume']}, {c['tf']}, {c['size']}² — full resolution {c['full_ms']:.0f} ms, "
+                  f"mean ΔE {c['full_delta_e']:.2f} (step ½ against step ¼)", "",
+                  "| quality | reduction | mean ΔE | p95 | predicted | kernel ms | × full speed | samples ÷ full |"
+                  " fixed-step ms · ΔE | nearest block ms · ΔE |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in c["rows"]:
+            extra = (f"{r['fixed_ms']:.0f} · {r['fixed_delta_e']:.2f} | {r['nb_ms']:.0f} · {r['nb_delta_e']:.2f}"
+                     if "fixed_ms" in r else "– | –")
+            lines.append(f"| {r['quality']} | {r['reduction']:.1f} | {r['delta_e']:.2f} | {r['p95']:.1f} | "
+                         f"{r['predicted']:.2f} | {r['kernel_ms']:.0f} | {r['speed_vs_full']:.2f} | "
+                         f"{r['samples_vs_full']:.2f} | {extra} |")
+        lines += ["", "| every visible block at | reduction | mean ΔE by mean | by distribution |", "|---|---|---|---|"]
+        lines += [f"| level {u['level']} | {u['reduction']:.1f} | {u['mean']:.2f} | {u['distribution']:.2f} |"
+                  for u in c["uniform"]]
+        lines += ["", "| reduction | TF selection | L2 | uniform |", "|---|---|---|---|"]
+        lines += [f"| {f['reduction']}:1 | {f['tf']:.2f} | {f['l2']:.2f} | {f['uniform']:.2f} "
+                  f"({f['uniform_reduction']:.0f}:1) |" for f in c["fig34"]]
+        lines.append("")
+    p = res["prediction"]
+    lines.append(f"predicted vs measured ΔE over every row: Spearman {p['spearman']:.3f}; worst factor at ≥ 5:1: "
+                 f"{p['worst_factor_at_5_or_more']:.2f}")
+    lines.append("first uncached lossless render (fresh process, ct-bone 256²): "
+                 + ", ".join(f"{k} {v:.0f} ms" for k, v in res["first_render_ms"].items()))
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
