@@ -143,8 +143,27 @@ static inline float2 lc_sample_atlas(__global const float* atlas, __global const
         const float hx = lc_hw(own, 4), hy = lc_hw(own, 8), hz = lc_hw(own, 12);
         const float ox = q.x + 0.5f - (float)bx * g.B, oy = q.y + 0.5f - (float)by * g.B;
         const float oz = q.z + 0.5f - (float)bz * g.B;
-        if (ox >= hx && oy >= hy && oz >= hz && g.B - ox >= hx && g.B - oy >= hy && g.B - oz >= hz)
-            return lc_nb(atlas, sig, own, bx, by, bz, g, q);
+        const int in_x = !(ox >= hx && g.B - ox >= hx), in_y = !(oy >= hy && g.B - oy >= hy);
+        const int in_z = !(oz >= hz && g.B - oz >= hz);
+        if (!(in_x | in_y | in_z)) return lc_nb(atlas, sig, own, bx, by, bz, g, q);
+        if (in_x + in_y + in_z == 1) {
+            /* near one face only: by the same argument every block but the own one and its neighbour across that
+             * face has weight 0, and these two take (1 - e, e) of the face's edge weight (the other axes' factors
+             * saturate to 1 for both), so two NB samples instead of the cell's eight */
+            const float o = in_x ? ox : (in_y ? oy : oz);
+            const int up = o > 0.5f * g.B; /* the face above the own block along that axis */
+            const int nx = bx + (in_x ? (up ? 1 : -1) : 0), ny = by + (in_y ? (up ? 1 : -1) : 0);
+            const int nz = bz + (in_z ? (up ? 1 : -1) : 0);
+            if (nx < 0 || ny < 0 || nz < 0 || nx >= g.gx || ny >= g.gy || nz >= g.gz)
+                return lc_nb(atlas, sig, own, bx, by, bz, g, q); /* the volume's face: the cell folds onto own */
+            const ulong nb = LC_IMAP(nx, ny, nz);
+            if (!nb) return lc_nb(atlas, sig, own, bx, by, bz, g, q); /* a missing neighbour weighs 0 */
+            const float ho = lc_half(own), hn = lc_half(nb);
+            /* e: the weight of the upper block of the edge, the interblock coordinate measured from the face */
+            const float w_nb = up ? lc_edge(o - g.B, ho, hn) : 1.0f - lc_edge(o, hn, ho);
+            const float2 a = lc_nb(atlas, sig, own, bx, by, bz, g, q), b = lc_nb(atlas, sig, nb, nx, ny, nz, g, q);
+            return a + (b - a) * w_nb;
+        }
     }
     const float cxf = (float)(int)(p.x + 0.5f), cyf = (float)(int)(p.y + 0.5f), czf = (float)(int)(p.z + 0.5f);
     /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
