@@ -129,10 +129,10 @@ def gaussian_expectation(values: np.ndarray, s: float) -> np.ndarray:
     r = (k.size - 1) // 2
     if r == 0:
         return g.copy()
-    from scipy.signal import fftconvolve
-
     ext = np.concatenate([np.repeat(g[..., :1], r, axis=-1), g, np.repeat(g[..., -1:], r, axis=-1)], axis=-1)
-    return fftconvolve(ext, np.broadcast_to(k, g.shape[:-1] + k.shape), mode="valid", axes=-1)
+    size = ext.shape[-1] + k.size - 1  # linear (not circular) convolution; the 'valid' part is what g needs
+    full = np.fft.irfft(np.fft.rfft(ext, size, axis=-1) * np.fft.rfft(k, size), size, axis=-1)
+    return full[..., 2 * r : 2 * r + g.shape[-1]]
 
 
 def dist_table(lut: Lut, std_max: float, rows: int = DIST_STD_ROWS) -> DistTable:

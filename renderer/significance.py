@@ -8,7 +8,7 @@ difference between the TF's colour at the mean and at every value the block hold
 with h the block's border-inclusive histogram (the one-voxel border from the neighbours, because interpolation
 near a face reads those voxels too), n its total count, T* the TF in CIELUV and ΔE the CIE76 distance there.
 
-**How opacity enters the colour.** T*(s) is the CIELUV colour (colour-science, sRGB input, D65) of what a slab
+**How opacity enters the colour.** T*(s) is the CIELUV colour (sRGB input, D65; image_error.srgb_to_luv) of what a slab
 of constant value s and length one *unit distance* (the TF's opacity unit, DESIGN.md) contributes over black:
 the premultiplied colour rgb(s)·a(s), a being the TF opacity per unit distance (a slab of length `unit` takes
 opacity 1 − (1 − a)^1 = a, and its colour over black is rgb·a). Why: (1) a fully transparent value maps to black,
@@ -49,7 +49,6 @@ one-sample level, zero at full resolution.
 from __future__ import annotations
 
 import os
-import warnings
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -57,6 +56,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from lodcast.renderer.image_error import srgb_to_luv
 from lodcast.renderer.scene import TransferFunction
 from lodcast.renderer.transfer_function import build_lut, evaluate
 
@@ -79,19 +79,10 @@ __all__ = [
     "effective_starts",
 ]
 
-DENSE_MAX = 8192  # cap on the dense T* table (colour-science costs ~0.35 µs per entry)
+DENSE_MAX = 8192  # cap on the dense T* table
 
 
 # --------------------------------------------------------------------------------------------- colour
-def srgb_to_luv(rgb: np.ndarray) -> np.ndarray:
-    """CIELUV (D65, 2° observer) of sRGB colours in [0, 1] (clipped), float64, via colour-science."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        import colour
-
-        xyz = colour.sRGB_to_XYZ(np.clip(np.asarray(rgb, np.float64), 0.0, 1.0))
-        return np.asarray(colour.XYZ_to_Luv(xyz, colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]), np.float64)
-
 
 def unit_slab_colour(tf: TransferFunction, values) -> np.ndarray:
     """Premultiplied sRGB colour over black of a slab of one unit distance at each value: rgb·a."""

@@ -143,3 +143,21 @@ def test_visible_span_bounds_the_interpolants_support():
     assert a[(f > lo) & (f < hi)].max() == 0.5
     empty = build_lut(tf([{"value": 0, "opacity": 0}]), (0, 1)).visible_span()
     assert empty[0] > empty[1]
+
+
+def test_srgb_to_luv_equals_colour_science():
+    """The NumPy sRGB → CIELUV (D65) used by ΔE and significance against colour-science on random colours, the
+    primaries, black, white and the dark linear segment of the sRGB curve."""
+    import warnings
+
+    from lodcast.renderer.image_error import srgb_to_luv
+
+    rng = np.random.default_rng(11)
+    rgb = np.concatenate([rng.random((2000, 3)), rng.random((200, 3)) * 0.04, np.eye(3), np.zeros((1, 3)),
+                          np.ones((1, 3))])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import colour
+
+        ref = colour.XYZ_to_Luv(colour.sRGB_to_XYZ(rgb), colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"])
+    np.testing.assert_allclose(srgb_to_luv(rgb), ref, atol=1e-9, rtol=1e-9)
