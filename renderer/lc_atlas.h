@@ -119,6 +119,77 @@ static inline float lc_edge(const float x, const float hl, const float hu) {
 }
 #endif
 
+#ifdef LC_INTERP_II
+/* A sample of block (bx, by, bz) (NB sample a, half-sample width ho) in the blend zone of one face only, along x
+ * (in_x), y (in_y) or else z, o level-0 voxels from the block's lower face on that axis. Every block of the cell but
+ * the own one and its neighbour across that face has weight 0 (the fast path's argument, below), and these two take
+ * (1 - e, e) of the face's edge weight (the other axes' factors saturate to 1 for both): two NB samples instead of
+ * the cell's eight. */
+static inline float2 lc_face_blend(__global const float* atlas, __global const ushort* sig, __global const ulong* imap,
+                                   const LcAtlasGeom g, const float2 a, const float ho, const int bx, const int by,
+                                   const int bz, const int in_x, const int in_y, const float o, const float3 q) {
+    const int up = o > 0.5f * g.B; /* the face above the own block along that axis */
+    const int d = up ? 1 : -1;
+    const int nx = bx + (in_x ? d : 0), ny = by + (in_y ? d : 0), nz = bz + (in_x | in_y ? 0 : d);
+    if (nx < 0 || ny < 0 || nz < 0 || nx >= g.gx || ny >= g.gy || nz >= g.gz) return a; /* the cell folds onto own */
+    const ulong nb = LC_IMAP(nx, ny, nz);
+    if (!nb) return a; /* a missing neighbour weighs 0 */
+    const float hn = lc_half(nb);
+    /* e: the weight of the upper block of the edge, the interblock coordinate measured from the face */
+    const float w = up ? lc_edge(o - g.B, ho, hn) : 1.0f - lc_edge(o, hn, ho);
+    const float2 v = lc_nb(atlas, sig, nb, nx, ny, nz, g, q);
+    return a + (v - a) * w;
+}
+
+/* Trilinear interpolation of level lvl on its global sample lattice at q (clamped to the grid's edge), each of the
+ * eight lattice samples read from the brick that holds it: E[x | y << 1 | z << 2] are the entries of the blocks
+ * (X0 or X1, Y0 or Y1, Z0 or Z1), X1 = the upper block along x. Where every block of an interblock cell is loaded at
+ * one level, this is eq. 3.6's value (8 loads, not the 64 of eight NB samples). */
+static inline float2 lc_lattice(__global const float* atlas, __global const ushort* sig, const ulong* E, const int X1,
+                                const int Y1, const int Z1, const int lvl, const LcAtlasGeom g, const float3 q) {
+    const int n = (int)g.B >> lvl, ln = popcount(n - 1), nm = n - 1;
+    const float sc = 1.0f / (float)(1 << lvl);
+    const float mx = (float)(g.gx * n - 1), my = (float)(g.gy * n - 1), mz = (float)(g.gz * n - 1);
+    float lx = (q.x + 0.5f) * sc - 0.5f, ly = (q.y + 0.5f) * sc - 0.5f, lz = (q.z + 0.5f) * sc - 0.5f;
+    lx = lx > 0.0f ? (lx < mx ? lx : mx) : 0.0f;
+    ly = ly > 0.0f ? (ly < my ? ly : my) : 0.0f;
+    lz = lz > 0.0f ? (lz < mz ? lz : mz) : 0.0f;
+    const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
+    const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
+    const int xs[2] = {x0, x0 + (fx > 0.0f)}, ys[2] = {y0, y0 + (fy > 0.0f)}, zs[2] = {z0, z0 + (fz > 0.0f)};
+    float v[8];
+#ifdef LC_DIST
+    float d[8];
+#endif
+    for (int c = 0; c < 8; ++c) {
+        const int xi = xs[c & 1], yi = ys[(c >> 1) & 1], zi = zs[c >> 2];
+        const int sel = ((xi >> ln) == X1) | (((yi >> ln) == Y1) << 1) | (((zi >> ln) == Z1) << 2);
+        const ulong o = (E[sel] >> 16) + ((ulong)(zi & nm) * (ulong)n + (ulong)(yi & nm)) * (ulong)n + (ulong)(xi & nm);
+        v[c] = atlas[o];
+#ifdef LC_DIST
+        d[c] = lvl > 0 ? lc_f16(sig[o]) : 0.0f;
+#endif
+    }
+    float2 r;
+    {
+        const float a0 = v[0] + (v[1] - v[0]) * fx, a1 = v[2] + (v[3] - v[2]) * fx;
+        const float a2 = v[4] + (v[5] - v[4]) * fx, a3 = v[6] + (v[7] - v[6]) * fx;
+        const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
+        r.x = b0 + (b1 - b0) * fz;
+    }
+    r.y = 0.0f;
+#ifdef LC_DIST
+    {
+        const float a0 = d[0] + (d[1] - d[0]) * fx, a1 = d[2] + (d[3] - d[2]) * fx;
+        const float a2 = d[4] + (d[5] - d[4]) * fx, a3 = d[6] + (d[7] - d[6]) * fx;
+        const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
+        r.y = b0 + (b1 - b0) * fz;
+    }
+#endif
+    return r;
+}
+#endif
+
 static inline float2 lc_sample_atlas(__global const float* atlas, __global const ushort* sig,
                                      __global const ulong* imap, const LcAtlasGeom g, const float3 q) {
     /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
@@ -146,24 +217,9 @@ static inline float2 lc_sample_atlas(__global const float* atlas, __global const
         const int in_x = !(ox >= hx && g.B - ox >= hx), in_y = !(oy >= hy && g.B - oy >= hy);
         const int in_z = !(oz >= hz && g.B - oz >= hz);
         if (!(in_x | in_y | in_z)) return lc_nb(atlas, sig, own, bx, by, bz, g, q);
-        if (in_x + in_y + in_z == 1) {
-            /* near one face only: by the same argument every block but the own one and its neighbour across that
-             * face has weight 0, and these two take (1 - e, e) of the face's edge weight (the other axes' factors
-             * saturate to 1 for both), so two NB samples instead of the cell's eight */
-            const float o = in_x ? ox : (in_y ? oy : oz);
-            const int up = o > 0.5f * g.B; /* the face above the own block along that axis */
-            const int nx = bx + (in_x ? (up ? 1 : -1) : 0), ny = by + (in_y ? (up ? 1 : -1) : 0);
-            const int nz = bz + (in_z ? (up ? 1 : -1) : 0);
-            if (nx < 0 || ny < 0 || nz < 0 || nx >= g.gx || ny >= g.gy || nz >= g.gz)
-                return lc_nb(atlas, sig, own, bx, by, bz, g, q); /* the volume's face: the cell folds onto own */
-            const ulong nb = LC_IMAP(nx, ny, nz);
-            if (!nb) return lc_nb(atlas, sig, own, bx, by, bz, g, q); /* a missing neighbour weighs 0 */
-            const float ho = lc_half(own), hn = lc_half(nb);
-            /* e: the weight of the upper block of the edge, the interblock coordinate measured from the face */
-            const float w_nb = up ? lc_edge(o - g.B, ho, hn) : 1.0f - lc_edge(o, hn, ho);
-            const float2 a = lc_nb(atlas, sig, own, bx, by, bz, g, q), b = lc_nb(atlas, sig, nb, nx, ny, nz, g, q);
-            return a + (b - a) * w_nb;
-        }
+        if (in_x + in_y + in_z == 1)
+            return lc_face_blend(atlas, sig, imap, g, lc_nb(atlas, sig, own, bx, by, bz, g, q), lc_half(own), bx, by, bz,
+                                 in_x, in_y, in_x ? ox : (in_y ? oy : oz), q);
     }
     const float cxf = (float)(int)(p.x + 0.5f), cyf = (float)(int)(p.y + 0.5f), czf = (float)(int)(p.z + 0.5f);
     /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
@@ -179,54 +235,10 @@ static inline float2 lc_sample_atlas(__global const float* atlas, __global const
         h[s] = lc_half(E[s]);
     }
     {
-        /* all eight blocks loaded at the own level: phi is trilinear interpolation of that level (see above), so
-         * take the eight lattice samples around q directly, each from the brick that holds it (8 loads, not the
-         * 64 of eight NB samples) */
+        /* all eight blocks loaded at the own level: phi is trilinear interpolation of that level (see above) */
         int same = 1;
         for (int s = 0; s < 8; ++s) same &= E[s] != 0UL && ((E[s] ^ own) & 15UL) == 0UL;
-        if (same) {
-            const int lvl = (int)(own & 15UL) - 1;
-            const int n = (int)g.B >> lvl;
-            const float sc = 1.0f / (float)(1 << lvl);
-            const float mx = (float)(g.gx * n - 1), my = (float)(g.gy * n - 1), mz = (float)(g.gz * n - 1);
-            float lx = (q.x + 0.5f) * sc - 0.5f, ly = (q.y + 0.5f) * sc - 0.5f, lz = (q.z + 0.5f) * sc - 0.5f;
-            lx = lx > 0.0f ? (lx < mx ? lx : mx) : 0.0f;
-            ly = ly > 0.0f ? (ly < my ? ly : my) : 0.0f;
-            lz = lz > 0.0f ? (lz < mz ? lz : mz) : 0.0f;
-            const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
-            const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
-            const int xs_[2] = {x0, x0 + (fx > 0.0f)}, ys_[2] = {y0, y0 + (fy > 0.0f)}, zs_[2] = {z0, z0 + (fz > 0.0f)};
-            float v[8];
-#ifdef LC_DIST
-            float d[8];
-#endif
-            for (int c = 0; c < 8; ++c) {
-                const int xi = xs_[c & 1], yi = ys_[(c >> 1) & 1], zi = zs_[c >> 2];
-                const int sel = (xi / n == X[1]) | ((yi / n == Y[1]) << 1) | ((zi / n == Z[1]) << 2);
-                const ulong o = (E[sel] >> 16) + ((ulong)(zi % n) * (ulong)n + (ulong)(yi % n)) * (ulong)n + (ulong)(xi % n);
-                v[c] = atlas[o];
-#ifdef LC_DIST
-                d[c] = lvl > 0 ? lc_f16(sig[o]) : 0.0f;
-#endif
-            }
-            float2 r;
-            {
-                const float a0 = v[0] + (v[1] - v[0]) * fx, a1 = v[2] + (v[3] - v[2]) * fx;
-                const float a2 = v[4] + (v[5] - v[4]) * fx, a3 = v[6] + (v[7] - v[6]) * fx;
-                const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
-                r.x = b0 + (b1 - b0) * fz;
-            }
-            r.y = 0.0f;
-#ifdef LC_DIST
-            {
-                const float a0 = d[0] + (d[1] - d[0]) * fx, a1 = d[2] + (d[3] - d[2]) * fx;
-                const float a2 = d[4] + (d[5] - d[4]) * fx, a3 = d[6] + (d[7] - d[6]) * fx;
-                const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
-                r.y = b0 + (b1 - b0) * fz;
-            }
-#endif
-            return r;
-        }
+        if (same) return lc_lattice(atlas, sig, E, X[1], Y[1], Z[1], (int)(own & 15UL) - 1, g, q);
     }
     /* edge weights: x-edges join s and s|1 (s with bit 0 clear), y-edges s and s|2, z-edges s and s|4 */
     float ex[4], ey[4], ez[4];
@@ -266,6 +278,8 @@ typedef struct LcBlk {
     float s;
     float3 lo, hi;
     float3 c;
+    int bx, by, bz; /* the block */
+    float ho;       /* its half-sample width (level-0 voxels) */
 } LcBlk;
 
 static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, const int bx, const int by, const int bz) {
@@ -283,6 +297,8 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.coarse = lvl > 0;
     b.s = 1.0f / (float)(1 << lvl);
     b.c = ((float3)(0.5f) - (float3)((float)bx, (float)by, (float)bz) * g.B) * b.s - 0.5f;
+    b.bx = bx; b.by = by; b.bz = bz;
+    b.ho = 0.5f / b.s;
 #ifdef LC_INTERP_II
     const float3 hm = (float3)(lc_hw(ent, 4), lc_hw(ent, 8), lc_hw(ent, 12));
     b.lo = hm * b.s - 0.5f;
@@ -298,9 +314,19 @@ static inline float2 lc_sample_blk(__global const float* atlas, __global const u
                                    const LcAtlasGeom g, const LcBlk b, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II
-    if (l.x >= b.lo.x && l.y >= b.lo.y && l.z >= b.lo.z && l.x <= b.hi.x && l.y <= b.hi.y && l.z <= b.hi.z)
-        return lc_brick(atlas, sig, b.off, b.n, b.coarse, l.x, l.y, l.z);
-    return lc_sample_atlas(atlas, sig, imap, g, q);
+    /* the own NB sample always (inside the fast window it is the answer), the face neighbour's only in a one-face
+     * blend zone, the general interblock sum only near an edge or corner: on a SIMD device lanes in the blend
+     * zones then add one NB sample to the others' work, not a whole second path */
+    const int in_x = !(l.x >= b.lo.x && l.x <= b.hi.x), in_y = !(l.y >= b.lo.y && l.y <= b.hi.y);
+    const int in_z = !(l.z >= b.lo.z && l.z <= b.hi.z);
+    if (!b.n || in_x + in_y + in_z > 1) return lc_sample_atlas(atlas, sig, imap, g, q);
+    const float nm = (float)(b.n - 1);
+    const float cx = l.x > 0.0f ? (l.x < nm ? l.x : nm) : 0.0f, cy = l.y > 0.0f ? (l.y < nm ? l.y : nm) : 0.0f;
+    const float cz = l.z > 0.0f ? (l.z < nm ? l.z : nm) : 0.0f;
+    const float2 a = lc_brick(atlas, sig, b.off, b.n, b.coarse, cx, cy, cz);
+    if (!(in_x | in_y | in_z)) return a;
+    return lc_face_blend(atlas, sig, imap, g, a, b.ho, b.bx, b.by, b.bz, in_x, in_y,
+                         ((in_x ? l.x : (in_y ? l.y : l.z)) + 0.5f) / b.s, q);
 #else
     if (!b.n) return lc_sample_atlas(atlas, sig, imap, g, q);
     l.x = l.x > 0.0f ? (l.x < b.hi.x ? l.x : b.hi.x) : 0.0f;
