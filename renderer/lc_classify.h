@@ -9,11 +9,8 @@
  * expected extinction and colour under N(v, sd^2) from the 2D table dtab (bilinear in value and sqrt(sd)) and
  * composites in extinction form, alpha = 1 - exp(-ext * length): exact for any segment length, so adaptive steps
  * need no per-level table. sd = 0 takes the point classification below, unchanged.
- * Compositing also adds up vis_len, the transmittance-weighted length (TF units) of the visible segments: how
- * many unit slabs the pixel's colour is made of, which turns a per-voxel colour error into an image error
- * (lodcast.renderer.selection.image_delta_e).
  * Uses, from the kernel: lut, lut_ext, lut_scale, lut_off, lut_vis_lo, lut_vis_hi, dt_u, (LC_DIST) dtab, dist_*,
- * and the ray state C, T, done, vis_len (LC_PRECISE: C_c, tau, tau_c; MIP: vmax).
+ * and the ray state C, T, done (LC_PRECISE: C_c, tau, tau_c; MIP: vmax).
  */
 #ifndef LC_CLASSIFY_H
 #define LC_CLASSIFY_H
@@ -27,10 +24,9 @@
 
 #ifdef LC_PRECISE
 /* compensated (Kahan) sums of colour and optical depth for a segment of optical depth `depth` and colour `col` */
-#define LC_KAHAN_COMPOSITE(depth, col, r)                                        \
+#define LC_KAHAN_COMPOSITE(depth, col)                                           \
     {                                                                            \
         const float alpha = -expm1(-(depth));                                    \
-        vis_len += T * LC_LEN_UNITS(r);                                          \
         const float3 y3 = (T * alpha) * (col) - C_c;                             \
         const float3 s3 = C + y3;                                                \
         C_c = (s3 - C) - y3;                                                     \
@@ -63,12 +59,11 @@
 #define LC_DIST_COMPOSITE(e, r)                                                  \
     {                                                                            \
         const float depth_ = e.w * LC_LEN_UNITS(r);                              \
-        LC_KAHAN_COMPOSITE(depth_, e.xyz, r)                                     \
+        LC_KAHAN_COMPOSITE(depth_, e.xyz)                                     \
     }
 #else
 #define LC_DIST_COMPOSITE(e, r)                                                  \
     {                                                                            \
-        vis_len += T * LC_LEN_UNITS(r);                                          \
         const float wgt = T * (1.0f - native_exp(-e.w * LC_LEN_UNITS(r)));       \
         C += wgt * e.xyz;                                                        \
         T -= wgt;                                                                \
@@ -121,7 +116,7 @@
     if (lc_visible(v)) {                                                         \
         LC_TF_LOOKUP(v, e)                                                       \
         const float depth_ = e.w * (r);                                          \
-        LC_KAHAN_COMPOSITE(depth_, e.xyz, r)                                     \
+        LC_KAHAN_COMPOSITE(depth_, e.xyz)                                     \
     }
 #else
 #ifdef LC_ADAPTIVE
@@ -147,7 +142,6 @@
             alpha = -expm1(-(r) * sg_);                                          \
         }                                                                        \
         LC_LEVEL_ALPHA(r)                                                        \
-        vis_len += T * LC_LEN_UNITS(r);                                          \
         const float wgt = T * alpha;                                             \
         C += wgt * e.xyz;                                                        \
         T -= wgt;                                                                \

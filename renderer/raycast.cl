@@ -59,7 +59,7 @@
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
-                        __global const ushort* sig, __global const float4* dtab, __global float* vis_out) {
+                        __global const ushort* sig, __global const float4* dtab) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
@@ -90,7 +90,6 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float tau = 0.0f, tau_c = 0.0f;
 #endif
     float vmax = -INFINITY;
-    float vis_len = 0.0f;
     uint taken = 0;
     int done = 0;
 
@@ -299,5 +298,4 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
     out[pix] = res;
     nsamples[pix] = taken;
-    vis_out[pix] = vis_len;
 }

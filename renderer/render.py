@@ -247,14 +247,6 @@ def ext_table(pr: Prepared) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate(rows), dtype=np.float32)
 
 
-def _visible_depth(rgba: np.ndarray, vis_len: np.ndarray) -> float:
-    """Mean over the image's footprint (alpha >= 1/255) of the transmittance-weighted visible length per ray, in
-    TF units: how many unit slabs a pixel's colour is made of (about 1 for opaque surfaces, more for translucent
-    layers)."""
-    foot = rgba[..., 3] >= 1.0 / 255.0
-    return float(vis_len[foot].mean()) if foot.any() else 0.0
-
-
 def _classification(pr: Prepared) -> str:
     """How coarse samples were classified, for the report."""
     if pr.config.distribution:
@@ -303,19 +295,16 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.block_info)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 16)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
-    d_vis = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
     kern = cl.Kernel(built.program, "lc_render")
     d_sig = da.std if cfg.distribution else cl.Buffer(ctx, mf.READ_ONLY, size=8)
     d_dtab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.dist.kernel_table()) if pr.dist is not None
               else cl.Buffer(ctx, mf.READ_ONLY, size=16))
-    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_vis)
+    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab)
     ev = launch(kern, W, H)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
     cl.enqueue_copy(queue, rgba, d_out, wait_for=[ev])
-    vis_len = np.empty((H, W), np.float32)
     cl.enqueue_copy(queue, nsamp, d_n, wait_for=[ev])
-    cl.enqueue_copy(queue, vis_len, d_vis, wait_for=[ev])
     queue.finish()
     kernel_ms = (ev.profile.end - ev.profile.start) * 1e-6
     n_blocks = vol.n_blocks
@@ -335,7 +324,6 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "reduction": reduction,
         "predicted_delta_e": pred,
         "samples": int(nsamp.sum(dtype=np.int64)),
-        "visible_depth": _visible_depth(rgba, vis_len),
         "build_options": list(options),
         "program_cache": built.source,
         "build_ms": built.build_ms,

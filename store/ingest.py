@@ -28,6 +28,7 @@ from lodcast.errors import SourceError, StoreExists
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales
+from lodcast.store.atomic import move_into_place, remove_stale
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
 from lodcast.store.store import FORMAT_VERSION, Store, open_store, parse_temp_name, temp_path
 
@@ -55,7 +56,7 @@ def ingest(
     dest = Path(dest)
     _tame_malloc()
     if dest.parent.is_dir():
-        _remove_stale_partials(dest)  # first: it may put back a store that a killed `--overwrite` had moved aside
+        remove_stale(dest)  # first: it may put back a store that a killed `--overwrite` had moved aside
     if dest.exists() and not overwrite:
         raise StoreExists(f"destination {dest} exists (use --overwrite to replace it)")
     Layout((1, 1, 1), block_size)  # validates the block size before any file is opened
@@ -75,7 +76,7 @@ def ingest(
             # batching lets zarr compress many inner chunks of a shard concurrently (measured 1.4x on writes)
             with zarr.config.set({"codec_pipeline.batch_size": 32}):
                 _write(src, tmp, Layout(info.shape, block_size), bins, segments, workers, _show_progress(progress), label)
-            _move_into_place(tmp, dest, overwrite)
+            move_into_place(tmp, dest, overwrite)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -181,7 +182,12 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list
         real[:zs, :ny, :nx] = 1.0
         if counts is not None:
             real *= counts
-    sq = np.square(values, dtype=np.float64)
+    # the spread from sums of squares about a shift c near the data (E[(v - c)²] − (E[v] − c)²): unshifted, the
+    # two terms cancel for data far from zero (a float volume at 1e5 ± 0.01 lost 7 % of its spread)
+    c = float(values[:zs, :ny, :nx].mean()) if values.size else 0.0
+    if not np.isfinite(c):
+        c = 0.0
+    sq = np.square(values.astype(np.float64) - c)
     s1 = None
     if real is not None:
         sq *= real
@@ -195,11 +201,11 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list
         mean = level_mean(values, counts, k)
         if real is None:
             n = float(8**k)
-            var = sq / n - np.square(values / n)
+            var = sq / n - np.square(values / n - c)
         else:
             s1, real = _pool2(s1), _pool2(real)
             with np.errstate(invalid="ignore", divide="ignore"):
-                var = np.where(real > 0, sq / np.maximum(real, 1e-300) - np.square(s1 / np.maximum(real, 1e-300)), 0.0)
+                var = np.where(real > 0, sq / np.maximum(real, 1e-300) - np.square(s1 / np.maximum(real, 1e-300) - c), 0.0)
         np.maximum(var, 0.0, out=var)  # rounding of E[v²] − E[v]² for constant cubes
         lz, ly, lx = lay.level_shape(k)
         e = lay.block_edge(k)
@@ -459,7 +465,7 @@ def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[f
     }
 
 
-# --- files ---------------------------------------------------------------------------------------------------
+# --- sources ---------------------------------------------------------------------------------------------------
 
 def _open(source: Any, options: dict[str, Any]) -> VolumeSource:
     if isinstance(source, VolumeSource):
@@ -472,43 +478,6 @@ def _open(source: Any, options: dict[str, Any]) -> VolumeSource:
     from lodcast.store.readers import open_source
 
     return open_source(source, **{k: v for k, v in options.items() if v is not None})
-
-
-def _remove_stale_partials(dest: Path) -> None:
-    """Leftovers of ingests that were killed (their process is gone): partial stores are removed; a replaced
-    store whose successor never arrived is put back, so a kill during `--overwrite` loses nothing."""
-    for p in dest.parent.glob(f".{dest.name}.*"):
-        parsed = parse_temp_name(p.name)
-        if parsed is None or parsed[0] != dest.name or _alive(parsed[2]):
-            continue
-        if parsed[1] == "replaced" and not dest.exists():
-            os.rename(p, dest)
-        else:
-            shutil.rmtree(p, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _move_into_place(tmp: Path, dest: Path, overwrite: bool) -> None:
-    if not dest.exists():
-        os.rename(tmp, dest)
-        return
-    if not overwrite:
-        raise StoreExists(f"destination {dest} appeared while ingesting (use --overwrite to replace it)")
-    # the old store goes to a hidden name first; a kill between the two renames leaves it there, and the next
-    # ingest to this destination puts it back (see _remove_stale_partials)
-    old = temp_path(dest, "replaced")
-    os.rename(dest, old)
-    os.rename(tmp, dest)
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def _tame_malloc() -> None:
