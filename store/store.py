@@ -218,6 +218,8 @@ class Store:
             "shards": sum(lvl["shard_count"] for lvl in levels),
             "bytes_on_disk": self.bytes_on_disk(),
             "histogram": self.attrs["histogram"],
+            "format_version": self.format_version,
+            "distribution": self.attrs.get("distribution"),  # None: format 1, coarse samples classified by the mean
             "source": self.attrs.get("source", {}),
             "provenance": self.attrs.get("provenance", {}),
         }
