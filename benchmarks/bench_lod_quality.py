@@ -4,7 +4,7 @@
                                                      [--json benchmarks/results/lod_quality.json]
 
 The chest CT (../shared/data/ct_chest_dicom, 275x512x512 HU) is ingested once per block size (8³; 16³ as in the
-thesis, 32³ lodcast's default) under benchmarks/results/. For each CT preset TF (ct-bone, ct-skin, ct-skin-bone) the scene
+thesis and lodcast's default; 32³) under benchmarks/results/. For each CT preset TF (ct-bone, ct-skin, ct-skin-bone) the scene
 (size², azimuth 30°, elevation 15°, step ½ voxel) is rendered by `lodcast.renderer.quality_report` against its
 reference (full resolution, step ¼, DESIGN.md's ΔE over the footprint), and at 64:1 the TF-based selection is
 compared with data-error (L2) selection and uniform level reduction (thesis fig. 3.4; the four images side by
