@@ -362,21 +362,23 @@ def select_from_meta(
     kind, budget = parse_quality(quality, full_bytes)
     crop = np.ones(n, bool) if in_crop is None else np.asarray(in_crop, bool).ravel()
     maxlev = np.zeros(n, np.int64) if max_level is None else np.clip(np.asarray(max_level, np.int64).ravel(), 0, L - 1)
-    sig_method = "tf_full_hist" if method == "tf_full_hist" else "tf"
-    z0, visible = block_significance(meta, tfs, sig_method)
     prof = level_profile(L)
     per_level = meta.level_std is not None and method == "tf"
     opac = None
-    if per_level:  # what each level will show under the kernel's classification (level_error.py)
+    if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
         zeta_tab = np.zeros((n, L))
         opac = np.zeros((n, 2))
+        visible = np.zeros(n, bool)
         for t in ([tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs):
             vis_t = tf_visible(t, meta.min_border, meta.max_border)
             z_t, o_t = level_zeta(meta, t, vis_t, meta.value_range, meta.std_max, classification)
             zeta_tab = np.maximum(zeta_tab, z_t)
             opac = np.maximum(opac, o_t)
+            visible |= vis_t
+        z0 = zeta_tab.max(axis=1)  # drives the refinement: a block is refined if some level loses anything
         zeta_tab = zeta_tab.astype(np.float32)
     else:
+        z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
     if kind == "full":
         levels = np.where(crop, maxlev, -1)
@@ -414,7 +416,6 @@ def select_from_meta(
                         levels[loaded] = lv
                         break
             elif per_level:
-                refine &= zeta_tab.max(axis=1) > 0
                 rows = np.flatnonzero(refine)
                 levels[rows] = greedy(zeta_tab[rows].astype(np.float64), maxlev[rows], nsamp, budget_samples - base_samples)
             else:
