@@ -50,7 +50,6 @@ class BrickCache(ByteLru):
     def __init__(self, max_bytes: int):
         super().__init__(max_bytes)
         self.reads = 0  # bricks of values read from stores since creation (tests count these)
-        self.std_reads = 0  # bricks of standard deviations read
 
     def put(self, key: tuple, a: np.ndarray) -> None:  # type: ignore[override]
         super().put(key, a, a.nbytes)
@@ -135,8 +134,6 @@ def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
                 cache.put((base, *key), a)
     if what == "mean":
         cache.reads += n_read
-    else:
-        cache.std_reads += n_read
     return AtlasLoad(bricks, n_read, n_cached, int(np.count_nonzero(levels < 0)), len(futs),
                      (time.perf_counter() - t) * 1e3)
 

@@ -72,6 +72,7 @@ class DistTable:
             c = self.emission / self.ext[..., None]
         return np.where(self.ext[..., None] > 0, c, self.rgb[None])
 
+    @functools.cached_property
     def kernel_table(self) -> np.ndarray:
         """(rows + 2, n + 1, 4) float32: colour and σ̄, the last entry and the last row repeated once so that the
         kernel's bilinear lookup reads (i + 1, j + 1) without a clamp; then one row of visible spans: entry j holds
@@ -90,20 +91,26 @@ class DistTable:
             spans[0, j, :2] = nz[0], nz[-1]
         return np.ascontiguousarray(np.concatenate([t, spans], axis=0))
 
-    def lookup(self, mean, std) -> tuple[np.ndarray, np.ndarray]:
-        """(colour (..., 3), σ̄ (...)) as the kernel's bilinear lookup gives them (float64, for tests and
-        significance)."""
+    def interp(self, grid: np.ndarray, mean, std) -> np.ndarray:
+        """Bilinear interpolation of `grid` (rows, n, C), any per-entry quantity of this table, at (mean, std), as
+        the kernel looks the table up (clamped at both axes' ends), float64 (..., C)."""
         m = np.asarray(mean, np.float64)
         s = np.asarray(std, np.float64)
         fi = np.clip((m - self.lo) * self.scale, 0.0, self.n - 1.0)
-        fj = np.clip(np.sqrt(np.maximum(s, 0.0)) * self.std_scale, 0.0, self.rows - 1.0)
         i = np.minimum(fi.astype(np.intp), max(self.n - 2, 0))
+        wi = (fi - i)[..., None]
+        i1 = i + (self.n > 1)
+        fj = np.clip(np.sqrt(np.maximum(s, 0.0)) * self.std_scale, 0.0, self.rows - 1.0)
         j = np.minimum(fj.astype(np.intp), max(self.rows - 2, 0))
-        wi, wj = fi - i, fj - j
-        t = self.kernel_table()[:-1].astype(np.float64)
-        i1, j1 = i + (self.n > 1), j + (self.rows > 1)
-        e = ((t[j, i] * (1 - wi)[..., None] + t[j, i1] * wi[..., None]) * (1 - wj)[..., None]
-             + (t[j1, i] * (1 - wi)[..., None] + t[j1, i1] * wi[..., None]) * wj[..., None])
+        wj = (fj - j)[..., None]
+        j1 = j + (self.rows > 1)
+        a = grid[j, i] + (grid[j, i1] - grid[j, i]) * wi
+        b = grid[j1, i] + (grid[j1, i1] - grid[j1, i]) * wi
+        return a + (b - a) * wj
+
+    def lookup(self, mean, std) -> tuple[np.ndarray, np.ndarray]:
+        """(colour (..., 3), σ̄ (...)) as the kernel's bilinear lookup gives them (float64, for tests)."""
+        e = self.interp(self.kernel_table[: self.rows, : self.n].astype(np.float64), mean, std)
         return e[..., :3], e[..., 3]
 
 

@@ -54,23 +54,6 @@ def luv_table(tf: Any, value_range: tuple[float, float], std_max: float) -> tupl
     return t, _luv(t)
 
 
-def _lookup(t: DistTable, luv: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of `luv` (rows, n, 3) at (mean, std), as the kernel's table lookup."""
-    fi = np.clip((mean - t.lo) * t.scale, 0.0, t.n - 1.0)
-    i = np.minimum(fi.astype(np.intp), max(t.n - 2, 0))
-    wi = (fi - i)[..., None]
-    i1 = i + (t.n > 1)
-    if t.rows == 1 or not np.any(std > 0):
-        row = luv[0]
-        return row[i] + (row[i1] - row[i]) * wi
-    fj = np.clip(np.sqrt(np.maximum(std, 0.0)) * t.std_scale, 0.0, t.rows - 1.0)
-    j = np.minimum(fj.astype(np.intp), t.rows - 2)
-    wj = (fj - j)[..., None]
-    a = luv[j, i] + (luv[j, i1] - luv[j, i]) * wi
-    b = luv[j + 1, i] + (luv[j + 1, i1] - luv[j + 1, i]) * wi
-    return a + (b - a) * wj
-
-
 def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
                classification: str = "distribution") -> tuple[np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L) float64: 0 at level 0, 0 for invisible and constant blocks; per block the
@@ -97,7 +80,7 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
         total = w.sum(axis=1)
         x = 0.5 * (lo + hi)[..., None] + 0.5 * (hi - lo)[..., None] * _NODES  # (m, K, 3) values
         wq = (w[..., None] * _WEIGHTS * 2.0) / np.maximum(total, 1e-300)[:, None, None]
-        tstar = _lookup(t, luv, x, np.zeros_like(x))
+        tstar = t.interp(luv, x, np.zeros_like(x))
         a = evaluate(tf, x)[1]
         vis_frac = (wq * (a > 0)).sum(axis=(1, 2))
         opac[rows, 0] = (wq * a).sum(axis=(1, 2))
@@ -108,10 +91,10 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
         sheet = np.maximum(vis_frac, 1.0 / (1 << (n_lv - 1)))  # n_vis / n, at least a one-voxel sheet
         for k in range(1, n_lv):
             if classification == "distribution":
-                shown = _lookup(t, luv, x, s[:, k][:, None, None] * np.ones_like(x))
+                shown = t.interp(luv, x, s[:, k][:, None, None] * np.ones_like(x))
             else:
                 rho = np.sqrt(np.clip(1.0 - (s[:, k] / s_top) ** 2, 0.0, 1.0))[:, None, None]
-                shown = _lookup(t, luv, mbar + rho * (x - mbar), np.zeros_like(x))
+                shown = t.interp(luv, mbar + rho * (x - mbar), np.zeros_like(x))
             d2 = ((tstar - shown) ** 2).sum(axis=-1)
             out[rows, k] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0) / sheet)
     return out, opac

@@ -297,7 +297,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
     kern = cl.Kernel(built.program, "lc_render")
     d_sig = da.std if cfg.distribution else cl.Buffer(ctx, mf.READ_ONLY, size=8)
-    d_dtab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.dist.kernel_table()) if pr.dist is not None
+    d_dtab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.dist.kernel_table) if pr.dist is not None
               else cl.Buffer(ctx, mf.READ_ONLY, size=16))
     kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab)
     ev = launch(kern, W, H)
