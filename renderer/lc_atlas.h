@@ -48,6 +48,16 @@ static inline float lc_f16(const ushort h) {
     return as_float(e ? ((((uint)h & 0x8000u) << 16) | ((e + 0x1c000u) << 13) | (((uint)h & 0x03ffu) << 13)) : 0u);
 }
 
+/* Trilinear interpolation of the corner values v_zyx (v001: x + 1) with fractions fx, fy, fz. */
+static inline float lc_tri8(const float v000, const float v001, const float v010, const float v011, const float v100,
+                            const float v101, const float v110, const float v111, const float fx, const float fy,
+                            const float fz) {
+    const float a0 = v000 + (v001 - v000) * fx, a1 = v010 + (v011 - v010) * fx;
+    const float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
+    const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
+    return b0 + (b1 - b0) * fz;
+}
+
 /* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]:
  * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (float16 bits)
  * at the same offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
@@ -59,23 +69,12 @@ static inline float2 lc_brick(__global const float* atlas, __global const ushort
     const ulong dy = fy > 0.0f ? (ulong)n : 0UL;
     const ulong dz = fz > 0.0f ? (ulong)n * (ulong)n : 0UL;
     const ulong b = off + ((ulong)z0 * (ulong)n + (ulong)y0) * (ulong)n + (ulong)x0, c = b + dz;
-    float v000 = atlas[b], v001 = atlas[b + dx], v010 = atlas[b + dy], v011 = atlas[b + dy + dx];
-    float v100 = atlas[c], v101 = atlas[c + dx], v110 = atlas[c + dy], v111 = atlas[c + dy + dx];
-    float a0 = v000 + (v001 - v000) * fx, a1 = v010 + (v011 - v010) * fx;
-    float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
-    float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
-    float2 out = (float2)(b0 + (b1 - b0) * fz, 0.0f);
+    float2 out = (float2)(lc_tri8(atlas[b], atlas[b + dx], atlas[b + dy], atlas[b + dy + dx], atlas[c], atlas[c + dx],
+                                  atlas[c + dy], atlas[c + dy + dx], fx, fy, fz), 0.0f);
 #ifdef LC_DIST
-    if (coarse) {
-        v000 = lc_f16(sig[b]); v001 = lc_f16(sig[b + dx]);
-        v010 = lc_f16(sig[b + dy]); v011 = lc_f16(sig[b + dy + dx]);
-        v100 = lc_f16(sig[c]); v101 = lc_f16(sig[c + dx]);
-        v110 = lc_f16(sig[c + dy]); v111 = lc_f16(sig[c + dy + dx]);
-        a0 = v000 + (v001 - v000) * fx; a1 = v010 + (v011 - v010) * fx;
-        a2 = v100 + (v101 - v100) * fx; a3 = v110 + (v111 - v110) * fx;
-        b0 = a0 + (a1 - a0) * fy; b1 = a2 + (a3 - a2) * fy;
-        out.y = b0 + (b1 - b0) * fz;
-    }
+    if (coarse)
+        out.y = lc_tri8(lc_f16(sig[b]), lc_f16(sig[b + dx]), lc_f16(sig[b + dy]), lc_f16(sig[b + dy + dx]), lc_f16(sig[c]),
+                        lc_f16(sig[c + dx]), lc_f16(sig[c + dy]), lc_f16(sig[c + dy + dx]), fx, fy, fz);
 #endif
     return out;
 }
@@ -140,54 +139,6 @@ static inline float2 lc_face_blend(__global const float* atlas, __global const u
     const float2 v = lc_nb(atlas, sig, nb, nx, ny, nz, g, q);
     return a + (v - a) * w;
 }
-
-/* Trilinear interpolation of level lvl on its global sample lattice at q (clamped to the grid's edge), each of the
- * eight lattice samples read from the brick that holds it: E[x | y << 1 | z << 2] are the entries of the blocks
- * (X0 or X1, Y0 or Y1, Z0 or Z1), X1 = the upper block along x. Where every block of an interblock cell is loaded at
- * one level, this is eq. 3.6's value (8 loads, not the 64 of eight NB samples). */
-static inline float2 lc_lattice(__global const float* atlas, __global const ushort* sig, const ulong* E, const int X1,
-                                const int Y1, const int Z1, const int lvl, const LcAtlasGeom g, const float3 q) {
-    const int n = (int)g.B >> lvl, ln = popcount(n - 1), nm = n - 1;
-    const float sc = 1.0f / (float)(1 << lvl);
-    const float mx = (float)(g.gx * n - 1), my = (float)(g.gy * n - 1), mz = (float)(g.gz * n - 1);
-    float lx = (q.x + 0.5f) * sc - 0.5f, ly = (q.y + 0.5f) * sc - 0.5f, lz = (q.z + 0.5f) * sc - 0.5f;
-    lx = lx > 0.0f ? (lx < mx ? lx : mx) : 0.0f;
-    ly = ly > 0.0f ? (ly < my ? ly : my) : 0.0f;
-    lz = lz > 0.0f ? (lz < mz ? lz : mz) : 0.0f;
-    const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
-    const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
-    const int xs[2] = {x0, x0 + (fx > 0.0f)}, ys[2] = {y0, y0 + (fy > 0.0f)}, zs[2] = {z0, z0 + (fz > 0.0f)};
-    float v[8];
-#ifdef LC_DIST
-    float d[8];
-#endif
-    for (int c = 0; c < 8; ++c) {
-        const int xi = xs[c & 1], yi = ys[(c >> 1) & 1], zi = zs[c >> 2];
-        const int sel = ((xi >> ln) == X1) | (((yi >> ln) == Y1) << 1) | (((zi >> ln) == Z1) << 2);
-        const ulong o = (E[sel] >> 16) + ((ulong)(zi & nm) * (ulong)n + (ulong)(yi & nm)) * (ulong)n + (ulong)(xi & nm);
-        v[c] = atlas[o];
-#ifdef LC_DIST
-        d[c] = lvl > 0 ? lc_f16(sig[o]) : 0.0f;
-#endif
-    }
-    float2 r;
-    {
-        const float a0 = v[0] + (v[1] - v[0]) * fx, a1 = v[2] + (v[3] - v[2]) * fx;
-        const float a2 = v[4] + (v[5] - v[4]) * fx, a3 = v[6] + (v[7] - v[6]) * fx;
-        const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
-        r.x = b0 + (b1 - b0) * fz;
-    }
-    r.y = 0.0f;
-#ifdef LC_DIST
-    {
-        const float a0 = d[0] + (d[1] - d[0]) * fx, a1 = d[2] + (d[3] - d[2]) * fx;
-        const float a2 = d[4] + (d[5] - d[4]) * fx, a3 = d[6] + (d[7] - d[6]) * fx;
-        const float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;
-        r.y = b0 + (b1 - b0) * fz;
-    }
-#endif
-    return r;
-}
 #endif
 
 static inline float2 lc_sample_atlas(__global const float* atlas, __global const ushort* sig,
@@ -233,12 +184,6 @@ static inline float2 lc_sample_atlas(__global const float* atlas, __global const
     for (int s = 0; s < 8; ++s) {
         E[s] = LC_IMAP(X[s & 1], Y[(s >> 1) & 1], Z[s >> 2]);
         h[s] = lc_half(E[s]);
-    }
-    {
-        /* all eight blocks loaded at the own level: phi is trilinear interpolation of that level (see above) */
-        int same = 1;
-        for (int s = 0; s < 8; ++s) same &= E[s] != 0UL && ((E[s] ^ own) & 15UL) == 0UL;
-        if (same) return lc_lattice(atlas, sig, E, X[1], Y[1], Z[1], (int)(own & 15UL) - 1, g, q);
     }
     /* edge weights: x-edges join s and s|1 (s with bit 0 clear), y-edges s and s|2, z-edges s and s|4 */
     float ex[4], ey[4], ez[4];

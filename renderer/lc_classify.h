@@ -9,18 +9,11 @@
  * expected extinction and colour under N(v, sd^2) from the 2D table dtab (bilinear in value and sqrt(sd)) and
  * composites in extinction form, alpha = 1 - exp(-ext * length): exact for any segment length, so adaptive steps
  * need no per-level table. sd = 0 takes the point classification below, unchanged.
- * Uses, from the kernel: lut, lut_ext, lut_scale, lut_off, lut_vis_lo, lut_vis_hi, dt_u, (LC_DIST) dtab, dist_*,
+ * Uses, from the kernel: lut, lut_ext, lut_scale, lut_off, lut_vis_lo, lut_vis_hi, (LC_DIST) dtab, dist_*, dt_u,
  * and the ray state C, T, done (LC_PRECISE: C_c, tau, tau_c; MIP: vmax).
  */
 #ifndef LC_CLASSIFY_H
 #define LC_CLASSIFY_H
-
-/* length in TF units of the segment r describes */
-#ifdef LC_PRECISE
-#define LC_LEN_UNITS(r) ((r) * dt_u)
-#else
-#define LC_LEN_UNITS(r) ((r) >= 0.0f ? (r) : dt_u * (float)(1 << (int)(-1.0f - (r))))
-#endif
 
 #ifdef LC_PRECISE
 /* compensated (Kahan) sums of colour and optical depth for a segment of optical depth `depth` and colour `col` */
@@ -41,6 +34,13 @@
 #endif
 
 #ifdef LC_DIST
+/* length in TF units of the segment r describes */
+#ifdef LC_PRECISE
+#define LC_LEN_UNITS(r) ((r) * dt_u)
+#else
+#define LC_LEN_UNITS(r) ((r) >= 0.0f ? (r) : dt_u * (float)(1 << (int)(-1.0f - (r))))
+#endif
+
 #define LC_DIST_LOOKUP(v, sd, e)                                                 \
     float4 e;                                                                    \
     {                                                                            \

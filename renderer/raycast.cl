@@ -75,11 +75,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
     const float t_stop = 1.0f - P->early_term; /* terminate once transmittance <= this */
-    const float dt_u = P->step * P->inv_unit; /* a base step in TF units */
 #ifdef LC_DIST
     const float dist_scale = P->dist_scale, dist_off = -P->dist_lo * P->dist_scale;
     const float dist_fmax = (float)(P->dist_n - 1), dist_jmax = (float)(P->dist_rows - 1);
-    const float dist_sscale = P->dist_sscale;
+    const float dist_sscale = P->dist_sscale, dt_u = P->step * P->inv_unit; /* dt_u: a base step in TF units */
     const int dist_row = P->dist_n + 1, dist_spans = (P->dist_rows + 1) * dist_row;
 #endif
 
