@@ -77,9 +77,9 @@ def scene_from_args(args: argparse.Namespace):
         if not isinstance(data, dict):
             raise SceneError(f"--scene {args.scene!r}: a scene must be a JSON object")
     if args.tf:
-        from lodcast.renderer.transfer_function import CT_PRESETS
+        from lodcast.renderer.presets import PRESETS
 
-        data["tf"] = CT_PRESETS[args.tf] if args.tf in CT_PRESETS else _load_json(args.tf, "--tf")
+        data["tf"] = args.tf if args.tf in PRESETS else _load_json(args.tf, "--tf")
     if "tf" not in data:
         raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
     for key in ("width", "height", "mode"):

@@ -23,6 +23,9 @@ class KernelConfig:
     jitter: bool = False
     precise: bool = False
     background: bool = False
+    clip: bool = False  # clip planes (a crop box alone needs no option: the host shrinks the box)
+    shade: bool = False  # local illumination (composite only)
+    preint: bool = False  # pre-integrated classification (composite only)
 
     def __post_init__(self) -> None:
         if self.sampler not in ("full", "atlas"):
@@ -35,6 +38,8 @@ class KernelConfig:
             raise ValueError(f"mode {self.mode!r} is not implemented")
         if self.distribution and (self.sampler != "atlas" or self.mode != "composite"):
             raise ValueError("distribution classification needs the atlas sampler and composite mode")
+        if (self.shade or self.preint) and self.mode != "composite":
+            raise ValueError("shading and pre-integration need composite mode")
 
     def build_options(self) -> tuple[str, ...]:
         opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]
@@ -54,6 +59,9 @@ class KernelConfig:
             (self.jitter, "LC_JITTER"),
             (self.precise and self.mode == "composite", "LC_PRECISE"),
             (self.background, "LC_BACKGROUND"),
+            (self.clip, "LC_CLIP"),
+            (self.shade, "LC_SHADE"),
+            (self.preint, "LC_PREINT"),
         ):
             if flag:
                 opts.append(f"-D{name}")

@@ -1,6 +1,6 @@
 /* lc_classify.h: classification and compositing of one sample (the integrator's step), for raycast.cl.
  *
- * LC_SAMPLE_BODY(v, sd, r): a sample of value v, standard deviation sd of the level-0 values behind it (0 at level
+ * LC_SAMPLE_BODY(v, sd, r, q): a sample at voxel coordinates q (lighting takes its gradient there) of value v, standard deviation sd of the level-0 values behind it (0 at level
  * 0 and without LC_DIST) on a segment described by r (see raycast.cl's header: r < 0 a whole step of the level
  * -1 - r, r >= 0 the last segment's length in TF units; LC_PRECISE: r is the segment's length in steps). MIP keeps
  * the maximum of v; compositing classifies and composites front to back; done = 1 once the ray is (nearly) opaque.
@@ -20,7 +20,8 @@
 #define LC_KAHAN_COMPOSITE(depth, col)                                           \
     {                                                                            \
         const float alpha = -expm1(-(depth));                                    \
-        const float3 y3 = (T * alpha) * (col) - C_c;                             \
+        const float3 col_ = (col);                                               \
+        const float3 y3 = (T * alpha) * col_ - C_c;                              \
         const float3 s3 = C + y3;                                                \
         C_c = (s3 - C) - y3;                                                     \
         C = s3;                                                                  \
@@ -29,9 +30,31 @@
         tau_c = (s - tau) - y;                                                   \
         tau = s;                                                                 \
         T = exp(-tau);                                                           \
-        done = T <= t_stop;                                                      \
+        if (T <= t_stop) { /* finish the ray: what is left shows this colour */  \
+            C += T * col_;                                                       \
+            tau = INFINITY;                                                      \
+            T = 0.0f;                                                            \
+            done = 1;                                                            \
+        }                                                                        \
     }
 #endif
+
+/* front-to-back blend of weight w = T alpha and colour col; once the transmittance is down to t_stop the ray ends
+ * and what is left of it takes this sample's colour: the rest of the ray would add T' <= t_stop of colours like
+ * the ones just met, so the bias is at most t_stop times a colour difference instead of t_stop times the colour
+ * (alpha ends at 1, as the exact integral of an opaque object does) */
+#define LC_BLEND(w, col)                                                         \
+    {                                                                            \
+        const float3 col_ = (col);                                               \
+        const float w_ = (w);                                                    \
+        C += w_ * col_;                                                          \
+        T -= w_;                                                                 \
+        if (T <= t_stop) {                                                       \
+            C += T * col_;                                                       \
+            T = 0.0f;                                                            \
+            done = 1;                                                            \
+        }                                                                        \
+    }
 
 #ifdef LC_DIST
 /* length in TF units of the segment r describes */
@@ -56,24 +79,22 @@
         e = a_ + (b_ - a_) * wj_;                                                \
     }
 #ifdef LC_PRECISE
-#define LC_DIST_COMPOSITE(e, r)                                                  \
+#define LC_DIST_COMPOSITE(e, r, q)                                               \
     {                                                                            \
         const float depth_ = e.w * LC_LEN_UNITS(r);                              \
-        LC_KAHAN_COMPOSITE(depth_, e.xyz)                                     \
+        LC_KAHAN_COMPOSITE(depth_, LC_SHADE_COL(e.xyz, q))                       \
     }
 #else
-#define LC_DIST_COMPOSITE(e, r)                                                  \
+#define LC_DIST_COMPOSITE(e, r, q)                                               \
     {                                                                            \
         const float wgt = T * (1.0f - native_exp(-e.w * LC_LEN_UNITS(r)));       \
-        C += wgt * e.xyz;                                                        \
-        T -= wgt;                                                                \
-        done = T <= t_stop;                                                      \
+        LC_BLEND(wgt, LC_SHADE_COL(e.xyz, q))                                    \
     }
 #endif
 /* a coarse sample (sd > 0, not NaN): by its distribution; else falls through to the point classification.
  * The row after the table holds, per row pair (j, j + 1), the span of entries where the expected extinction is
  * non-zero: outside it the sample is transparent without the bilinear lookup. */
-#define LC_DIST_BODY(v, sd, r)                                                   \
+#define LC_DIST_BODY(v, sd, r, q)                                                   \
     if ((sd) > 0.0f) {                                                           \
         float fj0_ = sqrt(sd) * dist_sscale;                                     \
         fj0_ = fj0_ < dist_jmax ? fj0_ : dist_jmax;                              \
@@ -81,17 +102,19 @@
         const float fi0_ = (v) * dist_scale + dist_off;                          \
         if (fi0_ > sp_.x - 1.0f && fi0_ < sp_.y + 1.0f) {                        \
             LC_DIST_LOOKUP(v, sd, e)                                             \
-            if (e.w > 0.0f) LC_DIST_COMPOSITE(e, r)                              \
+            if (e.w > 0.0f) LC_DIST_COMPOSITE(e, r, q)                           \
         }                                                                        \
     } else
 #else
-#define LC_DIST_BODY(v, sd, r)
+#define LC_DIST_BODY(v, sd, r, q)
 #endif
+
+#include "lc_preint.h"
 
 /* One sample of value v on a segment of r steps: MIP keeps the maximum; compositing looks the TF up, takes the
  * segment's opacity and composites front to back; done = 1 once the ray is (nearly) opaque. */
 #ifdef LC_MODE_MIP
-#define LC_SAMPLE_BODY(v, sd, r)                                                 \
+#define LC_SAMPLE_BODY(v, sd, r, q)                                              \
     if ((v) == (v)) vmax = (v) > vmax ? (v) : vmax;
 #else
 /* Where the TF is zero (and for NaN) a sample is transparent: no lookup, no blend — exactly what the lookup and
@@ -110,13 +133,17 @@
         const float4 e0_ = lut[i_], e1_ = lut[i_ + 1];                           \
         e = e0_ + (e1_ - e0_) * w_;                                              \
     }
-#ifdef LC_PRECISE
-#define LC_SAMPLE_BODY(v, sd, r)                                                 \
-    LC_DIST_BODY(v, sd, r)                                                       \
+#ifdef LC_PREINT
+#define LC_SAMPLE_BODY(v, sd, r, q)                                              \
+    LC_DIST_BODY(v, sd, r, q)                                                    \
+    LC_PREINT_BODY(r, q)
+#elif defined(LC_PRECISE)
+#define LC_SAMPLE_BODY(v, sd, r, q)                                              \
+    LC_DIST_BODY(v, sd, r, q)                                                    \
     if (lc_visible(v)) {                                                         \
         LC_TF_LOOKUP(v, e)                                                       \
         const float depth_ = e.w * (r);                                          \
-        LC_KAHAN_COMPOSITE(depth_, e.xyz)                                     \
+        LC_KAHAN_COMPOSITE(depth_, LC_SHADE_COL(e.xyz, q))                       \
     }
 #else
 #ifdef LC_ADAPTIVE
@@ -132,8 +159,8 @@
 #endif
 /* r < 0: a uniform segment (alpha from the table); else the last segment's length in TF units (alpha from the
  * extinction table: 1 - (1 - a)^r = -expm1(-r sigma), exact even where the step's alpha rounds to 1 in float32) */
-#define LC_SAMPLE_BODY(v, sd, r)                                                 \
-    LC_DIST_BODY(v, sd, r)                                                       \
+#define LC_SAMPLE_BODY(v, sd, r, q)                                              \
+    LC_DIST_BODY(v, sd, r, q)                                                    \
     if (lc_visible(v)) {                                                         \
         LC_TF_LOOKUP(v, e)                                                       \
         float alpha = e.w;                                                       \
@@ -142,10 +169,7 @@
             alpha = -expm1(-(r) * sg_);                                          \
         }                                                                        \
         LC_LEVEL_ALPHA(r)                                                        \
-        const float wgt = T * alpha;                                             \
-        C += wgt * e.xyz;                                                        \
-        T -= wgt;                                                                \
-        done = T <= t_stop;                                                      \
+        LC_BLEND(T * alpha, LC_SHADE_COL(e.xyz, q))                              \
     }
 #endif
 #endif

@@ -32,7 +32,7 @@ static inline void lc_pixel_ray(__constant const LcParams* P, int i, int j, floa
 #endif
 }
 
-/* Slab test in world space; returns the parameter interval [t0, t1] (t0 >= 0: rays start at the eye/image plane). */
+/* Slab test in world space (and LC_CLIP: the clip planes); returns the parameter interval [t0, t1] (t0 >= 0: rays start at the eye/image plane). */
 static inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t0, float* t1) {
     float3 inv = 1.0f / d;
     float3 ta = (P->box_lo.xyz - o) * inv;
@@ -40,6 +40,16 @@ static inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, f
     float3 lo = fmin(ta, tb), hi = fmax(ta, tb);
     float tn = fmax(fmax(lo.x, lo.y), lo.z);
     float tf = fmin(fmin(hi.x, hi.y), hi.z);
+#ifdef LC_CLIP
+    /* each plane keeps n.x + w >= 0: the ray's kept part of a convex region is one interval */
+    for (int k = 0; k < P->n_clip; ++k) {
+        const float4 pl = P->clip[k];
+        const float nd = pl.x * d.x + pl.y * d.y + pl.z * d.z, no = pl.x * o.x + pl.y * o.y + pl.z * o.z + pl.w;
+        if (nd > 0.0f) tn = fmax(tn, -no / nd);
+        else if (nd < 0.0f) tf = fmin(tf, -no / nd);
+        else if (no < 0.0f) return 0;
+    }
+#endif
     *t0 = fmax(tn, 0.0f);
     *t1 = tf;
     return tf > *t0;

@@ -40,6 +40,15 @@ typedef struct LcParams {
     float dist_scale;
     float dist_sscale;
     int pad0;
+    float4 clip[6];     /* LC_CLIP: planes (nx, ny, nz, w) world; a point x is kept where n.x + w >= 0 */
+    float4 light;       /* LC_SHADE: unit world direction towards the light (headlight: unused) */
+    float4 shade;       /* LC_SHADE: ambient, diffuse, specular, shininess */
+    float shade_gmin;   /* LC_SHADE: gradient magnitude (data units per world unit) below which a sample is unlit */
+    int n_clip;         /* LC_CLIP: planes in use (<= 6) */
+    int pre_n;          /* LC_PREINT: the pre-integration table has pre_n x pre_n entries over values */
+    float pre_lo;       /* pre_lo + k / pre_scale */
+    float pre_scale;
+    int pad1, pad2, pad3;
 } LcParams;
 
 #endif

@@ -23,6 +23,10 @@
  *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)
  *   LC_PRECISE        compensated (Kahan) sums of optical depth and colour, for rays of very many samples
  *   LC_BACKGROUND     composite the background under the integral
+ *   LC_CLIP           clip planes (lc_common.h: the ray's interval is cut exactly at each plane; a crop box needs no
+ *                     option, the host intersects it with the volume's box)
+ *   LC_PREINT         pre-integrated classification of each segment by the scalars at its ends (lc_preint.h)
+ *   LC_SHADE          local illumination, Blinn-Phong with gradients through the ray's sampler (lc_shade.h)
  *
  * Sampling: the part [t0, t1] of the ray inside the box is cut into n = ceil((t1 - t0) / step) segments of
  * length step (the last one shorter, so the segments add up to t1 - t0 exactly); segment k is sampled once at
@@ -54,12 +58,13 @@
 #endif
 
 
+#include "lc_shade.h"
 #include "lc_classify.h"
 
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
-                        __global const ushort* sig, __global const float4* dtab) {
+                        __global const ushort* sig, __global const float4* dtab, __global const float4* ptab) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
@@ -88,6 +93,13 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float3 C_c = (float3)(0.0f);
     float tau = 0.0f, tau_c = 0.0f;
 #endif
+#ifdef LC_PREINT
+    const float pre_lo = P->pre_lo, pre_scale = P->pre_scale;
+    const int pre_n = P->pre_n;
+    const float pre_unit = 1.0f / P->inv_unit;
+    float3 pre_q = (float3)(INFINITY); /* the last segment's back end and its value */
+    float pre_v = 0.0f;
+#endif
     float vmax = -INFINITY;
     uint taken = 0;
     int done = 0;
@@ -95,6 +107,15 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float3 o, d;
     float t0, t1;
     lc_pixel_ray(P, i, j, &o, &d);
+#ifdef LC_SHADE
+    const float4 sh_k = P->shade;
+    const float sh_gmin = P->shade_gmin;
+    const float3 sh_gs = 0.5f * P->inv_spacing.xyz; /* central differences over two voxels, in world units */
+    const float3 sh_l = P->light.w > 0.0f ? -d : P->light.xyz; /* w > 0: headlight */
+    float3 sh_h = sh_l - d;
+    const float sh_hn = sqrt(sh_h.x * sh_h.x + sh_h.y * sh_h.y + sh_h.z * sh_h.z);
+    sh_h = sh_hn > 0.0f ? sh_h / sh_hn : sh_l;
+#endif
     if (lc_hit_box(P, o, d, &t0, &t1)) {
         const float dt = P->step, inv_dt = 1.0f / dt;
         float nf = ceil((t1 - t0) / dt);
@@ -149,9 +170,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             if (lvl >= 0) { /* one step of the starting cell's length, wherever it ends */
                 const float h = dt * (float)(1 << lvl);
                 const float len = t1 - t < h ? t1 - t : h;
-                const float2 vs = LC_SAMPLE(q0 + (t + u * len) * dq);
+                const float3 qs = q0 + (t + u * len) * dq;
+                const float2 vs = LC_SAMPLE(qs);
                 ++taken;
-                LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len))
+                LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len), qs)
                 t += len;
             } else {
                 t = tb;
@@ -179,8 +201,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
                 int s = 0;
                 for (; s < m - 1 && !done; ++s) { /* whole steps: alpha from the level's table */
-                    const float2 vs = LC_SAMPLE_B(qa + (float)s * dqh);
-                    LC_SAMPLE_BODY(vs.x, vs.y, r_whole)
+                    const float3 qs = qa + (float)s * dqh;
+                    const float2 vs = LC_SAMPLE_B(qs);
+                    LC_SAMPLE_BODY(vs.x, vs.y, r_whole, qs)
                 }
                 taken += (uint)s;
                 if (!done) { /* the last segment, cut at the cell boundary */
@@ -188,9 +211,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                     float len = tb - a;
                     len = len < h ? len : h;
                     if (len > 0.0f) {
-                        const float2 vs = LC_SAMPLE_B(q0 + (a + u * len) * dq);
+                        const float3 qs = q0 + (a + u * len) * dq;
+                        const float2 vs = LC_SAMPLE_B(qs);
                         ++taken;
-                        LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len))
+                        LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len), qs)
                     }
                 }
             }
@@ -254,20 +278,22 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
             /* uniform segments: no transcendental call in this loop (a call makes every live value spill) */
             const int k_uni = k_end < nlast ? k_end : nlast;
             for (; k < k_uni && !done; ++k) {
-                const float2 vs = LC_SAMPLE_B(qu + (float)k * dqk);
+                const float3 qs = qu + (float)k * dqk;
+                const float2 vs = LC_SAMPLE_B(qs);
 #ifdef LC_PRECISE
-                LC_SAMPLE_BODY(vs.x, vs.y, 1.0f)
+                LC_SAMPLE_BODY(vs.x, vs.y, 1.0f, qs)
 #else
-                LC_SAMPLE_BODY(vs.x, vs.y, -1.0f)
+                LC_SAMPLE_BODY(vs.x, vs.y, -1.0f, qs)
 #endif
             }
             if (k == nlast && k_end == n && !done) { /* the last, shorter segment */
-                const float2 vs = LC_SAMPLE_B(q0 + (last + u * len_last) * dq);
+                const float3 qs = q0 + (last + u * len_last) * dq;
+                const float2 vs = LC_SAMPLE_B(qs);
                 ++k;
 #ifdef LC_PRECISE
-                LC_SAMPLE_BODY(vs.x, vs.y, r_last)
+                LC_SAMPLE_BODY(vs.x, vs.y, r_last, qs)
 #else
-                LC_SAMPLE_BODY(vs.x, vs.y, len_last_units)
+                LC_SAMPLE_BODY(vs.x, vs.y, len_last_units, qs)
 #endif
             }
             taken += (uint)(k - k_begin);

@@ -30,8 +30,10 @@ import pyopencl as cl
 
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
+from lodcast.renderer import clip as clipping
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import PRECISE_SAMPLES, KernelConfig
+from lodcast.renderer.preintegration import PreintTable, preintegrate
 from lodcast.renderer.program import device_info, get_context, get_program
 from lodcast.renderer.sampler import upload_level0
 from lodcast.renderer.scene import QualityBudget, QualityReduction, Scene, SceneError
@@ -85,6 +87,9 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
         jitter=s.jitter,
         precise=max_samples > PRECISE_SAMPLES,
         background=scene.background[3] > 0,
+        clip=scene.clip is not None and len(scene.clip.planes) > 0,
+        shade=scene.shading is not None and scene.mode == "composite",
+        preint=s.preintegration and scene.mode == "composite",
     )
 
 
@@ -99,7 +104,7 @@ def block_info(vol: VolumeView, lut: Lut, mode: str) -> tuple[np.ndarray, int]:
 
 
 def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: Lut, step_world: float,
-                 unit: float, max_samples: int, dist: DistTable | None) -> np.ndarray:
+                 unit: float, max_samples: int, dist: DistTable | None, pre: PreintTable | None) -> np.ndarray:
     p = new_params()[0]
     xyz = lambda v: (*[float(c) for c in v], 0.0)  # noqa: E731
     p["eye"], p["cam_f"], p["cam_r"], p["cam_u"] = xyz(fr.eye), xyz(fr.f), xyz(fr.r), xyz(fr.u)
@@ -118,6 +123,22 @@ def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: 
     p["seed"] = scene.sampling.seed
     p["max_samples"] = max_samples
     p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
+    if pre is not None:
+        p["pre_n"], p["pre_lo"], p["pre_scale"] = pre.n, pre.lo, pre.scale
+    p["clip"] = clipping.kernel_planes(scene.clip)
+    p["n_clip"] = 0 if scene.clip is None else len(scene.clip.planes)
+    sh = scene.shading
+    if sh is not None:
+        p["shade"] = (sh.ambient, sh.diffuse, sh.specular, sh.shininess)
+        if sh.light == "headlight":
+            p["light"] = (0.0, 0.0, 0.0, 1.0)
+        else:
+            v = np.asarray(sh.light, np.float64)
+            if sh.light_space == "view":  # x right, y up, z towards the viewer
+                v = v[0] * fr.r + v[1] * fr.u - v[2] * fr.f
+            p["light"] = xyz(v / np.linalg.norm(v))
+        span = float(vol.value_range[1]) - float(vol.value_range[0])
+        p["shade_gmin"] = sh.min_gradient if sh.min_gradient is not None else 1e-3 * span / float(min(vol.spacing))
     if dist is not None:
         p["dist_n"], p["dist_rows"] = dist.n, dist.rows
         # the atlas holds standard deviations in units of vol.std_unit; the kernel only takes their square root
@@ -141,6 +162,7 @@ class Prepared:
     unit: float
     lod: "LodPlan | None" = None  # level-of-detail renders only
     dist: DistTable | None = None  # distribution classification (LC_DIST) only
+    preint: PreintTable | None = None  # pre-integrated classification (LC_PREINT) only
 
 
 @dataclass(frozen=True)
@@ -152,7 +174,8 @@ class LodPlan:
     selection: Any = None
 
 
-def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None) -> tuple[np.ndarray, Any]:
+def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None,
+            keep: np.ndarray | None) -> tuple[np.ndarray, Any]:
     if levels is not None:
         lv = np.ascontiguousarray(levels, dtype=np.int8)
         if lv.shape != vol.grid:
@@ -165,15 +188,16 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None) -> tuple[n
     tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
     quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
     classification = scene.sampling.classification if scene.mode == "composite" else "mean"
-    sel = select_lod(vol.source, tfs, quality, classification=classification)
+    sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification)
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
 
 
 def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
-              mode: str) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
-    """The selection, the block info with unloaded blocks marked empty, the number of empty blocks, and the kernel
-    configuration (the default adaptive sampling is dropped when every block is at level 0)."""
-    lv, sel = _select(vol, scene, levels)
+              mode: str, keep: np.ndarray | None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
+    """The selection (blocks outside the clip region `keep` not loaded), the block info with unloaded blocks
+    marked empty, the number of empty blocks, and the kernel configuration (the default adaptive sampling is
+    dropped when every block is at level 0)."""
+    lv, sel = _select(vol, scene, levels, keep)
     if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
         cfg = replace(cfg, adaptive=False)  # the default: every block at level 0 leaves nothing to step over
     info = info.copy()
@@ -203,7 +227,10 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     scene = Scene.parse(scene)
     vol = as_volume(store, spacing=spacing, origin=origin)
     box = cam.box_world(vol.shape, vol.spacing, vol.origin)
-    fr = cam.frame(scene.camera, scene.width, scene.height, *box)
+    fr = cam.frame(scene.camera, scene.width, scene.height, *box)  # the camera frames the whole volume
+    kbox = clipping.clipped_box(box, scene.clip)
+    if np.any(kbox[0] >= kbox[1]):  # the crop box misses the volume: a degenerate box no ray enters
+        kbox = (kbox[0], kbox[0].copy())
     step_world = scene.sampling.step * float(min(vol.spacing))
     unit = unit_distance(scene.tf, vol.spacing)
     diag = float(np.linalg.norm(box[1] - box[0]))
@@ -215,18 +242,25 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
         )
     lut = build_lut(scene.tf, vol.value_range)
     info, n_empty = block_info(vol, lut, scene.mode)
+    keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
+    if keep is not None:  # blocks outside the clip region are empty space
+        info = np.where(keep, info, -np.inf if scene.mode == "mip" else 0.0).astype(np.float32)
+        n_empty = int(np.count_nonzero(info == 0.0)) if scene.mode == "composite" else 0
     lod = None
     use_lod = levels is not None or scene.quality != "full"
     cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution)
     if use_lod:
-        lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode)
+        lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode, keep)
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
     if cfg.ess and scene.mode == "composite" and n_empty == 0 and cfg.sampler == "full":
         cfg = replace(cfg, ess=False)  # no block can be skipped: compile the block walk out
     dist = cached_dist_table(scene.tf, vol.value_range, vol.std_max) if cfg.distribution else None
-    params = _fill_params(vol, scene, fr, box, lut, step_world, unit, max_samples, dist)
-    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist)
+    pre = None
+    if cfg.preint:  # over the LUT's value range, for segments of the base step
+        pre = preintegrate(scene.tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit)
+    params = _fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
+    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre)
 
 
 def lut_table(pr: Prepared) -> np.ndarray:
@@ -299,7 +333,9 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_sig = da.std if cfg.distribution else cl.Buffer(ctx, mf.READ_ONLY, size=8)
     d_dtab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.dist.kernel_table) if pr.dist is not None
               else cl.Buffer(ctx, mf.READ_ONLY, size=16))
-    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab)
+    d_ptab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.preint.table) if pr.preint is not None
+              else cl.Buffer(ctx, mf.READ_ONLY, size=16))
+    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_ptab)
     ev = launch(kern, W, H)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
@@ -338,6 +374,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "unit_distance": pr.unit,
         "lut_entries": lut.n,
         "lut_exact": lut.exact,
+        "preintegration_ms": None if pr.preint is None else pr.preint.build_ms,
         "width": W,
         "height": H,
         "device": device_info()["name"],

@@ -35,13 +35,18 @@ __all__ = [
     "LookAtCamera",
     "OrbitCamera",
     "Sampling",
+    "Shading",
+    "Clip",
+    "ClipPlane",
+    "ClipBox",
     "LANDED",
     "parse_scene",
 ]
 
 #: Features implemented so far. A scene that asks for anything else is refused, naming the field.
 #: Later issues add their names here ("quality", "tf2", "shading", "clip", "adaptive_object", ...).
-LANDED: set[str] = {"quality", "adaptive_object"}  # issue 5: level of detail, adaptive object-space sampling
+LANDED: set[str] = {"quality", "adaptive_object",  # issue 5: level of detail, adaptive object-space sampling
+                    "shading", "clip", "preintegration"}  # issue 11: illumination, clipping, pre-integration
 
 _PENDING = {
     "quality": "quality other than 'full' is not implemented yet (level-of-detail selection lands with issue 5)",
@@ -203,6 +208,82 @@ class Sampling(_Model):
         return v
 
 
+NonNeg = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+
+
+def _nonzero(v: Vec3) -> Vec3:
+    if not any(v):
+        raise ValueError("must not be the zero vector")
+    return v
+
+
+class Shading(_Model):
+    """Local illumination (Blinn-Phong, two-sided) with the gradient of the sampled field as the normal.
+    `light`: "headlight" (from the eye: every pixel lit along its own ray) or a direction towards the light, in
+    world coordinates (`light_space` "world") or in the camera's frame (`light_space` "view": x right, y up,
+    z towards the viewer). `min_gradient` (data units per world unit): below it a sample has no defined normal
+    and is lit as a surface facing the light without a highlight; null: 1/1000 of the volume's value range per
+    smallest voxel spacing. Shading is for composite mode; MIP ignores it."""
+
+    ambient: NonNeg = 0.3
+    diffuse: NonNeg = 0.7
+    specular: NonNeg = 0.2
+    shininess: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 32.0
+    light: Literal["headlight"] | Vec3 = "headlight"
+    light_space: Literal["world", "view"] = "world"
+    min_gradient: NonNeg | None = None
+
+    @field_validator("light")
+    @classmethod
+    def _light(cls, v: Any) -> Any:
+        return v if isinstance(v, str) else _nonzero(v)
+
+
+class ClipPlane(_Model):
+    """Keeps the half-space the normal points into: points x with normal . (x - point) >= 0 (world units)."""
+
+    point: Vec3
+    normal: Vec3
+
+    @field_validator("normal")
+    @classmethod
+    def _normal(cls, v: Vec3) -> Vec3:
+        return _nonzero(v)
+
+
+class ClipBox(_Model):
+    """A crop box in world units (x, y, z); rays integrate only its inside, and blocks outside are not loaded."""
+
+    min: Vec3
+    max: Vec3
+
+    @model_validator(mode="after")
+    def _order(self) -> "ClipBox":
+        for a, lo, hi in zip("xyz", self.min, self.max):
+            if not lo < hi:
+                raise ValueError(f"clip.box: min {a} = {lo} must be below max {a} = {hi}")
+        return self
+
+
+class Clip(_Model):
+    """Up to 6 clip planes and a crop box (world units); the image is the integral over what all of them keep."""
+
+    planes: list[ClipPlane] = Field(default_factory=list, max_length=6)
+    box: ClipBox | None = None
+
+
+def _named_tf(v: Any) -> Any:
+    """A preset name stands for its TF (renderer/presets.py)."""
+    if isinstance(v, str):
+        from lodcast.renderer.presets import preset
+
+        try:
+            return preset(v)
+        except KeyError as exc:
+            raise ValueError(exc.args[0]) from None
+    return v
+
+
 class Scene(_Model):
     camera: Camera = Field(default_factory=OrbitCamera)
     width: Annotated[int, Field(ge=1, le=16384)] = 512
@@ -211,11 +292,16 @@ class Scene(_Model):
     tf2: TransferFunction | None = None
     quality: Quality = "full"
     sampling: Sampling = Field(default_factory=Sampling)
-    shading: Any = None
-    clip: Any = None
+    shading: Shading | None = None
+    clip: Clip | None = None
     mode: Literal["composite", "mip"] = "composite"
     background: tuple[Unit, Unit, Unit, Unit] = (0.0, 0.0, 0.0, 0.0)
     format: Literal["png", "npy"] = "png"
+
+    @field_validator("tf", "tf2", mode="before")
+    @classmethod
+    def _preset(cls, v: Any) -> Any:
+        return _named_tf(v)
 
     @field_validator("quality")
     @classmethod

@@ -446,13 +446,15 @@ def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np
     """Select a level per block for `tfs` (one TF, or a list: ζ is the max over them) under `quality`
     ("full" | "lossless" | {"budget_mb": x} | {"reduction": r}, or the scene's quality objects).
 
-    crop: world box (lower, upper) in (z, y, x), blocks outside it are not loaded. max_level: optional grid-shaped
+    crop: world box (lower, upper) in (z, y, x), or a grid-shaped bool mask; blocks outside it are not loaded. max_level: optional grid-shaped
     finest level per block (0 = full allowed). method: "tf" (eq. 3.1 on simplified histograms), "tf_full_hist",
     "l2" (data-error significance, same greedy) or "uniform" (one level for every loaded block, the finest that
     fits). `zeta` and `predicted_delta_e` are always the ΔE significance (simplified, or full for tf_full_hist)."""
     meta = meta_of_store(store)
     in_crop = None
-    if crop is not None:
+    if isinstance(crop, np.ndarray) and crop.dtype == bool:
+        in_crop = crop  # a block mask already (renderer/clip.py: the scene's clip region)
+    elif crop is not None:
         in_crop = crop_mask(store.grid, store.shape, store.spacing, store.origin, store.block_size, crop)
     if isinstance(tfs, dict) or hasattr(tfs, "points"):
         tfs = [tfs]

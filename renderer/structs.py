@@ -42,10 +42,21 @@ PARAMS_DTYPE = np.dtype(
         ("dist_scale", np.float32),
         ("dist_sscale", np.float32),
         ("pad0", np.int32),
+        ("clip", (np.float32, (6, 4))),
+        ("light", _V4F),
+        ("shade", _V4F),
+        ("shade_gmin", np.float32),
+        ("n_clip", np.int32),
+        ("pre_n", np.int32),
+        ("pre_lo", np.float32),
+        ("pre_scale", np.float32),
+        ("pad1", np.int32),
+        ("pad2", np.int32),
+        ("pad3", np.int32),
     ],
     align=True,
 )
-assert PARAMS_DTYPE.itemsize == 256 and PARAMS_DTYPE.itemsize % 16 == 0
+assert PARAMS_DTYPE.itemsize == 416 and PARAMS_DTYPE.itemsize % 16 == 0
 
 
 def new_params() -> np.ndarray:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lodcast.renderer.presets import PRESETS
 from lodcast.renderer.scene import TransferFunction
 
 __all__ = [
@@ -36,22 +37,8 @@ __all__ = [
     "CT_PRESETS",
 ]
 
-# Transfer functions for CT in Hounsfield units (`lodcast render --tf ct-bone`): bone, the thin skin band between
-# air and fat, and both; the LOD benchmarks and tests measure with these.
-CT_PRESETS: dict[str, dict] = {
-    "ct-bone": {"points": [{"value": 250, "color": [0.9, 0.85, 0.75], "opacity": 0.0},
-                           {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
-                           {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]},
-    "ct-skin": {"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
-                           {"value": -400, "color": [0.9, 0.7, 0.6], "opacity": 0.3},
-                           {"value": -200, "color": [0.9, 0.7, 0.6], "opacity": 0.0}]},
-    # translucent skin and opaque bone, with air, fat and the gap to bone transparent
-    "ct-skin-bone": {"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
-                                {"value": -300, "color": [0.9, 0.7, 0.6], "opacity": 0.25},
-                                {"value": 100, "color": [0.8, 0.3, 0.3], "opacity": 0.0},
-                                {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-                                {"value": 900, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]},
-}
+# the CT presets (renderer/presets.py), under the name the benchmarks and tests use
+CT_PRESETS: dict[str, dict] = {k: v for k, v in PRESETS.items() if k.startswith("ct-")}
 
 SIGMA_OPAQUE = 1.0e30  # extinction standing in for a = 1: exp(-r·1e30) == 0 for any r > 1e-20
 LUT_MIN = 1024

@@ -181,6 +181,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def healthz() -> dict[str, Any]:
         return {"status": "ok", "version": lodcast.__version__, "queue": "redis" if settings.is_redis else "sqlite"}
 
+    @app.get("/presets", tags=["service"])
+    def get_presets() -> dict[str, Any]:
+        """The named transfer functions a scene may give as `"tf": NAME`."""
+        from lodcast.renderer.presets import PRESETS
+
+        return PRESETS
+
     @app.get("/volumes", tags=["volumes"])
     def get_volumes() -> list[dict[str, Any]]:
         out = []

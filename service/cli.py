@@ -183,6 +183,26 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return serve_forever(root=out, host=args.host, port=args.port)
 
 
+# --- presets -------------------------------------------------------------------------------------------------
+
+def _add_presets(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("presets", help="list the named transfer functions (a scene may give \"tf\": NAME)")
+    p.add_argument("--json", action="store_true", help="print every preset's TF as JSON")
+    p.set_defaults(func=_cmd_presets)
+
+
+def _cmd_presets(args: argparse.Namespace) -> int:
+    from lodcast.renderer.presets import PRESETS
+
+    if args.json:
+        print(json.dumps(PRESETS, indent=2))
+        return 0
+    for name, tf in sorted(PRESETS.items()):
+        pts = tf["points"]
+        print(f"{name:14s} {len(pts)} points, values {pts[0]['value']:g} .. {pts[-1]['value']:g}")
+    return 0
+
+
 # --- entry point ---------------------------------------------------------------------------------------------
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
@@ -201,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo):
+    for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo, _add_presets):
         add(sub)
     return parser
 

@@ -257,7 +257,7 @@ def _segmented_exclusive_cumsum(vals: np.ndarray, seg_start: np.ndarray) -> np.n
 
 class _Integrator:
     def __init__(self, vol: np.ndarray, tf: TransferFunction, spacing: Vec3, origin: Vec3,
-                 order: int, max_panel: float | None, tau_max: float):
+                 order: int, max_panel: float | None, tau_max: float, clip: Mapping[str, Any] | None = None):
         self.vol = np.asarray(vol, np.float64)
         self.tf = tf
         self.spacing, self.origin = tuple(map(float, spacing)), tuple(map(float, origin))
@@ -265,6 +265,24 @@ class _Integrator:
         self.max_panel = float(max_panel) if max_panel else 0.5 * min(self.spacing)
         self.tau_max = tau_max
         self.lo, self.hi = box_bounds(self.vol.shape, spacing, origin)
+        clip = clip or {}
+        if clip.get("box"):  # DESIGN.md: the crop box (world x, y, z) cuts the volume's box
+            self.lo = np.maximum(self.lo, np.asarray(clip["box"]["min"], np.float64))
+            self.hi = np.minimum(self.hi, np.asarray(clip["box"]["max"], np.float64))
+        self.planes = [(np.asarray(p["normal"], np.float64), np.asarray(p["point"], np.float64))
+                       for p in clip.get("planes", [])]
+
+    def ray_interval(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """[t0, t1] of each ray inside the box, the crop box and every plane's kept half-space n·(x − p) ≥ 0."""
+        t0, t1 = _ray_box(o, d, self.lo, self.hi)
+        for n, p in self.planes:
+            nd, no = d @ n, (o - p) @ n
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tc = -no / nd
+            t0 = np.where(nd > 0, np.maximum(t0, tc), t0)
+            t1 = np.where(nd < 0, np.minimum(t1, tc), t1)
+            t1 = np.where((nd == 0) & (no < 0), -np.inf, t1)
+        return t0, t1
 
     def field(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
         """s at t along rays o + t·d (o, d broadcast against t[..., None])."""
@@ -273,7 +291,7 @@ class _Integrator:
     # -- breakpoints -----------------------------------------------------------------------------
     def lattice_panels(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ray id, a, b) of the panels between entry, exit and every voxel-centre plane crossing."""
-        t0, t1 = _ray_box(o, d, self.lo, self.hi)
+        t0, t1 = self.ray_interval(o, d)
         hit = t1 > t0
         cols = [t0[:, None], t1[:, None]]
         sp, org, n = _world_xyz(self.spacing), _world_xyz(self.origin), _world_xyz(self.vol.shape).astype(int)
@@ -458,9 +476,10 @@ def reference_render(volume: np.ndarray, scene: Mapping[str, Any], spacing: Vec3
     ``composite`` (the emission–absorption integral, see the module docstring for the quadrature) and
     ``mip``. ``sampling`` is ignored: the reference converges instead of stepping. A ``background``
     (r, g, b, α) is composited under the integral: rgb = C + (1 − A)·bg_rgb·bg_α, α = A + (1 − A)·bg_α.
-    ``order``/``max_panel``/``tau_max`` tune the quadrature (defaults converge far below 1e-5).
+    ``order``/``max_panel``/``tau_max`` tune the quadrature (defaults converge far below 1e-5). ``clip``
+    (planes and a crop box, world units) restricts each ray to what they keep.
     """
-    for key in ("tf2", "shading", "clip"):
+    for key in ("tf2", "shading"):
         if scene.get(key):
             raise NotImplementedError(f"reference: {key} is not modelled")
     volume = np.asarray(volume, np.float64)
@@ -471,7 +490,7 @@ def reference_render(volume: np.ndarray, scene: Mapping[str, Any], spacing: Vec3
     cam = scene.get("camera") or {"azimuth": 0.0, "elevation": 0.0, "distance": 2.5, "fov": 30.0}
     o, d = camera_rays(cam, W, H, volume.shape, spacing, origin)
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    integ = _Integrator(volume, tf, spacing, origin, order, max_panel, tau_max)
+    integ = _Integrator(volume, tf, spacing, origin, order, max_panel, tau_max, scene.get("clip"))
     mode = scene.get("mode", "composite")
     out = np.zeros((len(o), 4))
     for s in range(0, len(o), chunk):

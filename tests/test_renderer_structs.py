@@ -9,7 +9,7 @@ from lodcast.renderer.structs import PARAMS_DTYPE, new_params
 
 
 def test_params_dtype_size_and_alignment():
-    assert PARAMS_DTYPE.itemsize == 256
+    assert PARAMS_DTYPE.itemsize == 416
     assert PARAMS_DTYPE.itemsize % 16 == 0
     for name in ("eye", "cam_f", "box_lo", "background", "dims", "grid"):
         assert PARAMS_DTYPE.fields[name][1] % 16 == 0, name  # float4/int4 are 16-byte aligned in OpenCL
@@ -29,10 +29,14 @@ def test_every_field_reads_back_through_the_kernel():
     p["lut_vis_lo"], p["lut_vis_hi"] = -3.5, 77.25
     p["dist_n"], p["dist_rows"] = 16, 17
     p["dist_lo"], p["dist_scale"], p["dist_sscale"] = -1024.5, 0.25, 3.75
+    p["clip"] = (np.arange(24).reshape(6, 4) + 0.5)
+    p["light"], p["shade"] = (1.5, 2.5, 3.5, 4.5), (5.5, 6.5, 7.5, 8.5)
+    p["shade_gmin"], p["pre_lo"], p["pre_scale"] = 0.125, -7.5, 2.25
+    p["n_clip"], p["pre_n"] = 5, 9
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    f = np.zeros(48, np.float32)
-    n = np.zeros(16, np.int32)
+    f = np.zeros(84, np.float32)
+    n = np.zeros(18, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
     prg = get_program("probe.cl").program
@@ -50,3 +54,7 @@ def test_every_field_reads_back_through_the_kernel():
     assert f[43:45].tolist() == [-3.5, 77.25]
     assert n[14:16].tolist() == [16, 17]
     assert f[45:48].tolist() == [-1024.5, 0.25, 3.75]
+    assert np.array_equal(f[48:72].reshape(6, 4), p["clip"][0])
+    assert np.array_equal(f[72:76], p["light"][0]) and np.array_equal(f[76:80], p["shade"][0])
+    assert f[80:83].tolist() == [0.125, -7.5, 2.25]
+    assert n[16:18].tolist() == [5, 9]

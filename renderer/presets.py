@@ -1,0 +1,38 @@
+"""Named transfer functions, one registry for every interface: a scene's `"tf": "ct-bone"` (Python, HTTP, jobs,
+CLI), `lodcast render --tf ct-bone`, `lodcast presets` and `GET /presets`. Plain data: the scene model resolves a
+name through `preset()` before validating the TF."""
+from __future__ import annotations
+
+import copy
+
+__all__ = ["PRESETS", "preset", "preset_names"]
+
+# Transfer functions for CT in Hounsfield units (`lodcast render --tf ct-bone`): bone, the thin skin band between
+# air and fat, and both; the LOD benchmarks and tests measure with these.
+PRESETS: dict[str, dict] = {
+    "ct-bone": {"points": [{"value": 250, "color": [0.9, 0.85, 0.75], "opacity": 0.0},
+                           {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
+                           {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]},
+    "ct-skin": {"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
+                           {"value": -400, "color": [0.9, 0.7, 0.6], "opacity": 0.3},
+                           {"value": -200, "color": [0.9, 0.7, 0.6], "opacity": 0.0}]},
+    # translucent skin and opaque bone, with air, fat and the gap to bone transparent
+    "ct-skin-bone": {"points": [{"value": -600, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
+                                {"value": -300, "color": [0.9, 0.7, 0.6], "opacity": 0.25},
+                                {"value": 100, "color": [0.8, 0.3, 0.3], "opacity": 0.0},
+                                {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
+                                {"value": 900, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]},
+}
+
+
+
+def preset_names() -> list[str]:
+    return sorted(PRESETS)
+
+
+def preset(name: str) -> dict:
+    """A copy of the preset's TF JSON; KeyError naming the known presets otherwise."""
+    try:
+        return copy.deepcopy(PRESETS[name])
+    except KeyError:
+        raise KeyError(f"unknown preset {name!r}; known: {', '.join(preset_names())}") from None
