@@ -5,7 +5,7 @@
 
 The TFs are derived from the volume's value distribution (percentiles of a coarse level, so this works for CT in
 Hounsfield units as well as for MR in arbitrary units): a translucent "soft" TF over the upper body of the
-distribution, an opaque "dense" TF for the brightest structures, and a MIP.
+distribution, an opaque "dense" TF for the brightest structures (lit by a headlight), and a MIP.
 """
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["demo_tfs", "demo_scenes", "render_demo"]
+__all__ = ["demo_tfs", "demo_scenes", "render_demo", "SHADING"]
+
+SHADING = {"ambient": 0.3, "diffuse": 0.7, "specular": 0.2, "shininess": 32, "light": "headlight"}
 
 
 def _coarse_values(store: Any) -> np.ndarray:
@@ -66,7 +68,8 @@ def demo_scenes(store: Any, size: int = 384) -> dict[str, dict]:
     for az in (0, 90, 210):
         scenes[f"soft_az{az}"] = {**base, "tf": tfs["soft"], "camera": {"azimuth": az, "elevation": 15, "distance": 2.2}}
     for az in (30, 120):
-        scenes[f"dense_az{az}"] = {**base, "tf": tfs["dense"], "camera": {"azimuth": az, "elevation": 25, "distance": 2.2}}
+        scenes[f"dense_az{az}"] = {**base, "tf": tfs["dense"], "camera": {"azimuth": az, "elevation": 25, "distance": 2.2},
+                                   "shading": SHADING}  # an opaque surface reads as a shape only when lit
     scenes["mip_az0"] = {**base, "tf": tfs["mip"],
                          "mode": "mip", "camera": {"azimuth": 0, "elevation": 0, "distance": 2.2}}
     return scenes
