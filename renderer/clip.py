@@ -12,7 +12,7 @@ import numpy as np
 
 from lodcast.renderer.scene import Clip
 
-__all__ = ["clipped_box", "kernel_planes", "block_mask", "MAX_PLANES"]
+__all__ = ["clipped_box", "kernel_planes", "block_bounds", "block_mask", "MAX_PLANES"]
 
 MAX_PLANES = 6
 
@@ -36,18 +36,25 @@ def kernel_planes(clip: Clip | None) -> np.ndarray:
     return out
 
 
-def block_mask(grid, shape, spacing, origin, block_size: int, clip: Clip | None) -> np.ndarray | None:
-    """Grid-shaped bool (z, y, x): False where a block lies entirely outside the kept region (None: no clip).
-    A block's box is its voxels' box grown by one voxel each side, so that every interpolation stencil of a kept
+def block_bounds(grid, shape, spacing, origin, block_size: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per array axis (z, y, x): the world lower and upper bounds of every block's box — its voxels' box (half a
+    voxel beyond the outer centres) grown by one voxel each side, so that every interpolation stencil of a kept
     sample lies in a kept block."""
-    if clip is None or (clip.box is None and not clip.planes):
-        return None
-    lo_c, hi_c = [], []  # per-axis (z, y, x) world bounds of every block, grown
+    lo, hi = [], []
     for ax in range(3):
         k = np.arange(grid[ax])
         sp, org = float(spacing[ax]), float(origin[ax])
-        lo_c.append(org + (k * block_size - 1.5) * sp)
-        hi_c.append(org + (np.minimum((k + 1) * block_size, shape[ax]) - 1 + 1.5) * sp)
+        lo.append(org + (k * block_size - 1.5) * sp)
+        hi.append(org + (np.minimum((k + 1) * block_size, shape[ax]) - 1 + 1.5) * sp)
+    return lo, hi
+
+
+def block_mask(grid, shape, spacing, origin, block_size: int, clip: Clip | None) -> np.ndarray | None:
+    """Grid-shaped bool (z, y, x): False where a block's box (block_bounds) lies entirely outside the kept region
+    (None: no clip)."""
+    if clip is None or (clip.box is None and not clip.planes):
+        return None
+    lo_c, hi_c = block_bounds(grid, shape, spacing, origin, block_size)
     Z, Y, X = np.meshgrid(np.arange(grid[0]), np.arange(grid[1]), np.arange(grid[2]), indexing="ij")
     lo = np.stack([lo_c[2][X], lo_c[1][Y], lo_c[0][Z]], -1)  # world (x, y, z)
     hi = np.stack([hi_c[2][X], hi_c[1][Y], hi_c[0][Z]], -1)

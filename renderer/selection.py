@@ -60,6 +60,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from lodcast.renderer.clip import block_bounds
 from lodcast.renderer.level_error import level_zeta
 from lodcast.renderer.significance import BlockMeta, block_significance, level_profile, meta_of_store, tf_visible
 
@@ -126,15 +127,8 @@ def crop_mask(grid, shape, spacing, origin, block_size: int, crop) -> np.ndarray
         lo, hi = crop
     lo = np.asarray(lo, np.float64)
     hi = np.asarray(hi, np.float64)
-    inside = []
-    for ax in range(3):
-        k = np.arange(grid[ax])
-        sp, org = float(spacing[ax]), float(origin[ax])
-        first = k * block_size
-        last = np.minimum((k + 1) * block_size, shape[ax]) - 1
-        b_lo = org + (first - 1.5) * sp
-        b_hi = org + (last + 1.5) * sp
-        inside.append((b_hi > lo[ax]) & (b_lo < hi[ax]))
+    b_lo, b_hi = block_bounds(grid, shape, spacing, origin, block_size)
+    inside = [(b_hi[ax] > lo[ax]) & (b_lo[ax] < hi[ax]) for ax in range(3)]
     return inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
 
 
