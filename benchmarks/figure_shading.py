@@ -35,7 +35,7 @@ def main() -> None:
               ("shading, 30:1", {"tf": "ct-bone", "shading": SHADING, "quality": {"reduction": 30}}),
               ("ct-skin-bone, front clipped", {"tf": "ct-skin-bone", "shading": SHADING,
                                                "clip": {"planes": [{"point": c, "normal": [0, 1, 0]}]}})]
-    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4.3))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4.8))
     for ax, (title, extra) in zip(axes, panels):
         r = lodcast.render(store, {**base, **extra})
         ax.imshow(r.rgba[..., :3].clip(0, 1))
