@@ -55,10 +55,11 @@ def main() -> None:
             out["preintegration"].append(row)
         base = best(store, scene, a.repeat)
         et_off = lodcast.render(store, {**scene, "sampling": {"early_termination": 1.0}})
-        variants = {
+        yc = float(store.origin[1] + store.spacing[1] * (store.shape[1] - 1) / 2)  # world y of the volume's centre
+        variants = {  # the plane and the box each keep the half y >= centre and y <= centre
             "shading": {**scene, "shading": SHADING},
-            "clip plane": {**scene, "clip": {"planes": [{"point": [0, 0, 0], "normal": [0, 1, 0]}]}},
-            "crop box": {**scene, "clip": {"box": {"min": [-1e3, -1e3, -1e3], "max": [1e3, 0, 1e3]}}},
+            "clip plane": {**scene, "clip": {"planes": [{"point": [0, yc, 0], "normal": [0, 1, 0]}]}},
+            "crop box": {**scene, "clip": {"box": {"min": [-1e4, -1e4, -1e4], "max": [1e4, yc, 1e4]}}},
             "pre-integration": {**scene, "sampling": {"preintegration": True}},
         }
         feat = {"tf": tf, "base_ms": base.report["kernel_ms"],
