@@ -20,9 +20,9 @@ DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "
 RESULTS = HERE / "results"
 
 import lodcast  # noqa: E402
+from lodcast.renderer.demo import SHADING  # noqa: E402
 from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
 
-SHADING = {"ambient": 0.3, "diffuse": 0.7, "specular": 0.2, "shininess": 32, "light": "headlight"}
 
 
 def best(store, scene: dict, repeat: int):

@@ -11,9 +11,9 @@ import argparse
 from pathlib import Path
 
 import lodcast
+from lodcast.renderer.demo import SHADING
 
 HERE = Path(__file__).resolve().parent
-SHADING = {"ambient": 0.3, "diffuse": 0.7, "specular": 0.2, "shininess": 32, "light": "headlight"}
 
 
 def main() -> None:

@@ -19,6 +19,7 @@ import numpy as np
 
 __all__ = ["demo_tfs", "demo_scenes", "render_demo", "SHADING"]
 
+#: the Shading model's defaults (a headlight), spelled out so that the saved scene files show them
 SHADING = {"ambient": 0.3, "diffuse": 0.7, "specular": 0.2, "shininess": 32, "light": "headlight"}
 
 

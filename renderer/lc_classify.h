@@ -1,7 +1,7 @@
 /* lc_classify.h: classification and compositing of one sample (the integrator's step), for raycast.cl.
  *
- * LC_SAMPLE_BODY(v, sd, r, q): a sample at voxel coordinates q (lighting takes its gradient there) of value v, standard deviation sd of the level-0 values behind it (0 at level
- * 0 and without LC_DIST) on a segment described by r (see raycast.cl's header: r < 0 a whole step of the level
+ * LC_SAMPLE_BODY(v, sd, r, q): a sample at voxel coordinates q (lighting and pre-integration sample around it) of
+ * value v, standard deviation sd of the level-0 values behind it (0 at level 0 and without LC_DIST) on a segment described by r (see raycast.cl's header: r < 0 a whole step of the level
  * -1 - r, r >= 0 the last segment's length in TF units; LC_PRECISE: r is the segment's length in steps). MIP keeps
  * the maximum of v; compositing classifies and composites front to back; done = 1 once the ray is (nearly) opaque.
  *
@@ -94,7 +94,7 @@
 /* a coarse sample (sd > 0, not NaN): by its distribution; else falls through to the point classification.
  * The row after the table holds, per row pair (j, j + 1), the span of entries where the expected extinction is
  * non-zero: outside it the sample is transparent without the bilinear lookup. */
-#define LC_DIST_BODY(v, sd, r, q)                                                   \
+#define LC_DIST_BODY(v, sd, r, q)                                                \
     if ((sd) > 0.0f) {                                                           \
         float fj0_ = sqrt(sd) * dist_sscale;                                     \
         fj0_ = fj0_ < dist_jmax ? fj0_ : dist_jmax;                              \

@@ -15,7 +15,7 @@ the TF (two control points at one value) are resolved exactly at the table's ent
 
 Other segment lengths l (the last, shorter segment of a ray, clipped segments, adaptive steps of l0·2^k) scale the
 entry as Roettger describes: alpha_l = 1 − (1 − alpha)^(l/l0) and the colour keeps its average (C/alpha): exact
-for constant segments, and tested against the float64 integral for linear ones (tests/test_preintegration.py).
+for constant segments, and tested against the float64 reference for linear ones (tests/test_illumination_clip.py).
 """
 from __future__ import annotations
 

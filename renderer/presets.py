@@ -25,7 +25,6 @@ PRESETS: dict[str, dict] = {
 }
 
 
-
 def preset_names() -> list[str]:
     return sorted(PRESETS)
 

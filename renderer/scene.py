@@ -26,6 +26,7 @@ from pydantic import (
 )
 
 from lodcast.errors import LodcastError
+from lodcast.renderer.presets import preset
 
 __all__ = [
     "SceneError",
@@ -275,8 +276,6 @@ class Clip(_Model):
 def _named_tf(v: Any) -> Any:
     """A preset name stands for its TF (renderer/presets.py)."""
     if isinstance(v, str):
-        from lodcast.renderer.presets import preset
-
         try:
             return preset(v)
         except KeyError as exc:

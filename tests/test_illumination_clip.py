@@ -102,7 +102,7 @@ def test_clip_validation_names_the_field():
 
 
 # ------------------------------------------------------------------------------------------------- shading
-def _ramp(shape=(12, 12, 24), spacing=(1.0, 1.0, 1.0)):
+def _ramp(shape=(12, 12, 24)):
     return np.broadcast_to(np.arange(shape[2], dtype=np.float32)[None, None, :] * 10.0, shape).copy()
 
 
@@ -312,3 +312,10 @@ def test_a_preset_name_is_a_tf_in_every_scene():
     with pytest.raises(SceneError, match=r"tf: unknown preset 'bone'; known: ct-bone"):
         Scene.parse({"tf": "bone"})
     assert Scene.parse(json.dumps({"tf": "ct-skin"})).tf.points[1].value == -400
+
+
+def test_demo_lighting_is_the_shading_default():
+    from lodcast.renderer.demo import SHADING
+    from lodcast.renderer.scene import Shading
+
+    assert Shading.model_validate(SHADING) == Shading()
