@@ -14,7 +14,7 @@ import numpy as np
 
 from lodcast.renderer.scene import LookAtCamera, OrbitCamera
 
-__all__ = ["Frame", "box_world", "frame", "look_at", "orbit_eye", "pixel_rays"]
+__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays"]
 
 
 def box_world(shape_zyx, spacing_zyx, origin_zyx) -> tuple[np.ndarray, np.ndarray]:
@@ -47,6 +47,21 @@ def orbit_eye(cam: OrbitCamera, center: np.ndarray, radius: float) -> tuple[np.n
     d = np.array([np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
     up = np.array([-np.sin(a) * np.sin(e), np.cos(a) * np.sin(e), np.cos(e)])
     return center + d * radius * cam.distance, up
+
+
+def fit_distance(box_lo, box_hi, azimuth: float, elevation: float, fov: float = 30.0, aspect: float = 1.0,
+                 margin: float = 0.05) -> float:
+    """The smallest orbit distance (in bounding-sphere radii) at which every corner of the box projects inside the
+    perspective view with `margin` (a fraction of the half-width) to spare: the whole volume in the picture."""
+    lo, hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
+    center, radius = (lo + hi) / 2, 0.5 * float(np.linalg.norm(hi - lo))
+    eye, up = orbit_eye(OrbitCamera(azimuth=azimuth, elevation=elevation, distance=1.0), center, radius)
+    fr = look_at(eye, center, up, fov, 1, 1)  # the view's basis does not depend on the distance
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]) - center
+    t = float(np.tan(np.radians(fov) / 2)) * (1.0 - margin)
+    # a corner at depth (c·f + d R) needs |c·r| <= t·aspect·depth and |c·u| <= t·depth
+    need = np.maximum(np.abs(corners @ fr.r) / (t * aspect), np.abs(corners @ fr.u) / t) - corners @ fr.f
+    return float(need.max() / radius)
 
 
 def look_at(eye, target, up, fov: float, width: int, height: int, orthographic: bool = False,

@@ -1,7 +1,7 @@
 """`lodcast render STORE -o OUT.png|OUT.npy [--scene scene.json] [--report out.json] [shortcuts]`.
 
 The scene file is the JSON scene of DESIGN.md; flag shortcuts override it (or build one from nothing, with
---tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --step --mode --jitter --seed
+--tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --step --mode --isovalue --jitter --seed
 --background. --azimuth/--elevation/--distance make the camera the orbit form; --fov applies to either form.
 The output format follows OUT's extension. Bad input raises SceneError/ImageError (LodcastError + ValueError),
 which the CLI turns into exit code 2 and one line.
@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from lodcast.renderer.config import MODES
 from lodcast.renderer.scene import SceneError
 
 __all__ = ["add_parser", "run", "scene_from_args"]
@@ -48,7 +49,8 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p.add_argument("--distance", type=float, help="orbit camera: multiples of the box's bounding-sphere radius")
     p.add_argument("--fov", type=float, help="vertical field of view in degrees")
     p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
-    p.add_argument("--mode", choices=("composite", "mip"))
+    p.add_argument("--mode", choices=MODES, help="composite (default), mip, minip, average or iso (with --isovalue)")
+    p.add_argument("--isovalue", type=float, help="mode iso: the data value of the surface")
     p.add_argument("--jitter", action=argparse.BooleanOptionalAction, default=None, help="jittered ray start")
     p.add_argument("--seed", type=int, help="jitter seed")
     p.add_argument("--background", type=_floats("--background", 4), help="r,g,b,a in [0,1]")
@@ -82,7 +84,7 @@ def scene_from_args(args: argparse.Namespace):
         data["tf"] = args.tf if args.tf in PRESETS else _load_json(args.tf, "--tf")
     if "tf" not in data:
         raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
-    for key in ("width", "height", "mode"):
+    for key in ("width", "height", "mode", "isovalue"):
         if getattr(args, key) is not None:
             data[key] = getattr(args, key)
     if args.background is not None:

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["KernelConfig", "PRECISE_SAMPLES"]
+__all__ = ["KernelConfig", "PRECISE_SAMPLES", "MODES", "EXTREMUM_MODES"]
+
+MODES = ("composite", "mip", "minip", "average", "iso")
+#: projections by an extremum: the block walk skips blocks that cannot beat the extremum so far
+EXTREMUM_MODES = ("mip", "minip")
 
 #: Rays with more samples than this use compensated sums (the error of plain float32 sums grows with the count).
 PRECISE_SAMPLES = 4096
@@ -17,7 +21,7 @@ class KernelConfig:
     adaptive: bool = False  # atlas only: adaptive object-space sampling, limited at block boundaries
     adaptive_naive: bool = False  # with adaptive: the naive variant (benchmarks only)
     distribution: bool = False  # atlas, composite: classify coarse samples by their distribution (LC_DIST)
-    mode: str = "composite"  # "composite" | "mip"
+    mode: str = "composite"  # "composite" | "mip" | "minip" | "average" | "iso"
     orthographic: bool = False
     ess: bool = True
     jitter: bool = False
@@ -34,12 +38,16 @@ class KernelConfig:
             raise ValueError(f"interpolation {self.interpolation!r} is not implemented for the atlas")
         if (self.adaptive or self.adaptive_naive) and self.sampler != "atlas":
             raise ValueError("adaptive object-space sampling needs the atlas sampler (a level-of-detail quality)")
-        if self.mode not in ("composite", "mip"):
+        if self.mode not in MODES:
             raise ValueError(f"mode {self.mode!r} is not implemented")
         if self.distribution and (self.sampler != "atlas" or self.mode != "composite"):
             raise ValueError("distribution classification needs the atlas sampler and composite mode")
-        if (self.shade or self.preint) and self.mode != "composite":
-            raise ValueError("shading and pre-integration need composite mode")
+        if self.shade and self.mode not in ("composite", "iso"):
+            raise ValueError("shading needs composite or iso mode")
+        if self.preint and self.mode != "composite":
+            raise ValueError("pre-integration needs composite mode")
+        if self.ess and self.mode in ("average", "iso"):
+            raise ValueError(f"mode {self.mode!r} reads every sample: no empty-space skipping")
 
     def build_options(self) -> tuple[str, ...]:
         opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]
@@ -51,8 +59,8 @@ class KernelConfig:
                 opts.append("-DLC_ADAPTIVE_NAIVE")
             if self.distribution:
                 opts.append("-DLC_DIST")
-        if self.mode == "mip":
-            opts.append("-DLC_MODE_MIP")
+        opts += {"mip": ["-DLC_MODE_MIP"], "minip": ["-DLC_MODE_MIP", "-DLC_MINIP"], "average": ["-DLC_MODE_AVG"],
+                 "iso": ["-DLC_MODE_ISO"]}.get(self.mode, [])
         for flag, name in (
             (self.orthographic, "LC_ORTHO"),
             (self.ess, "LC_ESS"),

@@ -63,16 +63,23 @@ def demo_tfs(store: Any) -> dict[str, dict]:
 
 
 def demo_scenes(store: Any, size: int = 384) -> dict[str, dict]:
+    from lodcast.renderer.camera import box_world, fit_distance
+
     tfs = demo_tfs(store)
+    box = box_world(store.shape, store.spacing, store.origin)
+
+    def orbit(az: float, el: float) -> dict:  # the whole volume in the picture, from each side
+        return {"azimuth": az, "elevation": el, "distance": round(fit_distance(*box, az, el), 3)}
+
     base = {"width": size, "height": size, "background": [0, 0, 0, 1]}
     scenes = {}
     for az in (0, 90, 210):
-        scenes[f"soft_az{az}"] = {**base, "tf": tfs["soft"], "camera": {"azimuth": az, "elevation": 15, "distance": 2.2}}
+        scenes[f"soft_az{az}"] = {**base, "tf": tfs["soft"], "camera": orbit(az, 15)}
     for az in (30, 120):
-        scenes[f"dense_az{az}"] = {**base, "tf": tfs["dense"], "camera": {"azimuth": az, "elevation": 25, "distance": 2.2},
+        scenes[f"dense_az{az}"] = {**base, "tf": tfs["dense"], "camera": orbit(az, 25),
                                    "shading": SHADING}  # an opaque surface reads as a shape only when lit
     scenes["mip_az0"] = {**base, "tf": tfs["mip"],
-                         "mode": "mip", "camera": {"azimuth": 0, "elevation": 0, "distance": 2.2}}
+                         "mode": "mip", "camera": orbit(0, 0)}
     return scenes
 
 

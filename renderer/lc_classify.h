@@ -109,13 +109,54 @@
 #define LC_DIST_BODY(v, sd, r, q)
 #endif
 
+/* world length of the segment r describes (see raycast.cl's header for r; unit_w: the TF's unit distance) */
+#ifdef LC_PRECISE
+#define LC_SEG_LEN(r) ((r) * dt)
+#else
+#define LC_SEG_LEN(r) ((r) >= 0.0f ? (r) * unit_w : dt * (float)(1 << (int)(-1.0f - (r))))
+#endif
+
 #include "lc_preint.h"
 
-/* One sample of value v on a segment of r steps: MIP keeps the maximum; compositing looks the TF up, takes the
- * segment's opacity and composites front to back; done = 1 once the ray is (nearly) opaque. */
+/* One sample of value v on a segment of r steps. The projections (MIP, MinIP, average) and the isosurface mode
+ * only look at values; compositing looks the TF up, takes the segment's opacity and composites front to back;
+ * done = 1 once the ray is (nearly) opaque (or, isosurface, has hit). */
 #ifdef LC_MODE_MIP
+/* MIP keeps the maximum; MinIP (LC_MINIP) the maximum of -v, i.e. the minimum, so that the block walk's test
+ * "nothing here can beat the extremum so far" is one comparison for both (block_info holds -min for MinIP) */
+#ifdef LC_MINIP
+#define LC_EXT(v) (-(v))
+#else
+#define LC_EXT(v) (v)
+#endif
 #define LC_SAMPLE_BODY(v, sd, r, q)                                              \
-    if ((v) == (v)) vmax = (v) > vmax ? (v) : vmax;
+    {                                                                            \
+        const float x_ = LC_EXT(v);                                              \
+        if (x_ == x_) vmax = x_ > vmax ? x_ : vmax;                              \
+    }
+#elif defined(LC_MODE_AVG)
+/* average intensity (a DRR-like projection): the length-weighted mean of the field over the ray's non-NaN
+ * segments */
+#define LC_SAMPLE_BODY(v, sd, r, q)                                              \
+    if ((v) == (v)) {                                                            \
+        const float l_ = LC_SEG_LEN(r);                                          \
+        vsum += (v) * l_;                                                        \
+        lsum += l_;                                                              \
+    }
+#elif defined(LC_MODE_ISO)
+/* isosurface: the first crossing of iso between two consecutive non-NaN samples, placed by linear interpolation
+ * between them (a NaN sample breaks the pair) */
+#define LC_SAMPLE_BODY(v, sd, r, q)                                              \
+    if ((v) == (v)) {                                                            \
+        if (iso_pv == iso_pv && ((iso_pv < iso) != ((v) < iso))) {               \
+            iso_q = iso_pq + ((iso - iso_pv) / ((v) - iso_pv)) * ((q) - iso_pq);  \
+            hit = 1;                                                             \
+            done = 1;                                                            \
+        }                                                                        \
+        iso_pv = (v);                                                            \
+        iso_pq = (q);                                                            \
+    } else                                                                       \
+        iso_pv = NAN;
 #else
 /* Where the TF is zero (and for NaN) a sample is transparent: no lookup, no blend — exactly what the lookup and
  * blend would give (alpha 0 adds nothing and leaves T unchanged). */

@@ -8,18 +8,11 @@
  * The back sample of a segment is the front of the next one, so a ray takes one extra sample per segment, not two
  * (reused when the next front lies within 1e-4 voxels of it). A NaN at either end makes the segment transparent.
  * Coarse samples under LC_DIST keep their distribution classification (the `else` of LC_DIST_BODY leads here).
- * Uses, from the kernel: ptab, pre_* (pre_unit: the TF's unit distance), u, dq, dt, inv_dt, LC_SAMPLE and the ray state.
+ * Uses, from the kernel: ptab, pre_*, u, dq, dt, inv_dt, LC_SEG_LEN (lc_classify.h), LC_SAMPLE and the ray state.
  */
 #ifndef LC_PREINT_H
 #define LC_PREINT_H
 #ifdef LC_PREINT
-
-/* world length of the segment r describes (see raycast.cl's header for r) */
-#ifdef LC_PRECISE
-#define LC_SEG_LEN(r) ((r) * dt)
-#else
-#define LC_SEG_LEN(r) ((r) >= 0.0f ? (r) * pre_unit : dt * (float)(1 << (int)(-1.0f - (r))))
-#endif
 
 static inline float4 lc_preint_lookup(__global const float4* ptab, const float sf, const float sb, const float lo,
                                       const float scale, const int n) {

@@ -7,8 +7,9 @@
  * levels), and scaled to data units per world unit. Lighting is two-sided (|n.l|, |n.h|: a ray meets surfaces from
  * either side). A sample whose gradient magnitude is below shade_gmin (or NaN: a stencil reaches a missing block or
  * NaN data) has no defined normal and is lit as a surface facing the light without a highlight: col (ka + kd).
- * Shading changes the colour only, never the opacity. Uses, from the kernel: sh_l, sh_h (per ray), sh_k, sh_gmin,
- * sh_gs, and LC_SAMPLE.
+ * With shade_gref > 0 the lit colour is blended with that unlit one by min(1, |g| / shade_gref) (shading weighted
+ * by gradient magnitude). Shading changes the colour only, never the opacity. Uses, from the kernel: sh_l, sh_h
+ * (per ray), sh_k, sh_gmin, sh_gref, sh_gs, and LC_SAMPLE.
  */
 #ifndef LC_SHADE_H
 #define LC_SHADE_H
@@ -16,20 +17,23 @@
 
 /* Blinn-Phong of colour col for gradient g (world units), unit light l and half vector h; k = (ka, kd, ks, n) */
 static inline float3 lc_lit(const float3 col, const float3 g, const float3 l, const float3 h, const float4 k,
-                            const float gmin) {
+                            const float gmin, const float gref) {
     const float gm = sqrt(g.x * g.x + g.y * g.y + g.z * g.z);
-    if (!(gm >= gmin) || gm == 0.0f) return col * (k.x + k.y);
+    const float3 unlit = col * (k.x + k.y);
+    if (!(gm >= gmin) || gm == 0.0f) return unlit;
     const float3 n = g / gm;
     const float ndl = fabs(n.x * l.x + n.y * l.y + n.z * l.z);
     const float ndh = fabs(n.x * h.x + n.y * h.y + n.z * h.z);
-    return col * (k.x + k.y * ndl) + (ndh > 0.0f ? k.z * pow(ndh, k.w) : 0.0f);
+    const float3 lit = col * (k.x + k.y * ndl) + (ndh > 0.0f ? k.z * pow(ndh, k.w) : 0.0f);
+    if (gref <= 0.0f || gm >= gref) return lit;
+    return unlit + (lit - unlit) * (gm / gref); /* weighted by gradient magnitude: noise in flat tissue stays unlit */
 }
 
 #define LC_GRAD(q)                                                                                          \
     ((float3)(LC_SAMPLE((q) + (float3)(1.0f, 0.0f, 0.0f)).x - LC_SAMPLE((q) - (float3)(1.0f, 0.0f, 0.0f)).x, \
               LC_SAMPLE((q) + (float3)(0.0f, 1.0f, 0.0f)).x - LC_SAMPLE((q) - (float3)(0.0f, 1.0f, 0.0f)).x, \
               LC_SAMPLE((q) + (float3)(0.0f, 0.0f, 1.0f)).x - LC_SAMPLE((q) - (float3)(0.0f, 0.0f, 1.0f)).x) * sh_gs)
-#define LC_SHADE_COL(col, q) lc_lit((col), LC_GRAD(q), sh_l, sh_h, sh_k, sh_gmin)
+#define LC_SHADE_COL(col, q) lc_lit((col), LC_GRAD(q), sh_l, sh_h, sh_k, sh_gmin, sh_gref)
 #else
 #define LC_SHADE_COL(col, q) (col)
 #endif

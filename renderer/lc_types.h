@@ -48,7 +48,9 @@ typedef struct LcParams {
     int pre_n;          /* LC_PREINT: the pre-integration table has pre_n x pre_n entries over values */
     float pre_lo;       /* pre_lo + k / pre_scale */
     float pre_scale;
-    int pad1, pad2, pad3;
+    float iso;          /* LC_MODE_ISO: the iso value */
+    float shade_gref;   /* LC_SHADE: gradient magnitude at which a sample is fully lit (0: no weighting) */
+    int pad3;
 } LcParams;
 
 #endif

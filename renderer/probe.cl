@@ -16,6 +16,6 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     f[45] = P->dist_lo; f[46] = P->dist_scale; f[47] = P->dist_sscale;
     for (int k = 0; k < 6; ++k) vstore4(P->clip[k], 12 + k, f); /* f[48..71] */
     vstore4(P->light, 18, f); vstore4(P->shade, 19, f);       /* f[72..79] */
-    f[80] = P->shade_gmin; f[81] = P->pre_lo; f[82] = P->pre_scale;
+    f[80] = P->shade_gmin; f[81] = P->pre_lo; f[82] = P->pre_scale; f[83] = P->iso; f[84] = P->shade_gref;
     n[16] = P->n_clip; n[17] = P->pre_n;
 }

@@ -2,6 +2,7 @@
 
 One scene is rendered at every quality (full resolution, virtually lossless, reductions 5…100:1), with
 nearest-block and interblock sampling, with and without adaptive object-space sampling (and its naive variant),
+and at full resolution at the steps 2, 1, ½, ¼ with and without pre-integration,
 and each image is compared with the scene's reference — its full-resolution render with a step of at most ¼ of
 the smallest spacing and no LOD or adaptive sampling (DESIGN.md) — by ΔE (mean, p95, max over the footprint).
 Each configuration is rendered once to warm the brick cache and the program cache, then timed `repeat` times
@@ -25,6 +26,7 @@ from lodcast.renderer.image_error import delta_e_stats
 __all__ = ["Variant", "default_variants", "run_report", "write_report"]
 
 REDUCTIONS = (5, 10, 20, 30, 60, 100)
+STEPS = (2.0, 1.0, 0.5, 0.25)
 
 
 @dataclass(frozen=True)
@@ -33,12 +35,16 @@ class Variant:
     interpolation: str = "interblock"
     adaptive: str = "off"  # "off" | "limited" | "naive"
     classification: str = "distribution"  # of coarse samples: "distribution" | "mean"
+    step: float | None = None  # None: the scene's step
+    preintegration: bool = False
 
     @property
     def label(self) -> str:
         q = self.quality if isinstance(self.quality, str) else ", ".join(f"{k} {v}" for k, v in self.quality.items())
         if self.quality == "full":
-            return "full resolution" + ("" if self.adaptive == "off" else f", adaptive {self.adaptive}")
+            return ("full resolution" + ("" if self.step is None else f", step {self.step:g}")
+                    + (", pre-integrated" if self.preintegration else "")
+                    + ("" if self.adaptive == "off" else f", adaptive {self.adaptive}"))
         return (f"{q}, {self.interpolation.replace('_', ' ')}" + ("" if self.adaptive == "off" else f", adaptive {self.adaptive}")
                 + ("" if self.classification == "distribution" else f", by {self.classification}"))
 
@@ -48,6 +54,10 @@ class Variant:
             sampling["interpolation"] = self.interpolation
             sampling["classification"] = self.classification
         sampling["adaptive_object"] = self.adaptive != "off"
+        if self.step is not None:
+            sampling["step"] = self.step
+        if self.preintegration:
+            sampling["preintegration"] = True
         if self.adaptive == "naive":
             sampling["adaptive_naive"] = True
         else:
@@ -55,11 +65,14 @@ class Variant:
         return {**scene, "quality": self.quality, "sampling": sampling, "format": "npy"}
 
 
-def default_variants(adaptive: bool = True, naive: bool = True) -> list[Variant]:
+def default_variants(adaptive: bool = True, naive: bool = True, steps: bool = True) -> list[Variant]:
     """The sweep: qualities × interpolation × adaptive stepping, and interblock classified by the mean beside the
-    default classification by distribution."""
+    default classification by distribution; `steps`: full resolution at the steps STEPS with and without
+    pre-integration (what the step costs, and what pre-integration buys back)."""
     qualities: list[Any] = ["lossless"] + [{"reduction": r} for r in REDUCTIONS]
     out = [Variant("full")]
+    if steps:
+        out += [Variant("full", step=st, preintegration=pre) for st in STEPS for pre in (False, True)]
     for q in qualities:
         out.append(Variant(q, "interblock", classification="mean"))
         for interp in ("nearest_block", "interblock"):
@@ -105,7 +118,7 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
         rep = best.report
         rows.append({
             "label": v.label, "quality": v.quality, "interpolation": v.interpolation, "adaptive": v.adaptive,
-            "classification": v.classification,
+            "classification": v.classification, "step": v.step, "preintegration": v.preintegration,
             "reduction": rep.get("reduction"), "predicted_delta_e": rep.get("predicted_delta_e"),
             "delta_e_mean": de["mean"], "delta_e_p95": de["p95"], "delta_e_max": de["max"], "footprint": de["footprint"],
             "wall_ms": rep["wall_ms"], "kernel_ms": rep["kernel_ms"], "samples": rep.get("samples"),
@@ -113,7 +126,8 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
         })
         log(f"[{i}/{len(variants)}] {v.label}: ΔE mean {de['mean']:.2f} p95 {de['p95']:.2f}, "
             f"{rep['kernel_ms']:.0f} ms kernel, reduction {_fmt(rep.get('reduction'))}")
-    full = next((r for r in rows if r["quality"] == "full" and r["adaptive"] == "off"), None)
+    full = next((r for r in rows if r["quality"] == "full" and r["adaptive"] == "off" and r["step"] is None
+                 and not r["preintegration"]), None)
     for r in rows:
         r["speedup_vs_full"] = (full["kernel_ms"] / r["kernel_ms"]) if full and r["kernel_ms"] else None
     return {"store": str(getattr(store, "location", store)), "scene": scene, "reference_scene": ref_scene,
@@ -167,8 +181,15 @@ def plot(result: dict[str, Any], path: Path) -> Path:
     if by_mean:
         ax.scatter([r["kernel_ms"] for r in by_mean], [r["delta_e_mean"] for r in by_mean], marker="v", color="grey",
                    label="interblock, classified by the mean")
+    for pre, style in ((False, "k--"), (True, "k-")):  # full resolution at several steps
+        pts = sorted((r["kernel_ms"], r["delta_e_mean"], r["step"]) for r in result["rows"]
+                     if r["quality"] == "full" and r.get("step") is not None and r.get("preintegration") == pre)
+        if pts:
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker=".", alpha=0.6,
+                    label="full resolution, steps " + ", ".join(f"{p[2]:g}" for p in pts)
+                    + (", pre-integrated" if pre else ""))
     for r in result["rows"]:
-        if r["quality"] == "full":
+        if r["quality"] == "full" and r.get("step") is None and not r.get("preintegration"):
             ax.scatter([r["kernel_ms"]], [r["delta_e_mean"]], marker="*", s=140, color="black",
                        label=r["label"] + " (vs step-¼ reference)")
     ax.set_xlabel("kernel time per frame (ms)")

@@ -15,6 +15,9 @@
  *   LC_DIST           (atlas, composite) classification by distribution: coarse samples carry the standard
  *                     deviation of the level-0 values behind them (sig, beside the atlas) and are classified by
  *                     their expected extinction and colour (dtab; lc_classify.h)
+ *   LC_MODE_AVG       average intensity projection (length-weighted mean of the field along the ray; no block walk)
+ *   LC_MODE_ISO       isosurface: the first crossing of P->iso, shaded with LC_SHADE, opaque (no block walk)
+ *   LC_MINIP          with LC_MODE_MIP: minimum intensity projection
  *   LC_MODE_MIP       maximum intensity projection (default: emission-absorption compositing; MIP keeps the mean
  *                     of coarse samples: the store keeps no coarse maximum)
  *   LC_ORTHO          orthographic projection (default: perspective)
@@ -93,10 +96,21 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float3 C_c = (float3)(0.0f);
     float tau = 0.0f, tau_c = 0.0f;
 #endif
+#if defined(LC_PREINT) || defined(LC_MODE_AVG)
+    const float unit_w = 1.0f / P->inv_unit; /* the TF's unit distance (world), for LC_SEG_LEN */
+#endif
+#ifdef LC_MODE_AVG
+    float vsum = 0.0f, lsum = 0.0f;
+#endif
+#ifdef LC_MODE_ISO
+    const float iso = P->iso;
+    float iso_pv = NAN; /* the previous sample's value (NaN: none) and position, the hit's position */
+    float3 iso_pq = (float3)(0.0f), iso_q = (float3)(0.0f);
+    int hit = 0;
+#endif
 #ifdef LC_PREINT
     const float pre_lo = P->pre_lo, pre_scale = P->pre_scale;
     const int pre_n = P->pre_n;
-    const float pre_unit = 1.0f / P->inv_unit;
     float3 pre_q = (float3)(INFINITY); /* the last segment's back end and its value */
     float pre_v = 0.0f;
 #endif
@@ -109,7 +123,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     lc_pixel_ray(P, i, j, &o, &d);
 #ifdef LC_SHADE
     const float4 sh_k = P->shade;
-    const float sh_gmin = P->shade_gmin;
+    const float sh_gmin = P->shade_gmin, sh_gref = P->shade_gref;
     const float3 sh_gs = 0.5f * P->inv_spacing.xyz; /* central differences over two voxels, in world units */
     const float3 sh_l = P->light.w > 0.0f ? -d : P->light.xyz; /* w > 0: headlight */
     float3 sh_h = sh_l - d;
@@ -303,13 +317,29 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     }
 
     float4 res;
+#if defined(LC_MODE_MIP) || defined(LC_MODE_AVG) || defined(LC_MODE_ISO)
+    /* the projections: the TF's colour and opacity, as given, at the projected value; isosurface: the TF's colour
+     * at the iso value (lit with LC_SHADE), opaque */
 #ifdef LC_MODE_MIP
-    if (vmax > -INFINITY) {
-        float f = vmax * lut_scale + lut_off;
+    const int found = vmax > -INFINITY;
+    const float vfin = LC_EXT(vmax);
+#elif defined(LC_MODE_AVG)
+    const int found = lsum > 0.0f;
+    const float vfin = vsum / lsum;
+#else
+    const int found = hit;
+    const float vfin = iso;
+#endif
+    if (found) {
+        float f = vfin * lut_scale + lut_off;
         f = f > 0.0f ? (f < lut_fmax ? f : lut_fmax) : 0.0f;
         int i0 = (int)f;
         const float4 e = lut[i0] + (lut[i0 + 1] - lut[i0]) * (f - (float)i0);
-        res = (float4)(e.xyz * e.w, e.w); /* the TF's colour and opacity, as given */
+#ifdef LC_MODE_ISO
+        res = (float4)(LC_SHADE_COL(e.xyz, iso_q), 1.0f);
+#else
+        res = (float4)(e.xyz * e.w, e.w);
+#endif
     } else {
         res = (float4)(0.0f);
     }

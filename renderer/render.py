@@ -32,7 +32,7 @@ from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
 from lodcast.renderer.classification import DistTable, cached_dist_table
-from lodcast.renderer.config import PRECISE_SAMPLES, KernelConfig
+from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
 from lodcast.renderer.program import device_info, get_context, get_program
 from lodcast.renderer.sampler import upload_level0
@@ -83,22 +83,26 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
         distribution=lod and distribution and s.classification == "distribution" and scene.mode == "composite",
         mode=scene.mode,
         orthographic=orthographic,
-        ess=s.empty_space_skipping,
+        ess=s.empty_space_skipping and scene.mode not in ("average", "iso"),  # these read every sample
         jitter=s.jitter,
         precise=max_samples > PRECISE_SAMPLES,
         background=scene.background[3] > 0,
         clip=scene.clip is not None and len(scene.clip.planes) > 0,
-        shade=scene.shading is not None and scene.mode == "composite",
+        shade=scene.shading is not None and scene.mode in ("composite", "iso"),
         preint=s.preintegration and scene.mode == "composite",
     )
 
 
 def block_info(vol: VolumeView, lut: Lut, mode: str) -> tuple[np.ndarray, int]:
     """(per-block float32 array in kernel order (gz, gy, gx), number of empty blocks). Composite: 1 where the TF
-    is non-zero somewhere on the block's border-inclusive range; MIP: the block's border-inclusive maximum."""
-    if mode == "mip":
-        mx = np.where(np.isfinite(vol.max_border), vol.max_border, -np.inf)
+    is non-zero somewhere on the block's border-inclusive range; MIP: the block's border-inclusive maximum; MinIP:
+    minus its minimum (the kernel tracks the maximum of -v); average and iso (no block walk): zeros."""
+    if mode in EXTREMUM_MODES:
+        ext = vol.max_border if mode == "mip" else -np.asarray(vol.min_border, np.float64)
+        mx = np.where(np.isfinite(ext), ext, -np.inf)
         return np.ascontiguousarray(mx, dtype=np.float32), 0
+    if mode != "composite":
+        return np.zeros(vol.grid, np.float32), 0
     vis = lut.visible(vol.min_border, vol.max_border)
     return np.ascontiguousarray(vis, dtype=np.float32), int(vis.size - np.count_nonzero(vis))
 
@@ -119,6 +123,7 @@ def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: 
     p["step"], p["inv_unit"] = step_world, 1.0 / unit
     p["lut_lo"], p["lut_scale"], p["lut_n"] = lut.lo, lut.scale, lut.n
     p["early_term"] = scene.sampling.early_termination
+    p["iso"] = scene.isovalue if scene.isovalue is not None else 0.0
     p["width"], p["height"] = scene.width, scene.height
     p["seed"] = scene.sampling.seed
     p["max_samples"] = max_samples
@@ -139,6 +144,7 @@ def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: 
             p["light"] = xyz(v / np.linalg.norm(v))
         span = float(vol.value_range[1]) - float(vol.value_range[0])
         p["shade_gmin"] = sh.min_gradient if sh.min_gradient is not None else 1e-3 * span / float(min(vol.spacing))
+        p["shade_gref"] = sh.gradient_weighting or 0.0
     if dist is not None:
         p["dist_n"], p["dist_rows"] = dist.n, dist.rows
         # the atlas holds standard deviations in units of vol.std_unit; the kernel only takes their square root
@@ -202,7 +208,7 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
         cfg = replace(cfg, adaptive=False)  # the default: every block at level 0 leaves nothing to step over
     info = info.copy()
     missing = lv < 0
-    info[missing] = -np.inf if mode == "mip" else 0.0
+    info[missing] = -np.inf if mode in EXTREMUM_MODES else 0.0
     # interblock interpolation reaches half a sample of a coarse block (2^(k-1) voxels) past its faces, further
     # than the one-voxel border of the block ranges: where a coarse block is near, a block may show what its
     # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
@@ -244,7 +250,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     info, n_empty = block_info(vol, lut, scene.mode)
     keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
     if keep is not None:  # blocks outside the clip region are empty space
-        info = np.where(keep, info, -np.inf if scene.mode == "mip" else 0.0).astype(np.float32)
+        info = np.where(keep, info, -np.inf if scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
         n_empty = int(np.count_nonzero(info == 0.0)) if scene.mode == "composite" else 0
     lod = None
     use_lod = levels is not None or scene.quality != "full"
@@ -265,7 +271,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
 
 def lut_table(pr: Prepared) -> np.ndarray:
     """The LUT as the kernel built for this scene reads it (see raycast.cl)."""
-    if pr.config.mode == "mip":
+    if pr.config.mode != "composite":  # the projections and iso take the TF's opacity as given
         return pr.lut.kernel_table("opacity")
     ratio = pr.step_world / pr.unit
     return pr.lut.kernel_table("depth" if pr.config.precise else "alpha", ratio)

@@ -224,7 +224,9 @@ class Shading(_Model):
     world coordinates (`light_space` "world") or in the camera's frame (`light_space` "view": x right, y up,
     z towards the viewer). `min_gradient` (data units per world unit): below it a sample has no defined normal
     and is lit as a surface facing the light without a highlight; null: 1/1000 of the volume's value range per
-    smallest voxel spacing. Shading is for composite mode; MIP ignores it."""
+    smallest voxel spacing. `gradient_weighting` (data units per world unit, optional): shading weighted by
+    gradient magnitude — below it the lit colour blends linearly towards the unlit one, so that noise in
+    homogeneous tissue is not lit. Shading is for composite and iso modes; the projections ignore it."""
 
     ambient: NonNeg = 0.3
     diffuse: NonNeg = 0.7
@@ -233,6 +235,7 @@ class Shading(_Model):
     light: Literal["headlight"] | Vec3 = "headlight"
     light_space: Literal["world", "view"] = "world"
     min_gradient: NonNeg | None = None
+    gradient_weighting: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
 
     @field_validator("light")
     @classmethod
@@ -293,9 +296,16 @@ class Scene(_Model):
     sampling: Sampling = Field(default_factory=Sampling)
     shading: Shading | None = None
     clip: Clip | None = None
-    mode: Literal["composite", "mip"] = "composite"
+    mode: Literal["composite", "mip", "minip", "average", "iso"] = "composite"
+    isovalue: Finite | None = None
     background: tuple[Unit, Unit, Unit, Unit] = (0.0, 0.0, 0.0, 0.0)
     format: Literal["png", "npy"] = "png"
+
+    @model_validator(mode="after")
+    def _iso(self) -> "Scene":
+        if self.mode == "iso" and self.isovalue is None:
+            raise ValueError("isovalue: required with mode 'iso' (the data value of the surface)")
+        return self
 
     @field_validator("tf", "tf2", mode="before")
     @classmethod

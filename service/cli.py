@@ -121,6 +121,8 @@ def _add_report(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeat", type=int, default=2, help="timed renders per configuration after a warm-up (default 2)")
     p.add_argument("--no-adaptive", action="store_true", help="leave out adaptive object-space sampling")
     p.add_argument("--no-naive", action="store_true", help="leave out naive adaptive stepping")
+    p.add_argument("--no-steps", action="store_true",
+                   help="leave out full resolution at steps 2, 1, 1/2, 1/4 with and without pre-integration")
     p.set_defaults(func=_cmd_report)
 
 
@@ -140,7 +142,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if args.repeat < 1:
         raise UsageError(f"--repeat must be at least 1, got {args.repeat}")
     store = open_store(args.store)
-    result = run_report(store, scene, default_variants(adaptive=not args.no_adaptive, naive=not args.no_naive), repeat=args.repeat)
+    result = run_report(store, scene, default_variants(adaptive=not args.no_adaptive, naive=not args.no_naive,
+                                                           steps=not args.no_steps), repeat=args.repeat)
     paths = write_report(result, args.out)
     print(table(result))
     print(f"wrote {paths['table']}, {paths['json']} and {paths['plot']}")

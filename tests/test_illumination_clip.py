@@ -319,3 +319,37 @@ def test_demo_lighting_is_the_shading_default():
     from lodcast.renderer.scene import Shading
 
     assert Shading.model_validate(SHADING) == Shading()
+
+
+@pytest.mark.parametrize("az,el", [(0, 0), (30, 15), (120, 25), (210, -40), (75, 89)])
+def test_fit_distance_puts_every_box_corner_in_the_picture(az, el):
+    from lodcast.renderer.camera import box_world, fit_distance
+    from reference import project_point
+
+    shape, spacing = (40, 90, 60), (2.0, 0.7, 1.1)
+    lo, hi = box_world(shape, spacing, (0, 0, 0))
+    W, H = 64, 64
+    corners = [(x, y, z) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+
+    def extent(dist):  # the furthest corner from the image centre, in half-widths
+        cam = {"azimuth": az, "elevation": el, "distance": dist, "fov": 30}
+        pts = np.array([project_point(cam, W, H, c, shape, spacing) for c in corners])
+        return np.abs((pts + 0.5) / np.array([H, W]) * 2 - 1).max()
+
+    d = fit_distance(lo, hi, az, el)
+    assert extent(d) == pytest.approx(0.95, abs=1e-6)  # the 5% margin, exactly, on the tightest corner
+    assert extent(0.9 * d) > 1.0  # and no closer distance would do
+
+
+def test_shading_weighted_by_gradient_magnitude():
+    """The ramp's gradient is 10 per world unit: with gradient_weighting 20 the colour lies half-way between the
+    unlit col (ka + kd) and the lit one; with 5 (or none) it is fully lit."""
+    ramp = _ramp()
+    base = {"camera": LOOK_Y, "width": 24, "height": 12, "tf": RAMP_TF, "format": "npy"}
+    k = {"ambient": 0.25, "diffuse": 0.6, "specular": 0.0, "light": [1, -1, 0], "min_gradient": 1.0}
+    f = lodcast.render(ramp, base).rgba[3:-3, 4:-4, :3]
+    lit, unlit = 0.25 + 0.6 * np.sqrt(0.5), 0.85
+    half = lodcast.render(ramp, {**base, "shading": {**k, "gradient_weighting": 20.0}}).rgba[3:-3, 4:-4, :3]
+    full = lodcast.render(ramp, {**base, "shading": {**k, "gradient_weighting": 5.0}}).rgba[3:-3, 4:-4, :3]
+    np.testing.assert_allclose(half, 0.5 * (lit + unlit) * f, rtol=2e-4)
+    np.testing.assert_allclose(full, lit * f, rtol=2e-4)

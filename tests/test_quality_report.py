@@ -54,3 +54,29 @@ def test_report_measures_error_against_the_step_quarter_reference(tmp_path: Path
     assert json.loads(paths["json"].read_text())["rows"][0]["label"] == "full resolution"
     assert "| full resolution |" in paths["table"].read_text()
     assert paths["plot"].stat().st_size > 10_000
+
+
+def test_report_rows_for_steps_with_and_without_preintegration(tmp_path: Path):
+    """default_variants' full-resolution rows: the step's error falls as the step does, the step-¼ row equals the
+    reference, and pre-integration's rows say so and reach the table and the plot."""
+    from lodcast.renderer.quality_report import STEPS, default_variants
+
+    zz, yy, xx = np.mgrid[:24, :28, :32]
+    vol = np.exp(-(((xx - 16) / 7.0) ** 2 + ((yy - 14) / 6.0) ** 2 + ((zz - 12) / 5.0) ** 2)).astype(np.float32)
+    store = lodcast.ingest(vol, tmp_path / "blob.zarr", block_size=8)
+    scene = {"camera": {"azimuth": 30, "elevation": 20, "distance": 2.5}, "width": 40, "height": 32,
+             "tf": {"points": [{"value": 0.4, "color": [1, 0.5, 0.2], "opacity": 0.0},
+                               {"value": 0.45, "color": [1, 0.6, 0.3], "opacity": 0.9},
+                               {"value": 0.5, "color": [1, 0.7, 0.4], "opacity": 0.0}]}}
+    variants = [v for v in default_variants() if v.quality == "full"]
+    assert len(variants) == 1 + 2 * len(STEPS)
+    result = run_report(store, scene, variants, repeat=1, log=lambda m: None)
+    rows = result["rows"]
+    point = {r["step"]: r["delta_e_mean"] for r in rows if r["step"] is not None and not r["preintegration"]}
+    pre = {r["step"]: r["delta_e_mean"] for r in rows if r["preintegration"]}
+    assert point[0.25] == 0.0  # the reference itself
+    assert point[2.0] > point[1.0] > point[0.5] > 0.0
+    assert pre[2.0] < 0.5 * point[2.0]  # a thin TF band: pre-integration pays at long steps
+    assert any(r["label"] == "full resolution, step 2, pre-integrated" for r in rows)
+    paths = write_report(result, tmp_path / "rep")
+    assert "| full resolution, step 1, pre-integrated |" in paths["table"].read_text()

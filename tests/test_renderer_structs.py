@@ -31,11 +31,12 @@ def test_every_field_reads_back_through_the_kernel():
     p["dist_lo"], p["dist_scale"], p["dist_sscale"] = -1024.5, 0.25, 3.75
     p["clip"] = (np.arange(24).reshape(6, 4) + 0.5)
     p["light"], p["shade"] = (1.5, 2.5, 3.5, 4.5), (5.5, 6.5, 7.5, 8.5)
-    p["shade_gmin"], p["pre_lo"], p["pre_scale"] = 0.125, -7.5, 2.25
+    p["shade_gmin"], p["pre_lo"], p["pre_scale"], p["iso"] = 0.125, -7.5, 2.25, 3.625
+    p["shade_gref"] = 9.5
     p["n_clip"], p["pre_n"] = 5, 9
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    f = np.zeros(84, np.float32)
+    f = np.zeros(86, np.float32)
     n = np.zeros(18, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
@@ -56,5 +57,5 @@ def test_every_field_reads_back_through_the_kernel():
     assert f[45:48].tolist() == [-1024.5, 0.25, 3.75]
     assert np.array_equal(f[48:72].reshape(6, 4), p["clip"][0])
     assert np.array_equal(f[72:76], p["light"][0]) and np.array_equal(f[76:80], p["shade"][0])
-    assert f[80:83].tolist() == [0.125, -7.5, 2.25]
+    assert f[80:85].tolist() == [0.125, -7.5, 2.25, 3.625, 9.5]
     assert n[16:18].tolist() == [5, 9]
