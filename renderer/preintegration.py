@@ -10,8 +10,10 @@ colour and opacity from a table over (s_f, s_b) built once per TF and step:
 computed in float64 without a Riemann sum: the segment is cut where s crosses a TF control point, so that a(x) and
 c(x) are linear on every piece; there tau is exact in closed form (∫ −ln(1 − a) da = (1 − a)(ln(1 − a) − 1)),
 and by parts C = Σ_pieces [c e^−tau]_end^start + c' ∫ e^−tau dx, whose last integrand is smooth and bounded, by
-16-point Gauss–Legendre. Opacity is therefore exact for any TF, near-opaque and a = 1 included, and hard steps in
-the TF (two control points at one value) are resolved exactly at the table's entries.
+16-point Gauss–Legendre. Every entry is therefore exact for any TF, near-opaque and a = 1 included, hard steps in
+the TF (two control points at one value) too. Between entries the kernel interpolates bilinearly, which smears a
+hard step over one table interval (the data range / 255): there pre-integration is no better than point sampling
+(measured on a ramp through a hard step at step ¼: mean ΔE 0.50 against point sampling's 0.09).
 
 Other segment lengths l (the last, shorter segment of a ray, clipped segments, adaptive steps of l0·2^k) scale the
 entry as Roettger describes: alpha_l = 1 − (1 − alpha)^(l/l0) and the colour keeps its average (C/alpha): exact

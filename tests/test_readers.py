@@ -735,3 +735,38 @@ def test_real_raw_mr_head_small(shared_data: Path) -> None:
         check(src, np.fromfile(p, np.uint8).reshape(42, 62, 48))
     refused(r"raw file is 124992 bytes but shape 42x62x49 of uint8 needs 127596 bytes", p, shape=(42, 62, 49),
             dtype="uint8")
+
+
+def test_detached_nrrd_data_must_lie_beside_the_header(tmp_path):
+    """Issue 10, item 1: `data file:` may not leave the header's folder — not by '..', not by an absolute path,
+    not through a symlink — and open_source(detached=False) refuses detached headers altogether."""
+    import nrrd
+
+    hdir, out = tmp_path / "h", tmp_path / "outside"
+    hdir.mkdir(), out.mkdir()
+    (out / "secret.raw").write_bytes(bytes(range(256)) * 4)
+    (hdir / "link.raw").symlink_to(out / "secret.raw")
+    for name in ("../outside/secret.raw", str(out / "secret.raw"), "link.raw"):
+        (hdir / "v.nhdr").write_text(f"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 8 8 16\nencoding: raw\n"
+                                     f"data file: {name}\n\n")
+        with pytest.raises(SourceError, match="outside the header's folder"):
+            open_source(hdir / "v.nhdr")
+    a = np.arange(4 * 5 * 6, dtype=np.uint8).reshape(4, 5, 6)
+    nrrd.write(str(hdir / "ok.nhdr"), a.T, {"encoding": "raw"}, detached_header=True)
+    with open_source(hdir / "ok.nhdr") as src:  # beside the header: fine
+        assert np.array_equal(src.read(0, 4), a)
+    with pytest.raises(SourceError, match="data in another file"):
+        open_source(hdir / "ok.nhdr", detached=False)
+
+
+def test_source_folders_skip_files_that_link_outside(tmp_path):
+    import tifffile
+
+    d, out = tmp_path / "stack", tmp_path / "outside"
+    d.mkdir(), out.mkdir()
+    for k in range(3):
+        tifffile.imwrite(d / f"s{k}.tif", np.full((4, 5), k, np.uint8))
+    tifffile.imwrite(out / "s3.tif", np.full((4, 5), 99, np.uint8))
+    (d / "s3.tif").symlink_to(out / "s3.tif")
+    with open_source(d) as src:
+        assert src.info.shape == (3, 4, 5) and src.read(0, 3).max() == 2

@@ -311,3 +311,22 @@ def test_no_token_configured_means_open(tmp_path: Path):
         r = client.post("/jobs", json={"kind": "turntable", "volume": "v", "scene": tiny_scene(), "frames": 2})
         assert r.status_code == 202
         assert client.delete(f"/jobs/{r.json()['id']}").json()["state"] == "cancelled"
+
+
+def test_upload_of_a_detached_nrrd_header_reads_nothing_outside(env):
+    """A header naming another file (here: a secret beside the store root, and another upload) is refused: an
+    upload is one file, so its ingest may read that file only (issue 10, item 1)."""
+    client, root, imports, outside = env
+    secret = outside / "secret.raw"
+    secret.write_bytes(bytes(range(256)) * 4)
+    for name in (str(secret), "../../outside/secret.raw", "other-upload.raw"):
+        (root / ".uploads").mkdir(exist_ok=True)
+        (root / ".uploads" / "other-upload.raw").write_bytes(b"\1" * 1024)
+        hdr = (f"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 8 8 16\nencoding: raw\ndata file: {name}\n"
+               f"byte skip: -1\n\n").encode()
+        r = client.post("/volumes/leak/upload?format=nrrd", content=hdr, headers=AUTH)
+        assert r.status_code == 202, r.text
+        st = wait_job(client, r.json()["id"])
+        assert st["state"] == "failed" and "data in another file" in st["error"], st
+        assert client.get("/volumes/leak", headers=AUTH).status_code == 404
+        (root / ".uploads" / "other-upload.raw").unlink()

@@ -34,10 +34,12 @@ from lodcast.store.readers.zarr_source import _ZarrReader  # noqa: E402
 def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[int] | None = None,
                 dtype: Any = None, byte_order: str = "little", header_bytes: int = 0,
                 spacing: Sequence[float] | None = None, origin: Sequence[float] | None = None,
-                index: int | None = None) -> VolumeSource:
+                index: int | None = None, detached: bool = True) -> VolumeSource:
     """Open a volume for ingest. `format` is guessed from the extension or folder content when None; `shape`
     (z, y, x), `dtype`, `byte_order` ('little' or 'big') and `header_bytes` describe raw files; `spacing` and
-    `origin` (z, y, x) override the file's; `index` picks one volume of a 4D series (time or channel axis).
+    `origin` (z, y, x) override the file's; `index` picks one volume of a 4D series (time or channel axis);
+    `detached=False` refuses sources that name other files (a detached NRRD header), for uploads. Every reader reads
+    only the source itself or files beside it in its own folder (symlinks resolved).
     Raises SourceNotFound for a missing path and SourceError for anything that cannot be ingested."""
     p = Path(path)
     if not p.exists():
@@ -53,8 +55,10 @@ def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[
         raise SourceError(f"index must be a whole number, got {index!r}")
     if fmt == "raw":
         reader: _Reader = _raw(p, shape, dtype, byte_order, header_bytes, index)
+    elif fmt == "nrrd":
+        reader = _nrrd(p, index, detached)
     else:
-        reader = {"npy": _npy, "nrrd": _nrrd, "nifti": _NiftiReader, "tiff": _tiff, "dicom": _DicomReader,
+        reader = {"npy": _npy, "nifti": _NiftiReader, "tiff": _tiff, "dicom": _DicomReader,
                   "zarr": _ZarrReader}[fmt](p, index)
     try:
         return _finish(reader, spacing, origin)

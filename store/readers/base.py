@@ -43,6 +43,13 @@ class _Reader(VolumeSource):
         return np.ascontiguousarray(self._slab(z0, z1), dtype=self.info.dtype)
 
 
+def _files_in(folder: Path, keep) -> list[Path]:
+    """The plain files of `folder` that `keep(path)` accepts, sorted, leaving out any whose real path (symlinks
+    resolved) lies outside the folder: a source folder can only ever read its own files."""
+    real = folder.resolve()
+    return sorted(f for f in folder.iterdir() if f.is_file() and f.resolve().parent == real and keep(f))
+
+
 def _info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spacing: Sequence[float] = (1.0, 1.0, 1.0),
           origin: Sequence[float] = (0.0, 0.0, 0.0), units: str = "millimeter", **provenance: Any) -> SourceInfo:
     return SourceInfo(

@@ -139,7 +139,9 @@ def _raw(path: Path, shape: Sequence[int] | None, dtype: Any, byte_order: str, h
 _NRRD_SPATIAL = ("domain", "space", "time", "???", "none")
 
 
-def _nrrd(path: Path, index: int | None) -> _Reader:
+def _nrrd(path: Path, index: int | None, detached: bool = True) -> _Reader:
+    """detached=False refuses headers whose data lie in another file (uploads: only the uploaded file may be read);
+    otherwise the data file must lie in the header's own folder, symlinks resolved."""
     import nrrd
 
     try:
@@ -191,7 +193,13 @@ def _nrrd(path: Path, index: int | None) -> _Reader:
         name = str(header.get("data file", header.get("datafile")))
         if name.startswith("LIST") or " " in name:
             raise SourceError(f"NRRD {path} splits its data over several files ({name!r}); expected one data file")
+        if not detached:
+            raise SourceError(f"NRRD {path} keeps its data in another file ({name!r}); only attached NRRD (data in "
+                              f"the same file) is accepted here")
         data_path, start = path.parent / name, 0
+        if Path(name).is_absolute() or data_path.resolve().parent != path.resolve().parent:
+            raise SourceError(f"data file {name!r} named by NRRD header {path} is outside the header's folder; "
+                              f"expected a file beside the header")
         if not data_path.is_file():
             raise SourceError(f"data file {data_path} named by NRRD header {path} does not exist")
     with open(data_path, "rb") as f:

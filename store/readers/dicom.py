@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import _Reader, _fmt, _info, _tidy
+from lodcast.store.readers.base import _Reader, _files_in, _fmt, _info, _tidy
 
 
 def _is_dicom(p: Path) -> bool:
@@ -80,7 +80,7 @@ class _DicomReader(_Reader):
     def __init__(self, path: Path, index: int | None) -> None:
         if index is not None:
             raise SourceError(f"index {index} given but DICOM series {path} is a single 3D volume")
-        files = [path] if path.is_file() else sorted(f for f in path.iterdir() if f.is_file() and _is_dicom(f))
+        files = [path] if path.is_file() else _files_in(path, _is_dicom)
         if not files or not _is_dicom(files[0]):
             raise SourceError(f"no DICOM files (with a DICM preamble) in {path}")
         by_series: dict[str, list[tuple[Path, dict[str, Any]]]] = {}

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import _UNITS, _Reader, _fmt, _info, _pick
+from lodcast.store.readers.base import _UNITS, _Reader, _files_in, _fmt, _info, _pick
 
 
 def _tiff(path: Path, index: int | None) -> _Reader:
@@ -97,8 +97,7 @@ class _TiffFolderReader(_Reader):
     """A folder of single-image TIFFs, one slice each, in natural name order (img2 before img10)."""
 
     def __init__(self, path: Path, index: int | None) -> None:
-        self._files = sorted((f for f in path.iterdir() if f.suffix.lower() in (".tif", ".tiff") and f.is_file()),
-                             key=_natural)
+        self._files = sorted(_files_in(path, lambda f: f.suffix.lower() in (".tif", ".tiff")), key=_natural)
         if not self._files:
             raise SourceError(f"no .tif/.tiff files in folder {path}")
         if index is not None:
