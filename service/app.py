@@ -18,9 +18,10 @@ from contextlib import asynccontextmanager
 
 from typing import Annotated, Any, Literal
 
-from fastapi import Body, Depends, FastAPI, Header, Path as PathParam, Query, Request
+from fastapi import Body, Depends, FastAPI, Path as PathParam, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field
 
 import lodcast
@@ -131,14 +132,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state["sem"] = (loop, asyncio.Semaphore(settings.render_concurrency))
         return state["sem"][1]
 
-    def require_token(authorization: Annotated[str | None, Header(description="Bearer TOKEN, when the service has one")] = None) -> None:
+    bearer = HTTPBearer(auto_error=False, description="LODCAST_TOKEN, when the service has one")
+
+    def require_token(cred: HTTPAuthorizationCredentials | None = Depends(bearer)) -> None:  # noqa: B008
         if not settings.token:
             return
-        scheme, _, given = (authorization or "").partition(" ")
-        if scheme.lower() != "bearer" or not secrets.compare_digest(given.strip().encode(), settings.token.encode()):
+        given = cred.credentials.strip() if cred is not None else ""
+        if not secrets.compare_digest(given.encode(), settings.token.encode()):
             raise HttpError(401, "Authorization: missing or wrong bearer token", {"WWW-Authenticate": "Bearer"})
 
-    write = [Depends(require_token)]
+    # DESIGN.md, Limits: with LODCAST_TOKEN set every route but /healthz (and the docs) needs the token, reads too
+    auth = [Depends(require_token)]
 
     # --- errors -------------------------------------------------------------------------------------------------
     @app.exception_handler(HttpError)
@@ -181,14 +185,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def healthz() -> dict[str, Any]:
         return {"status": "ok", "version": lodcast.__version__, "queue": "redis" if settings.is_redis else "sqlite"}
 
-    @app.get("/presets", tags=["service"])
+    @app.get("/presets", tags=["service"], dependencies=auth)
     def get_presets() -> dict[str, Any]:
         """The named transfer functions a scene may give as `"tf": NAME`."""
         from lodcast.renderer.presets import PRESETS
 
         return PRESETS
 
-    @app.get("/volumes", tags=["volumes"])
+    @app.get("/volumes", tags=["volumes"], dependencies=auth)
     def get_volumes() -> list[dict[str, Any]]:
         out = []
         for vid in list_volumes(settings.root):
@@ -198,12 +202,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 continue  # a folder that is not (yet) a complete store is not a volume
         return out
 
-    @app.post("/volumes", status_code=202, tags=["volumes"], dependencies=write)
+    @app.post("/volumes", status_code=202, tags=["volumes"], dependencies=auth)
     def post_volume(req: IngestRequest) -> dict[str, Any]:
         job = IngestJob(kind="ingest", source=req.source, name=req.name, overwrite=req.overwrite, options=req.options)
         return status_json(jobs().submit(validate_job(job, settings)))
 
-    @app.post("/volumes/{volume_id}/upload", status_code=202, tags=["volumes"], dependencies=write)
+    @app.post("/volumes/{volume_id}/upload", status_code=202, tags=["volumes"], dependencies=auth)
     async def upload_volume(
         volume_id: VolumeId,
         request: Request,
@@ -247,14 +251,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise
         return status_json(await run_in_threadpool(jobs().submit, job, upload=dest))
 
-    @app.get("/volumes/{volume_id}", tags=["volumes"])
+    @app.get("/volumes/{volume_id}", tags=["volumes"], dependencies=auth)
     def get_volume(volume_id: VolumeId) -> dict[str, Any]:
         try:
             return _finite(volume_summary(settings.root, volume_id))
         except StoreInvalid as exc:
             raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
 
-    @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=write)
+    @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=auth)
     def del_volume(volume_id: VolumeId) -> dict[str, Any]:
         path = volume_path(settings.root, volume_id)
         engine().forget(path)
@@ -264,6 +268,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.post(
         "/volumes/{volume_id}/render",
         tags=["render"],
+        dependencies=auth,
         response_class=Response,
         responses={200: {"content": {"image/png": {}, "application/octet-stream": {}},
                          "description": "the image; the render report as JSON in the X-Lodcast-Report header"}},
@@ -292,27 +297,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise HttpError(404, f"id: no job {job_id!r}")
         return rec
 
-    @app.post("/jobs", status_code=202, tags=["jobs"], dependencies=write)
+    @app.post("/jobs", status_code=202, tags=["jobs"], dependencies=auth)
     def post_job(job: Annotated[Job, Body(discriminator="kind")]) -> dict[str, Any]:
         return status_json(jobs().submit(validate_job(job, settings)))
 
-    @app.get("/jobs", tags=["jobs"])
+    @app.get("/jobs", tags=["jobs"], dependencies=auth)
     def get_jobs(
         limit: Annotated[int, Query(ge=1, le=10_000)] = 100,
         state_: Annotated[Literal["queued", "running", "done", "failed", "cancelled"] | None, Query(alias="state")] = None,
     ) -> list[dict[str, Any]]:
         return [status_json(r) for r in jobs().list(limit=limit, states=(state_,) if state_ else None)]
 
-    @app.get("/jobs/{job_id}", tags=["jobs"])
+    @app.get("/jobs/{job_id}", tags=["jobs"], dependencies=auth)
     def get_job(job_id: JobId) -> dict[str, Any]:
         return status_json(get_record(job_id))
 
-    @app.delete("/jobs/{job_id}", tags=["jobs"], dependencies=write)
+    @app.delete("/jobs/{job_id}", tags=["jobs"], dependencies=auth)
     def cancel_job(job_id: JobId) -> dict[str, Any]:
         get_record(job_id)
         return status_json(jobs().cancel(job_id) or get_record(job_id))
 
-    @app.get("/jobs/{job_id}/results/{n}", tags=["jobs"], response_class=FileResponse,
+    @app.get("/jobs/{job_id}/results/{n}", tags=["jobs"], dependencies=auth, response_class=FileResponse,
              responses={200: {"content": {"image/png": {}, "application/octet-stream": {}}}})
     def get_result(job_id: JobId, n: Annotated[int, PathParam(ge=0, le=10_000_000)]) -> FileResponse:
         rec = get_record(job_id)
@@ -325,7 +330,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 return FileResponse(p, media_type=media, filename=p.name)
         raise HttpError(404, f"n: result {n} of job {job_id} is not written yet (state {rec['state']})")
 
-    @app.get("/jobs/{job_id}/animation", tags=["jobs"], response_class=FileResponse,
+    @app.get("/jobs/{job_id}/animation", tags=["jobs"], dependencies=auth, response_class=FileResponse,
              responses={200: {"content": {"image/gif": {}, "video/mp4": {}}}})
     def get_animation(job_id: JobId) -> FileResponse:
         rec = get_record(job_id)

@@ -20,6 +20,7 @@ from lodcast.service.testing import TINY_TF, make_volume, tiny_scene
 
 TOKEN = "s3cret-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+NOAUTH = {"Authorization": ""}  # overrides the client's default header: a request without a token
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,7 @@ def env(tmp_path_factory: pytest.TempPathFactory):
     (root / "afile").write_text("x")
     settings = Settings(root=root, token=TOKEN, import_roots=[imports], max_width=64, max_height=64, max_frames=50,
                         min_step=0.25, max_upload_bytes=64 * 1024, workers=1, poll_s=0.05)
-    with TestClient(create_app(settings)) as client:
+    with TestClient(create_app(settings), headers=AUTH) as client:  # reads need the token too
         yield client, root, imports, outside
 
 
@@ -147,7 +148,7 @@ def test_render_malformed_bodies(env):
 def test_ingest_from_import_root_then_delete(env):
     client, root, imports, _ = env
     body = {"name": "blob", "source": "blob.npy"}
-    assert client.post("/volumes", json=body).status_code == 401  # token required
+    assert client.post("/volumes", json=body, headers=NOAUTH).status_code == 401  # token required
     r = client.post("/volumes", json=body, headers=AUTH)
     assert r.status_code == 202, r.text
     st = wait_job(client, r.json()["id"])
@@ -155,7 +156,7 @@ def test_ingest_from_import_root_then_delete(env):
     assert "blob" in [v["id"] for v in client.get("/volumes").json()]
     r = client.post("/volumes", json=body, headers=AUTH)  # exists
     assert r.status_code == 422 and names_field(r, "name")
-    assert client.delete("/volumes/blob").status_code == 401
+    assert client.delete("/volumes/blob", headers=NOAUTH).status_code == 401
     assert client.delete("/volumes/blob", headers=AUTH).status_code == 200
     assert client.get("/volumes/blob").status_code == 404 and not (root / "blob").exists()
 
@@ -195,7 +196,7 @@ def test_upload(env):
     assert r.status_code == 422
     r = client.post("/volumes/up2/upload?format=raw&dtype=uint8", content=b"\0" * 8, headers=AUTH)
     assert r.status_code == 422 and names_field(r, "shape")
-    assert client.post("/volumes/up2/upload", content=b"x").status_code == 401
+    assert client.post("/volumes/up2/upload", content=b"x", headers=NOAUTH).status_code == 401
     r = client.post("/volumes/up3/upload?format=npy", content=b"not an npy file", headers=AUTH)
     assert r.status_code == 202  # accepted, then the ingest job fails with the reader's message
     st = wait_job(client, r.json()["id"])
@@ -210,7 +211,7 @@ def test_upload(env):
 def test_turntable_job_with_gif(env):
     client = env[0]
     job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16), "frames": 4, "animation": "gif"}
-    assert client.post("/jobs", json=job).status_code == 401
+    assert client.post("/jobs", json=job, headers=NOAUTH).status_code == 401
     r = client.post("/jobs", json=job, headers=AUTH)
     assert r.status_code == 202, r.text
     st = r.json()
@@ -295,7 +296,7 @@ def test_cancel_queued_job(env):
     # a job whose frames are slow enough to cancel while the worker is on it or it is still queued
     job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(64), "frames": 50}
     st = client.post("/jobs", json=job, headers=AUTH).json()
-    assert client.delete(f"/jobs/{st['id']}").status_code == 401
+    assert client.delete(f"/jobs/{st['id']}", headers=NOAUTH).status_code == 401
     r = client.delete(f"/jobs/{st['id']}", headers=AUTH)
     assert r.status_code == 200 and r.json()["state"] == "cancelled"
     time.sleep(0.5)
@@ -330,3 +331,28 @@ def test_upload_of_a_detached_nrrd_header_reads_nothing_outside(env):
         assert st["state"] == "failed" and "data in another file" in st["error"], st
         assert client.get("/volumes/leak", headers=AUTH).status_code == 404
         (root / ".uploads" / "other-upload.raw").unlink()
+
+
+def test_every_route_but_healthz_and_docs_needs_the_token(env):
+    """DESIGN.md, Limits: with LODCAST_TOKEN set every route but /healthz needs the bearer token, reads included
+    (issue 10, item 3); the scheme is declared in OpenAPI."""
+    client = env[0]
+    from fastapi.routing import APIRoute
+
+    open_paths = {"/healthz"}
+    checked = 0
+    for route in client.app.routes:
+        if not isinstance(route, APIRoute) or route.path in open_paths:
+            continue
+        path = route.path.replace("{volume_id}", "tiny").replace("{job_id}", "0" * 32).replace("{n}", "0")
+        for method in route.methods:
+            for headers in (NOAUTH, {"Authorization": "Bearer wrong"}):
+                r = client.request(method, path, headers=headers, json={})
+                assert r.status_code == 401, (method, path, r.status_code)
+                assert r.headers["www-authenticate"] == "Bearer"
+            checked += 1
+    assert checked >= 12
+    assert client.get("/healthz", headers=NOAUTH).status_code == 200
+    assert client.get("/volumes").status_code == 200  # with the token
+    spec = client.get("/openapi.json", headers=NOAUTH).json()
+    assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
