@@ -31,6 +31,7 @@ import pyopencl as cl
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
+from lodcast.renderer import cost
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
@@ -41,7 +42,7 @@ from lodcast.renderer.structs import new_params
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.volume import VolumeView, as_volume
 
-__all__ = ["RenderResult", "Prepared", "render", "prepare", "launch", "kernel_config", "block_info", "LOCAL_SIZE",
+__all__ = ["RenderResult", "Prepared", "render", "prepare", "check_cost", "launch", "kernel_config", "block_info", "LOCAL_SIZE",
            "MAX_SAMPLES_PER_RAY"]
 
 LOCAL_SIZE = (8, 8)
@@ -169,6 +170,7 @@ class Prepared:
     lod: "LodPlan | None" = None  # level-of-detail renders only
     dist: DistTable | None = None  # distribution classification (LC_DIST) only
     preint: PreintTable | None = None  # pre-integrated classification (LC_PREINT) only
+    estimated_samples: int = 0  # renderer/cost.py: the full march's samples, checked against the limit
 
 
 @dataclass(frozen=True)
@@ -229,15 +231,40 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     return LodPlan(lv, reduction, pred, steps, sel), info, n_empty, cfg
 
 
-def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None) -> Prepared:
-    scene = Scene.parse(scene)
-    vol = as_volume(store, spacing=spacing, origin=origin)
+def _geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
+    """(the volume's world box, the camera frame, the box the rays integrate (crop box applied), the step in world
+    units)."""
     box = cam.box_world(vol.shape, vol.spacing, vol.origin)
     fr = cam.frame(scene.camera, scene.width, scene.height, *box)  # the camera frames the whole volume
     kbox = clipping.clipped_box(box, scene.clip)
     if np.any(kbox[0] >= kbox[1]):  # the crop box misses the volume: a degenerate box no ray enters
         kbox = (kbox[0], kbox[0].copy())
-    step_world = scene.sampling.step * float(min(vol.spacing))
+    return box, fr, kbox, scene.sampling.step * float(min(vol.spacing))
+
+
+def _cost(scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float, sample_limit: int | None) -> int:
+    estimated = cost.estimate_samples(fr, kbox, scene.width, scene.height, step_world)
+    cost.check_cost(estimated, cost.max_samples_limit() if sample_limit is None else sample_limit, scene.width,
+                    scene.height, scene.sampling.step)
+    return estimated
+
+
+def check_cost(store: Any, scene: Any, sample_limit: int | None = None) -> int:
+    """The samples `scene` of `store` would take (renderer/cost.py), before anything is loaded or built; raises
+    CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES or 2·10⁹)."""
+    scene = Scene.parse(scene)
+    _, fr, kbox, step_world = _geometry(as_volume(store), scene)
+    return _cost(scene, fr, kbox, step_world, sample_limit)
+
+
+def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None,
+            sample_limit: int | None = None) -> Prepared:
+    """Everything a launch needs. `sample_limit`: the most samples the render may take (estimated before it starts:
+    renderer/cost.py), default LODCAST_MAX_SAMPLES or 2·10⁹; above it CostError (a SceneError) names the field."""
+    scene = Scene.parse(scene)
+    vol = as_volume(store, spacing=spacing, origin=origin)
+    box, fr, kbox, step_world = _geometry(vol, scene)
+    estimated = _cost(scene, fr, kbox, step_world, sample_limit)
     unit = unit_distance(scene.tf, vol.spacing)
     diag = float(np.linalg.norm(box[1] - box[0]))
     max_samples = int(math.ceil(diag / step_world)) + 2
@@ -266,7 +293,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     if cfg.preint:  # over the LUT's value range, for segments of the base step
         pre = preintegrate(scene.tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit)
     params = _fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
-    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre)
+    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated)
 
 
 def lut_table(pr: Prepared) -> np.ndarray:
@@ -304,13 +331,14 @@ def launch(kern: cl.Kernel, width: int, height: int) -> cl.Event:
     return cl.enqueue_nd_range_kernel(queue, kern, gsize, LOCAL_SIZE)
 
 
-def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None) -> RenderResult:
+def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None,
+           sample_limit: int | None = None) -> RenderResult:
     """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path, or a 3D array with
     optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad input.
     `levels` (grid-shaped, store level per block, -1 = not loaded) replaces the LOD selection (tests,
-    experiments): the atlas path renders it whatever the quality."""
+    experiments): the atlas path renders it whatever the quality. `sample_limit`: see `prepare`."""
     t_start = time.perf_counter()
-    pr = prepare(store, scene, spacing=spacing, origin=origin, levels=levels)
+    pr = prepare(store, scene, spacing=spacing, origin=origin, levels=levels, sample_limit=sample_limit)
     scene, vol, lut, cfg = pr.scene, pr.volume, pr.lut, pr.config
     options = cfg.build_options()
     ctx, queue = get_context()
@@ -366,6 +394,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "reduction": reduction,
         "predicted_delta_e": pred,
         "samples": int(nsamp.sum(dtype=np.int64)),
+        "estimated_samples": pr.estimated_samples,
         "build_options": list(options),
         "program_cache": built.source,
         "build_ms": built.build_ms,

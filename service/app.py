@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 import lodcast
 from lodcast.errors import LodcastError, StoreInvalid, StoreNotFound
+from lodcast.renderer.cost import CostError
 from lodcast.service.jobs import IngestJob, Job, animation_path, validate_job
 from lodcast.service.records import status_json
 from lodcast.service.rendering import RequestInvalid, encode, engine, parse_scene
@@ -277,9 +278,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         path = volume_path(settings.root, volume_id)
         sc = parse_scene(scene, settings)
         eng = engine()
+        try:  # before waiting for a render slot: a request that may not run is told so at once
+            await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
+        except CostError as exc:
+            raise HttpError(413, " ".join(str(exc).split())) from None
+        except (StoreNotFound, StoreInvalid) as exc:
+            raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
         async with semaphore():
             try:
-                result = await run_in_threadpool(eng.render, path, sc)
+                result = await run_in_threadpool(eng.render, path, sc, settings.max_samples)
             except (StoreNotFound, StoreInvalid) as exc:
                 raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
             except (ValueError, ArithmeticError) as exc:

@@ -49,13 +49,17 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None, help="in-process job worker threads (default 1; 0 when workers run separately)")
     p.add_argument("--render-concurrency", type=int, default=None, help="renders at once; more wait in order (default 2)")
     p.add_argument("--import-root", action="append", default=None, help="folder POST /volumes may ingest from (repeatable)")
+    p.add_argument("--token", default=None, help="bearer token every route but /healthz needs (default LODCAST_TOKEN)")
+    p.add_argument("--max-samples", type=float, default=None,
+                   help="most samples one render may take, estimated before it runs (default LODCAST_MAX_SAMPLES, else 2e9)")
     p.add_argument("--log-level", default="warning")
     p.set_defaults(func=_cmd_serve)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     settings = _settings(args, workers=args.workers, render_concurrency=args.render_concurrency,
-                         import_roots=args.import_root)
+                         import_roots=args.import_root, token=args.token,
+                         max_samples=None if args.max_samples is None else int(args.max_samples))
     return serve_forever(settings, host=args.host, port=args.port, log_level=args.log_level)
 
 

@@ -254,7 +254,7 @@ class JobQueue:
                 self._release(job_id, owner)
                 return "released"
             scene = parse_scene(scene_dict, self.settings, ("scene",))
-            result = eng.render(volume_path(self.settings.root, vid), scene)
+            result = eng.render(volume_path(self.settings.root, vid), scene, self.settings.max_samples)
             data, _ = encode(result, scene)
             write_atomic(paths[i], data)
             if self.settings.frame_delay_s:

@@ -110,10 +110,16 @@ class RenderEngine:
         with self._lock:
             self._stores.pop(Path(path), None)
 
-    def render(self, path: Path, scene: Any) -> Any:
+    def render(self, path: Path, scene: Any, sample_limit: int | None = None) -> Any:
         from lodcast.renderer.render import render
 
-        return render(self.store(path), scene)
+        return render(self.store(path), scene, sample_limit=sample_limit)
+
+    def check_cost(self, path: Path, scene: Any, sample_limit: int) -> int:
+        """The render's estimated samples; CostError (naming the field) above `sample_limit`."""
+        from lodcast.renderer.render import check_cost
+
+        return check_cost(self.store(path), scene, sample_limit)
 
 
 _ENGINE: RenderEngine | None = None

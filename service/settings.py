@@ -22,7 +22,7 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="LODCAST_", extra="ignore")
 
     root: Path = Field(default=Path("."), description="store root (LODCAST_ROOT)")
-    token: str | None = Field(default=None, description="bearer token required on write endpoints (LODCAST_TOKEN)")
+    token: str | None = Field(default=None, description="bearer token every route but /healthz and the docs requires (LODCAST_TOKEN)")
     queue: str | None = Field(
         default=None,
         description="job queue: None or 'sqlite' for the embedded SQLite queue under ROOT/.lodcast, "
@@ -41,6 +41,8 @@ class Settings(BaseSettings):
     max_scenes: int = Field(default=1000, ge=1, description="most scenes / TFs / volumes in one job")
     min_step: float = Field(default=0.05, gt=0, description="smallest sampling step (voxels of the finest level)")
     max_upload_bytes: int = Field(default=2 * 1024**3, ge=0)
+    max_samples: int = Field(default=2_000_000_000, ge=1, description="most samples (rays x samples per ray, estimated "
+                             "before rendering) one render may take (LODCAST_MAX_SAMPLES)")
 
     # concurrency
     render_concurrency: int = Field(default=2, ge=1, description="renders running at once; others wait in FIFO order")
@@ -60,6 +62,11 @@ class Settings(BaseSettings):
     @classmethod
     def _absolute(cls, v: Path) -> Path:
         return Path(v).expanduser().resolve()
+
+    @field_validator("max_samples", mode="before")
+    @classmethod
+    def _count(cls, v: object) -> object:
+        return int(float(v)) if isinstance(v, str) and v.strip() else v  # "2e9" reads as 2000000000
 
     @field_validator("import_roots", mode="before")
     @classmethod

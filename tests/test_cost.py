@@ -1,0 +1,78 @@
+"""DESIGN.md, Limits: every render's cost is estimated before it starts and refused above LODCAST_MAX_SAMPLES,
+naming the field to change (renderer/cost.py; issue 10, item 2)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+import lodcast
+from lodcast.renderer.cost import CostError
+from lodcast.renderer.render import check_cost
+from lodcast.service.app import create_app
+from lodcast.service.settings import Settings
+from lodcast.service.testing import make_volume
+
+TF = {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0.001}, {"value": 1, "color": [1, 1, 1], "opacity": 0.001}]}
+
+
+@pytest.mark.parametrize("camera,step,clip", [
+    ({"azimuth": 30, "elevation": 20}, 0.5, None),
+    ({"azimuth": 200, "elevation": -50, "distance": 1.3}, 0.3, None),
+    ({"eye": [-40, 10, 8], "target": [20, 15, 9], "projection": "orthographic", "view_height": 30}, 1.0, None),
+    ({"azimuth": 60, "elevation": 10}, 0.5, {"box": {"min": [2, 2, 2], "max": [20, 30, 12]}}),
+])
+def test_estimate_matches_the_samples_a_full_march_takes(camera, step, clip):
+    vol = np.random.default_rng(0).random((20, 34, 26)).astype(np.float32)
+    scene = {"camera": camera, "width": 96, "height": 80, "tf": TF, "format": "npy", "clip": clip,
+             "sampling": {"step": step, "early_termination": 1.0, "empty_space_skipping": False}}
+    r = lodcast.render(vol, scene)
+    assert r.report["samples"] > 10_000
+    assert r.report["estimated_samples"] == pytest.approx(r.report["samples"], rel=0.03)
+    assert check_cost(vol, scene) == r.report["estimated_samples"]
+
+
+def test_over_the_limit_is_refused_naming_the_field():
+    vol = np.zeros((32, 32, 32), np.float32)
+    scene = {"tf": TF, "width": 64, "height": 64, "sampling": {"step": 0.25}}
+    n = check_cost(vol, scene)
+    with pytest.raises(CostError, match=r"^sampling.step: .* more than the limit of .*LODCAST_MAX_SAMPLES") as e:
+        lodcast.render(vol, scene, sample_limit=n // 2)
+    assert e.value.field == "sampling.step" and e.value.samples == n
+    lodcast.render(vol, {**scene, "sampling": {"step": 0.6}}, sample_limit=n // 2)  # the suggested step fits
+    with pytest.raises(CostError, match=r"^width: "):  # even one sample per voxel would not fit: fewer pixels
+        lodcast.render(vol, scene, sample_limit=n // 20)
+
+
+def test_cli_refuses_with_exit_2_and_one_line(tmp_path):
+    np.save(tmp_path / "v.npy", np.zeros((16, 16, 16), np.float32))
+    lodcast.ingest(tmp_path / "v.npy", tmp_path / "v.zarr")
+    (tmp_path / "s.json").write_text(json.dumps({"tf": TF, "width": 256, "height": 256}))
+    p = subprocess.run([sys.executable, "-m", "lodcast.service.cli", "render", str(tmp_path / "v.zarr"), "-o",
+                        str(tmp_path / "o.png"), "--scene", str(tmp_path / "s.json")], capture_output=True, text=True,
+                       env={**__import__("os").environ, "LODCAST_MAX_SAMPLES": "1e5"})
+    assert p.returncode == 2
+    line, = p.stderr.strip().splitlines()
+    assert "sampling.step" in line and "LODCAST_MAX_SAMPLES" in line
+    assert not (tmp_path / "o.png").exists()
+
+
+def test_http_render_413_and_job_422(tmp_path):
+    root = tmp_path / "root"
+    root.mkdir()
+    make_volume(root, "v")
+    settings = Settings(root=root, max_samples=100_000, workers=0)  # the 64² frame below takes 1.55e5
+    with TestClient(create_app(settings)) as client:
+        scene = {"tf": TF, "width": 64, "height": 64, "sampling": {"step": 0.5}}  # 0.78 would fit
+        r = client.post("/volumes/v/render", json=scene)
+        assert r.status_code == 413 and r.json()["detail"].startswith("sampling.step: ")
+        r = client.post("/volumes/v/render", json={**scene, "width": 8, "height": 8})
+        assert r.status_code == 200, r.text
+        r = client.post("/jobs", json={"kind": "turntable", "volume": "v", "scene": scene, "frames": 4})
+        assert r.status_code == 422
+        (err,) = r.json()["detail"]
+        assert err["loc"] == ["body", "scene", "sampling", "step"] and "LODCAST_MAX_SAMPLES" in err["msg"]
