@@ -20,6 +20,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import Body, Depends, FastAPI, Path as PathParam, Query, Request
 from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field
@@ -35,6 +36,7 @@ from lodcast.service.volumes import (
     JOB_ID,
     BadId,
     VolumeNotFound,
+    check_volume_id,
     delete_volume,
     list_volumes,
     volume_path,
@@ -61,6 +63,55 @@ class HttpError(Exception):
     def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None) -> None:
         super().__init__(detail)
         self.status, self.detail, self.headers = status, detail, headers
+
+
+class _TooLarge(Exception):
+    pass
+
+
+class BodyLimit:
+    """ASGI middleware: request bodies above `limit` bytes are refused with 413 before a route parses them (by
+    Content-Length, and by counting for chunked bodies), except on the upload route, which streams to disk under
+    its own limit. A 200 MB JSON body took 2 GB of memory to parse and stalled every other request."""
+
+    def __init__(self, app: Any, limit: int) -> None:
+        self.app, self.limit = app, limit
+
+    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
+        if scope["type"] != "http" or scope["path"].endswith("/upload"):
+            return await self.app(scope, receive, send)
+        declared = dict(scope.get("headers") or []).get(b"content-length", b"")
+        if declared.isdigit() and int(declared) > self.limit:
+            return await self._refuse(send)
+        seen, over, refused = 0, False, False
+
+        async def counted() -> dict:
+            nonlocal seen, over
+            msg = await receive()
+            if msg["type"] == "http.request":
+                seen += len(msg.get("body", b""))
+                if seen > self.limit:
+                    over = True
+                    raise _TooLarge
+            return msg
+
+        async def guarded(msg: dict) -> None:  # the route turns a failed body read into its own error: send ours
+            nonlocal refused
+            if not over:
+                return await send(msg)
+            if not refused:
+                refused = True
+                await self._refuse(send)
+
+        try:
+            await self.app(scope, counted, guarded)
+        except _TooLarge:
+            if not refused:
+                await self._refuse(send)
+
+    async def _refuse(self, send: Any) -> None:
+        await JSONResponse({"detail": f"body: larger than the limit of {self.limit} bytes (LODCAST_MAX_BODY_BYTES)"},
+                           status_code=413)({"type": "http"}, None, send)
 
 
 class IngestRequest(BaseModel):
@@ -124,6 +175,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.jobs = jobs
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
 
     def semaphore() -> asyncio.Semaphore:
         # created inside the running loop (one per loop: test clients may run several); FIFO, so waiting renders
@@ -149,6 +201,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(HttpError)
     async def _http_error(request: Request, exc: HttpError) -> JSONResponse:
         return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _unparsable(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # pydantic's errors carry the offending input: never echo a request body (or part of it) back
+        keep = ("type", "loc", "msg")
+        return JSONResponse({"detail": [{k: e[k] for k in keep if k in e} for e in exc.errors()]}, status_code=422)
 
     @app.exception_handler(RequestInvalid)
     async def _invalid(request: Request, exc: RequestInvalid) -> JSONResponse:
@@ -217,6 +275,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         shape: Annotated[str | None, Query(max_length=100, description="raw only: z,y,x")] = None,
         dtype: Annotated[str | None, Query(max_length=20, description="raw only")] = None,
     ) -> dict[str, Any]:
+        check_volume_id(volume_id, "volume")  # before the job model (a 129-character id was a 500)
         options: dict[str, Any] = {"format": format}
         if format == "raw":
             try:

@@ -41,6 +41,8 @@ class Settings(BaseSettings):
     max_scenes: int = Field(default=1000, ge=1, description="most scenes / TFs / volumes in one job")
     min_step: float = Field(default=0.05, gt=0, description="smallest sampling step (voxels of the finest level)")
     max_upload_bytes: int = Field(default=2 * 1024**3, ge=0)
+    max_body_bytes: int = Field(default=16 * 1024**2, ge=1024, description="largest JSON request body (uploads: "
+                                "max_upload_bytes) (LODCAST_MAX_BODY_BYTES)")
     max_samples: int = Field(default=2_000_000_000, ge=1, description="most samples (rays x samples per ray, estimated "
                              "before rendering) one render may take (LODCAST_MAX_SAMPLES)")
 

@@ -29,8 +29,8 @@ __all__ = [
     "safe_import_path",
 ]
 
-VOLUME_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
-JOB_ID = re.compile(r"^[0-9a-f]{32}$")
+VOLUME_ID = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9._-]{0,127}\Z")  # \Z: "$" lets a trailing newline through
+JOB_ID = re.compile(r"\A[0-9a-f]{32}\Z")
 
 
 class BadId(LodcastError, ValueError):

@@ -356,3 +356,33 @@ def test_every_route_but_healthz_and_docs_needs_the_token(env):
     assert client.get("/volumes").status_code == 200  # with the token
     spec = client.get("/openapi.json", headers=NOAUTH).json()
     assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+
+
+def test_ids_with_a_trailing_newline_or_too_long_are_refused(env):
+    client, root, _, _ = env
+    buf = io.BytesIO()
+    np.save(buf, np.ones((4, 4, 4), np.float32))
+    for vid in ("x%0A", "a" * 129):  # "$" let "x\n" through; 129 characters was a 500
+        r = client.post(f"/volumes/{vid}/upload?format=npy", content=buf.getvalue())
+        assert r.status_code == 400 and "invalid volume id" in r.json()["detail"], r.text
+        assert client.get(f"/volumes/{vid}").status_code == 400
+    assert not [p for p in root.iterdir() if "\n" in p.name]
+    assert client.get("/jobs/" + "0" * 32 + "%0A").status_code == 404
+
+
+def test_bodies_are_neither_echoed_nor_unbounded(tmp_path):
+    settings = Settings(root=tmp_path, workers=0, max_body_bytes=4096)
+    with TestClient(create_app(settings)) as c:
+        r = c.post("/volumes/x/render", content=b"my secret text", headers={"content-type": "text/plain"})
+        assert r.status_code == 422 and "my secret" not in r.text
+        big = b'{"kind": "turntable", "volume": "x", "scene": {}, "pad": "' + b"x" * 10_000 + b'"}'
+        r = c.post("/jobs", content=big, headers={"content-type": "application/json"})
+        assert r.status_code == 413 and "body" in r.json()["detail"]
+
+        def chunks():  # no Content-Length: counted as it arrives
+            for _ in range(10):
+                yield b" " * 1000
+
+        r = c.post("/jobs", content=chunks(), headers={"content-type": "application/json"})
+        assert r.status_code == 413 and "LODCAST_MAX_BODY_BYTES" in r.json()["detail"]
+        assert c.get("/healthz").status_code == 200
