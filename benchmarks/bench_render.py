@@ -82,7 +82,7 @@ def run_bare(store, scene: dict) -> dict:
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, W * H * 4)
     kern = cl.Kernel(prg, "lc_march_bare")
     kern.set_args(d_p, dvol.buffer, d_out, d_n)
-    ev = launch(kern, W, H)
+    (ev,) = launch(kern, W, H)
     n = np.empty(W * H, np.uint32)
     cl.enqueue_copy(queue, n, d_n, wait_for=[ev])
     queue.finish()

@@ -23,7 +23,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pyopencl as cl
@@ -46,6 +46,7 @@ __all__ = ["RenderResult", "Prepared", "render", "prepare", "check_cost", "launc
            "MAX_SAMPLES_PER_RAY"]
 
 LOCAL_SIZE = (8, 8)
+BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
 MAX_SAMPLES_PER_RAY = 2**30
 
 
@@ -325,18 +326,33 @@ def _classification(pr: Prepared) -> str:
     return "mean"
 
 
-def launch(kern: cl.Kernel, width: int, height: int) -> cl.Event:
+def launch(kern: cl.Kernel, width: int, height: int, *, estimated_samples: int = 0,
+           stop: Callable[[], None] | None = None) -> list[cl.Event]:
+    """Enqueue the image as bands of rows of about BAND_SAMPLES estimated samples each (one band for most renders),
+    calling `stop()` after each band but the last: it raises to end the render there (a client gone, a deadline),
+    so that no render is beyond reach for longer than one band. The events of the bands launched."""
     _, queue = get_context()
-    gsize = tuple(int(math.ceil(n / l) * l) for n, l in zip((width, height), LOCAL_SIZE))
-    return cl.enqueue_nd_range_kernel(queue, kern, gsize, LOCAL_SIZE)
+    lx, ly = LOCAL_SIZE
+    gx = int(math.ceil(width / lx) * lx)
+    bands = max(1, math.ceil(estimated_samples / BAND_SAMPLES)) if stop is not None else 1
+    rows = int(math.ceil(math.ceil(height / bands) / ly) * ly)
+    events: list[cl.Event] = []
+    for y0 in range(0, height, rows):
+        if events:
+            events[-1].wait()
+            stop()  # type: ignore[misc]
+        h = int(math.ceil(min(rows, height - y0) / ly) * ly)
+        events.append(cl.enqueue_nd_range_kernel(queue, kern, (gx, h), LOCAL_SIZE, global_work_offset=(0, y0)))
+    return events
 
 
 def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None,
-           sample_limit: int | None = None) -> RenderResult:
+           sample_limit: int | None = None, stop: Callable[[], None] | None = None) -> RenderResult:
     """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path, or a 3D array with
     optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad input.
     `levels` (grid-shaped, store level per block, -1 = not loaded) replaces the LOD selection (tests,
-    experiments): the atlas path renders it whatever the quality. `sample_limit`: see `prepare`."""
+    experiments): the atlas path renders it whatever the quality. `sample_limit`: see `prepare`. `stop`: called between
+    launch bands (see `launch`); whatever it raises ends the render there."""
     t_start = time.perf_counter()
     pr = prepare(store, scene, spacing=spacing, origin=origin, levels=levels, sample_limit=sample_limit)
     scene, vol, lut, cfg = pr.scene, pr.volume, pr.lut, pr.config
@@ -370,13 +386,13 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_ptab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.preint.table) if pr.preint is not None
               else cl.Buffer(ctx, mf.READ_ONLY, size=16))
     kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_ptab)
-    ev = launch(kern, W, H)
+    evs = launch(kern, W, H, estimated_samples=pr.estimated_samples, stop=stop)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
-    cl.enqueue_copy(queue, rgba, d_out, wait_for=[ev])
-    cl.enqueue_copy(queue, nsamp, d_n, wait_for=[ev])
+    cl.enqueue_copy(queue, rgba, d_out, wait_for=evs)
+    cl.enqueue_copy(queue, nsamp, d_n, wait_for=evs)
     queue.finish()
-    kernel_ms = (ev.profile.end - ev.profile.start) * 1e-6
+    kernel_ms = sum(ev.profile.end - ev.profile.start for ev in evs) * 1e-6
     n_blocks = vol.n_blocks
     if pr.lod is None:
         skipped = pr.n_empty if (scene.sampling.empty_space_skipping and scene.mode == "composite") else 0
@@ -395,6 +411,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "predicted_delta_e": pred,
         "samples": int(nsamp.sum(dtype=np.int64)),
         "estimated_samples": pr.estimated_samples,
+        "launches": len(evs),
         "build_options": list(options),
         "program_cache": built.source,
         "build_ms": built.build_ms,

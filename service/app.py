@@ -13,6 +13,7 @@ import math
 import secrets
 import sqlite3
 import threading
+import time
 import uuid
 from contextlib import asynccontextmanager
 
@@ -67,6 +68,10 @@ class HttpError(Exception):
 
 class _TooLarge(Exception):
     pass
+
+
+class _ClientGone(Exception):
+    """Raised between launch bands when the client of a render has disconnected."""
 
 
 class BodyLimit:
@@ -344,12 +349,32 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         except (StoreNotFound, StoreInvalid) as exc:
             raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
         async with semaphore():
+            gone, t0 = threading.Event(), time.monotonic()
+
+            def stop() -> None:  # between launch bands (renderer/render.py: launch)
+                if gone.is_set():
+                    raise _ClientGone
+                if time.monotonic() - t0 > settings.render_timeout_s:
+                    raise HttpError(503, f"render: stopped after {settings.render_timeout_s:g} s "
+                                         f"(LODCAST_RENDER_TIMEOUT_S); a larger sampling.step or fewer pixels "
+                                         f"renders faster")
+
+            async def watch() -> None:  # a client that hangs up cancels its render
+                while not await request.is_disconnected():
+                    await asyncio.sleep(0.2)
+                gone.set()
+
+            watcher = asyncio.create_task(watch())
             try:
-                result = await run_in_threadpool(eng.render, path, sc, settings.max_samples)
+                result = await run_in_threadpool(eng.render, path, sc, settings.max_samples, stop)
+            except _ClientGone:
+                return Response(status_code=499)  # nobody is listening; the status is for the access log
             except (StoreNotFound, StoreInvalid) as exc:
                 raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
             except (ValueError, ArithmeticError) as exc:
                 raise HttpError(400, f"scene: {' '.join(str(exc).split())}") from None
+            finally:
+                watcher.cancel()
         data, media = await run_in_threadpool(encode, result, sc)
         report = json.dumps(_finite(dict(result.report)), separators=(",", ":"), default=str)
         return Response(content=data, media_type=media, headers={"X-Lodcast-Report": report})

@@ -98,7 +98,8 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
           f"       -d '{scene}' -o {example}.png", flush=True)
     print(f"  python3 - <<'EOF'\nimport lodcast\nc = lodcast.Client('{url}')\nr = c.render('{example}', {scene})\n"
           f"print(r.rgba.shape, r.report['wall_ms'])\nEOF", flush=True)
-    uvicorn.run(create_app(settings), host=host, port=int(port), log_level=log_level)
+    # SIGTERM/Ctrl-C: requests in flight get a bounded time to finish (renders stop at their deadline anyway)
+    uvicorn.run(create_app(settings), host=host, port=int(port), log_level=log_level, timeout_graceful_shutdown=10)
     return 0
 
 

@@ -110,10 +110,10 @@ class RenderEngine:
         with self._lock:
             self._stores.pop(Path(path), None)
 
-    def render(self, path: Path, scene: Any, sample_limit: int | None = None) -> Any:
+    def render(self, path: Path, scene: Any, sample_limit: int | None = None, stop: Any = None) -> Any:
         from lodcast.renderer.render import render
 
-        return render(self.store(path), scene, sample_limit=sample_limit)
+        return render(self.store(path), scene, sample_limit=sample_limit, stop=stop)
 
     def check_cost(self, path: Path, scene: Any, sample_limit: int) -> int:
         """The render's estimated samples; CostError (naming the field) above `sample_limit`."""

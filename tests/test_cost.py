@@ -76,3 +76,41 @@ def test_http_render_413_and_job_422(tmp_path):
         assert r.status_code == 422
         (err,) = r.json()["detail"]
         assert err["loc"] == ["body", "scene", "sampling", "step"] and "LODCAST_MAX_SAMPLES" in err["msg"]
+
+
+def test_banded_launch_is_the_same_image_and_stops_between_bands(monkeypatch):
+    import lodcast.renderer.render as R
+
+    vol = np.random.default_rng(1).random((30, 30, 30)).astype(np.float32)
+    scene = {"tf": TF, "width": 90, "height": 70, "format": "npy"}
+    whole = lodcast.render(vol, scene)
+    monkeypatch.setattr(R, "BAND_SAMPLES", 40_000)
+    calls = []
+    banded = lodcast.render(vol, scene, stop=lambda: calls.append(1))
+    assert whole.report["launches"] == 1 and banded.report["launches"] > 3
+    assert len(calls) == banded.report["launches"] - 1
+    np.testing.assert_array_equal(banded.rgba, whole.rgba)
+    assert banded.report["samples"] == whole.report["samples"]
+
+    class Stop(Exception):
+        pass
+
+    def stop():
+        raise Stop
+
+    with pytest.raises(Stop):
+        lodcast.render(vol, scene, stop=stop)
+
+
+def test_http_render_past_its_deadline_is_stopped(tmp_path, monkeypatch):
+    import lodcast.renderer.render as R
+
+    monkeypatch.setattr(R, "BAND_SAMPLES", 1000)
+    root = tmp_path / "root"
+    root.mkdir()
+    make_volume(root, "v")
+    with TestClient(create_app(Settings(root=root, workers=0, render_timeout_s=1e-6))) as client:
+        r = client.post("/volumes/v/render", json={"tf": TF, "width": 48, "height": 48})
+        assert r.status_code == 503 and "LODCAST_RENDER_TIMEOUT_S" in r.json()["detail"]
+        r = client.post("/volumes/v/render", json={"tf": TF, "width": 8, "height": 8})  # one band: no stop
+        assert r.status_code == 200
