@@ -182,13 +182,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.jobs = jobs
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
 
-    def semaphore() -> asyncio.Semaphore:
+    def semaphore(samples: int) -> asyncio.Semaphore:
         # created inside the running loop (one per loop: test clients may run several); FIFO, so waiting renders
-        # are served in arrival order
+        # are served in arrival order. Renders of at most small_render_samples (estimated) have a slot of their
+        # own, so that a quick one never waits for minutes behind big ones
         loop = asyncio.get_running_loop()
         if state["sem"] is None or state["sem"][0] is not loop:
-            state["sem"] = (loop, asyncio.Semaphore(settings.render_concurrency))
-        return state["sem"][1]
+            state["sem"] = (loop, asyncio.Semaphore(settings.render_concurrency), asyncio.Semaphore(1))
+        return state["sem"][2 if samples <= settings.small_render_samples else 1]
 
     bearer = HTTPBearer(auto_error=False, description="LODCAST_TOKEN, when the service has one")
 
@@ -338,17 +339,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         responses={200: {"content": {"image/png": {}, "application/octet-stream": {}},
                          "description": "the image; the render report as JSON in the X-Lodcast-Report header"}},
     )
-    async def render(volume_id: VolumeId, scene: Annotated[dict[str, Any], Body(description="a scene (DESIGN.md)", examples=[EXAMPLE_SCENE])]) -> Response:
+    async def render(volume_id: VolumeId, request: Request,
+                     scene: Annotated[dict[str, Any], Body(description="a scene (DESIGN.md)", examples=[EXAMPLE_SCENE])]) -> Response:
         path = volume_path(settings.root, volume_id)
         sc = parse_scene(scene, settings)
         eng = engine()
         try:  # before waiting for a render slot: a request that may not run is told so at once
-            await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
+            samples = await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
         except CostError as exc:
             raise HttpError(413, " ".join(str(exc).split())) from None
         except (StoreNotFound, StoreInvalid) as exc:
             raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
-        async with semaphore():
+        async with semaphore(samples):
             gone, t0 = threading.Event(), time.monotonic()
 
             def stop() -> None:  # between launch bands (renderer/render.py: launch)

@@ -48,6 +48,8 @@ class Settings(BaseSettings):
 
     # concurrency
     render_concurrency: int = Field(default=2, ge=1, description="renders running at once; others wait in FIFO order")
+    small_render_samples: int = Field(default=50_000_000, ge=0, description="renders estimated at no more samples "
+                                      "have a render slot of their own beside render_concurrency")
     render_timeout_s: float = Field(default=120.0, gt=0, description="a render still running after this many seconds "
                                     "is stopped between launch bands (LODCAST_RENDER_TIMEOUT_S)")
     workers: int = Field(default=1, ge=0, description="in-process job workers of `lodcast serve` (0: none)")

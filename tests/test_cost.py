@@ -114,3 +114,89 @@ def test_http_render_past_its_deadline_is_stopped(tmp_path, monkeypatch):
         assert r.status_code == 503 and "LODCAST_RENDER_TIMEOUT_S" in r.json()["detail"]
         r = client.post("/volumes/v/render", json={"tf": TF, "width": 8, "height": 8})  # one band: no stop
         assert r.status_code == 200
+
+
+async def _asgi_render(app, scene: dict, hangup_s: float | None = None) -> tuple[list, float]:
+    """POST /volumes/v/render straight into the ASGI app: (messages sent, seconds until the response started);
+    with `hangup_s` the client disconnects that long after sending its scene."""
+    import asyncio
+    import time
+
+    t0 = time.monotonic()
+    body = [{"type": "http.request", "body": json.dumps(scene).encode(), "more_body": False}]
+
+    async def receive():
+        if body:
+            return body.pop()
+        while hangup_s is None or time.monotonic() < t0 + hangup_s:
+            await asyncio.sleep(0.01)
+        return {"type": "http.disconnect"}
+
+    sent, started = [], []
+
+    async def send(msg):
+        if msg["type"] == "http.response.start":
+            started.append(time.monotonic() - t0)
+        sent.append(msg)
+
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST", "scheme": "http",
+             "path": "/volumes/v/render", "raw_path": b"/volumes/v/render", "query_string": b"", "root_path": "",
+             "headers": [(b"content-type", b"application/json")], "client": ("127.0.0.1", 1),
+             "server": ("127.0.0.1", 80)}
+    await app(scope, receive, send)
+    return sent, started[0]
+
+
+SLOW = {"tf": TF, "width": 512, "height": 512, "sampling": {"step": 0.05, "early_termination": 1.0,
+                                                             "empty_space_skipping": False}}
+
+
+def test_http_render_stops_when_its_client_hangs_up(tmp_path, monkeypatch):
+    """The client sends its scene and disconnects 0.05 s later; the render (seconds of work, in 64 bands) stops at
+    the band after the server notices (it polls every 0.2 s) instead of running to the end."""
+    import asyncio
+
+    import lodcast.renderer.render as R
+
+    monkeypatch.setattr(R, "BAND_SAMPLES", 200_000)
+    root = tmp_path / "root"
+    root.mkdir()
+    make_volume(root, "v")
+    launched = []
+    real = R.launch
+
+    def counting(*a, **k):
+        stop = k["stop"]
+        k["stop"] = lambda: (launched.append(1), stop())
+        return real(*a, **k)
+
+    monkeypatch.setattr(R, "launch", counting)
+    sent, _ = asyncio.run(_asgi_render(create_app(Settings(root=root, workers=0)), SLOW, hangup_s=0.05))
+    assert sent[0]["status"] == 499
+    assert 1 <= len(launched) < 32, len(launched)  # of 512 / 8 = 64 bands
+
+
+def test_a_small_render_does_not_wait_behind_a_big_one(tmp_path, monkeypatch):
+    """render_concurrency 1, a big render (about a second, in bands) first: a small one has its own slot, and on the
+    one device queue it waits for one band of the big one at most, so it answers long before the big one does."""
+    import asyncio
+
+    import lodcast.renderer.render as R
+
+    monkeypatch.setattr(R, "BAND_SAMPLES", 2_000_000)
+    root = tmp_path / "root"
+    root.mkdir()
+    make_volume(root, "v")
+    app = create_app(Settings(root=root, workers=0, render_concurrency=1, small_render_samples=100_000))
+    small = {"tf": TF, "width": 16, "height": 16}
+    assert check_cost(root / "v", small) <= 100_000 < check_cost(root / "v", SLOW)
+    asyncio.run(_asgi_render(app, small))  # store opened, kernels built: before the race
+
+    async def race():
+        big = asyncio.create_task(_asgi_render(app, SLOW))
+        await asyncio.sleep(0.05)
+        return await asyncio.gather(big, _asgi_render(app, small))
+
+    (big_sent, big_s), (small_sent, small_s) = asyncio.run(race())
+    assert big_sent[0]["status"] == 200 and small_sent[0]["status"] == 200
+    assert small_s < 0.3 * big_s, (small_s, big_s)  # measured 0.08 of 0.34 s at 256²
