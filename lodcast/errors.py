@@ -8,6 +8,7 @@ __all__ = [
     "StoreNotFound",
     "StoreExists",
     "StoreInvalid",
+    "StoreCorrupt",
 ]
 
 
@@ -33,3 +34,7 @@ class StoreExists(LodcastError, FileExistsError):
 
 class StoreInvalid(LodcastError, ValueError):
     """A path holds something that is not a complete lodcast store."""
+
+
+class StoreCorrupt(StoreInvalid):
+    """A lodcast store whose data files are missing or damaged since ingest wrote them (re-ingest it)."""

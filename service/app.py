@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 import secrets
 import sqlite3
 import threading
@@ -27,7 +28,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field
 
 import lodcast
-from lodcast.errors import LodcastError, StoreInvalid, StoreNotFound
+from lodcast.errors import LodcastError, StoreCorrupt, StoreInvalid, StoreNotFound
 from lodcast.renderer.cost import CostError
 from lodcast.service.jobs import IngestJob, Job, animation_path, validate_job
 from lodcast.service.records import status_json
@@ -68,6 +69,12 @@ class HttpError(Exception):
 
 class _TooLarge(Exception):
     pass
+
+
+def _damaged(volume_id: str, path: Any, exc: Exception) -> "HttpError":
+    """409 for a store whose files changed since ingest: names the volume and the array, not the server's paths."""
+    msg = " ".join(str(exc).replace(str(path) + os.sep, "").replace(str(path), "").split())
+    return HttpError(409, f"volume {volume_id!r}: the store is damaged ({msg})")
 
 
 class _ClientGone(Exception):
@@ -348,6 +355,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             samples = await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
         except CostError as exc:
             raise HttpError(413, " ".join(str(exc).split())) from None
+        except StoreCorrupt as exc:
+            raise _damaged(volume_id, path, exc) from None
         except (StoreNotFound, StoreInvalid) as exc:
             raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
         async with semaphore(samples):
@@ -371,6 +380,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 result = await run_in_threadpool(eng.render, path, sc, settings.max_samples, stop)
             except _ClientGone:
                 return Response(status_code=499)  # nobody is listening; the status is for the access log
+            except StoreCorrupt as exc:
+                raise _damaged(volume_id, path, exc) from None
             except (StoreNotFound, StoreInvalid) as exc:
                 raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
             except (ValueError, ArithmeticError) as exc:

@@ -30,7 +30,7 @@ from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales
 from lodcast.store.atomic import move_into_place, remove_stale
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
-from lodcast.store.store import FORMAT_VERSION, Store, open_store, parse_temp_name, temp_path
+from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
 __all__ = ["ingest", "level_mean", "round_to_dtype", "std_dtype"]
 
@@ -120,6 +120,11 @@ def _pool2(a: np.ndarray) -> np.ndarray:
 
 
 # --- pass 1: levels and interior statistics ------------------------------------------------------------------
+
+#: level and std arrays are written whole, fill-value chunks included, so that a missing shard file (or chunk) in
+#: them is damage, never "empty here": the reader refuses it instead of rendering the fill value
+COMPLETE = {"write_empty_chunks": True}
+
 
 class _LevelWriter:
     """Buffers level-k slabs until a whole shard depth is filled, then writes them: shards are written once."""
@@ -256,6 +261,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         arr = group.create_array(
             str(k), shape=lay.level_shape(k), dtype=dtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
             compressors=compressor, fill_value=np.nan if dtype.kind == "f" else 0, dimension_names=("z", "y", "x"),
+            config=COMPLETE,
         )
         writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
     std_writers = []
@@ -265,7 +271,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         arr = std_group.create_array(
             str(k), shape=lay.level_shape(k), dtype=sdtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
             compressors=BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle), fill_value=0,
-            dimension_names=("z", "y", "x"),
+            dimension_names=("z", "y", "x"), config=COMPLETE,
         )
         std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
     stats = {name: np.full(lay.grid, np.nan) for name in ("min", "max", "mean", "count", "min_border", "max_border")}
@@ -345,7 +351,9 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         bar.close()
         reader.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
-    group.attrs.update(_attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label, std_max))
+    attrs = _attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label, std_max)
+    attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
+    group.attrs.update(attrs)
 
 
 def _merge(acc: dict[int, list[np.ndarray]], row: int, part: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:

@@ -24,6 +24,8 @@ import numpy as np
 import zarr
 from numcodecs import blosc
 
+from lodcast.errors import StoreCorrupt
+
 try:  # numcodecs >= 0.16 exposes the (google_crc32c / crc32c) checksum it uses for its CRC32C codec
     from numcodecs.checksum32 import crc32c_checksum as _crc32c
 except ImportError:  # older numcodecs: the index checksum is skipped (offsets are still bounds-checked)
@@ -56,8 +58,9 @@ def _endian(codec: dict[str, Any]) -> str:
     return {"little": "<", "big": ">", None: "<"}[(codec.get("configuration") or {}).get("endian")]
 
 
-def fast_reader(array: Any) -> ShardedReader | None:
-    """A ShardedReader for `array`, or None when its store or codecs are not handled (use zarr-python then)."""
+def fast_reader(array: Any, complete: bool = False) -> ShardedReader | None:
+    """A ShardedReader for `array`, or None when its store or codecs are not handled (use zarr-python then).
+    `complete`: ingest wrote every chunk, so a missing shard file or chunk is damage (StoreCorrupt), not empty."""
     try:
         store, meta = array.store, array.metadata.to_dict()
     except AttributeError:
@@ -83,7 +86,7 @@ def fast_reader(array: Any) -> ShardedReader | None:
         array, Path(store.root) / array.path, chunk, shard_shape,
         chunk_dtype=dtype.newbyteorder(_endian(inner[0])) if dtype.itemsize > 1 else dtype,
         compressed=len(inner) > 1, index_dtype=np.dtype(_endian(index_codecs[0]) + "u8"),
-        index_crc=len(index_codecs) > 1, index_at_end=cfg.get("index_location", "end") == "end",
+        index_crc=len(index_codecs) > 1, index_at_end=cfg.get("index_location", "end") == "end", complete=complete,
     )
 
 
@@ -94,8 +97,9 @@ class ShardedReader:
     picked up, since cached indexes are keyed by file mtime and size)."""
 
     def __init__(self, array: Any, path: Path, chunk: tuple[int, ...], shard: tuple[int, ...], *, chunk_dtype: np.dtype,
-                 compressed: bool, index_dtype: np.dtype, index_crc: bool, index_at_end: bool) -> None:
-        self._array, self.path = array, path
+                 compressed: bool, index_dtype: np.dtype, index_crc: bool, index_at_end: bool,
+                 complete: bool = False) -> None:
+        self._array, self.path, self.complete = array, path, complete
         self.shape: tuple[int, ...] = tuple(array.shape)
         self.dtype, self.chunk, self.shard = np.dtype(array.dtype), chunk, shard
         self.fill_value = array.metadata.fill_value
@@ -154,6 +158,9 @@ class ShardedReader:
         try:
             fd = os.open(self.path / key, os.O_RDONLY)
         except FileNotFoundError:
+            if self.complete:
+                raise StoreCorrupt(f"{self.path / key}: shard file missing (ingest wrote it): the store is damaged, "
+                                   f"re-ingest it") from None
             box[...] = self.fill_value
         else:
             try:
@@ -161,7 +168,13 @@ class ShardedReader:
                 coords = np.indices(counts).reshape(len(counts), -1) + np.array(c0)[:, None]  # C order, like `box`
                 entries = index[np.ravel_multi_index(tuple(coords % np.array(self._per_shard)[:, None]), self._per_shard)]
                 full = entries[:, 0] != _EMPTY
+                if self.complete and not full.all():
+                    raise StoreCorrupt(f"{self.path / key}: {int((~full).sum())} chunks missing from the shard "
+                                       f"(ingest wrote them all): the store is damaged, re-ingest it")
                 self._decode(fd, entries, full, box)
+            except (ValueError, RuntimeError) as exc:  # a truncated or overwritten shard, a chunk blosc rejects
+                raise StoreCorrupt(f"{self.path / key}: damaged shard ({' '.join(str(exc).split())}): re-ingest "
+                                   f"the store") from None
             finally:
                 os.close(fd)
         # box (k, cz, cy, cx) holds chunks in C order of the chunk box: seen as (kz, ky, kx, cz, cy, cx) it is

@@ -25,11 +25,11 @@ from typing import Any
 import numpy as np
 import zarr
 
-from lodcast.errors import StoreInvalid, StoreNotFound
+from lodcast.errors import StoreCorrupt, StoreInvalid, StoreNotFound
 from lodcast.store.histogram import Bins
 from lodcast.store.layout import Layout
 
-__all__ = ["Store", "BlockStats", "open_store", "FORMAT_VERSION"]
+__all__ = ["Store", "BlockStats", "open_store", "data_manifest", "FORMAT_VERSION"]
 
 #: 2: adds the distribution behind every coarse voxel (`std/{level}`, `blocks/level_std`). Stores of format 1
 #: still open and render; they have no distributions, so coarse samples are classified at their mean.
@@ -114,7 +114,8 @@ class Store:
         if reader is None:
             from lodcast.store.shardio import fast_reader
 
-            reader = self._readers[path] = fast_reader(self.group[path]) or False
+            complete = self.manifest is not None and not path.startswith("blocks")  # levels and std: every chunk
+            reader = self._readers[path] = fast_reader(self.group[path], complete) or False
         if reader is not False:
             return reader.read_region(tuple(slice(None) for _ in range(3)) if region is ... else region)
         # zarr decodes one inner chunk at a time unless batched: for a whole level of the chest CT at 16³ blocks
@@ -124,6 +125,11 @@ class Store:
 
     def read_level(self, k: int) -> np.ndarray:
         return self.read_region(k)
+
+    @cached_property
+    def manifest(self) -> dict | None:
+        """What ingest wrote (data_manifest), or None for stores written before it was recorded."""
+        return (self.group.attrs["lodcast"] or {}).get("manifest")
 
     @property
     def has_distribution(self) -> bool:
@@ -245,6 +251,31 @@ def parse_temp_name(name: str) -> tuple[str, str, int] | None:
     return (m["dest"], m["kind"], int(m["pid"])) if m else None
 
 
+def data_manifest(root: Path) -> dict[str, list[int]]:
+    """Per array of the store (its path in the group, e.g. "0", "std/1", "blocks/hist"): [number of chunk or shard
+    files, their total bytes] — what ingest wrote, recorded in its attributes and checked by open_store."""
+    out: dict[str, list[int]] = {}
+    root = Path(root)
+    for dirpath, _, files in os.walk(root):
+        parts = Path(dirpath).relative_to(root).parts
+        if "c" not in parts or not files:
+            continue
+        entry = out.setdefault("/".join(parts[: parts.index("c")]), [0, 0])
+        entry[0] += len(files)
+        entry[1] += sum(os.stat(os.path.join(dirpath, f)).st_size for f in files)
+    return out
+
+
+def _check_manifest(location: str, recorded: dict) -> None:
+    found = data_manifest(Path(location))
+    for path in sorted(set(recorded) | set(found)):
+        want, got = recorded.get(path, [0, 0]), found.get(path, [0, 0])
+        if list(want) != list(got):
+            raise StoreCorrupt(
+                f"{location}: array {path!r} has {got[0]} data files ({got[1]} bytes) on disk, ingest wrote {want[0]} "
+                f"({want[1]} bytes): the store is damaged or was changed, re-ingest it")
+
+
 def open_store(path_or_url: str | os.PathLike[str]) -> Store:
     """Open a store written by `lodcast.ingest`: a local folder, or an fsspec URL (s3://…, https://…)."""
     location = os.fspath(path_or_url)
@@ -265,4 +296,7 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
         raise StoreInvalid(f"{location} is not a readable zarr v3 group: {exc}") from None
     if "lodcast" not in group.attrs:
         raise StoreInvalid(f"{location} is a zarr group but not a lodcast store (no 'lodcast' attribute)")
+    manifest = (group.attrs["lodcast"] or {}).get("manifest")
+    if manifest is not None and not is_url:
+        _check_manifest(location, manifest)
     return Store(group, location)

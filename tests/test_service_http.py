@@ -386,3 +386,24 @@ def test_bodies_are_neither_echoed_nor_unbounded(tmp_path):
         r = c.post("/jobs", content=chunks(), headers={"content-type": "application/json"})
         assert r.status_code == 413 and "LODCAST_MAX_BODY_BYTES" in r.json()["detail"]
         assert c.get("/healthz").status_code == 200
+
+
+def test_a_deleted_shard_file_is_a_clear_409(tmp_path):
+    import glob
+    import os
+
+    make_volume(tmp_path, "v")
+    with TestClient(create_app(Settings(root=tmp_path, workers=0))) as c:
+        scene = {"tf": {"points": [{"value": 0, "opacity": 0.01}, {"value": 1000, "opacity": 0.5}]}, "width": 8,
+                 "height": 8}
+        assert c.post("/volumes/v/render", json=scene).status_code == 200
+        for f in glob.glob(str(tmp_path / "v" / "[0-9]" / "c" / "*" / "*" / "*")):  # every level's shards
+            os.remove(f)
+        from lodcast.renderer.atlas import brick_cache
+        from lodcast.renderer.sampler import device_cache
+
+        brick_cache().clear(), device_cache().clear()  # nothing of this volume left in memory: it must be read
+        r = c.post("/volumes/v/render", json={**scene, "quality": "lossless"})
+        assert r.status_code == 409, r.text
+        detail = r.json()["detail"]
+        assert detail.startswith("volume 'v': the store is damaged") and str(tmp_path) not in detail

@@ -251,3 +251,51 @@ def test_bins_map_values_to_the_stored_edges():
         assert edges[i] <= val <= edges[i + 1]
     bi = Bins.for_range(-3, 4, integer=True)
     assert bi.count == 8 and bi.index(np.array([-3, 0, 4])).tolist() == [0, 3, 7]
+
+
+def test_a_damaged_store_is_refused_never_rendered_wrong(tmp_path):
+    """Issue 10, item 5: ingest records what it wrote (attrs lodcast.manifest) and writes every level chunk; a
+    deleted or cut shard file is noticed when the store opens, one deleted or overwritten after it was opened
+    when it is read — StoreCorrupt naming the file, never the fill value in the image."""
+    import glob
+    import os
+
+    from lodcast.errors import StoreCorrupt
+
+    v = np.zeros((40, 40, 40), np.float32)
+    v[10:20] = 5.0  # zeros elsewhere: chunks equal to the fill value are written too
+    dest = tmp_path / "m.zarr"
+    st = lodcast.ingest(v, dest, block_size=8)
+    assert st.manifest["0"][0] == len(glob.glob(str(dest / "0" / "c" / "*" / "*" / "*")))
+    shard = sorted(glob.glob(str(dest / "0" / "c" / "*" / "*" / "*")))[0]
+    data = open(shard, "rb").read()
+
+    os.remove(shard)
+    with pytest.raises(StoreCorrupt, match=r"array '0' has 4 data files .* ingest wrote 5"):
+        lodcast.open_store(dest)
+    open(shard, "wb").write(data[:-10])  # cut short
+    with pytest.raises(StoreCorrupt, match="array '0'"):
+        lodcast.open_store(dest)
+    open(shard, "wb").write(data)
+    st = lodcast.open_store(dest)
+    np.testing.assert_array_equal(st.read_level(0), v)
+    open(shard, "wb").write(bytes(len(data)))  # same size, other bytes: seen when read
+    with pytest.raises(StoreCorrupt, match="damaged shard"):
+        lodcast.open_store(dest).read_level(0)
+    open(shard, "wb").write(data)
+    st = lodcast.open_store(dest)
+    os.remove(std := sorted(glob.glob(str(dest / "std" / "1" / "c" / "*" / "*" / "*")))[0])  # after opening
+    with pytest.raises(StoreCorrupt, match="shard file missing"):
+        st.read_std_region(1, (slice(None),) * 3)
+    assert std
+
+
+def test_stores_without_a_manifest_still_open(tmp_path):
+    dest = tmp_path / "old.zarr"
+    lodcast.ingest(np.ones((16, 16, 16), np.float32), dest, block_size=8)
+    g = zarr.open_group(str(dest), mode="r+")
+    meta = dict(g.attrs["lodcast"])
+    meta.pop("manifest")
+    g.attrs["lodcast"] = meta
+    st = lodcast.open_store(dest)
+    assert st.manifest is None and st.read_level(0).sum() == 16**3
