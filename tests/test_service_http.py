@@ -14,6 +14,7 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     from fastapi.testclient import TestClient
 
+import lodcast
 from lodcast.service.app import create_app
 from lodcast.service.settings import Settings
 from lodcast.service.testing import TINY_TF, make_volume, tiny_scene
@@ -407,3 +408,22 @@ def test_a_deleted_shard_file_is_a_clear_409(tmp_path):
         assert r.status_code == 409, r.text
         detail = r.json()["detail"]
         assert detail.startswith("volume 'v': the store is damaged") and str(tmp_path) not in detail
+
+
+def test_a_volume_replaced_on_disk_is_rendered_from_its_new_data(tmp_path):
+    """Another process re-ingests a volume under the same id, with another shape (--overwrite: a new folder renamed
+    into place): the next render and summary read the new store, not the one opened before (issue 10, item 5;
+    the caches are keyed by the folder's inode and mtime, renderer/volume.py)."""
+    v = np.zeros((16, 16, 16), np.float32)
+    lodcast.ingest(v, tmp_path / "v", block_size=8)
+    scene = {"tf": {"points": [{"value": 0, "color": [1, 0, 0], "opacity": 0.0},
+                               {"value": 1, "color": [1, 0, 0], "opacity": 0.5}]}, "width": 8, "height": 8,
+             "format": "npy"}
+    with TestClient(create_app(Settings(root=tmp_path, workers=0))) as c:
+        a = np.load(io.BytesIO(c.post("/volumes/v/render", json=scene).content))
+        assert a[..., 3].max() == 0.0
+        lodcast.ingest(np.ones((24, 20, 16), np.float32), tmp_path / "v", block_size=8, overwrite=True)  # new shape
+        r = c.post("/volumes/v/render", json=scene)
+        assert r.status_code == 200, r.text
+        assert np.load(io.BytesIO(r.content))[..., 3].max() > 0.5
+        assert c.get("/volumes/v").json()["shape"] == [24, 20, 16]
