@@ -149,10 +149,15 @@ def _read_job(path: str) -> Any:
         raise ValueError(f"job: {path} is not JSON ({exc.msg} at line {exc.lineno})") from None
 
 
-def _local(args: argparse.Namespace) -> Any:
+def _local(args: argparse.Namespace, create: bool = False) -> Any:
+    """The local queue under --root; unless `create`, one must exist already (a job id is looked up where jobs
+    were submitted, not in a queue this call would create in the current folder)."""
     from lodcast.service.queue import JobQueue
 
-    jq = JobQueue(_settings(args))
+    settings = _settings(args)
+    if not create and not settings.is_redis and not settings.sqlite_path().exists():
+        raise ValueError(f"--url: no server given (--url or LODCAST_URL) and no local job queue under {settings.root}")
+    jq = JobQueue(settings)
     jq.check()
     return jq
 
@@ -174,21 +179,31 @@ def _cmd_submit(args: argparse.Namespace) -> int:
         from lodcast.service.jobs import parse_job, validate_job
         from lodcast.service.records import status_json
 
-        jq = _local(args)
+        from lodcast.service.queue import Worker
+
+        # no server: the job runs here and now (a local queue no worker reads would keep it queued forever)
+        jq = _local(args, create=True)
         job = validate_job(parse_job(data), jq.settings)
         rec = jq.submit(job)
-        st = status_json(jq.wait(rec["id"]) if args.wait else rec)
+        worker = Worker(jq, threads=1).start()
+        try:
+            st = status_json(jq.wait(rec["id"]))
+        finally:
+            worker.stop()
+        print(f"ran job {rec['id']} here (no --url / LODCAST_URL); its results: lodcast jobs results {rec['id']} "
+              f"--root {jq.settings.root} -o DIR", file=sys.stderr)
     _print(st)
     return 0 if st["state"] not in ("failed", "cancelled") else 1
 
 
 def add_jobs(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("jobs", help="list, show, cancel or wait for batch jobs")
-    p.add_argument("action", nargs="?", default="list", choices=("list", "show", "cancel", "wait"))
-    p.add_argument("id", nargs="?", help="job id (show, cancel, wait)")
+    p = sub.add_parser("jobs", help="list, show, cancel or wait for batch jobs, or fetch their results")
+    p.add_argument("action", nargs="?", default="list", choices=("list", "show", "cancel", "wait", "results"))
+    p.add_argument("id", nargs="?", help="job id (show, cancel, wait, results)")
+    p.add_argument("-o", "--out", default=None, help="results: folder for the frames (frame_00000.png, ...)")
     p.add_argument("--state", choices=("queued", "running", "done", "failed", "cancelled"), help="list: only jobs in this state")
     p.add_argument("--limit", type=int, default=50)
-    p.add_argument("--timeout", type=float, default=None, help="wait: give up after this many seconds")
+    p.add_argument("--timeout", type=float, default=None, help="wait: give up after this many seconds (exit 1)")
     _url_opts(p)
     p.set_defaults(func=_cmd_jobs)
 
@@ -196,12 +211,20 @@ def add_jobs(sub: argparse._SubParsersAction) -> None:
 def _cmd_jobs(args: argparse.Namespace) -> int:
     if args.action != "list" and not args.id:
         raise ValueError(f"id: `lodcast jobs {args.action}` needs a job id")
+    if args.action == "results" and not args.out:
+        raise ValueError("-o: `lodcast jobs results ID` needs an output folder (-o DIR)")
     if args.url:
         with _client(args) as c:
             if args.action == "list":
                 _print(c.jobs(limit=args.limit, state=args.state))
                 return 0
-            st = {"show": c.job, "cancel": c.cancel}.get(args.action, lambda i: c.wait(i, timeout=args.timeout))(args.id)
+            if args.action == "results":
+                return _report_results(c.results(args.id, args.out))
+            try:
+                st = {"show": c.job, "cancel": c.cancel}.get(args.action, lambda i: c.wait(i, timeout=args.timeout))(args.id)
+            except TimeoutError as exc:
+                print(f"lodcast jobs: {exc}", file=sys.stderr)
+                return 1
     else:
         from lodcast.service.records import status_json
 
@@ -211,7 +234,31 @@ def _cmd_jobs(args: argparse.Namespace) -> int:
             return 0
         if jq.get(args.id) is None:
             raise ValueError(f"id: no job {args.id!r} under {jq.settings.root}")
+        if args.action == "results":
+            return _report_results(_local_results(jq, args.id, Path(args.out)))
         rec = {"show": jq.get, "cancel": jq.cancel}.get(args.action, lambda i: jq.wait(i, timeout=args.timeout))(args.id)
         st = status_json(rec)
+        if args.action == "wait" and st["state"] in ("queued", "running"):
+            _print(st)
+            print(f"lodcast jobs: job {args.id} still {st['state']} after {args.timeout} s", file=sys.stderr)
+            return 1
     _print(st)
+    return 0 if args.action != "wait" or st["state"] == "done" else 1
+
+
+def _local_results(jq: Any, job_id: str, dest: Path) -> list[Path]:
+    """Copies of a local job's frames (as written so far) in `dest`."""
+    import shutil
+
+    frames = sorted(jq.job_dir(job_id).glob("frame_*.*"))
+    dest.mkdir(parents=True, exist_ok=True)
+    return [Path(shutil.copy2(f, dest / f.name)) for f in frames if not f.name.startswith(".")]
+
+
+def _report_results(paths: list) -> int:
+    for p in paths:
+        print(p)
+    if not paths:
+        print("lodcast jobs: the job has no results (yet)", file=sys.stderr)
+        return 1
     return 0
