@@ -109,7 +109,7 @@ def scene_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from lodcast.renderer.image import format_for, save_image
+    from lodcast.renderer.image import format_for
     from lodcast.renderer.render import render
 
     fmt = format_for(args.output)
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         raise SceneError(f"--report {args.report!r}: folder does not exist")
     scene = scene_from_args(args)
     result = render(args.store, scene)
-    save_image(out, result.rgba, fmt)
+    result.save(out, fmt)
     if args.report:
         rp = Path(args.report)
         tmp = rp.with_name(f".{rp.name}.tmp{os.getpid()}")

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import io
+import json
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,16 +37,23 @@ def to_straight_rgba8(rgba: np.ndarray) -> np.ndarray:
     return np.round(np.nan_to_num(out) * 255.0).astype(np.uint8)
 
 
-def png_bytes(rgba: np.ndarray) -> bytes:
-    from PIL import Image
+def png_bytes(rgba: np.ndarray, text: dict[str, Any] | None = None) -> bytes:
+    """The 8-bit PNG, tagged sRGB (the colours are sRGB as the TF gives them), with `text` (e.g. the scene and
+    the report, as JSON) in iTXt chunks named lodcast:KEY: a picture says how it was made."""
+    from PIL import Image, PngImagePlugin
 
+    info = PngImagePlugin.PngInfo()
+    info.add(b"sRGB", b"\x00")  # rendering intent: perceptual
+    for key, value in (text or {}).items():
+        info.add_itxt(f"lodcast:{key}", value if isinstance(value, str) else json.dumps(value, default=str))
     buf = io.BytesIO()
-    Image.fromarray(to_straight_rgba8(rgba), mode="RGBA").save(buf, format="PNG")
+    Image.fromarray(to_straight_rgba8(rgba), mode="RGBA").save(buf, format="PNG", pnginfo=info)
     return buf.getvalue()
 
 
-def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None) -> Path:
-    """Write atomically (temporary name, then rename): nothing is half-written."""
+def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None,
+               text: dict[str, Any] | None = None) -> Path:
+    """Write atomically (temporary name, then rename): nothing is half-written. `text`: PNG text (png_bytes)."""
     path = Path(path)
     fmt = format_for(path, format)
     if not path.parent.is_dir():
@@ -55,7 +64,7 @@ def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None) ->
             with open(tmp, "wb") as f:
                 np.save(f, np.ascontiguousarray(rgba, dtype=np.float32))
         else:
-            tmp.write_bytes(png_bytes(rgba))
+            tmp.write_bytes(png_bytes(rgba, text))
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)

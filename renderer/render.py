@@ -56,16 +56,23 @@ class RenderResult:
 
     rgba: np.ndarray
     report: dict = field(default_factory=dict)
+    scene: dict | None = None  # the scene as rendered (JSON), stored in the PNG beside the report
+
+    def _text(self) -> dict:
+        return {k: v for k, v in (("scene", self.scene), ("report", self.report)) if v}
 
     def save(self, path: str | Path, format: str | None = None) -> Path:
         from lodcast.renderer.image import save_image
 
-        return save_image(path, self.rgba, format)
+        return save_image(path, self.rgba, format, self._text())
 
     def png_bytes(self) -> bytes:
         from lodcast.renderer.image import png_bytes
 
-        return png_bytes(self.rgba)
+        return png_bytes(self.rgba, self._text())
+
+    def _repr_png_(self) -> bytes:  # notebooks show the picture
+        return self.png_bytes()
 
 
 def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool = False,
@@ -431,4 +438,4 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "height": H,
         "device": device_info()["name"],
     }
-    return RenderResult(rgba, report)
+    return RenderResult(rgba, report, scene.model_dump(mode="json"))

@@ -343,7 +343,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         tags=["render"],
         dependencies=auth,
         response_class=Response,
-        responses={200: {"content": {"image/png": {}, "application/octet-stream": {}},
+        responses={200: {"content": {"image/png": {}, "application/x-npy": {}},
                          "description": "the image; the render report as JSON in the X-Lodcast-Report header"}},
     )
     async def render(volume_id: VolumeId, request: Request,
@@ -422,13 +422,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return status_json(jobs().cancel(job_id) or get_record(job_id))
 
     @app.get("/jobs/{job_id}/results/{n}", tags=["jobs"], dependencies=auth, response_class=FileResponse,
-             responses={200: {"content": {"image/png": {}, "application/octet-stream": {}}}})
+             responses={200: {"content": {"image/png": {}, "application/x-npy": {}}}})
     def get_result(job_id: JobId, n: Annotated[int, PathParam(ge=0, le=10_000_000)]) -> FileResponse:
         rec = get_record(job_id)
         if n >= max(int(rec["total"] or 0), 0) or rec["kind"] == "ingest":
             raise HttpError(404, f"n: job {job_id} has no result {n} (it has {0 if rec['kind'] == 'ingest' else rec['total']})")
         d = jobs().job_dir(job_id)
-        for ext, media in (("png", "image/png"), ("npy", "application/octet-stream")):
+        for ext, media in (("png", "image/png"), ("npy", "application/x-npy")):
             p = d / f"frame_{n:05d}.{ext}"
             if p.is_file():
                 return FileResponse(p, media_type=media, filename=p.name)

@@ -186,7 +186,7 @@ class Client:
             if dest is None:
                 out.append(r.content)
             else:
-                ext = "npy" if r.headers.get("content-type", "").startswith("application/octet-stream") else "png"
+                ext = "npy" if r.headers.get("content-type", "").startswith(("application/x-npy", "application/octet-stream")) else "png"
                 p = Path(dest) / f"frame_{n:05d}.{ext}"
                 p.parent.mkdir(parents=True, exist_ok=True)
                 p.write_bytes(r.content)

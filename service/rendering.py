@@ -141,19 +141,13 @@ def scene_format(scene: Any) -> str:
 
 
 def encode(result: Any, scene: Any) -> tuple[bytes, str]:
-    """The image bytes and media type: straight-alpha 8-bit PNG, or the float32 premultiplied RGBA as .npy."""
+    """The image bytes and media type: straight-alpha 8-bit PNG, or the float32 premultiplied RGBA as .npy
+    (application/x-npy)."""
     import numpy as np
 
     rgba = np.asarray(result.rgba, dtype=np.float32)
     if scene_format(scene) == "npy":
         buf = io.BytesIO()
         np.save(buf, rgba, allow_pickle=False)
-        return buf.getvalue(), "application/octet-stream"
-    return png_bytes(rgba), "image/png"
-
-
-def png_bytes(rgba: Any) -> bytes:
-    """Straight-alpha 8-bit PNG through the renderer's own conversion (one definition of the 8-bit image)."""
-    from lodcast.renderer.image import png_bytes as _png
-
-    return _png(rgba)
+        return buf.getvalue(), "application/x-npy"
+    return result.png_bytes(), "image/png"  # the renderer's own 8-bit image, with its scene and report

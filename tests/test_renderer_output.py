@@ -130,3 +130,23 @@ def test_demo_pictures_from_a_store(store, tmp_path):
     assert all(p.with_name(p.stem + ".scene.json").is_file() for p in paths)
     assert str(tmp_path / "demo") in lines[-1]
     assert any(np.asarray(Image.open(p))[..., 3].max() > 0 for p in paths)
+
+
+def test_pngs_carry_their_scene_report_and_srgb(tmp_path):
+    """Issue 15, item 11: a saved or served PNG says how it was made (iTXt lodcast:scene / lodcast:report), is
+    tagged sRGB, and a RenderResult shows itself in a notebook."""
+    import json
+
+    from PIL import Image
+
+    import lodcast
+
+    vol = np.random.default_rng(2).random((8, 8, 8)).astype(np.float32)
+    r = lodcast.render(vol, {"tf": "ct-bone", "width": 12, "height": 10, "camera": {"azimuth": 15}})
+    path = r.save(tmp_path / "p.png")
+    im = Image.open(path)
+    assert json.loads(im.text["lodcast:scene"])["camera"]["azimuth"] == 15
+    assert json.loads(im.text["lodcast:report"])["kernel_ms"] == r.report["kernel_ms"]
+    assert "srgb" in im.info
+    assert r._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
+    np.testing.assert_array_equal(np.asarray(im), to_straight_rgba8(r.rgba))
