@@ -15,7 +15,7 @@ import numpy as np
 from lodcast.renderer.camera import Frame, pixel_rays
 from lodcast.renderer.scene import SceneError
 
-__all__ = ["CostError", "DEFAULT_MAX_SAMPLES", "estimate_samples", "max_samples_limit", "check_cost"]
+__all__ = ["CostError", "DEFAULT_MAX_SAMPLES", "estimate_samples", "max_samples_limit", "refuse_over_limit"]
 
 DEFAULT_MAX_SAMPLES = 2_000_000_000  # tens of seconds on two CPU cores
 
@@ -58,7 +58,7 @@ def estimate_samples(fr: Frame, box: tuple[np.ndarray, np.ndarray], width: int, 
     return int(np.ceil(n.mean() * width * height))
 
 
-def check_cost(samples: int, limit: int, width: int, height: int, step_voxels: float) -> None:
+def refuse_over_limit(samples: int, limit: int, width: int, height: int, step_voxels: float) -> None:
     """Raise CostError, naming sampling.step (or the image size, when even the step that takes one sample per
     voxel would not fit), if `samples` exceeds `limit`."""
     if samples <= limit:

@@ -71,10 +71,13 @@ class _TooLarge(Exception):
     pass
 
 
-def _damaged(volume_id: str, path: Any, exc: Exception) -> "HttpError":
-    """409 for a store whose files changed since ingest: names the volume and the array, not the server's paths."""
+def _store_error(volume_id: str, path: Any, exc: Exception) -> "HttpError":
+    """A volume whose store cannot be used: 409 when its files changed since ingest (StoreCorrupt), else 404;
+    the message names the volume and the array, not the server's paths."""
     msg = " ".join(str(exc).replace(str(path) + os.sep, "").replace(str(path), "").split())
-    return HttpError(409, f"volume {volume_id!r}: the store is damaged ({msg})")
+    if isinstance(exc, StoreCorrupt):
+        return HttpError(409, f"volume {volume_id!r}: the store is damaged ({msg})")
+    return HttpError(404, f"volume: {volume_id!r} is not a valid store ({msg})")
 
 
 class _ClientGone(Exception):
@@ -329,7 +332,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             return _finite(volume_summary(settings.root, volume_id))
         except StoreInvalid as exc:
-            raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
+            raise _store_error(volume_id, settings.root / volume_id, exc) from None
 
     @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=auth)
     def del_volume(volume_id: VolumeId) -> dict[str, Any]:
@@ -355,10 +358,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             samples = await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
         except CostError as exc:
             raise HttpError(413, " ".join(str(exc).split())) from None
-        except StoreCorrupt as exc:
-            raise _damaged(volume_id, path, exc) from None
         except (StoreNotFound, StoreInvalid) as exc:
-            raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
+            raise _store_error(volume_id, path, exc) from None
         async with semaphore(samples):
             gone, t0 = threading.Event(), time.monotonic()
 
@@ -380,10 +381,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 result = await run_in_threadpool(eng.render, path, sc, settings.max_samples, stop)
             except _ClientGone:
                 return Response(status_code=499)  # nobody is listening; the status is for the access log
-            except StoreCorrupt as exc:
-                raise _damaged(volume_id, path, exc) from None
             except (StoreNotFound, StoreInvalid) as exc:
-                raise HttpError(404, f"volume: {volume_id!r} is not a valid store ({' '.join(str(exc).split())})") from None
+                raise _store_error(volume_id, path, exc) from None
             except (ValueError, ArithmeticError) as exc:
                 raise HttpError(400, f"scene: {' '.join(str(exc).split())}") from None
             finally:
