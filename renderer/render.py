@@ -252,8 +252,8 @@ def _geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, f
 
 def _cost(scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float, sample_limit: int | None) -> int:
     estimated = cost.estimate_samples(fr, kbox, scene.width, scene.height, step_world)
-    cost.refuse_over_limit(estimated, cost.max_samples_limit() if sample_limit is None else sample_limit, scene.width,
-                    scene.height, scene.sampling.step)
+    limit = cost.max_samples_limit() if sample_limit is None else sample_limit
+    cost.refuse_over_limit(estimated, limit, scene.width, scene.height, scene.sampling.step)
     return estimated
 
 
