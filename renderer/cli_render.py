@@ -1,8 +1,8 @@
 """`lodcast render STORE -o OUT.png|OUT.npy [--scene scene.json] [--report out.json] [shortcuts]`.
 
 The scene file is the JSON scene of DESIGN.md; flag shortcuts override it (or build one from nothing, with
---tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --step --mode --isovalue --jitter --seed
---background. --azimuth/--elevation/--distance make the camera the orbit form; --fov applies to either form.
+--tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --tf2 TF.json --step --mode --isovalue
+--jitter --seed --background. --azimuth/--elevation/--distance make the camera the orbit form; --fov applies to either form.
 The output format follows OUT's extension. Bad input raises SceneError/ImageError (LodcastError + ValueError),
 which the CLI turns into exit code 2 and one line.
 """
@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from lodcast.renderer.config import MODES
+from lodcast.renderer.presets import preset_names
 from lodcast.renderer.scene import SceneError
 
 __all__ = ["add_parser", "run", "scene_from_args"]
@@ -40,8 +41,11 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p.add_argument("-o", "--output", required=True, help="image to write: OUT.png or OUT.npy")
     p.add_argument("--scene", help="scene JSON file (DESIGN.md); the flags below override its fields")
     p.add_argument("--report", help="write the render report (JSON) here")
+    names = ", ".join(preset_names())
     p.add_argument("--tf", help="transfer function JSON file ({\"points\": [...], \"unit_distance\": d}) or a CT "
-                   "preset in Hounsfield units: ct-bone, ct-skin, ct-skin-bone")
+                   f"preset in Hounsfield units: {names}")
+    p.add_argument("--tf2", help="a second transfer function (file or preset), composited over the first: what it "
+                   "shows stays visible inside what --tf hides (e.g. --tf ct-body --tf2 ct-dense)")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--azimuth", type=float, help="orbit camera: degrees, 0 looks from -y, turning towards +x")
@@ -78,10 +82,10 @@ def scene_from_args(args: argparse.Namespace):
         data = _load_json(args.scene, "--scene")
         if not isinstance(data, dict):
             raise SceneError(f"--scene {args.scene!r}: a scene must be a JSON object")
-    if args.tf:
-        from lodcast.renderer.presets import PRESETS
-
-        data["tf"] = args.tf if args.tf in PRESETS else _load_json(args.tf, "--tf")
+    for key in ("tf", "tf2"):
+        v = getattr(args, key)
+        if v:
+            data[key] = v if v in preset_names() else _load_json(v, f"--{key}")
     if "tf" not in data:
         raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
     for key in ("width", "height", "mode", "isovalue"):

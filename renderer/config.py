@@ -30,6 +30,7 @@ class KernelConfig:
     clip: bool = False  # clip planes (a crop box alone needs no option: the host shrinks the box)
     shade: bool = False  # local illumination (composite only)
     preint: bool = False  # pre-integrated classification (composite only)
+    tf2: bool = False  # dual-TF compositing, a second TF integrated concurrently (composite only)
 
     def __post_init__(self) -> None:
         if self.sampler not in ("full", "atlas"):
@@ -46,6 +47,8 @@ class KernelConfig:
             raise ValueError("shading needs composite or iso mode")
         if self.preint and self.mode != "composite":
             raise ValueError("pre-integration needs composite mode")
+        if self.tf2 and self.mode != "composite":
+            raise ValueError("a second transfer function (tf2) needs composite mode")
         if self.ess and self.mode in ("average", "iso"):
             raise ValueError(f"mode {self.mode!r} reads every sample: no empty-space skipping")
 
@@ -70,6 +73,7 @@ class KernelConfig:
             (self.clip, "LC_CLIP"),
             (self.shade, "LC_SHADE"),
             (self.preint, "LC_PREINT"),
+            (self.tf2, "LC_TF2"),
         ):
             if flag:
                 opts.append(f"-D{name}")

@@ -8,7 +8,8 @@
  * The back sample of a segment is the front of the next one, so a ray takes one extra sample per segment, not two
  * (reused when the next front lies within 1e-4 voxels of it). A NaN at either end makes the segment transparent.
  * Coarse samples under LC_DIST keep their distribution classification (the `else` of LC_DIST_BODY leads here).
- * Uses, from the kernel: ptab, pre_*, u, dq, dt, inv_dt, LC_SEG_LEN (lc_classify.h), LC_SAMPLE and the ray state.
+ * Per TF (suffix S, see lc_classify.h): ptab, pre_lo, pre_scale, pre_n, the reuse cache pre_q, pre_v and the ray
+ * state; shared: u, dq, dt, inv_dt, LC_SEG_LEN (lc_classify.h) and LC_SAMPLE.
  */
 #ifndef LC_PREINT_H
 #define LC_PREINT_H
@@ -29,27 +30,27 @@ static inline float4 lc_preint_lookup(__global const float4* ptab, const float s
 }
 
 #ifdef LC_PRECISE
-#define LC_PREINT_COMPOSITE(a0, ratio, col) LC_KAHAN_COMPOSITE(-log1p(-(a0)) * (ratio), col)
+#define LC_PREINT_COMPOSITE(a0, ratio, col, S) LC_KAHAN_COMPOSITE(-log1p(-(a0)) * (ratio), col, S)
 #else
-#define LC_PREINT_COMPOSITE(a0, ratio, col)                                      \
+#define LC_PREINT_COMPOSITE(a0, ratio, col, S)                                   \
     {                                                                            \
         const float al_ = (ratio) == 1.0f ? (a0) : -expm1((ratio) * log1p(-(a0))); \
-        LC_BLEND(T * al_, col)                                                   \
+        LC_BLEND(T##S * al_, col, S)                                             \
     }
 #endif
 
-#define LC_PREINT_BODY(r, q)                                                     \
+#define LC_PREINT_BODY(r, q, S)                                                  \
     {                                                                            \
-        const float len_ = LC_SEG_LEN(r);                                        \
+        const float len_ = LC_SEG_LEN(r, S);                                     \
         const float3 qf_ = (q) - (u * len_) * dq, qb_ = qf_ + len_ * dq;         \
-        const float3 dd_ = qf_ - pre_q;                                          \
-        const float sf_ = dd_.x * dd_.x + dd_.y * dd_.y + dd_.z * dd_.z < 1e-8f ? pre_v : LC_SAMPLE(qf_).x; \
+        const float3 dd_ = qf_ - pre_q##S;                                       \
+        const float sf_ = dd_.x * dd_.x + dd_.y * dd_.y + dd_.z * dd_.z < 1e-8f ? pre_v##S : LC_SAMPLE(qf_).x; \
         const float sb_ = LC_SAMPLE(qb_).x;                                      \
-        pre_q = qb_;                                                             \
-        pre_v = sb_;                                                             \
+        pre_q##S = qb_;                                                          \
+        pre_v##S = sb_;                                                          \
         if (sf_ == sf_ && sb_ == sb_) {                                          \
-            const float4 pe_ = lc_preint_lookup(ptab, sf_, sb_, pre_lo, pre_scale, pre_n); \
-            if (pe_.w > 0.0f) LC_PREINT_COMPOSITE(pe_.w, len_ * inv_dt, LC_SHADE_COL(pe_.xyz / pe_.w, q)) \
+            const float4 pe_ = lc_preint_lookup(ptab##S, sf_, sb_, pre_lo##S, pre_scale##S, pre_n##S); \
+            if (pe_.w > 0.0f) LC_PREINT_COMPOSITE(pe_.w, len_ * inv_dt, LC_SHADE_COL(pe_.xyz / pe_.w, q), S) \
         }                                                                        \
     }
 #endif

@@ -51,6 +51,27 @@ typedef struct LcParams {
     float iso;          /* LC_MODE_ISO: the iso value */
     float shade_gref;   /* LC_SHADE: gradient magnitude at which a sample is fully lit (0: no weighting) */
     int pad3;
+    /* LC_TF2: the second TF. Its tables follow the first's in the same buffers, at these entry offsets */
+    int tf2_lut_at;     /* float4 entries into lut */
+    int tf2_ext_at;     /* float entries into lut_ext */
+    int tf2_dtab_at;    /* float4 entries into dtab (LC_DIST) */
+    int tf2_ptab_at;    /* float4 entries into ptab (LC_PREINT) */
+    float tf2_lut_lo;   /* its LUT, as lut_lo, lut_scale, lut_n, lut_vis_lo, lut_vis_hi are the first's */
+    float tf2_lut_scale;
+    int tf2_lut_n;
+    float tf2_vis_lo;
+    float tf2_vis_hi;
+    float tf2_inv_unit; /* 1 / its opacity unit distance (world) */
+    int tf2_dist_n;     /* its distribution table's mean axis (rows and std axis as the first's) */
+    float tf2_dist_lo;
+    float tf2_dist_scale;
+    float tf2_pre_lo;   /* its pre-integration table's axes */
+    float tf2_pre_scale;
+    int tf2_pre_n;
+    int prio_tile;      /* priority map: one byte per prio_tile x prio_tile pixels (0: no map, every pixel has */
+    int prio_w;         /* priority), prio_w tiles per row */
+    int pad4;
+    int pad5;
 } LcParams;
 
 #endif

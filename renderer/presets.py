@@ -22,6 +22,16 @@ PRESETS: dict[str, dict] = {
                                 {"value": 100, "color": [0.8, 0.3, 0.3], "opacity": 0.0},
                                 {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
                                 {"value": 900, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]},
+    # for dual-TF compositing (a scene's tf2 over its tf, "X-ray vision"): an opaque body surface to look into,
+    # the densest bone, calcifications and iodine contrast (a narrow band above ordinary bone), and metal
+    # (implants, bullets and fragments, dental fillings: above any tissue)
+    "ct-body": {"points": [{"value": -500, "color": [0.9, 0.65, 0.55], "opacity": 0.0},
+                           {"value": -200, "color": [0.9, 0.7, 0.6], "opacity": 0.5},
+                           {"value": 300, "color": [0.9, 0.7, 0.6], "opacity": 0.5}]},
+    "ct-dense": {"points": [{"value": 1300, "color": [1.0, 0.3, 0.2], "opacity": 0.0},
+                            {"value": 1450, "color": [1.0, 0.3, 0.2], "opacity": 0.9}]},
+    "ct-metal": {"points": [{"value": 2500, "color": [0.3, 0.6, 1.0], "opacity": 0.0},
+                            {"value": 3000, "color": [0.6, 0.85, 1.0], "opacity": 1.0}]},
 }
 
 

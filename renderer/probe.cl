@@ -18,4 +18,9 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     vstore4(P->light, 18, f); vstore4(P->shade, 19, f);       /* f[72..79] */
     f[80] = P->shade_gmin; f[81] = P->pre_lo; f[82] = P->pre_scale; f[83] = P->iso; f[84] = P->shade_gref;
     n[16] = P->n_clip; n[17] = P->pre_n;
+    n[18] = P->tf2_lut_at; n[19] = P->tf2_ext_at; n[20] = P->tf2_dtab_at; n[21] = P->tf2_ptab_at;
+    n[22] = P->tf2_lut_n; n[23] = P->tf2_dist_n; n[24] = P->tf2_pre_n; n[25] = P->prio_tile; n[26] = P->prio_w;
+    f[85] = P->tf2_lut_lo; f[86] = P->tf2_lut_scale; f[87] = P->tf2_vis_lo; f[88] = P->tf2_vis_hi;
+    f[89] = P->tf2_inv_unit; f[90] = P->tf2_dist_lo; f[91] = P->tf2_dist_scale; f[92] = P->tf2_pre_lo;
+    f[93] = P->tf2_pre_scale;
 }

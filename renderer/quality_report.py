@@ -37,9 +37,13 @@ class Variant:
     classification: str = "distribution"  # of coarse samples: "distribution" | "mean"
     step: float | None = None  # None: the scene's step
     preintegration: bool = False
+    priority_map: bool = True  # dual-TF scenes: False renders without the priority map (what it buys)
 
     @property
     def label(self) -> str:
+        return self._label() + ("" if self.priority_map else ", no priority map")
+
+    def _label(self) -> str:
         q = self.quality if isinstance(self.quality, str) else ", ".join(f"{k} {v}" for k, v in self.quality.items())
         if self.quality == "full":
             return ("full resolution" + ("" if self.step is None else f", step {self.step:g}")
@@ -58,6 +62,8 @@ class Variant:
             sampling["step"] = self.step
         if self.preintegration:
             sampling["preintegration"] = True
+        if not self.priority_map:
+            sampling["priority_map"] = False
         if self.adaptive == "naive":
             sampling["adaptive_naive"] = True
         else:
@@ -65,12 +71,15 @@ class Variant:
         return {**scene, "quality": self.quality, "sampling": sampling, "format": "npy"}
 
 
-def default_variants(adaptive: bool = True, naive: bool = True, steps: bool = True) -> list[Variant]:
+def default_variants(adaptive: bool = True, naive: bool = True, steps: bool = True, dual: bool = False) -> list[Variant]:
     """The sweep: qualities × interpolation × adaptive stepping, and interblock classified by the mean beside the
     default classification by distribution; `steps`: full resolution at the steps STEPS with and without
-    pre-integration (what the step costs, and what pre-integration buys back)."""
+    pre-integration (what the step costs, and what pre-integration buys back); `dual` (a scene with tf2): full
+    resolution and 30:1 also without the priority map (its speed-up)."""
     qualities: list[Any] = ["lossless"] + [{"reduction": r} for r in REDUCTIONS]
     out = [Variant("full")]
+    if dual:
+        out += [Variant("full", priority_map=False), Variant({"reduction": 30}, priority_map=False)]
     if steps:
         out += [Variant("full", step=st, preintegration=pre) for st in STEPS for pre in (False, True)]
     for q in qualities:
@@ -119,6 +128,7 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
         rows.append({
             "label": v.label, "quality": v.quality, "interpolation": v.interpolation, "adaptive": v.adaptive,
             "classification": v.classification, "step": v.step, "preintegration": v.preintegration,
+            "priority_map": v.priority_map, "priority_pixels": (rep.get("priority_map") or {}).get("priority_pixels"),
             "reduction": rep.get("reduction"), "predicted_delta_e": rep.get("predicted_delta_e"),
             "delta_e_mean": de["mean"], "delta_e_p95": de["p95"], "delta_e_max": de["max"], "footprint": de["footprint"],
             "wall_ms": rep["wall_ms"], "kernel_ms": rep["kernel_ms"], "samples": rep.get("samples"),
@@ -127,7 +137,7 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
         log(f"[{i}/{len(variants)}] {v.label}: ΔE mean {de['mean']:.2f} p95 {de['p95']:.2f}, "
             f"{rep['kernel_ms']:.0f} ms kernel, reduction {_fmt(rep.get('reduction'))}")
     full = next((r for r in rows if r["quality"] == "full" and r["adaptive"] == "off" and r["step"] is None
-                 and not r["preintegration"]), None)
+                 and not r["preintegration"] and r["priority_map"]), None)
     for r in rows:
         r["speedup_vs_full"] = (full["kernel_ms"] / r["kernel_ms"]) if full and r["kernel_ms"] else None
     return {"store": str(getattr(store, "location", store)), "scene": scene, "reference_scene": ref_scene,

@@ -30,6 +30,13 @@
  *                     option, the host intersects it with the volume's box)
  *   LC_PREINT         pre-integrated classification of each segment by the scalars at its ends (lc_preint.h)
  *   LC_SHADE          local illumination, Blinn-Phong with gradients through the ray's sampler (lc_shade.h)
+ *   LC_TF2            (composite) dual-TF compositing: a second TF integrated concurrently, its integral composited
+ *                     over the first's (lc_classify.h). Its tables follow the first TF's in lut, lut_ext, dtab and
+ *                     ptab (offsets P->tf2_*_at); block_info holds bit 1 where tf is visible, bit 2 where tf2 is,
+ *                     and the block walk skips a block only if no integral still running can see it; prio (one
+ *                     byte per prio_tile x prio_tile pixels, prio_w per row; prio_tile = 0: none) is the priority
+ *                     map: a zero-priority pixel's ray meets no block where tf2 is visible, so it ends on the
+ *                     first integral alone
  *
  * Sampling: the part [t0, t1] of the ray inside the box is cut into n = ceil((t1 - t0) / step) segments of
  * length step (the last one shorter, so the segments add up to t1 - t0 exactly); segment k is sampled once at
@@ -67,7 +74,8 @@
 __kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
-                        __global const ushort* sig, __global const float4* dtab, __global const float4* ptab) {
+                        __global const ushort* sig, __global const float4* dtab, __global const float4* ptab,
+                        __global const uchar* prio) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
@@ -95,6 +103,39 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #ifdef LC_PRECISE
     float3 C_c = (float3)(0.0f);
     float tau = 0.0f, tau_c = 0.0f;
+#endif
+#if !defined(LC_MODE_MIP) && !defined(LC_MODE_AVG) && !defined(LC_MODE_ISO)
+    int sat = 0; /* the (first) integral is saturated */
+#endif
+#ifdef LC_TF2
+    /* the second TF: its constants and ray state, named as the first's with the suffix 2 (lc_classify.h) */
+    __global const float4* lut2 = lut + P->tf2_lut_at;
+    __global const float* lut_ext2 = lut_ext + P->tf2_ext_at;
+    const float lut_scale2 = P->tf2_lut_scale, lut_off2 = -P->tf2_lut_lo * P->tf2_lut_scale;
+    const float lut_vis_lo2 = P->tf2_vis_lo, lut_vis_hi2 = P->tf2_vis_hi;
+    const float r2_units = P->tf2_inv_unit / P->inv_unit;
+    float3 C2 = (float3)(0.0f);
+    float T2 = 1.0f;
+    /* zero priority: the threshold of the second integral is zero, it counts as saturated from the start */
+    const int ptile = P->prio_tile;
+    int sat2 = ptile > 0 && prio[(uint)(i / ptile) * (uint)P->prio_w + (uint)(j / ptile)] == 0;
+#ifdef LC_PRECISE
+    float3 C_c2 = (float3)(0.0f);
+    float tau2 = 0.0f, tau_c2 = 0.0f;
+#endif
+#ifdef LC_DIST
+    __global const float4* dtab2 = dtab + P->tf2_dtab_at;
+    const float dist_scale2 = P->tf2_dist_scale, dist_off2 = -P->tf2_dist_lo * P->tf2_dist_scale;
+    const float dist_fmax2 = (float)(P->tf2_dist_n - 1), dt_u2 = P->step * P->tf2_inv_unit;
+    const int dist_row2 = P->tf2_dist_n + 1, dist_spans2 = (P->dist_rows + 1) * dist_row2;
+#endif
+#ifdef LC_PREINT
+    __global const float4* ptab2 = ptab + P->tf2_ptab_at;
+    const float pre_lo2 = P->tf2_pre_lo, pre_scale2 = P->tf2_pre_scale, unit_w2 = 1.0f / P->tf2_inv_unit;
+    const int pre_n2 = P->tf2_pre_n;
+    float3 pre_q2 = (float3)(INFINITY);
+    float pre_v2 = 0.0f;
+#endif
 #endif
 #if defined(LC_PREINT) || defined(LC_MODE_AVG)
     const float unit_w = 1.0f / P->inv_unit; /* the TF's unit distance (world), for LC_SEG_LEN */
@@ -173,6 +214,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #else
 #define LC_R(len) ((len) == h ? -1.0f - (float)lvl : (len) * inv_unit)
         const int lut_row = P->lut_n + 1;
+#ifdef LC_TF2
+        const int lut_row2 = P->tf2_lut_n + 1;
+#endif
 #endif
         while (t < t1 && !done && budget) {
             --budget;
@@ -259,6 +303,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
 #ifdef LC_MODE_MIP
                 skip = info <= vmax; /* nothing here can exceed the maximum so far */
+#elif defined(LC_TF2)
+                skip = ((int)info & ((sat ? 0 : 1) | (sat2 ? 0 : 2))) == 0; /* no running integral sees it */
 #else
                 skip = info == 0.0f; /* TF opacity zero over the block's border-inclusive value range */
 #endif
@@ -343,6 +389,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     } else {
         res = (float4)(0.0f);
     }
+#elif defined(LC_TF2) && defined(LC_PRECISE) /* the second integral over the first */
+    res = (float4)(C2 + T2 * C, -expm1(-(tau + tau2)));
+#elif defined(LC_TF2)
+    res = (float4)(C2 + T2 * C, 1.0f - T2 * T);
 #elif defined(LC_PRECISE)
     res = (float4)(C, -expm1(-tau));
 #else

@@ -32,6 +32,7 @@ from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
 from lodcast.renderer import cost
+from lodcast.renderer import dual
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
@@ -99,13 +100,15 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
         clip=scene.clip is not None and len(scene.clip.planes) > 0,
         shade=scene.shading is not None and scene.mode in ("composite", "iso"),
         preint=s.preintegration and scene.mode == "composite",
+        tf2=scene.tf2 is not None,
     )
 
 
-def block_info(vol: VolumeView, lut: Lut, mode: str) -> tuple[np.ndarray, int]:
+def block_info(vol: VolumeView, lut: Lut, mode: str, lut2: Lut | None = None) -> tuple[np.ndarray, int]:
     """(per-block float32 array in kernel order (gz, gy, gx), number of empty blocks). Composite: 1 where the TF
-    is non-zero somewhere on the block's border-inclusive range; MIP: the block's border-inclusive maximum; MinIP:
-    minus its minimum (the kernel tracks the maximum of -v); average and iso (no block walk): zeros."""
+    is non-zero somewhere on the block's border-inclusive range (with a second TF's `lut2`: bit 1 for tf, bit 2
+    for tf2, renderer/dual.py); MIP: the block's border-inclusive maximum; MinIP: minus its minimum (the kernel
+    tracks the maximum of -v); average and iso (no block walk): zeros."""
     if mode in EXTREMUM_MODES:
         ext = vol.max_border if mode == "mip" else -np.asarray(vol.min_border, np.float64)
         mx = np.where(np.isfinite(ext), ext, -np.inf)
@@ -113,6 +116,8 @@ def block_info(vol: VolumeView, lut: Lut, mode: str) -> tuple[np.ndarray, int]:
     if mode != "composite":
         return np.zeros(vol.grid, np.float32), 0
     vis = lut.visible(vol.min_border, vol.max_border)
+    if lut2 is not None:
+        vis = dual.visibility_bits(vis, lut2.visible(vol.min_border, vol.max_border))
     return np.ascontiguousarray(vis, dtype=np.float32), int(vis.size - np.count_nonzero(vis))
 
 
@@ -179,6 +184,8 @@ class Prepared:
     dist: DistTable | None = None  # distribution classification (LC_DIST) only
     preint: PreintTable | None = None  # pre-integrated classification (LC_PREINT) only
     estimated_samples: int = 0  # renderer/cost.py: the full march's samples, checked against the limit
+    second: "dual.SecondTf | None" = None  # tf2 (LC_TF2) only
+    priority: "dual.PriorityMap | None" = None  # tf2 with sampling.priority_map only
 
 
 @dataclass(frozen=True)
@@ -224,7 +231,8 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
     near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing
     if near_coarse.any() and scene.sampling.interpolation == "interblock":  # nearest block reads its own block only
-        info = np.where(near_coarse, lod_atlas.neighbourhood_max(info), info).astype(np.float32)
+        spread = lod_atlas.neighbourhood_max(info) if scene.tf2 is None else dual.dilate_bits(info, lod_atlas.neighbourhood_max)
+        info = np.where(near_coarse, spread, info).astype(np.float32)
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
     B = vol.block_size
     if sel is not None:
@@ -282,7 +290,10 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
             f"({max_samples} samples per ray, at most {MAX_SAMPLES_PER_RAY})"
         )
     lut = build_lut(scene.tf, vol.value_range)
-    info, n_empty = block_info(vol, lut, scene.mode)
+    second = None
+    if scene.tf2 is not None:
+        second = dual.SecondTf(scene.tf2, build_lut(scene.tf2, vol.value_range), unit_distance(scene.tf2, vol.spacing))
+    info, n_empty = block_info(vol, lut, scene.mode, None if second is None else second.lut)
     keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
     if keep is not None:  # blocks outside the clip region are empty space
         info = np.where(keep, info, -np.inf if scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
@@ -301,25 +312,84 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     if cfg.preint:  # over the LUT's value range, for segments of the base step
         pre = preintegrate(scene.tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit)
     params = _fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
-    return Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated)
+    prio = None
+    if second is not None:
+        hi = second.lut.lo + (second.lut.n - 1) / second.lut.scale
+        second = replace(
+            second,
+            dist=cached_dist_table(scene.tf2, vol.value_range, vol.std_max) if cfg.distribution else None,
+            preint=preintegrate(scene.tf2, second.lut.lo, hi, step_world / second.unit) if cfg.preint else None,
+        )
+        if scene.sampling.priority_map:
+            prio = dual.priority_map(fr, (info.astype(np.int64) & 2) > 0, vol.shape, vol.spacing, vol.origin,
+                                     vol.block_size, scene.width, scene.height)
+    pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio)
+    if second is not None:
+        _fill_tf2(params, pr)
+    return pr
+
+
+def _tfs(pr: Prepared) -> list[tuple[Lut, float]]:
+    """(LUT, unit distance) of each TF the kernel integrates: tf, and tf2 after it (LC_TF2)."""
+    return [(pr.lut, pr.unit)] + ([(pr.second.lut, pr.second.unit)] if pr.second is not None else [])
 
 
 def lut_table(pr: Prepared) -> np.ndarray:
-    """The LUT as the kernel built for this scene reads it (see raycast.cl)."""
+    """The LUT as the kernel built for this scene reads it (see raycast.cl); with tf2 its LUT follows at
+    params.tf2_lut_at."""
     if pr.config.mode != "composite":  # the projections and iso take the TF's opacity as given
         return pr.lut.kernel_table("opacity")
-    ratio = pr.step_world / pr.unit
-    return pr.lut.kernel_table("depth" if pr.config.precise else "alpha", ratio)
+    kind = "depth" if pr.config.precise else "alpha"
+    return np.concatenate([lut.kernel_table(kind, pr.step_world / unit) for lut, unit in _tfs(pr)])
+
+
+def _ext_rows(lut: Lut, unit: float, pr: Prepared) -> list[np.ndarray]:
+    rows = [lut.kernel_table("extinction")[:, 3]]
+    if pr.config.adaptive and pr.config.mode == "composite" and not pr.config.precise:
+        ratio = pr.step_world / unit
+        rows += [lut.kernel_table("alpha", ratio * 2**k)[:, 3] for k in range(1, int(pr.volume.block_size).bit_length())]
+    return rows
 
 
 def ext_table(pr: Prepared) -> np.ndarray:
     """lut_ext: the extinction per LUT entry; with adaptive sampling (composite, not LC_PRECISE) followed by one
-    row per level k >= 1 holding the alpha of a whole step of step * 2^k (exact, float64 on the host)."""
-    rows = [pr.lut.kernel_table("extinction")[:, 3]]
-    if pr.config.adaptive and pr.config.mode == "composite" and not pr.config.precise:
-        ratio = pr.step_world / pr.unit
-        rows += [pr.lut.kernel_table("alpha", ratio * 2**k)[:, 3] for k in range(1, int(pr.volume.block_size).bit_length())]
+    row per level k >= 1 holding the alpha of a whole step of step * 2^k (exact, float64 on the host); with tf2
+    its rows follow at params.tf2_ext_at."""
+    rows = [r for lut, unit in _tfs(pr) for r in _ext_rows(lut, unit, pr)]
     return np.ascontiguousarray(np.concatenate(rows), dtype=np.float32)
+
+
+def _tables(pr: Prepared, kind: str) -> np.ndarray | None:
+    """The distribution ("dist") or pre-integration ("preint") tables of tf (and tf2 after it), float4 rows."""
+    own = pr.dist if kind == "dist" else pr.preint
+    if own is None:
+        return None
+    other = None if pr.second is None else (pr.second.dist if kind == "dist" else pr.second.preint)
+    get = (lambda t: t.kernel_table) if kind == "dist" else (lambda t: t.table)  # noqa: E731
+    parts = [np.asarray(get(own), np.float32).reshape(-1, 4)]
+    if other is not None:
+        parts.append(np.asarray(get(other), np.float32).reshape(-1, 4))
+    return np.ascontiguousarray(np.concatenate(parts))
+
+
+def _fill_tf2(p: np.ndarray, pr: Prepared) -> None:
+    """The second TF's fields of the parameter block (LC_TF2), the offsets matching lut_table, ext_table and
+    _tables."""
+    sec, q = pr.second, p[0]
+    assert sec is not None
+    q["tf2_lut_at"] = pr.lut.n + 1
+    q["tf2_ext_at"] = sum(r.size for r in _ext_rows(pr.lut, pr.unit, pr))
+    q["tf2_lut_lo"], q["tf2_lut_scale"], q["tf2_lut_n"] = sec.lut.lo, sec.lut.scale, sec.lut.n
+    q["tf2_vis_lo"], q["tf2_vis_hi"] = sec.lut.visible_span()
+    q["tf2_inv_unit"] = 1.0 / sec.unit
+    if sec.dist is not None:
+        q["tf2_dtab_at"] = np.asarray(pr.dist.kernel_table).reshape(-1, 4).shape[0]
+        q["tf2_dist_n"], q["tf2_dist_lo"], q["tf2_dist_scale"] = sec.dist.n, sec.dist.lo, sec.dist.scale
+    if sec.preint is not None:
+        q["tf2_ptab_at"] = np.asarray(pr.preint.table).reshape(-1, 4).shape[0]
+        q["tf2_pre_n"], q["tf2_pre_lo"], q["tf2_pre_scale"] = sec.preint.n, sec.preint.lo, sec.preint.scale
+    if pr.priority is not None:
+        q["prio_tile"], q["prio_w"] = pr.priority.tile, pr.priority.tiles.shape[1]
 
 
 def _classification(pr: Prepared) -> str:
@@ -331,6 +401,17 @@ def _classification(pr: Prepared) -> str:
     if pr.scene.sampling.classification == "distribution" and pr.scene.mode == "composite" and not pr.volume.has_distribution:
         return "mean (this store keeps no distributions, format 1: re-ingest it for distribution classification)"
     return "mean"
+
+
+def _priority_report(pr: Prepared, nsamp: np.ndarray) -> dict | None:
+    """Dual TF with a priority map: its tile size, the share of pixels with priority (their rays integrate tf2),
+    and the samples taken by the pixels with and without it."""
+    if pr.priority is None:
+        return None
+    m = pr.priority.pixels(pr.scene.width, pr.scene.height)
+    return {"tile": pr.priority.tile, "priority_pixels": float(m.mean()),
+            "samples_priority": int(nsamp[m].sum(dtype=np.int64)),
+            "samples_other": int(nsamp[~m].sum(dtype=np.int64))}
 
 
 def launch(kern: cl.Kernel, width: int, height: int, *, estimated_samples: int = 0,
@@ -388,11 +469,13 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
     kern = cl.Kernel(built.program, "lc_render")
     d_sig = da.std if cfg.distribution else cl.Buffer(ctx, mf.READ_ONLY, size=8)
-    d_dtab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.dist.kernel_table) if pr.dist is not None
-              else cl.Buffer(ctx, mf.READ_ONLY, size=16))
-    d_ptab = (cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.preint.table) if pr.preint is not None
-              else cl.Buffer(ctx, mf.READ_ONLY, size=16))
-    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_ptab)
+    d_dtab, d_ptab = (
+        cl.Buffer(ctx, mf.READ_ONLY, size=16) if t is None else cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=t)
+        for t in (_tables(pr, "dist"), _tables(pr, "preint"))
+    )
+    prio = pr.priority.tiles if pr.priority is not None else np.ones(16, np.uint8)
+    d_prio = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prio)
+    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_ptab, d_prio)
     evs = launch(kern, W, H, estimated_samples=pr.estimated_samples, stop=stop)
     rgba = np.empty((H, W, 4), np.float32)
     nsamp = np.empty((H, W), np.uint32)
@@ -434,6 +517,8 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "lut_entries": lut.n,
         "lut_exact": lut.exact,
         "preintegration_ms": None if pr.preint is None else pr.preint.build_ms,
+        "tf2": pr.second is not None,
+        "priority_map": _priority_report(pr, nsamp),
         "width": W,
         "height": H,
         "device": device_info()["name"],

@@ -47,7 +47,8 @@ __all__ = [
 #: Features implemented so far. A scene that asks for anything else is refused, naming the field.
 #: Later issues add their names here ("quality", "tf2", "shading", "clip", "adaptive_object", ...).
 LANDED: set[str] = {"quality", "adaptive_object",  # issue 5: level of detail, adaptive object-space sampling
-                    "shading", "clip", "preintegration"}  # issue 11: illumination, clipping, pre-integration
+                    "shading", "clip", "preintegration",  # issue 11: illumination, clipping, pre-integration
+                    "tf2"}  # issue 12: dual-TF compositing
 
 _PENDING = {
     "quality": "quality other than 'full' is not implemented yet (level-of-detail selection lands with issue 5)",
@@ -305,6 +306,8 @@ class Scene(_Model):
     def _iso(self) -> "Scene":
         if self.mode == "iso" and self.isovalue is None:
             raise ValueError("isovalue: required with mode 'iso' (the data value of the surface)")
+        if self.tf2 is not None and self.mode != "composite":
+            raise ValueError(f"tf2: a second transfer function needs mode 'composite', not {self.mode!r}")
         return self
 
     @field_validator("tf", "tf2", mode="before")

@@ -53,10 +53,30 @@ PARAMS_DTYPE = np.dtype(
         ("iso", np.float32),
         ("shade_gref", np.float32),
         ("pad3", np.int32),
+        ("tf2_lut_at", np.int32),
+        ("tf2_ext_at", np.int32),
+        ("tf2_dtab_at", np.int32),
+        ("tf2_ptab_at", np.int32),
+        ("tf2_lut_lo", np.float32),
+        ("tf2_lut_scale", np.float32),
+        ("tf2_lut_n", np.int32),
+        ("tf2_vis_lo", np.float32),
+        ("tf2_vis_hi", np.float32),
+        ("tf2_inv_unit", np.float32),
+        ("tf2_dist_n", np.int32),
+        ("tf2_dist_lo", np.float32),
+        ("tf2_dist_scale", np.float32),
+        ("tf2_pre_lo", np.float32),
+        ("tf2_pre_scale", np.float32),
+        ("tf2_pre_n", np.int32),
+        ("prio_tile", np.int32),
+        ("prio_w", np.int32),
+        ("pad4", np.int32),
+        ("pad5", np.int32),
     ],
     align=True,
 )
-assert PARAMS_DTYPE.itemsize == 416 and PARAMS_DTYPE.itemsize % 16 == 0
+assert PARAMS_DTYPE.itemsize == 496 and PARAMS_DTYPE.itemsize % 16 == 0
 
 
 def new_params() -> np.ndarray:

@@ -138,12 +138,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
         scene = json.loads(scene_path.read_text())
     except json.JSONDecodeError as exc:
         raise UsageError(f"--scene: {args.scene} is not JSON ({exc.msg} at line {exc.lineno})") from None
-    Scene.parse(scene)  # a bad scene fails here, naming the field, before any rendering
+    Scene.parse(scene)  # a bad scene fails here, naming the field, before any rendering (SceneError: exit 2)
     if args.repeat < 1:
         raise UsageError(f"--repeat must be at least 1, got {args.repeat}")
     store = open_store(args.store)
+    dual = Scene.parse(scene).tf2 is not None
     result = run_report(store, scene, default_variants(adaptive=not args.no_adaptive, naive=not args.no_naive,
-                                                           steps=not args.no_steps), repeat=args.repeat)
+                                                           steps=not args.no_steps, dual=dual), repeat=args.repeat)
     paths = write_report(result, args.out)
     print(table(result))
     print(f"wrote {paths['table']}, {paths['json']} and {paths['plot']}")

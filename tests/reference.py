@@ -479,9 +479,20 @@ def reference_render(volume: np.ndarray, scene: Mapping[str, Any], spacing: Vec3
     ``order``/``max_panel``/``tau_max`` tune the quadrature (defaults converge far below 1e-5). ``clip``
     (planes and a crop box, world units) restricts each ray to what they keep.
     """
-    for key in ("tf2", "shading"):
-        if scene.get(key):
-            raise NotImplementedError(f"reference: {key} is not modelled")
+    if scene.get("shading"):
+        raise NotImplementedError("reference: shading is not modelled")
+    if scene.get("tf2"):  # dual TF: the second integral composited over the first, then the background under both
+        if scene.get("mode", "composite") != "composite":
+            raise ValueError("reference: tf2 needs composite mode")
+        kw = dict(order=order, max_panel=max_panel, tau_max=tau_max, chunk=chunk)
+        bare = {**scene, "tf2": None, "background": [0, 0, 0, 0]}
+        i1 = reference_render(volume, bare, spacing, origin, **kw)
+        i2 = reference_render(volume, {**bare, "tf": scene["tf2"]}, spacing, origin, **kw)
+        out = i2 + (1.0 - i2[..., 3:4]) * i1
+        bg = np.asarray(scene.get("background", (0, 0, 0, 0)), np.float64)
+        if bg[3] > 0:
+            out = out + (1.0 - out[..., 3:4]) * np.array([*(bg[:3] * bg[3]), bg[3]])
+        return out
     volume = np.asarray(volume, np.float64)
     if volume.ndim != 3:
         raise ValueError("volume must be 3-D (z, y, x)")

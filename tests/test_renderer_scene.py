@@ -87,7 +87,6 @@ def test_missing_tf_is_named():
 
 
 @pytest.mark.parametrize("patch, field", [
-    ({"tf2": TF}, "tf2"),
     ({"sampling": {"adaptive_screen": True}}, "sampling.adaptive_screen"),
 ])
 def test_features_not_landed_are_refused(patch, field):

@@ -9,7 +9,7 @@ from lodcast.renderer.structs import PARAMS_DTYPE, new_params
 
 
 def test_params_dtype_size_and_alignment():
-    assert PARAMS_DTYPE.itemsize == 416
+    assert PARAMS_DTYPE.itemsize == 496
     assert PARAMS_DTYPE.itemsize % 16 == 0
     for name in ("eye", "cam_f", "box_lo", "background", "dims", "grid"):
         assert PARAMS_DTYPE.fields[name][1] % 16 == 0, name  # float4/int4 are 16-byte aligned in OpenCL
@@ -34,10 +34,18 @@ def test_every_field_reads_back_through_the_kernel():
     p["shade_gmin"], p["pre_lo"], p["pre_scale"], p["iso"] = 0.125, -7.5, 2.25, 3.625
     p["shade_gref"] = 9.5
     p["n_clip"], p["pre_n"] = 5, 9
+    ints2 = ["tf2_lut_at", "tf2_ext_at", "tf2_dtab_at", "tf2_ptab_at", "tf2_lut_n", "tf2_dist_n", "tf2_pre_n",
+             "prio_tile", "prio_w"]
+    floats2 = ["tf2_lut_lo", "tf2_lut_scale", "tf2_vis_lo", "tf2_vis_hi", "tf2_inv_unit", "tf2_dist_lo",
+               "tf2_dist_scale", "tf2_pre_lo", "tf2_pre_scale"]
+    for k, name in enumerate(ints2):
+        p[name] = 31 + k
+    for k, name in enumerate(floats2):
+        p[name] = -50.75 + 1.5 * k
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    f = np.zeros(86, np.float32)
-    n = np.zeros(18, np.int32)
+    f = np.zeros(94, np.float32)
+    n = np.zeros(27, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
     prg = get_program("probe.cl").program
@@ -59,3 +67,5 @@ def test_every_field_reads_back_through_the_kernel():
     assert np.array_equal(f[72:76], p["light"][0]) and np.array_equal(f[76:80], p["shade"][0])
     assert f[80:85].tolist() == [0.125, -7.5, 2.25, 3.625, 9.5]
     assert n[16:18].tolist() == [5, 9]
+    assert n[18:27].tolist() == [31 + k for k in range(len(ints2))]
+    assert f[85:94].tolist() == [-50.75 + 1.5 * k for k in range(len(floats2))]
