@@ -1,6 +1,7 @@
 /* atlas_probe.cl: the atlas sampler (lc_atlas.h) at given points, for tests (built with -DLC_INTERP_NB or
  * -DLC_INTERP_II, and -DLC_DIST for the standard deviations). pts: level-0 voxel coordinates (x, y, z, unused);
  * out: (value, standard deviation) per point. */
+#include "lc_common.h"
 #include "lc_atlas.h"
 
 __kernel void lc_probe_atlas(__global const float* vol, __global const ushort* sig, __global const ulong* imap,

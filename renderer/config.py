@@ -31,6 +31,7 @@ class KernelConfig:
     shade: bool = False  # local illumination (composite only)
     preint: bool = False  # pre-integrated classification (composite only)
     tf2: bool = False  # dual-TF compositing, a second TF integrated concurrently (composite only)
+    screen: bool = False  # adaptive screen-space sampling: rays through given image positions (tile samples)
 
     def __post_init__(self) -> None:
         if self.sampler not in ("full", "atlas"):
@@ -74,6 +75,7 @@ class KernelConfig:
             (self.shade, "LC_SHADE"),
             (self.preint, "LC_PREINT"),
             (self.tf2, "LC_TF2"),
+            (self.screen, "LC_SCREEN"),
         ):
             if flag:
                 opts.append(f"-D{name}")

@@ -95,7 +95,6 @@ static inline float2 lc_nb(__global const float* atlas, __global const ushort* s
     return lc_brick(atlas, sig, entry >> 16, n, lvl > 0, lx, ly, lz);
 }
 
-static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
 
 #define LC_IMAP(x, y, z) imap[((ulong)(z) * (ulong)g.gy + (ulong)(y)) * (ulong)g.gx + (ulong)(x)]
 

@@ -9,6 +9,9 @@
  * (mirrored by lodcast.renderer.sampler.voxel_offset). */
 #define LC_OFFSET(x, y, z, nx, ny) (((ulong)(z) * (ulong)(ny) + (ulong)(y)) * (ulong)(nx) + (ulong)(x))
 
+/* v clamped to [0, hi] */
+static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
+
 static inline uint lc_hash(uint x) {
     x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
     return x;
@@ -19,10 +22,11 @@ static inline float lc_jitter(uint seed, uint pixel) {
     return (float)(lc_hash(seed ^ lc_hash(pixel + 0x9e3779b9U)) >> 8) * (1.0f / 16777216.0f);
 }
 
-/* The ray of pixel (row i, column j): origin o, unit direction d (world). */
-static inline void lc_pixel_ray(__constant const LcParams* P, int i, int j, float3* o, float3* d) {
-    float px = (2.0f * ((float)j + 0.5f) / (float)P->width - 1.0f) * P->half_w;
-    float py = (1.0f - 2.0f * ((float)i + 0.5f) / (float)P->height) * P->half_h;
+/* The ray through image position (x, y) in pixels from the top left corner (pixel (row i, column j)'s centre is
+ * x = j + 1/2, y = i + 1/2): origin o, unit direction d (world). */
+static inline void lc_pixel_ray(__constant const LcParams* P, float x, float y, float3* o, float3* d) {
+    float px = (2.0f * x / (float)P->width - 1.0f) * P->half_w;
+    float py = (1.0f - 2.0f * y / (float)P->height) * P->half_h;
 #ifdef LC_ORTHO
     *o = P->eye.xyz + px * P->cam_r.xyz + py * P->cam_u.xyz;
     *d = P->cam_f.xyz;

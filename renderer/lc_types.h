@@ -70,7 +70,7 @@ typedef struct LcParams {
     int tf2_pre_n;
     int prio_tile;      /* priority map: one byte per prio_tile x prio_tile pixels (0: no map, every pixel has */
     int prio_w;         /* priority), prio_w tiles per row */
-    int pad4;
+    int screen_n;       /* LC_SCREEN: the rays (tile samples) of this launch */
     int pad5;
 } LcParams;
 

@@ -10,7 +10,7 @@ __kernel void lc_march_bare(__constant const LcParams* P, __global const float* 
     const float3 qmax = convert_float3(dims.xyz - 1);
     const float dt = P->step;
     float3 o, d;
-    lc_pixel_ray(P, i, j, &o, &d);
+    lc_pixel_ray(P, (float)j + 0.5f, (float)i + 0.5f, &o, &d);
     float t0, t1, acc = 0.0f;
     uint n = 0;
     if (lc_hit_box(P, o, d, &t0, &t1)) {

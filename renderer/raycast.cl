@@ -30,6 +30,8 @@
  *                     option, the host intersects it with the volume's box)
  *   LC_PREINT         pre-integrated classification of each segment by the scalars at its ends (lc_preint.h)
  *   LC_SHADE          local illumination, Blinn-Phong with gradients through the ray's sampler (lc_shade.h)
+ *   LC_SCREEN         adaptive screen-space sampling: work-item pix < P->screen_n casts the ray through image
+ *                     position spos[pix] (a tile's sample, renderer/screen.py) instead of its pixel's centre
  *   LC_TF2            (composite) dual-TF compositing: a second TF integrated concurrently, its integral composited
  *                     over the first's (lc_classify.h). Its tables follow the first TF's in lut, lut_ext, dtab and
  *                     ptab (offsets P->tf2_*_at); block_info holds bit 1 where tf is visible, bit 2 where tf2 is,
@@ -75,10 +77,18 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
                         __global const ushort* sig, __global const float4* dtab, __global const float4* ptab,
-                        __global const uchar* prio) {
+                        __global const uchar* prio, __global const float2* spos) {
     const int j = get_global_id(0), i = get_global_id(1);
+#ifdef LC_SCREEN /* the rays are laid out in rows of P->width, as many rows as they need */
+    if (j >= P->width) return;
+    const uint pix = (uint)i * (uint)P->width + (uint)j;
+    if (pix >= (uint)P->screen_n) return;
+    const float2 xy = spos[pix]; /* this ray's image position (adaptive screen-space sampling: a tile's sample) */
+#else
     if (j >= P->width || i >= P->height) return;
     const uint pix = (uint)i * (uint)P->width + (uint)j;
+    const float2 xy = (float2)((float)j + 0.5f, (float)i + 0.5f);
+#endif
 
     const int4 dims = P->dims;
     const float3 qmax = convert_float3(dims.xyz - 1);
@@ -118,7 +128,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float T2 = 1.0f;
     /* zero priority: the threshold of the second integral is zero, it counts as saturated from the start */
     const int ptile = P->prio_tile;
-    int sat2 = ptile > 0 && prio[(uint)(i / ptile) * (uint)P->prio_w + (uint)(j / ptile)] == 0;
+    const int pi_ = lc_clampi((int)xy.y, P->height - 1), pj_ = lc_clampi((int)xy.x, P->width - 1);
+    int sat2 = ptile > 0 && prio[(uint)(pi_ / ptile) * (uint)P->prio_w + (uint)(pj_ / ptile)] == 0;
 #ifdef LC_PRECISE
     float3 C_c2 = (float3)(0.0f);
     float tau2 = 0.0f, tau_c2 = 0.0f;
@@ -161,7 +172,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 
     float3 o, d;
     float t0, t1;
-    lc_pixel_ray(P, i, j, &o, &d);
+    lc_pixel_ray(P, xy.x, xy.y, &o, &d);
 #ifdef LC_SHADE
     const float4 sh_k = P->shade;
     const float sh_gmin = P->shade_gmin, sh_gref = P->shade_gref;

@@ -33,6 +33,7 @@ from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
 from lodcast.renderer import cost
 from lodcast.renderer import dual
+from lodcast.renderer import screen as screen_space
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
@@ -101,6 +102,7 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
         shade=scene.shading is not None and scene.mode in ("composite", "iso"),
         preint=s.preintegration and scene.mode == "composite",
         tf2=scene.tf2 is not None,
+        screen=s.adaptive_screen,
     )
 
 
@@ -186,6 +188,7 @@ class Prepared:
     estimated_samples: int = 0  # renderer/cost.py: the full march's samples, checked against the limit
     second: "dual.SecondTf | None" = None  # tf2 (LC_TF2) only
     priority: "dual.PriorityMap | None" = None  # tf2 with sampling.priority_map only
+    screen: "screen_space.ScreenPlan | None" = None  # sampling.adaptive_screen only
 
 
 @dataclass(frozen=True)
@@ -323,7 +326,11 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
         if scene.sampling.priority_map:
             prio = dual.priority_map(fr, (info.astype(np.int64) & 2) > 0, vol.shape, vol.spacing, vol.origin,
                                      vol.block_size, scene.width, scene.height)
-    pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio)
+    plan = _screen_plan(vol, scene, fr, info, lod) if cfg.screen else None
+    if plan is not None:
+        params[0]["screen_n"] = plan.rays
+    pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio,
+                  plan)
     if second is not None:
         _fill_tf2(params, pr)
     return pr
@@ -332,6 +339,17 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
 def _tfs(pr: Prepared) -> list[tuple[Lut, float]]:
     """(LUT, unit distance) of each TF the kernel integrates: tf, and tf2 after it (LC_TF2)."""
     return [(pr.lut, pr.unit)] + ([(pr.second.lut, pr.second.unit)] if pr.second is not None else [])
+
+
+def _screen_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, info: np.ndarray,
+                 lod: "LodPlan | None") -> "screen_space.ScreenPlan":
+    """Adaptive screen-space sampling's pre-pass: each tile's resolution from the block scales along its rays."""
+    s = scene.sampling
+    levels = lod.levels if lod is not None else np.zeros(vol.grid, np.int8)
+    visible = info != 0 if scene.mode == "composite" else np.ones(vol.grid, bool)
+    pri = screen_space.tile_priorities(fr, levels, visible, vol.shape, vol.spacing, vol.origin, vol.block_size,
+                                       scene.width, scene.height, s.screen_tile, s.screen_statistic)
+    return screen_space.plan(screen_space.resolutions(pri, s.screen_tile), scene.width, scene.height, s.screen_tile)
 
 
 def lut_table(pr: Prepared) -> np.ndarray:
@@ -403,12 +421,28 @@ def _classification(pr: Prepared) -> str:
     return "mean"
 
 
+def _screen_report(pr: Prepared, reconstruct_ms: float) -> dict | None:
+    """Adaptive screen-space sampling: the rays cast against one per pixel, and the tiles per resolution."""
+    sp = pr.screen
+    if sp is None:
+        return None
+    n, k = np.unique(sp.res, return_counts=True)
+    return {"statistic": pr.scene.sampling.screen_statistic, "tile": sp.tile, "rays": sp.rays,
+            "rays_per_pixel": sp.rays / (pr.scene.width * pr.scene.height),
+            "tiles": {f"{int(a)}x{int(a)}": int(b) for a, b in zip(n, k)}, "reconstruct_ms": reconstruct_ms}
+
+
 def _priority_report(pr: Prepared, nsamp: np.ndarray) -> dict | None:
     """Dual TF with a priority map: its tile size, the share of pixels with priority (their rays integrate tf2),
     and the samples taken by the pixels with and without it."""
     if pr.priority is None:
         return None
-    m = pr.priority.pixels(pr.scene.width, pr.scene.height)
+    if pr.screen is None:
+        m = pr.priority.pixels(pr.scene.width, pr.scene.height)
+    else:  # per ray of the tiles: the map's tile under its image position
+        xy = pr.screen.positions.astype(np.int64) // pr.priority.tile
+        th, tw = pr.priority.tiles.shape
+        m = pr.priority.tiles[np.minimum(xy[:, 1], th - 1), np.minimum(xy[:, 0], tw - 1)].astype(bool)
     return {"tile": pr.priority.tile, "priority_pixels": float(m.mean()),
             "samples_priority": int(nsamp[m].sum(dtype=np.int64)),
             "samples_other": int(nsamp[~m].sum(dtype=np.int64))}
@@ -465,8 +499,11 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
     d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ext_table(pr))
     d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.block_info)
-    d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 16)
-    d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=W * H * 4)
+    n_rays = W * H if pr.screen is None else max(pr.screen.rays, 1)
+    d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 16)
+    d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 4)
+    spos = pr.screen.positions if pr.screen is not None and pr.screen.rays else np.zeros((1, 2), np.float32)
+    d_spos = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spos)
     kern = cl.Kernel(built.program, "lc_render")
     d_sig = da.std if cfg.distribution else cl.Buffer(ctx, mf.READ_ONLY, size=8)
     d_dtab, d_ptab = (
@@ -475,13 +512,18 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     )
     prio = pr.priority.tiles if pr.priority is not None else np.ones(16, np.uint8)
     d_prio = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prio)
-    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_ptab, d_prio)
-    evs = launch(kern, W, H, estimated_samples=pr.estimated_samples, stop=stop)
-    rgba = np.empty((H, W, 4), np.float32)
-    nsamp = np.empty((H, W), np.uint32)
+    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_ptab, d_prio,
+                  d_spos)
+    rows = H if pr.screen is None else -(-n_rays // W)  # LC_SCREEN: the rays in rows of W
+    evs = launch(kern, W, rows, estimated_samples=pr.estimated_samples, stop=stop)
+    rgba = np.empty((H, W, 4) if pr.screen is None else (n_rays, 4), np.float32)
+    nsamp = np.empty((H, W) if pr.screen is None else (n_rays,), np.uint32)
     cl.enqueue_copy(queue, rgba, d_out, wait_for=evs)
     cl.enqueue_copy(queue, nsamp, d_n, wait_for=evs)
     queue.finish()
+    t_rec = time.perf_counter()
+    if pr.screen is not None:  # the mosaic, reconstructed by intertile interpolation
+        rgba = screen_space.reconstruct(pr.screen, rgba[: pr.screen.rays]).astype(np.float32)
     kernel_ms = sum(ev.profile.end - ev.profile.start for ev in evs) * 1e-6
     n_blocks = vol.n_blocks
     if pr.lod is None:
@@ -519,6 +561,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "preintegration_ms": None if pr.preint is None else pr.preint.build_ms,
         "tf2": pr.second is not None,
         "priority_map": _priority_report(pr, nsamp),
+        "adaptive_screen": _screen_report(pr, (time.perf_counter() - t_rec) * 1e3),
         "width": W,
         "height": H,
         "device": device_info()["name"],

@@ -1,10 +1,7 @@
 """The Scene: one pydantic model shared by `lodcast.render`, the CLI, the HTTP API, jobs and the client.
 
 Field names and defaults follow DESIGN.md's scene JSON. Every validation error names its field
-(``SceneError: sampling.step: Input should be greater than 0``). Fields whose feature has not landed yet
-(tf2, shading, clip, adaptive sampling, pre-integration, quality other than ``full``) are *refused* with a
-message naming the field, never silently ignored: the check is one registry, ``LANDED``, which the issues that
-implement them extend.
+(``SceneError: sampling.step: Input should be greater than 0``).
 """
 from __future__ import annotations
 
@@ -40,31 +37,8 @@ __all__ = [
     "Clip",
     "ClipPlane",
     "ClipBox",
-    "LANDED",
     "parse_scene",
 ]
-
-#: Features implemented so far. A scene that asks for anything else is refused, naming the field.
-#: Later issues add their names here ("quality", "tf2", "shading", "clip", "adaptive_object", ...).
-LANDED: set[str] = {"quality", "adaptive_object",  # issue 5: level of detail, adaptive object-space sampling
-                    "shading", "clip", "preintegration",  # issue 11: illumination, clipping, pre-integration
-                    "tf2"}  # issue 12: dual-TF compositing
-
-_PENDING = {
-    "quality": "quality other than 'full' is not implemented yet (level-of-detail selection lands with issue 5)",
-    "tf2": "a second transfer function is not implemented yet",
-    "shading": "shading is not implemented yet",
-    "clip": "clipping is not implemented yet",
-    "adaptive_object": "adaptive object-space sampling is not implemented yet (issue 5)",
-    "adaptive_screen": "adaptive screen-space sampling is not implemented yet",
-    "preintegration": "pre-integration is not implemented yet",
-}
-
-
-def _require_landed(feature: str) -> None:
-    if feature not in LANDED:
-        raise ValueError(f"{_PENDING[feature]}; leave it out or set it to its default")
-
 
 class SceneError(LodcastError, ValueError):
     """A scene (or one of its parts) is invalid; the message names the field."""
@@ -187,7 +161,11 @@ class Sampling(_Model):
     (`{"reduction": r}`, `{"budget_mb": m}`) — a coarse level holds no detail a finer step could find, and without
     it a reduction saves memory but no time — and off at 'lossless' (which promises the full-resolution image)
     and at 'full', where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
-    steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks)."""
+    steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks).
+    `adaptive_screen`: adaptive screen-space sampling (thesis §3.6.3): tiles of `screen_tile`² pixels rendered at
+    2×2 up to full resolution, chosen by `screen_statistic` ("max", "average" or "rms") of the block scales along
+    their rays, and reconstructed by intertile interpolation; at level 0 everywhere every tile is at full
+    resolution and the image equals the plain render."""
 
     step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5
     interpolation: Literal["nearest_block", "interblock"] = "interblock"
@@ -201,13 +179,9 @@ class Sampling(_Model):
     early_termination: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
     empty_space_skipping: bool = True
     priority_map: bool = True
+    screen_statistic: Literal["max", "average", "rms"] = "rms"
+    screen_tile: Annotated[int, Field(ge=2, le=64)] = 16
 
-    @field_validator("adaptive_object", "adaptive_screen", "preintegration")
-    @classmethod
-    def _pending(cls, v: bool, info: Any) -> bool:
-        if v:
-            _require_landed(info.field_name)
-        return v
 
 
 NonNeg = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
@@ -314,20 +288,6 @@ class Scene(_Model):
     @classmethod
     def _preset(cls, v: Any) -> Any:
         return _named_tf(v)
-
-    @field_validator("quality")
-    @classmethod
-    def _quality(cls, v: Any) -> Any:
-        if v != "full":
-            _require_landed("quality")
-        return v
-
-    @field_validator("tf2", "shading", "clip")
-    @classmethod
-    def _pending(cls, v: Any, info: Any) -> Any:
-        if v is not None and v is not False:
-            _require_landed(info.field_name)
-        return v
 
     # -- construction with one-line errors ---------------------------------------------------------------
     @classmethod

@@ -71,7 +71,7 @@ PARAMS_DTYPE = np.dtype(
         ("tf2_pre_n", np.int32),
         ("prio_tile", np.int32),
         ("prio_w", np.int32),
-        ("pad4", np.int32),
+        ("screen_n", np.int32),
         ("pad5", np.int32),
     ],
     align=True,

@@ -86,19 +86,12 @@ def test_missing_tf_is_named():
         Scene.parse({})
 
 
-@pytest.mark.parametrize("patch, field", [
-    ({"sampling": {"adaptive_screen": True}}, "sampling.adaptive_screen"),
-])
-def test_features_not_landed_are_refused(patch, field):
-    with pytest.raises(SceneError, match=rf"^{field}: .*not implemented"):
-        Scene.parse({"tf": TF, **patch})
-
-
 @pytest.mark.parametrize("patch", [
     {"quality": "lossless"}, {"quality": {"reduction": 30}}, {"quality": {"budget_mb": 64}},
     {"sampling": {"adaptive_object": True}}, {"sampling": {"adaptive_naive": True}},
     {"sampling": {"interpolation": "nearest_block"}},
     {"shading": {"ambient": 0.2}}, {"clip": {"planes": []}}, {"sampling": {"preintegration": True}},  # issue 11
+    {"tf2": "ct-dense"}, {"sampling": {"adaptive_screen": True, "screen_statistic": "max"}},  # issue 12
 ])
 def test_issue5_features_are_accepted(patch):
     Scene.parse({"tf": TF, **patch})
