@@ -84,8 +84,12 @@ def scene_from_args(args: argparse.Namespace):
             raise SceneError(f"--scene {args.scene!r}: a scene must be a JSON object")
     for key in ("tf", "tf2"):
         v = getattr(args, key)
-        if v:
-            data[key] = v if v in preset_names() else _load_json(v, f"--{key}")
+        if v in preset_names():
+            data[key] = v
+        elif v and not Path(v).exists():
+            raise SceneError(f"--{key} {v!r}: no such file, nor a preset (presets: {', '.join(preset_names())})")
+        elif v:
+            data[key] = _load_json(v, f"--{key}")
     if "tf" not in data:
         raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
     for key in ("width", "height", "mode", "isovalue"):

@@ -100,6 +100,8 @@ def test_cli_tf_preset_renders_as_its_points(tmp_path):
     (["--tf", "{tf}", "--fov", "200"], "camera.fov"),
     ([], "tf:"),
     (["--tf", "{tf}", "--out-of-range"], "unrecognized"),
+    (["--tf", "{tf}", "--tf2", "ct-nope"], "--tf2 'ct-nope': no such file, nor a preset (presets: ct-body,"),
+    (["--tf", "{tf}", "--tf2", "ct-dense", "--mode", "mip"], "tf2: a second transfer function needs mode"),
 ])
 def test_cli_render_bad_input_exits_2_with_one_line(store, tmp_path, args, needle):
     tf = tmp_path / "tf.json"
@@ -150,3 +152,13 @@ def test_pngs_carry_their_scene_report_and_srgb(tmp_path):
     assert "srgb" in im.info
     assert r._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
     np.testing.assert_array_equal(np.asarray(im), to_straight_rgba8(r.rgba))
+
+
+def test_cli_render_takes_a_second_tf(store, tmp_path):
+    tf = tmp_path / "tf.json"
+    tf.write_text(json.dumps(TF))
+    p = lodcast_cli("render", store, "-o", tmp_path / "o.npy", "--tf", tf, "--tf2", tf, "--width", "16",
+                    "--height", "16", "--report", tmp_path / "r.json")
+    assert p.returncode == 0, p.stderr
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert "-DLC_TF2" in rep["build_options"] and rep["tf2"] is True and rep["priority_map"] is not None
