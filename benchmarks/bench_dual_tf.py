@@ -15,16 +15,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "data"))
-RESULTS = HERE / "results"
-
-import lodcast  # noqa: E402
-from bench_consistent_lod import store_of  # noqa: E402  (the 16³ stores every CT benchmark shares)
-from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
+from bench_consistent_lod import DATA, RESULTS, best, store_of  # the 16³ stores every CT benchmark shares
+from lodcast.renderer.image_error import delta_e_stats
 
 ENGINE_BLOCK = {"points": [{"value": 90, "color": [0.75, 0.8, 0.85], "opacity": 0.0},
                            {"value": 130, "color": [0.8, 0.85, 0.9], "opacity": 0.6}]}
@@ -32,11 +26,6 @@ ENGINE_STEEL = {"points": [{"value": 190, "color": [1.0, 0.45, 0.1], "opacity": 
                            {"value": 215, "color": [1.0, 0.55, 0.2], "opacity": 0.9}]}
 CASES = [("chest CT", "ct_chest", "ct_chest_dicom", "ct-body", "ct-dense"),
          ("engine CT", "engine", "engine.nii.gz", ENGINE_BLOCK, ENGINE_STEEL)]
-
-
-def best(store, scene: dict, repeat: int):
-    lodcast.render(store, scene)
-    return min((lodcast.render(store, scene) for _ in range(repeat)), key=lambda r: r.report["kernel_ms"])
 
 
 def main() -> None:

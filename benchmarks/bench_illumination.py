@@ -20,14 +20,10 @@ DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "
 RESULTS = HERE / "results"
 
 import lodcast  # noqa: E402
+from bench_consistent_lod import best  # noqa: E402
 from lodcast.renderer.demo import SHADING  # noqa: E402
 from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
 
-
-
-def best(store, scene: dict, repeat: int):
-    lodcast.render(store, scene)
-    return min((lodcast.render(store, scene) for _ in range(repeat)), key=lambda r: r.report["kernel_ms"])
 
 
 def main() -> None:

@@ -16,17 +16,12 @@ import json
 from pathlib import Path
 
 import lodcast
-from bench_consistent_lod import DATA, RESULTS, store_of
+from bench_consistent_lod import DATA, RESULTS, best, store_of
 from bench_dual_tf import ENGINE_BLOCK, ENGINE_STEEL
 from lodcast.renderer.image_error import delta_e_stats
 
 CASES = [("chest CT", "ct_chest", "ct_chest_dicom", {"tf": "ct-bone"}),
          ("engine CT, dual TF", "engine", "engine.nii.gz", {"tf": ENGINE_BLOCK, "tf2": ENGINE_STEEL})]
-
-
-def best(store, scene: dict, repeat: int):
-    lodcast.render(store, scene)
-    return min((lodcast.render(store, scene) for _ in range(repeat)), key=lambda r: r.report["kernel_ms"])
 
 
 def main() -> None:

@@ -14,7 +14,7 @@ import numpy as np
 
 from lodcast.renderer.scene import LookAtCamera, OrbitCamera
 
-__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays"]
+__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays", "ray_box", "rays_at"]
 
 
 def box_world(shape_zyx, spacing_zyx, origin_zyx) -> tuple[np.ndarray, np.ndarray]:
@@ -88,14 +88,31 @@ def frame(cam: LookAtCamera | OrbitCamera, width: int, height: int, box_lo: np.n
     return look_at(cam.eye, cam.target, cam.up, cam.fov, width, height, ortho, cam.view_height)
 
 
-def pixel_rays(fr: Frame, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """(origins, unit directions), each (H, W, 3) float64 — the host-side mirror of the kernel's ray setup."""
-    j = (2 * (np.arange(width) + 0.5) / width - 1)[None, :, None]
-    i = (1 - 2 * (np.arange(height) + 0.5) / height)[:, None, None]
+def rays_at(fr: Frame, x, y, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(origins, unit directions) (..., 3) float64 of the rays through image positions (x, y) in pixels from the
+    top left corner (pixel (i, j)'s centre is x = j + 1/2, y = i + 1/2) — the host-side mirror of the kernel's ray
+    setup (lc_pixel_ray)."""
+    px = (2 * np.asarray(x, np.float64) / width - 1)[..., None] * fr.half_w
+    py = (1 - 2 * np.asarray(y, np.float64) / height)[..., None] * fr.half_h
     if fr.orthographic:
-        org = fr.eye + j * fr.half_w * fr.r + i * fr.half_h * fr.u
-        d = np.broadcast_to(fr.f, org.shape)
-        return org, d.copy()
-    d = fr.f + j * fr.half_w * fr.r + i * fr.half_h * fr.u
+        org = fr.eye + px * fr.r + py * fr.u
+        return org, np.broadcast_to(fr.f, org.shape).copy()
+    d = fr.f + px * fr.r + py * fr.u
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
     return np.broadcast_to(fr.eye, d.shape).copy(), d
+
+
+def pixel_rays(fr: Frame, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(origins, unit directions), each (H, W, 3) float64, through the pixel centres."""
+    y, x = np.mgrid[:height, :width] + 0.5
+    return rays_at(fr, x, y, width, height)
+
+
+def ray_box(o: np.ndarray, d: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """(t0, t1) per ray (..., 3) of the part inside the box [lo, hi] (world), t0 >= 0 (rays start at the eye or the
+    image plane); t1 <= t0 where a ray misses it."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - o) / d, (hi - o) / d
+    t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=-1), 0.0)
+    return t0, np.nanmin(np.maximum(ta, tb), axis=-1)

@@ -12,7 +12,7 @@ import os
 
 import numpy as np
 
-from lodcast.renderer.camera import Frame, pixel_rays
+from lodcast.renderer.camera import Frame, pixel_rays, ray_box
 from lodcast.renderer.scene import SceneError
 
 __all__ = ["CostError", "DEFAULT_MAX_SAMPLES", "estimate_samples", "max_samples_limit", "refuse_over_limit"]
@@ -48,12 +48,7 @@ def estimate_samples(fr: Frame, box: tuple[np.ndarray, np.ndarray], width: int, 
     if np.any(lo >= hi):
         return 0
     w, h = min(width, 64), min(height, 64)
-    o, d = pixel_rays(fr, w, h)
-    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta, tb = (lo - o) / d, (hi - o) / d
-    t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=1), 0.0)
-    t1 = np.nanmin(np.maximum(ta, tb), axis=1)
+    t0, t1 = ray_box(*pixel_rays(fr, w, h), lo, hi)
     n = np.where(t1 > t0, np.ceil((t1 - t0) / step), 0.0)
     return int(np.ceil(n.mean() * width * height))
 

@@ -310,19 +310,12 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
     if cfg.ess and scene.mode == "composite" and n_empty == 0 and cfg.sampler == "full":
         cfg = replace(cfg, ess=False)  # no block can be skipped: compile the block walk out
-    dist = cached_dist_table(scene.tf, vol.value_range, vol.std_max) if cfg.distribution else None
-    pre = None
-    if cfg.preint:  # over the LUT's value range, for segments of the base step
-        pre = preintegrate(scene.tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit)
+    dist, pre = _classification_tables(scene.tf, lut, unit, cfg, vol, step_world)
     params = _fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
     prio = None
     if second is not None:
-        hi = second.lut.lo + (second.lut.n - 1) / second.lut.scale
-        second = replace(
-            second,
-            dist=cached_dist_table(scene.tf2, vol.value_range, vol.std_max) if cfg.distribution else None,
-            preint=preintegrate(scene.tf2, second.lut.lo, hi, step_world / second.unit) if cfg.preint else None,
-        )
+        dist2, pre2 = _classification_tables(second.tf, second.lut, second.unit, cfg, vol, step_world)
+        second = replace(second, dist=dist2, preint=pre2)
         if scene.sampling.priority_map:
             prio = dual.priority_map(fr, (info.astype(np.int64) & 2) > 0, vol.shape, vol.spacing, vol.origin,
                                      vol.block_size, scene.width, scene.height)
@@ -334,6 +327,15 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     if second is not None:
         _fill_tf2(params, pr)
     return pr
+
+
+def _classification_tables(tf, lut: Lut, unit: float, cfg: KernelConfig, vol: VolumeView,
+                           step_world: float) -> tuple[DistTable | None, PreintTable | None]:
+    """One TF's distribution table (LC_DIST) and pre-integration table (LC_PREINT: over its LUT's value range,
+    for segments of the base step), where the kernel uses them."""
+    dist = cached_dist_table(tf, vol.value_range, vol.std_max) if cfg.distribution else None
+    pre = preintegrate(tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit) if cfg.preint else None
+    return dist, pre
 
 
 def _tfs(pr: Prepared) -> list[tuple[Lut, float]]:
@@ -379,15 +381,12 @@ def ext_table(pr: Prepared) -> np.ndarray:
 
 def _tables(pr: Prepared, kind: str) -> np.ndarray | None:
     """The distribution ("dist") or pre-integration ("preint") tables of tf (and tf2 after it), float4 rows."""
-    own = pr.dist if kind == "dist" else pr.preint
+    own = getattr(pr, kind)  # Prepared and SecondTf name them alike
     if own is None:
         return None
-    other = None if pr.second is None else (pr.second.dist if kind == "dist" else pr.second.preint)
-    get = (lambda t: t.kernel_table) if kind == "dist" else (lambda t: t.table)  # noqa: E731
-    parts = [np.asarray(get(own), np.float32).reshape(-1, 4)]
-    if other is not None:
-        parts.append(np.asarray(get(other), np.float32).reshape(-1, 4))
-    return np.ascontiguousarray(np.concatenate(parts))
+    attr = {"dist": "kernel_table", "preint": "table"}[kind]
+    tabs = [getattr(t, attr) for t in (own, getattr(pr.second, kind, None)) if t is not None]
+    return np.ascontiguousarray(np.concatenate([np.asarray(t, np.float32).reshape(-1, 4) for t in tabs]))
 
 
 def _fill_tf2(p: np.ndarray, pr: Prepared) -> None:
@@ -524,6 +523,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     t_rec = time.perf_counter()
     if pr.screen is not None:  # the mosaic, reconstructed by intertile interpolation
         rgba = screen_space.reconstruct(pr.screen, rgba[: pr.screen.rays]).astype(np.float32)
+    reconstruct_ms = (time.perf_counter() - t_rec) * 1e3
     kernel_ms = sum(ev.profile.end - ev.profile.start for ev in evs) * 1e-6
     n_blocks = vol.n_blocks
     if pr.lod is None:
@@ -561,7 +561,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "preintegration_ms": None if pr.preint is None else pr.preint.build_ms,
         "tf2": pr.second is not None,
         "priority_map": _priority_report(pr, nsamp),
-        "adaptive_screen": _screen_report(pr, (time.perf_counter() - t_rec) * 1e3),
+        "adaptive_screen": _screen_report(pr, reconstruct_ms),
         "width": W,
         "height": H,
         "device": device_info()["name"],

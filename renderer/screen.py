@@ -50,20 +50,8 @@ class ScreenPlan:
 def _ray_points(fr: cam.Frame, xy: np.ndarray, W: int, H: int, box: tuple, step: float, n: int) -> np.ndarray:
     """(R, n, 3) world points every `step` along the rays through image positions xy (R, 2), from where each
     enters the box; points past the exit are NaN."""
-    px = (2.0 * xy[:, 0] / W - 1.0) * fr.half_w
-    py = (1.0 - 2.0 * xy[:, 1] / H) * fr.half_h
-    if fr.orthographic:
-        o = fr.eye + px[:, None] * fr.r + py[:, None] * fr.u
-        d = np.broadcast_to(fr.f, o.shape)
-    else:
-        d = fr.f + px[:, None] * fr.r + py[:, None] * fr.u
-        d = d / np.linalg.norm(d, axis=1, keepdims=True)
-        o = np.broadcast_to(fr.eye, d.shape)
-    lo, hi = np.asarray(box[0], np.float64), np.asarray(box[1], np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta, tb = (lo - o) / d, (hi - o) / d
-    t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=1), 0.0)
-    t1 = np.nanmin(np.maximum(ta, tb), axis=1)
+    o, d = cam.rays_at(fr, xy[:, 0], xy[:, 1], W, H)
+    t0, t1 = cam.ray_box(o, d, *box)
     t = t0[:, None] + (np.arange(n) + 0.5)[None, :] * step
     pts = o[:, None, :] + t[..., None] * d[:, None, :]
     pts[t > t1[:, None]] = np.nan
@@ -127,20 +115,18 @@ def resolutions(priority: np.ndarray, tile: int = TILE) -> np.ndarray:
 
 
 def plan(res: np.ndarray, width: int, height: int, tile: int = TILE) -> ScreenPlan:
-    """The rays of every tile at its resolution (image positions, tile by tile in C order)."""
+    """The rays of every tile at its resolution (image positions), a tile's n x n rays row by row and together;
+    the tiles of one resolution follow each other in C order (all in C order when they share one)."""
     res = np.asarray(res, np.int64)
-    th, tw = res.shape
-    parts = []
-    offsets = np.zeros((th, tw), np.int64)
-    k = 0
-    for ty in range(th):
-        for tx in range(tw):
-            n = int(res[ty, tx])
-            c = (np.arange(n) + 0.5) * (tile / n)
-            yy, xx = np.meshgrid(ty * tile + c, tx * tile + c, indexing="ij")
-            parts.append(np.stack([xx.ravel(), yy.ravel()], -1))
-            offsets[ty, tx] = k
-            k += n * n
+    offsets = np.zeros(res.shape, np.int64)
+    parts, k = [], 0
+    for n in np.unique(res):
+        ts = np.argwhere(res == n)  # (m, 2) tile rows and columns, C order
+        offsets[ts[:, 0], ts[:, 1]] = k + np.arange(len(ts)) * n * n
+        k += len(ts) * n * n
+        c = (np.arange(n) + 0.5) * (tile / n)
+        yy, xx = np.meshgrid(c, c, indexing="ij")  # one tile's rays, row by row
+        parts.append(np.stack([ts[:, 1, None] * tile + xx.ravel(), ts[:, 0, None] * tile + yy.ravel()], -1).reshape(-1, 2))
     pos = np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 2), np.float32)
     return ScreenPlan(res, tile, width, height, np.ascontiguousarray(pos), offsets)
 
