@@ -201,9 +201,12 @@ def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarra
     return sizes, offsets
 
 
-def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
+         slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(atlas float32 1D, index map uint64 grid-shaped). Bricks are packed in C order of the grid. Raises
-    DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation)."""
+    DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation). `slices`: the
+    index map's slice maxima (default slice_max(levels); a pass of a render in several packs part of a selection
+    with the whole selection's)."""
     levels = np.asarray(levels)
     lv = levels.astype(np.int64)
     sizes, offsets = _offsets(levels, block_size)
@@ -222,7 +225,8 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
     for i, k, z, y, x in zip(sel.tolist(), flat[sel].tolist(), zz.tolist(), yy.tolist(), xx.tolist()):
         o, n = int(offsets[i]), int(sizes[i])
         atlas[o:o + n] = bricks[(k, z, y, x)].ravel()
-    return atlas, pack_index(offsets, flat, slice_max(levels).reshape(-1, 3)).reshape(levels.shape)
+    sl = slice_max(levels) if slices is None else slices
+    return atlas, pack_index(offsets, flat, sl.reshape(-1, 3)).reshape(levels.shape)
 
 
 def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
@@ -282,20 +286,23 @@ class DeviceAtlas:
 
 
 def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
-                 cache: BrickCache | None = None) -> DeviceAtlas:
+                 cache: BrickCache | None = None, slices: np.ndarray | None = None,
+                 keep: bool = True) -> DeviceAtlas:
     """The atlas and index map of `levels` on the device (kept in the device cache: reused when a recent render
     had the same store and levels, else loaded through the brick cache, packed and uploaded); `with_std`: also the
-    standard deviations of the coarse bricks, for distribution classification."""
+    standard deviations of the coarse bricks, for distribution classification. A pass of a render in several
+    gives its part of the selection with the whole one's `slices` (see `pack`) and `keep=False` (its atlas is
+    not kept on the device after the pass)."""
     levels = np.ascontiguousarray(levels, dtype=np.int8)
     key = (("atlas", vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest(), with_std)
-           if vol.key is not None else None)
+           if vol.key is not None and keep else None)
     n_sel = int(np.count_nonzero(levels >= 0))
     hit = device_cache().get(key) if key is not None else None
     if hit is not None:
         return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
     t_read = time.perf_counter()
     ld = load_bricks(vol, levels, cache)
-    atlas, index = pack(levels, ld.bricks, int(vol.block_size), max_bytes)
+    atlas, index = pack(levels, ld.bricks, int(vol.block_size), max_bytes, slices)
     sig = pack_std(levels, load_bricks(vol, levels, cache, what="std").bricks, int(vol.block_size)) if with_std else None
     t = time.perf_counter()
     ctx, queue = get_context()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import threading
 from collections import OrderedDict
-from typing import Any
+from typing import Any, Callable
 
 __all__ = ["ByteLru", "env_mb"]
 
@@ -19,15 +19,20 @@ def env_mb(name: str, default: float) -> int:
 
 
 class ByteLru:
-    """Thread-safe LRU bounded by the bytes of its values. `keep_last`: the newest entry stays even when it alone
-    exceeds the bound (else an entry larger than the bound is not kept at all)."""
+    """Thread-safe LRU bounded by the bytes of its values (`max_bytes`: a number, or a function of no arguments
+    asked at every insertion, for a bound that follows the environment). `keep_last`: the newest entry stays even
+    when it alone exceeds the bound (else an entry larger than the bound is not kept at all)."""
 
-    def __init__(self, max_bytes: int, keep_last: bool = False):
-        self.max_bytes = int(max_bytes)
+    def __init__(self, max_bytes: "int | Callable[[], int]", keep_last: bool = False):
+        self._max = max_bytes
         self.keep_last = keep_last
         self._d: OrderedDict[Any, tuple[Any, int]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
+
+    @property
+    def max_bytes(self) -> int:
+        return int(self._max() if callable(self._max) else self._max)
 
     @property
     def nbytes(self) -> int:
@@ -62,6 +67,7 @@ class ByteLru:
 
     def _evict(self) -> None:
         floor = 1 if self.keep_last else 0
-        while self._bytes > self.max_bytes and len(self._d) > floor:
+        bound = self.max_bytes
+        while self._bytes > bound and len(self._d) > floor:
             _, (_, n) = self._d.popitem(last=False)
             self._bytes -= n

@@ -32,6 +32,7 @@ class KernelConfig:
     preint: bool = False  # pre-integrated classification (composite only)
     tf2: bool = False  # dual-TF compositing, a second TF integrated concurrently (composite only)
     screen: bool = False  # adaptive screen-space sampling: rays through given image positions (tile samples)
+    passes: bool = False  # one pass of a render in several (the volume data exceeds the device budget)
 
     def __post_init__(self) -> None:
         if self.sampler not in ("full", "atlas"):
@@ -50,6 +51,8 @@ class KernelConfig:
             raise ValueError("pre-integration needs composite mode")
         if self.tf2 and self.mode != "composite":
             raise ValueError("a second transfer function (tf2) needs composite mode")
+        if self.passes and self.adaptive_naive:
+            raise ValueError("naive adaptive sampling cannot be split into passes (its steps run across blocks)")
         if self.ess and self.mode in ("average", "iso"):
             raise ValueError(f"mode {self.mode!r} reads every sample: no empty-space skipping")
 
@@ -76,6 +79,7 @@ class KernelConfig:
             (self.preint, "LC_PREINT"),
             (self.tf2, "LC_TF2"),
             (self.screen, "LC_SCREEN"),
+            (self.passes, "LC_PASSES"),
         ):
             if flag:
                 opts.append(f"-D{name}")

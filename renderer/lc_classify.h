@@ -159,10 +159,17 @@
 #elif defined(LC_MODE_ISO)
 /* isosurface: the first crossing of iso between two consecutive non-NaN samples, placed by linear interpolation
  * between them (a NaN sample breaks the pair) */
+#if defined(LC_PASSES) && defined(LC_SHADE)
+/* in passes the hit's normal is taken by the pass that holds the data around it, kept with the ray state */
+#define LC_ISO_GRAD iso_g = LC_GRAD(iso_q);
+#else
+#define LC_ISO_GRAD
+#endif
 #define LC_SAMPLE_BODY(v, sd, r, q)                                              \
     if ((v) == (v)) {                                                            \
         if (iso_pv == iso_pv && ((iso_pv < iso) != ((v) < iso))) {               \
             iso_q = iso_pq + ((iso - iso_pv) / ((v) - iso_pv)) * ((q) - iso_pq);  \
+            LC_ISO_GRAD                                                          \
             hit = 1;                                                             \
             done = 1;                                                            \
         }                                                                        \

@@ -72,6 +72,15 @@ typedef struct LcParams {
     int prio_w;         /* priority), prio_w tiles per row */
     int screen_n;       /* LC_SCREEN: the rays (tile samples) of this launch */
     int pad5;
+    /* LC_PASSES: one pass of a render in several (renderer/passes.py) */
+    float4 pass_lo;     /* world box that holds every sample this pass owns (rays that miss it only pass on */
+    float4 pass_hi;     /* their state) */
+    int4 pass_off;      /* full sampler: the voxel (x, y, z) of level 0 at which the pass's sub-volume starts, */
+    int4 pass_dims;     /* and its extent */
+    int pass_first;     /* 1: the first pass (the ray state starts fresh instead of being loaded) */
+    int pad6;
+    int pad7;
+    int pad8;
 } LcParams;
 
 #endif

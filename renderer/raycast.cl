@@ -39,6 +39,9 @@
  *                     byte per prio_tile x prio_tile pixels, prio_w per row; prio_tile = 0: none) is the priority
  *                     map: a zero-priority pixel's ray meets no block where tf2 is visible, so it ends on the
  *                     first integral alone
+ *   LC_PASSES         one pass of a render in several (lc_passes.h): samples only in the blocks `own` marks, the
+ *                     full sampler on a sub-volume at P->pass_off, the ray state carried in `state`; implies the
+ *                     block walk (without LC_ESS it skips nothing else)
  *
  * Sampling: the part [t0, t1] of the ray inside the box is cut into n = ceil((t1 - t0) / step) segments of
  * length step (the last one shorter, so the segments add up to t1 - t0 exactly); segment k is sampled once at
@@ -64,10 +67,14 @@
 #define LC_SAMPLE(q) lc_sample_atlas(vol, sig, imap, geom, (q))
 /* inside the block (or adaptive cell) the march is in: its brick set up once (lc_blk), see lc_atlas.h */
 #define LC_SAMPLE_B(q) lc_sample_blk(vol, sig, imap, geom, blk, (q))
+#elif defined(LC_PASSES)
+#define LC_SAMPLE(q) ((float2)(lc_sample_pass(vol, pdims, pmax, qmax, poff, (q)), 0.0f))
+#define LC_SAMPLE_B(q) LC_SAMPLE(q)
 #else
 #define LC_SAMPLE(q) ((float2)(lc_sample(vol, dims, qmax, (q)), 0.0f))
 #define LC_SAMPLE_B(q) LC_SAMPLE(q)
 #endif
+#include "lc_passes.h"
 
 
 #include "lc_shade.h"
@@ -77,7 +84,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
                         __global const ushort* sig, __global const float4* dtab, __global const float4* ptab,
-                        __global const uchar* prio, __global const float2* spos) {
+                        __global const uchar* prio, __global const float2* spos, __global const uchar* own,
+                        __global float* state) {
     const int j = get_global_id(0), i = get_global_id(1);
 #ifdef LC_SCREEN /* the rays are laid out in rows of P->width, as many rows as they need */
     if (j >= P->width) return;
@@ -92,6 +100,17 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 
     const int4 dims = P->dims;
     const float3 qmax = convert_float3(dims.xyz - 1);
+#ifdef LC_PASSES
+#ifdef LC_SCREEN
+    const uint st_rays = (uint)P->screen_n;
+#else
+    const uint st_rays = (uint)P->width * (uint)P->height;
+#endif
+#ifdef LC_SAMPLER_FULL
+    const int4 pdims = P->pass_dims;
+    const float3 pmax = convert_float3(pdims.xyz - 1), poff = convert_float3(P->pass_off.xyz);
+#endif
+#endif
 #ifdef LC_SAMPLER_ATLAS
     LcAtlasGeom geom;
     geom.gx = P->grid.x; geom.gy = P->grid.y; geom.gz = P->grid.z; geom.B = (float)P->grid.w;
@@ -159,6 +178,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float iso_pv = NAN; /* the previous sample's value (NaN: none) and position, the hit's position */
     float3 iso_pq = (float3)(0.0f), iso_q = (float3)(0.0f);
     int hit = 0;
+#if defined(LC_PASSES) && defined(LC_SHADE)
+    float3 iso_g = (float3)(0.0f); /* the hit's gradient (lc_classify.h's LC_ISO_GRAD) */
+#endif
 #endif
 #ifdef LC_PREINT
     const float pre_lo = P->pre_lo, pre_scale = P->pre_scale;
@@ -169,6 +191,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     float vmax = -INFINITY;
     uint taken = 0;
     int done = 0;
+#ifdef LC_PASSES
+    if (!P->pass_first) LC_STATE_LOAD
+#endif
 
     float3 o, d;
     float t0, t1;
@@ -182,7 +207,12 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     const float sh_hn = sqrt(sh_h.x * sh_h.x + sh_h.y * sh_h.y + sh_h.z * sh_h.z);
     sh_h = sh_hn > 0.0f ? sh_h / sh_hn : sh_l;
 #endif
-    if (lc_hit_box(P, o, d, &t0, &t1)) {
+    int march = lc_hit_box(P, o, d, &t0, &t1);
+#ifdef LC_PASSES
+    /* a ray that misses the region owns no sample in this pass: it only passes its state on */
+    march = march && !done && lc_meets_box(P->pass_lo.xyz, P->pass_hi.xyz, o, d, t0, t1);
+#endif
+    if (march) {
         const float dt = P->step, inv_dt = 1.0f / dt;
         float nf = ceil((t1 - t0) / dt);
         nf = nf < 1.0f ? 1.0f : (nf > (float)P->max_samples ? (float)P->max_samples : nf);
@@ -297,27 +327,37 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #undef LC_CELL_BLOCK
 #else
         int k = 0;
-#ifdef LC_ESS
+#if defined(LC_ESS) || defined(LC_PASSES)
         /* 3D DDA over the block grid: block b covers voxel coordinates [b B - 1/2, (b + 1) B - 1/2). */
         const float B = (float)P->grid.w;
         const int gx = P->grid.x, gy = P->grid.y, gz = P->grid.z;
         LC_DDA_BEGIN(B, gx, gy, gz)
         int inside = 1;
+#ifdef LC_PASSES
+        int owned = 1; /* the last block's owner is this pass (samples past the grid's last block go with it) */
+#endif
         while (k < n && !done) {
             int k_end = n;
             int skip = 0;
             if (inside) {
                 const float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves block */
+#ifdef LC_ESS
                 const float info = block_info[(bz * gy + by) * gx + bx];
-#ifdef LC_SAMPLER_ATLAS
+#endif
+#if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
                 blk = lc_blk(imap, geom, bx, by, bz);
 #endif
-#ifdef LC_MODE_MIP
+#ifndef LC_ESS
+#elif defined(LC_MODE_MIP)
                 skip = info <= vmax; /* nothing here can exceed the maximum so far */
 #elif defined(LC_TF2)
                 skip = ((int)info & ((sat ? 0 : 1) | (sat2 ? 0 : 2))) == 0; /* no running integral sees it */
 #else
                 skip = info == 0.0f; /* TF opacity zero over the block's border-inclusive value range */
+#endif
+#ifdef LC_PASSES
+                owned = own[(bz * gy + by) * gx + bx];
+                skip = skip || !owned;
 #endif
                 if (tb < t1) {
                     /* first sample at or after tb; positions are monotone in k */
@@ -334,9 +374,14 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                     bz += sz; tnz += tdz; inside = bz >= 0 && bz < gz;
                 }
             }
+            else {
 #ifdef LC_SAMPLER_ATLAS
-            else blk.n = 0; /* rounding left samples beyond the grid's last block: march them (general sampler) */
+                blk.n = 0; /* rounding left samples beyond the grid's last block: march them (general sampler) */
 #endif
+#ifdef LC_PASSES
+                skip = !owned;
+#endif
+            }
             if (skip) {
                 k = k_end;
                 continue;
@@ -373,6 +418,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #undef LC_POS
     }
 
+#ifdef LC_PASSES
+    LC_STATE_SAVE
+#endif
     float4 res;
 #if defined(LC_MODE_MIP) || defined(LC_MODE_AVG) || defined(LC_MODE_ISO)
     /* the projections: the TF's colour and opacity, as given, at the projected value; isosurface: the TF's colour
@@ -393,7 +441,11 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         int i0 = (int)f;
         const float4 e = lut[i0] + (lut[i0 + 1] - lut[i0]) * (f - (float)i0);
 #ifdef LC_MODE_ISO
+#if defined(LC_PASSES) && defined(LC_SHADE)
+        res = (float4)(lc_lit(e.xyz, iso_g, sh_l, sh_h, sh_k, sh_gmin, sh_gref), 1.0f);
+#else
         res = (float4)(LC_SHADE_COL(e.xyz, iso_q), 1.0f);
+#endif
 #else
         res = (float4)(e.xyz * e.w, e.w);
 #endif

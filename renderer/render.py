@@ -33,14 +33,14 @@ from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
 from lodcast.renderer import cost
 from lodcast.renderer import dual
+from lodcast.renderer import passes as multipass
 from lodcast.renderer import screen as screen_space
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
 from lodcast.renderer.program import device_info, get_context, get_program
-from lodcast.renderer.sampler import upload_level0
 from lodcast.renderer.scene import QualityBudget, QualityReduction, Scene, SceneError
-from lodcast.renderer.structs import new_params
+from lodcast.renderer.structs import STATE_FLOATS, new_params
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.volume import VolumeView, as_volume
 
@@ -189,6 +189,7 @@ class Prepared:
     second: "dual.SecondTf | None" = None  # tf2 (LC_TF2) only
     priority: "dual.PriorityMap | None" = None  # tf2 with sampling.priority_map only
     screen: "screen_space.ScreenPlan | None" = None  # sampling.adaptive_screen only
+    passes: "multipass.PassPlan | None" = None  # volume data beyond the device budget only (LC_PASSES)
 
 
 @dataclass(frozen=True)
@@ -322,11 +323,39 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     plan = _screen_plan(vol, scene, fr, info, lod) if cfg.screen else None
     if plan is not None:
         params[0]["screen_n"] = plan.rays
+    pp = _pass_plan(vol, scene, fr, cfg, info, lod)
+    if pp is not None:
+        cfg = replace(cfg, passes=True)
     pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio,
-                  plan)
+                  plan, pp)
     if second is not None:
         _fill_tf2(params, pr)
     return pr
+
+
+def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, info: np.ndarray,
+               lod: "LodPlan | None") -> "multipass.PassPlan | None":
+    """The passes of a render whose volume data exceeds the device budget or one allocation (renderer/passes.py),
+    None for one pass."""
+    limit, what = multipass.volume_limit(lod_atlas.max_alloc_bytes())
+    if cfg.adaptive and lod is not None and lod.step_levels is not None:  # cells of level -1 are never sampled
+        st = lod.step_levels
+        if cfg.interpolation == "interblock":
+            st = st.reshape(st.shape[0] // 2, 2, st.shape[1] // 2, 2, st.shape[2] // 2, 2).max(axis=(1, 3, 5))
+        unsampled = st < 0
+    elif cfg.ess:  # blocks the walk skips whatever the ray did before
+        unsampled = info == (-np.inf if scene.mode in EXTREMUM_MODES else 0.0)
+    else:
+        unsampled = np.zeros(vol.grid, bool)
+    reach = scene.sampling.step
+    if cfg.adaptive and lod is not None:
+        reach *= 2.0 ** max(0, int(lod.levels.max(initial=0)))  # an adaptive segment's front end
+    pp = multipass.plan(vol, fr, reach, None if lod is None else lod.levels, cfg.distribution, unsampled, limit,
+                        cfg.interpolation, what)
+    if pp is not None and cfg.adaptive_naive:
+        raise SceneError("sampling.adaptive_naive: naive adaptive steps run across blocks and cannot be split into "
+                         "passes, which this volume needs on this device (LODCAST_DEVICE_BUDGET_MB)")
+    return pp
 
 
 def _classification_tables(tf, lut: Lut, unit: float, cfg: KernelConfig, vol: VolumeView,
@@ -481,20 +510,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     ctx, queue = get_context()
     built = get_program("raycast.cl", options)
     mf = cl.mem_flags
-    if pr.lod is None:
-        dvol, cached = upload_level0(vol)
-        d_vol, d_imap = dvol.buffer, cl.Buffer(ctx, mf.READ_ONLY, size=8)
-        upload_ms = 0.0 if cached else dvol.upload_ms
-        n_read, n_cached = (0, vol.n_blocks) if cached else (vol.n_blocks, 0)
-    else:
-        da = lod_atlas.device_atlas(vol, pr.lod.levels, with_std=cfg.distribution)
-        d_vol, d_imap = da.atlas, da.index
-        upload_ms = da.upload_ms
-        n_read, n_cached = da.read, da.cached
-    steps = pr.lod.step_levels if pr.lod is not None and pr.lod.step_levels is not None else np.zeros(8, np.int8)
-    d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)
     W, H = scene.width, scene.height
-    d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.params)
     d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
     d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ext_table(pr))
     d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.block_info)
@@ -504,17 +520,31 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     spos = pr.screen.positions if pr.screen is not None and pr.screen.rays else np.zeros((1, 2), np.float32)
     d_spos = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spos)
     kern = cl.Kernel(built.program, "lc_render")
-    d_sig = da.std if cfg.distribution else cl.Buffer(ctx, mf.READ_ONLY, size=8)
     d_dtab, d_ptab = (
         cl.Buffer(ctx, mf.READ_ONLY, size=16) if t is None else cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=t)
         for t in (_tables(pr, "dist"), _tables(pr, "preint"))
     )
     prio = pr.priority.tiles if pr.priority is not None else np.ones(16, np.uint8)
     d_prio = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prio)
-    kern.set_args(d_params, d_vol, d_lut, d_ext, d_info, d_out, d_n, d_imap, d_steps, d_sig, d_dtab, d_ptab, d_prio,
-                  d_spos)
+    d_state = cl.Buffer(ctx, mf.READ_WRITE, size=STATE_FLOATS * n_rays * 4 if pr.passes is not None else 4)
     rows = H if pr.screen is None else -(-n_rays // W)  # LC_SCREEN: the rays in rows of W
-    evs = launch(kern, W, rows, estimated_samples=pr.estimated_samples, stop=stop)
+    evs: list[cl.Event] = []
+    stats = multipass.PassStats()
+    for k, data in enumerate(multipass.volume_data(pr, stats)):
+        if k and stop is not None:
+            stop()  # between passes as between bands
+        p = pr.params.copy()
+        multipass.fill_pass(p, data.region, pr, k == 0)
+        d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
+        d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.steps)
+        d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
+        kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,
+                      d_ptab, d_prio, d_spos, d_own, d_state)
+        evs += launch(kern, W, rows, estimated_samples=pr.estimated_samples // stats.planned, stop=stop)
+        if pr.passes is not None:
+            evs[-1].wait()  # this pass's data may go before the next is uploaded
+        del data
+    n_read, n_cached, upload_ms = stats.read, stats.cached, stats.upload_ms
     rgba = np.empty((H, W, 4) if pr.screen is None else (n_rays, 4), np.float32)
     nsamp = np.empty((H, W) if pr.screen is None else (n_rays,), np.uint32)
     cl.enqueue_copy(queue, rgba, d_out, wait_for=evs)
@@ -562,6 +592,8 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "tf2": pr.second is not None,
         "priority_map": _priority_report(pr, nsamp),
         "adaptive_screen": _screen_report(pr, reconstruct_ms),
+        "device_bytes": stats.device_bytes,
+        "passes": stats.passes,
         "width": W,
         "height": H,
         "device": device_info()["name"],

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["PARAMS_DTYPE", "new_params"]
+__all__ = ["PARAMS_DTYPE", "STATE_FLOATS", "new_params"]
 
 _V4F = (np.float32, (4,))
 _V4I = (np.int32, (4,))
@@ -73,10 +73,22 @@ PARAMS_DTYPE = np.dtype(
         ("prio_w", np.int32),
         ("screen_n", np.int32),
         ("pad5", np.int32),
+        ("pass_lo", _V4F),
+        ("pass_hi", _V4F),
+        ("pass_off", _V4I),
+        ("pass_dims", _V4I),
+        ("pass_first", np.int32),
+        ("pad6", np.int32),
+        ("pad7", np.int32),
+        ("pad8", np.int32),
     ],
     align=True,
 )
-assert PARAMS_DTYPE.itemsize == 496 and PARAMS_DTYPE.itemsize % 16 == 0
+assert PARAMS_DTYPE.itemsize == 576 and PARAMS_DTYPE.itemsize % 16 == 0
+
+
+#: LC_PASSES: floats of ray state kept per ray between passes (lc_passes.h's LC_STATE_FLOATS)
+STATE_FLOATS = 32
 
 
 def new_params() -> np.ndarray:

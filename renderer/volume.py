@@ -41,6 +41,12 @@ class VolumeView:
     def read_level0(self) -> np.ndarray:
         return self._read0()
 
+    def read_level0_region(self, region: tuple) -> np.ndarray:
+        """Voxels `region` (slices, z-y-x) of level 0: a pass of a render in several reads only its part."""
+        if self.has_levels:
+            return self.source.read_region(0, region)
+        return np.asarray(self.source)[region]
+
     @property
     def has_levels(self) -> bool:
         """Whether the coarser levels exist (a lodcast store), which level-of-detail rendering needs."""

@@ -27,6 +27,22 @@ def _settings(args: argparse.Namespace, **extra: Any) -> Any:
     return settings
 
 
+def _device_budget_opt(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device-budget-mb", type=float, default=None,
+                   help="most device memory (MB, 10^6 bytes) one render's volume data may use; larger ones render in "
+                        "several passes, same image (default LODCAST_DEVICE_BUDGET_MB, else one device allocation)")
+
+
+def _apply_device_budget(args: argparse.Namespace) -> None:
+    """--device-budget-mb: the renderer reads LODCAST_DEVICE_BUDGET_MB at every render, in this process's threads."""
+    mb = getattr(args, "device_budget_mb", None)
+    if mb is None:
+        return
+    if not (mb > 0 and mb == mb and mb != float("inf")):
+        raise ValueError(f"--device-budget-mb: must be a positive number of megabytes, got {mb}")
+    os.environ["LODCAST_DEVICE_BUDGET_MB"] = repr(float(mb))
+
+
 def _url_opts(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", default=os.environ.get("LODCAST_URL"), help="server URL (default LODCAST_URL); without one, the local queue under --root")
     p.add_argument("--token", default=None, help="bearer token (default LODCAST_TOKEN)")
@@ -52,11 +68,13 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--token", default=None, help="bearer token every route but /healthz needs (default LODCAST_TOKEN)")
     p.add_argument("--max-samples", type=float, default=None,
                    help="most samples one render may take, estimated before it runs (default LODCAST_MAX_SAMPLES, else 2e9)")
+    _device_budget_opt(p)
     p.add_argument("--log-level", default="warning")
     p.set_defaults(func=_cmd_serve)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
+    _apply_device_budget(args)
     settings = _settings(args, workers=args.workers, render_concurrency=args.render_concurrency,
                          import_roots=args.import_root, token=args.token,
                          max_samples=None if args.max_samples is None else int(args.max_samples))
@@ -110,6 +128,7 @@ def add_worker(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--root", default=None, help="store root (default LODCAST_ROOT, else .); shared by every worker and the service")
     p.add_argument("--queue", default=None, help="redis://host:port/db for a shared queue (default: the root's embedded SQLite queue)")
     p.add_argument("--threads", type=int, default=1, help="jobs run at once by this process (default 1)")
+    _device_budget_opt(p)
     p.set_defaults(func=_cmd_worker)
 
 
@@ -120,6 +139,7 @@ def _cmd_worker(args: argparse.Namespace) -> int:
 
     if args.threads < 1:
         raise ValueError(f"--threads: must be at least 1, got {args.threads}")
+    _apply_device_budget(args)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = _settings(args)
     jq = JobQueue(settings)

@@ -142,10 +142,18 @@ def test_atlas_layout_and_max_alloc(store):
 
 
 def test_render_respects_the_device_max_alloc(store, monkeypatch):
+    """An atlas larger than one allocation renders in passes (tests/test_passes.py), the same image; only an
+    allocation smaller than one block and its neighbours is an error."""
     device_cache().clear()
+    lv = np.zeros(store.grid, np.int8)
+    ref = render(store, _scene(CAMERAS[0]), levels=lv)
+    monkeypatch.setattr(lod_atlas, "max_alloc_bytes", lambda: int(ref.report["device_bytes"] * 0.8))
+    got = render(store, _scene(CAMERAS[0]), levels=lv)
+    assert got.report["passes"] > 1 and got.report["device_bytes"] <= ref.report["device_bytes"] * 0.8
+    assert np.array_equal(got.rgba, ref.rgba)
     monkeypatch.setattr(lod_atlas, "max_alloc_bytes", lambda: 1024)
     with pytest.raises(lodcast.renderer.program.DeviceError, match="largest allocation"):
-        render(store, _scene(CAMERAS[0]), levels=np.zeros(store.grid, np.int8))
+        render(store, _scene(CAMERAS[0]), levels=lv)
     assert lod_atlas.max_alloc_bytes() == 1024
     monkeypatch.undo()
     assert lod_atlas.max_alloc_bytes() == int(lodcast.renderer.program.device_info()["max_mem_alloc_size"])

@@ -1,0 +1,318 @@
+"""Renders in several passes: volume data larger than the device budget (DESIGN.md, Limits:
+`LODCAST_DEVICE_BUDGET_MB`) or than one device allocation.
+
+When the data a render samples — level 0 at quality "full", the brick atlas of a selection otherwise (with its
+standard deviations under distribution classification) — exceeds the limit, the block grid is cut into a grid of
+regions of whole blocks, halving the longest extent until every region's data fits. A pass uploads one region's
+data: at full resolution the region's voxels plus a rim of `ghost_voxels` (the trilinear stencil, the gradient's
+central differences and a pre-integrated segment's front end reach that far past a sample), on the atlas the
+bricks of the region's blocks and of `ring_blocks` blocks around them (interblock interpolation reads the
+neighbouring blocks, and their neighbours where a gradient or a segment end reaches into them). Each pass takes
+the samples of the blocks it owns and carries every ray's state to the next (lc_passes.h), in a front-to-back
+visibility order of the regions, the same for every ray of the view (`visibility_order`): the image is the
+single-pass image exactly. Regions whose blocks all are empty space for this scene are not uploaded at all.
+
+`MB` here is 10⁶ bytes. `device_bytes` in the report is the volume data one pass holds on the device (the largest
+over the passes); a render in several passes does not keep its data in the device cache, and with a budget set the
+device cache itself is bounded by it.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from typing import Any, Iterator
+
+import numpy as np
+import pyopencl as cl
+
+from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer.camera import Frame
+from lodcast.renderer.program import DeviceError, get_context
+
+__all__ = ["Region", "PassPlan", "device_budget", "volume_limit", "ghost_voxels", "ring_blocks", "split_grid",
+           "visibility_order", "plan", "own_mask", "pass_levels", "pass_steps", "PassStats", "PassData", "volume_data",
+           "fill_pass"]
+
+
+def device_budget() -> int | None:
+    """`LODCAST_DEVICE_BUDGET_MB` in bytes (MB = 10⁶ bytes), None when unset."""
+    raw = os.environ.get("LODCAST_DEVICE_BUDGET_MB")
+    if raw is None or not raw.strip():
+        return None
+    try:
+        value = float(raw)
+    except ValueError:
+        raise ValueError(f"LODCAST_DEVICE_BUDGET_MB: {raw!r} is not a number of megabytes") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"LODCAST_DEVICE_BUDGET_MB: must be a positive number of megabytes, got {raw!r}")
+    return int(value * 1e6)
+
+
+def volume_limit(max_alloc: int) -> tuple[int, str]:
+    """(the most bytes of volume data one pass may hold: the device budget, and at most one allocation; what sets
+    it, for errors)."""
+    budget = device_budget()
+    if budget is None or budget > max_alloc:
+        return max_alloc, "the device's largest allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)"
+    return budget, "LODCAST_DEVICE_BUDGET_MB"
+
+
+def ghost_voxels(step_voxels: float) -> int:
+    """How far past an owned sample (voxels of level 0) a pass's data must reach: half a trilinear stencil plus a
+    gradient's central difference (2), plus one step for a pre-integrated segment's front end or an isosurface's
+    previous sample."""
+    return int(math.ceil(step_voxels)) + 2
+
+
+def ring_blocks(step_voxels: float, block_size: int, interpolation: str) -> int:
+    """Blocks around a region whose bricks a pass on the atlas loads: those within the ghost reach of its samples
+    (nearest block reads a position's own block only), and with interblock interpolation half a block further
+    (a position's interblock neighbourhood spans the block centres around it)."""
+    reach = ghost_voxels(step_voxels) + (block_size / 2 if interpolation == "interblock" else 0)
+    return int(math.ceil(reach / block_size))
+
+
+@dataclass(frozen=True)
+class Region:
+    blocks: tuple[slice, slice, slice]  # the blocks this pass owns (z, y, x)
+    data: tuple[slice, slice, slice]  # full: the voxels it uploads; atlas: the blocks whose bricks it loads
+    nbytes: int  # its volume data on the device
+
+
+@dataclass(frozen=True)
+class PassPlan:
+    regions: tuple[Region, ...]  # in visibility order, the empty ones left out
+    split: tuple[int, int, int]  # regions per axis (z, y, x) of the grid
+    limit: int  # bytes one pass may hold
+    single_bytes: int  # what one pass over everything would have needed
+
+
+def _cuts(n: int, parts: int) -> np.ndarray:
+    return np.unique(np.round(np.linspace(0, n, parts + 1)).astype(np.int64))
+
+
+def split_grid(grid: tuple[int, int, int], nbytes, limit: int, extent: tuple[float, float, float],
+               what: str = "LODCAST_DEVICE_BUDGET_MB") -> tuple[list[np.ndarray], int]:
+    """Cuts per axis (block indices, 0 ... grid) of the coarsest grid of regions whose every region's data,
+    `nbytes(lo, hi)` for block ranges lo..hi (z, y, x), fits `limit`: the axis of largest region extent
+    (`extent`: a block's size per axis) is halved until it does. When single blocks do not fit, raises ValueError
+    if the limit is `what` = LODCAST_DEVICE_BUDGET_MB (a setting to change), else DeviceError."""
+    parts = [1, 1, 1]
+    while True:
+        cuts = [_cuts(g, p) for g, p in zip(grid, parts)]
+        worst = 0
+        for z0, z1 in zip(cuts[0][:-1], cuts[0][1:]):
+            for y0, y1 in zip(cuts[1][:-1], cuts[1][1:]):
+                for x0, x1 in zip(cuts[2][:-1], cuts[2][1:]):
+                    worst = max(worst, nbytes((z0, y0, x0), (z1, y1, x1)))
+        if worst <= limit:
+            return cuts, worst
+        span = [(grid[a] / parts[a]) * extent[a] if parts[a] < grid[a] else -1.0 for a in range(3)]
+        a = int(np.argmax(span))
+        if span[a] < 0:
+            msg = f"{what}: {limit / 1e6:.3g} MB cannot hold even one block's data ({worst / 1e6:.3g} MB needed)"
+            raise ValueError(msg) if what == "LODCAST_DEVICE_BUDGET_MB" else DeviceError(msg)
+        parts[a] = min(grid[a], parts[a] * 2)
+
+
+def visibility_order(cuts: list[np.ndarray], fr: Frame, vol) -> np.ndarray:
+    """A key per region (C order of the region grid) such that along every ray of the view the regions it
+    crosses have strictly increasing keys: perspective, the Manhattan distance in region indices from the
+    eye's (virtual, outside the grid: -1 or n) region — a ray from the eye moves every index away from the eye's;
+    orthographic, the sum of the indices signed by the view direction."""
+    idx = np.meshgrid(*[np.arange(len(c) - 1) for c in cuts], indexing="ij")
+    B = float(vol.block_size)
+    f = np.asarray(fr.f, np.float64)[::-1]  # z, y, x
+    if fr.orthographic:
+        return sum(np.sign(f[a]) * idx[a] for a in range(3))
+    q = (np.asarray(fr.eye, np.float64) - np.asarray(vol.origin[::-1], np.float64)) / np.asarray(vol.spacing[::-1])
+    p = (q[::-1] + 0.5) / B  # block coordinates z, y, x
+    eye = [int(np.searchsorted(c, p[a], side="right")) - 1 for a, c in enumerate(cuts)]
+    eye = [-1 if p[a] < cuts[a][0] else (len(cuts[a]) - 1 if p[a] >= cuts[a][-1] else e) for a, e in enumerate(eye)]
+    return sum(np.abs(idx[a] - eye[a]) for a in range(3))
+
+
+def _box_sum(per_block: np.ndarray):
+    """Sums of `per_block` over block boxes in O(1) each (a 3D prefix sum)."""
+    c = np.zeros(tuple(s + 1 for s in per_block.shape), np.int64)
+    c[1:, 1:, 1:] = per_block.astype(np.int64).cumsum(0).cumsum(1).cumsum(2)
+
+    def total(lo, hi) -> int:
+        (z0, y0, x0), (z1, y1, x1) = lo, hi
+        return int(c[z1, y1, x1] - c[z0, y1, x1] - c[z1, y0, x1] - c[z1, y1, x0]
+                   + c[z0, y0, x1] + c[z0, y1, x0] + c[z1, y0, x0] - c[z0, y0, x0])
+    return total
+
+
+def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std: bool, unsampled: np.ndarray,
+         limit: int, interpolation: str = "interblock", what: str = "LODCAST_DEVICE_BUDGET_MB") -> PassPlan | None:
+    """The passes of a render, or None when its data fits `limit` in one. `levels`: the atlas selection (None: level
+    0, full resolution); `unsampled`: the blocks the kernel never samples in this scene (empty-space skipping, or
+    adaptive cells all skipped): regions of only those are left out."""
+    G, B, shape = vol.grid, int(vol.block_size), vol.shape
+    if levels is None:
+        g = ghost_voxels(step_voxels)
+
+        def data_box(lo, hi) -> tuple[slice, ...]:
+            return tuple(slice(max(0, lo[a] * B - g), min(shape[a], hi[a] * B + g)) for a in range(3))
+
+        def nbytes(lo, hi) -> int:
+            return 4 * math.prod(s.stop - s.start for s in data_box(lo, hi))
+
+        single = 4 * vol.n_voxels
+    else:
+        lv = np.asarray(levels).astype(np.int64)
+        per = np.where(lv >= 0, (B >> np.maximum(lv, 0)) ** 3, 0) * (6 if with_std else 4)
+        total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
+
+        def data_box(lo, hi) -> tuple[slice, ...]:
+            return tuple(slice(max(0, lo[a] - r), min(G[a], hi[a] + r)) for a in range(3))
+
+        def nbytes(lo, hi) -> int:
+            d = data_box(lo, hi)
+            return total(tuple(s.start for s in d), tuple(s.stop for s in d))
+
+        single = total((0, 0, 0), G)
+    if single <= limit:
+        return None
+    extent = tuple(B * float(s) for s in vol.spacing)
+    cuts, _ = split_grid(G, nbytes, limit, extent, what)
+    key = visibility_order(cuts, fr, vol).ravel()
+    regions = []
+    boxes = [(z0, y0, x0, z1, y1, x1) for z0, z1 in zip(cuts[0][:-1], cuts[0][1:])
+             for y0, y1 in zip(cuts[1][:-1], cuts[1][1:]) for x0, x1 in zip(cuts[2][:-1], cuts[2][1:])]
+    for i in np.argsort(key, kind="stable"):
+        z0, y0, x0, z1, y1, x1 = (int(v) for v in boxes[i])
+        own = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
+        if unsampled[own].all():
+            continue  # nothing here is sampled: no pass
+        regions.append(Region(own, data_box((z0, y0, x0), (z1, y1, x1)), nbytes((z0, y0, x0), (z1, y1, x1))))
+    return PassPlan(tuple(regions), tuple(len(c) - 1 for c in cuts), limit, single)  # type: ignore[arg-type]
+
+
+def own_mask(grid: tuple[int, int, int], region: Region) -> np.ndarray:
+    """One byte per block (C order): 1 where `region` owns the block."""
+    m = np.zeros(grid, np.uint8)
+    m[region.blocks] = 1
+    return m
+
+
+def pass_levels(levels: np.ndarray, region: Region) -> np.ndarray:
+    """The part of a selection a pass on the atlas loads: its region's blocks and their ring, -1 elsewhere."""
+    out = np.full(np.asarray(levels).shape, -1, np.int8)
+    out[region.data] = np.asarray(levels, np.int8)[region.data]
+    return out
+
+
+def pass_steps(steps: np.ndarray, own: np.ndarray, interpolation: str) -> np.ndarray:
+    """Adaptive sampling's step levels with every cell outside the pass's blocks skipped (-1)."""
+    if interpolation == "interblock":  # half-block cells: cell h lies in block h >> 1
+        own = np.repeat(np.repeat(np.repeat(own, 2, 0), 2, 1), 2, 2)
+    return np.ascontiguousarray(np.where(own > 0, steps, -1).astype(np.int8))
+
+
+@dataclass
+class PassStats:
+    """What the passes of one render uploaded, for its report."""
+
+    planned: int = 1
+    passes: int = 0
+    read: int = 0  # blocks (full) or bricks (atlas) read from the store
+    cached: int = 0  # found on the device (one pass) or in the brick cache
+    upload_ms: float = 0.0
+    device_bytes: int = 0  # the most volume data on the device at once
+
+
+@dataclass(frozen=True)
+class PassData:
+    region: Region | None  # None: the one pass of a render that fits
+    vol: Any  # cl.Buffer: level 0 (or the pass's sub-volume), or the atlas
+    index: Any  # the atlas's index map (full: a placeholder)
+    std: Any  # the standard deviations beside the atlas (or a placeholder)
+    steps: np.ndarray  # adaptive sampling's step levels (or a placeholder)
+    own: np.ndarray  # LC_PASSES: the blocks the pass owns (or a placeholder)
+
+
+def _empty_region(levels: np.ndarray | None) -> Region:
+    """A pass that owns nothing: the image of a render whose every region is empty space (only its state
+    initialisation and background run)."""
+    none = (slice(0, 0),) * 3
+    return Region(none, none if levels is not None else (slice(0, 1),) * 3, 4)
+
+
+def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
+    """The volume data of each pass of `pr` (renderer/render.py's Prepared), uploaded when its pass comes and
+    dropped after it, counting into `stats`."""
+    from lodcast.renderer.sampler import upload_level0
+
+    ctx, _ = get_context()
+    mf = cl.mem_flags
+    cfg, vol, lod = pr.config, pr.volume, pr.lod
+    steps = lod.step_levels if lod is not None and lod.step_levels is not None else np.zeros(8, np.int8)
+    placeholder = cl.Buffer(ctx, mf.READ_ONLY, size=8)
+    if pr.passes is None:
+        stats.passes = 1
+        if lod is None:
+            dv, hit = upload_level0(vol)
+            stats.read, stats.cached = (0, vol.n_blocks) if hit else (vol.n_blocks, 0)
+            stats.upload_ms, stats.device_bytes = (0.0 if hit else dv.upload_ms), dv.nbytes
+            yield PassData(None, dv.buffer, placeholder, placeholder, steps, np.ones(1, np.uint8))
+        else:
+            da = lod_atlas.device_atlas(vol, lod.levels, with_std=cfg.distribution)
+            stats.read, stats.cached, stats.upload_ms, stats.device_bytes = da.read, da.cached, da.upload_ms, da.nbytes
+            yield PassData(None, da.atlas, da.index, da.std if cfg.distribution else placeholder, steps,
+                           np.ones(1, np.uint8))
+        return
+    from lodcast.renderer.sampler import device_cache
+
+    device_cache().clear()  # a render beyond the budget has the device to itself
+    regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
+    stats.planned = len(regions)
+    slices = lod_atlas.slice_max(lod.levels) if lod is not None else None
+    _, queue = get_context()
+    for reg in regions:
+        own = own_mask(vol.grid, reg)
+        t = time.perf_counter()
+        if lod is None:
+            sub = np.ascontiguousarray(vol.read_level0_region(reg.data), dtype=np.float32)
+            buf = cl.Buffer(ctx, mf.READ_ONLY, size=max(4, sub.nbytes))
+            cl.enqueue_copy(queue, buf, sub)
+            queue.finish()
+            stats.read += int(own.sum())
+            nbytes, data = sub.nbytes, PassData(reg, buf, placeholder, placeholder, steps, own)
+            del sub
+            stats.upload_ms += (time.perf_counter() - t) * 1e3
+        else:
+            da = lod_atlas.device_atlas(vol, pass_levels(lod.levels, reg), with_std=cfg.distribution, slices=slices,
+                                        keep=False)
+            stats.read += da.read
+            stats.cached += da.cached
+            stats.upload_ms += da.upload_ms
+            nbytes = da.nbytes
+            data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
+                            pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own)
+        stats.passes += 1
+        stats.device_bytes = max(stats.device_bytes, nbytes)
+        yield data
+        del data
+
+
+def fill_pass(p: np.ndarray, region: Region | None, pr, first: bool) -> None:
+    """The pass fields of the parameter block: the world box of the samples the pass owns (one voxel wider, for
+    rounding), its sub-volume's offset and extent (full resolution), whether it is the first."""
+    if region is None:
+        return
+    vol = pr.volume
+    B = int(vol.block_size)
+    sp, org = np.asarray(vol.spacing[::-1], np.float64), np.asarray(vol.origin[::-1], np.float64)
+    lo = np.array([region.blocks[a].start for a in (2, 1, 0)], np.float64) * B - 1.5
+    hi = np.array([region.blocks[a].stop for a in (2, 1, 0)], np.float64) * B + 0.5
+    q = p[0]
+    q["pass_lo"] = (*(org + lo * sp), 0.0)
+    q["pass_hi"] = (*(org + hi * sp), 0.0)
+    if pr.lod is None:
+        q["pass_off"] = (region.data[2].start, region.data[1].start, region.data[0].start, 0)
+        q["pass_dims"] = tuple(max(1, region.data[a].stop - region.data[a].start) for a in (2, 1, 0)) + (0,)
+    q["pass_first"] = 1 if first else 0
