@@ -81,6 +81,8 @@ typedef struct LcParams {
     int pad6;
     int pad7;
     int pad8;
+    int4 ess_grid;      /* LC_ESS: the block walk's cells (x, y, z; w: edge in voxels, dividing grid.w): full
+                         * resolution walks cells finer than the blocks, the atlas its blocks */
 } LcParams;
 
 #endif

@@ -30,6 +30,7 @@ import pyopencl as cl
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer.camera import Frame
 from lodcast.renderer.program import DeviceError, get_context
+from lodcast.renderer.sampler import device_cache, ess_cell, level0_cells, upload_level0
 
 __all__ = ["Region", "PassPlan", "device_budget", "volume_limit", "ghost_voxels", "ring_blocks", "split_grid",
            "visibility_order", "plan", "own_mask", "pass_levels", "pass_steps", "PassStats", "PassData", "volume_data",
@@ -233,6 +234,9 @@ class PassData:
     std: Any  # the standard deviations beside the atlas (or a placeholder)
     steps: np.ndarray  # adaptive sampling's step levels (or a placeholder)
     own: np.ndarray  # LC_PASSES: the blocks the pass owns (or a placeholder)
+    cell_min: np.ndarray | None = None  # full resolution: the border-inclusive extrema of the cells of
+    cell_max: np.ndarray | None = None  # empty-space skipping (of the pass's own blocks; NaN elsewhere)
+    cell: int = 0  # their edge in voxels
 
 
 def _empty_region(levels: np.ndarray | None) -> Region:
@@ -245,8 +249,6 @@ def _empty_region(levels: np.ndarray | None) -> Region:
 def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     """The volume data of each pass of `pr` (renderer/render.py's Prepared), uploaded when its pass comes and
     dropped after it, counting into `stats`."""
-    from lodcast.renderer.sampler import upload_level0
-
     ctx, _ = get_context()
     mf = cl.mem_flags
     cfg, vol, lod = pr.config, pr.volume, pr.lod
@@ -258,15 +260,14 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
             dv, hit = upload_level0(vol)
             stats.read, stats.cached = (0, vol.n_blocks) if hit else (vol.n_blocks, 0)
             stats.upload_ms, stats.device_bytes = (0.0 if hit else dv.upload_ms), dv.nbytes
-            yield PassData(None, dv.buffer, placeholder, placeholder, steps, np.ones(1, np.uint8))
+            yield PassData(None, dv.buffer, placeholder, placeholder, steps, np.ones(1, np.uint8), dv.cell_min,
+                           dv.cell_max, dv.cell)
         else:
             da = lod_atlas.device_atlas(vol, lod.levels, with_std=cfg.distribution)
             stats.read, stats.cached, stats.upload_ms, stats.device_bytes = da.read, da.cached, da.upload_ms, da.nbytes
             yield PassData(None, da.atlas, da.index, da.std if cfg.distribution else placeholder, steps,
                            np.ones(1, np.uint8))
         return
-    from lodcast.renderer.sampler import device_cache
-
     device_cache().clear()  # a render beyond the budget has the device to itself
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
     stats.planned = len(regions)
@@ -281,7 +282,9 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
             cl.enqueue_copy(queue, buf, sub)
             queue.finish()
             stats.read += int(own.sum())
-            nbytes, data = sub.nbytes, PassData(reg, buf, placeholder, placeholder, steps, own)
+            cmin, cmax = level0_cells(buf, sub.shape, tuple(s.start for s in reg.data), reg.blocks, vol)
+            nbytes, data = sub.nbytes, PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax,
+                                                ess_cell(vol.block_size))
             del sub
             stats.upload_ms += (time.perf_counter() - t) * 1e3
         else:

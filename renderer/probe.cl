@@ -26,4 +26,5 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     vstore4(P->pass_lo, 24, f); vstore4(P->pass_hi, 25, f); /* f[96..103] */
     vstore4(P->pass_off, 7, n); vstore4(P->pass_dims, 8, n); /* n[28..35] */
     n[36] = P->pass_first;
+    vstore4(P->ess_grid, 10, n); /* n[40..43] */
 }

@@ -21,8 +21,9 @@
  *   LC_MODE_MIP       maximum intensity projection (default: emission-absorption compositing; MIP keeps the mean
  *                     of coarse samples: the store keeps no coarse maximum)
  *   LC_ORTHO          orthographic projection (default: perspective)
- *   LC_ESS            empty-space skipping: march block by block (3D DDA over the block grid) and skip blocks
- *                     whose block_info says nothing there can contribute, without sampling them
+ *   LC_ESS            empty-space skipping: march cell by cell (3D DDA over P->ess_grid: at full resolution cells
+ *                     finer than the blocks, on the atlas the blocks) and skip cells whose block_info says nothing
+ *                     there can contribute, without sampling them
  *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)
  *   LC_PRECISE        compensated (Kahan) sums of optical depth and colour, for rays of very many samples
  *   LC_BACKGROUND     composite the background under the integral
@@ -328,13 +329,14 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #else
         int k = 0;
 #if defined(LC_ESS) || defined(LC_PASSES)
-        /* 3D DDA over the block grid: block b covers voxel coordinates [b B - 1/2, (b + 1) B - 1/2). */
-        const float B = (float)P->grid.w;
-        const int gx = P->grid.x, gy = P->grid.y, gz = P->grid.z;
+        /* 3D DDA over the walk's cells: cell b covers voxel coordinates [b B - 1/2, (b + 1) B - 1/2). */
+        const float B = (float)P->ess_grid.w;
+        const int gx = P->ess_grid.x, gy = P->ess_grid.y, gz = P->ess_grid.z;
         LC_DDA_BEGIN(B, gx, gy, gz)
         int inside = 1;
 #ifdef LC_PASSES
         int owned = 1; /* the last block's owner is this pass (samples past the grid's last block go with it) */
+        const int cpb = P->grid.w / P->ess_grid.w, bgx = P->grid.x, bgy = P->grid.y; /* walk cells per block */
 #endif
         while (k < n && !done) {
             int k_end = n;
@@ -356,7 +358,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                 skip = info == 0.0f; /* TF opacity zero over the block's border-inclusive value range */
 #endif
 #ifdef LC_PASSES
-                owned = own[(bz * gy + by) * gx + bx];
+                owned = own[((bz / cpb) * bgy + by / cpb) * bgx + bx / cpb];
                 skip = skip || !owned;
 #endif
                 if (tb < t1) {

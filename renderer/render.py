@@ -107,20 +107,45 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
 
 
 def block_info(vol: VolumeView, lut: Lut, mode: str, lut2: Lut | None = None) -> tuple[np.ndarray, int]:
-    """(per-block float32 array in kernel order (gz, gy, gx), number of empty blocks). Composite: 1 where the TF
-    is non-zero somewhere on the block's border-inclusive range (with a second TF's `lut2`: bit 1 for tf, bit 2
-    for tf2, renderer/dual.py); MIP: the block's border-inclusive maximum; MinIP: minus its minimum (the kernel
+    """(per-block float32 array in kernel order (gz, gy, gx), number of empty blocks): `range_info` of the blocks'
+    border-inclusive ranges."""
+    return range_info(vol.min_border, vol.max_border, lut, mode, lut2)
+
+
+def range_info(vmin: np.ndarray, vmax: np.ndarray, lut: Lut, mode: str,
+               lut2: Lut | None = None) -> tuple[np.ndarray, int]:
+    """What the block walk needs of cells with border-inclusive value ranges [vmin, vmax] (NaN: no value), and the
+    number of empty cells. Composite: 1 where the TF is non-zero somewhere on the range (with a second TF's
+    `lut2`: bit 1 for tf, bit 2 for tf2, renderer/dual.py); MIP: the maximum; MinIP: minus the minimum (the kernel
     tracks the maximum of -v); average and iso (no block walk): zeros."""
     if mode in EXTREMUM_MODES:
-        ext = vol.max_border if mode == "mip" else -np.asarray(vol.min_border, np.float64)
+        ext = vmax if mode == "mip" else -np.asarray(vmin, np.float64)
         mx = np.where(np.isfinite(ext), ext, -np.inf)
         return np.ascontiguousarray(mx, dtype=np.float32), 0
     if mode != "composite":
-        return np.zeros(vol.grid, np.float32), 0
-    vis = lut.visible(vol.min_border, vol.max_border)
+        return np.zeros(np.shape(vmin), np.float32), 0
+    vis = lut.visible(vmin, vmax)
     if lut2 is not None:
-        vis = dual.visibility_bits(vis, lut2.visible(vol.min_border, vol.max_border))
+        vis = dual.visibility_bits(vis, lut2.visible(vmin, vmax))
     return np.ascontiguousarray(vis, dtype=np.float32), int(vis.size - np.count_nonzero(vis))
+
+
+def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """(the block walk's info, its grid (x, y, z, cell edge)): at full resolution over the fine cells of
+    empty-space skipping (data.cell voxels, sampler.ess_cell), with the clip region's cells outside empty; on the atlas the
+    selection's block info."""
+    vol = pr.volume
+    B = int(vol.block_size)
+    if data.cell_min is None or not pr.config.ess:
+        return pr.block_info, (vol.grid[2], vol.grid[1], vol.grid[0], B)
+    C = data.cell
+    info, _ = range_info(data.cell_min, data.cell_max, pr.lut, pr.scene.mode,
+                         None if pr.second is None else pr.second.lut)
+    keep = clipping.block_mask(info.shape, vol.shape, vol.spacing, vol.origin, C, pr.scene.clip)
+    if keep is not None:
+        info = np.where(keep, info, -np.inf if pr.scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
+    g = info.shape
+    return np.ascontiguousarray(info), (g[2], g[1], g[0], C)
 
 
 def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: Lut, step_world: float,
@@ -309,8 +334,6 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
         lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode, keep)
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
-    if cfg.ess and scene.mode == "composite" and n_empty == 0 and cfg.sampler == "full":
-        cfg = replace(cfg, ess=False)  # no block can be skipped: compile the block walk out
     dist, pre = _classification_tables(scene.tf, lut, unit, cfg, vol, step_world)
     params = _fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
     prio = None
@@ -506,20 +529,16 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     t_start = time.perf_counter()
     pr = prepare(store, scene, spacing=spacing, origin=origin, levels=levels, sample_limit=sample_limit)
     scene, vol, lut, cfg = pr.scene, pr.volume, pr.lut, pr.config
-    options = cfg.build_options()
     ctx, queue = get_context()
-    built = get_program("raycast.cl", options)
     mf = cl.mem_flags
     W, H = scene.width, scene.height
     d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
     d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ext_table(pr))
-    d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.block_info)
     n_rays = W * H if pr.screen is None else max(pr.screen.rays, 1)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 16)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 4)
     spos = pr.screen.positions if pr.screen is not None and pr.screen.rays else np.zeros((1, 2), np.float32)
     d_spos = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spos)
-    kern = cl.Kernel(built.program, "lc_render")
     d_dtab, d_ptab = (
         cl.Buffer(ctx, mf.READ_ONLY, size=16) if t is None else cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=t)
         for t in (_tables(pr, "dist"), _tables(pr, "preint"))
@@ -535,6 +554,14 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
             stop()  # between passes as between bands
         p = pr.params.copy()
         multipass.fill_pass(p, data.region, pr, k == 0)
+        walk, p[0]["ess_grid"] = _walk_info(pr, data)
+        if k == 0:  # the program, once the walk's cells are known
+            if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and walk.all():
+                cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
+            options = cfg.build_options()
+            built = get_program("raycast.cl", options)
+            kern = cl.Kernel(built.program, "lc_render")
+        d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
         d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
         d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.steps)
         d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)

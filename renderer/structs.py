@@ -81,10 +81,11 @@ PARAMS_DTYPE = np.dtype(
         ("pad6", np.int32),
         ("pad7", np.int32),
         ("pad8", np.int32),
+        ("ess_grid", _V4I),
     ],
     align=True,
 )
-assert PARAMS_DTYPE.itemsize == 576 and PARAMS_DTYPE.itemsize % 16 == 0
+assert PARAMS_DTYPE.itemsize == 592 and PARAMS_DTYPE.itemsize % 16 == 0
 
 
 #: LC_PASSES: floats of ray state kept per ray between passes (lc_passes.h's LC_STATE_FLOATS)

@@ -9,9 +9,9 @@ from lodcast.renderer.structs import PARAMS_DTYPE, new_params
 
 
 def test_params_dtype_size_and_alignment():
-    assert PARAMS_DTYPE.itemsize == 576
+    assert PARAMS_DTYPE.itemsize == 592
     assert PARAMS_DTYPE.itemsize % 16 == 0
-    for name in ("eye", "cam_f", "box_lo", "background", "dims", "grid", "pass_lo", "pass_off", "pass_dims"):
+    for name in ("eye", "cam_f", "box_lo", "background", "dims", "grid", "pass_lo", "pass_off", "pass_dims", "ess_grid"):
         assert PARAMS_DTYPE.fields[name][1] % 16 == 0, name  # float4/int4 are 16-byte aligned in OpenCL
 
 
@@ -44,10 +44,11 @@ def test_every_field_reads_back_through_the_kernel():
         p[name] = -50.75 + 1.5 * k
     p["pass_lo"], p["pass_hi"] = (-1.5, -2.5, -3.5, 0.0), (4.25, 5.25, 6.25, 0.0)
     p["pass_off"], p["pass_dims"], p["pass_first"] = (41, 42, 43, 0), (44, 45, 46, 0), 1
+    p["ess_grid"] = (51, 52, 53, 8)
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
     f = np.zeros(104, np.float32)
-    n = np.zeros(37, np.int32)
+    n = np.zeros(44, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
     prg = get_program("probe.cl").program
@@ -73,3 +74,4 @@ def test_every_field_reads_back_through_the_kernel():
     assert f[85:94].tolist() == [-50.75 + 1.5 * k for k in range(len(floats2))]
     assert f[96:104].tolist() == [-1.5, -2.5, -3.5, 0.0, 4.25, 5.25, 6.25, 0.0]
     assert n[28:37].tolist() == [41, 42, 43, 0, 44, 45, 46, 0, 1]
+    assert n[40:44].tolist() == [51, 52, 53, 8]
