@@ -1,15 +1,20 @@
-"""Helpers for the service's tests, benchmark and smoke script: a tiny volume, a real redis-server, a live
-`lodcast serve` / `lodcast worker` on loopback (each in its own process group, stopped by group)."""
+"""Helpers for the tests, benchmarks and smoke script: a tiny volume, a real redis-server, a real S3-compatible
+server (moto's server mode, behind a counting proxy), a live `lodcast serve` / `lodcast worker` on loopback (each in
+its own process group, stopped by group)."""
 from __future__ import annotations
 
 import contextlib
+import http.client
 import os
 import shutil
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -20,6 +25,8 @@ __all__ = [
     "free_port",
     "redis_available",
     "RedisServer",
+    "S3Server",
+    "s3_server",
     "Proc",
     "start_serve",
     "start_worker",
@@ -133,6 +140,95 @@ class RedisServer:
 
     def stop(self) -> None:
         self.proc.stop()
+
+
+@dataclass
+class S3Server:
+    endpoint: str  # the proxy's URL: what clients use (AWS_ENDPOINT_URL)
+    requests: list = field(default_factory=list)  # (method, path, range header, response bytes)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def reset(self) -> None:
+        with self.lock:
+            self.requests.clear()
+
+    def counts(self) -> tuple[int, int]:
+        """(requests, response body bytes) since the last reset."""
+        with self.lock:
+            return len(self.requests), sum(r[3] for r in self.requests)
+
+
+def _proxy(server: S3Server, upstream_port: int) -> ThreadingHTTPServer:
+    class Handler(BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1"
+
+        def log_message(self, *args) -> None:
+            pass
+
+        def _forward(self) -> None:
+            n = int(self.headers.get("Content-Length") or 0)
+            body = self.rfile.read(n) if n else None
+            conn = http.client.HTTPConnection("127.0.0.1", upstream_port, timeout=60)
+            headers = {k: v for k, v in self.headers.items() if k.lower() != "connection"}
+            conn.request(self.command, self.path, body=body, headers=headers)
+            resp = conn.getresponse()
+            data = resp.read()
+            self.send_response(resp.status, resp.reason)
+            head = self.command == "HEAD"  # its Content-Length is the object's, with no body
+            for k, v in resp.getheaders():
+                if k.lower() not in ("transfer-encoding", "connection") and (head or k.lower() != "content-length"):
+                    self.send_header(k, v)
+            if not head:
+                self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            if not head:
+                self.wfile.write(data)
+            conn.close()
+            with server.lock:
+                server.requests.append((self.command, self.path, self.headers.get("Range"), len(data)))
+
+        do_GET = do_PUT = do_POST = do_HEAD = do_DELETE = _forward
+
+    return ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+
+
+@contextlib.contextmanager
+def s3_server() -> Iterator[S3Server]:
+    """moto's S3 on loopback behind the counting proxy, with the AWS environment variables a client needs (dummy
+    credentials, AWS_ENDPOINT_URL) set while it runs."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    httpd = None
+    saved = {k: os.environ.get(k) for k in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION",
+                                            "AWS_ENDPOINT_URL")}
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.2).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise RuntimeError("moto's S3 server did not start")
+                time.sleep(0.1)
+        srv = S3Server("")
+        httpd = _proxy(srv, port)
+        threading.Thread(target=httpd.serve_forever, daemon=True).start()
+        srv.endpoint = f"http://127.0.0.1:{httpd.server_address[1]}"
+        os.environ.update(AWS_ACCESS_KEY_ID="testing", AWS_SECRET_ACCESS_KEY="testing", AWS_DEFAULT_REGION="us-east-1",
+                          AWS_ENDPOINT_URL=srv.endpoint)
+        yield srv
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        if httpd is not None:
+            httpd.shutdown()
+        proc.terminate()
+        proc.wait(10)
 
 
 def _lodcast() -> list[str]:

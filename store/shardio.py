@@ -5,9 +5,12 @@ Why: zarr-python spends ~0.2–0.3 ms of Python per inner chunk, so a region of 
 16·n + 4 bytes: little-endian uint64 (offset, nbytes) per inner chunk in C order, then a crc32c) is parsed once
 and cached per (path, mtime, size), the needed chunks' bytes are read as one span when they lie close together,
 and blosc decodes them straight into a per-unit buffer on a shared thread pool (blosc releases the GIL), which is
-then copied into the region. Only what ingest writes is handled: a LocalStore, a regular chunk grid, one
-`sharding_indexed` codec holding `bytes` (+ optional `blosc`), index codecs `bytes` (+ optional `crc32c`);
-anything else makes `fast_reader` return None so the caller keeps using zarr-python.
+then copied into the region. Only what ingest writes is handled: a regular chunk grid, one `sharding_indexed`
+codec holding `bytes` (+ optional `blosc`), index codecs `bytes` (+ optional `crc32c`), in a LocalStore or an
+fsspec store (object storage: the same reads as byte-range requests — per shard one suffix request for the index,
+then one per span of needed chunks, one work unit per shard — where zarr-python issues one request per inner
+chunk); anything else makes
+`fast_reader` return None so the caller keeps using zarr-python.
 """
 from __future__ import annotations
 
@@ -34,7 +37,7 @@ except ImportError:  # older numcodecs: the index checksum is skipped (offsets a
 __all__ = ["ShardedReader", "fast_reader"]
 
 _EMPTY = np.uint64(2**64 - 1)
-_INDEX_CACHE: OrderedDict[tuple[str, int, int], np.ndarray] = OrderedDict()
+_INDEX_CACHE: OrderedDict[tuple[str, int, Any], np.ndarray] = OrderedDict()
 _INDEX_CACHE_MAX = 2048
 _LOCK = threading.Lock()
 _POOL: ThreadPoolExecutor | None = None
@@ -58,14 +61,78 @@ def _endian(codec: dict[str, Any]) -> str:
     return {"little": "<", "big": ">", None: "<"}[(codec.get("configuration") or {}).get("endian")]
 
 
-def fast_reader(array: Any, complete: bool = False) -> ShardedReader | None:
+class _LocalFiles:
+    """Shard files on a local filesystem: positioned reads on a file descriptor."""
+
+    def __init__(self, root: Path):
+        self.root = root
+
+    def name(self, key: str) -> str:
+        return str(self.root / key)
+
+    def open(self, key: str) -> int:
+        return os.open(self.root / key, os.O_RDONLY)
+
+    def close(self, fd: int) -> None:
+        os.close(fd)
+
+    remote = False
+
+    def stamp(self, fd: int) -> tuple[int | None, Any]:
+        st = os.fstat(fd)
+        return st.st_size, st.st_mtime_ns
+
+    def pread(self, fd: int, n: int, off: int) -> bytes:
+        return os.pread(fd, n, off)
+
+
+class _RemoteFiles:
+    """Shard objects through a (synchronous) fsspec filesystem: byte-range requests, the index by a suffix range
+    (no size request). A store is immutable once ingest published it, so indexes are cached for this reader's
+    lifetime (a new open_store reads them again); a missing object raises FileNotFoundError on its first read."""
+
+    remote = True
+
+    def __init__(self, fs: Any, root: str):
+        self.fs, self.root = fs, root.rstrip("/")
+
+    def name(self, key: str) -> str:
+        return f"{self.root}/{key}"
+
+    def open(self, key: str) -> str:
+        return self.name(key)
+
+    def close(self, path: str) -> None:
+        pass
+
+    def stamp(self, path: str) -> tuple[int | None, Any]:
+        return None, id(self)
+
+    def pread(self, path: str, n: int, off: int) -> bytes:
+        return self.fs.cat_file(path, start=off, end=off + n) if n else b""
+
+    def suffix(self, path: str, n: int) -> bytes:
+        return self.fs.cat_file(path, start=-n)
+
+
+def fast_reader(array: Any, complete: bool = False, url: str | None = None) -> ShardedReader | None:
     """A ShardedReader for `array`, or None when its store or codecs are not handled (use zarr-python then).
-    `complete`: ingest wrote every chunk, so a missing shard file or chunk is damage (StoreCorrupt), not empty."""
+    `complete`: ingest wrote every chunk, so a missing shard file or chunk is damage (StoreCorrupt), not empty.
+    `url`: the group's fsspec URL, for an array in an fsspec store (read through a synchronous filesystem)."""
     try:
         store, meta = array.store, array.metadata.to_dict()
     except AttributeError:
         return None
-    if not isinstance(store, zarr.storage.LocalStore) or meta.get("zarr_format") != 3 or meta.get("storage_transformers"):
+    if meta.get("zarr_format") != 3 or meta.get("storage_transformers"):
+        return None
+    if isinstance(store, zarr.storage.LocalStore):
+        files: Any = _LocalFiles(Path(store.root) / array.path)
+    elif url is not None and type(store).__name__ == "FsspecStore":
+        import fsspec
+
+        fs, root = fsspec.core.url_to_fs(url)
+        files = _RemoteFiles(fs, f"{root.rstrip('/')}/{array.path}")
+    else:
         return None
     dtype = np.dtype(array.dtype)
     if dtype.kind not in "biufc" or meta["chunk_grid"].get("name") != "regular" or len(meta["codecs"]) != 1:
@@ -83,7 +150,7 @@ def fast_reader(array: Any, complete: bool = False) -> ShardedReader | None:
     if len(chunk) != len(shard_shape) or any(s % c for s, c in zip(shard_shape, chunk)):
         return None
     return ShardedReader(
-        array, Path(store.root) / array.path, chunk, shard_shape,
+        array, files, chunk, shard_shape,
         chunk_dtype=dtype.newbyteorder(_endian(inner[0])) if dtype.itemsize > 1 else dtype,
         compressed=len(inner) > 1, index_dtype=np.dtype(_endian(index_codecs[0]) + "u8"),
         index_crc=len(index_codecs) > 1, index_at_end=cfg.get("index_location", "end") == "end", complete=complete,
@@ -91,15 +158,15 @@ def fast_reader(array: Any, complete: bool = False) -> ShardedReader | None:
 
 
 class ShardedReader:
-    """Reads regions of one sharded zarr v3 array on a local filesystem; see the module docstring.
+    """Reads regions of one sharded zarr v3 array, local or through fsspec; see the module docstring.
 
     The array's metadata is taken once: resizing the array afterwards needs a new reader (rewritten shards are
     picked up, since cached indexes are keyed by file mtime and size)."""
 
-    def __init__(self, array: Any, path: Path, chunk: tuple[int, ...], shard: tuple[int, ...], *, chunk_dtype: np.dtype,
-                 compressed: bool, index_dtype: np.dtype, index_crc: bool, index_at_end: bool,
+    def __init__(self, array: Any, files: Any, chunk: tuple[int, ...], shard: tuple[int, ...], *,
+                 chunk_dtype: np.dtype, compressed: bool, index_dtype: np.dtype, index_crc: bool, index_at_end: bool,
                  complete: bool = False) -> None:
-        self._array, self.path, self.complete = array, path, complete
+        self._array, self._files, self.complete = array, files, complete
         self.shape: tuple[int, ...] = tuple(array.shape)
         self.dtype, self.chunk, self.shard = np.dtype(array.dtype), chunk, shard
         self.fill_value = array.metadata.fill_value
@@ -140,6 +207,8 @@ class ShardedReader:
             boxes.append((tuple(max(a, i * p) for a, i, p in zip(c0, s, self._per_shard)),
                           tuple(min(b, (i + 1) * p) for b, i, p in zip(c1, s, self._per_shard))))
         total = sum(prod(b - a for a, b in zip(*box)) for box in boxes)
+        if self._files.remote:  # a request costs more than the bytes: one unit (index, then spans) per shard
+            return boxes
         target = max(8, ceil(total / (4 * _workers())))
         units = []
         for a, b in boxes:
@@ -155,28 +224,32 @@ class ShardedReader:
         box = np.empty((prod(counts), *self.chunk), self._chunk_dtype)
         shard = tuple(a // p for a, p in zip(c0, self._per_shard))
         key = self._array.metadata.encode_chunk_key(shard)
+        name = self._files.name(key)
         try:
-            fd = os.open(self.path / key, os.O_RDONLY)
+            fd = self._files.open(key)
         except FileNotFoundError:
-            if self.complete:
-                raise StoreCorrupt(f"{self.path / key}: shard file missing (ingest wrote it): the store is damaged, "
-                                   f"re-ingest it") from None
-            box[...] = self.fill_value
-        else:
-            try:
-                index = self._index(fd, str(self.path / key))
-                coords = np.indices(counts).reshape(len(counts), -1) + np.array(c0)[:, None]  # C order, like `box`
-                entries = index[np.ravel_multi_index(tuple(coords % np.array(self._per_shard)[:, None]), self._per_shard)]
+            fd = None
+        try:
+            entries = None if fd is None else self._entries(fd, name, counts, c0)
+            if entries is None:  # no shard file (remote: found on its first read)
+                if self.complete:
+                    raise StoreCorrupt(f"{name}: shard file missing (ingest wrote it): the store is damaged, "
+                                       f"re-ingest it")
+                box[...] = self.fill_value
+            else:
                 full = entries[:, 0] != _EMPTY
                 if self.complete and not full.all():
-                    raise StoreCorrupt(f"{self.path / key}: {int((~full).sum())} chunks missing from the shard "
+                    raise StoreCorrupt(f"{name}: {int((~full).sum())} chunks missing from the shard "
                                        f"(ingest wrote them all): the store is damaged, re-ingest it")
-                self._decode(fd, entries, full, box)
-            except (ValueError, RuntimeError) as exc:  # a truncated or overwritten shard, a chunk blosc rejects
-                raise StoreCorrupt(f"{self.path / key}: damaged shard ({' '.join(str(exc).split())}): re-ingest "
-                                   f"the store") from None
-            finally:
-                os.close(fd)
+                self._decode(fd, entries, full, box, name)
+        except (ValueError, RuntimeError) as exc:  # a truncated or overwritten shard, a chunk blosc rejects
+            if isinstance(exc, StoreCorrupt):
+                raise
+            raise StoreCorrupt(f"{name}: damaged shard ({' '.join(str(exc).split())}): re-ingest "
+                               f"the store") from None
+        finally:
+            if fd is not None:
+                self._files.close(fd)
         # box (k, cz, cy, cx) holds chunks in C order of the chunk box: seen as (kz, ky, kx, cz, cy, cx) it is
         # copied once into the region seen as (kz, cz, ky, cy, kx, cx); a box clipped by the region goes through
         # a contiguous copy of the whole box first
@@ -193,7 +266,16 @@ class ShardedReader:
             grid = grid.reshape(tuple(k * c for k, c in zip(counts, self.chunk)))
             out[dst] = grid[tuple(slice(max(l, s) - s, min(h, e) - s) for l, h, s, e in zip(lo, hi, start, ends))]
 
-    def _decode(self, fd: int, entries: np.ndarray, full: np.ndarray, box: np.ndarray) -> None:
+    def _entries(self, fd: Any, name: str, counts: tuple[int, ...], c0: tuple[int, ...]) -> np.ndarray | None:
+        """The index entries of the chunk box from c0, C order (None: the shard object does not exist)."""
+        try:
+            index = self._index(fd, name)
+        except FileNotFoundError:
+            return None
+        coords = np.indices(counts).reshape(len(counts), -1) + np.array(c0)[:, None]  # C order, like the box
+        return index[np.ravel_multi_index(tuple(coords % np.array(self._per_shard)[:, None]), self._per_shard)]
+
+    def _decode(self, fd: Any, entries: np.ndarray, full: np.ndarray, box: np.ndarray, name: str) -> None:
         if not full.all():
             box[~full] = self.fill_value
         idx = np.flatnonzero(full)
@@ -201,34 +283,43 @@ class ShardedReader:
             return
         offsets, sizes = entries[idx, 0].astype(np.int64), entries[idx, 1].astype(np.int64)
         first, last = int(offsets.min()), int((offsets + sizes).max())
-        span = os.pread(fd, last - first, first) if last - first <= 2 * int(sizes.sum()) + 65536 else None
+        pread = self._files.pread
+        # one span when the gaps are small; on object storage always (a request costs more than the bytes between)
+        one = last - first <= 2 * int(sizes.sum()) + 65536 or self._files.remote
+        span = pread(fd, last - first, first) if one else None
         for i, off, n in zip(idx.tolist(), offsets.tolist(), sizes.tolist()):
-            raw = memoryview(span)[off - first:off - first + n] if span is not None else os.pread(fd, n, off)
+            raw = memoryview(span)[off - first:off - first + n] if span is not None else pread(fd, n, off)
             if len(raw) != n:
-                raise ValueError(f"{self.path}: shard truncated (chunk at {off}+{n})")
+                raise ValueError(f"{name}: shard truncated (chunk at {off}+{n})")
             if self._compressed:
                 blosc.decompress(raw, box[i])
             else:
                 box[i] = np.frombuffer(raw, self._chunk_dtype).reshape(self.chunk)
 
-    def _index(self, fd: int, path: str) -> np.ndarray:
-        """The shard's (offset, nbytes) table, shape (n, 2) uint64, from the cache keyed by (path, mtime, size)."""
-        st = os.fstat(fd)
-        key = (path, st.st_mtime_ns, st.st_size)
+    def _index(self, fd: Any, path: str) -> np.ndarray:
+        """The shard's (offset, nbytes) table, shape (n, 2) uint64, from the cache keyed by (path, size, mtime or
+        ETag)."""
+        size, version = self._files.stamp(fd)
+        key = (path, size, version)
         with _LOCK:
             if key in _INDEX_CACHE:
                 _INDEX_CACHE.move_to_end(key)
                 return _INDEX_CACHE[key]
         n = self._index_bytes
-        raw = os.pread(fd, n, st.st_size - n if self._index_at_end else 0)
-        if len(raw) != n or st.st_size < n:
+        if size is not None and size < n:
+            raise ValueError(f"{path}: shard shorter than its index")
+        if size is None and self._index_at_end:
+            raw = self._files.suffix(fd, n)
+        else:
+            raw = self._files.pread(fd, n, size - n if self._index_at_end else 0)
+        if len(raw) != n:
             raise ValueError(f"{path}: shard shorter than its index")
         body = raw[:16 * self._n_index]
         if self._index_crc and _crc32c is not None and _crc32c(body) != int.from_bytes(raw[-4:], "little"):
             raise ValueError(f"{path}: shard index checksum mismatch")
         index = np.frombuffer(body, self._index_dtype).reshape(-1, 2).astype(np.uint64)
         full = index[:, 0] != _EMPTY
-        if full.any() and int((index[full, 0] + index[full, 1]).max()) > st.st_size:
+        if size is not None and full.any() and int((index[full, 0] + index[full, 1]).max()) > size:
             raise ValueError(f"{path}: shard index points past the end of the file")
         with _LOCK:
             _INDEX_CACHE[key] = index

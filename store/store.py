@@ -108,14 +108,16 @@ class Store:
         return self._read(str(k), region)
 
     def _read(self, path: str, region: tuple) -> np.ndarray:
-        """A region of the array at `path`: local stores through the shard-level reader (store/shardio.py: 8-10x
-        zarr-python's per-chunk cost on 16³ and 8³ blocks), others through zarr-python."""
+        """A region of the array at `path` through the shard-level reader (store/shardio.py: locally 8-10x
+        zarr-python's per-chunk cost on 16³ and 8³ blocks; on object storage a few range requests per shard
+        instead of one per chunk), else through zarr-python."""
         reader = self._readers.get(path)
         if reader is None:
             from lodcast.store.shardio import fast_reader
 
             complete = self.manifest is not None and not path.startswith("blocks")  # levels and std: every chunk
-            reader = self._readers[path] = fast_reader(self.group[path], complete) or False
+            url = self.location if "://" in self.location else None
+            reader = self._readers[path] = fast_reader(self.group[path], complete, url) or False
         if reader is not False:
             return reader.read_region(tuple(slice(None) for _ in range(3)) if region is ... else region)
         # zarr decodes one inner chunk at a time unless batched: for a whole level of the chest CT at 16³ blocks
