@@ -1,0 +1,199 @@
+"""A volume of 8 GiB (issue 14 item 2): made, ingested and rendered with bounded memory.
+
+    .venv/bin/python benchmarks/bench_large_volume.py [--shape 1024,2048,2048] [--json benchmarks/results/large_volume.json]
+
+The volume: the chest CT (../shared/data/ct_chest_dicom, via its 16³ store) tiled 4x4 across and ~3.7x in depth,
+every tile mirrored and shifted in intensity by its own amount, with a little noise, as uint16 (HU + 1024):
+1024 x 2048 x 2048 voxels, 2^32 of them (past 32-bit addressing), 8 GiB raw. It is written to
+benchmarks/results/large/ (never committed; delete it afterwards) slab by slab.
+
+Measured, each step in its own process (peak RSS: that process's VmHWM, /proc/self/status):
+- ingest: MB/s and peak RSS;
+- the renderer (one process): the first image at 30:1 (cold: the page cache dropped first if this user may, else
+  said so), a 36-frame turntable at 30:1 (per-frame ms, bricks read per frame, brick-cache hit rate, MB read by
+  the process), one frame at "lossless" and one at "full" under LODCAST_DEVICE_BUDGET_MB=512 with the brick cache
+  capped (LODCAST_BRICK_CACHE_MB=512), and the process's peak RSS against a quarter of the volume's size.
+Prints a table and writes JSON. Takes tens of minutes on two cores, most of it ingest.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+LARGE = RESULTS / "large"
+TF = "ct-bone"
+
+
+def make(raw: Path, shape: tuple[int, int, int]) -> None:
+    sys.path.insert(0, str(HERE))
+    from bench_consistent_lod import DATA, store_of
+
+    chest = store_of("ct_chest", DATA / "ct_chest_dicom").read_level(0).astype(np.int32) + 1024  # z, y, x
+    cz, cy, cx = chest.shape
+    rng = np.random.default_rng(7)
+    out = np.lib.format.open_memmap(raw.with_suffix(".tmp.npy"), mode="w+", dtype=np.uint16, shape=shape)
+    ty, tx = -(-shape[1] // cy), -(-shape[2] // cx)
+    shift = rng.integers(-40, 40, size=(-(-shape[0] // cz), ty, tx))
+    for z0 in range(0, shape[0], 16):
+        z1 = min(shape[0], z0 + 16)
+        slab = np.empty((z1 - z0, ty * cy, tx * cx), np.int32)
+        for z in range(z0, z1):
+            tz, zz = divmod(z, cz)
+            src = chest[zz if tz % 2 == 0 else cz - 1 - zz]
+            for j in range(ty):
+                for i in range(tx):
+                    t = src[:, ::-1] if (i + j) % 2 else src
+                    slab[z - z0, j * cy:(j + 1) * cy, i * cx:(i + 1) * cx] = t + shift[tz, j, i]
+        slab = slab[:, : shape[1], : shape[2]]
+        slab += rng.integers(-8, 9, size=slab.shape, dtype=np.int32)
+        out[z0:z1] = np.clip(slab, 0, 65535).astype(np.uint16)
+        print(f"\rmaking {raw.name}: {z1}/{shape[0]}", end="", file=sys.stderr, flush=True)
+    out.flush()
+    del out
+    raw.with_suffix(".tmp.npy").rename(raw)
+    print(file=sys.stderr)
+
+
+def peak_rss() -> int:
+    """This process's peak resident set (VmHWM: per address space, so not inherited from a forking parent as
+    getrusage's maximum is)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def child(args: list[str], env: dict | None = None) -> tuple[float, dict]:
+    """(seconds, the JSON its last line of stdout holds) of a child process."""
+    t = time.perf_counter()
+    p = subprocess.run(args, env={**os.environ, **(env or {})}, capture_output=True, text=True)
+    dt = time.perf_counter() - t
+    if p.returncode:
+        raise SystemExit(f"{' '.join(args)} failed:\n{p.stderr[-3000:]}")
+    return dt, json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def ingest_step(raw: str, store: str) -> None:
+    """Runs in the child: ingest as `lodcast ingest` does, then its peak RSS."""
+    from lodcast.service.cli import main
+
+    rc = main(["ingest", raw, store, "--spacing", "1.0,0.78125,0.78125", "--no-progress"])
+    print(json.dumps({"rc": rc, "peak_rss": peak_rss()}))
+
+
+def drop_caches() -> bool:
+    try:
+        os.sync()
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+        return True
+    except OSError:
+        return False
+
+
+def _io() -> int:
+    for line in Path("/proc/self/io").read_text().splitlines():
+        if line.startswith("rchar:"):
+            return int(line.split()[1])
+    return 0
+
+
+def render_step(store_path: str, frames: int, size: int) -> None:
+    """Runs in the child: every render of the measurement, one JSON line."""
+    import lodcast
+    from lodcast.renderer.atlas import brick_cache
+
+    out: dict = {}
+    st = lodcast.open_store(store_path)
+    cam = lambda i: {"azimuth": 360.0 * i / frames, "elevation": 15}  # noqa: E731
+    base = {"tf": TF, "width": size, "height": size, "format": "npy"}
+    t, io0 = time.perf_counter(), _io()
+    r = lodcast.render(st, {**base, "quality": {"reduction": 30}, "camera": cam(0)})
+    out["first_image"] = {"ms": (time.perf_counter() - t) * 1e3, "bricks_read": r.report["bricks_read"],
+                          "mb_read": (_io() - io0) / 1e6, "reduction": r.report["reduction"]}
+    per = []
+    for i in range(1, frames):
+        bc = brick_cache()
+        reads0, io0, t = bc.reads, _io(), time.perf_counter()
+        r = lodcast.render(st, {**base, "quality": {"reduction": 30}, "camera": cam(i)})
+        read = r.report["bricks_read"]
+        per.append({"ms": (time.perf_counter() - t) * 1e3, "bricks_read": read,
+                    "bricks_cached": r.report["bricks_cached"], "mb_read": (_io() - io0) / 1e6})
+    out["turntable"] = per
+    for q in ("lossless", "full"):
+        t, io0 = time.perf_counter(), _io()
+        r = lodcast.render(st, {**base, "quality": q, "camera": cam(0)})
+        out[q] = {"ms": (time.perf_counter() - t) * 1e3, "passes": r.report["passes"],
+                  "device_mb": r.report["device_bytes"] / 1e6, "kernel_ms": r.report["kernel_ms"],
+                  "upload_ms": r.report["upload_ms"], "mb_read": (_io() - io0) / 1e6,
+                  "reduction": r.report["reduction"]}
+    out["peak_rss"] = peak_rss()
+    print(json.dumps(out))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--shape", default="1024,2048,2048")
+    ap.add_argument("--frames", type=int, default=36)
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--json", type=Path, default=RESULTS / "large_volume.json")
+    ap.add_argument("--render-step", help=argparse.SUPPRESS)
+    ap.add_argument("--ingest-step", nargs=2, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.render_step:
+        return render_step(a.render_step, a.frames, a.size)
+    if a.ingest_step:
+        return ingest_step(*a.ingest_step)
+    shape = tuple(int(s) for s in a.shape.split(","))
+    LARGE.mkdir(parents=True, exist_ok=True)
+    raw = LARGE / f"body_{'x'.join(map(str, shape))}.npy"
+    if not raw.exists():
+        make(raw, shape)
+    size = raw.stat().st_size
+    store = LARGE / f"body_{'x'.join(map(str, shape))}.zarr"
+    res: dict = {"shape": shape, "voxels": int(np.prod(shape)), "raw_bytes": size}
+    if not store.exists():
+        dt, got = child([sys.executable, __file__, "--ingest-step", str(raw), str(store)])
+        res["ingest"] = {"s": dt, "mb_per_s": size / 1e6 / dt, "peak_rss_mb": got["peak_rss"] / 1e6}
+        print(res["ingest"], flush=True)
+    res["page_cache_dropped"] = drop_caches()
+    dt, res["render"] = child([sys.executable, __file__, "--render-step", str(store), "--frames", str(a.frames),
+                               "--size", str(a.size)],
+                              env={"LODCAST_DEVICE_BUDGET_MB": "512", "LODCAST_BRICK_CACHE_MB": "512"})
+    r = res["render"]
+    tt = r["turntable"]
+    hit = sum(f["bricks_cached"] for f in tt) / max(1, sum(f["bricks_cached"] + f["bricks_read"] for f in tt))
+    lines = [f"{shape[0]}x{shape[1]}x{shape[2]} uint16 ({size / 2**30:.1f} GiB), ct-bone, {a.size}²", "",
+             "| step | figure |", "|---|---|"]
+    if "ingest" in res:
+        lines.append(f"| ingest | {res['ingest']['mb_per_s']:.1f} MB/s, peak RSS {res['ingest']['peak_rss_mb']:.0f} MB |")
+    lines += [
+        f"| first image 30:1 ({'page cache dropped' if res['page_cache_dropped'] else 'page cache NOT dropped'}) | "
+        f"{r['first_image']['ms']:.0f} ms, {r['first_image']['bricks_read']} bricks, {r['first_image']['mb_read']:.0f} MB read |",
+        f"| turntable 30:1, {len(tt)} frames | {np.median([f['ms'] for f in tt]):.0f} ms/frame (median), "
+        f"{np.mean([f['bricks_read'] for f in tt]):.0f} bricks read/frame, hit rate {hit:.3f}, "
+        f"{np.mean([f['mb_read'] for f in tt]):.1f} MB read/frame |",
+        f"| lossless, budget 512 MB | {r['lossless']['ms']:.0f} ms, {r['lossless']['passes']} passes, "
+        f"{r['lossless']['device_mb']:.0f} MB on the device, {r['lossless']['mb_read']:.0f} MB read |",
+        f"| full, budget 512 MB | {r['full']['ms']:.0f} ms, {r['full']['passes']} passes, "
+        f"{r['full']['device_mb']:.0f} MB on the device, {r['full']['mb_read']:.0f} MB read |",
+        f"| renderer peak RSS | {r['peak_rss'] / 1e6:.0f} MB (a quarter of the volume: {size / 4e6:.0f} MB) |",
+    ]
+    table = "\n".join(lines)
+    res["table"] = table
+    print("\n" + table)
+    a.json.write_text(json.dumps(res, indent=2))
+    print(f"wrote {a.json}")
+
+
+if __name__ == "__main__":
+    main()
