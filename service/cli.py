@@ -51,8 +51,9 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_ingest(args: argparse.Namespace) -> int:
-    from lodcast.store.ingest import ingest
+    from lodcast.store.ingest import ingest, tame_malloc
 
+    tame_malloc()
     store = ingest(
         args.src,
         args.dest,

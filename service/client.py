@@ -51,11 +51,23 @@ def _result(rgba: Any, report: dict[str, Any]) -> Any:
         return RenderResult(rgba, report)
 
 
+#: methods a retry cannot duplicate (a render has no side effect, so its POST is one of them)
+_IDEMPOTENT = ("GET", "HEAD", "DELETE", "PUT")
+
+
 class Client:
-    """``Client("http://127.0.0.1:8000", token=None)``; the base URL defaults to ``LODCAST_URL``."""
+    """``Client("http://127.0.0.1:8000", token=None)``; the base URL defaults to ``LODCAST_URL``.
+
+    ``timeout``: seconds per request (each call also takes ``timeout=``). ``retries``: how often a request is
+    tried again, after 0.25 s, 0.5 s, 1 s, ... (or the server's ``Retry-After``): when the server cannot be reached
+    (nothing was sent, so any request), and for reads and renders also on 503 (busy or restarting) and on a
+    dropped connection. A job submission is not repeated once it may have arrived."""
 
     def __init__(self, base_url: str | None = None, token: str | None = None, *, timeout: float = 300.0,
-                 transport: httpx.BaseTransport | None = None) -> None:
+                 transport: httpx.BaseTransport | None = None, retries: int = 3) -> None:
+        if retries < 0:
+            raise ValueError(f"retries: must be at least 0, got {retries}")
+        self.retries = int(retries)
         base_url = base_url or os.environ.get("LODCAST_URL")
         if not base_url:
             raise ValueError("base_url: no server URL given (pass one or set LODCAST_URL)")
@@ -73,8 +85,27 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _request(self, method: str, url: str, **kw: Any) -> httpx.Response:
-        r = self._http.request(method, url, **kw)
+    def _request(self, method: str, url: str, *, idempotent: bool | None = None, **kw: Any) -> httpx.Response:
+        again = method in _IDEMPOTENT if idempotent is None else idempotent
+        for attempt in range(self.retries + 1):
+            last = attempt == self.retries
+            delay = 0.25 * 2**attempt
+            try:
+                r = self._http.request(method, url, **kw)
+            except (httpx.ConnectError, httpx.ConnectTimeout):
+                if last:
+                    raise
+            except (httpx.RemoteProtocolError, httpx.ReadError):
+                if last or not again:
+                    raise
+            else:
+                if r.status_code != 503 or last or not again:
+                    break
+                try:
+                    delay = max(delay, min(30.0, float(r.headers.get("retry-after", 0))))
+                except ValueError:
+                    pass
+            time.sleep(delay)
         if r.status_code >= 400:
             try:
                 detail = r.json().get("detail", r.text)
@@ -117,17 +148,19 @@ class Client:
         self._request("DELETE", f"/volumes/{volume_id}")
 
     # --- rendering --------------------------------------------------------------------------------------------
-    def render_image(self, volume: str, scene: Any) -> tuple[bytes, dict[str, Any]]:
-        """The encoded image as the server sends it (PNG or .npy bytes) and the render report."""
-        r = self._request("POST", f"/volumes/{volume}/render", json=_scene_dict(scene))
+    def render_image(self, volume: str, scene: Any, *, timeout: float | None = None) -> tuple[bytes, dict[str, Any]]:
+        """The encoded image as the server sends it (PNG or .npy bytes) and the render report. `timeout`: seconds
+        for this call (default: the client's)."""
+        kw = {} if timeout is None else {"timeout": timeout}
+        r = self._request("POST", f"/volumes/{volume}/render", json=_scene_dict(scene), idempotent=True, **kw)
         return r.content, json.loads(r.headers.get("x-lodcast-report", "{}"))
 
-    def render(self, volume: str, scene: Any) -> Any:
+    def render(self, volume: str, scene: Any, *, timeout: float | None = None) -> Any:
         """A RenderResult, as local rendering returns: float32 premultiplied RGBA (fetched as .npy) and the report."""
         import numpy as np
 
         body = {**_scene_dict(scene), "format": "npy"}
-        data, report = self.render_image(volume, body)
+        data, report = self.render_image(volume, body, timeout=timeout)
         return _result(np.load(io.BytesIO(data), allow_pickle=False), report)
 
     # --- jobs -------------------------------------------------------------------------------------------------

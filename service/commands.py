@@ -74,7 +74,10 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
+    from lodcast.store.ingest import tame_malloc
+
     _apply_device_budget(args)
+    tame_malloc()  # its workers run ingest jobs
     settings = _settings(args, workers=args.workers, render_concurrency=args.render_concurrency,
                          import_roots=args.import_root, token=args.token,
                          max_samples=None if args.max_samples is None else int(args.max_samples))
@@ -139,7 +142,10 @@ def _cmd_worker(args: argparse.Namespace) -> int:
 
     if args.threads < 1:
         raise ValueError(f"--threads: must be at least 1, got {args.threads}")
+    from lodcast.store.ingest import tame_malloc
+
     _apply_device_budget(args)
+    tame_malloc()  # it runs ingest jobs
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = _settings(args)
     jq = JobQueue(settings)

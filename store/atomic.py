@@ -5,25 +5,41 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 from pathlib import Path
 
 from lodcast.errors import StoreExists
-from lodcast.store.store import parse_temp_name, temp_path
+from lodcast.store.store import host_tag, parse_temp_name, temp_path
 
-__all__ = ["remove_stale", "move_into_place"]
+__all__ = ["remove_stale", "move_into_place", "FOREIGN_STALE_S"]
+
+#: another host's ingest folder is taken for a leftover of a dead ingest after this long untouched (its process
+#: cannot be asked from here)
+FOREIGN_STALE_S = 24 * 3600.0
 
 
 def remove_stale(dest: Path) -> None:
-    """Leftovers of ingests that were killed (their process is gone): partial stores are removed; a replaced
-    store whose successor never arrived is put back, so a kill during `--overwrite` loses nothing."""
+    """Leftovers of ingests that were killed (their process is gone; on another host sharing the folder: untouched
+    for FOREIGN_STALE_S): partial stores are removed; a replaced store whose successor never arrived is put back,
+    so a kill during `--overwrite` loses nothing."""
     for p in dest.parent.glob(f".{dest.name}.*"):
         parsed = parse_temp_name(p.name)
-        if parsed is None or parsed[0] != dest.name or _alive(parsed[2]):
+        if parsed is None or parsed[0] != dest.name or _running(p, parsed[2], parsed[3]):
             continue
         if parsed[1] == "replaced" and not dest.exists():
             os.rename(p, dest)
         else:
             shutil.rmtree(p, ignore_errors=True)
+
+
+def _running(p: Path, host: str | None, pid: int) -> bool:
+    """Whether the ingest that owns folder `p` may still be running."""
+    if host is None or host == host_tag():
+        return _alive(pid)
+    try:
+        return time.time() - p.stat().st_mtime < FOREIGN_STALE_S
+    except FileNotFoundError:
+        return True  # gone meanwhile: nothing to do
 
 
 def _alive(pid: int) -> bool:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import re
+import socket
 import uuid
 from dataclasses import dataclass
 from functools import cached_property
@@ -238,19 +239,27 @@ class Store:
 
 # Ingest's hidden folders beside a destination DEST: `.DEST.partial-PID-HEX`, the store being written (renamed into
 # place only after its last write), and `.DEST.replaced-PID-HEX`, the store an `--overwrite` moved aside.
-_TEMP_NAME = re.compile(r"^\.(?P<dest>.+)\.(?P<kind>partial|replaced)-(?P<pid>\d+)-[0-9a-f]{8}$")
+_TEMP_NAME = re.compile(r"^\.(?P<dest>.+)\.(?P<kind>partial|replaced)-(?:(?P<host>[A-Za-z0-9_-]+)@)?(?P<pid>\d+)"
+                        r"-[0-9a-f]{8}$")
+
+
+def host_tag() -> str:
+    """This host's name as ingest's hidden folders carry it (several hosts may share a store root)."""
+    return re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:64] or "host"
 
 
 def temp_path(dest: Path, kind: str) -> Path:
-    """A new hidden folder of `kind` ("partial" or "replaced") for this process beside `dest`."""
+    """A new hidden folder of `kind` ("partial" or "replaced") for this process beside `dest`: unique across the
+    hosts that share the folder (host, pid and a random part)."""
     assert kind in ("partial", "replaced")
-    return dest.parent / f".{dest.name}.{kind}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    return dest.parent / f".{dest.name}.{kind}-{host_tag()}@{os.getpid()}-{uuid.uuid4().hex[:8]}"
 
 
-def parse_temp_name(name: str) -> tuple[str, str, int] | None:
-    """(destination name, kind, owner pid) of an ingest's hidden folder name; None for any other name."""
+def parse_temp_name(name: str) -> tuple[str, str, str | None, int] | None:
+    """(destination name, kind, owner host (None: a name from before hosts were recorded), owner pid) of an
+    ingest's hidden folder name; None for any other name."""
     m = _TEMP_NAME.match(name)
-    return (m["dest"], m["kind"], int(m["pid"])) if m else None
+    return (m["dest"], m["kind"], m["host"], int(m["pid"])) if m else None
 
 
 def data_manifest(root: Path) -> dict[str, list[int]]:

@@ -115,3 +115,25 @@ def test_a_store_moved_aside_by_a_killed_overwrite_is_put_back(tmp_path: Path):
         lodcast.ingest(old + 1, dest, progress=False)  # the old store is back, so this needs --overwrite
     np.testing.assert_array_equal(lodcast.open_store(dest).read_level(0), old)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.zarr"]
+
+
+def test_temporary_names_carry_the_host_and_other_hosts_leftovers_wait(tmp_path: Path):
+    """Several hosts may share a store root: a hidden ingest folder names its host, pid and a random part; another
+    host's folder is not taken for a leftover (its process cannot be asked from here) until it has been untouched
+    for a day."""
+    from lodcast.store.atomic import FOREIGN_STALE_S
+    from lodcast.store.store import host_tag, parse_temp_name, temp_path
+
+    dest = tmp_path / "v.zarr"
+    t = temp_path(dest, "partial")
+    assert parse_temp_name(t.name) == ("v.zarr", "partial", host_tag(), os.getpid())
+    assert temp_path(dest, "partial") != t
+    assert parse_temp_name(".v.zarr.partial-123-0123abcd") == ("v.zarr", "partial", None, 123)  # older names
+    busy = tmp_path / ".v.zarr.partial-otherhost@1-89abcdef"  # pid 1 exists here, but it is another host's
+    stale = tmp_path / ".v.zarr.partial-otherhost@2-fedcba98"
+    busy.mkdir()
+    stale.mkdir()
+    old = time.time() - FOREIGN_STALE_S - 60
+    os.utime(stale, (old, old))
+    lodcast.ingest(np.zeros((4, 4, 4), np.uint8), dest, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [busy.name, "v.zarr"]

@@ -1,0 +1,4 @@
+"""`python -m lodcast ...`: the `lodcast` command."""
+from lodcast.service.cli import main
+
+raise SystemExit(main())
