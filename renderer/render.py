@@ -34,17 +34,18 @@ from lodcast.renderer import clip as clipping
 from lodcast.renderer import cost
 from lodcast.renderer import dual
 from lodcast.renderer import passes as multipass
+from lodcast.renderer.params import ext_table, fill_params, fill_tf2, lut_table, tables
 from lodcast.renderer import screen as screen_space
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
 from lodcast.renderer.program import device_info, get_context, get_program
 from lodcast.renderer.scene import QualityBudget, QualityReduction, Scene, SceneError
-from lodcast.renderer.structs import STATE_FLOATS, new_params
+from lodcast.renderer.structs import STATE_FLOATS
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.volume import VolumeView, as_volume
 
-__all__ = ["RenderResult", "Prepared", "render", "prepare", "check_cost", "launch", "kernel_config", "block_info", "LOCAL_SIZE",
+__all__ = ["RenderResult", "Prepared", "render", "prepare", "prefetch", "check_cost", "launch", "kernel_config", "block_info", "LOCAL_SIZE",
            "MAX_SAMPLES_PER_RAY"]
 
 LOCAL_SIZE = (8, 8)
@@ -146,52 +147,6 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
         info = np.where(keep, info, -np.inf if pr.scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
     g = info.shape
     return np.ascontiguousarray(info), (g[2], g[1], g[0], C)
-
-
-def _fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: Lut, step_world: float,
-                 unit: float, max_samples: int, dist: DistTable | None, pre: PreintTable | None) -> np.ndarray:
-    p = new_params()[0]
-    xyz = lambda v: (*[float(c) for c in v], 0.0)  # noqa: E731
-    p["eye"], p["cam_f"], p["cam_r"], p["cam_u"] = xyz(fr.eye), xyz(fr.f), xyz(fr.r), xyz(fr.u)
-    p["box_lo"], p["box_hi"] = xyz(box[0]), xyz(box[1])
-    p["origin"] = xyz(vol.origin[::-1])
-    p["inv_spacing"] = xyz(1.0 / np.asarray(vol.spacing[::-1], np.float64))
-    r, g, b, a = scene.background
-    p["background"] = (r * a, g * a, b * a, a)
-    p["dims"] = (vol.shape[2], vol.shape[1], vol.shape[0], 0)
-    p["grid"] = (vol.grid[2], vol.grid[1], vol.grid[0], vol.block_size)
-    p["half_w"], p["half_h"] = fr.half_w, fr.half_h
-    p["step"], p["inv_unit"] = step_world, 1.0 / unit
-    p["lut_lo"], p["lut_scale"], p["lut_n"] = lut.lo, lut.scale, lut.n
-    p["early_term"] = scene.sampling.early_termination
-    p["iso"] = scene.isovalue if scene.isovalue is not None else 0.0
-    p["width"], p["height"] = scene.width, scene.height
-    p["seed"] = scene.sampling.seed
-    p["max_samples"] = max_samples
-    p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
-    if pre is not None:
-        p["pre_n"], p["pre_lo"], p["pre_scale"] = pre.n, pre.lo, pre.scale
-    p["clip"] = clipping.kernel_planes(scene.clip)
-    p["n_clip"] = 0 if scene.clip is None else len(scene.clip.planes)
-    sh = scene.shading
-    if sh is not None:
-        p["shade"] = (sh.ambient, sh.diffuse, sh.specular, sh.shininess)
-        if sh.light == "headlight":
-            p["light"] = (0.0, 0.0, 0.0, 1.0)
-        else:
-            v = np.asarray(sh.light, np.float64)
-            if sh.light_space == "view":  # x right, y up, z towards the viewer
-                v = v[0] * fr.r + v[1] * fr.u - v[2] * fr.f
-            p["light"] = xyz(v / np.linalg.norm(v))
-        span = float(vol.value_range[1]) - float(vol.value_range[0])
-        p["shade_gmin"] = sh.min_gradient if sh.min_gradient is not None else 1e-3 * span / float(min(vol.spacing))
-        p["shade_gref"] = sh.gradient_weighting or 0.0
-    if dist is not None:
-        p["dist_n"], p["dist_rows"] = dist.n, dist.rows
-        # the atlas holds standard deviations in units of vol.std_unit; the kernel only takes their square root
-        p["dist_lo"], p["dist_scale"] = dist.lo, dist.scale
-        p["dist_sscale"] = dist.std_scale * math.sqrt(vol.std_unit)
-    return p.reshape(1)
 
 
 @dataclass(frozen=True)
@@ -335,7 +290,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
     dist, pre = _classification_tables(scene.tf, lut, unit, cfg, vol, step_world)
-    params = _fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
+    params = fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
     prio = None
     if second is not None:
         dist2, pre2 = _classification_tables(second.tf, second.lut, second.unit, cfg, vol, step_world)
@@ -352,7 +307,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio,
                   plan, pp)
     if second is not None:
-        _fill_tf2(params, pr)
+        fill_tf2(params, pr)
     return pr
 
 
@@ -390,11 +345,6 @@ def _classification_tables(tf, lut: Lut, unit: float, cfg: KernelConfig, vol: Vo
     return dist, pre
 
 
-def _tfs(pr: Prepared) -> list[tuple[Lut, float]]:
-    """(LUT, unit distance) of each TF the kernel integrates: tf, and tf2 after it (LC_TF2)."""
-    return [(pr.lut, pr.unit)] + ([(pr.second.lut, pr.second.unit)] if pr.second is not None else [])
-
-
 def _screen_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, info: np.ndarray,
                  lod: "LodPlan | None") -> "screen_space.ScreenPlan":
     """Adaptive screen-space sampling's pre-pass: each tile's resolution from the block scales along its rays."""
@@ -404,61 +354,6 @@ def _screen_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, info: np.ndarray,
     pri = screen_space.tile_priorities(fr, levels, visible, vol.shape, vol.spacing, vol.origin, vol.block_size,
                                        scene.width, scene.height, s.screen_tile, s.screen_statistic)
     return screen_space.plan(screen_space.resolutions(pri, s.screen_tile), scene.width, scene.height, s.screen_tile)
-
-
-def lut_table(pr: Prepared) -> np.ndarray:
-    """The LUT as the kernel built for this scene reads it (see raycast.cl); with tf2 its LUT follows at
-    params.tf2_lut_at."""
-    if pr.config.mode != "composite":  # the projections and iso take the TF's opacity as given
-        return pr.lut.kernel_table("opacity")
-    kind = "depth" if pr.config.precise else "alpha"
-    return np.concatenate([lut.kernel_table(kind, pr.step_world / unit) for lut, unit in _tfs(pr)])
-
-
-def _ext_rows(lut: Lut, unit: float, pr: Prepared) -> list[np.ndarray]:
-    rows = [lut.kernel_table("extinction")[:, 3]]
-    if pr.config.adaptive and pr.config.mode == "composite" and not pr.config.precise:
-        ratio = pr.step_world / unit
-        rows += [lut.kernel_table("alpha", ratio * 2**k)[:, 3] for k in range(1, int(pr.volume.block_size).bit_length())]
-    return rows
-
-
-def ext_table(pr: Prepared) -> np.ndarray:
-    """lut_ext: the extinction per LUT entry; with adaptive sampling (composite, not LC_PRECISE) followed by one
-    row per level k >= 1 holding the alpha of a whole step of step * 2^k (exact, float64 on the host); with tf2
-    its rows follow at params.tf2_ext_at."""
-    rows = [r for lut, unit in _tfs(pr) for r in _ext_rows(lut, unit, pr)]
-    return np.ascontiguousarray(np.concatenate(rows), dtype=np.float32)
-
-
-def _tables(pr: Prepared, kind: str) -> np.ndarray | None:
-    """The distribution ("dist") or pre-integration ("preint") tables of tf (and tf2 after it), float4 rows."""
-    own = getattr(pr, kind)  # Prepared and SecondTf name them alike
-    if own is None:
-        return None
-    attr = {"dist": "kernel_table", "preint": "table"}[kind]
-    tabs = [getattr(t, attr) for t in (own, getattr(pr.second, kind, None)) if t is not None]
-    return np.ascontiguousarray(np.concatenate([np.asarray(t, np.float32).reshape(-1, 4) for t in tabs]))
-
-
-def _fill_tf2(p: np.ndarray, pr: Prepared) -> None:
-    """The second TF's fields of the parameter block (LC_TF2), the offsets matching lut_table, ext_table and
-    _tables."""
-    sec, q = pr.second, p[0]
-    assert sec is not None
-    q["tf2_lut_at"] = pr.lut.n + 1
-    q["tf2_ext_at"] = sum(r.size for r in _ext_rows(pr.lut, pr.unit, pr))
-    q["tf2_lut_lo"], q["tf2_lut_scale"], q["tf2_lut_n"] = sec.lut.lo, sec.lut.scale, sec.lut.n
-    q["tf2_vis_lo"], q["tf2_vis_hi"] = sec.lut.visible_span()
-    q["tf2_inv_unit"] = 1.0 / sec.unit
-    if sec.dist is not None:
-        q["tf2_dtab_at"] = np.asarray(pr.dist.kernel_table).reshape(-1, 4).shape[0]
-        q["tf2_dist_n"], q["tf2_dist_lo"], q["tf2_dist_scale"] = sec.dist.n, sec.dist.lo, sec.dist.scale
-    if sec.preint is not None:
-        q["tf2_ptab_at"] = np.asarray(pr.preint.table).reshape(-1, 4).shape[0]
-        q["tf2_pre_n"], q["tf2_pre_lo"], q["tf2_pre_scale"] = sec.preint.n, sec.preint.lo, sec.preint.scale
-    if pr.priority is not None:
-        q["prio_tile"], q["prio_w"] = pr.priority.tile, pr.priority.tiles.shape[1]
 
 
 def _classification(pr: Prepared) -> str:
@@ -497,6 +392,20 @@ def _priority_report(pr: Prepared, nsamp: np.ndarray) -> dict | None:
     return {"tile": pr.priority.tile, "priority_pixels": float(m.mean()),
             "samples_priority": int(nsamp[m].sum(dtype=np.int64)),
             "samples_other": int(nsamp[~m].sum(dtype=np.int64))}
+
+
+def prefetch(store: Any, scene: Any) -> int:
+    """Read the bricks a render of `scene` will need (its level-of-detail selection, and the distributions behind
+    coarse bricks) into the brick cache, without touching the device: a job calls it for its next frame while the
+    current one renders. The bricks read from the store (0: all cached already, or a scene at quality "full",
+    whose level 0 goes to the device whole)."""
+    pr = prepare(store, scene)
+    if pr.lod is None or pr.volume.key is None:
+        return 0
+    n = lod_atlas.load_bricks(pr.volume, pr.lod.levels).read
+    if pr.config.distribution:
+        n += lod_atlas.load_bricks(pr.volume, pr.lod.levels, what="std").read
+    return n
 
 
 def launch(kern: cl.Kernel, width: int, height: int, *, estimated_samples: int = 0,
@@ -541,7 +450,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     d_spos = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spos)
     d_dtab, d_ptab = (
         cl.Buffer(ctx, mf.READ_ONLY, size=16) if t is None else cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=t)
-        for t in (_tables(pr, "dist"), _tables(pr, "preint"))
+        for t in (tables(pr, "dist"), tables(pr, "preint"))
     )
     prio = pr.priority.tiles if pr.priority is not None else np.ones(16, np.uint8)
     d_prio = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prio)

@@ -245,6 +245,7 @@ class JobQueue:
 
         self.records.update(job_id, {"total": len(plan), "done": count()}, expect={"owner": (owner,)})
         eng = engine()
+        ahead = _Prefetch(eng, self.settings)
         for i, (vid, scene_dict) in enumerate(plan):
             if paths[i].exists():
                 continue  # written before a crash or a release: never rendered twice
@@ -254,6 +255,7 @@ class JobQueue:
                 self._release(job_id, owner)
                 return "released"
             scene = parse_scene(scene_dict, self.settings, ("scene",))
+            ahead.next(plan[i + 1] if i + 1 < len(plan) and not paths[i + 1].exists() else None)
             result = eng.render(volume_path(self.settings.root, vid), scene, self.settings.max_samples)
             data, _ = encode(result, scene)
             write_atomic(paths[i], data)
@@ -291,6 +293,41 @@ class JobQueue:
 
     def delete_results(self, job_id: str) -> None:
         shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+
+
+class _Prefetch:
+    """Reads the next frame's bricks into the brick cache while the current frame renders (a TF sweep or a scenes
+    job changes the selection from frame to frame; a turntable's stays, so after its first frame this finds
+    everything cached). One frame ahead, on one thread; a failure only costs the prefetch (the render reads the
+    bricks itself and reports any error)."""
+
+    _pool = None
+    _lock = threading.Lock()
+
+    def __init__(self, eng: Any, settings: Any):
+        self.eng, self.settings = eng, settings
+
+    @classmethod
+    def _executor(cls) -> Any:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with cls._lock:
+            if cls._pool is None:
+                cls._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lodcast-prefetch")
+            return cls._pool
+
+    def next(self, item: tuple[str, Any] | None) -> None:
+        if item is None:
+            return
+        vid, scene_dict = item
+        self._executor().submit(self._run, vid, scene_dict)
+
+    def _run(self, vid: str, scene_dict: Any) -> None:
+        try:
+            scene = parse_scene(scene_dict, self.settings, ("scene",))
+            self.eng.prefetch(volume_path(self.settings.root, vid), scene)
+        except Exception as exc:  # the render of that frame meets (and reports) whatever this met
+            log.debug("prefetch of a frame of %s failed: %s", vid, exc)
 
 
 class Worker:

@@ -115,6 +115,12 @@ class RenderEngine:
 
         return render(self.store(path), scene, sample_limit=sample_limit, stop=stop)
 
+    def prefetch(self, path: Path, scene: Any) -> int:
+        """The bricks a render of `scene` will need, read into the brick cache (renderer.render.prefetch)."""
+        from lodcast.renderer.render import prefetch
+
+        return prefetch(self.store(path), scene)
+
     def check_cost(self, path: Path, scene: Any, sample_limit: int) -> int:
         """The render's estimated samples; CostError (naming the field) above `sample_limit`."""
         from lodcast.renderer.render import check_cost

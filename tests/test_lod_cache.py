@@ -138,3 +138,23 @@ def test_device_cache_keeps_several_volumes_and_always_the_newest(tmp_path):
     assert tiny.get("b") == "B" and tiny.get("a") is None and len(tiny) == 1
     tiny.put("c", "C", 10)
     assert tiny.get("c") == "C" and tiny.get("b") is None
+
+
+def test_prefetch_reads_the_next_frames_bricks_so_its_render_reads_none(store):
+    """A job reads frame i + 1's bricks while frame i renders (renderer.render.prefetch): the render after a
+    prefetch reads nothing from the store and gives the image a cold render gives."""
+    from lodcast.renderer.render import prefetch, prepare
+
+    scene = {**_scene(30), "quality": {"reduction": 4}}
+    cold = render(store, scene)
+    assert cold.report["bricks_read"] > 0
+    lod_atlas.brick_cache().clear()
+    device_cache().clear()
+    n = prefetch(store, scene)
+    coarse = int((prepare(store, scene).lod.levels >= 1).sum())  # their distributions are read too
+    assert coarse > 0 and n == cold.report["bricks_read"] + coarse
+    assert prefetch(store, scene) == 0  # all cached now
+    warm = render(store, scene)
+    assert warm.report["bricks_read"] == 0 and warm.report["bricks_cached"] == cold.report["bricks_read"]
+    assert np.array_equal(warm.rgba, cold.rgba)
+    assert prefetch(store, {**scene, "quality": "full"}) == 0  # level 0 goes to the device whole
