@@ -181,11 +181,11 @@ def _proxy(server: S3Server, upstream_port: int) -> ThreadingHTTPServer:
             if not head:
                 self.send_header("Content-Length", str(len(data)))
             self.end_headers()
+            with server.lock:  # counted before the client has the answer, so a reset after it cannot race it
+                server.requests.append((self.command, self.path, self.headers.get("Range"), len(data)))
             if not head:
                 self.wfile.write(data)
             conn.close()
-            with server.lock:
-                server.requests.append((self.command, self.path, self.headers.get("Range"), len(data)))
 
         do_GET = do_PUT = do_POST = do_HEAD = do_DELETE = _forward
 
