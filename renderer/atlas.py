@@ -234,10 +234,13 @@ def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarra
     `std_bricks` ((level, bz, by, bx) -> brick), zeros for level 0 (the kernel never reads those)."""
     sizes, offsets = _offsets(levels, block_size)
     out = np.zeros(max(int(sizes.sum()), 1), np.float16)
-    for (k, z, y, x), a in std_bricks.items():
-        i = int(np.ravel_multi_index((z, y, x), np.asarray(levels).shape))
+    if not std_bricks:
+        return out
+    keys = list(std_bricks)
+    flat = np.ravel_multi_index(tuple(np.array([k[1:] for k in keys]).T), np.asarray(levels).shape)  # one call
+    for key, i in zip(keys, flat.tolist()):
         o, n = int(offsets[i]), int(sizes[i])
-        out[o:o + n] = np.asarray(a, np.float16).ravel()
+        out[o:o + n] = np.asarray(std_bricks[key], np.float16).ravel()
     return out
 
 

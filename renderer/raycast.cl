@@ -211,7 +211,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     int march = lc_hit_box(P, o, d, &t0, &t1);
 #ifdef LC_PASSES
     /* a ray that misses the region owns no sample in this pass: it only passes its state on */
-    march = march && !done && lc_meets_box(P->pass_lo.xyz, P->pass_hi.xyz, o, d, t0, t1);
+    float t_pass_end = INFINITY;
+    march = march && !done && lc_meets_box(P->pass_lo.xyz, P->pass_hi.xyz, o, d, t0, t1, &t_pass_end);
 #endif
     if (march) {
         const float dt = P->step, inv_dt = 1.0f / dt;
@@ -262,6 +263,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
         while (t < t1 && !done && budget) {
             --budget;
+#ifdef LC_PASSES
+            if (t > t_pass_end) break; /* past the region: nothing more of this pass's */
+#endif
             float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves the cell */
             tb = tb < t1 ? tb : t1;
             const int lvl = step_level[((ulong)lc_clampi(bz, hz - 1) * (ulong)hy + (ulong)lc_clampi(by, hy - 1)) *
@@ -339,6 +343,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         const int cpb = P->grid.w / P->ess_grid.w, bgx = P->grid.x, bgy = P->grid.y; /* walk cells per block */
 #endif
         while (k < n && !done) {
+#ifdef LC_PASSES
+            if (LC_POS(k) > t_pass_end) break; /* past the region: nothing more of this pass's */
+#endif
             int k_end = n;
             int skip = 0;
             if (inside) {

@@ -29,6 +29,7 @@ from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simpli
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales
 from lodcast.store.atomic import move_into_place, remove_stale
+from lodcast.store.remote import is_url
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
@@ -52,7 +53,14 @@ def ingest(
     `reader_options` go to `lodcast.store.readers.open_source` (format, shape, dtype, byte_order, header_bytes,
     spacing, origin, index); spacing and origin also apply to arrays. Raises SourceNotFound / SourceError for bad
     input and StoreExists when `dest` exists and `overwrite` is false; nothing is left behind in either case.
+    `dest` may be an fsspec URL (s3://bucket/prefix/ct.zarr): the store is written locally, then published there
+    (store/remote.py: the root metadata last, so that no half store is ever visible).
     """
+    if is_url(dest):
+        from lodcast.store.remote import ingest_to_url
+
+        return ingest_to_url(source, os.fspath(dest), overwrite=overwrite, block_size=block_size, progress=progress,
+                             bins=bins, segments=segments, workers=workers, **reader_options)
     dest = Path(dest)
     if dest.parent.is_dir():
         remove_stale(dest)  # first: it may put back a store that a killed `--overwrite` had moved aside

@@ -5,6 +5,7 @@ range request and its needed chunks in spans, where zarr-python would ask once p
 from __future__ import annotations
 
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -118,3 +119,51 @@ def test_the_cli_renders_and_describes_a_store_on_s3(s3, tmp_path):
     missing = subprocess.run([sys.executable, "-m", "lodcast.service.cli", "info", "s3://lodcast-test/none.zarr"],
                              capture_output=True, text=True)
     assert missing.returncode == 2 and "no store at s3://lodcast-test/none.zarr" in missing.stderr
+    src = tmp_path / "v.npy"
+    np.save(src, _field((12, 16, 20)))
+    ing = subprocess.run([sys.executable, "-m", "lodcast.service.cli", "ingest", str(src), "s3://lodcast-test/cli.zarr"],
+                         capture_output=True, text=True)
+    assert ing.returncode == 0, ing.stderr
+    assert json.loads(ing.stdout)["shape"] == [12, 16, 20]
+    again = subprocess.run([sys.executable, "-m", "lodcast.service.cli", "ingest", str(src),
+                            "s3://lodcast-test/cli.zarr"], capture_output=True, text=True)
+    assert again.returncode == 2 and "--overwrite" in again.stderr
+
+
+def test_ingest_publishes_to_s3_with_the_root_metadata_last(s3, monkeypatch):
+    """`lodcast.ingest(..., "s3://...")`: written locally, then uploaded with the root zarr.json last, so a reader
+    never finds half a store; a killed upload leaves none, and the next ingest cleans up after it."""
+    from lodcast.errors import StoreExists
+    from lodcast.store import remote
+
+    srv, local, fs = s3
+    url = "s3://lodcast-test/ingested.zarr"
+    a = _field((20, 24, 28))
+    st = lodcast.ingest(a, url, progress=False)
+    assert st.location == url and np.array_equal(st.read_level(0), a)
+    with pytest.raises(StoreExists):
+        lodcast.ingest(a, url, progress=False)
+    # a failure after part of the upload (what a kill leaves): there is no store at the URL
+    calls = []
+
+    def failing(fs_, lp, rp):
+        calls.append(len(lp))
+        if len(calls) == 1:
+            fs_.put(lp[: len(lp) // 2], rp[: len(rp) // 2])
+            raise OSError("connection lost")
+        raise AssertionError("the root metadata must not be uploaded after a failure")
+
+    monkeypatch.setattr(remote, "_put", failing)
+    with pytest.raises(OSError, match="connection lost"):
+        lodcast.ingest(a + 1, url, overwrite=True, progress=False)
+    assert not fs.exists("lodcast-test/ingested.zarr/zarr.json")
+    assert fs.find("lodcast-test/ingested.zarr")  # half an upload's objects, but no store
+    with pytest.raises(StoreNotFound):
+        lodcast.open_store(url)
+    monkeypatch.undo()
+    st = lodcast.ingest(a + 2, url, progress=False)  # no store there: no --overwrite needed, leftovers removed
+    assert np.array_equal(st.read_level(0), a + 2)
+    ref = lodcast.ingest(a + 2, Path(s3[1].location).parent / "same.zarr", progress=False)
+    got = sorted(p.removeprefix("lodcast-test/ingested.zarr/") for p in fs.find("lodcast-test/ingested.zarr"))
+    want = sorted(p.relative_to(ref.location).as_posix() for p in Path(ref.location).rglob("*") if p.is_file())
+    assert got == want  # the same objects as the local store, nothing left of the failed upload
