@@ -129,6 +129,7 @@ def render_step(store_path: str, frames: int, size: int) -> None:
         per.append({"ms": (time.perf_counter() - t) * 1e3, "bricks_read": read,
                     "bricks_cached": r.report["bricks_cached"], "mb_read": (_io() - io0) / 1e6})
     out["turntable"] = per
+    os.environ["LODCAST_DEVICE_BUDGET_MB"] = "512"  # the budget for these two: their data is larger
     for q in ("lossless", "full"):
         t, io0 = time.perf_counter(), _io()
         r = lodcast.render(st, {**base, "quality": q, "camera": cam(0)})
@@ -161,14 +162,17 @@ def main() -> None:
     size = raw.stat().st_size
     store = LARGE / f"body_{'x'.join(map(str, shape))}.zarr"
     res: dict = {"shape": shape, "voxels": int(np.prod(shape)), "raw_bytes": size}
+    ingest_json = store.with_suffix(".ingest.json")  # kept beside the store: a rerun measures the renders only
     if not store.exists():
         dt, got = child([sys.executable, __file__, "--ingest-step", str(raw), str(store)])
-        res["ingest"] = {"s": dt, "mb_per_s": size / 1e6 / dt, "peak_rss_mb": got["peak_rss"] / 1e6}
+        ingest_json.write_text(json.dumps({"s": dt, "mb_per_s": size / 1e6 / dt, "peak_rss_mb": got["peak_rss"] / 1e6}))
+    if ingest_json.exists():
+        res["ingest"] = json.loads(ingest_json.read_text())
         print(res["ingest"], flush=True)
     res["page_cache_dropped"] = drop_caches()
     dt, res["render"] = child([sys.executable, __file__, "--render-step", str(store), "--frames", str(a.frames),
                                "--size", str(a.size)],
-                              env={"LODCAST_DEVICE_BUDGET_MB": "512", "LODCAST_BRICK_CACHE_MB": "512"})
+                              env={"LODCAST_BRICK_CACHE_MB": "512"})
     r = res["render"]
     tt = r["turntable"]
     hit = sum(f["bricks_cached"] for f in tt) / max(1, sum(f["bricks_cached"] + f["bricks_read"] for f in tt))

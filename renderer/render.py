@@ -19,6 +19,8 @@ LOD path also skips loaded blocks whose border-inclusive range is invisible, as 
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -33,6 +35,7 @@ from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
 from lodcast.renderer import cost
 from lodcast.renderer import dual
+from lodcast.renderer.cache import ByteLru
 from lodcast.renderer import passes as multipass
 from lodcast.renderer.params import ext_table, fill_params, fill_tf2, lut_table, tables
 from lodcast.renderer import screen as screen_space
@@ -49,6 +52,7 @@ __all__ = ["RenderResult", "Prepared", "render", "prepare", "prefetch", "check_c
            "MAX_SAMPLES_PER_RAY"]
 
 LOCAL_SIZE = (8, 8)
+_SELECTIONS = ByteLru(4)  # the last 4 level-of-detail selections (store, TFs, quality, classification, crop)
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
 MAX_SAMPLES_PER_RAY = 2**30
 
@@ -195,7 +199,15 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None,
     tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
     quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
     classification = scene.sampling.classification if scene.mode == "composite" else "mean"
-    sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification)
+    # the selection does not depend on the view: a turntable or a camera change selects once
+    key = None if vol.key is None else (
+        vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True), json.dumps(quality, sort_keys=True),
+        classification, None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest())
+    sel = _SELECTIONS.get(key) if key is not None else None
+    if sel is None:
+        sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification)
+        if key is not None:
+            _SELECTIONS.put(key, sel, 1)
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
 
 

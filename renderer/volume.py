@@ -148,7 +148,7 @@ def _from_store(s: Any) -> VolumeView:
         value_range=(float(s.value_range[0]), float(s.value_range[1])),
         min_border=np.asarray(st.min_border, dtype=np.float64),
         max_border=np.asarray(st.max_border, dtype=np.float64),
-        key=("store", str(path), _stamp(path)) if path is not None else None,
+        key=("store", str(path), _stamp(path), getattr(s, "generation", None)) if path is not None else None,
         _read0=lambda: s.read_level(0),
         source=s,
     )

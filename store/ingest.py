@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
+import uuid
 import shutil
 import sys
 from collections.abc import Iterator
@@ -453,7 +454,9 @@ def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[f
     info = src.info
     name = (parse_temp_name(root.name) or (root.name,))[0].removesuffix(".zarr")
     return {
-        "lodcast": {"format_version": FORMAT_VERSION},
+        # a new id per ingest: caches keyed by it notice a store rewritten at the same place (object storage has
+        # no inode or mtime to tell)
+        "lodcast": {"format_version": FORMAT_VERSION, "generation": uuid.uuid4().hex},
         "shape": list(lay.shape),
         "dtype": dtype.name,
         "spacing": list(info.spacing),

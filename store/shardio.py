@@ -41,6 +41,7 @@ _INDEX_CACHE: OrderedDict[tuple[str, int, Any], np.ndarray] = OrderedDict()
 _INDEX_CACHE_MAX = 2048
 _LOCK = threading.Lock()
 _POOL: ThreadPoolExecutor | None = None
+_READERS = itertools.count()
 
 
 def _workers() -> int:
@@ -95,6 +96,7 @@ class _RemoteFiles:
 
     def __init__(self, fs: Any, root: str):
         self.fs, self.root = fs, root.rstrip("/")
+        self._token = next(_READERS)  # this reader's indexes only (an id() could be reused by the next one)
 
     def name(self, key: str) -> str:
         return f"{self.root}/{key}"
@@ -106,7 +108,7 @@ class _RemoteFiles:
         pass
 
     def stamp(self, path: str) -> tuple[int | None, Any]:
-        return None, id(self)
+        return None, self._token
 
     def pread(self, path: str, n: int, off: int) -> bytes:
         return self.fs.cat_file(path, start=off, end=off + n) if n else b""

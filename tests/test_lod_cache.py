@@ -25,8 +25,11 @@ def store(tmp_path_factory):
 
 @pytest.fixture(autouse=True)
 def fresh():
+    from lodcast.renderer import render as render_mod
+
     lod_atlas.brick_cache().clear()
     device_cache().clear()
+    render_mod._SELECTIONS.clear()
     yield
     lod_atlas.brick_cache().clear()
     device_cache().clear()
@@ -158,3 +161,22 @@ def test_prefetch_reads_the_next_frames_bricks_so_its_render_reads_none(store):
     assert warm.report["bricks_read"] == 0 and warm.report["bricks_cached"] == cold.report["bricks_read"]
     assert np.array_equal(warm.rgba, cold.rgba)
     assert prefetch(store, {**scene, "quality": "full"}) == 0  # level 0 goes to the device whole
+
+
+def test_a_camera_change_selects_nothing_again(store, monkeypatch):
+    """The level-of-detail selection depends on the TF, the quality and the clip region, not on the view: a
+    turntable selects once; a TF change selects again."""
+    import lodcast.renderer.selection as selection
+
+    calls = []
+    real = selection.select_lod
+    monkeypatch.setattr(selection, "select_lod", lambda *a, **k: calls.append(1) or real(*a, **k))
+    scene = {**_scene(0), "quality": {"reduction": 4}}
+    first = render(store, scene)
+    for az in (40, 200):
+        r = render(store, {**scene, "camera": {"azimuth": az, "elevation": 15}})
+        assert r.report["reduction"] == first.report["reduction"]
+    assert len(calls) == 1
+    tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 0, 0], "opacity": 0.5}]}
+    render(store, {**scene, "tf": tf2})
+    assert len(calls) == 2
