@@ -350,7 +350,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                          "description": "the image; the render report as JSON in the X-Lodcast-Report header"}},
     )
     async def render(volume_id: VolumeId, request: Request,
-                     scene: Annotated[dict[str, Any], Body(description="a scene (DESIGN.md)", examples=[EXAMPLE_SCENE])]) -> Response:
+                     scene: Annotated[dict[str, Any], Body(description="a scene: camera, width, height, tf, tf2, quality, sampling, shading, clip, mode, background, format", examples=[EXAMPLE_SCENE])]) -> Response:
         path = volume_path(settings.root, volume_id)
         sc = parse_scene(scene, settings)
         eng = engine()
