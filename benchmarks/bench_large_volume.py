@@ -10,7 +10,7 @@ benchmarks/results/large/ (never committed; delete it afterwards) slab by slab.
 Measured, each step in its own process (peak RSS: that process's VmHWM, /proc/self/status):
 - ingest: MB/s and peak RSS;
 - the renderer (one process): the first image at 30:1 (cold: the page cache dropped first if this user may, else
-  said so), a 36-frame turntable at 30:1 (per-frame ms, bricks read per frame, brick-cache hit rate, MB read by
+  said so; under cProfile, whose table is written beside the store: where a cold image's time goes), a 36-frame turntable at 30:1 (per-frame ms, bricks read per frame, brick-cache hit rate, MB read by
   the process), one frame at "lossless" and one at "full" under LODCAST_DEVICE_BUDGET_MB=512 with the brick cache
   capped (LODCAST_BRICK_CACHE_MB=512), and the process's peak RSS against a quarter of the volume's size.
 Prints a table and writes JSON. Takes tens of minutes on two cores, most of it ingest.
@@ -116,8 +116,18 @@ def render_step(store_path: str, frames: int, size: int) -> None:
     st = lodcast.open_store(store_path)
     cam = lambda i: {"azimuth": 360.0 * i / frames, "elevation": 15}  # noqa: E731
     base = {"tf": TF, "width": size, "height": size, "format": "npy"}
+    import cProfile
+    import io
+    import pstats
+
+    prof = cProfile.Profile()
     t, io0 = time.perf_counter(), _io()
+    prof.enable()
     r = lodcast.render(st, {**base, "quality": {"reduction": 30}, "camera": cam(0)})
+    prof.disable()
+    text = io.StringIO()
+    pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(30)
+    (LARGE / "first_image_profile.txt").write_text(text.getvalue())  # where the cold image's time goes
     out["first_image"] = {"ms": (time.perf_counter() - t) * 1e3, "bricks_read": r.report["bricks_read"],
                           "mb_read": (_io() - io0) / 1e6, "reduction": r.report["reduction"]}
     per = []
@@ -181,7 +191,8 @@ def main() -> None:
     if "ingest" in res:
         lines.append(f"| ingest | {res['ingest']['mb_per_s']:.1f} MB/s, peak RSS {res['ingest']['peak_rss_mb']:.0f} MB |")
     lines += [
-        f"| first image 30:1 ({'page cache dropped' if res['page_cache_dropped'] else 'page cache NOT dropped'}) | "
+        f"| first image 30:1 ({'page cache dropped' if res['page_cache_dropped'] else 'page cache NOT dropped'}; "
+        f"under cProfile: {LARGE.name}/first_image_profile.txt) | "
         f"{r['first_image']['ms']:.0f} ms, {r['first_image']['bricks_read']} bricks, {r['first_image']['mb_read']:.0f} MB read |",
         f"| turntable 30:1, {len(tt)} frames | {np.median([f['ms'] for f in tt]):.0f} ms/frame (median), "
         f"{np.mean([f['bricks_read'] for f in tt]):.0f} bricks read/frame, hit rate {hit:.3f}, "
