@@ -10,7 +10,8 @@ benchmarks/results/large/ (never committed; delete it afterwards) slab by slab.
 Measured, each step in its own process (peak RSS: that process's VmHWM, /proc/self/status):
 - ingest: MB/s and peak RSS;
 - the renderer (one process): the first image at 30:1 (cold: the page cache dropped first if this user may, else
-  said so; under cProfile, whose table is written beside the store: where a cold image's time goes), a 36-frame turntable at 30:1 (per-frame ms, bricks read per frame, brick-cache hit rate, MB read by
+  said so; under cProfile, whose table is written beside the store: where a cold image's time goes), a
+  36-frame turntable at 30:1 (per-frame ms, bricks read per frame, brick-cache hit rate, MB read by
   the process), one frame at "lossless" and one at "full" under LODCAST_DEVICE_BUDGET_MB=512 with the brick cache
   capped (LODCAST_BRICK_CACHE_MB=512), and the process's peak RSS against a quarter of the volume's size.
 Prints a table and writes JSON. Takes tens of minutes on two cores, most of it ingest.
@@ -134,7 +135,15 @@ def render_step(store_path: str, frames: int, size: int) -> None:
     for i in range(1, frames):
         bc = brick_cache()
         reads0, io0, t = bc.reads, _io(), time.perf_counter()
+        if i == frames - 1:  # the last warm frame, profiled: where a warm frame's host time goes
+            prof = cProfile.Profile()
+            prof.enable()
         r = lodcast.render(st, {**base, "quality": {"reduction": 30}, "camera": cam(i)})
+        if i == frames - 1:
+            prof.disable()
+            text = io.StringIO()
+            pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(30)
+            (LARGE / "warm_frame_profile.txt").write_text(text.getvalue())
         read = r.report["bricks_read"]
         per.append({"ms": (time.perf_counter() - t) * 1e3, "bricks_read": read,
                     "bricks_cached": r.report["bricks_cached"], "mb_read": (_io() - io0) / 1e6})
