@@ -66,7 +66,7 @@ def run_render(store, scene: dict) -> dict:
 
 def run_bare(store, scene: dict) -> dict:
     """The bare march on the same rays (same Prepared parameters, same volume buffer)."""
-    from lodcast.renderer.program import get_context, get_program
+    from lodcast.opencl import get_context, get_program
     from lodcast.renderer.render import launch, prepare
     from lodcast.renderer.sampler import upload_level0
 
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import lodcast
-    from lodcast.renderer.program import device_info
+    from lodcast.opencl import device_info
 
     store = lodcast.open_store(ensure_store())
     dev = device_info()

@@ -9,7 +9,7 @@ Public API (re-exported lazily by `lodcast`):
 Inside: camera.py (DESIGN.md's camera), transfer_function.py (exact opacity correction, the kernel LUT, block
 visibility for empty-space skipping), volume.py (the only module that touches the store), sampler.py (level 0 on
 the device), atlas.py (LOD: brick cache, atlas and block index map, adaptive step levels; sampled by lc_atlas.h
-with nearest-block or interblock interpolation), config.py (KernelConfig -> -D options), program.py (build and cache), structs.py (NumPy mirror of
+with nearest-block or interblock interpolation), config.py (KernelConfig -> -D options), lodcast/opencl.py (device, build and cache: below the store and the renderer), structs.py (NumPy mirror of
 lc_types.h), raycast.cl / march_bare.cl / probe.cl / atlas_probe.cl with lc_types.h and lc_common.h, cli_render.py (`lodcast
-render`). Importing this package imports nothing heavy: pyopencl loads with render.py / program.py only.
+render`). Importing this package imports nothing heavy: pyopencl loads with render.py / lodcast.opencl only.
 """

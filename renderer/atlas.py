@@ -34,7 +34,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.renderer.cache import ByteLru, env_mb
-from lodcast.renderer.program import DeviceError, get_context
+from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
 

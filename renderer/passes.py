@@ -29,7 +29,7 @@ import pyopencl as cl
 
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer.camera import Frame
-from lodcast.renderer.program import DeviceError, get_context
+from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer.sampler import device_cache, ess_cell, level0_cells, upload_level0
 
 __all__ = ["Region", "PassPlan", "device_budget", "volume_limit", "ghost_voxels", "ring_blocks", "split_grid",

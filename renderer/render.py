@@ -42,7 +42,7 @@ from lodcast.renderer import screen as screen_space
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
-from lodcast.renderer.program import device_info, get_context, get_program
+from lodcast.opencl import device_info, get_context, get_program
 from lodcast.renderer.scene import QualityBudget, QualityReduction, Scene, SceneError
 from lodcast.renderer.structs import STATE_FLOATS
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance

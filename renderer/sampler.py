@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.renderer.cache import ByteLru, env_mb
-from lodcast.renderer.program import DeviceError, get_context
+from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer.volume import VolumeView
 
 __all__ = ["DeviceVolume", "upload_level0", "voxel_offset", "device_cache", "ess_cell", "level0_cells"]
@@ -47,7 +47,7 @@ def level0_cells(buf: cl.Buffer, sub_shape: tuple[int, int, int], start: tuple[i
     """The border-inclusive (min, max) of the ess_cell cells of `blocks`, from level-0 voxels on the device (`buf`:
     `sub_shape` voxels from voxel `start`, z-y-x, holding those cells and their borders), in float32 arrays over
     the volume's whole cell grid (NaN elsewhere: no value, nothing to see). Computed on the device (cells.cl)."""
-    from lodcast.renderer.program import get_program
+    from lodcast.opencl import get_program
 
     ctx, queue = get_context()
     C, B = ess_cell(vol.block_size), int(vol.block_size)

@@ -116,7 +116,7 @@ def simplify(hists: np.ndarray, segments: int = DEFAULT_SEGMENTS, *, device: boo
             if device:
                 raise
         except Exception as exc:  # no OpenCL platform, no fp64: the NumPy path gives the same optimum
-            from lodcast.renderer.program import DeviceError
+            from lodcast.opencl import DeviceError
 
             if device or not isinstance(exc, (DeviceError, RuntimeError)):
                 raise
@@ -126,7 +126,7 @@ def simplify(hists: np.ndarray, segments: int = DEFAULT_SEGMENTS, *, device: boo
 def _simplify_device(hists: np.ndarray, k: int, batch: int = 512) -> tuple[np.ndarray, np.ndarray]:
     import pyopencl as cl
 
-    from lodcast.renderer.program import DeviceError, get_context, get_program
+    from lodcast.opencl import DeviceError, get_context, get_program
 
     ctx, queue = get_context()
     if "cl_khr_fp64" not in ctx.devices[0].extensions:

@@ -10,7 +10,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.renderer.atlas import pack, pack_std
-from lodcast.renderer.program import get_context, get_program
+from lodcast.opencl import get_context, get_program
 
 
 def pyramid(v0: np.ndarray, n_levels: int) -> list[np.ndarray]:

@@ -8,7 +8,7 @@ import pyopencl as cl
 import pytest
 
 from lodcast.renderer import sampler
-from lodcast.renderer.program import get_context
+from lodcast.opencl import get_context
 from lodcast.renderer.render import render
 from lodcast.renderer.volume import as_volume, block_minmax_border
 

@@ -136,7 +136,7 @@ def test_atlas_layout_and_max_alloc(store):
         np.testing.assert_array_equal(atlas[e >> 16:(e >> 16) + n**3].reshape(n, n, n), store.read_brick(int(k), (z, y, x)))
     big = lod_atlas.pack_index(np.array([2**40 + 3]), np.array([2]))  # 64-bit offsets survive the packing
     assert int(big[0]) >> 16 == 2**40 + 3 and int(big[0]) & 15 == 3
-    with pytest.raises(lodcast.renderer.program.DeviceError, match="CL_DEVICE_MAX_MEM_ALLOC_SIZE"):
+    with pytest.raises(lodcast.opencl.DeviceError, match="CL_DEVICE_MAX_MEM_ALLOC_SIZE"):
         lod_atlas.pack(lv, ld.bricks, B, max_bytes=atlas.nbytes - 4)
     lod_atlas.pack(lv, ld.bricks, B, max_bytes=atlas.nbytes)  # exactly at the limit is fine
 
@@ -152,11 +152,11 @@ def test_render_respects_the_device_max_alloc(store, monkeypatch):
     assert got.report["passes"] > 1 and got.report["device_bytes"] <= ref.report["device_bytes"] * 0.8
     assert np.array_equal(got.rgba, ref.rgba)
     monkeypatch.setattr(lod_atlas, "max_alloc_bytes", lambda: 1024)
-    with pytest.raises(lodcast.renderer.program.DeviceError, match="largest allocation"):
+    with pytest.raises(lodcast.opencl.DeviceError, match="largest allocation"):
         render(store, _scene(CAMERAS[0]), levels=lv)
     assert lod_atlas.max_alloc_bytes() == 1024
     monkeypatch.undo()
-    assert lod_atlas.max_alloc_bytes() == int(lodcast.renderer.program.device_info()["max_mem_alloc_size"])
+    assert lod_atlas.max_alloc_bytes() == int(lodcast.opencl.device_info()["max_mem_alloc_size"])
 
 
 @pytest.mark.parametrize("quality", ["lossless", {"reduction": 4}, {"budget_mb": 0.05}])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lodcast.renderer.config import KernelConfig
-from lodcast.renderer.program import DeviceError, kernel_source
+from lodcast.opencl import DeviceError, kernel_source
 from lodcast.renderer.render import render
 from lodcast.renderer.sampler import upload_level0, voxel_offset
 from lodcast.renderer.transfer_function import evaluate

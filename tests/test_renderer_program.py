@@ -6,11 +6,11 @@ import os
 import subprocess
 import sys
 
-from lodcast.renderer.program import get_program, kernel_source
+from lodcast.opencl import get_program, kernel_source
 
 SNIPPET = r"""
 import json, sys
-from lodcast.renderer.program import get_program
+from lodcast.opencl import get_program
 b = get_program("raycast.cl", tuple(sys.argv[1:]))
 print(json.dumps({"source": b.source, "build_ms": b.build_ms, "key": b.key}))
 """

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from lodcast.renderer.program import get_context, get_program
+from lodcast.opencl import get_context, get_program
 from lodcast.renderer.structs import PARAMS_DTYPE, new_params
 
 

@@ -1,6 +1,7 @@
-"""OpenCL device selection and the program cache.
+"""OpenCL device selection and the program cache, below both the store (its histogram segmentation kernel) and the
+renderer, so that neither imports the other for it.
 
-Programs are built from the `.cl` files beside this module (our own `#include "..."` lines are resolved here, so
+Programs are built from `.cl` files (the renderer's folder by default, or the caller's; our own `#include "..."` lines are resolved here, so
 no include path reaches the OpenCL compiler) and the `-D` options of a KernelConfig, and cached by
 sha256(source, options, platform, device, driver) — in memory for the process and on disk under the user cache
 directory (see `cache_dir`) as device binaries,
@@ -23,7 +24,13 @@ from lodcast.errors import LodcastError
 
 __all__ = ["DeviceError", "Built", "get_context", "get_program", "kernel_source", "cache_dir", "device_info"]
 
-_HERE = Path(__file__).resolve().parent
+def _renderer_folder() -> Path:
+    """Where the renderer's `.cl` files are (found without importing the renderer: this module lies below it)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("lodcast.renderer")
+    assert spec is not None and spec.submodule_search_locations, "lodcast.renderer is part of the package"
+    return Path(list(spec.submodule_search_locations)[0]).resolve()
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.M)
 _LOCK = threading.RLock()
 _CTX: tuple[cl.Context, cl.CommandQueue] | None = None
@@ -124,7 +131,7 @@ def kernel_source(name: str, folder: Path | None = None) -> str:
         if fname in seen:
             return ""
         seen.add(fname)
-        path = (folder or _HERE) / fname
+        path = (folder or _renderer_folder()) / fname
         text = path.read_text()
         return _INCLUDE.sub(lambda m: expand(m.group(1)), text)
 
