@@ -53,6 +53,7 @@ __all__ = ["RenderResult", "Prepared", "render", "prepare", "prefetch", "check_c
 
 LOCAL_SIZE = (8, 8)
 _SELECTIONS = ByteLru(4)  # the last 4 level-of-detail selections (store, TFs, quality, classification, crop)
+_STEPS = ByteLru(64 << 20)  # adaptive sampling's step levels of recent selections
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
 MAX_SAMPLES_PER_RAY = 2**30
 
@@ -239,8 +240,20 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     steps = None
     if cfg.adaptive:
         skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
-        steps = lod_atlas.step_levels(lv, scene.sampling.interpolation, skip)
+        steps = _step_levels(lv, scene.sampling.interpolation, skip)
     return LodPlan(lv, reduction, pred, steps, sel), info, n_empty, cfg
+
+
+def _step_levels(lv: np.ndarray, interpolation: str, skip: np.ndarray | None) -> np.ndarray:
+    """atlas.step_levels, kept for the last few (levels, skip) pairs: a turntable asks for the same each frame, and
+    on a grid of a million blocks it costs 0.6 s."""
+    key = (interpolation, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
+           None if skip is None else hashlib.sha1(np.packbits(skip).tobytes()).hexdigest())
+    hit = _STEPS.get(key)
+    if hit is None:
+        hit = lod_atlas.step_levels(lv, interpolation, skip)
+        _STEPS.put(key, hit, hit.nbytes)
+    return hit
 
 
 def _geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
