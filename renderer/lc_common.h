@@ -36,14 +36,20 @@ static inline void lc_pixel_ray(__constant const LcParams* P, float x, float y, 
 #endif
 }
 
+/* Slab test of the ray o + t d against the world box [lo, hi]: where it enters (*tn) and leaves (*tf) the box's
+ * slabs (tn > tf: it misses) */
+static inline void lc_slab(const float3 lo, const float3 hi, const float3 o, const float3 d, float* tn, float* tf) {
+    const float3 inv = 1.0f / d;
+    const float3 ta = (lo - o) * inv, tb = (hi - o) * inv;
+    const float3 mn = fmin(ta, tb), mx = fmax(ta, tb);
+    *tn = fmax(fmax(mn.x, mn.y), mn.z);
+    *tf = fmin(fmin(mx.x, mx.y), mx.z);
+}
+
 /* Slab test in world space (and LC_CLIP: the clip planes); returns the parameter interval [t0, t1] (t0 >= 0: rays start at the eye/image plane). */
 static inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, float* t0, float* t1) {
-    float3 inv = 1.0f / d;
-    float3 ta = (P->box_lo.xyz - o) * inv;
-    float3 tb = (P->box_hi.xyz - o) * inv;
-    float3 lo = fmin(ta, tb), hi = fmax(ta, tb);
-    float tn = fmax(fmax(lo.x, lo.y), lo.z);
-    float tf = fmin(fmin(hi.x, hi.y), hi.z);
+    float tn, tf;
+    lc_slab(P->box_lo.xyz, P->box_hi.xyz, o, d, &tn, &tf);
 #ifdef LC_CLIP
     /* each plane keeps n.x + w >= 0: the ray's kept part of a convex region is one interval */
     for (int k = 0; k < P->n_clip; ++k) {

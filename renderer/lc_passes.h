@@ -74,16 +74,13 @@
         LC_STATE(LC_SV)                                                          \
     }
 
-/* The ray o + t d, t in [t0, t1], and the world box [lo, hi] (the slab test of lc_hit_box): whether they meet,
- * and where the ray leaves the box (*t_end): the pass owns no sample beyond, so its march stops there */
+/* The ray o + t d, t in [t0, t1], and the world box [lo, hi] (lc_common.h's slab test): whether they meet, and
+ * where the ray leaves the box (*t_end): the pass owns no sample beyond, so its march stops there */
 static inline int lc_meets_box(const float3 lo, const float3 hi, const float3 o, const float3 d, const float t0,
                                const float t1, float* t_end) {
-    const float3 inv = 1.0f / d;
-    const float3 ta = (lo - o) * inv, tb = (hi - o) * inv;
-    const float3 mn = fmin(ta, tb), mx = fmax(ta, tb);
-    const float tn = fmax(fmax(mn.x, mn.y), mn.z), tf = fmin(fmin(mx.x, mx.y), mx.z);
-    *t_end = tf;
-    return fmax(tn, t0) <= fmin(tf, t1);
+    float tn;
+    lc_slab(lo, hi, o, d, &tn, t_end);
+    return fmax(tn, t0) <= fmin(*t_end, t1);
 }
 
 #ifdef LC_SAMPLER_FULL
