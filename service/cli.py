@@ -16,6 +16,22 @@ class UsageError(LodcastError, ValueError):
     """A command-line argument is wrong; the message names it."""
 
 
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+class _Parser(argparse.ArgumentParser):
+    """Malformed arguments exit 2 with one line (argparse's own error prints the whole usage first); every
+    (sub)command takes ``--log-level``, so that it may stand before or after the command's name."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.add_argument("--log-level", choices=LOG_LEVELS, default=argparse.SUPPRESS,
+                          help="what the log on stderr shows (default warning)")
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def _triple(kind: type, name: str) -> Callable[[str], tuple]:
     def parse(text: str) -> tuple:
         parts = [p for p in text.replace("x", ",").split(",") if p.strip()]
@@ -54,21 +70,15 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
     from lodcast.store.ingest import ingest, tame_malloc
 
     tame_malloc()
-    store = ingest(
-        args.src,
-        args.dest,
-        overwrite=args.overwrite,
-        format=args.format,
-        shape=args.shape,
-        dtype=args.dtype,
-        byte_order=args.byte_order,
-        header_bytes=args.header_bytes,
-        spacing=args.spacing,
-        origin=args.origin,
-        index=args.index,
-        block_size=args.block_size,
-        progress=args.progress,
-    )
+    try:
+        store = ingest(args.src, args.dest, overwrite=args.overwrite, format=args.format, shape=args.shape,
+                       dtype=args.dtype, byte_order=args.byte_order, header_bytes=args.header_bytes,
+                       spacing=args.spacing, origin=args.origin, index=args.index, block_size=args.block_size,
+                       progress=args.progress)
+    except OSError as exc:  # a full disk names no file of its own: say where it was writing
+        if exc.filename is None and not isinstance(exc, LodcastError):
+            exc.filename = args.dest
+        raise
     print(json.dumps(store.summary(), indent=2))
     return 0
 
@@ -223,8 +233,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
+    parser = _Parser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
+    parser.set_defaults(log_level="warning")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo, _add_presets):
         add(sub)
@@ -235,11 +246,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)  # argparse itself exits 2 with its reason on malformed arguments
+    args = parser.parse_args(argv)  # exits 2 with one line on malformed arguments (_Parser.error)
+    import logging
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.getLogger("lodcast").setLevel(args.log_level.upper())  # the libraries below stay at warning
     try:
         return int(args.func(args) or 0)
-    except (LodcastError, FileNotFoundError, FileExistsError, ValueError) as exc:
-        # User errors: one line, exit 2, no traceback. Anything else is a bug and keeps its traceback.
+    except (LodcastError, OSError, ValueError) as exc:
+        # User errors and the environment's (a full disk, a permission): one line, exit 2, no traceback (what was
+        # being written is gone: ingest and frames write atomically). Anything else is a bug and keeps its traceback.
         print(f"lodcast {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -248,6 +264,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _one_line(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror and not isinstance(exc, LodcastError):
+        where = f" ({exc.filename})" if exc.filename else ""
+        return " ".join(f"{exc.strerror}{where}".split())
     text = str(exc) or type(exc).__name__
     return " ".join(text.split())
 

@@ -69,7 +69,6 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-samples", type=float, default=None,
                    help="most samples one render may take, estimated before it runs (default LODCAST_MAX_SAMPLES, else 2e9)")
     _device_budget_opt(p)
-    p.add_argument("--log-level", default="warning")
     p.set_defaults(func=_cmd_serve)
 
 
@@ -136,8 +135,6 @@ def add_worker(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_worker(args: argparse.Namespace) -> int:
-    import logging
-
     from lodcast.service.queue import JobQueue, Worker
 
     if args.threads < 1:
@@ -146,7 +143,6 @@ def _cmd_worker(args: argparse.Namespace) -> int:
 
     _apply_device_budget(args)
     tame_malloc()  # it runs ingest jobs
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = _settings(args)
     jq = JobQueue(settings)
     jq.check()

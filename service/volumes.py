@@ -108,6 +108,10 @@ def volume_summary(root: Path, volume_id: Any) -> dict[str, Any]:
     except StoreNotFound:
         raise VolumeNotFound(str(volume_id)) from None
     summary.pop("path", None)  # the server's own filesystem layout is not the client's business
+    source = summary.get("source")
+    if isinstance(source, dict) and source.get("path"):  # its file name only; an upload's is random: none
+        path = str(source["path"]).replace("\\", "/").rstrip("/")
+        summary["source"] = {**source, "path": None if "/.uploads/" in path else path.rsplit("/", 1)[-1]}
     return {"id": str(volume_id), **summary}
 
 

@@ -83,6 +83,60 @@ def test_cli_errors_exit_2_with_one_line_and_leave_nothing(tmp_path: Path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npy", "v.npy", "v.zarr"]
 
 
+def test_malformed_flags_exit_2_with_one_line_and_log_level_is_global(tmp_path: Path):
+    for args, named in ((["render", "x.zarr", "-o", "x.png", "--width", "abc"], "--width"),
+                        (["ingest", "a.npy", "b.zarr", "--shape", "1,2"], "--shape"),
+                        (["nope"], "COMMAND"), (["info"], "store"), (["--log-level", "loud", "info", "x"], "--log-level")):
+        out = _cli(*args, cwd=tmp_path)
+        lines = out.stderr.strip().splitlines()
+        assert out.returncode == 2 and len(lines) == 1 and named in lines[0], (args, out.stderr)
+    np.save(tmp_path / "v.npy", np.arange(60, dtype=np.uint8).reshape(3, 4, 5))
+    assert _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr")).returncode == 0
+    # before or after the command; lodcast's own loggers only (the libraries' debug chatter stays off)
+    for args in (["--log-level", "debug", "info", "v.zarr"], ["info", "v.zarr", "--log-level", "debug"]):
+        out = _cli(*args, cwd=tmp_path)
+        assert out.returncode == 0 and json.loads(out.stdout)["shape"] == [3, 4, 5]
+        assert "numcodecs" not in out.stderr and "DEBUG" not in out.stderr.replace("lodcast", "")
+
+
+def _full_disk_ingest(tmp_path: Path, run_in: list[str], mount: Path, **popen) -> subprocess.CompletedProcess:
+    src = tmp_path / "noise.npy"
+    np.save(src, np.random.default_rng(5).integers(0, 4000, (96, 96, 96), dtype=np.uint16))  # ~1.8 MB, incompressible
+    return subprocess.run([*run_in, *LODCAST, "ingest", str(src), str(mount / "v.zarr")], capture_output=True,
+                          text=True, timeout=300, **popen)
+
+
+def test_ingest_on_a_full_disk_exits_2_with_one_line_and_leaves_nothing(tmp_path: Path):
+    """A real full file system: a 1 MB tmpfs in a private mount namespace (unshare, root or user namespaces)."""
+    if not shutil.which("unshare") or subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode:
+        pytest.skip("no mount namespace for a small tmpfs here (see the file-size-limit test below)")
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    script = (f'mount -t tmpfs -o size=1m tmpfs {mnt} && "$@"; rc=$?; ls -A {mnt} > {tmp_path / "left.txt"}; '
+              f'df -k {mnt} | tail -1 >> {tmp_path / "left.txt"}; exit $rc')
+    out = _full_disk_ingest(tmp_path, ["unshare", "-rm", "sh", "-c", script, "sh"], mnt)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1, out.stderr
+    assert "No space left on device" in lines[0] and "v.zarr" in lines[0]
+    left = (tmp_path / "left.txt").read_text().splitlines()
+    assert left[0].startswith("tmpfs"), f"the store or its hidden temporary folder was left: {left}"
+    assert int(left[0].split()[2]) < 64, f"KiB still used after the failed ingest: {left[0]}"
+
+
+def test_ingest_past_a_file_size_limit_exits_2_and_leaves_nothing(tmp_path: Path):
+    """The same path without mount privileges: RLIMIT_FSIZE makes the writes fail (EFBIG) like a full disk does."""
+    import resource
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+
+    out = _full_disk_ingest(tmp_path, [], tmp_path / "out", preexec_fn=limit)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and "File too large" in lines[0], out.stderr
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
 def test_cli_info_prints_the_contract_keys(tmp_path: Path):
     vol = np.arange(40 * 36 * 20, dtype=np.int16).reshape(40, 36, 20)
     np.save(tmp_path / "v.npy", vol)

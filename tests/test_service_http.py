@@ -155,6 +155,9 @@ def test_ingest_from_import_root_then_delete(env):
     st = wait_job(client, r.json()["id"])
     assert st["state"] == "done" and st["kind"] == "ingest", st
     assert "blob" in [v["id"] for v in client.get("/volumes").json()]
+    # the server's folders are not the client's business: the source is named by its file name only
+    info = client.get("/volumes/blob").json()
+    assert info["source"]["path"] == "blob.npy" and str(imports.parent) not in client.get("/volumes").text
     r = client.post("/volumes", json=body, headers=AUTH)  # exists
     assert r.status_code == 422 and names_field(r, "name")
     assert client.delete("/volumes/blob", headers=NOAUTH).status_code == 401
