@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pyopencl as cl
 
+from lodcast.environment import environment
 from lodcast.errors import LodcastError
 
 __all__ = ["DeviceError", "Built", "get_context", "get_program", "kernel_source", "cache_dir", "device_info"]
@@ -52,12 +53,7 @@ class Built:
 def cache_dir() -> Path:
     """``$LODCAST_CACHE_DIR/kernels``, else ``$LODCAST_CACHE/kernels`` (the variable the demo's downloads use),
     else the platform's user cache directory for lodcast."""
-    env = os.environ.get("LODCAST_CACHE_DIR") or os.environ.get("LODCAST_CACHE")
-    if env:
-        return Path(env) / "kernels"
-    import platformdirs
-
-    return Path(platformdirs.user_cache_dir("lodcast")) / "kernels"
+    return environment().cache_dir / "kernels"
 
 
 def get_context() -> tuple[cl.Context, cl.CommandQueue]:
@@ -82,7 +78,7 @@ def get_context() -> tuple[cl.Context, cl.CommandQueue]:
                 raise DeviceError(f"no OpenCL platform available: {exc}") from None
             if not devices:
                 raise DeviceError("no OpenCL device available (install pocl-binary-distribution for the CPU)")
-            want = os.environ.get("LODCAST_DEVICE", "").lower()
+            want = environment().device
 
             def rank(pd):
                 _, d = pd

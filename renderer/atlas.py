@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -33,7 +32,8 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
-from lodcast.renderer.cache import ByteLru, env_mb
+from lodcast.environment import environment
+from lodcast.renderer.cache import ByteLru
 from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
@@ -58,12 +58,12 @@ class BrickCache(ByteLru):
 @functools.cache
 def brick_cache() -> BrickCache:
     """The process's brick cache, shared by all renders (``LODCAST_BRICK_CACHE_MB``, default 1024)."""
-    return BrickCache(env_mb("LODCAST_BRICK_CACHE_MB", 1024))
+    return BrickCache(environment().brick_cache_bytes)
 
 
 @functools.cache
 def _read_pool() -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=max(1, int(os.environ.get("LODCAST_READ_THREADS", "8"))),
+    return ThreadPoolExecutor(max_workers=environment().read_threads,
                               thread_name_prefix="lodcast-bricks")
 
 

@@ -2,20 +2,11 @@
 buffers (`sampler.device_cache`). Each is made on first use, sized from the environment then."""
 from __future__ import annotations
 
-import os
 import threading
 from collections import OrderedDict
 from typing import Any, Callable
 
-__all__ = ["ByteLru", "env_mb"]
-
-
-def env_mb(name: str, default: float) -> int:
-    """Bytes from an environment variable in MiB (the default when unset or not a number)."""
-    try:
-        return int(float(os.environ.get(name, default)) * 2**20)
-    except ValueError:
-        return int(default * 2**20)
+__all__ = ["ByteLru"]
 
 
 class ByteLru:

@@ -8,10 +8,10 @@ image, and costs well under a millisecond.
 """
 from __future__ import annotations
 
-import os
 
 import numpy as np
 
+from lodcast.environment import environment
 from lodcast.renderer.camera import Frame, pixel_rays, ray_box
 from lodcast.renderer.scene import SceneError
 
@@ -30,16 +30,7 @@ class CostError(SceneError):
 
 def max_samples_limit() -> int:
     """`LODCAST_MAX_SAMPLES` (default 2·10⁹)."""
-    raw = os.environ.get("LODCAST_MAX_SAMPLES")
-    if raw is None or not raw.strip():
-        return DEFAULT_MAX_SAMPLES
-    try:
-        value = int(float(raw))
-    except ValueError:
-        raise ValueError(f"LODCAST_MAX_SAMPLES: {raw!r} is not a number") from None
-    if value < 1:
-        raise ValueError(f"LODCAST_MAX_SAMPLES: must be at least 1, got {raw!r}")
-    return value
+    return environment().max_samples
 
 
 def estimate_samples(fr: Frame, box: tuple[np.ndarray, np.ndarray], width: int, height: int, step: float) -> int:

@@ -19,7 +19,6 @@ device cache itself is bounded by it.
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass
 from typing import Any, Iterator
@@ -27,6 +26,7 @@ from typing import Any, Iterator
 import numpy as np
 import pyopencl as cl
 
+from lodcast.environment import environment
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer.camera import Frame
 from lodcast.opencl import DeviceError, get_context
@@ -39,16 +39,7 @@ __all__ = ["Region", "PassPlan", "device_budget", "volume_limit", "ghost_voxels"
 
 def device_budget() -> int | None:
     """`LODCAST_DEVICE_BUDGET_MB` in bytes (MB = 10⁶ bytes), None when unset."""
-    raw = os.environ.get("LODCAST_DEVICE_BUDGET_MB")
-    if raw is None or not raw.strip():
-        return None
-    try:
-        value = float(raw)
-    except ValueError:
-        raise ValueError(f"LODCAST_DEVICE_BUDGET_MB: {raw!r} is not a number of megabytes") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise ValueError(f"LODCAST_DEVICE_BUDGET_MB: must be a positive number of megabytes, got {raw!r}")
-    return int(value * 1e6)
+    return environment().device_budget_bytes
 
 
 def volume_limit(max_alloc: int) -> tuple[int, str]:

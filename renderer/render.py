@@ -30,6 +30,7 @@ from typing import Any, Callable
 import numpy as np
 import pyopencl as cl
 
+from lodcast.environment import environment
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
@@ -203,7 +204,8 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None,
     # the selection does not depend on the view: a turntable or a camera change selects once
     key = None if vol.key is None else (
         vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True), json.dumps(quality, sort_keys=True),
-        classification, None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest())
+        classification, None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest(),
+        environment().lossless_zeta)
     sel = _SELECTIONS.get(key) if key is not None else None
     if sel is None:
         sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification)

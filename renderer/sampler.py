@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from lodcast.renderer.cache import ByteLru, env_mb
+from lodcast.environment import environment
+from lodcast.renderer.cache import ByteLru
 from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer.volume import VolumeView
 
@@ -21,10 +22,8 @@ __all__ = ["DeviceVolume", "upload_level0", "voxel_offset", "device_cache", "ess
 
 
 def _device_cache_bytes() -> int:
-    from lodcast.renderer.passes import device_budget  # a budget bounds what the cache keeps on the device too
-
-    budget = device_budget()
-    cap = env_mb("LODCAST_DEVICE_CACHE_MB", 1024)
+    env = environment()  # a budget bounds what the cache keeps on the device too
+    budget, cap = env.device_budget_bytes, env.device_cache_bytes
     return cap if budget is None else min(cap, budget)
 
 

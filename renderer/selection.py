@@ -54,12 +54,12 @@ most LOSSLESS_ZETA.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
+from lodcast.environment import environment
 from lodcast.renderer.clip import block_bounds
 from lodcast.renderer.level_error import level_zeta
 from lodcast.renderer.significance import BlockMeta, block_significance, level_profile, meta_of_store, tf_visible
@@ -72,8 +72,8 @@ MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
 METHODS = ("tf", "tf_full_hist", "l2", "uniform")
 #: "lossless" with per-level significance: every block at the coarsest level whose ζ (RMS unit-slab ΔE per voxel),
 #: scaled to the image as the predicted ΔE is (IMAGE_GAIN / ā), stays within this of level 0
-#: (LODCAST_LOSSLESS_ZETA overrides it for experiments)
-LOSSLESS_ZETA = float(os.environ.get("LODCAST_LOSSLESS_ZETA", "0.5"))
+#: (LODCAST_LOSSLESS_ZETA overrides it for experiments: lodcast.environment)
+LOSSLESS_ZETA = 0.5
 #: image-space calibration of the predicted ΔE (see module doc): fitted on the chest CT (ct-bone, ct-skin,
 #: ct-skin-bone, two views, lossless ... 100:1, geometric mean of measured / predicted = 1): mean ΔE ≈
 #: IMAGE_GAIN · RMS(ζ) / ā, ā the opacity-weighted mean opacity of the loaded voxels (translucent structures add
@@ -389,7 +389,7 @@ def select_from_meta(
             # the coarsest level each block shows within LOSSLESS_ZETA of its level-0 colours
             # (levels finer than a block's max level count as fine: they are not allowed anyway)
             gain = _image_gain(opac, meta.count, loaded)
-            ok = (zeta_tab * gain <= LOSSLESS_ZETA) | (np.arange(L)[None, :] < maxlev[:, None])
+            ok = (zeta_tab * gain <= environment().lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
             first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
             levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
         elif kind == "lossless":

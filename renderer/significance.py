@@ -56,6 +56,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from lodcast.environment import environment
 from lodcast.renderer.image_error import srgb_to_luv
 from lodcast.renderer.scene import TransferFunction
 from lodcast.renderer.transfer_function import build_lut, evaluate
@@ -308,7 +309,7 @@ class _Pre:
 def _csr(starts: np.ndarray, coef: np.ndarray, width: int):
     """Σ_j c_j P(s_j) for every block is one sparse × dense product M @ P, M (N × (nb + 1)) with the coefficients
     at the starts: SciPy's CSR product does it in one C loop (~2× the NumPy gather + batched product)."""
-    if os.environ.get("LODCAST_SIGNIFICANCE_NUMPY"):
+    if environment().significance_numpy:
         return None
     try:
         import scipy.sparse as sp

@@ -43,6 +43,9 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(default=2 * 1024**3, ge=0)
     max_body_bytes: int = Field(default=16 * 1024**2, ge=1024, description="largest JSON request body (uploads: "
                                 "max_upload_bytes) (LODCAST_MAX_BODY_BYTES)")
+    max_voxels: int = Field(default=2**33, ge=1, description="largest volume an ingest job accepts, checked on the "
+                            "source's declared shape before anything is read: a small compressed upload may declare "
+                            "a huge volume (LODCAST_MAX_VOXELS)")
     max_samples: int = Field(default=2_000_000_000, ge=1, description="most samples (rays x samples per ray, estimated "
                              "before rendering) one render may take (LODCAST_MAX_SAMPLES)")
 
@@ -69,7 +72,7 @@ class Settings(BaseSettings):
     def _absolute(cls, v: Path) -> Path:
         return Path(v).expanduser().resolve()
 
-    @field_validator("max_samples", mode="before")
+    @field_validator("max_samples", "max_voxels", mode="before")
     @classmethod
     def _count(cls, v: object) -> object:
         return int(float(v)) if isinstance(v, str) and v.strip() else v  # "2e9" reads as 2000000000

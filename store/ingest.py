@@ -12,6 +12,7 @@ so a killed ingest never leaves anything at the destination that opens as a stor
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import os
 import uuid
 import shutil
@@ -25,6 +26,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 
+from lodcast.environment import environment
 from lodcast.errors import SourceError, StoreExists
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
@@ -47,6 +49,7 @@ def ingest(
     bins: int = DEFAULT_BINS,
     segments: int = DEFAULT_SEGMENTS,
     workers: int | None = None,
+    max_voxels: int | None = None,
     **reader_options: Any,
 ) -> Store:
     """Write `source` (a file or folder path, a NumPy array, or a VolumeSource) as a store at `dest`.
@@ -54,6 +57,8 @@ def ingest(
     `reader_options` go to `lodcast.store.readers.open_source` (format, shape, dtype, byte_order, header_bytes,
     spacing, origin, index); spacing and origin also apply to arrays. Raises SourceNotFound / SourceError for bad
     input and StoreExists when `dest` exists and `overwrite` is false; nothing is left behind in either case.
+    A source that declares more than `max_voxels` voxels (default LODCAST_MAX_VOXELS, else no limit) is refused
+    from its header, before anything is read or allocated: a small compressed file may declare a huge volume.
     `dest` may be an fsspec URL (s3://bucket/prefix/ct.zarr): the store is written locally, then published there
     (store/remote.py: the root metadata last, so that no half store is ever visible).
     """
@@ -61,7 +66,7 @@ def ingest(
         from lodcast.store.remote import ingest_to_url
 
         return ingest_to_url(source, os.fspath(dest), overwrite=overwrite, block_size=block_size, progress=progress,
-                             bins=bins, segments=segments, workers=workers, **reader_options)
+                             bins=bins, segments=segments, workers=workers, max_voxels=max_voxels, **reader_options)
     dest = Path(dest)
     if dest.parent.is_dir():
         remove_stale(dest)  # first: it may put back a store that a killed `--overwrite` had moved aside
@@ -77,6 +82,7 @@ def ingest(
             )
         if len(info.shape) != 3 or min(info.shape) < 1:
             raise SourceError(f"volume shape must have three non-empty axes (z, y, x), got {tuple(info.shape)}")
+        _check_size(info.shape, environment().max_voxels if max_voxels is None else max_voxels)
         dest.parent.mkdir(parents=True, exist_ok=True)
         tmp = temp_path(dest, "partial")
         try:
@@ -91,6 +97,13 @@ def ingest(
     finally:
         src.close()
     return open_store(dest)
+
+
+def _check_size(shape: tuple[int, ...], limit: int | None) -> None:
+    voxels = math.prod(int(s) for s in shape)
+    if limit is not None and voxels > limit:
+        raise SourceError(f"the source declares {'x'.join(str(int(s)) for s in shape)} = {voxels:.4g} voxels, more "
+                          f"than the limit of {limit:.4g} (LODCAST_MAX_VOXELS); nothing was read")
 
 
 # --- downsampling --------------------------------------------------------------------------------------------

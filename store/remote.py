@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from lodcast.environment import environment
 from lodcast.errors import StoreExists
 
 __all__ = ["is_url", "published", "publish", "ingest_to_url"]
@@ -40,7 +41,7 @@ def ingest_to_url(source: Any, url: str, *, overwrite: bool, **kw: Any) -> Any:
 
     if not overwrite and published(url):  # before the work, as for a local destination
         raise StoreExists(f"destination {url} exists (use --overwrite to replace it)")
-    with tempfile.TemporaryDirectory(prefix="lodcast-ingest-", dir=os.environ.get("LODCAST_TMP")) as tmp:
+    with tempfile.TemporaryDirectory(prefix="lodcast-ingest-", dir=environment().tmp) as tmp:
         local = Path(tmp) / (url.rstrip("/").rsplit("/", 1)[-1] or "store.zarr")
         ingest(source, local, **kw)
         publish(local, url, overwrite)

@@ -137,6 +137,23 @@ def test_ingest_past_a_file_size_limit_exits_2_and_leaves_nothing(tmp_path: Path
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
+def test_a_decompression_bomb_is_refused_before_anything_is_allocated(tmp_path: Path):
+    """A 1 kB gzip NRRD declaring 2^36 voxels (64 GiB of uint8): with LODCAST_MAX_VOXELS the ingest exits 2 naming
+    the limit and the declared shape, reads nothing and stays small (peak RSS of the child process)."""
+    import gzip
+
+    hdr = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4096 4096 4096\nencoding: gzip\n\n"
+    (tmp_path / "bomb.nrrd").write_bytes(hdr + gzip.compress(b"\0" * 1_000_000))
+    code = ("import resource, sys; from lodcast.service.cli import main; rc = main(sys.argv[1:]); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
+    out = subprocess.run([sys.executable, "-c", code, "ingest", str(tmp_path / "bomb.nrrd"), str(tmp_path / "b.zarr")],
+                         capture_output=True, text=True, timeout=120, env={**os.environ, "LODCAST_MAX_VOXELS": "1e9"})
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert "LODCAST_MAX_VOXELS" in out.stderr and "4096x4096x4096" in out.stderr
+    assert int(out.stdout.split()[-1]) < 250_000, f"peak RSS {out.stdout.split()[-1]} kB"  # ~60 MB; read: ~850
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bomb.nrrd"]
+
+
 def test_cli_info_prints_the_contract_keys(tmp_path: Path):
     vol = np.arange(40 * 36 * 20, dtype=np.int16).reshape(40, 36, 20)
     np.save(tmp_path / "v.npy", vol)

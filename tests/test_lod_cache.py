@@ -7,7 +7,8 @@ import pytest
 
 import lodcast
 from lodcast.renderer import atlas as lod_atlas
-from lodcast.renderer.cache import ByteLru, env_mb
+from lodcast.environment import EnvironmentInvalid, environment
+from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.render import render
 from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import as_volume
@@ -114,9 +115,10 @@ def test_lru_is_bounded_by_bytes():
 def test_one_cache_per_process(store, monkeypatch):
     assert lod_atlas.brick_cache() is lod_atlas.brick_cache() and device_cache() is device_cache()
     monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "3")
-    assert env_mb("LODCAST_BRICK_CACHE_MB", 1024) == 3 * 2**20
-    monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "lots")
-    assert env_mb("LODCAST_BRICK_CACHE_MB", 1024) == 1024 * 2**20
+    assert environment().brick_cache_bytes == 3 * 2**20
+    monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "lots")  # named, never a silent default
+    with pytest.raises(EnvironmentInvalid, match="LODCAST_BRICK_CACHE_MB"):
+        environment()
 
 
 def test_device_cache_keeps_several_volumes_and_always_the_newest(tmp_path):

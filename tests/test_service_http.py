@@ -337,6 +337,20 @@ def test_upload_of_a_detached_nrrd_header_reads_nothing_outside(env):
         (root / ".uploads" / "other-upload.raw").unlink()
 
 
+def test_a_decompression_bomb_upload_is_refused_from_its_header(env):
+    """A 600-byte gzip NRRD declaring 4096 x 4096 x 4096 voxels (6.9e10, above the service's max_voxels) fails its
+    job naming LODCAST_MAX_VOXELS, before a voxel is read; the uploaded file is removed."""
+    import gzip
+
+    client, root, _, _ = env
+    hdr = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4096 4096 4096\nencoding: gzip\n\n"
+    r = client.post("/volumes/bomb/upload?format=nrrd", content=hdr + gzip.compress(b"\0" * 100_000), headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = wait_job(client, r.json()["id"])
+    assert st["state"] == "failed" and "LODCAST_MAX_VOXELS" in st["error"] and "4096x4096x4096" in st["error"], st
+    assert client.get("/volumes/bomb").status_code == 404 and not list((root / ".uploads").glob("*.nrrd"))
+
+
 def test_every_route_but_healthz_and_docs_needs_the_token(env):
     """DESIGN.md, Limits: with LODCAST_TOKEN set every route but /healthz needs the bearer token, reads included
     (issue 10, item 3); the scheme is declared in OpenAPI."""

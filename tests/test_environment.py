@@ -1,0 +1,63 @@
+"""lodcast.environment: the store's and renderer's variables are read when asked (not at import), malformed
+values are refused naming the variable, and every one of them is in the README's table."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lodcast
+from lodcast.environment import VARIABLES, EnvironmentInvalid, environment
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_defaults_and_units(monkeypatch):
+    for name, _, _ in VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    env = environment()
+    assert env.brick_cache_bytes == env.device_cache_bytes == 1024 * 2**20  # MiB
+    assert env.device_budget_bytes is None and env.max_voxels is None
+    assert env.max_samples == 2_000_000_000 and env.read_threads == 8 and env.lossless_zeta == 0.5
+    assert env.significance_numpy is False and env.tmp is None
+    monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # DESIGN.md, Limits: MB = 10⁶ bytes
+    monkeypatch.setenv("LODCAST_MAX_SAMPLES", "2e7")
+    monkeypatch.setenv("LODCAST_SIGNIFICANCE_NUMPY", "1")
+    env = environment()
+    assert env.device_budget_bytes == 64_000_000 and env.max_samples == 20_000_000 and env.significance_numpy
+
+
+@pytest.mark.parametrize("name, value", [("LODCAST_BRICK_CACHE_MB", "lots"), ("LODCAST_DEVICE_CACHE_MB", "-1"),
+                                         ("LODCAST_DEVICE_BUDGET_MB", "0"), ("LODCAST_DEVICE_BUDGET_MB", "nan"),
+                                         ("LODCAST_READ_THREADS", "1.5"), ("LODCAST_READ_THREADS", "0"),
+                                         ("LODCAST_MAX_SAMPLES", "many"), ("LODCAST_MAX_VOXELS", "-5"),
+                                         ("LODCAST_LOSSLESS_ZETA", "inf")])
+def test_malformed_values_are_refused_naming_the_variable(monkeypatch, name, value):
+    monkeypatch.setenv(name, value)
+    with pytest.raises(EnvironmentInvalid, match=name) as err:
+        environment()
+    assert isinstance(err.value, ValueError) and repr(value) in str(err.value)
+
+
+def test_read_at_each_call_not_at_import(monkeypatch, tmp_path):
+    """LODCAST_LOSSLESS_ZETA used to be read once at import: a later change did nothing. Now a larger ζ selects
+    coarser levels at the next render of the same store and TF (and the selection cache does not hide it)."""
+    rng = np.random.default_rng(3)
+    vol = rng.normal(500, 200, (64, 64, 64)).astype(np.float32)
+    store = lodcast.ingest(vol, tmp_path / "v.zarr")
+    scene = {"width": 48, "height": 48, "quality": "lossless",
+             "tf": {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0}, {"value": 1000, "color": [1, 0.5, 0.2], "opacity": 0.3}]}}
+    monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "0.5")
+    tight = lodcast.render(store, scene).report
+    monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "50")
+    loose = lodcast.render(store, scene).report
+    assert loose["reduction"] > 2 * tight["reduction"], (tight["reduction"], loose["reduction"])
+
+
+def test_every_variable_is_in_the_readme_table():
+    rows = {m.group(1) for m in re.finditer(r"^\| `(LODCAST_[A-Z_]+)`", README.read_text(), re.M)}
+    rows |= {m.group(2) for m in re.finditer(r"^\| `(LODCAST_[A-Z_]+)`, `(LODCAST_[A-Z_]+)`", README.read_text(), re.M)}
+    missing = [name for name, _, _ in VARIABLES if name not in rows]
+    assert not missing, f"README's table of environment variables lacks {missing}"
