@@ -139,6 +139,16 @@ class IngestRequest(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict)
 
 
+def _bytes_in(folder: Any) -> int:
+    total = 0
+    for p in folder.iterdir():
+        try:
+            total += p.stat().st_size
+        except FileNotFoundError:  # ingested and removed meanwhile
+            continue
+    return total
+
+
 def _finite(obj: Any) -> Any:
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
@@ -312,6 +322,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         declared = request.headers.get("content-length")
         if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
             raise HttpError(413, f"body: upload of {declared} bytes exceeds the limit of {settings.max_upload_bytes}")
+        room = settings.max_uploads_bytes - await run_in_threadpool(_bytes_in, uploads)
+        full = HttpError(503, f"uploads: the server's space for uploads waiting to be ingested is full "
+                              f"(LODCAST_MAX_UPLOADS_BYTES = {settings.max_uploads_bytes}); retry later",
+                         {"Retry-After": "30"})
+        if declared and declared.isdigit() and int(declared) > room:
+            raise full
         size = 0
         try:
             with open(dest, "wb") as f:
@@ -319,6 +335,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     size += len(chunk)
                     if size > settings.max_upload_bytes:
                         raise HttpError(413, f"body: upload exceeds the limit of {settings.max_upload_bytes} bytes")
+                    if size > room:
+                        raise full
                     f.write(chunk)
             if size == 0:
                 raise RequestInvalid.one(("body",), "body: the upload is empty")

@@ -108,9 +108,39 @@ class JobQueue:
         return self.records.list(limit=limit, states=states)
 
     def cancel(self, job_id: str) -> dict[str, Any] | None:
-        """Mark the job cancelled (a queued job never starts, a running one stops before its next frame)."""
-        self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ACTIVE})
+        """Mark the job cancelled (a queued job never starts, a running one stops before its next frame). A queued
+        upload's file goes at once: nothing will read it."""
+        if self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ("queued",)}):
+            spec = json.loads((self.get(job_id) or {}).get("spec") or "{}")
+            if spec.get("_upload"):
+                Path(spec["source"]).unlink(missing_ok=True)
+        else:
+            self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ACTIVE})
         return self.get(job_id)
+
+    def uploads_dir(self) -> Path:
+        return self.settings.root / ".uploads"
+
+    def sweep_uploads(self) -> list[str]:
+        """Delete uploaded files that no queued or running job will read (a job cancelled while running, a crash
+        between an upload's last byte and its job's record) once they are `upload_grace_s` old: an upload still
+        arriving is younger, its file being written."""
+        folder = self.uploads_dir()
+        if not folder.is_dir():
+            return []
+        wanted = {json.loads(r["spec"] or "{}").get("source") for r in self.records.list(limit=100_000, states=ACTIVE)
+                  if r["kind"] == "ingest"}
+        cutoff, gone = time.time() - self.settings.upload_grace_s, []
+        for p in folder.iterdir():
+            try:
+                if str(p) not in wanted and p.is_file() and p.stat().st_mtime < cutoff:
+                    p.unlink()
+                    gone.append(p.name)
+            except FileNotFoundError:
+                continue
+        if gone:
+            log.info("deleted %d uploaded files no job reads", len(gone))
+        return gone
 
     def wait(self, job_id: str, timeout: float | None = None, poll: float = 0.2) -> dict[str, Any]:
         end = None if timeout is None else time.monotonic() + timeout
@@ -379,6 +409,7 @@ class Worker:
                 if time.monotonic() - expired_at >= self.jobs.settings.expire_every_s:
                     expired_at = time.monotonic()
                     self.jobs.expire()
+                    self.jobs.sweep_uploads()
             except Exception:
                 log.exception("reaper")
             if stopping.wait(self.jobs.settings.reap_every_s):

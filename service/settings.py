@@ -41,6 +41,12 @@ class Settings(BaseSettings):
     max_scenes: int = Field(default=1000, ge=1, description="most scenes / TFs / volumes in one job")
     min_step: float = Field(default=0.05, gt=0, description="smallest sampling step (voxels of the finest level)")
     max_upload_bytes: int = Field(default=2 * 1024**3, ge=0)
+    max_uploads_bytes: int = Field(default=8 * 1024**3, ge=0, description="quota of ROOT/.uploads: uploads waiting "
+                                   "for their ingest job, all together; beyond it an upload is refused with 503 "
+                                   "(LODCAST_MAX_UPLOADS_BYTES)")
+    upload_grace_s: float = Field(default=600.0, gt=0, description="an uploaded file that no queued or running job "
+                                  "reads (its job cancelled, failed or never submitted) is deleted once it is this "
+                                  "old")
     max_body_bytes: int = Field(default=16 * 1024**2, ge=1024, description="largest JSON request body (uploads: "
                                 "max_upload_bytes) (LODCAST_MAX_BODY_BYTES)")
     max_voxels: int = Field(default=2**33, ge=1, description="largest volume an ingest job accepts, checked on the "

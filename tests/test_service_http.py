@@ -444,3 +444,36 @@ def test_a_volume_replaced_on_disk_is_rendered_from_its_new_data(tmp_path):
         assert r.status_code == 200, r.text
         assert np.load(io.BytesIO(r.content))[..., 3].max() > 0.5
         assert c.get("/volumes/v").json()["shape"] == [24, 20, 16]
+
+
+def test_uploads_have_a_quota_and_files_no_job_reads_are_swept(tmp_path):
+    """ROOT/.uploads holds at most max_uploads_bytes (503 with Retry-After beyond, the refused file removed); a
+    cancelled queued upload's file goes at once; the sweep deletes old files no queued or running job reads."""
+    import os
+
+    root = tmp_path / "root"
+    settings = Settings(root=root, workers=0, max_uploads_bytes=10_000, upload_grace_s=60)
+    blob = io.BytesIO()
+    np.save(blob, np.zeros((12, 12, 12), np.float32))  # 7 kB
+    app = create_app(settings)
+    with TestClient(app) as client:
+        first = client.post("/volumes/a/upload?format=npy", content=blob.getvalue())
+        assert first.status_code == 202 and first.json()["state"] == "queued"  # no worker: it waits
+        over = client.post("/volumes/b/upload?format=npy", content=blob.getvalue())
+        assert over.status_code == 503 and "LODCAST_MAX_UPLOADS_BYTES" in over.json()["detail"], over.text
+        assert over.headers["Retry-After"] == "30" and len(list((root / ".uploads").iterdir())) == 1
+        assert client.delete(f"/jobs/{first.json()['id']}").json()["state"] == "cancelled"
+        assert not list((root / ".uploads").iterdir())  # nothing will read it: gone at once
+        kept = client.post("/volumes/c/upload?format=npy", content=blob.getvalue())
+        assert kept.status_code == 202
+        jq = app.state.jobs()
+        orphan = root / ".uploads" / "0123456789abcdef0123456789abcdef.npy"  # e.g. its job cancelled mid-ingest
+        orphan.write_bytes(b"x" * 100)
+        young = root / ".uploads" / "fedcba9876543210fedcba9876543210.npy"  # an upload still arriving
+        young.write_bytes(b"y")
+        old = time.time() - 120
+        for p in (root / ".uploads").iterdir():
+            if p != young:
+                os.utime(p, (old, old))
+        assert jq.sweep_uploads() == [orphan.name]
+        assert young.exists() and len(list((root / ".uploads").iterdir())) == 2  # the queued job's file stays

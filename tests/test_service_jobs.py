@@ -3,13 +3,15 @@ a service restarted mid-job, a graceful SIGTERM, cancellation within one frame. 
 processes, each in its own process group, stopped by group. Redis tests start a real redis-server."""
 from __future__ import annotations
 
+import os
 import signal
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from lodcast.service.jobs import parse_job
+from lodcast.service.jobs import IngestJob, parse_job
 from lodcast.service.queue import JobQueue, Worker
 from lodcast.service.settings import Settings
 from lodcast.service.testing import (
@@ -195,6 +197,29 @@ class BackendMixin:
         assert jq.get(done) is None and jq.get(cancelled) is None and not jq.job_dir(done).exists()
         assert jq.get(queued)["state"] == "queued"
         assert [r["id"] for r in jq.list()] == [queued]
+
+
+    def test_uploads_no_job_reads_are_swept(self, root: Path, queue: str | None):
+        """Both back ends: the sweep keeps the files of queued ingest jobs and deletes old ones nobody reads (the
+        job of one cancelled while it ran, an upload whose job was never recorded)."""
+        jq = self.local(root, queue)
+        jq.settings.upload_grace_s = 30.0
+        up = jq.uploads_dir()
+        up.mkdir()
+        files = {name: up / f"{name}.npy" for name in ("queued", "running_cancelled", "never_submitted")}
+        for p in files.values():
+            np.save(p, np.zeros((4, 4, 4), np.uint8))
+        ingest = IngestJob(kind="ingest", source=str(files["queued"]), name="q", options={"format": "npy"})
+        jq.submit(ingest, upload=files["queued"])
+        cancelled = jq.submit(ingest.model_copy(update={"name": "r"}), upload=files["running_cancelled"])["id"]
+        jq.records.update(cancelled, {"state": "running"})
+        jq.cancel(cancelled)  # running: the worker may still hold the file open, so it is not removed here
+        assert files["running_cancelled"].exists()
+        old = time.time() - 60
+        for p in files.values():
+            os.utime(p, (old, old))
+        assert sorted(jq.sweep_uploads()) == ["never_submitted.npy", "running_cancelled.npy"]
+        assert [p.name for p in up.iterdir()] == ["queued.npy"]
 
 
 class TestSqlite(BackendMixin):
