@@ -30,7 +30,9 @@ from pydantic import BaseModel, ConfigDict, Field
 import lodcast
 from lodcast.errors import LodcastError, StoreCorrupt, StoreInvalid, StoreNotFound
 from lodcast.renderer.cost import CostError
+from lodcast.renderer.scene import Scene
 from lodcast.service.jobs import IngestJob, Job, animation_path, validate_job
+from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeSummary, errors
 from lodcast.service.records import status_json
 from lodcast.service.rendering import RequestInvalid, encode, engine, parse_scene
 from lodcast.service.settings import Settings
@@ -164,6 +166,28 @@ def _finite(obj: Any) -> Any:
     return obj
 
 
+def _offline_docs(app: FastAPI) -> None:
+    """Swagger UI at /docs from the swagger-ui-bundle package's files (FastAPI's default page loads them from a
+    CDN: a server without internet access showed a blank page)."""
+    import swagger_ui_bundle
+    from fastapi.openapi.docs import get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
+    from fastapi.staticfiles import StaticFiles
+
+    app.mount("/docs/assets", StaticFiles(directory=swagger_ui_bundle.swagger_ui_path), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> Response:
+        return get_swagger_ui_html(openapi_url=app.openapi_url or "/openapi.json", title="lodcast API",
+                                   swagger_js_url="/docs/assets/swagger-ui-bundle.js",
+                                   swagger_css_url="/docs/assets/swagger-ui.css",
+                                   swagger_favicon_url="/docs/assets/favicon-32x32.png",
+                                   oauth2_redirect_url="/docs/oauth2-redirect")
+
+    @app.get("/docs/oauth2-redirect", include_in_schema=False)
+    def docs_redirect() -> Response:
+        return get_swagger_ui_oauth2_redirect_html()
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     state: dict[str, Any] = {"jobs": None, "worker": None, "sem": None}
@@ -197,7 +221,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=lodcast.__version__,
         description="Volume rendering of large scalar volumes with transfer-function-driven level of detail.",
         lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
     )
+    _offline_docs(app)
     app.state.settings = settings
     app.state.jobs = jobs
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
@@ -228,11 +255,28 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def _http_error(request: Request, exc: HttpError) -> JSONResponse:
         return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
 
+    @app.exception_handler(405)
+    async def _wrong_method(request: Request, exc: Exception) -> JSONResponse:
+        # each route object holds one method, so Starlette's Allow named only the first route of the path
+        from starlette.routing import Match
+
+        allowed = sorted({m for r in request.app.router.routes if r.matches(request.scope)[0] != Match.NONE
+                          for m in (getattr(r, "methods", None) or ())} - {"HEAD"} or {"GET"})
+        return JSONResponse({"detail": f"method: {request.method} is not allowed on {request.url.path} "
+                                       f"(allowed: {', '.join(allowed)})"},
+                            status_code=405, headers={"Allow": ", ".join(allowed)})
+
     @app.exception_handler(RequestValidationError)
     async def _unparsable(request: Request, exc: RequestValidationError) -> JSONResponse:
-        # pydantic's errors carry the offending input: never echo a request body (or part of it) back
-        keep = ("type", "loc", "msg")
-        return JSONResponse({"detail": [{k: e[k] for k in keep if k in e} for e in exc.errors()]}, status_code=422)
+        # pydantic's errors carry the offending input: never echo a request body (or part of it) back; each
+        # message starts with the field's dotted path, as the renderer's own checks do
+        out = []
+        for e in exc.errors():
+            loc = [p if isinstance(p, int) else str(p) for p in e.get("loc", ())]
+            field = ".".join(str(p) for p in loc if p not in ("body", "query", "path"))
+            msg = str(e.get("msg", "invalid")).removeprefix("Value error, ")
+            out.append({"loc": loc, "msg": f"{field}: {msg}" if field else msg, "type": str(e.get("type", "value_error"))})
+        return JSONResponse({"detail": out}, status_code=422)
 
     @app.exception_handler(RequestInvalid)
     async def _invalid(request: Request, exc: RequestInvalid) -> JSONResponse:
@@ -266,18 +310,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         pass
 
     # --- health / volumes ---------------------------------------------------------------------------------------
-    @app.get("/healthz", tags=["service"])
+    @app.get("/healthz", tags=["service"], summary="Liveness: the version and the queue back end",
+             response_model=Health)
     def healthz() -> dict[str, Any]:
         return {"status": "ok", "version": lodcast.__version__, "queue": "redis" if settings.is_redis else "sqlite"}
 
-    @app.get("/presets", tags=["service"], dependencies=auth)
+    @app.get("/presets", tags=["service"], dependencies=auth, summary="The named transfer functions",
+             response_model=dict[str, dict[str, Any]], responses=errors(401))
     def get_presets() -> dict[str, Any]:
         """The named transfer functions a scene may give as `"tf": NAME`."""
         from lodcast.renderer.presets import PRESETS
 
         return PRESETS
 
-    @app.get("/volumes", tags=["volumes"], dependencies=auth)
+    @app.get("/volumes", tags=["volumes"], dependencies=auth, summary="Every volume under the store root",
+             response_model=list[VolumeSummary], responses=errors(401))
     def get_volumes() -> list[dict[str, Any]]:
         out = []
         for vid in list_volumes(settings.root):
@@ -287,12 +334,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 continue  # a folder that is not (yet) a complete store is not a volume
         return out
 
-    @app.post("/volumes", status_code=202, tags=["volumes"], dependencies=auth)
+    @app.post("/volumes", status_code=202, tags=["volumes"], dependencies=auth,
+              summary="Ingest a server-side file (under an import root) as a new volume: an ingest job",
+              response_model=JobStatus, responses=errors(400, 401, 413, 422, 503))
     def post_volume(req: IngestRequest) -> dict[str, Any]:
         job = IngestJob(kind="ingest", source=req.source, name=req.name, overwrite=req.overwrite, options=req.options)
         return status_json(jobs().submit(validate_job(job, settings)))
 
-    @app.post("/volumes/{volume_id}/upload", status_code=202, tags=["volumes"], dependencies=auth)
+    @app.post("/volumes/{volume_id}/upload", status_code=202, tags=["volumes"], dependencies=auth,
+              summary="Upload one volume file as the request body: an ingest job",
+              response_model=JobStatus, responses=errors(400, 401, 413, 422, 503),
+              openapi_extra={"requestBody": {"required": True, "content": {"application/octet-stream": {
+                  "schema": {"type": "string", "format": "binary"}}}}})
     async def upload_volume(
         volume_id: VolumeId,
         request: Request,
@@ -345,14 +398,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise
         return status_json(await run_in_threadpool(jobs().submit, job, upload=dest))
 
-    @app.get("/volumes/{volume_id}", tags=["volumes"], dependencies=auth)
+    @app.get("/volumes/{volume_id}", tags=["volumes"], dependencies=auth, summary="One volume's attributes",
+             response_model=VolumeSummary, responses=errors(400, 401, 404, 409))
     def get_volume(volume_id: VolumeId) -> dict[str, Any]:
         try:
             return _finite(volume_summary(settings.root, volume_id))
         except StoreInvalid as exc:
             raise _store_error(volume_id, settings.root / volume_id, exc) from None
 
-    @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=auth)
+    @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=auth, summary="Delete a volume's store",
+                response_model=Deleted, responses=errors(400, 401, 404))
     def del_volume(volume_id: VolumeId) -> dict[str, Any]:
         path = volume_path(settings.root, volume_id)
         engine().forget(path)
@@ -364,11 +419,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         tags=["render"],
         dependencies=auth,
         response_class=Response,
-        responses={200: {"content": {"image/png": {}, "application/x-npy": {}},
-                         "description": "the image; the render report as JSON in the X-Lodcast-Report header"}},
+        summary="Render one image of a volume",
+        responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}},
+                                     "application/x-npy": {"schema": {"type": "string", "format": "binary"}}},
+                         "description": "the image (PNG, or premultiplied float32 RGBA as .npy); the render report "
+                                        "as JSON in the X-Lodcast-Report header",
+                         "headers": REPORT_HEADER},
+                   **errors(400, 401, 404, 409, 413, 422, 503)},
     )
     async def render(volume_id: VolumeId, request: Request,
-                     scene: Annotated[dict[str, Any], Body(description="a scene: camera, width, height, tf, tf2, quality, sampling, shading, clip, mode, background, format", examples=[EXAMPLE_SCENE])]) -> Response:
+                     scene: Annotated[Scene, Body(description="what to render: camera, size, transfer function(s), "
+                                                              "quality, sampling, shading, clipping, mode, format",
+                                                  examples=[EXAMPLE_SCENE])]) -> Response:
         path = volume_path(settings.root, volume_id)
         sc = parse_scene(scene, settings)
         eng = engine()
@@ -418,28 +480,36 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise HttpError(404, f"id: no job {job_id!r}")
         return rec
 
-    @app.post("/jobs", status_code=202, tags=["jobs"], dependencies=auth)
+    @app.post("/jobs", status_code=202, tags=["jobs"], dependencies=auth, summary="Submit a batch job",
+              response_model=JobStatus, responses=errors(400, 401, 404, 413, 422, 503))
     def post_job(job: Annotated[Job, Body(discriminator="kind")]) -> dict[str, Any]:
         return status_json(jobs().submit(validate_job(job, settings)))
 
-    @app.get("/jobs", tags=["jobs"], dependencies=auth)
+    @app.get("/jobs", tags=["jobs"], dependencies=auth, summary="The newest jobs, optionally in one state",
+             response_model=list[JobStatus], responses=errors(401, 422, 503))
     def get_jobs(
         limit: Annotated[int, Query(ge=1, le=10_000)] = 100,
         state_: Annotated[Literal["queued", "running", "done", "failed", "cancelled"] | None, Query(alias="state")] = None,
     ) -> list[dict[str, Any]]:
         return [status_json(r) for r in jobs().list(limit=limit, states=(state_,) if state_ else None)]
 
-    @app.get("/jobs/{job_id}", tags=["jobs"], dependencies=auth)
+    @app.get("/jobs/{job_id}", tags=["jobs"], dependencies=auth, summary="A job's state and progress",
+             response_model=JobStatus, responses=errors(401, 404, 503))
     def get_job(job_id: JobId) -> dict[str, Any]:
         return status_json(get_record(job_id))
 
-    @app.delete("/jobs/{job_id}", tags=["jobs"], dependencies=auth)
+    @app.delete("/jobs/{job_id}", tags=["jobs"], dependencies=auth,
+                summary="Cancel a job (a running one stops before its next frame)",
+                response_model=JobStatus, responses=errors(401, 404, 503))
     def cancel_job(job_id: JobId) -> dict[str, Any]:
         get_record(job_id)
         return status_json(jobs().cancel(job_id) or get_record(job_id))
 
     @app.get("/jobs/{job_id}/results/{n}", tags=["jobs"], dependencies=auth, response_class=FileResponse,
-             responses={200: {"content": {"image/png": {}, "application/x-npy": {}}}})
+             summary="Frame n of a job (0-based)",
+             responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}},
+                                          "application/x-npy": {"schema": {"type": "string", "format": "binary"}}},
+                              "description": "the frame"}, **errors(401, 404, 422, 503)})
     def get_result(job_id: JobId, n: Annotated[int, PathParam(ge=0, le=10_000_000)]) -> FileResponse:
         rec = get_record(job_id)
         if n >= max(int(rec["total"] or 0), 0) or rec["kind"] == "ingest":
@@ -452,7 +522,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         raise HttpError(404, f"n: result {n} of job {job_id} is not written yet (state {rec['state']})")
 
     @app.get("/jobs/{job_id}/animation", tags=["jobs"], dependencies=auth, response_class=FileResponse,
-             responses={200: {"content": {"image/gif": {}, "video/mp4": {}}}})
+             summary="A turntable's animation (GIF or MP4), once written",
+             responses={200: {"content": {"image/gif": {"schema": {"type": "string", "format": "binary"}},
+                                          "video/mp4": {"schema": {"type": "string", "format": "binary"}}},
+                              "description": "the animation"}, **errors(401, 404, 503)})
     def get_animation(job_id: JobId) -> FileResponse:
         rec = get_record(job_id)
         d = jobs().job_dir(job_id)

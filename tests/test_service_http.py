@@ -61,8 +61,47 @@ def names_field(resp, field: str) -> bool:
 def test_healthz_and_docs(env):
     client = env[0]
     assert client.get("/healthz").json()["status"] == "ok"
-    assert client.get("/docs").status_code == 200
+    page = client.get("/docs", headers=NOAUTH)
+    assert page.status_code == 200
+    # offline: every script and style the page loads is served here, none from a CDN
+    import re
+
+    urls = re.findall(r'(?:src|href)="([^"]+)"', page.text)
+    assert urls and all(u.startswith("/docs/assets/") for u in urls), urls
+    for u in urls:
+        assert client.get(u, headers=NOAUTH).status_code == 200, u
     assert "/volumes/{volume_id}/render" in client.get("/openapi.json").json()["paths"]
+
+
+def test_openapi_is_typed(env):
+    """The render body is the Scene model, every operation has a summary, a typed response and its error codes,
+    and the report header is declared."""
+    spec = env[0].get("/openapi.json").json()
+    render = spec["paths"]["/volumes/{volume_id}/render"]["post"]
+    body = render["requestBody"]["content"]["application/json"]["schema"]
+    assert body.get("$ref", "").endswith("/Scene") and "camera" in spec["components"]["schemas"]["Scene"]["properties"]
+    assert "X-Lodcast-Report" in render["responses"]["200"]["headers"]
+    assert {"400", "401", "404", "409", "413", "422", "503"} <= set(render["responses"])
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            assert op.get("summary"), (method, path)
+            ok = op["responses"][next(c for c in op["responses"] if c.startswith("2"))]
+            content = ok.get("content", {})
+            assert content and all(v.get("schema") for v in content.values()), (method, path, ok)
+            if path != "/healthz":
+                assert "401" in op["responses"], (method, path)
+    status = spec["components"]["schemas"]["JobStatus"]["properties"]
+    assert set(status) == {"id", "kind", "state", "progress", "error", "created", "started", "finished"}
+    assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+
+
+def test_wrong_method_names_every_allowed_one(env):
+    client = env[0]
+    for method, path, allowed in (("PUT", "/volumes", "GET, POST"), ("PATCH", "/jobs/" + "0" * 32, "DELETE, GET"),
+                                  ("GET", "/volumes/tiny/render", "POST"), ("POST", "/healthz", "GET")):
+        r = client.request(method, path)
+        assert r.status_code == 405 and r.headers["Allow"] == allowed, (method, path, r.headers, r.text)
+        assert method in r.json()["detail"] and allowed in r.json()["detail"]
 
 
 def test_list_and_show_volumes(env):
@@ -360,7 +399,7 @@ def test_every_route_but_healthz_and_docs_needs_the_token(env):
     open_paths = {"/healthz"}
     checked = 0
     for route in client.app.routes:
-        if not isinstance(route, APIRoute) or route.path in open_paths:
+        if not isinstance(route, APIRoute) or route.path in open_paths or not route.include_in_schema:  # docs: open
             continue
         path = route.path.replace("{volume_id}", "tiny").replace("{job_id}", "0" * 32).replace("{n}", "0")
         for method in route.methods:

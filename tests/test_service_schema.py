@@ -1,4 +1,5 @@
-"""Schemathesis against the service's OpenAPI schema: at least 500 generated requests, no 5xx.
+"""Schemathesis against the service's OpenAPI schema: at least 1,000 generated requests, no 5xx, and every status
+code, content type and JSON body it sees is the one the schema documents for that operation.
 
 One test walks every operation, with valid (positive) and invalid (negative) data, each with its own Hypothesis run (so that the count holds however pytest distributes
 tests), on a tiny volume with small image caps to keep it quick."""
@@ -14,13 +15,18 @@ schemathesis = pytest.importorskip("schemathesis", reason="schemathesis is in th
 from hypothesis import HealthCheck, Phase, given, settings  # noqa: E402
 from hypothesis.errors import Unsatisfiable  # noqa: E402
 from schemathesis.checks import not_a_server_error  # noqa: E402
+from schemathesis.specs.openapi.checks import (  # noqa: E402
+    content_type_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
 
 from lodcast.service.app import create_app  # noqa: E402
 from lodcast.service.settings import Settings  # noqa: E402
 from lodcast.service.testing import make_volume  # noqa: E402
 
-EXAMPLES_PER_OPERATION = 30  # per operation and generation mode (positive, negative)
-MIN_CASES = 500
+EXAMPLES_PER_OPERATION = 45  # per operation and generation mode (positive, negative)
+MIN_CASES = 1000
 
 
 def test_openapi_fuzz_no_server_errors(tmp_path: Path):
@@ -32,6 +38,7 @@ def test_openapi_fuzz_no_server_errors(tmp_path: Path):
         schema = schemathesis.openapi.from_asgi("/openapi.json", app)
     total = 0
     failures: list[str] = []
+    statuses: dict[int, int] = {}
     ops = [r.ok() for r in schema.get_all_operations()]
     assert len(ops) >= 12, [o.label for o in ops]
     for op, mode in [(o, m) for o in ops for m in (schemathesis.GenerationMode.POSITIVE, schemathesis.GenerationMode.NEGATIVE)]:
@@ -45,10 +52,15 @@ def test_openapi_fuzz_no_server_errors(tmp_path: Path):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 response = case.call()
+            statuses[response.status_code] = statuses.get(response.status_code, 0) + 1
             if response.status_code >= 500:
                 failures.append(f"{op.label}: {response.status_code} for {case.path_parameters} {case.query} "
                                 f"{str(case.body)[:300]}: {response.text[:300]}")
-            case.validate_response(response, checks=[not_a_server_error])
+            try:
+                case.validate_response(response, checks=[not_a_server_error, status_code_conformance,
+                                                         content_type_conformance, response_schema_conformance])
+            except Exception as exc:  # collect them all: one failing operation should not hide the others
+                failures.append(f"{op.label} -> {response.status_code}: {' '.join(str(exc).split())[:400]}")
 
         try:
             run()
@@ -56,5 +68,5 @@ def test_openapi_fuzz_no_server_errors(tmp_path: Path):
             pass
         total += seen["n"]
     assert not failures, failures[:5]
-    print(f"{total} generated cases over {len(ops)} operations")
+    print(f"{total} generated cases over {len(ops)} operations; status codes seen: {dict(sorted(statuses.items()))}")
     assert total >= MIN_CASES, f"only {total} generated cases"
