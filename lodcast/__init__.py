@@ -24,6 +24,9 @@ __all__ = [
     "open_store",
     "render",
     "Client",
+    "AsyncClient",
+    "JobStatus",
+    "VolumeSummary",
     "RenderResult",
     "Scene",
     "LodcastError",
@@ -41,12 +44,16 @@ _LAZY = {
     "RenderResult": ("lodcast.renderer.render", "RenderResult"),
     "Scene": ("lodcast.renderer.scene", "Scene"),
     "Client": ("lodcast.service.client", "Client"),
+    "AsyncClient": ("lodcast.service.client", "AsyncClient"),
+    "JobStatus": ("lodcast.service.models", "JobStatus"),
+    "VolumeSummary": ("lodcast.service.models", "VolumeSummary"),
 }
 
 if TYPE_CHECKING:  # pragma: no cover
     from lodcast.renderer.render import RenderResult, render
     from lodcast.renderer.scene import Scene
-    from lodcast.service.client import Client
+    from lodcast.service.client import AsyncClient, Client
+    from lodcast.service.models import JobStatus, VolumeSummary
     from lodcast.store.ingest import ingest
     from lodcast.store.store import open_store
 

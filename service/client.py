@@ -1,19 +1,30 @@
-"""``lodcast.Client``: the service's verbs over HTTP (httpx). Errors raise ServiceError carrying the server's message."""
+"""``lodcast.Client`` and ``lodcast.AsyncClient``: the service's verbs over HTTP (httpx), with typed results.
+
+Both share one description of every request and of how to read its answer (`_Api`); `Client` sends them blocking,
+`AsyncClient` awaiting. Statuses are `JobStatus`, volumes `VolumeSummary`, health `Health` (service/models.py, the
+same models the server's OpenAPI schema is made from); renders are `RenderResult`s as local rendering returns.
+Errors raise ServiceError carrying the server's status and message.
+"""
 from __future__ import annotations
 
+import asyncio
 import io
 import json
 import os
 import sys
 import time
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
 import httpx
 
 from lodcast.errors import LodcastError
+from lodcast.service.models import Health, JobStatus, VolumeSummary
 
-__all__ = ["Client", "ServiceError"]
+__all__ = ["Client", "AsyncClient", "ServiceError"]
+
+FINAL = ("done", "failed", "cancelled")
 
 
 class ServiceError(LodcastError, ValueError):
@@ -38,33 +49,92 @@ def _scene_dict(scene: Any) -> dict[str, Any]:
     return dict(scene)
 
 
-def _result(rgba: Any, report: dict[str, Any]) -> Any:
-    try:
-        from lodcast.renderer.render import RenderResult
-    except ImportError:  # pragma: no cover - the renderer is part of the package
-        from types import SimpleNamespace
+def _job_dict(job: Any) -> dict[str, Any]:
+    if isinstance(job, (str, Path)):
+        return json.loads(Path(job).read_text())
+    return job.model_dump(mode="json") if hasattr(job, "model_dump") else dict(job)
 
-        return SimpleNamespace(rgba=rgba, report=report)
-    try:
-        return RenderResult(rgba=rgba, report=report)
-    except TypeError:
-        return RenderResult(rgba, report)
+
+def _checked(r: httpx.Response, method: str, url: str) -> httpx.Response:
+    if r.status_code >= 400:
+        try:
+            detail = r.json().get("detail", r.text)
+        except (ValueError, AttributeError):
+            detail = r.text
+        raise ServiceError(r.status_code, detail, method, url)
+    return r
+
+
+def _model(cls: Any) -> Callable[[httpx.Response], Any]:
+    return lambda r: cls.model_validate(r.json())
+
+
+def _models(cls: Any) -> Callable[[httpx.Response], Any]:
+    return lambda r: [cls.model_validate(x) for x in r.json()]
+
+
+def _report(r: httpx.Response) -> dict[str, Any]:
+    return json.loads(r.headers.get("x-lodcast-report", "{}"))
+
+
+def _render_result(r: httpx.Response) -> Any:
+    import numpy as np
+
+    from lodcast.renderer.render import RenderResult
+
+    return RenderResult(np.load(io.BytesIO(r.content), allow_pickle=False), _report(r))
+
+
+def _upload_query(path: Path, overwrite: bool, options: dict[str, Any]) -> dict[str, Any]:
+    fmt = options.pop("format", None) or {".nii": "nifti", ".gz": "nifti", ".tif": "tiff", ".tiff": "tiff"}.get(
+        path.suffix.lower(), path.suffix.lower().lstrip(".") or "npy")
+    params: dict[str, Any] = {"format": fmt, "overwrite": str(overwrite).lower()}
+    if "shape" in options:
+        params["shape"] = ",".join(str(int(s)) for s in options.pop("shape"))
+    if "dtype" in options:
+        params["dtype"] = str(options.pop("dtype"))
+    return params
+
+
+def _frame_file(dest: str | os.PathLike[str], n: int, r: httpx.Response) -> Path:
+    npy = r.headers.get("content-type", "").startswith(("application/x-npy", "application/octet-stream"))
+    p = Path(dest) / f"frame_{n:05d}.{'npy' if npy else 'png'}"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_bytes(r.content)
+    return p
+
+
+class _Bar:
+    """A job's progress bar on a terminal (``show=None``) or when asked."""
+
+    def __init__(self, job_id: str, show: bool | None) -> None:
+        self.job_id, self.show, self.bar = job_id, sys.stderr.isatty() if show is None else show, None
+
+    def update(self, st: JobStatus) -> None:
+        if not self.show:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=st.progress.total, desc=f"job {self.job_id[:8]}", unit="frame")
+        self.bar.total, self.bar.n = st.progress.total, st.progress.done
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 #: methods a retry cannot duplicate (a render has no side effect, so its POST is one of them)
 _IDEMPOTENT = ("GET", "HEAD", "DELETE", "PUT")
 
 
-class Client:
-    """``Client("http://127.0.0.1:8000", token=None)``; the base URL defaults to ``LODCAST_URL``.
+class _Api:
+    """Every request and how to read its answer; `_call` is the one thing the two clients do differently."""
 
-    ``timeout``: seconds per request (each call also takes ``timeout=``). ``retries``: how often a request is
-    tried again, after 0.25 s, 0.5 s, 1 s, ... (or the server's ``Retry-After``): when the server cannot be reached
-    (nothing was sent, so any request), and for reads and renders also on 503 (busy or restarting) and on a
-    dropped connection. A job submission is not repeated once it may have arrived."""
+    retries: int
 
-    def __init__(self, base_url: str | None = None, token: str | None = None, *, timeout: float = 300.0,
-                 transport: httpx.BaseTransport | None = None, retries: int = 3) -> None:
+    def __init__(self, base_url: str | None, token: str | None, retries: int) -> None:
         if retries < 0:
             raise ValueError(f"retries: must be at least 0, got {retries}")
         self.retries = int(retries)
@@ -72,9 +142,98 @@ class Client:
         if not base_url:
             raise ValueError("base_url: no server URL given (pass one or set LODCAST_URL)")
         token = token if token is not None else os.environ.get("LODCAST_TOKEN")
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.base_url = base_url.rstrip("/")
-        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+
+    def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any], idempotent: bool | None = None,
+              **kw: Any) -> Any:
+        raise NotImplementedError
+
+    def _delay(self, attempt: int, again: bool, r: httpx.Response | None, exc: Exception | None) -> float | None:
+        """Seconds to wait before trying again, or None to stop here: after 0.25 s, 0.5 s, 1 s, ... (or the
+        server's Retry-After) when nothing was sent, and for idempotent requests on 503 or a dropped connection."""
+        if attempt >= self.retries:
+            return None
+        delay = 0.25 * 2**attempt
+        if exc is not None:
+            return delay if isinstance(exc, (httpx.ConnectError, httpx.ConnectTimeout)) or again else None
+        assert r is not None
+        if r.status_code != 503 or not again:
+            return None
+        try:
+            return max(delay, min(30.0, float(r.headers.get("retry-after", 0))))
+        except ValueError:
+            return delay
+
+    # --- volumes ----------------------------------------------------------------------------------------------
+    def health(self) -> Health:
+        return self._call("GET", "/healthz", read=_model(Health))
+
+    def volumes(self) -> list[VolumeSummary]:
+        return self._call("GET", "/volumes", read=_models(VolumeSummary))
+
+    def volume(self, volume_id: str) -> VolumeSummary:
+        return self._call("GET", f"/volumes/{volume_id}", read=_model(VolumeSummary))
+
+    def delete_volume(self, volume_id: str) -> None:
+        return self._call("DELETE", f"/volumes/{volume_id}", read=lambda r: None)
+
+    # --- rendering --------------------------------------------------------------------------------------------
+    def render_image(self, volume: str, scene: Any, *, timeout: float | None = None) -> tuple[bytes, dict[str, Any]]:
+        """The encoded image as the server sends it (PNG or .npy bytes) and the render report. `timeout`: seconds
+        for this call (default: the client's)."""
+        kw = {} if timeout is None else {"timeout": timeout}
+        return self._call("POST", f"/volumes/{volume}/render", json=_scene_dict(scene), idempotent=True,
+                          read=lambda r: (r.content, _report(r)), **kw)
+
+    def render(self, volume: str, scene: Any, *, timeout: float | None = None) -> Any:
+        """A RenderResult, as local rendering returns: float32 premultiplied RGBA (fetched as .npy) and the report."""
+        kw = {} if timeout is None else {"timeout": timeout}
+        return self._call("POST", f"/volumes/{volume}/render", json={**_scene_dict(scene), "format": "npy"},
+                          idempotent=True, read=_render_result, **kw)
+
+    # --- jobs -------------------------------------------------------------------------------------------------
+    def submit(self, job: dict[str, Any] | str | os.PathLike[str]) -> JobStatus:
+        """A job (a dict, a job model, or a JSON file's path); its status as queued."""
+        return self._call("POST", "/jobs", json=_job_dict(job), read=_model(JobStatus))
+
+    def job(self, job_id: str) -> JobStatus:
+        return self._call("GET", f"/jobs/{job_id}", read=_model(JobStatus))
+
+    def jobs(self, limit: int = 100, state: str | None = None) -> list[JobStatus]:
+        params: dict[str, Any] = {"limit": limit, **({"state": state} if state else {})}
+        return self._call("GET", "/jobs", params=params, read=_models(JobStatus))
+
+    def cancel(self, job_id: str) -> JobStatus:
+        return self._call("DELETE", f"/jobs/{job_id}", read=_model(JobStatus))
+
+    def result(self, job_id: str, n: int) -> bytes:
+        return self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r.content)
+
+    def animation(self, job_id: str) -> bytes:
+        return self._call("GET", f"/jobs/{job_id}/animation", read=lambda r: r.content)
+
+    def _ingest_request(self, source: Any, name: str, overwrite: bool, upload: bool,
+                        options: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+        if upload:
+            return f"/volumes/{name}/upload", {"params": _upload_query(Path(source), overwrite, options)}
+        return "/volumes", {"json": {"name": name, "source": os.fspath(source), "overwrite": overwrite,
+                                     "options": options}}
+
+
+class Client(_Api):
+    """``Client("http://127.0.0.1:8000", token=None)``; the base URL defaults to ``LODCAST_URL``, the token to
+    ``LODCAST_TOKEN``.
+
+    ``timeout``: seconds per request (each render also takes ``timeout=``). ``retries``: how often a request is
+    tried again, after 0.25 s, 0.5 s, 1 s, ... (or the server's ``Retry-After``): when the server cannot be reached
+    (nothing was sent, so any request), and for reads and renders also on 503 (busy or restarting) and on a
+    dropped connection. A job submission is not repeated once it may have arrived."""
+
+    def __init__(self, base_url: str | None = None, token: str | None = None, *, timeout: float = 300.0,
+                 transport: httpx.BaseTransport | None = None, retries: int = 3) -> None:
+        super().__init__(base_url, token, retries)
+        self._http = httpx.Client(base_url=self.base_url, headers=self._headers, timeout=timeout, transport=transport)
 
     def close(self) -> None:
         self._http.close()
@@ -85,146 +244,132 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _request(self, method: str, url: str, *, idempotent: bool | None = None, **kw: Any) -> httpx.Response:
+    def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any], idempotent: bool | None = None,
+              **kw: Any) -> Any:
         again = method in _IDEMPOTENT if idempotent is None else idempotent
         for attempt in range(self.retries + 1):
-            last = attempt == self.retries
-            delay = 0.25 * 2**attempt
             try:
                 r = self._http.request(method, url, **kw)
-            except (httpx.ConnectError, httpx.ConnectTimeout):
-                if last:
-                    raise
-            except (httpx.RemoteProtocolError, httpx.ReadError):
-                if last or not again:
+            except (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError) as exc:
+                delay = self._delay(attempt, again, None, exc)
+                if delay is None:
                     raise
             else:
-                if r.status_code != 503 or last or not again:
-                    break
-                try:
-                    delay = max(delay, min(30.0, float(r.headers.get("retry-after", 0))))
-                except ValueError:
-                    pass
+                delay = self._delay(attempt, again, r, None)
+                if delay is None:
+                    return read(_checked(r, method, url))
             time.sleep(delay)
-        if r.status_code >= 400:
-            try:
-                detail = r.json().get("detail", r.text)
-            except (ValueError, AttributeError):
-                detail = r.text
-            raise ServiceError(r.status_code, detail, method, url)
-        return r
-
-    # --- volumes ----------------------------------------------------------------------------------------------
-    def health(self) -> dict[str, Any]:
-        return self._request("GET", "/healthz").json()
-
-    def volumes(self) -> list[dict[str, Any]]:
-        return self._request("GET", "/volumes").json()
-
-    def volume(self, volume_id: str) -> dict[str, Any]:
-        return self._request("GET", f"/volumes/{volume_id}").json()
+        raise AssertionError("unreachable: the last attempt returns or raises")
 
     def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False, upload: bool = False,
-               wait: bool = False, **options: Any) -> dict[str, Any]:
+               wait: bool = False, **options: Any) -> JobStatus:
         """Ingest as a job: a server-side path under the server's import roots, or (``upload=True``) a local file
         sent in the request body (``format`` from its extension unless given). Returns the job status."""
+        url, kw = self._ingest_request(source, name, overwrite, upload, options)
         if upload:
-            path = Path(source)
-            fmt = options.pop("format", None) or {".nii": "nifti", ".gz": "nifti", ".tif": "tiff", ".tiff": "tiff"}.get(
-                path.suffix.lower(), path.suffix.lower().lstrip(".") or "npy")
-            params: dict[str, Any] = {"format": fmt, "overwrite": str(overwrite).lower()}
-            if "shape" in options:
-                params["shape"] = ",".join(str(int(s)) for s in options.pop("shape"))
-            if "dtype" in options:
-                params["dtype"] = str(options.pop("dtype"))
-            with open(path, "rb") as f:
-                status = self._request("POST", f"/volumes/{name}/upload", params=params, content=f).json()
+            with open(source, "rb") as f:
+                st = self._call("POST", url, content=f, read=_model(JobStatus), **kw)
         else:
-            body = {"name": name, "source": os.fspath(source), "overwrite": overwrite, "options": options}
-            status = self._request("POST", "/volumes", json=body).json()
-        return self.wait(status["id"], progress=False) if wait else status
+            st = self._call("POST", url, read=_model(JobStatus), **kw)
+        return self.wait(st.id, progress=False) if wait else st
 
-    def delete_volume(self, volume_id: str) -> None:
-        self._request("DELETE", f"/volumes/{volume_id}")
-
-    # --- rendering --------------------------------------------------------------------------------------------
-    def render_image(self, volume: str, scene: Any, *, timeout: float | None = None) -> tuple[bytes, dict[str, Any]]:
-        """The encoded image as the server sends it (PNG or .npy bytes) and the render report. `timeout`: seconds
-        for this call (default: the client's)."""
-        kw = {} if timeout is None else {"timeout": timeout}
-        r = self._request("POST", f"/volumes/{volume}/render", json=_scene_dict(scene), idempotent=True, **kw)
-        return r.content, json.loads(r.headers.get("x-lodcast-report", "{}"))
-
-    def render(self, volume: str, scene: Any, *, timeout: float | None = None) -> Any:
-        """A RenderResult, as local rendering returns: float32 premultiplied RGBA (fetched as .npy) and the report."""
-        import numpy as np
-
-        body = {**_scene_dict(scene), "format": "npy"}
-        data, report = self.render_image(volume, body, timeout=timeout)
-        return _result(np.load(io.BytesIO(data), allow_pickle=False), report)
-
-    # --- jobs -------------------------------------------------------------------------------------------------
-    def submit(self, job: dict[str, Any] | str | os.PathLike[str]) -> dict[str, Any]:
-        if isinstance(job, (str, Path)):
-            job = json.loads(Path(job).read_text())
-        return self._request("POST", "/jobs", json=job).json()
-
-    def job(self, job_id: str) -> dict[str, Any]:
-        return self._request("GET", f"/jobs/{job_id}").json()
-
-    def jobs(self, limit: int = 100, state: str | None = None) -> list[dict[str, Any]]:
-        params: dict[str, Any] = {"limit": limit}
-        if state:
-            params["state"] = state
-        return self._request("GET", "/jobs", params=params).json()
-
-    def cancel(self, job_id: str) -> dict[str, Any]:
-        return self._request("DELETE", f"/jobs/{job_id}").json()
-
-    def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25, progress: bool | None = None) -> dict[str, Any]:
-        """Poll until the job is done, failed or cancelled (or ``timeout`` seconds pass); a progress bar on a
-        terminal (``progress=None``) or when asked."""
-        show = sys.stderr.isatty() if progress is None else progress
-        bar = None
-        end = None if timeout is None else time.monotonic() + timeout
+    def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,
+             progress: bool | None = None) -> JobStatus:
+        """Poll until the job is done, failed or cancelled; TimeoutError after ``timeout`` seconds."""
+        bar, end = _Bar(job_id, progress), None if timeout is None else time.monotonic() + timeout
         try:
             while True:
                 st = self.job(job_id)
-                if show:
-                    if bar is None:
-                        from tqdm import tqdm
-
-                        bar = tqdm(total=st["progress"]["total"], desc=f"job {job_id[:8]}", unit="frame")
-                    bar.total = st["progress"]["total"]
-                    bar.n = st["progress"]["done"]
-                    bar.refresh()
-                if st["state"] in ("done", "failed", "cancelled"):
+                bar.update(st)
+                if st.state in FINAL:
                     return st
                 if end is not None and time.monotonic() > end:
-                    raise TimeoutError(f"job {job_id} still {st['state']} after {timeout} s")
+                    raise TimeoutError(f"job {job_id} still {st.state} after {timeout} s")
                 time.sleep(poll)
         finally:
-            if bar is not None:
-                bar.close()
-
-    def result(self, job_id: str, n: int) -> bytes:
-        return self._request("GET", f"/jobs/{job_id}/results/{n}").content
+            bar.close()
 
     def results(self, job_id: str, dest: str | os.PathLike[str] | None = None) -> list[bytes] | list[Path]:
         """Every result of a job, in order: as bytes, or written to folder ``dest`` (then their paths)."""
         st = self.job(job_id)
         out: list[Any] = []
-        for n in range(st["progress"]["total"] if st["kind"] != "ingest" else 0):
-            r = self._request("GET", f"/jobs/{job_id}/results/{n}")
-            if dest is None:
-                out.append(r.content)
-            else:
-                ext = "npy" if r.headers.get("content-type", "").startswith(("application/x-npy", "application/octet-stream")) else "png"
-                p = Path(dest) / f"frame_{n:05d}.{ext}"
-                p.parent.mkdir(parents=True, exist_ok=True)
-                p.write_bytes(r.content)
-                out.append(p)
+        for n in range(st.progress.total if st.kind != "ingest" else 0):
+            r = self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r)
+            out.append(r.content if dest is None else _frame_file(dest, n, r))
         return out
 
-    def animation(self, job_id: str) -> bytes:
-        return self._request("GET", f"/jobs/{job_id}/animation").content
+
+class AsyncClient(_Api):
+    """The same verbs as `Client`, awaited (``async with AsyncClient(url) as c: st = await c.submit(job)``); the
+    same retries, timeouts and typed results."""
+
+    def __init__(self, base_url: str | None = None, token: str | None = None, *, timeout: float = 300.0,
+                 transport: httpx.AsyncBaseTransport | None = None, retries: int = 3) -> None:
+        super().__init__(base_url, token, retries)
+        self._http = httpx.AsyncClient(base_url=self.base_url, headers=self._headers, timeout=timeout,
+                                       transport=transport)
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def __aenter__(self) -> "AsyncClient":
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any],  # type: ignore[override]
+                    idempotent: bool | None = None, **kw: Any) -> Any:
+        again = method in _IDEMPOTENT if idempotent is None else idempotent
+        for attempt in range(self.retries + 1):
+            try:
+                r = await self._http.request(method, url, **kw)
+            except (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError) as exc:
+                delay = self._delay(attempt, again, None, exc)
+                if delay is None:
+                    raise
+            else:
+                delay = self._delay(attempt, again, r, None)
+                if delay is None:
+                    return read(_checked(r, method, url))
+            await asyncio.sleep(delay)
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+    async def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False,  # type: ignore[override]
+                     upload: bool = False, wait: bool = False, **options: Any) -> JobStatus:
+        url, kw = self._ingest_request(source, name, overwrite, upload, options)
+        if upload:
+            st = await self._call("POST", url, content=_chunks(Path(source)), read=_model(JobStatus), **kw)
+        else:
+            st = await self._call("POST", url, read=_model(JobStatus), **kw)
+        return await self.wait(st.id, progress=False) if wait else st
+
+    async def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,  # type: ignore[override]
+                   progress: bool | None = None) -> JobStatus:
+        bar, end = _Bar(job_id, progress), None if timeout is None else time.monotonic() + timeout
+        try:
+            while True:
+                st = await self.job(job_id)
+                bar.update(st)
+                if st.state in FINAL:
+                    return st
+                if end is not None and time.monotonic() > end:
+                    raise TimeoutError(f"job {job_id} still {st.state} after {timeout} s")
+                await asyncio.sleep(poll)
+        finally:
+            bar.close()
+
+    async def results(self, job_id: str, dest: str | os.PathLike[str] | None = None) -> list[bytes] | list[Path]:  # type: ignore[override]
+        st = await self.job(job_id)
+        out: list[Any] = []
+        for n in range(st.progress.total if st.kind != "ingest" else 0):
+            r = await self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r)
+            out.append(r.content if dest is None else _frame_file(dest, n, r))
+        return out
+
+
+async def _chunks(path: Path, size: int = 1 << 20) -> AsyncIterator[bytes]:
+    """A file as the async client streams it (httpx's AsyncClient takes no blocking file objects)."""
+    with open(path, "rb") as f:
+        while chunk := await asyncio.to_thread(f.read, size):
+            yield chunk

@@ -51,7 +51,14 @@ def _url_opts(p: argparse.ArgumentParser) -> None:
 
 
 def _print(obj: Any) -> None:
-    print(json.dumps(obj, indent=2))
+    print(json.dumps(_plain(obj), indent=2))
+
+
+def _plain(obj: Any) -> Any:
+    """The client's typed results as the JSON the server sent (what the commands print and look into)."""
+    if isinstance(obj, list):
+        return [_plain(x) for x in obj]
+    return obj.model_dump(mode="json") if hasattr(obj, "model_dump") else obj
 
 
 # --- serve -----------------------------------------------------------------------------------------------------
@@ -196,7 +203,8 @@ def _cmd_submit(args: argparse.Namespace) -> int:
         with _client(args) as c:
             st = c.submit(data)
             if args.wait:
-                st = c.wait(st["id"])
+                st = c.wait(st.id)
+            st = _plain(st)
     else:
         from lodcast.service.jobs import parse_job, validate_job
         from lodcast.service.records import status_json
@@ -243,7 +251,8 @@ def _cmd_jobs(args: argparse.Namespace) -> int:
             if args.action == "results":
                 return _report_results(c.results(args.id, args.out))
             try:
-                st = {"show": c.job, "cancel": c.cancel}.get(args.action, lambda i: c.wait(i, timeout=args.timeout))(args.id)
+                st = _plain({"show": c.job, "cancel": c.cancel}.get(
+                    args.action, lambda i: c.wait(i, timeout=args.timeout))(args.id))
             except TimeoutError as exc:
                 print(f"lodcast jobs: {exc}", file=sys.stderr)
                 return 1

@@ -15,7 +15,8 @@ JOB_KINDS = Literal["turntable", "scenes", "tf_sweep", "volumes", "ingest"]
 
 
 class _Out(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # a client reading a newer server's answer keeps working: fields it does not know are left out
+    model_config = ConfigDict(extra="ignore")
 
 
 class Health(_Out):

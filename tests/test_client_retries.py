@@ -14,6 +14,9 @@ from lodcast.service.client import Client, ServiceError
 from lodcast.service.testing import free_port
 
 
+HEALTH = {"status": "ok", "version": "9.9", "queue": "sqlite"}
+
+
 class _Flaky:
     """Answers 503 (Retry-After: 0) to the first `fail` requests, then 200 with a JSON body; records methods."""
 
@@ -31,7 +34,7 @@ class _Flaky:
                     self.rfile.read(n)
                 outer.seen.append(self.command)
                 busy = len(outer.seen) <= outer.fail
-                body = json.dumps({"detail": "busy"} if busy else {"status": "ok", "id": "j1"}).encode()
+                body = json.dumps({"detail": "busy"} if busy else HEALTH).encode()
                 self.send_response(503 if busy else 200)
                 if busy:
                     self.send_header("Retry-After", "0")
@@ -61,7 +64,7 @@ def flaky(request):
 def test_reads_are_retried_on_503(flaky):
     with Client(flaky.url, retries=3) as c:
         t = time.monotonic()
-        assert c.health() == {"status": "ok", "id": "j1"}
+        assert c.health().model_dump() == HEALTH
         assert flaky.seen == ["GET"] * 3
         assert time.monotonic() - t >= 0.25 + 0.5 - 0.05  # backoff 0.25 s, then 0.5 s
 
@@ -86,7 +89,23 @@ def test_a_job_submission_is_not_repeated_on_503(flaky):
 def test_renders_are_retried_since_they_change_nothing(flaky):
     with Client(flaky.url, retries=1) as c:
         data, report = c.render_image("v", {"width": 8, "height": 8, "tf": "ct-bone"}, timeout=5)
-    assert flaky.seen == ["POST", "POST"] and json.loads(data) == {"status": "ok", "id": "j1"}
+    assert flaky.seen == ["POST", "POST"] and json.loads(data) == HEALTH
+
+
+@pytest.mark.parametrize("flaky", [2], indirect=True)
+def test_the_async_client_retries_the_same_way(flaky):
+    import asyncio
+
+    from lodcast.service.client import AsyncClient
+
+    async def main() -> tuple:
+        async with AsyncClient(flaky.url, retries=3) as c:
+            t = time.monotonic()
+            health = await c.health()
+            return health, time.monotonic() - t
+
+    health, took = asyncio.run(main())
+    assert health.model_dump() == HEALTH and flaky.seen == ["GET"] * 3 and took >= 0.25 + 0.5 - 0.05
 
 
 def test_an_unreachable_server_is_tried_again_then_raises():

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import lodcast
+import lodcast.service.models
 from lodcast.service.client import ServiceError
 from lodcast.service.testing import TINY_TF, free_port, make_volume, start_serve, tiny_scene
 
@@ -53,9 +54,12 @@ def cli(*args: str, env: dict[str, str] | None = None, stdin: str | None = None)
 
 
 def test_client_volumes_and_render(client, server):
-    assert client.health()["status"] == "ok"
-    assert [v["id"] for v in client.volumes()] == ["tiny"]
-    assert client.volume("tiny")["shape"] == [24, 24, 24]
+    health = client.health()
+    assert isinstance(health, lodcast.service.models.Health) and health.status == "ok"
+    assert health.version == lodcast.__version__
+    assert [v.id for v in client.volumes()] == ["tiny"]
+    info = client.volume("tiny")
+    assert isinstance(info, lodcast.VolumeSummary) and info.shape == [24, 24, 24] and info.levels[0].path == "0"
     res = client.render("tiny", tiny_scene(32))
     assert isinstance(res, lodcast.RenderResult)
     assert res.rgba.shape == (32, 32, 4) and res.rgba.dtype == np.float32
@@ -81,23 +85,24 @@ def test_client_errors_carry_server_message(client, server):
 
 def test_client_jobs_turntable_mp4_and_results(client, tmp_path):
     st = client.submit({"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16), "frames": 6, "animation": "mp4"})
-    st = client.wait(st["id"], timeout=120, progress=False)
-    assert st["state"] == "done", st
-    frames = client.results(st["id"], tmp_path)
+    assert isinstance(st, lodcast.JobStatus) and st.kind == "turntable" and st.progress.total == 6
+    st = client.wait(st.id, timeout=120, progress=False)
+    assert st.state == "done" and st.progress.done == 6 and st.finished.endswith("Z"), st
+    frames = client.results(st.id, tmp_path)
     assert [p.name for p in frames] == [f"frame_{i:05d}.png" for i in range(6)]
-    mp4 = client.animation(st["id"])
+    mp4 = client.animation(st.id)
     assert mp4[4:8] == b"ftyp"
-    assert st["id"] in [j["id"] for j in client.jobs()]
+    assert st.id in [j.id for j in client.jobs()]
 
 
 def test_client_ingest_server_path_and_upload(client, server, tmp_path):
     st = client.ingest("cube.npy", "cube", wait=True)
-    assert st["state"] == "done", st
-    assert client.volume("cube")["shape"] == [16, 16, 16]
+    assert st.state == "done", st
+    assert client.volume("cube").shape == [16, 16, 16]
     np.save(tmp_path / "up.npy", np.ones((8, 8, 8), np.float32))
     st = client.ingest(tmp_path / "up.npy", "uploaded", upload=True, wait=True)
-    assert st["state"] == "done", st
-    assert {"cube", "uploaded"} <= {v["id"] for v in client.volumes()}
+    assert st.state == "done", st
+    assert {"cube", "uploaded"} <= {v.id for v in client.volumes()}
     client.delete_volume("cube")
     client.delete_volume("uploaded")
     with pytest.raises(ServiceError) as e:
@@ -108,10 +113,36 @@ def test_client_ingest_server_path_and_upload(client, server, tmp_path):
 def test_client_cancel(client):
     st = client.submit({"kind": "turntable", "volume": "tiny", "scene": tiny_scene(256), "frames": 200})
     time.sleep(0.3)
-    assert client.cancel(st["id"])["state"] == "cancelled"
+    assert client.cancel(st.id).state == "cancelled"
     time.sleep(1.0)
-    st = client.job(st["id"])
-    assert st["state"] == "cancelled" and st["progress"]["done"] < 200
+    st = client.job(st.id)
+    assert st.state == "cancelled" and st.progress.done < 200
+
+
+def test_async_client_does_what_the_client_does(server, tmp_path):
+    """AsyncClient: the same typed results, concurrent renders, an upload streamed from a file, a job awaited."""
+    import asyncio
+
+    async def main() -> None:
+        async with lodcast.AsyncClient(server[0], token=TOKEN) as ac:
+            assert (await ac.health()).status == "ok"
+            assert (await ac.volume("tiny")).shape == [24, 24, 24]
+            a, b = await asyncio.gather(ac.render("tiny", tiny_scene(32)), ac.render("tiny", tiny_scene(16)))
+            local = lodcast.render(lodcast.open_store(server[1] / "tiny"), tiny_scene(32))
+            np.testing.assert_allclose(a.rgba, local.rgba, atol=1e-5)
+            assert b.rgba.shape == (16, 16, 4) and a.report["samples"] > b.report["samples"] > 0
+            np.save(tmp_path / "up.npy", np.full((8, 8, 8), 3, np.float32))
+            st = await ac.ingest(tmp_path / "up.npy", "async_up", upload=True, wait=True)
+            assert st.state == "done" and (await ac.volume("async_up")).value_range == [3.0, 3.0]
+            job = await ac.submit({"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16), "frames": 3})
+            done = await ac.wait(job.id, timeout=120, progress=False)
+            assert done.state == "done" and len(await ac.results(job.id)) == 3
+            await ac.delete_volume("async_up")
+            with pytest.raises(ServiceError) as e:
+                await ac.volume("async_up")
+            assert e.value.status == 404
+
+    asyncio.run(main())
 
 
 def test_cli_against_url_and_locally(server, tmp_path):
