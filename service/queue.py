@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import socket
@@ -231,11 +232,19 @@ class JobQueue:
                 )
         except Exception as exc:  # the job's own failure: recorded, never retried
             log.exception("job %s failed", job_id)
-            self.records.update(job_id, {"state": "failed", "error": _one_line(exc), "finished": time.time()},
+            self.records.update(job_id, {"state": "failed", "error": self._unplaced(_one_line(exc)), "finished": time.time()},
                                 expect={"state": ("running",), "owner": (owner,)})
         finally:
             beat.set()
             hb.join(timeout=5)
+
+    def _unplaced(self, message: str) -> str:
+        """A job's error as its client may read it: paths relative to the store root and the import roots (an
+        upload's file is "the upload"), never where they lie on the server."""
+        message = re.sub(re.escape(str(self.uploads_dir())) + r"/[0-9a-f]{32}\.\w+", "the upload", message)
+        for base in (*self.settings.import_roots, self.settings.root):
+            message = message.replace(str(base) + os.sep, "").replace(str(base), ".")
+        return message
 
     def _heartbeat(self, job_id: str, owner: str, stop: threading.Event) -> None:
         while not stop.wait(self.settings.heartbeat_s):

@@ -390,6 +390,20 @@ def test_a_decompression_bomb_upload_is_refused_from_its_header(env):
     assert client.get("/volumes/bomb").status_code == 404 and not list((root / ".uploads").glob("*.nrrd"))
 
 
+def test_failed_jobs_do_not_name_server_paths(env):
+    """A truncated upload and a broken server-side file fail their jobs with messages about the file, not where
+    the server keeps it (the store root, the import roots)."""
+    client, root, imports, _ = env
+    hdr = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 8 8 8\nencoding: raw\n\n"
+    r = client.post("/volumes/short/upload?format=nrrd", content=hdr + b"\0" * 100)
+    st = wait_job(client, r.json()["id"])
+    assert st["state"] == "failed" and "the upload" in st["error"] and str(root) not in st["error"], st
+    (imports / "short.npy").write_bytes((imports / "blob.npy").read_bytes()[:300])
+    r = client.post("/volumes", json={"name": "short", "source": "short.npy"})
+    st = wait_job(client, r.json()["id"])
+    assert st["state"] == "failed" and "short.npy" in st["error"] and str(imports) not in st["error"], st
+
+
 def test_every_route_but_healthz_and_docs_needs_the_token(env):
     """DESIGN.md, Limits: with LODCAST_TOKEN set every route but /healthz needs the bearer token, reads included
     (issue 10, item 3); the scheme is declared in OpenAPI."""

@@ -224,3 +224,69 @@ def test_concurrent_clients_soak(server):
     assert not errors, errors
     assert min(counts) >= 1, counts
     assert max(counts) <= 2 * min(counts) + 2, counts  # renders wait in arrival order: nobody is starved
+
+
+def test_four_heavy_renders_and_a_small_one_then_sigterm(tmp_path):
+    """Queue fairness and shutdown on a real server (issue 10's probe): while four heavy renders (each ~10⁸
+    estimated samples, two at a time) run, a small one answers within a fraction of their time; SIGTERM with
+    renders in flight ends the server within its 10 s grace plus start-up slack, the small render's latency and
+    the shutdown time printed."""
+    import httpx
+
+    rng = np.random.default_rng(4)
+    lodcast.ingest(rng.normal(500, 150, (64, 64, 64)).astype(np.float32), tmp_path / "root" / "v")
+    port = free_port()
+    proc = start_serve(tmp_path / "root", port, env={"LODCAST_MAX_WIDTH": "1024", "LODCAST_RENDER_CONCURRENCY": "2",
+                                                     "LODCAST_TOKEN": "", "LODCAST_MAX_SAMPLES": "1e10"},
+                       log=tmp_path / "serve.log")
+    url = f"http://127.0.0.1:{port}/volumes/v/render"
+    tf = {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1000, "color": [1, 0.8, 0.6], "opacity": 0.02}]}
+    heavy = {"width": 640, "height": 640, "tf": tf, "sampling": {"step": 0.25}, "format": "npy"}
+    small = {"width": 32, "height": 32, "tf": tf}
+    try:
+        httpx.post(url, json=small, timeout=120).raise_for_status()  # kernel build and upload, once
+        t = time.perf_counter()
+        httpx.post(url, json=small, timeout=120).raise_for_status()
+        solo = time.perf_counter() - t
+        done: list[float] = []
+
+        def big() -> None:
+            t0 = time.perf_counter()
+            r = httpx.post(url, json=heavy, timeout=600)
+            assert r.status_code == 200, r.text
+            done.append(time.perf_counter() - t0)
+
+        threads = [threading.Thread(target=big) for _ in range(4)]
+        t_all = time.perf_counter()
+        for th in threads:
+            th.start()
+        time.sleep(0.5)  # the heavy ones are running (two) and waiting (two)
+        t = time.perf_counter()
+        httpx.post(url, json=small, timeout=600).raise_for_status()
+        among = time.perf_counter() - t
+        for th in threads:
+            th.join()
+        heavy_total = time.perf_counter() - t_all
+        print(f"small render alone {solo * 1e3:.0f} ms, beside 4 heavy {among * 1e3:.0f} ms; the 4 heavy took "
+              f"{heavy_total:.1f} s ({', '.join(f'{d:.1f}' for d in sorted(done))} s each)")
+        assert len(done) == 4 and among < 0.5 * heavy_total, (among, heavy_total)  # in line: ~0.75-1
+        # SIGTERM with renders of a minute or more in flight: bounded by the grace, not "when they finish"
+        endless = {**heavy, "width": 1024, "height": 1024, "sampling": {"step": 0.05}}
+
+        def post_endless() -> None:
+            try:
+                httpx.post(url, json=endless, timeout=600)
+            except httpx.HTTPError:
+                pass  # the server went away: what is asked of it here
+
+        for th in (threads := [threading.Thread(target=post_endless, daemon=True) for _ in range(2)]):
+            th.start()
+        time.sleep(1.5)
+        t = time.perf_counter()
+        proc.p.send_signal(__import__("signal").SIGTERM)
+        proc.p.wait(timeout=60)
+        stopped = time.perf_counter() - t
+        print(f"SIGTERM with renders in flight: exited {proc.p.returncode} after {stopped:.1f} s")
+        assert stopped < 15.0
+    finally:
+        proc.stop()
