@@ -30,6 +30,7 @@ class Environment:
     read_threads: int  # LODCAST_READ_THREADS
     max_samples: int  # LODCAST_MAX_SAMPLES
     max_voxels: int | None  # LODCAST_MAX_VOXELS
+    max_ingest_bytes: int | None  # LODCAST_MAX_INGEST_MEMORY_MB (MB = 10⁶ bytes)
     lossless_zeta: float  # LODCAST_LOSSLESS_ZETA
     significance_numpy: bool  # LODCAST_SIGNIFICANCE_NUMPY
     device: str  # LODCAST_DEVICE
@@ -45,6 +46,8 @@ VARIABLES: tuple[tuple[str, str, str], ...] = (
     ("LODCAST_READ_THREADS", "8", "threads reading shards"),
     ("LODCAST_MAX_SAMPLES", "2·10⁹", "most samples one render may take, estimated before it starts"),
     ("LODCAST_MAX_VOXELS", "no limit", "largest volume ingest accepts, checked on the source's declared shape"),
+    ("LODCAST_MAX_INGEST_MEMORY_MB", "no limit", "most memory (10⁶ bytes) ingest may plan for, checked on the "
+                                                 "source's declared shape"),
     ("LODCAST_LOSSLESS_ZETA", "0.5", "ΔE per block that `quality: \"lossless\"` allows"),
     ("LODCAST_SIGNIFICANCE_NUMPY", "off", "1: the LOD significance in NumPy rather than SciPy's sparse product"),
     ("LODCAST_DEVICE", "first GPU, else CPU", "`gpu`, `cpu` or part of an OpenCL device name"),
@@ -87,6 +90,7 @@ def environment() -> Environment:
     """The variables as they are now (cheap: a few dictionary lookups)."""
     budget = _number("LODCAST_DEVICE_BUDGET_MB", 0, optional=True)
     voxels = _number("LODCAST_MAX_VOXELS", 0, optional=True)
+    ingest_mb = _number("LODCAST_MAX_INGEST_MEMORY_MB", 0, optional=True)
     return Environment(
         brick_cache_bytes=int(_number("LODCAST_BRICK_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
         device_cache_bytes=int(_number("LODCAST_DEVICE_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
@@ -94,6 +98,7 @@ def environment() -> Environment:
         read_threads=_count("LODCAST_READ_THREADS", 8),
         max_samples=_count("LODCAST_MAX_SAMPLES", 2e9),
         max_voxels=None if voxels is None else _count("LODCAST_MAX_VOXELS", 0),
+        max_ingest_bytes=None if ingest_mb is None else int(ingest_mb * 1e6),
         lossless_zeta=float(_number("LODCAST_LOSSLESS_ZETA", 0.5, positive=False)),  # type: ignore[arg-type]
         significance_numpy=os.environ.get("LODCAST_SIGNIFICANCE_NUMPY", "").strip().lower() not in ("", "0", "false", "no"),
         device=os.environ.get("LODCAST_DEVICE", "").strip().lower(),

@@ -316,7 +316,8 @@ class JobQueue:
         dest = volume_path(self.settings.root, job.name, must_exist=False, field="name")
         try:
             # an upload is one file: it may not name others (a detached NRRD header could read any server file)
-            ingest(job.source, dest, overwrite=job.overwrite, max_voxels=self.settings.max_voxels, **job.options,
+            ingest(job.source, dest, overwrite=job.overwrite, max_voxels=self.settings.max_voxels,
+                   max_memory=int(self.settings.max_ingest_memory_mb * 1e6), **job.options,
                    **({"detached": False} if upload else {}))
         except StoreExists:
             if int(rec["attempts"] or 0) < 1:  # a retry after a crash that happened after the rename: it is done

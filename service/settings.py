@@ -52,6 +52,9 @@ class Settings(BaseSettings):
     max_voxels: int = Field(default=2**33, ge=1, description="largest volume an ingest job accepts, checked on the "
                             "source's declared shape before anything is read: a small compressed upload may declare "
                             "a huge volume (LODCAST_MAX_VOXELS)")
+    max_ingest_memory_mb: float = Field(default=4000.0, gt=0, description="most memory (10⁶ bytes) one ingest "
+                                        "job may need, estimated from the source's declared slice size Y x X "
+                                        "(LODCAST_MAX_INGEST_MEMORY_MB)")
     max_samples: int = Field(default=2_000_000_000, ge=1, description="most samples (rays x samples per ray, estimated "
                              "before rendering) one render may take (LODCAST_MAX_SAMPLES)")
 

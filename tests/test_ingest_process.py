@@ -154,6 +154,30 @@ def test_a_decompression_bomb_is_refused_before_anything_is_allocated(tmp_path: 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bomb.nrrd"]
 
 
+def test_ingest_refuses_a_slice_too_wide_for_its_memory_limit(tmp_path: Path):
+    """Memory grows with the slice (Y x X), not the depth: a 2 x 8192 x 8192 uint16 header (2^27 voxels, under
+    any voxel limit) needs ~6.6 GB of working set, and LODCAST_MAX_INGEST_MEMORY_MB=1000 refuses it before reading;
+    a real ingest stays below the estimate (peak RSS of the child process)."""
+    hdr = b"NRRD0004\ntype: uint16\ndimension: 3\nsizes: 8192 8192 2\nendian: little\nencoding: gzip\n\n"
+    (tmp_path / "wide.nrrd").write_bytes(hdr)
+    env = {**os.environ, "LODCAST_MAX_INGEST_MEMORY_MB": "1000"}
+    out = subprocess.run([*LODCAST, "ingest", str(tmp_path / "wide.nrrd"), str(tmp_path / "w.zarr")],
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 2 and "LODCAST_MAX_INGEST_MEMORY_MB" in out.stderr and "8192x8192" in out.stderr, out.stderr
+    from lodcast.store.ingest import working_bytes
+
+    vol = np.random.default_rng(2).integers(0, 4000, (40, 1024, 1024), dtype=np.uint16)
+    np.save(tmp_path / "v.npy", vol)
+    del vol
+    code = ("import resource, sys; from lodcast.service.cli import main; rc = main(sys.argv[1:]); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024); sys.exit(rc)")
+    out = subprocess.run([sys.executable, "-c", code, "ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr")],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr
+    peak, estimate = int(out.stdout.split()[-1]), working_bytes((40, 1024, 1024), np.dtype(np.uint16), 16)
+    assert 0.5 * estimate < peak < estimate, (peak, estimate)
+
+
 def test_cli_info_prints_the_contract_keys(tmp_path: Path):
     vol = np.arange(40 * 36 * 20, dtype=np.int16).reshape(40, 36, 20)
     np.save(tmp_path / "v.npy", vol)
