@@ -20,6 +20,12 @@ from lodcast.errors import LodcastError
 LODCAST = [sys.executable, "-m", "lodcast.service.cli"]
 
 
+#: the CLI, then its peak RSS in kB: VmHWM, since ru_maxrss keeps the forking parent's (a pytest worker's) peak
+#: across exec
+PEAK_RSS_KB = ("import sys; from lodcast.service.cli import main; rc = main(sys.argv[1:]); "
+               "print(next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM'))); sys.exit(rc)")
+
+
 def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([*LODCAST, *args], capture_output=True, text=True, timeout=300, cwd=cwd)
 
@@ -144,8 +150,7 @@ def test_a_decompression_bomb_is_refused_before_anything_is_allocated(tmp_path: 
 
     hdr = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4096 4096 4096\nencoding: gzip\n\n"
     (tmp_path / "bomb.nrrd").write_bytes(hdr + gzip.compress(b"\0" * 1_000_000))
-    code = ("import resource, sys; from lodcast.service.cli import main; rc = main(sys.argv[1:]); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
+    code = PEAK_RSS_KB
     out = subprocess.run([sys.executable, "-c", code, "ingest", str(tmp_path / "bomb.nrrd"), str(tmp_path / "b.zarr")],
                          capture_output=True, text=True, timeout=120, env={**os.environ, "LODCAST_MAX_VOXELS": "1e9"})
     assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
@@ -169,12 +174,11 @@ def test_ingest_refuses_a_slice_too_wide_for_its_memory_limit(tmp_path: Path):
     vol = np.random.default_rng(2).integers(0, 4000, (40, 1024, 1024), dtype=np.uint16)
     np.save(tmp_path / "v.npy", vol)
     del vol
-    code = ("import resource, sys; from lodcast.service.cli import main; rc = main(sys.argv[1:]); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024); sys.exit(rc)")
+    code = PEAK_RSS_KB
     out = subprocess.run([sys.executable, "-c", code, "ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr")],
                          capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr
-    peak, estimate = int(out.stdout.split()[-1]), working_bytes((40, 1024, 1024), np.dtype(np.uint16), 16)
+    peak, estimate = int(out.stdout.split()[-1]) * 1024, working_bytes((40, 1024, 1024), np.dtype(np.uint16), 16)
     assert 0.5 * estimate < peak < estimate, (peak, estimate)
 
 
