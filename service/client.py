@@ -55,6 +55,11 @@ def _job_dict(job: Any) -> dict[str, Any]:
     return job.model_dump(mode="json") if hasattr(job, "model_dump") else dict(job)
 
 
+def _t(timeout: float | None) -> dict[str, Any]:
+    """A call's own timeout, when it has one (else the client's)."""
+    return {} if timeout is None else {"timeout": timeout}
+
+
 def _checked(r: httpx.Response, method: str, url: str) -> httpx.Response:
     if r.status_code >= 400:
         try:
@@ -166,52 +171,50 @@ class _Api:
             return delay
 
     # --- volumes ----------------------------------------------------------------------------------------------
-    def health(self) -> Health:
-        return self._call("GET", "/healthz", read=_model(Health))
+    def health(self, *, timeout: float | None = None) -> Health:
+        return self._call("GET", "/healthz", read=_model(Health), **_t(timeout))
 
-    def volumes(self) -> list[VolumeSummary]:
-        return self._call("GET", "/volumes", read=_models(VolumeSummary))
+    def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary]:
+        return self._call("GET", "/volumes", read=_models(VolumeSummary), **_t(timeout))
 
-    def volume(self, volume_id: str) -> VolumeSummary:
-        return self._call("GET", f"/volumes/{volume_id}", read=_model(VolumeSummary))
+    def volume(self, volume_id: str, *, timeout: float | None = None) -> VolumeSummary:
+        return self._call("GET", f"/volumes/{volume_id}", read=_model(VolumeSummary), **_t(timeout))
 
-    def delete_volume(self, volume_id: str) -> None:
-        return self._call("DELETE", f"/volumes/{volume_id}", read=lambda r: None)
+    def delete_volume(self, volume_id: str, *, timeout: float | None = None) -> None:
+        return self._call("DELETE", f"/volumes/{volume_id}", read=lambda r: None, **_t(timeout))
 
     # --- rendering --------------------------------------------------------------------------------------------
     def render_image(self, volume: str, scene: Any, *, timeout: float | None = None) -> tuple[bytes, dict[str, Any]]:
         """The encoded image as the server sends it (PNG or .npy bytes) and the render report. `timeout`: seconds
         for this call (default: the client's)."""
-        kw = {} if timeout is None else {"timeout": timeout}
         return self._call("POST", f"/volumes/{volume}/render", json=_scene_dict(scene), idempotent=True,
-                          read=lambda r: (r.content, _report(r)), **kw)
+                          read=lambda r: (r.content, _report(r)), **_t(timeout))
 
     def render(self, volume: str, scene: Any, *, timeout: float | None = None) -> Any:
         """A RenderResult, as local rendering returns: float32 premultiplied RGBA (fetched as .npy) and the report."""
-        kw = {} if timeout is None else {"timeout": timeout}
         return self._call("POST", f"/volumes/{volume}/render", json={**_scene_dict(scene), "format": "npy"},
-                          idempotent=True, read=_render_result, **kw)
+                          idempotent=True, read=_render_result, **_t(timeout))
 
     # --- jobs -------------------------------------------------------------------------------------------------
-    def submit(self, job: dict[str, Any] | str | os.PathLike[str]) -> JobStatus:
+    def submit(self, job: dict[str, Any] | str | os.PathLike[str], *, timeout: float | None = None) -> JobStatus:
         """A job (a dict, a job model, or a JSON file's path); its status as queued."""
-        return self._call("POST", "/jobs", json=_job_dict(job), read=_model(JobStatus))
+        return self._call("POST", "/jobs", json=_job_dict(job), read=_model(JobStatus), **_t(timeout))
 
-    def job(self, job_id: str) -> JobStatus:
-        return self._call("GET", f"/jobs/{job_id}", read=_model(JobStatus))
+    def job(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
+        return self._call("GET", f"/jobs/{job_id}", read=_model(JobStatus), **_t(timeout))
 
-    def jobs(self, limit: int = 100, state: str | None = None) -> list[JobStatus]:
+    def jobs(self, limit: int = 100, state: str | None = None, *, timeout: float | None = None) -> list[JobStatus]:
         params: dict[str, Any] = {"limit": limit, **({"state": state} if state else {})}
-        return self._call("GET", "/jobs", params=params, read=_models(JobStatus))
+        return self._call("GET", "/jobs", params=params, read=_models(JobStatus), **_t(timeout))
 
-    def cancel(self, job_id: str) -> JobStatus:
-        return self._call("DELETE", f"/jobs/{job_id}", read=_model(JobStatus))
+    def cancel(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
+        return self._call("DELETE", f"/jobs/{job_id}", read=_model(JobStatus), **_t(timeout))
 
-    def result(self, job_id: str, n: int) -> bytes:
-        return self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r.content)
+    def result(self, job_id: str, n: int, *, timeout: float | None = None) -> bytes:
+        return self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r.content, **_t(timeout))
 
-    def animation(self, job_id: str) -> bytes:
-        return self._call("GET", f"/jobs/{job_id}/animation", read=lambda r: r.content)
+    def animation(self, job_id: str, *, timeout: float | None = None) -> bytes:
+        return self._call("GET", f"/jobs/{job_id}/animation", read=lambda r: r.content, **_t(timeout))
 
     def _ingest_request(self, source: Any, name: str, overwrite: bool, upload: bool,
                         options: dict[str, Any]) -> tuple[str, dict[str, Any]]:
@@ -225,7 +228,7 @@ class Client(_Api):
     """``Client("http://127.0.0.1:8000", token=None)``; the base URL defaults to ``LODCAST_URL``, the token to
     ``LODCAST_TOKEN``.
 
-    ``timeout``: seconds per request (each render also takes ``timeout=``). ``retries``: how often a request is
+    ``timeout``: seconds per request (every call also takes its own ``timeout=``; `wait`'s is the whole wait). ``retries``: how often a request is
     tried again, after 0.25 s, 0.5 s, 1 s, ... (or the server's ``Retry-After``): when the server cannot be reached
     (nothing was sent, so any request), and for reads and renders also on 503 (busy or restarting) and on a
     dropped connection. A job submission is not repeated once it may have arrived."""
@@ -262,16 +265,16 @@ class Client(_Api):
         raise AssertionError("unreachable: the last attempt returns or raises")
 
     def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False, upload: bool = False,
-               wait: bool = False, **options: Any) -> JobStatus:
+               wait: bool = False, timeout: float | None = None, **options: Any) -> JobStatus:
         """Ingest as a job: a server-side path under the server's import roots, or (``upload=True``) a local file
         sent in the request body (``format`` from its extension unless given). Returns the job status."""
         url, kw = self._ingest_request(source, name, overwrite, upload, options)
         if upload:
             with open(source, "rb") as f:
-                st = self._call("POST", url, content=f, read=_model(JobStatus), **kw)
+                st = self._call("POST", url, content=f, read=_model(JobStatus), **kw, **_t(timeout))
         else:
-            st = self._call("POST", url, read=_model(JobStatus), **kw)
-        return self.wait(st.id, progress=False) if wait else st
+            st = self._call("POST", url, read=_model(JobStatus), **kw, **_t(timeout))
+        return self.wait(st.id, progress=False, timeout=timeout) if wait else st
 
     def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,
              progress: bool | None = None) -> JobStatus:
@@ -336,13 +339,15 @@ class AsyncClient(_Api):
         raise AssertionError("unreachable: the last attempt returns or raises")
 
     async def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False,  # type: ignore[override]
-                     upload: bool = False, wait: bool = False, **options: Any) -> JobStatus:
+                     upload: bool = False, wait: bool = False, timeout: float | None = None,
+                     **options: Any) -> JobStatus:
         url, kw = self._ingest_request(source, name, overwrite, upload, options)
         if upload:
-            st = await self._call("POST", url, content=_chunks(Path(source)), read=_model(JobStatus), **kw)
+            st = await self._call("POST", url, content=_chunks(Path(source)), read=_model(JobStatus), **kw,
+                                  **_t(timeout))
         else:
-            st = await self._call("POST", url, read=_model(JobStatus), **kw)
-        return await self.wait(st.id, progress=False) if wait else st
+            st = await self._call("POST", url, read=_model(JobStatus), **kw, **_t(timeout))
+        return await self.wait(st.id, progress=False, timeout=timeout) if wait else st
 
     async def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,  # type: ignore[override]
                    progress: bool | None = None) -> JobStatus:

@@ -128,6 +128,17 @@ def delete_volume(root: Path, volume_id: Any) -> None:
     shutil.rmtree(trash, ignore_errors=True)
 
 
+def _no_links_out(folder: Path, base: Path, source: str, field: str) -> None:
+    """A folder source (a DICOM or TIFF series, a zarr store) may not hold a link to a file outside the import
+    root: its bytes would be ingested and come back through a render."""
+    for top, dirs, files in os.walk(folder):
+        for name in (*dirs, *files):
+            p = Path(top) / name
+            if p.is_symlink() and not _inside(p.resolve(), base):
+                raise OutsideRoot(field, f"{field}: {source!r} holds {str(p.relative_to(folder))!r}, a link to "
+                                         f"outside the configured import roots")
+
+
 def safe_import_path(source: Any, import_roots: list[Path], field: str = "source") -> Path:
     """A server-side source path for ingest; it must resolve inside one of the configured import roots."""
     if not isinstance(source, str) or not source or "\x00" in source:
@@ -141,5 +152,7 @@ def safe_import_path(source: Any, import_roots: list[Path], field: str = "source
             resolved = cand.resolve()
             if not resolved.exists():
                 raise BadId(field, f"{field}: {source!r} does not exist")
+            if resolved.is_dir():
+                _no_links_out(resolved, base, source, field)
             return resolved
     raise OutsideRoot(field, f"{field}: {source!r} is outside the configured import roots")

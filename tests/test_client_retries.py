@@ -117,3 +117,19 @@ def test_an_unreachable_server_is_tried_again_then_raises():
         assert time.monotonic() - t >= 0.25 + 0.5 - 0.05
     with pytest.raises(ValueError, match="retries"):
         Client(url, retries=-1)
+
+
+def test_every_call_takes_its_own_timeout():
+    """A server that accepts and never answers: each call gives up after its own timeout, not the client's 300 s."""
+    import socket
+
+    with socket.socket() as srv:
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(8)
+        with Client(f"http://127.0.0.1:{srv.getsockname()[1]}", retries=0) as c:
+            for call in (lambda: c.health(timeout=0.3), lambda: c.volumes(timeout=0.3), lambda: c.job("0" * 32, timeout=0.3),
+                         lambda: c.submit({"kind": "turntable"}, timeout=0.3), lambda: c.result("0" * 32, 0, timeout=0.3)):
+                t = time.monotonic()
+                with pytest.raises(httpx.ReadTimeout):
+                    call()
+                assert 0.25 < time.monotonic() - t < 3.0

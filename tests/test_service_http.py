@@ -224,6 +224,27 @@ def test_ingest_bad_requests(env, body, field):
     assert names_field(r, field)
 
 
+def test_a_folder_source_with_a_link_out_of_the_import_root_is_refused(env):
+    """A zarr store (or DICOM / TIFF folder) under an import root holding a symlink to a file outside it: refused
+    at submission, naming the link, with nothing ingested; the same store without the link ingests."""
+    import shutil
+
+    client, root, imports, outside = env
+    lodcast.ingest(np.arange(16**3, dtype=np.uint16).reshape(16, 16, 16), outside / "plain.zarr")
+    src = imports / "linked.zarr"
+    shutil.copytree(outside / "plain.zarr", src)
+    (src / "0" / "c").mkdir(exist_ok=True)
+    (outside / "secret.txt").write_text("top secret")
+    (src / "0" / "c" / "evil").symlink_to(outside / "secret.txt")
+    r = client.post("/volumes", json={"name": "linked", "source": "linked.zarr", "options": {"format": "zarr"}})
+    assert r.status_code == 422 and names_field(r, "source") and "evil" in r.text, r.text
+    (src / "0" / "c" / "evil").unlink()
+    r = client.post("/volumes", json={"name": "linked", "source": "linked.zarr", "options": {"format": "zarr"}})
+    assert r.status_code == 202, r.text
+    assert wait_job(client, r.json()["id"])["state"] == "done"
+    assert client.delete("/volumes/linked").status_code == 200
+
+
 def test_upload(env):
     client, root, imports, _ = env
     buf = io.BytesIO()
