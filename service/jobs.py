@@ -85,12 +85,12 @@ Job = Annotated[Union[TurntableJob, ScenesJob, TfSweepJob, VolumesJob, IngestJob
 def parse_job(data: Any) -> Any:
     from pydantic import TypeAdapter, ValidationError
 
-    from lodcast.service.rendering import _from_pydantic
+    from lodcast.service.rendering import from_pydantic
 
     try:
         return TypeAdapter(Job).validate_python(data)
     except ValidationError as exc:
-        raise _from_pydantic(exc, ("body",)) from None
+        raise from_pydantic(exc, ("body",)) from None
 
 
 def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:

@@ -13,7 +13,7 @@ from typing import Any
 
 from lodcast.errors import LodcastError
 
-__all__ = ["RequestInvalid", "parse_scene", "check_tf", "RenderEngine", "encode", "engine"]
+__all__ = ["RequestInvalid", "parse_scene", "from_pydantic", "check_tf", "RenderEngine", "encode", "engine"]
 
 
 class RequestInvalid(LodcastError, ValueError):
@@ -30,7 +30,7 @@ class RequestInvalid(LodcastError, ValueError):
         return cls([{"loc": list(loc), "msg": f"{field}: {msg}" if field else msg, "type": type_}])
 
 
-def _from_pydantic(exc: Any, loc: tuple, drop: int = 0) -> RequestInvalid:
+def from_pydantic(exc: Any, loc: tuple, drop: int = 0) -> RequestInvalid:
     """FastAPI-shaped errors, each message starting with the field's dotted path (`drop` leading parts of
     pydantic's own path are replaced by `loc`)."""
     errs = []
@@ -53,7 +53,7 @@ def parse_scene(data: Any, settings: Any, loc: tuple = ("body",)) -> Any:
     try:
         scene = data if isinstance(data, Scene) else Scene.model_validate(data)
     except ValidationError as exc:
-        raise _from_pydantic(exc, loc) from None
+        raise from_pydantic(exc, loc) from None
     except (ValueError, TypeError, LodcastError) as exc:
         raise RequestInvalid.one(loc, str(exc)) from None
     if scene.width > settings.max_width:
@@ -77,7 +77,7 @@ def check_tf(data: Any, loc: tuple) -> dict:
     try:
         Scene.model_validate({"tf": data})
     except ValidationError as exc:
-        raise _from_pydantic(exc, loc, drop=1) from None
+        raise from_pydantic(exc, loc, drop=1) from None
     return data
 
 

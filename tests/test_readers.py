@@ -76,7 +76,7 @@ def test_npy_values_in_both_orders(tmp_path: Path, order: str) -> None:
 def test_npy_fortran_windows_smaller_than_the_volume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import lodcast.store.readers as readers
 
-    monkeypatch.setattr(readers, "_WINDOW_BYTES", 5 * 6 * 7 * 4)  # one x-plane at a time
+    monkeypatch.setattr(readers, "WINDOW_BYTES", 5 * 6 * 7 * 4)  # one x-plane at a time
     a = np.asfortranarray(volume((5, 6, 7), "float32"))
     a[2, 3, 4] = np.nan  # NaN is data and is kept
     np.save(tmp_path / "f.npy", a)

@@ -20,15 +20,15 @@ __all__ = ["open_source", "FORMATS"]
 
 FORMATS = ("npy", "raw", "nrrd", "nifti", "tiff", "dicom", "zarr")
 _ALIASES = {"nii": "nifti", "nhdr": "nrrd", "tif": "tiff", "dcm": "dicom", "ome-zarr": "zarr"}
-_WINDOW_BYTES = 16 << 20  # read window for Fortran-ordered files, whose z-slabs are scattered over the whole file
+WINDOW_BYTES = 16 << 20  # read window for Fortran-ordered files, whose z-slabs are scattered over the whole file
 
-# the format modules come after the names above: binary reads _WINDOW_BYTES from this package when it reads
-from lodcast.store.readers.base import _Reader, _finish  # noqa: E402
-from lodcast.store.readers.binary import _npy, _nrrd, _raw  # noqa: E402
-from lodcast.store.readers.dicom import _DicomReader, _is_dicom  # noqa: E402
-from lodcast.store.readers.nifti import _NiftiReader  # noqa: E402
-from lodcast.store.readers.tiff import _tiff  # noqa: E402
-from lodcast.store.readers.zarr_source import _ZarrReader  # noqa: E402
+# the format modules come after the names above: binary reads WINDOW_BYTES from this package when it reads
+from lodcast.store.readers.base import Reader, finish  # noqa: E402
+from lodcast.store.readers.binary import open_npy, open_nrrd, open_raw  # noqa: E402
+from lodcast.store.readers.dicom import DicomReader, is_dicom  # noqa: E402
+from lodcast.store.readers.nifti import NiftiReader  # noqa: E402
+from lodcast.store.readers.tiff import open_tiff  # noqa: E402
+from lodcast.store.readers.zarr_source import ZarrReader  # noqa: E402
 
 
 def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[int] | None = None,
@@ -54,14 +54,14 @@ def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[
     if index is not None and (isinstance(index, bool) or not isinstance(index, (int, np.integer))):
         raise SourceError(f"index must be a whole number, got {index!r}")
     if fmt == "raw":
-        reader: _Reader = _raw(p, shape, dtype, byte_order, header_bytes, index)
+        reader: Reader = open_raw(p, shape, dtype, byte_order, header_bytes, index)
     elif fmt == "nrrd":
-        reader = _nrrd(p, index, detached)
+        reader = open_nrrd(p, index, detached)
     else:
-        reader = {"npy": _npy, "nifti": _NiftiReader, "tiff": _tiff, "dicom": _DicomReader,
-                  "zarr": _ZarrReader}[fmt](p, index)
+        reader = {"npy": open_npy, "nifti": NiftiReader, "tiff": open_tiff, "dicom": DicomReader,
+                  "zarr": ZarrReader}[fmt](p, index)
     try:
-        return _finish(reader, spacing, origin)
+        return finish(reader, spacing, origin)
     except BaseException:
         reader.close()
         raise
@@ -82,7 +82,7 @@ def _guess_format(p: Path, raw_options: bool) -> str:
         if name.endswith(".zarr") or any((p / m).is_file() for m in ("zarr.json", ".zarray", ".zgroup")):
             return "zarr"
         files = [f for f in p.iterdir() if f.is_file()]
-        if any(_is_dicom(f) for f in files):
+        if any(is_dicom(f) for f in files):
             return "dicom"
         if any(f.suffix.lower() in (".tif", ".tiff") for f in files):
             return "tiff"

@@ -1,8 +1,9 @@
-"""The part every source reader shares: the `_Reader` base (a `VolumeSource` whose `read` checks the z range and
-converts what `_slab` returns to `info.dtype`), `_info` to build a `SourceInfo`, `_finish` which checks empty axes,
-settles the stored dtype (narrowing 64-bit integers after a value scan) and applies spacing/origin overrides, and the
-small helpers the format modules use: `_pick` for 2D/3D/4D shapes and `index`, exact and skipping reads from a
-stream, unit names and spacing tidying.
+"""What every source reader shares, the small internal API of the format modules: the `Reader` base (a
+`VolumeSource` whose `read` checks the z range and converts what `_slab` returns to `info.dtype`), `source_info` to
+build a `SourceInfo`, `finish` which checks empty axes, settles the stored dtype (narrowing 64-bit integers after a
+value scan) and applies spacing/origin overrides, and helpers: `pick_volume` for 2D/3D/4D shapes and `index`,
+`read_exact` / `skip_bytes` on a stream, `files_in` a folder, `UNITS` names, `tidy` spacings, `shape_text`,
+`axis_aligned` direction matrices.
 """
 from __future__ import annotations
 
@@ -18,15 +19,18 @@ import numpy as np
 from lodcast.errors import SourceError
 from lodcast.store.source import SUPPORTED_DTYPES, SourceInfo, VolumeSource
 
+__all__ = ["Reader", "source_info", "finish", "pick_volume", "read_exact", "skip_bytes", "files_in", "tidy",
+           "shape_text", "axis_aligned", "UNITS", "READ_CHUNK"]
+
 
 _SLAB = 32  # ingest's block thickness, also the step of the 64-bit value scan
-_READ_CHUNK = 64 << 10  # bytes per read call, so that a decompressor's temporaries stay small beside a slab
-_UNITS = {"mm": "millimeter", "millimeter": "millimeter", "um": "micrometer", "µm": "micrometer",
+READ_CHUNK = 64 << 10  # bytes per read call, so that a decompressor's temporaries stay small beside a slab
+UNITS = {"mm": "millimeter", "millimeter": "millimeter", "um": "micrometer", "µm": "micrometer",
           "\\u00B5m": "micrometer", "micron": "micrometer", "micrometer": "micrometer", "nm": "nanometer",
           "nanometer": "nanometer", "cm": "centimeter", "centimeter": "centimeter", "m": "meter", "meter": "meter"}
 
 
-class _Reader(VolumeSource):
+class Reader(VolumeSource):
     """A reader sets `info` and returns slabs from `_slab` in any dtype that `info.dtype` holds exactly
     (the file's byte order, or 64-bit integers whose range was checked); `read` converts."""
 
@@ -43,14 +47,14 @@ class _Reader(VolumeSource):
         return np.ascontiguousarray(self._slab(z0, z1), dtype=self.info.dtype)
 
 
-def _files_in(folder: Path, keep) -> list[Path]:
+def files_in(folder: Path, keep) -> list[Path]:
     """The plain files of `folder` that `keep(path)` accepts, sorted, leaving out any whose real path (symlinks
     resolved) lies outside the folder: a source folder can only ever read its own files."""
     real = folder.resolve()
     return sorted(f for f in folder.iterdir() if f.is_file() and f.resolve().parent == real and keep(f))
 
 
-def _info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spacing: Sequence[float] = (1.0, 1.0, 1.0),
+def source_info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spacing: Sequence[float] = (1.0, 1.0, 1.0),
           origin: Sequence[float] = (0.0, 0.0, 0.0), units: str = "millimeter", **provenance: Any) -> SourceInfo:
     return SourceInfo(
         shape=tuple(int(s) for s in shape),  # type: ignore[arg-type]
@@ -63,12 +67,12 @@ def _info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spacing: 
     )
 
 
-def _finish(reader: _Reader, spacing: Sequence[float] | None, origin: Sequence[float] | None) -> _Reader:
+def finish(reader: Reader, spacing: Sequence[float] | None, origin: Sequence[float] | None) -> Reader:
     """Checks what every format shares (empty axes, dtype), settles the stored dtype and applies user overrides."""
     info = reader.info
     name = info.provenance["path"]
     if 0 in info.shape:
-        raise SourceError(f"{name} is empty: shape {_fmt(info.shape)} has an axis of length 0")
+        raise SourceError(f"{name} is empty: shape {shape_text(info.shape)} has an axis of length 0")
     prov = dict(info.provenance)
     dtype = _store_dtype(reader, name)
     if dtype != info.dtype.newbyteorder("="):
@@ -85,7 +89,7 @@ def _finish(reader: _Reader, spacing: Sequence[float] | None, origin: Sequence[f
     return reader
 
 
-def _store_dtype(reader: _Reader, name: str) -> np.dtype:
+def _store_dtype(reader: Reader, name: str) -> np.dtype:
     dt = reader.info.dtype
     if dt.fields:
         raise SourceError(f"non-scalar data: {name} has voxels with fields {', '.join(dt.fields)}; "
@@ -111,7 +115,7 @@ def _store_dtype(reader: _Reader, name: str) -> np.dtype:
     raise SourceError(f"unsupported dtype {dt} in {name}; expected one of {supported}")
 
 
-def _value_range(reader: _Reader) -> tuple[int, int]:
+def _value_range(reader: Reader) -> tuple[int, int]:
     lo, hi = None, None
     for z in range(0, reader.info.shape[0], _SLAB):
         s = reader._slab(z, min(z + _SLAB, reader.info.shape[0]))
@@ -131,49 +135,49 @@ def _triple(what: str, value: Sequence[float], positive: bool) -> tuple[float, f
     return t  # type: ignore[return-value]
 
 
-def _tidy(value: float) -> float:
+def tidy(value: float) -> float:
     """A spacing computed from positions or direction vectors, without the last bits of rounding noise
     (1.0000000000000007 is 1.0)."""
     return float(f"{value:.12g}")
 
 
-def _fmt(shape: Sequence[int]) -> str:
+def shape_text(shape: Sequence[int]) -> str:
     return "x".join(str(int(s)) for s in shape)
 
 
-def _pick(shape: Sequence[int], index: int | None, what: str) -> tuple[tuple[int, int, int, int], int]:
+def pick_volume(shape: Sequence[int], index: int | None, what: str) -> tuple[tuple[int, int, int, int], int]:
     """(t, z, y, x) and the chosen t for an array of 2 (one slice), 3 or 4 (t first) dimensions."""
     shape = tuple(int(s) for s in shape)
     if len(shape) == 4:
         if shape[0] == 1 and index is None:
             return shape, 0  # type: ignore[return-value]
         if index is None:
-            raise SourceError(f"{what} is 4D ({_fmt(shape)}) with {shape[0]} volumes along its first axis; "
+            raise SourceError(f"{what} is 4D ({shape_text(shape)}) with {shape[0]} volumes along its first axis; "
                               f"choose one with index=0..{shape[0] - 1}")
         if not 0 <= index < shape[0]:
             raise SourceError(f"index {index} is out of range: {what} has {shape[0]} volumes (0..{shape[0] - 1})")
         return shape, index  # type: ignore[return-value]
     if index is not None:
-        raise SourceError(f"index {index} given but {what} is not a 4D series (shape {_fmt(shape)})")
+        raise SourceError(f"index {index} given but {what} is not a 4D series (shape {shape_text(shape)})")
     if len(shape) == 3:
         return (1,) + shape, 0  # type: ignore[return-value]
     if len(shape) == 2:
         return (1, 1) + shape, 0  # type: ignore[return-value]
-    raise SourceError(f"{what} has {len(shape)} dimensions (shape {_fmt(shape)}); expected 3 (z, y, x), "
+    raise SourceError(f"{what} has {len(shape)} dimensions (shape {shape_text(shape)}); expected 3 (z, y, x), "
                       f"2 (one slice) or 4 with an index")
 
 
-def _read_exact(f: IO[bytes], out: np.ndarray, name: object) -> None:
+def read_exact(f: IO[bytes], out: np.ndarray, name: object) -> None:
     view = memoryview(out.reshape(-1).view(np.uint8))
     got = 0
     while got < len(view):  # in pieces: decompressors hold a copy or two of what one call returns
-        n = f.readinto(view[got:got + _READ_CHUNK])
+        n = f.readinto(view[got:got + READ_CHUNK])
         if not n:
             raise SourceError(f"{name} ends early: {got} of the {len(view)} bytes wanted for a slab")
         got += n
 
 
-def _skip(f: IO[bytes], n: int, name: object) -> None:
+def skip_bytes(f: IO[bytes], n: int, name: object) -> None:
     while n > 0:
         chunk = f.read(min(n, 1 << 20))
         if not chunk:
@@ -181,7 +185,7 @@ def _skip(f: IO[bytes], n: int, name: object) -> None:
         n -= len(chunk)
 
 
-def _axis_aligned(m: np.ndarray) -> bool:
+def axis_aligned(m: np.ndarray) -> bool:
     """Whether the rows of `m` point along +x, +y, +z: then index × spacing + origin is the world position."""
     diag = np.diag(m)
     return bool(np.all(diag > 0) and np.allclose(m, np.diag(diag), atol=1e-6 * float(np.abs(diag).max())))

@@ -1,6 +1,6 @@
 """Arrays stored in one file as plain bytes: NumPy .npy, headerless raw and NRRD (raw, gzip or bzip2 encoded, with a
 detached data file or not). Uncompressed data is read with plain file reads per slab (`_BinaryReader`, in C or
-Fortran order, the latter in windows of `_WINDOW_BYTES` read from the package so that it can be tuned in one place);
+Fortran order, the latter in windows of `WINDOW_BYTES` read from the package so that it can be tuned in one place);
 compressed streams are read forwards and restarted only when a caller goes back (`_StreamReader`).
 """
 from __future__ import annotations
@@ -17,12 +17,14 @@ import numpy as np
 
 import lodcast.store.readers as _package
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import (_UNITS, _Reader, _axis_aligned, _fmt, _info, _pick, _read_exact, _skip,
-                                        _tidy)
+from lodcast.store.readers.base import (UNITS, Reader, axis_aligned, shape_text, source_info, pick_volume, read_exact, skip_bytes,
+                                        tidy)
 from lodcast.store.source import SourceInfo
 
+__all__ = ["open_npy", "open_raw", "open_nrrd"]
 
-class _BinaryReader(_Reader):
+
+class _BinaryReader(Reader):
     """A (t, z, y, x) array stored uncompressed at `offset`, in C or Fortran order."""
 
     rereads_cheaply = True
@@ -39,20 +41,20 @@ class _BinaryReader(_Reader):
         with open(self._path, "rb") as f:
             if not self._fortran:
                 f.seek(self._offset + (self._index * depth + z0) * ny * nx * item)
-                _read_exact(f, out, self._path)
+                read_exact(f, out, self._path)
                 return out
             plane = t * depth * ny  # x is the slowest axis: one x holds every t, z, y
-            step = max(1, _package._WINDOW_BYTES // (plane * item))
+            step = max(1, _package.WINDOW_BYTES // (plane * item))
             for x0 in range(0, nx, step):
                 x1 = min(nx, x0 + step)
                 window = np.empty((x1 - x0, ny, depth, t), self._dtype)
                 f.seek(self._offset + x0 * plane * item)
-                _read_exact(f, window, self._path)
+                read_exact(f, window, self._path)
                 out[:, :, x0:x1] = window[:, :, z0:z1, self._index].transpose(2, 1, 0)
         return out
 
 
-class _StreamReader(_Reader):
+class _StreamReader(Reader):
     """A C-ordered (t, z, y, x) array in a forward-only stream (gzip, bzip2). `start` opens the file and returns it
     with the decompressed stream positioned at the first voxel."""
 
@@ -72,8 +74,8 @@ class _StreamReader(_Reader):
                 self.close()
                 self._files, self._pos = self._start(), 0
             stream = self._files[0]
-            _skip(stream, target - self._pos, self._name)
-            _read_exact(stream, out, self._name)
+            skip_bytes(stream, target - self._pos, self._name)
+            read_exact(stream, out, self._name)
         except (OSError, EOFError, zlib.error) as exc:
             raise SourceError(f"{self._name} is corrupt: {exc}") from None
         self._pos = target + out.nbytes
@@ -86,7 +88,7 @@ class _StreamReader(_Reader):
             self._files = None
 
 
-def _npy(path: Path, index: int | None) -> _Reader:
+def open_npy(path: Path, index: int | None) -> Reader:
     try:
         mm = np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as exc:
@@ -97,18 +99,18 @@ def _npy(path: Path, index: int | None) -> _Reader:
         raise SourceError(f"{path} is not a readable .npy file: {exc}") from None
     if not isinstance(mm, np.memmap):
         raise SourceError(f"{path} is not a single .npy array (an .npz archive?)")
-    shape4, t = _pick(mm.shape, index, str(path))
+    shape4, t = pick_volume(mm.shape, index, str(path))
     # only the header is used: the slab reads are plain file reads
     offset, dtype, fortran = mm.offset, mm.dtype, mm.ndim > 1 and mm.flags.f_contiguous and not mm.flags.c_contiguous
     del mm
-    info = _info(shape4[1:], dtype, "npy", path, **({"index": t} if index is not None else {}))
+    info = source_info(shape4[1:], dtype, "npy", path, **({"index": t} if index is not None else {}))
     if fortran:
         info.provenance["order"] = "F"
     return _BinaryReader(path, offset, shape4, dtype, fortran, t, info)
 
 
-def _raw(path: Path, shape: Sequence[int] | None, dtype: Any, byte_order: str, header_bytes: int,
-         index: int | None) -> _Reader:
+def open_raw(path: Path, shape: Sequence[int] | None, dtype: Any, byte_order: str, header_bytes: int,
+         index: int | None) -> Reader:
     if shape is None or dtype is None:
         raise SourceError(f"raw file {path} needs its shape (z, y, x) and dtype "
                           f"(on the command line: --shape z,y,x --dtype uint16)")
@@ -125,12 +127,12 @@ def _raw(path: Path, shape: Sequence[int] | None, dtype: Any, byte_order: str, h
     if header_bytes < 0:
         raise SourceError(f"header_bytes must be 0 or more, got {header_bytes}")
     dt = dt.newbyteorder(orders[byte_order])
-    shape4, t = _pick(dims, index, f"raw file {path}")
+    shape4, t = pick_volume(dims, index, f"raw file {path}")
     size, need = path.stat().st_size, header_bytes + math.prod(dims) * dt.itemsize
     if size != need:
         head = f" ({header_bytes}-byte header + {need - header_bytes} bytes of voxels)" if header_bytes else ""
-        raise SourceError(f"raw file is {size} bytes but shape {_fmt(dims)} of {dt.name} needs {need} bytes{head}")
-    info = _info(shape4[1:], dt, "raw", path, byte_order=byte_order, header_bytes=header_bytes)
+        raise SourceError(f"raw file is {size} bytes but shape {shape_text(dims)} of {dt.name} needs {need} bytes{head}")
+    info = source_info(shape4[1:], dt, "raw", path, byte_order=byte_order, header_bytes=header_bytes)
     return _BinaryReader(path, header_bytes, shape4, dt, False, t, info)
 
 
@@ -139,7 +141,7 @@ def _raw(path: Path, shape: Sequence[int] | None, dtype: Any, byte_order: str, h
 _NRRD_SPATIAL = ("domain", "space", "time", "???", "none")
 
 
-def _nrrd(path: Path, index: int | None, detached: bool = True) -> _Reader:
+def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
     """detached=False refuses headers whose data lie in another file (uploads: only the uploaded file may be read);
     otherwise the data file must lie in the header's own folder, symlinks resolved."""
     import nrrd
@@ -166,7 +168,7 @@ def _nrrd(path: Path, index: int | None, detached: bool = True) -> _Reader:
     if any(kinds[a] == "time" for a in keep[:3]):
         raise SourceError(f"NRRD file {path} has its time axis among the first three (kinds {kinds}); expected it last")
     # NRRD lists the fastest axis first: sizes (x, y, z, t) are a C-ordered (t, z, y, x) array
-    shape4, t = _pick([sizes[a] for a in reversed(keep)], index, f"NRRD file {path}")
+    shape4, t = pick_volume([sizes[a] for a in reversed(keep)], index, f"NRRD file {path}")
 
     spatial = keep[:3]
     directions = header.get("space directions")
@@ -174,19 +176,19 @@ def _nrrd(path: Path, index: int | None, detached: bool = True) -> _Reader:
     origin = [0.0, 0.0, 0.0]
     if directions is not None:
         d = np.asarray([directions[a] for a in spatial], dtype=float)
-        spacing = [_tidy(v) for v in np.linalg.norm(d, axis=1)]
+        spacing = [tidy(v) for v in np.linalg.norm(d, axis=1)]
         provenance["space_directions"] = d.tolist()
         o = header.get("space origin")
         if o is not None:
             provenance["space_origin"] = [float(v) for v in o]
-            if d.shape == (3, 3) and _axis_aligned(d):
+            if d.shape == (3, 3) and axis_aligned(d):
                 origin = [float(v) for v in o]
     else:
         spacing = [float(header.get("spacings", [1.0] * len(sizes))[a]) for a in spatial]
     spacing += [1.0] * (3 - len(spacing))  # a 2D image is one slice of unit thickness
     units = header.get("space units")
-    info = _info(shape4[1:], dtype, "nrrd", path, spacing=spacing[::-1], origin=origin[::-1],
-                 units=_UNITS.get(str(units[0]), "millimeter") if units else "millimeter", **provenance)
+    info = source_info(shape4[1:], dtype, "nrrd", path, spacing=spacing[::-1], origin=origin[::-1],
+                 units=UNITS.get(str(units[0]), "millimeter") if units else "millimeter", **provenance)
 
     data_path, start = path, data_start
     if "data file" in header or "datafile" in header:
@@ -213,7 +215,7 @@ def _nrrd(path: Path, index: int | None, detached: bool = True) -> _Reader:
         offset = data_path.stat().st_size - nbytes if byte_skip == -1 else start + byte_skip
         if offset < 0 or data_path.stat().st_size < offset + nbytes:
             raise SourceError(f"NRRD data in {data_path} is {data_path.stat().st_size - max(offset, 0)} bytes but "
-                              f"sizes {_fmt(sizes)} of {dtype.name} need {nbytes}")
+                              f"sizes {shape_text(sizes)} of {dtype.name} need {nbytes}")
         return _BinaryReader(data_path, offset, shape4, dtype, False, t, info)
     decompress = {"gzip": _gunzip, "gz": _gunzip, "bzip2": bz2.BZ2File, "bz2": bz2.BZ2File}.get(encoding)
     if decompress is None:
@@ -226,7 +228,7 @@ def _nrrd(path: Path, index: int | None, detached: bool = True) -> _Reader:
         raw = open(data_path, "rb")
         raw.seek(start)
         stream = decompress(raw)
-        _skip(stream, byte_skip, data_path)
+        skip_bytes(stream, byte_skip, data_path)
         return stream, raw
 
     return _StreamReader(opened, str(data_path), shape4, dtype, t, info)

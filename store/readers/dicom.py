@@ -11,10 +11,12 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import _Reader, _files_in, _fmt, _info, _tidy
+from lodcast.store.readers.base import Reader, files_in, shape_text, source_info, tidy
+
+__all__ = ["DicomReader", "is_dicom"]
 
 
-def _is_dicom(p: Path) -> bool:
+def is_dicom(p: Path) -> bool:
     try:
         with open(p, "rb") as f:
             return f.read(132)[128:] == b"DICM"
@@ -73,15 +75,15 @@ def _dicom_image(f: Path, ds: dict[str, Any]) -> tuple[int, int, int, int]:
     return rows, cols, bits, int(ds.get("PixelRepresentation", 0))
 
 
-class _DicomReader(_Reader):
+class DicomReader(Reader):
     """One DICOM series: a folder of single-frame files (or one file) with its slices sorted along the slice
     normal. Headers are read once; pixels only for the slab asked for. RescaleSlope/Intercept are applied."""
 
     def __init__(self, path: Path, index: int | None) -> None:
         if index is not None:
             raise SourceError(f"index {index} given but DICOM series {path} is a single 3D volume")
-        files = [path] if path.is_file() else _files_in(path, _is_dicom)
-        if not files or not _is_dicom(files[0]):
+        files = [path] if path.is_file() else files_in(path, is_dicom)
+        if not files or not is_dicom(files[0]):
             raise SourceError(f"no DICOM files (with a DICM preamble) in {path}")
         by_series: dict[str, list[tuple[Path, dict[str, Any]]]] = {}
         for f in files:
@@ -117,7 +119,7 @@ class _DicomReader(_Reader):
         if not provenance["warnings"]:
             del provenance["warnings"]
         # PixelSpacing is (between rows, between columns) = (y, x)
-        self.info = _info((len(slices), ny, nx), dtype, "dicom", path, spacing=(dz, *map(float, pixel_spacing)),
+        self.info = source_info((len(slices), ny, nx), dtype, "dicom", path, spacing=(dz, *map(float, pixel_spacing)),
                           origin=origin, **provenance)
         self.info.provenance["dtype"] = pixel_dtype.name
 
@@ -167,7 +169,7 @@ class _DicomReader(_Reader):
             where = int(np.argmin(steps))
             raise SourceError(f"DICOM series has two slices at position {depth[where]:g} mm ({slices[where][0].name}, "
                               f"{slices[where + 1][0].name}); expected one slice per position")
-        dz = _tidy(float(steps.mean())) if len(steps) else thickness
+        dz = tidy(float(steps.mean())) if len(steps) else thickness
         if len(steps) and np.abs(steps - dz).max() > 0.01 * dz:
             provenance["warnings"].append(f"slice positions are not evenly spaced ({steps.min():g} to "
                                           f"{steps.max():g} mm); z spacing {thickness} taken from the header")
@@ -210,8 +212,8 @@ class _DicomReader(_Reader):
         except Exception as exc:  # decoding errors come from pydicom and its image plugins
             raise SourceError(f"cannot decode the pixels of DICOM file {f}: {exc}") from None
         if pixels.shape != self.info.shape[1:]:
-            raise SourceError(f"DICOM file {f} has pixels of shape {_fmt(pixels.shape)}; "
-                              f"expected {_fmt(self.info.shape[1:])}")
+            raise SourceError(f"DICOM file {f} has pixels of shape {shape_text(pixels.shape)}; "
+                              f"expected {shape_text(self.info.shape[1:])}")
         return pixels
 
     def _native(self, k: int) -> np.ndarray:

@@ -11,14 +11,16 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import _READ_CHUNK, _UNITS, _Reader, _axis_aligned, _fmt, _info, _pick
+from lodcast.store.readers.base import READ_CHUNK, UNITS, Reader, axis_aligned, shape_text, source_info, pick_volume
+
+__all__ = ["NiftiReader"]
 
 
 _NIFTI_VECTOR_INTENTS = {"vector", "displacement vector", "rgb vector", "rgba vector", "quaternion",
                          "symmetric matrix", "general matrix", "pointset", "triangle", "fnirt disp field"}
 
 
-class _NiftiReader(_Reader):
+class NiftiReader(Reader):
     """NIfTI-1/2 (and Analyze) through nibabel. Data axes (i, j, k) are the store's (x, y, z): no reorientation, so
     the store is exactly `transpose(data, (2, 1, 0))`. The proxy keeps its file open so that a .gz reads forwards."""
 
@@ -35,12 +37,12 @@ class _NiftiReader(_Reader):
             shape.pop()
         intent = img.header.get_intent()[0] if hasattr(img.header, "get_intent") else "none"
         if len(shape) > 4 or len(shape) < 2:
-            raise SourceError(f"NIfTI file {path} has {len(shape)} dimensions (shape {_fmt(shape)}, intent {intent}); "
+            raise SourceError(f"NIfTI file {path} has {len(shape)} dimensions (shape {shape_text(shape)}, intent {intent}); "
                               f"expected a scalar 3D volume, or 4D with an index")
         if len(shape) == 4 and intent in _NIFTI_VECTOR_INTENTS:
             raise SourceError(f"non-scalar data: NIfTI file {path} is 4D with intent '{intent}'; expected scalar data")
-        # nibabel's order is (x, y, z, t); _pick wants t first
-        shape4, t = _pick([shape[3], *shape[2::-1]] if len(shape) == 4 else shape[::-1], index, f"NIfTI file {path}")
+        # nibabel's order is (x, y, z, t); pick_volume wants t first
+        shape4, t = pick_volume([shape[3], *shape[2::-1]] if len(shape) == 4 else shape[::-1], index, f"NIfTI file {path}")
         self._proxy = img.dataobj
         # a chosen t, then 0 for the trailing singleton axes dropped above
         self._tail = ((t,) if len(shape) == 4 else ()) + (0,) * (len(img.shape) - len(shape))
@@ -50,22 +52,22 @@ class _NiftiReader(_Reader):
         scaled = (slope, inter) != (1.0, 0.0)
         zooms = [float(z) for z in img.header.get_zooms()[:3]] + [1.0] * (3 - min(3, len(shape)))
         affine = np.asarray(img.affine, dtype=float)
-        origin = affine[:3, 3][::-1] if _axis_aligned(affine[:3, :3]) else (0.0, 0.0, 0.0)
+        origin = affine[:3, 3][::-1] if axis_aligned(affine[:3, :3]) else (0.0, 0.0, 0.0)
         units = img.header.get_xyzt_units()[0] if hasattr(img.header, "get_xyzt_units") else "unknown"
         provenance: dict[str, Any] = {"affine": affine.tolist(), "intent": intent}
         if scaled:
             provenance["scaling"] = {"slope": slope, "intercept": inter}
         if index is not None:
             provenance["index"] = t
-        self.info = _info(shape4[1:], np.float32 if scaled else ondisk, "nifti", path, spacing=zooms[::-1],
-                          origin=origin, units=_UNITS.get(units, "millimeter"), **provenance)
+        self.info = source_info(shape4[1:], np.float32 if scaled else ondisk, "nifti", path, spacing=zooms[::-1],
+                          origin=origin, units=UNITS.get(units, "millimeter"), **provenance)
         self.info.provenance["dtype"] = str(ondisk)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
         # nibabel holds a few copies of what it reads (compressed bytes, scaled float64): ask for pieces of a
         # slab so that those stay small beside it
-        step = max(1, _READ_CHUNK // out[0].nbytes)
+        step = max(1, READ_CHUNK // out[0].nbytes)
         try:
             if self._flat:
                 out[0] = np.asarray(self._proxy[:, :]).T

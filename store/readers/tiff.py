@@ -11,10 +11,12 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import _UNITS, _Reader, _files_in, _fmt, _info, _pick
+from lodcast.store.readers.base import UNITS, Reader, files_in, shape_text, source_info, pick_volume
+
+__all__ = ["open_tiff"]
 
 
-def _tiff(path: Path, index: int | None) -> _Reader:
+def open_tiff(path: Path, index: int | None) -> Reader:
     return _TiffFolderReader(path, index) if path.is_dir() else _TiffFileReader(path, index)
 
 
@@ -25,7 +27,7 @@ def _tiff_geometry(tif: Any) -> dict[str, Any]:
         return {}
     xres, yres = tif.pages[0].resolution
     spacing = (float(meta.get("spacing", 1.0)), 1.0 / yres if yres > 0 else 1.0, 1.0 / xres if xres > 0 else 1.0)
-    return {"spacing": spacing, "units": _UNITS.get(str(meta.get("unit", "")), "millimeter")}
+    return {"spacing": spacing, "units": UNITS.get(str(meta.get("unit", "")), "millimeter")}
 
 
 def _open_tiff(path: Path) -> Any:
@@ -37,7 +39,7 @@ def _open_tiff(path: Path) -> Any:
         raise SourceError(f"{path} is not a readable TIFF file: {exc}") from None
 
 
-class _TiffFileReader(_Reader):
+class _TiffFileReader(Reader):
     """A multi-page TIFF: pages are z. ImageJ hyperstacks (TZYX, ZCYX…) take z from the Z axis and the other
     non-singleton axis from `index`. Read through tifffile's zarr view, which also serves ImageJ files whose
     pages after the first are not indexed."""
@@ -54,15 +56,15 @@ class _TiffFileReader(_Reader):
                                   f"samples per pixel; expected one (grayscale)")
             lead = [a for a in range(len(shape) - 2) if shape[a] > 1]
             if len(lead) > 2:
-                raise SourceError(f"{path} has axes {axes} of sizes {_fmt(shape)}; expected z plus at most one "
+                raise SourceError(f"{path} has axes {axes} of sizes {shape_text(shape)}; expected z plus at most one "
                                   f"time or channel axis")
             z_axis = next((a for a in lead if axes[a] == "Z"), lead[-1] if lead else None)
             stack = [a for a in lead if a != z_axis]
-            shape4, t = _pick([shape[a] for a in stack] + [shape[z_axis] if lead else 1, *shape[-2:]], index, str(path))
+            shape4, t = pick_volume([shape[a] for a in stack] + [shape[z_axis] if lead else 1, *shape[-2:]], index, str(path))
             self._select: list[Any] = [t if a in stack else 0 for a in range(len(shape) - 2)]
             self._z_axis = z_axis
             self._array = zarr.open(self._tif.aszarr(series=0), mode="r")
-            self.info = _info(shape4[1:], series.dtype, "tiff", path, axes=axes, **_tiff_geometry(self._tif))
+            self.info = source_info(shape4[1:], series.dtype, "tiff", path, axes=axes, **_tiff_geometry(self._tif))
         except BaseException:
             self._tif.close()
             raise
@@ -93,11 +95,11 @@ def _single_image(f: Path, folder: Path) -> tuple[tuple[int, ...], np.dtype, dic
         return tuple(page.shape), np.dtype(page.dtype), _tiff_geometry(tif)
 
 
-class _TiffFolderReader(_Reader):
+class _TiffFolderReader(Reader):
     """A folder of single-image TIFFs, one slice each, in natural name order (img2 before img10)."""
 
     def __init__(self, path: Path, index: int | None) -> None:
-        self._files = sorted(_files_in(path, lambda f: f.suffix.lower() in (".tif", ".tiff")), key=_natural)
+        self._files = sorted(files_in(path, lambda f: f.suffix.lower() in (".tif", ".tiff")), key=_natural)
         if not self._files:
             raise SourceError(f"no .tif/.tiff files in folder {path}")
         if index is not None:
@@ -107,8 +109,8 @@ class _TiffFolderReader(_Reader):
             other = _single_image(f, path)
             if other[:2] != (shape, dtype):
                 raise SourceError(f"TIFF folder {path} has inconsistent images: {self._files[0].name} is "
-                                  f"{_fmt(shape)} {dtype} but {f.name} is {_fmt(other[0])} {other[1]}")
-        self.info = _info((len(self._files), *shape), dtype, "tiff", path, files=len(self._files), **geometry)
+                                  f"{shape_text(shape)} {dtype} but {f.name} is {shape_text(other[0])} {other[1]}")
+        self.info = source_info((len(self._files), *shape), dtype, "tiff", path, files=len(self._files), **geometry)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         import tifffile

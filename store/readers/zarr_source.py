@@ -10,10 +10,12 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import _UNITS, _Reader, _fmt, _info, _pick
+from lodcast.store.readers.base import UNITS, Reader, shape_text, source_info, pick_volume
+
+__all__ = ["ZarrReader"]
 
 
-class _ZarrReader(_Reader):
+class ZarrReader(Reader):
     """A plain 2D/3D/4D zarr array, or an OME-Zarr 0.4/0.5 image group (a lodcast store is one): its first
     dataset, scaled and translated as its coordinate transformations say, singleton t/c axes dropped."""
 
@@ -27,7 +29,7 @@ class _ZarrReader(_Reader):
         provenance: dict[str, Any] = {}
         if isinstance(node, zarr.Array):
             array, image, dataset = node, None, None
-            names = {2: "yx", 3: "zyx", 4: "tzyx"}.get(array.ndim) or _pick(array.shape, index, f"zarr array {path}")
+            names = {2: "yx", 3: "zyx", 4: "tzyx"}.get(array.ndim) or pick_volume(array.shape, index, f"zarr array {path}")
             axes: list[dict[str, Any]] = [{"name": n} for n in names]
         else:
             ome = dict(node.attrs)
@@ -48,13 +50,13 @@ class _ZarrReader(_Reader):
         spatial = [k for k, a in enumerate(axes) if a.get("type") == "space" or a["name"] in ("z", "y", "x")]
         lead = array.ndim - len(spatial)
         if len(axes) != array.ndim or len(spatial) not in (2, 3) or spatial != list(range(lead, array.ndim)):
-            raise SourceError(f"zarr {path} has axes {[a['name'] for a in axes]} for shape {_fmt(array.shape)}; "
+            raise SourceError(f"zarr {path} has axes {[a['name'] for a in axes]} for shape {shape_text(array.shape)}; "
                               f"expected z, y, x (or y, x) after at most a t and a c axis")
         stacks = [k for k in range(lead) if array.shape[k] > 1]
         if len(stacks) > 1:
-            raise SourceError(f"zarr {path} has axes {[a['name'] for a in axes]} of sizes {_fmt(array.shape)}; "
+            raise SourceError(f"zarr {path} has axes {[a['name'] for a in axes]} of sizes {shape_text(array.shape)}; "
                               f"expected at most one non-singleton t or c axis (chosen by index)")
-        shape4, t = _pick([array.shape[k] for k in stacks] + list(array.shape[lead:]), index, f"zarr {path}")
+        shape4, t = pick_volume([array.shape[k] for k in stacks] + list(array.shape[lead:]), index, f"zarr {path}")
         self._array, self._select, self._flat = array, [t if k in stacks else 0 for k in range(lead)], len(spatial) == 2
         spacing, origin, units = [1.0] * 3, [0.0] * 3, "millimeter"
         if image is not None:
@@ -62,10 +64,10 @@ class _ZarrReader(_Reader):
             pad = 3 - len(spatial)  # a 2D image is one slice of unit thickness
             spacing, origin = [1.0] * pad + [scale[k] for k in spatial], [0.0] * pad + [translation[k] for k in spatial]
             unit = axes[spatial[-1]].get("unit")
-            units = _UNITS.get(str(unit), str(unit)) if unit else units
+            units = UNITS.get(str(unit), str(unit)) if unit else units
         if index is not None:
             provenance["index"] = t
-        self.info = _info(shape4[1:], array.dtype, "zarr", path, spacing=spacing, origin=origin, units=units,
+        self.info = source_info(shape4[1:], array.dtype, "zarr", path, spacing=spacing, origin=origin, units=units,
                           **provenance)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
