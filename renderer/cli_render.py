@@ -42,12 +42,12 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p.add_argument("--scene", help="scene JSON file (camera, width, height, tf, quality, sampling, shading, clip, mode, ...: see the README); the flags below override its fields")
     p.add_argument("--report", help="write the render report (JSON) here")
     names = ", ".join(preset_names())
-    p.add_argument("--tf", help="transfer function JSON file ({\"points\": [...], \"unit_distance\": d}) or a CT "
-                   f"preset in Hounsfield units: {names}")
+    p.add_argument("--tf", help="transfer function: a JSON file or inline JSON ({\"points\": [...], \"unit_distance\": d}) "
+                   f"or a preset: {names}")
     p.add_argument("--tf2", help="a second transfer function (file or preset), composited over the first: what it "
                    "shows stays visible inside what --tf hides (e.g. --tf ct-body --tf2 ct-dense)")
-    p.add_argument("--width", type=int)
-    p.add_argument("--height", type=int)
+    p.add_argument("--width", type=int, help="image width in pixels (default 512)")
+    p.add_argument("--height", type=int, help="image height in pixels (default 512)")
     p.add_argument("--azimuth", type=float, help="orbit camera: degrees, 0 looks from -y, turning towards +x")
     p.add_argument("--elevation", type=float, help="orbit camera: degrees towards +z")
     p.add_argument("--distance", type=float, help="orbit camera: multiples of the box's bounding-sphere radius")
@@ -86,8 +86,13 @@ def scene_from_args(args: argparse.Namespace):
         v = getattr(args, key)
         if v in preset_names():
             data[key] = v
+        elif v and v.lstrip().startswith("{"):  # the TF itself, inline
+            try:
+                data[key] = json.loads(v)
+            except json.JSONDecodeError as exc:
+                raise SceneError(f"--{key}: not valid JSON ({exc.msg} at character {exc.pos})") from None
         elif v and not Path(v).exists():
-            raise SceneError(f"--{key} {v!r}: no such file, nor a preset (presets: {', '.join(preset_names())})")
+            raise SceneError(f"--{key} {v!r}: no such file, inline JSON, nor a preset (presets: {', '.join(preset_names())})")
         elif v:
             data[key] = _load_json(v, f"--{key}")
     if "tf" not in data:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -19,11 +20,58 @@ class UsageError(LodcastError, ValueError):
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
+class _Help(argparse.RawDescriptionHelpFormatter):
+    """Examples kept as written; every option's default said, where it has one and its help does not say it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (default in (None, False, argparse.SUPPRESS) or "default" in text or not action.option_strings
+                or isinstance(action, (argparse._HelpAction, argparse._VersionAction))):
+            return text
+        return f"{text} (default {default})"
+
+
+#: what `lodcast COMMAND --help` shows under its options
+EXAMPLES = {
+    "ingest": ("convert a volume file into a lodcast store: levels of detail, per-block histograms, OME-Zarr "
+               "metadata; written atomically (nothing is left on failure)",
+               "lodcast ingest ct_series/ chest.zarr                       # a DICOM folder\n"
+               "lodcast ingest head.nii.gz head.zarr --block-size 32\n"
+               "lodcast ingest scan.raw scan.zarr --shape 256,512,512 --dtype uint16 --spacing 1.5,0.7,0.7"),
+    "info": ("print a store's attributes as JSON: shape, spacing, levels, blocks, shards, size on disk",
+             "lodcast info chest.zarr"),
+    "render": ("render one image of a store on this machine's OpenCL device; the scene's fields (camera, tf, "
+               "quality, sampling, shading, clip, mode, ...) are described in docs/reference.md",
+               "lodcast render chest.zarr -o chest.png --tf ct-bone --azimuth 30 --elevation 15\n"
+               "lodcast render head.zarr -o head.png --tf '{\"points\": [{\"value\": 40, \"opacity\": 0}, "
+               "{\"value\": 120, \"opacity\": 0.6}]}'\n"
+               "lodcast render chest.zarr -o lod.png --scene scene.json --report report.json   # quality, shading"),
+    "serve": ("serve the HTTP API (OpenAPI at /docs) over the stores under a root, with a job queue and a worker",
+              "lodcast serve --root stores/ --port 8000\n"
+              "LODCAST_TOKEN=secret lodcast serve --root stores/ --host 0.0.0.0 --queue redis://localhost:6379/0"),
+    "worker": ("run batch jobs from the queue: SIGTERM or Ctrl-C finishes the frame and hands the job back",
+               "lodcast worker --root stores/ --queue redis://queue-host:6379/0 --threads 2"),
+    "submit": ("submit a batch job (turntable, scenes, tf_sweep, volumes, ingest) to a server, or run it here "
+               "without one", "lodcast submit examples/turntable.json --url http://127.0.0.1:8000 --wait\n"
+               "lodcast submit examples/turntable.json --root stores/        # no server: runs here"),
+    "jobs": ("list, show, cancel or wait for batch jobs, or fetch their results",
+             "lodcast jobs list --state running\nlodcast jobs wait JOB_ID --timeout 600\n"
+             "lodcast jobs results JOB_ID -o frames/"),
+    "report": ("measure the levels of detail of a store on this machine: time, reduction, predicted and measured ΔE",
+               "lodcast report chest.zarr --tf ct-bone -o report/"),
+    "demo": ("fetch a real MR head from a package registry, ingest it, render pictures and serve it",
+             "lodcast demo\nlodcast demo --size 512 --no-serve"),
+    "presets": ("the named transfer functions a scene may give as \"tf\": NAME", "lodcast presets\nlodcast presets --json"),
+}
+
+
 class _Parser(argparse.ArgumentParser):
     """Malformed arguments exit 2 with one line (argparse's own error prints the whole usage first); every
     (sub)command takes ``--log-level``, so that it may stand before or after the command's name."""
 
     def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("formatter_class", _Help)
         super().__init__(*args, **kwargs)  # type: ignore[arg-type]
         self.add_argument("--log-level", choices=LOG_LEVELS, default=argparse.SUPPRESS,
                           help="what the log on stderr shows (default warning)")
@@ -63,6 +111,8 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--index", type=int, help="which volume of a 4D series (time point or channel) to ingest")
     p.add_argument("--block-size", type=int, default=16, help="block edge B in voxels, a power of two (default 16)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: when stderr is a terminal)")
+    p.add_argument("--json", action="store_true", help="print the store's attributes as JSON (what `lodcast info` prints) "
+                   "instead of a short summary")
     p.set_defaults(func=_cmd_ingest)
 
 
@@ -70,6 +120,7 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
     from lodcast.store.ingest import ingest, tame_malloc
 
     tame_malloc()
+    t0 = time.perf_counter()
     try:
         store = ingest(args.src, args.dest, overwrite=args.overwrite, format=args.format, shape=args.shape,
                        dtype=args.dtype, byte_order=args.byte_order, header_bytes=args.header_bytes,
@@ -79,13 +130,22 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
         if exc.filename is None and not isinstance(exc, LodcastError):
             exc.filename = args.dest
         raise
-    print(json.dumps(store.summary(), indent=2))
+    info = store.summary()
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    shape, spacing = "x".join(map(str, info["shape"])), " x ".join(f"{v:g}" for v in info["spacing"])
+    lo, hi = info["value_range"]
+    values = "no finite values" if lo is None or hi is None or lo != lo else f"values {lo:g} .. {hi:g}"
+    print(f"{args.dest}: {shape} {info['dtype']} voxels (z, y, x) of {spacing} {info['units'] or 'units'}, {values}\n  {len(info['levels'])} levels, {info['blocks']} blocks of {info['block_size']}³, "
+          f"{info['bytes_on_disk'] / 1e6:.1f} MB on disk, in {time.perf_counter() - t0:.1f} s "
+          f"(`lodcast info {args.dest}` for everything)")
     return 0
 
 
 def _add_info(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="print a store's attributes, levels, blocks, shards and size on disk as JSON")
-    p.add_argument("store")
+    p.add_argument("store", help="a lodcast store (a folder written by `lodcast ingest`)")
     p.set_defaults(func=_cmd_info)
 
 
@@ -126,7 +186,7 @@ def _add_jobs(sub: argparse._SubParsersAction) -> None:
 
 def _add_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="error against run time: one scene at every quality, interpolation and stepping, vs its reference")
-    p.add_argument("store")
+    p.add_argument("store", help="a lodcast store (a folder written by `lodcast ingest`)")
     p.add_argument("--scene", required=True, help="scene JSON (its quality and sampling options are swept)")
     p.add_argument("-o", "--out", default="report", help="folder for report.md, report.json and report.png (default ./report)")
     p.add_argument("--repeat", type=int, default=2, help="timed renders per configuration after a warm-up (default 2)")
@@ -169,8 +229,8 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="demo-output", help="folder for the store and the pictures (default ./demo-output)")
     p.add_argument("--size", type=int, default=384, help="picture width and height in pixels (default 384)")
     p.add_argument("--serve", action=argparse.BooleanOptionalAction, default=True, help="end by serving the volume over HTTP (default on)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port to listen on")
     p.set_defaults(func=_cmd_demo)
 
 
@@ -239,6 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo, _add_presets):
         add(sub)
+    for name, command in sub.choices.items():
+        command.description, examples = EXAMPLES[name]
+        command.epilog = "examples:\n" + "\n".join("  " + line for line in examples.split("\n"))
     return parser
 
 

@@ -66,8 +66,8 @@ def _plain(obj: Any) -> Any:
 def add_serve(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="serve the HTTP API over the volumes under a store root (with an embedded job queue and worker)")
     p.add_argument("--root", default=None, help="store root; volumes are stores directly under it (default LODCAST_ROOT, else .)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface; set a --token then)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port to listen on")
     p.add_argument("--queue", default=None, help="redis://host:port/db to share jobs with `lodcast worker`s on other hosts (default: embedded SQLite)")
     p.add_argument("--workers", type=int, default=None, help="in-process job worker threads (default 1; 0 when workers run separately)")
     p.add_argument("--render-concurrency", type=int, default=None, help="renders at once; more wait in order (default 2)")
@@ -88,6 +88,19 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                          import_roots=args.import_root, token=args.token,
                          max_samples=None if args.max_samples is None else int(args.max_samples))
     return serve_forever(settings, host=args.host, port=args.port, log_level=args.log_level)
+
+
+def _port_free(host: str, port: int) -> None:
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: a port in TIME_WAIT is free
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise ValueError(f"--port: cannot listen on {host}:{port} ({exc.strerror or exc}); is another server "
+                             f"running there? Choose another with --port") from None
 
 
 def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 8000, log_level: str = "warning",
@@ -116,14 +129,18 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
             lo, hi = (float(v) for v in volume_summary(settings.root, example)["value_range"])
         except Exception:  # noqa: BLE001 - the example is a courtesy
             pass
-    a, b = (round(lo + f * (hi - lo), 3) for f in (0.3, 0.9))
-    scene = json.dumps({"camera": {"azimuth": 30, "elevation": 20},
-                        "tf": {"points": [{"value": a, "opacity": 0.0}, {"value": b, "opacity": 0.6}]}})
+    _port_free(host, int(port))  # before the banner: a busy port is the one line the user sees
+    a, m, b = (round(lo + f * (hi - lo), 3) for f in (0.3, 0.6, 0.9))
+    scene = json.dumps({"camera": {"azimuth": 30, "elevation": 20}, "background": [0.05, 0.05, 0.08, 1.0],
+                        "shading": {},
+                        "tf": {"points": [{"value": a, "color": [0.8, 0.3, 0.2], "opacity": 0.0},
+                                          {"value": m, "color": [0.95, 0.75, 0.55], "opacity": 0.3},
+                                          {"value": b, "color": [1.0, 1.0, 0.95], "opacity": 0.8}]}})
     auth = ' -H "Authorization: Bearer $LODCAST_TOKEN"' if settings.token else ""
     print(f"lodcast: serving {len(vols)} volume(s) from {settings.root} at {url}   (API docs {url}/docs; Ctrl-C stops)", flush=True)
     print(f"  curl -s{auth} -X POST {url}/volumes/{example}/render -H 'Content-Type: application/json' \\\n"
           f"       -d '{scene}' -o {example}.png", flush=True)
-    print(f"  python3 - <<'EOF'\nimport lodcast\nc = lodcast.Client('{url}')\nr = c.render('{example}', {scene})\n"
+    print(f"  {sys.executable} - <<'EOF'\nimport lodcast\nc = lodcast.Client('{url}')\nr = c.render('{example}', {scene})\n"
           f"print(r.rgba.shape, r.report['wall_ms'])\nEOF", flush=True)
     # SIGTERM/Ctrl-C: requests in flight get a bounded time to finish (renders stop at their deadline anyway)
     uvicorn.run(create_app(settings), host=host, port=int(port), log_level=log_level, timeout_graceful_shutdown=10)
@@ -228,11 +245,12 @@ def _cmd_submit(args: argparse.Namespace) -> int:
 
 def add_jobs(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("jobs", help="list, show, cancel or wait for batch jobs, or fetch their results")
-    p.add_argument("action", nargs="?", default="list", choices=("list", "show", "cancel", "wait", "results"))
+    p.add_argument("action", nargs="?", default="list", choices=("list", "show", "cancel", "wait", "results"),
+                   help="list the newest jobs, show / cancel / wait for one, or fetch its results into -o DIR")
     p.add_argument("id", nargs="?", help="job id (show, cancel, wait, results)")
     p.add_argument("-o", "--out", default=None, help="results: folder for the frames (frame_00000.png, ...)")
     p.add_argument("--state", choices=("queued", "running", "done", "failed", "cancelled"), help="list: only jobs in this state")
-    p.add_argument("--limit", type=int, default=50)
+    p.add_argument("--limit", type=int, default=50, help="list: at most this many jobs, newest first")
     p.add_argument("--timeout", type=float, default=None, help="wait: give up after this many seconds (exit 1)")
     _url_opts(p)
     p.set_defaults(func=_cmd_jobs)

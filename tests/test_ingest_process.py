@@ -182,6 +182,43 @@ def test_ingest_refuses_a_slice_too_wide_for_its_memory_limit(tmp_path: Path):
     assert 0.5 * estimate < peak < estimate, (peak, estimate)
 
 
+def test_ingest_prints_a_short_summary_and_json_on_request(tmp_path: Path):
+    np.save(tmp_path / "v.npy", np.arange(40 * 36 * 20, dtype=np.int16).reshape(40, 36, 20))
+    out = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"), "--spacing", "2,1,0.5")
+    lines = out.stdout.strip().splitlines()
+    assert out.returncode == 0 and len(lines) == 2, out.stdout
+    assert "40x36x20 int16" in lines[0] and "2 x 1 x 0.5" in lines[0] and "values 0 .. 28799" in lines[0]
+    assert "blocks of 16³" in lines[1] and "MB on disk" in lines[1]
+    out = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "w.zarr"), "--json")
+    assert out.returncode == 0 and json.loads(out.stdout)["shape"] == [40, 36, 20]
+
+
+def test_every_command_says_what_it_does_with_examples_and_every_option_has_help():
+    from lodcast.service.cli import build_parser
+
+    import argparse
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name, parser in sub.choices.items():
+        text = parser.format_help()
+        assert parser.description and "examples:" in text and f"lodcast {name}" in text.split("examples:")[1], name
+        bare = [a.dest for a in parser._actions if not a.help]
+        assert not bare, (name, bare)
+    serve = sub.choices["serve"].format_help()
+    assert "(default 8000)" in serve and "(default 127.0.0.1)" in serve
+
+
+def test_serve_on_a_busy_port_fails_before_its_banner(tmp_path: Path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        out = _cli("serve", "--root", str(tmp_path), "--port", str(s.getsockname()[1]))
+    assert out.returncode == 2 and not out.stdout and len(out.stderr.strip().splitlines()) == 1, (out.stdout, out.stderr)
+    assert "--port" in out.stderr and "in use" in out.stderr
+
+
 def test_cli_info_prints_the_contract_keys(tmp_path: Path):
     vol = np.arange(40 * 36 * 20, dtype=np.int16).reshape(40, 36, 20)
     np.save(tmp_path / "v.npy", vol)
