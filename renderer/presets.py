@@ -1,11 +1,13 @@
 """Named transfer functions, one registry for every interface: a scene's `"tf": "ct-bone"` (Python, HTTP, jobs,
-CLI), `lodcast render --tf ct-bone`, `lodcast presets` and `GET /presets`. Plain data: the scene model resolves a
+CLI), `lodcast render --tf ct-bone`, `lodcast presets` and `GET /presets`. Besides these fixed ones (CT, in
+Hounsfield units), adaptive presets ("auto", "mr-soft") place a template on each volume's α-histogram peaks, for
+data without a fixed scale such as MR (renderer/adaptive_tf.py). Plain data: the scene model resolves a
 name through `preset()` before validating the TF."""
 from __future__ import annotations
 
 import copy
 
-__all__ = ["PRESETS", "preset", "preset_names"]
+__all__ = ["PRESETS", "preset", "preset_names", "catalogue"]
 
 # Transfer functions for CT in Hounsfield units (`lodcast render --tf ct-bone`): bone, the thin skin band between
 # air and fat, and both; the LOD benchmarks and tests measure with these.
@@ -36,11 +38,27 @@ PRESETS: dict[str, dict] = {
 
 
 def preset_names() -> list[str]:
-    return sorted(PRESETS)
+    """Fixed presets and the adaptive ones (renderer/adaptive_tf.py: placed on each volume's histogram)."""
+    from lodcast.renderer.adaptive_tf import ADAPTIVE
+
+    return sorted([*PRESETS, *ADAPTIVE])
+
+
+def catalogue() -> dict[str, dict]:
+    """Every preset as `GET /presets` and `lodcast presets --json` list it: a fixed one as its TF JSON, an adaptive
+    one as {"template": name, "description": ...}."""
+    from lodcast.renderer.adaptive_tf import ADAPTIVE
+
+    return {**copy.deepcopy(PRESETS),
+            **{name: {"template": name, "description": t["description"]} for name, t in ADAPTIVE.items()}}
 
 
 def preset(name: str) -> dict:
-    """A copy of the preset's TF JSON; KeyError naming the known presets otherwise."""
+    """A copy of the preset's TF JSON (an adaptive preset: its template); KeyError naming the known presets."""
+    from lodcast.renderer.adaptive_tf import ADAPTIVE
+
+    if name in ADAPTIVE:
+        return {"template": name}
     try:
         return copy.deepcopy(PRESETS[name])
     except KeyError:

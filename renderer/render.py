@@ -31,6 +31,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.environment import environment
+from lodcast.renderer.adaptive_tf import resolved
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
@@ -279,8 +280,9 @@ def _cost(scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float, sample_li
 def check_cost(store: Any, scene: Any, sample_limit: int | None = None) -> int:
     """The samples `scene` of `store` would take (renderer/cost.py), before anything is loaded or built; raises
     CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES or 2·10⁹)."""
-    scene = Scene.parse(scene)
-    _, fr, kbox, step_world = _geometry(as_volume(store), scene)
+    vol = as_volume(store)
+    scene = resolved(Scene.parse(scene), vol)
+    _, fr, kbox, step_world = _geometry(vol, scene)
     return _cost(scene, fr, kbox, step_world, sample_limit)
 
 
@@ -288,8 +290,8 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
             sample_limit: int | None = None) -> Prepared:
     """Everything a launch needs. `sample_limit`: the most samples the render may take (estimated before it starts:
     renderer/cost.py), default LODCAST_MAX_SAMPLES or 2·10⁹; above it CostError (a SceneError) names the field."""
-    scene = Scene.parse(scene)
     vol = as_volume(store, spacing=spacing, origin=origin)
+    scene = resolved(Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
     box, fr, kbox, step_world = _geometry(vol, scene)
     estimated = _cost(scene, fr, kbox, step_world, sample_limit)
     unit = unit_distance(scene.tf, vol.spacing)

@@ -29,6 +29,7 @@ __all__ = [
     "SceneError",
     "Scene",
     "TransferFunction",
+    "AdaptiveTF",
     "TFPoint",
     "LookAtCamera",
     "OrbitCamera",
@@ -251,8 +252,20 @@ class Clip(_Model):
     box: ClipBox | None = None
 
 
+class AdaptiveTF(_Model):
+    """A TF template placed on the volume's α-histogram peaks when the renderer knows the volume
+    (renderer/adaptive_tf.py); given as `"tf": "auto"` (or another adaptive preset's name)."""
+
+    template: Literal["auto", "mr-soft"]
+    unit_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+
+
 def _named_tf(v: Any) -> Any:
-    """A preset name stands for its TF (renderer/presets.py)."""
+    """A preset name stands for its TF (renderer/presets.py); an adaptive one for its template."""
+    from lodcast.renderer.adaptive_tf import ADAPTIVE
+
+    if isinstance(v, str) and v in ADAPTIVE:
+        return {"template": v}
     if isinstance(v, str):
         try:
             return preset(v)
@@ -265,8 +278,8 @@ class Scene(_Model):
     camera: Camera = Field(default_factory=OrbitCamera)
     width: Annotated[int, Field(ge=1, le=16384)] = 512
     height: Annotated[int, Field(ge=1, le=16384)] = 512
-    tf: TransferFunction
-    tf2: TransferFunction | None = None
+    tf: TransferFunction | AdaptiveTF
+    tf2: TransferFunction | AdaptiveTF | None = None
     quality: Quality = "full"
     sampling: Sampling = Field(default_factory=Sampling)
     shading: Shading | None = None

@@ -319,9 +319,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
              response_model=dict[str, dict[str, Any]], responses=errors(401))
     def get_presets() -> dict[str, Any]:
         """The named transfer functions a scene may give as `"tf": NAME`."""
-        from lodcast.renderer.presets import PRESETS
+        from lodcast.renderer.presets import catalogue
 
-        return PRESETS
+        return catalogue()
 
     @app.get("/volumes", tags=["volumes"], dependencies=auth, summary="Every volume under the store root",
              response_model=list[VolumeSummary], responses=errors(401))

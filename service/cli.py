@@ -267,14 +267,18 @@ def _add_presets(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_presets(args: argparse.Namespace) -> int:
-    from lodcast.renderer.presets import PRESETS
+    from lodcast.renderer.presets import catalogue
 
+    presets = catalogue()
     if args.json:
-        print(json.dumps(PRESETS, indent=2))
+        print(json.dumps(presets, indent=2))
         return 0
-    for name, tf in sorted(PRESETS.items()):
+    for name, tf in sorted(presets.items()):
+        if "template" in tf:
+            print(f"{name:14s} adaptive: {tf['description']}")
+            continue
         pts = tf["points"]
-        print(f"{name:14s} {len(pts)} points, values {pts[0]['value']:g} .. {pts[-1]['value']:g}")
+        print(f"{name:14s} {len(pts)} points, values {pts[0]['value']:g} .. {pts[-1]['value']:g} (CT, Hounsfield units)")
     return 0
 
 
