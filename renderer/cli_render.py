@@ -55,6 +55,8 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
     p.add_argument("--mode", choices=MODES, help="composite (default), mip, minip, average or iso (with --isovalue)")
     p.add_argument("--isovalue", type=float, help="mode iso: the data value of the surface")
+    p.add_argument("--shading", action=argparse.BooleanOptionalAction, default=None,
+                   help="local illumination (Blinn-Phong, a headlight); --no-shading turns a scene's off")
     p.add_argument("--jitter", action=argparse.BooleanOptionalAction, default=None, help="jittered ray start")
     p.add_argument("--seed", type=int, help="jitter seed")
     p.add_argument("--background", type=_floats("--background", 4), help="r,g,b,a in [0,1]")
@@ -100,6 +102,8 @@ def scene_from_args(args: argparse.Namespace):
     for key in ("width", "height", "mode", "isovalue"):
         if getattr(args, key) is not None:
             data[key] = getattr(args, key)
+    if args.shading is not None:
+        data["shading"] = (data.get("shading") or {}) if args.shading else None
     if args.background is not None:
         data["background"] = list(args.background)
     cam = dict(data.get("camera") or {})

@@ -308,6 +308,8 @@ class Scene(_Model):
         """A Scene from a Scene, a dict, JSON text or a JSON file; raises SceneError naming the field."""
         if isinstance(data, Scene):
             return data
+        if isinstance(data, str) and not data.lstrip().startswith("{") and Path(data).is_file():
+            data = Path(data)  # a file's name, not JSON text
         if isinstance(data, Path):
             try:
                 data = data.read_text()

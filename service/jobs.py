@@ -62,7 +62,7 @@ class TfSweepJob(_Job):
     kind: Literal["tf_sweep"]
     volume: str = Field(max_length=128)
     scene: Scene = Field(default_factory=dict, description="the scene each TF is rendered in (its own tf is replaced)")
-    tfs: list[dict[str, Any]] = Field(min_length=1)
+    tfs: list[dict[str, Any] | str] = Field(min_length=1, description="transfer functions (JSON or preset names)")
 
 
 class VolumesJob(_Job):

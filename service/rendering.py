@@ -66,14 +66,15 @@ def parse_scene(data: Any, settings: Any, loc: tuple = ("body",)) -> Any:
     return scene
 
 
-def check_tf(data: Any, loc: tuple) -> dict:
-    """Validate one transfer function by putting it in a minimal scene (the TF model lives in the scene module)."""
+def check_tf(data: Any, loc: tuple) -> dict | str:
+    """Validate one transfer function (JSON or a preset's name) by putting it in a minimal scene (the TF model
+    lives in the scene module)."""
     from pydantic import ValidationError
 
     from lodcast.renderer.scene import Scene
 
-    if not isinstance(data, dict):
-        raise RequestInvalid.one(loc, "a transfer function must be a JSON object", "type_error")
+    if not isinstance(data, (dict, str)):
+        raise RequestInvalid.one(loc, "a transfer function must be a JSON object or a preset's name", "type_error")
     try:
         Scene.model_validate({"tf": data})
     except ValidationError as exc:
