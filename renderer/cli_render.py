@@ -39,7 +39,7 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p = sub.add_parser("render", help="render a store locally to PNG (straight alpha) or .npy (float32 premultiplied RGBA)")
     p.add_argument("store", help="a lodcast store (folder written by `lodcast ingest`)")
     p.add_argument("-o", "--output", required=True, help="image to write: OUT.png or OUT.npy")
-    p.add_argument("--scene", help="scene JSON file (camera, width, height, tf, quality, sampling, shading, clip, mode, ...: see the README); the flags below override its fields")
+    p.add_argument("--scene", help="scene JSON file (camera, width, height, tf, quality, sampling, shading, clip, mode, ...: docs/reference.md); the flags below override its fields")
     p.add_argument("--report", help="write the render report (JSON) here")
     names = ", ".join(preset_names())
     p.add_argument("--tf", help="transfer function: a JSON file or inline JSON ({\"points\": [...], \"unit_distance\": d}) "

@@ -55,6 +55,8 @@ Vec3 = tuple[Finite, Finite, Finite]
 
 
 class TFPoint(_Model):
+    """A control point: at data `value`, straight (not premultiplied) sRGB `color` and `opacity`."""
+
     value: Finite
     color: tuple[Unit, Unit, Unit] = (1.0, 1.0, 1.0)
     opacity: Unit = 1.0
@@ -80,6 +82,9 @@ class TransferFunction(_Model):
 
 
 class LookAtCamera(_Model):
+    """The eye at `eye`, looking at `target` (world units, x, y, z), `up` towards the image's top; `fov` is the
+    vertical field of view in degrees; `orthographic` projection needs `view_height` (world units)."""
+
     eye: Vec3
     target: Vec3
     up: Vec3 = (0.0, 0.0, 1.0)
@@ -139,10 +144,15 @@ Camera = Annotated[
 
 
 class QualityReduction(_Model):
+    """Level of detail at a data reduction of `reduction`:1 (bytes of the visible blocks at level 0 / bytes
+    used), the blocks chosen by their significance to the image under the TF (thesis eq. 3.1)."""
+
     reduction: Annotated[float, Field(ge=1.0, allow_inf_nan=False)]
 
 
 class QualityBudget(_Model):
+    """Level of detail within `budget_mb` megabytes (10⁶ bytes) of brick data (thesis eq. 3.2)."""
+
     budget_mb: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 
 
@@ -275,6 +285,11 @@ def _named_tf(v: Any) -> Any:
 
 
 class Scene(_Model):
+    """What to render: the camera, the image size, the transfer function(s), the quality (`"full"` resolution,
+    `"lossless"` level of detail, `{"reduction": r}` or `{"budget_mb": m}`), sampling, shading, clipping, the
+    blend `mode` (`iso` needs `isovalue`), the `background` composited under the image (premultiplied RGBA; a
+    transparent one keeps the image's alpha) and the output `format`."""
+
     camera: Camera = Field(default_factory=OrbitCamera)
     width: Annotated[int, Field(ge=1, le=16384)] = 512
     height: Annotated[int, Field(ge=1, le=16384)] = 512

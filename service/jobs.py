@@ -43,6 +43,9 @@ class _Job(BaseModel):
 
 
 class TurntableJob(_Job):
+    """`frames` images of `volume` around its vertical axis: the scene's orbit camera with azimuths from
+    `start_azimuth` in steps of 360° / frames; optionally encoded to an animation."""
+
     kind: Literal["turntable"]
     volume: str = Field(max_length=128)
     scene: Scene
@@ -53,12 +56,16 @@ class TurntableJob(_Job):
 
 
 class ScenesJob(_Job):
+    """One image of `volume` per scene, in order."""
+
     kind: Literal["scenes"]
     volume: str = Field(max_length=128)
     scenes: list[Scene] = Field(min_length=1)
 
 
 class TfSweepJob(_Job):
+    """One image of `volume` per transfer function, each in the same `scene`."""
+
     kind: Literal["tf_sweep"]
     volume: str = Field(max_length=128)
     scene: Scene = Field(default_factory=dict, description="the scene each TF is rendered in (its own tf is replaced)")
@@ -66,12 +73,16 @@ class TfSweepJob(_Job):
 
 
 class VolumesJob(_Job):
+    """The same `scene` rendered on each of `volumes`."""
+
     kind: Literal["volumes"]
     volumes: list[str] = Field(min_length=1)
     scene: Scene
 
 
 class IngestJob(_Job):
+    """Ingest a server-side file (under an import root) as the new volume `name` (`POST /volumes` submits one)."""
+
     kind: Literal["ingest"]
     source: str = Field(min_length=1, max_length=4096, description="server-side path under a configured import root")
     name: str = Field(max_length=128, description="volume id of the new store")

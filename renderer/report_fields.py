@@ -1,0 +1,42 @@
+"""What each key of a render's report means (`RenderResult.report`, the HTTP `X-Lodcast-Report` header, jobs'
+reports, `lodcast render --report`). docs/reference.md is generated from this table, and a test checks that a
+render's report has exactly these keys."""
+from __future__ import annotations
+
+__all__ = ["REPORT_FIELDS"]
+
+REPORT_FIELDS: dict[str, str] = {
+    "wall_ms": "the whole render, milliseconds: selection, brick reads, uploads, kernel, read-back",
+    "kernel_ms": "the ray-casting kernel alone (OpenCL profiling), milliseconds",
+    "bricks_read": "bricks read from the store for this render (the rest came from the brick cache)",
+    "bricks_cached": "bricks found in the brick cache",
+    "bricks_skipped": "blocks the selection left out: invisible under the transfer function",
+    "reduction": "data reduction of the level-of-detail selection: level-0 bytes of the visible blocks / bytes used",
+    "predicted_delta_e": "the selection's predicted mean image error, ΔE (CIE76 in CIELUV) against full resolution",
+    "samples": "samples the rays took",
+    "estimated_samples": "samples estimated before the render started (the cost LODCAST_MAX_SAMPLES limits)",
+    "launches": "kernel launches (bands of rows, so that a long render can stop between them)",
+    "build_options": "the -D flags the kernel was compiled with: what the scene uses, nothing else",
+    "program_cache": "where the compiled kernel came from: memory, disk or a fresh build",
+    "build_ms": "kernel build (or cache lookup), milliseconds",
+    "upload_ms": "volume data uploaded to the device, milliseconds",
+    "quality": "the quality asked for: full, lossless, {reduction} or {budget_mb}",
+    "level": "the store level rendered when one level was asked for, else null",
+    "interpolation": "sampling across blocks of different levels: interblock or nearest_block",
+    "classification": "how coarse samples were classified: by their distribution, by the mean, or point (level 0)",
+    "adaptive": "adaptive object-space sampling: false, or how it was limited",
+    "blocks": "blocks of the volume",
+    "step_world": "the sampling step in world units",
+    "unit_distance": "the length (world units) a TF's opacity is given for",
+    "lut_entries": "entries of the classification table",
+    "lut_exact": "whether the table holds the TF exactly (every control point on an entry)",
+    "preintegration_ms": "building the pre-integration table, milliseconds (null without pre-integration)",
+    "tf2": "whether a second transfer function was composited",
+    "priority_map": "the dual-TF priority map's statistics, or null",
+    "adaptive_screen": "adaptive screen-space sampling's statistics, or null",
+    "device_bytes": "volume data on the device at once, bytes (within LODCAST_DEVICE_BUDGET_MB)",
+    "passes": "passes the render took: more than 1 when the data exceeded the device budget",
+    "width": "image width, pixels",
+    "height": "image height, pixels",
+    "device": "the OpenCL device",
+}
