@@ -136,9 +136,10 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
         return 0
     shape, spacing = "x".join(map(str, info["shape"])), " x ".join(f"{v:g}" for v in info["spacing"])
     lo, hi = info["value_range"]
+    on_disk = "" if info["bytes_on_disk"] is None else f"{info['bytes_on_disk'] / 1e6:.1f} MB on disk, "
     values = "no finite values" if lo is None or hi is None or lo != lo else f"values {lo:g} .. {hi:g}"
     print(f"{args.dest}: {shape} {info['dtype']} voxels (z, y, x) of {spacing} {info['units'] or 'units'}, {values}\n  {len(info['levels'])} levels, {info['blocks']} blocks of {info['block_size']}³, "
-          f"{info['bytes_on_disk'] / 1e6:.1f} MB on disk, in {time.perf_counter() - t0:.1f} s "
+          f"{on_disk}in {time.perf_counter() - t0:.1f} s "
           f"(`lodcast info {args.dest}` for everything)")
     return 0
 

@@ -309,7 +309,7 @@ def test_a_preset_name_is_a_tf_in_every_scene():
 
     sc = Scene.parse({"tf": "ct-bone", "tf2": None})
     assert sc.tf == TransferFunction.model_validate(PRESETS["ct-bone"])
-    with pytest.raises(SceneError, match=r"tf: unknown preset 'bone'; known: (ct-[a-z-]+, )*ct-bone"):
+    with pytest.raises(SceneError, match=r"tf: unknown preset 'bone'; known: auto, (ct-[a-z-]+, )*ct-bone"):
         Scene.parse({"tf": "bone"})
     assert Scene.parse(json.dumps({"tf": "ct-skin"})).tf.points[1].value == -400
 

@@ -100,7 +100,7 @@ def test_cli_tf_preset_renders_as_its_points(tmp_path):
     (["--tf", "{tf}", "--fov", "200"], "camera.fov"),
     ([], "tf:"),
     (["--tf", "{tf}", "--out-of-range"], "unrecognized"),
-    (["--tf", "{tf}", "--tf2", "ct-nope"], "--tf2 'ct-nope': no such file, nor a preset (presets: ct-body,"),
+    (["--tf", "{tf}", "--tf2", "ct-nope"], "--tf2 'ct-nope': no such file, inline JSON, nor a preset (presets: auto, ct-body,"),
     (["--tf", "{tf}", "--tf2", "ct-dense", "--mode", "mip"], "tf2: a second transfer function needs mode"),
 ])
 def test_cli_render_bad_input_exits_2_with_one_line(store, tmp_path, args, needle):
