@@ -40,13 +40,14 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def orbit_eye(cam: OrbitCamera, center: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """(eye, up) of the orbit camera. `up` is the elevation tangent, equal to +z's direction in the view plane, so
-    the poles (elevation ±90°) stay well defined."""
+def orbit_eye(cam: OrbitCamera, center: np.ndarray, radius: float,
+              distance: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(eye, up) of the orbit camera at `distance` radii (default the camera's). `up` is the elevation tangent,
+    equal to +z's direction in the view plane, so the poles (elevation ±90°) stay well defined."""
     a, e = np.radians(cam.azimuth), np.radians(cam.elevation)
     d = np.array([np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
     up = np.array([-np.sin(a) * np.sin(e), np.cos(a) * np.sin(e), np.cos(e)])
-    return center + d * radius * cam.distance, up
+    return center + d * radius * (cam.distance if distance is None else distance), up
 
 
 def fit_distance(box_lo, box_hi, azimuth: float, elevation: float, fov: float = 30.0, aspect: float = 1.0,
@@ -55,7 +56,7 @@ def fit_distance(box_lo, box_hi, azimuth: float, elevation: float, fov: float = 
     perspective view with `margin` (a fraction of the half-width) to spare: the whole volume in the picture."""
     lo, hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
     center, radius = (lo + hi) / 2, 0.5 * float(np.linalg.norm(hi - lo))
-    eye, up = orbit_eye(OrbitCamera(azimuth=azimuth, elevation=elevation, distance=1.0), center, radius)
+    eye, up = orbit_eye(OrbitCamera(azimuth=azimuth, elevation=elevation), center, radius, 1.0)
     fr = look_at(eye, center, up, fov, 1, 1)  # the view's basis does not depend on the distance
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]) - center
     t = float(np.tan(np.radians(fov) / 2)) * (1.0 - margin)
@@ -83,7 +84,11 @@ def frame(cam: LookAtCamera | OrbitCamera, width: int, height: int, box_lo: np.n
     if isinstance(cam, OrbitCamera):
         center = (box_lo + box_hi) / 2
         radius = 0.5 * float(np.linalg.norm(box_hi - box_lo))
-        eye, up = orbit_eye(cam, center, radius)
+        distance = cam.distance
+        if distance is None:  # the whole box in the picture (orthographic: any eye outside the box will do)
+            distance = 2.0 if ortho else fit_distance(box_lo, box_hi, cam.azimuth, cam.elevation, cam.fov,
+                                                      width / height)
+        eye, up = orbit_eye(cam, center, radius, distance)
         return look_at(eye, center, up, cam.fov, width, height, ortho, cam.view_height)
     return look_at(cam.eye, cam.target, cam.up, cam.fov, width, height, ortho, cam.view_height)
 

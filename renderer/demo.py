@@ -63,13 +63,10 @@ def demo_tfs(store: Any) -> dict[str, dict]:
 
 
 def demo_scenes(store: Any, size: int = 384) -> dict[str, dict]:
-    from lodcast.renderer.camera import box_world, fit_distance
-
     tfs = demo_tfs(store)
-    box = box_world(store.shape, store.spacing, store.origin)
 
-    def orbit(az: float, el: float) -> dict:  # the whole volume in the picture, from each side
-        return {"azimuth": az, "elevation": el, "distance": round(fit_distance(*box, az, el), 3)}
+    def orbit(az: float, el: float) -> dict:  # no distance: the whole volume in the picture, from each side
+        return {"azimuth": az, "elevation": el}
 
     base = {"width": size, "height": size, "background": [0, 0, 0, 1]}
     scenes = {}

@@ -115,11 +115,12 @@ class LookAtCamera(_Model):
 
 class OrbitCamera(_Model):
     """Around the box centre: azimuth 0, elevation 0 looks from -y towards +y with +z up; azimuth turns towards
-    +x, elevation towards +z; distance in multiples of the box's bounding-sphere radius."""
+    +x, elevation towards +z; distance in multiples of the box's bounding-sphere radius (null, the default: the
+    nearest at which the whole box is in the picture from this view, with 5 % to spare)."""
 
     azimuth: Finite = 0.0
     elevation: Annotated[float, Field(ge=-90.0, le=90.0)] = 0.0
-    distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] = 2.5
+    distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
     fov: Annotated[float, Field(gt=0.0, lt=180.0)] = 30.0
     projection: Literal["perspective", "orthographic"] = "perspective"
     view_height: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None

@@ -68,7 +68,7 @@ def test_constant_volume_second_integral_over_the_first(step):
 
 def test_dual_tf_matches_the_float64_reference_with_two_integrals():
     vol = _blob()
-    scene = {"camera": {"azimuth": 35, "elevation": 25}, "width": 48, "height": 48, "tf": SHELL, "tf2": CORE,
+    scene = {"camera": {"azimuth": 35, "elevation": 25, "distance": 2.5}, "width": 48, "height": 48, "tf": SHELL, "tf2": CORE,
              "format": "npy", "sampling": {"step": 0.25, "early_termination": 1.0}}
     ref = reference_render(vol, scene)
     got = lodcast.render(vol, scene)
@@ -110,7 +110,7 @@ def test_one_pass_equals_the_composite_of_two_single_tf_renders(blob_store, case
     use_levels = extra.pop("levels", False)
     samp = {"early_termination": 1.0, **extra.pop("sampling", {})}
     bg = extra.pop("background", None)
-    base = {"camera": {"azimuth": 20, "elevation": 15}, "width": 32, "height": 32, "format": "npy",
+    base = {"camera": {"azimuth": 20, "elevation": 15, "distance": 2.5}, "width": 32, "height": 32, "format": "npy",
             "tf": SHELL, "sampling": samp, **extra}
     kw = {}
     if use_levels:  # mixed levels (the same for every render: the selection of one TF differs from two's)
@@ -142,7 +142,7 @@ def _body_and_insert(shape=(64, 64, 64)):
 
 def _opaque_scene(**kw):
     body = _tf(0.1, 0.3, [0.9, 0.7, 0.6], 0.95)  # nearly opaque: rays saturate early in the first integral
-    return {"camera": {"azimuth": 30, "elevation": 20}, "width": 64, "height": 64, "format": "npy", "tf": body,
+    return {"camera": {"azimuth": 30, "elevation": 20, "distance": 2.5}, "width": 64, "height": 64, "format": "npy", "tf": body,
             "tf2": CORE, **kw}
 
 
@@ -260,7 +260,7 @@ def test_lodcast_report_shows_what_the_priority_map_buys(blob_store):
     assert [v.quality for v in off] == ["full", {"reduction": 30}] and "no priority map" in off[0].label
     assert off[0].apply({"tf": SHELL})["sampling"]["priority_map"] is False
     assert all(v.priority_map for v in default_variants(adaptive=False, steps=False))
-    scene = {"camera": {"azimuth": 20, "elevation": 15}, "width": 24, "height": 24, "tf": SHELL, "tf2": CORE}
+    scene = {"camera": {"azimuth": 20, "elevation": 15, "distance": 2.5}, "width": 24, "height": 24, "tf": SHELL, "tf2": CORE}
     res = run_report(blob_store, scene, [Variant("full"), Variant("full", priority_map=False)], repeat=1,
                      log=lambda m: None)
     on, plain = res["rows"]

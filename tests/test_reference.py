@@ -460,3 +460,22 @@ def test_delta_e_definition() -> None:
     # premultiplied rgb over black is the rgb: a mid grey of 50 % alpha vs itself straight is not equal
     grey = np.full((1, 1, 4), 0.5)
     assert delta_e(grey, np.array([[[1.0, 1.0, 1.0, 0.5]]]))["max"] > 20
+
+
+def test_the_default_orbit_distance_agrees_with_the_reference_bisection() -> None:
+    """Without a distance, lodcast's closed form (camera.fit_distance) and the reference's bisection put the eye at
+    the same place."""
+    from lodcast.renderer.camera import box_world, frame
+    from lodcast.renderer.scene import OrbitCamera
+
+    rng = np.random.default_rng(9)
+    for _ in range(20):
+        shape = tuple(int(s) for s in rng.integers(4, 200, 3))
+        spacing = tuple(float(s) for s in rng.uniform(0.3, 3.0, 3))
+        az, el, fov = float(rng.uniform(-180, 180)), float(rng.uniform(-80, 80)), float(rng.uniform(15, 60))
+        w, h = int(rng.integers(32, 800)), int(rng.integers(32, 800))
+        ref = orbit_to_lookat({"azimuth": az, "elevation": el, "fov": fov}, shape, spacing, aspect=w / h)
+        lo, hi = box_world(shape, spacing, (0.0, 0.0, 0.0))
+        fr = frame(OrbitCamera(azimuth=az, elevation=el, fov=fov), w, h, lo, hi)
+        radius = 0.5 * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
+        np.testing.assert_allclose(fr.eye, ref["eye"], atol=1e-6 * radius)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from lodcast.errors import LodcastError
@@ -102,3 +103,25 @@ def test_scene_is_frozen_and_roundtrips():
     with pytest.raises(Exception):
         s.width = 3  # type: ignore[misc]
     assert Scene.parse(s.model_dump(mode="json")) == s
+
+
+def test_the_default_orbit_distance_frames_the_whole_box():
+    """An orbit camera without `distance` puts every corner of the box inside the picture with 5 % to spare, and
+    no further away than that: some corner reaches the margin (random boxes, views and aspect ratios)."""
+    from lodcast.renderer.camera import frame
+    from lodcast.renderer.scene import OrbitCamera
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        lo = rng.uniform(-50, 50, 3)
+        hi = lo + rng.uniform(1, 200, 3)
+        cam = OrbitCamera(azimuth=rng.uniform(-180, 180), elevation=rng.uniform(-80, 80), fov=rng.uniform(15, 60))
+        w, h = int(rng.integers(64, 1024)), int(rng.integers(64, 1024))
+        fr = frame(cam, w, h, lo, hi)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        rel = corners - fr.eye
+        depth = rel @ fr.f
+        assert (depth > 0).all()
+        px, py = (rel @ fr.r) / depth / fr.half_w, (rel @ fr.u) / depth / fr.half_h
+        reach = np.maximum(np.abs(px), np.abs(py)).max()
+        assert 0.94 < reach <= 0.95 + 1e-9, reach
