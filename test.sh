@@ -6,7 +6,8 @@ set -euo pipefail
 cd "$(dirname "$0")"
 PY=${PYTHON:-python3}
 "$PY" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "lodcast needs Python >= 3.11, found " + sys.version.split()[0])'
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
+[ -x .venv/bin/python ] || { echo "creating .venv (a virtual environment beside this script)" >&2; "$PY" -m venv .venv; }
+echo "installing lodcast with its test dependencies (pytest, hypothesis, schemathesis, moto, ...) into .venv: the first run takes a minute or two, later ones a few seconds" >&2
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".[test]"
 exec .venv/bin/python -m pytest -n 2 "$@"
