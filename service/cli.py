@@ -108,6 +108,7 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--header-bytes", type=int, default=0, help="raw only: bytes to skip at the start")
     p.add_argument("--spacing", type=_triple(float, "--spacing"), help="voxel spacing z,y,x in world units (overrides the file's)")
     p.add_argument("--origin", type=_triple(float, "--origin"), help="world position z,y,x of voxel (0,0,0)'s centre")
+    p.add_argument("--units", help="unit of the spacing (mm, um, nm, cm, m; overrides the file's)")
     p.add_argument("--index", type=int, help="which volume of a 4D series (time point or channel) to ingest")
     p.add_argument("--block-size", type=int, default=16, help="block edge B in voxels, a power of two (default 16)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: when stderr is a terminal)")
@@ -125,7 +126,7 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
         store = ingest(args.src, args.dest, overwrite=args.overwrite, format=args.format, shape=args.shape,
                        dtype=args.dtype, byte_order=args.byte_order, header_bytes=args.header_bytes,
                        spacing=args.spacing, origin=args.origin, index=args.index, block_size=args.block_size,
-                       progress=args.progress)
+                       progress=args.progress, units=args.units)
     except OSError as exc:  # a full disk names no file of its own: say where it was writing
         if exc.filename is None and not isinstance(exc, LodcastError):
             exc.filename = args.dest
@@ -141,6 +142,8 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
     print(f"{args.dest}: {shape} {info['dtype']} voxels (z, y, x) of {spacing} {info['units'] or 'units'}, {values}\n  {len(info['levels'])} levels, {info['blocks']} blocks of {info['block_size']}³, "
           f"{on_disk}in {time.perf_counter() - t0:.1f} s "
           f"(`lodcast info {args.dest}` for everything)")
+    for warning in (info.get("source") or {}).get("warnings", []):
+        print(f"  notice: {warning}")
     return 0
 
 

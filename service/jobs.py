@@ -35,7 +35,7 @@ __all__ = [
 
 Scene = dict[str, Any]
 #: keyword options of lodcast.ingest an ingest job may pass (reader options and the block size)
-INGEST_OPTIONS = frozenset({"format", "shape", "dtype", "byte_order", "header_bytes", "spacing", "origin", "index", "block_size"})
+INGEST_OPTIONS = frozenset({"format", "shape", "dtype", "byte_order", "header_bytes", "spacing", "origin", "index", "block_size", "units"})
 
 
 class _Job(BaseModel):

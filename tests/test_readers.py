@@ -319,6 +319,33 @@ def test_tiff_multipage_imagej_and_folder(tmp_path: Path) -> None:
         check(src, a)
 
 
+def test_ome_tiff_physical_sizes_and_units(tmp_path: Path) -> None:
+    """OME-TIFF's PhysicalSize{X,Y,Z} (µm unless said) become the spacing: an OME-TIFF at 0.2/0.2/1.5 µm used
+    to ingest as 1/1/1 mm. A TIFF without any size says so, and --spacing/--units override."""
+    import tifffile
+
+    data = volume((6, 8, 10))
+    tifffile.imwrite(tmp_path / "cells.ome.tif", data, ome=True,
+                     metadata={"axes": "ZYX", "PhysicalSizeX": 0.2, "PhysicalSizeY": 0.2, "PhysicalSizeZ": 1.5})
+    with open_source(tmp_path / "cells.ome.tif") as src:
+        assert src.info.spacing == pytest.approx((1.5, 0.2, 0.2)) and src.info.units == "micrometer"
+        assert "warnings" not in src.info.provenance
+        check(src, data)
+    tifffile.imwrite(tmp_path / "nm.ome.tif", data, ome=True,
+                     metadata={"axes": "ZYX", "PhysicalSizeX": 50, "PhysicalSizeXUnit": "nm", "PhysicalSizeY": 50,
+                               "PhysicalSizeYUnit": "nm"})
+    with open_source(tmp_path / "nm.ome.tif") as src:
+        assert src.info.spacing == pytest.approx((1.0, 50.0, 50.0)) and src.info.units == "nanometer"
+        assert any("no PhysicalSize for z" in w for w in src.info.provenance["warnings"])
+    tifffile.imwrite(tmp_path / "plain.tif", data, photometric="minisblack")
+    with open_source(tmp_path / "plain.tif") as src:
+        assert src.info.spacing == (1.0, 1.0, 1.0) and any("no voxel size" in w for w in src.info.provenance["warnings"])
+    with open_source(tmp_path / "plain.tif", spacing=(2, 0.5, 0.5), units="um") as src:
+        assert src.info.spacing == (2.0, 0.5, 0.5) and src.info.units == "micrometer"
+        assert "warnings" not in src.info.provenance  # the user said what the file did not
+    refused("units 'parsec'", tmp_path / "plain.tif", units="parsec")
+
+
 def test_tiff_hyperstack_and_refusals(tmp_path: Path) -> None:
     tzyx = volume((3, 5, 6, 7), "uint8")
     tifffile.imwrite(tmp_path / "h.tif", tzyx, imagej=True, metadata={"axes": "TZYX"})
@@ -394,6 +421,7 @@ def test_dicom_series_sorted_and_rescaled_to_int16(tmp_path: Path) -> None:
         assert src.info.spacing == pytest.approx((2.0, 0.5, 0.25))
         assert src.info.origin == pytest.approx((50.0 - 2.0 * 6, -20.0, -10.0))
         assert src.info.provenance["scaling"] == {"slope": [1.0], "intercept": [-1024.0]}
+        assert any("not DICOM and were skipped (e.g. README.txt)" in w for w in src.info.provenance["warnings"])
         check(src, stored.astype(np.int16) - 1024)
 
 

@@ -25,8 +25,8 @@ __all__ = ["Reader", "source_info", "finish", "pick_volume", "read_exact", "skip
 
 _SLAB = 32  # ingest's block thickness, also the step of the 64-bit value scan
 READ_CHUNK = 64 << 10  # bytes per read call, so that a decompressor's temporaries stay small beside a slab
-UNITS = {"mm": "millimeter", "millimeter": "millimeter", "um": "micrometer", "µm": "micrometer",
-          "\\u00B5m": "micrometer", "micron": "micrometer", "micrometer": "micrometer", "nm": "nanometer",
+UNITS = {"mm": "millimeter", "millimeter": "millimeter", "um": "micrometer", "\u00b5m": "micrometer",
+          "\u03bcm": "micrometer", "micron": "micrometer", "micrometer": "micrometer", "nm": "nanometer",
           "nanometer": "nanometer", "cm": "centimeter", "centimeter": "centimeter", "m": "meter", "meter": "meter"}
 
 
@@ -67,7 +67,8 @@ def source_info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spa
     )
 
 
-def finish(reader: Reader, spacing: Sequence[float] | None, origin: Sequence[float] | None) -> Reader:
+def finish(reader: Reader, spacing: Sequence[float] | None, origin: Sequence[float] | None,
+           units: str | None = None) -> Reader:
     """Checks what every format shares (empty axes, dtype), settles the stored dtype and applies user overrides."""
     info = reader.info
     name = info.provenance["path"]
@@ -79,13 +80,22 @@ def finish(reader: Reader, spacing: Sequence[float] | None, origin: Sequence[flo
         prov["converted_to"] = dtype.name
     if spacing is not None:
         spacing = _triple("spacing", spacing, positive=True)
+        # the user said what the file did not: its warnings about a missing spacing no longer apply
+        prov["warnings"] = [w for w in prov.get("warnings", []) if "spacing 1" not in w and "1 used" not in w]
+        if not prov["warnings"]:
+            del prov["warnings"]
     elif all(math.isfinite(s) and s > 0 for s in info.spacing):
         spacing = info.spacing
     else:  # headers with zero spacing exist; a unit step keeps the volume usable
         prov.setdefault("warnings", []).append(f"file spacing {list(info.spacing)} is not positive; 1 used instead")
         spacing = tuple(s if math.isfinite(s) and s > 0 else 1.0 for s in info.spacing)
     origin = _triple("origin", origin, positive=False) if origin is not None else info.origin
-    reader.info = dataclasses.replace(info, dtype=dtype, provenance=prov, spacing=spacing, origin=origin)
+    if units is not None:
+        if str(units) not in UNITS:
+            raise SourceError(f"units {units!r}: expected one of {', '.join(sorted(UNITS))}")
+        units = UNITS[str(units)]
+    reader.info = dataclasses.replace(info, dtype=dtype, provenance=prov, spacing=spacing, origin=origin,
+                                      units=units or info.units)
     return reader
 
 

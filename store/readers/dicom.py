@@ -92,6 +92,11 @@ class DicomReader(Reader):
         uid = max(sorted(by_series), key=lambda u: len(by_series[u]))
         slices = by_series[uid]
         provenance: dict[str, Any] = {"series_uid": uid, "warnings": []}
+        if path.is_dir():
+            others = [f.name for f in files_in(path, lambda f: True) if f not in set(files)]
+            if others:
+                provenance["warnings"].append(f"{len(others)} file(s) in {path.name} are not DICOM and were skipped "
+                                              f"(e.g. {', '.join(sorted(others)[:3])})")
         if len(by_series) > 1:
             provenance["other_series"] = {u: len(v) for u, v in by_series.items() if u != uid}
             provenance["warnings"].append(f"{len(by_series)} series in {path}; "

@@ -20,11 +20,49 @@ def open_tiff(path: Path, index: int | None) -> Reader:
     return _TiffFolderReader(path, index) if path.is_dir() else _TiffFileReader(path, index)
 
 
+_MICROMETERS = {"nanometer": 1e-3, "micrometer": 1.0, "millimeter": 1e3, "centimeter": 1e4, "meter": 1e6}
+
+
+def _ome_geometry(xml: str) -> dict[str, Any]:
+    """Spacing and units from OME-XML's Pixels element (PhysicalSize{X,Y,Z} and their units, µm by the OME
+    schema's default); a size it does not give is 1, and said."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(xml)
+    except ET.ParseError:
+        return {"warnings": ["OME-XML metadata does not parse; spacing 1 used"]}
+    pixels = next((el for el in root.iter() if el.tag.rsplit("}", 1)[-1] == "Pixels"), None)
+    if pixels is None:
+        return {}
+    sizes, units, missing = [], [], []
+    for axis in "ZYX":
+        value = pixels.get(f"PhysicalSize{axis}")
+        sizes.append(float(value) if value else 1.0)
+        units.append(UNITS.get(pixels.get(f"PhysicalSize{axis}Unit", "µm"), "micrometer") if value else None)
+        if not value:
+            missing.append(axis.lower())
+    given = {u for u in units if u is not None}
+    if not given:
+        return {"warnings": ["the OME-XML gives no physical sizes; spacing 1 used"]}
+    unit = given.pop() if len(given) == 1 else "micrometer"
+    if unit == "micrometer" and len({u for u in units if u}) > 1:  # axes in different units: all in µm
+        sizes = [v * _MICROMETERS[u] if u else v for v, u in zip(sizes, units)]
+    out: dict[str, Any] = {"spacing": tuple(sizes), "units": unit}
+    if missing:
+        out["warnings"] = [f"OME-XML gives no PhysicalSize for {', '.join(missing)}; 1 {unit} used there"]
+    return out
+
+
 def _tiff_geometry(tif: Any) -> dict[str, Any]:
-    """Spacing and units from ImageJ metadata (z `spacing`, y/x from the resolution tags); none otherwise."""
+    """Spacing and units from OME-XML, else ImageJ metadata (z `spacing`, y/x from the resolution tags); without
+    either, spacing 1 and a warning in the provenance (which `lodcast ingest` prints)."""
+    if tif.is_ome and tif.ome_metadata:
+        return _ome_geometry(tif.ome_metadata)
     meta = tif.imagej_metadata if tif.is_imagej else None
     if not meta:
-        return {}
+        return {"warnings": ["the TIFF gives no voxel size (neither OME-XML nor ImageJ metadata); spacing 1 used "
+                             "(set it with --spacing z,y,x)"]}
     xres, yres = tif.pages[0].resolution
     spacing = (float(meta.get("spacing", 1.0)), 1.0 / yres if yres > 0 else 1.0, 1.0 / xres if xres > 0 else 1.0)
     return {"spacing": spacing, "units": UNITS.get(str(meta.get("unit", "")), "millimeter")}
