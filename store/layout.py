@@ -84,7 +84,9 @@ class Layout:
         c = self.chunk_shape(level)[0]
         z = max(c, self.block_size << level)
         yx = max(c, SHARD_BLOCKS_YX * self.block_size)
-        return (z, yx, yx)
+        # no larger than the level (rounded up to whole chunks): a shard's index has an entry per chunk it could
+        # hold, so an unclipped level-4 shard of a small MR was 18 kB of index for 400 bytes of data
+        return tuple(min(s, ceil(n / c) * c) for s, n in zip((z, yx, yx), self.level_shape(level)))  # type: ignore[return-value]
 
     def shard_count(self, level: int) -> int:
         return int(np.prod([ceil(s / d) for s, d in zip(self.level_shape(level), self.shard_shape(level))]))
