@@ -299,3 +299,19 @@ def test_stores_without_a_manifest_still_open(tmp_path):
     g.attrs["lodcast"] = meta
     st = lodcast.open_store(dest)
     assert st.manifest is None and st.read_level(0).sum() == 16**3
+
+
+def test_shards_are_no_larger_than_their_level():
+    """A shard's index has an entry per chunk it could hold: a coarse level's shard is cut to the level's extent
+    (in whole chunks), so its files stay the size of its data, not of an index for 512 x 128 x 128 voxels."""
+    from math import ceil
+
+    from lodcast.store.layout import Layout
+
+    for shape, b in (((91, 109, 91), 16), ((300, 40, 1000), 16), ((7, 7, 7), 8), ((2000, 512, 512), 32)):
+        lay = Layout(shape, b)
+        for k in range(lay.n_levels):
+            c = lay.chunk_shape(k)[0]
+            sh, lv = lay.shard_shape(k), lay.level_shape(k)
+            assert all(s % c == 0 and s <= ceil(n / c) * c for s, n in zip(sh, lv)), (shape, k, sh, lv)
+            assert sh[0] == min(max(c, b << k), ceil(lv[0] / c) * c)  # the ingest buffer's depth where it fits
