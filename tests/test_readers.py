@@ -378,7 +378,7 @@ def test_tiff_hyperstack_and_refusals(tmp_path: Path) -> None:
 # --- DICOM -------------------------------------------------------------------------------------------------------
 
 def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826.0.1.1", slope: float = 1.0,
-                intercept: float = -1024.0, samples: int = 1) -> None:
+                intercept: float = -1024.0, samples: int = 1, syntax: str | None = None) -> None:
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = CTImageStorage
     meta.MediaStorageSOPInstanceUID = generate_uid()
@@ -397,6 +397,8 @@ def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826
     ds.ImagePositionPatient, ds.ImageOrientationPatient = [-10.0, -20.0, z], [1, 0, 0, 0, 1, 0]
     ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
     ds.PixelData = pixels.astype(np.uint16).tobytes()
+    if syntax is not None:  # compressed by pydicom's own encoders and its plugins (pyjpegls, pylibjpeg-openjpeg)
+        ds.compress(syntax)
     ds.save_as(path, enforce_file_format=True)
 
 
@@ -422,6 +424,19 @@ def test_dicom_series_sorted_and_rescaled_to_int16(tmp_path: Path) -> None:
         assert src.info.origin == pytest.approx((50.0 - 2.0 * 6, -20.0, -10.0))
         assert src.info.provenance["scaling"] == {"slope": [1.0], "intercept": [-1024.0]}
         assert any("not DICOM and were skipped (e.g. README.txt)" in w for w in src.info.provenance["warnings"])
+        check(src, stored.astype(np.int16) - 1024)
+
+
+@pytest.mark.parametrize("syntax", ["1.2.840.10008.1.2.5", "1.2.840.10008.1.2.4.80", "1.2.840.10008.1.2.4.90"],
+                         ids=["rle", "jpeg-ls", "jpeg2000"])
+def test_compressed_dicom_series(tmp_path: Path, syntax: str) -> None:
+    """RLE, JPEG-LS and JPEG 2000 (lossless) series, written by pydicom with its encoders, read back exactly."""
+    stored = RNG.integers(0, 4096, (5, 64, 48)).astype(np.uint16)  # openjpeg needs more than 16 x 12 pixels
+    (tmp_path / "ct").mkdir()
+    for k in range(5):
+        dicom_slice(tmp_path / "ct" / f"IM{k}", stored[k], 2.0 * k, syntax=syntax)
+    with open_source(tmp_path / "ct") as src:
+        assert src.info.dtype == np.int16
         check(src, stored.astype(np.int16) - 1024)
 
 
