@@ -8,5 +8,6 @@ PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || { echo "creating .venv (a virtual environment beside this script)" >&2; "$PY" -m venv .venv; }
 echo "installing lodcast and its dependencies (numpy, zarr, pyopencl with PoCL, FastAPI, ...) into .venv: the first run takes a minute or two, later ones a few seconds" >&2
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e .
+# setuptools warns at length that an editable install maps the folders of this checkout: it is meant to
+PYTHONWARNINGS="ignore:Editable installation" .venv/bin/python -m pip install -q -e .
 exec .venv/bin/lodcast demo "$@"

@@ -9,5 +9,6 @@ PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || { echo "creating .venv (a virtual environment beside this script)" >&2; "$PY" -m venv .venv; }
 echo "installing lodcast with its test dependencies (pytest, hypothesis, schemathesis, moto, ...) into .venv: the first run takes a minute or two, later ones a few seconds" >&2
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[test]"
+# setuptools warns at length that an editable install maps the folders of this checkout: it is meant to
+PYTHONWARNINGS="ignore:Editable installation" .venv/bin/python -m pip install -q -e ".[test]"
 exec .venv/bin/python -m pytest -n 2 "$@"
