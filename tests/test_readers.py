@@ -6,6 +6,7 @@ import json
 import random
 import tracemalloc
 from pathlib import Path
+from typing import Any
 
 import nibabel as nib
 import nrrd
@@ -438,6 +439,60 @@ def test_compressed_dicom_series(tmp_path: Path, syntax: str) -> None:
     with open_source(tmp_path / "ct") as src:
         assert src.info.dtype == np.int16
         check(src, stored.astype(np.int16) - 1024)
+
+
+def enhanced_ct(path: Path, frames: np.ndarray, z: list[float], syntax: str | None = None) -> None:
+    """An Enhanced CT Image Storage file: the frames' positions in per-frame functional groups, spacing,
+    orientation and rescaling in the shared group."""
+    from pydicom.sequence import Sequence
+    from pydicom.uid import EnhancedCTImageStorage
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = EnhancedCTImageStorage, generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID = EnhancedCTImageStorage, meta.MediaStorageSOPInstanceUID
+    ds.Modality, ds.SeriesInstanceUID, ds.StudyInstanceUID = "CT", generate_uid(), generate_uid()
+    ds.NumberOfFrames, (ds.Rows, ds.Columns) = len(frames), frames.shape[1:]
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+
+    def item(**kw: Any) -> Dataset:
+        d = Dataset()
+        for k, v in kw.items():
+            setattr(d, k, v)
+        return d
+
+    shared = item(PixelMeasuresSequence=Sequence([item(PixelSpacing=[0.5, 0.25], SliceThickness=2.0)]),
+                  PlaneOrientationSequence=Sequence([item(ImageOrientationPatient=[1, 0, 0, 0, 1, 0])]),
+                  PixelValueTransformationSequence=Sequence([item(RescaleSlope=1, RescaleIntercept=-1024,
+                                                                  RescaleType="HU")]))
+    ds.SharedFunctionalGroupsSequence = Sequence([shared])
+    ds.PerFrameFunctionalGroupsSequence = Sequence(
+        [item(PlanePositionSequence=Sequence([item(ImagePositionPatient=[-10.0, -20.0, zk])])) for zk in z])
+    ds.PixelData = frames.astype(np.uint16).tobytes()
+    if syntax is not None:
+        ds.compress(syntax)
+    ds.save_as(path, enforce_file_format=True)
+
+
+@pytest.mark.parametrize("syntax", [None, "1.2.840.10008.1.2.5"], ids=["native", "rle"])
+def test_enhanced_multiframe_dicom(tmp_path: Path, syntax: str | None) -> None:
+    """One multi-frame file whose frames lie in shuffled positions: sorted along the normal, spacing and origin
+    from the functional groups, rescaled to Hounsfield units; alone in a folder it reads the same."""
+    frames = RNG.integers(0, 4096, (6, 20, 16)).astype(np.uint16)
+    z = [8.0, 0.0, 4.0, 2.0, 10.0, 6.0]
+    (tmp_path / "mf").mkdir()
+    enhanced_ct(tmp_path / "mf" / "ct.dcm", frames, z, syntax)
+    want = frames[np.argsort(z)].astype(np.int16) - 1024
+    for where in (tmp_path / "mf" / "ct.dcm", tmp_path / "mf"):
+        with open_source(where) as src:
+            assert src.info.format == "dicom" and src.info.dtype == np.int16 and src.info.shape == (6, 20, 16)
+            assert src.info.spacing == pytest.approx((2.0, 0.5, 0.25))
+            assert src.info.origin == pytest.approx((0.0, -20.0, -10.0))
+            assert src.info.provenance["frames"] == 6
+            check(src, want)
 
 
 def test_dicom_float_rescale_several_series_and_uneven_spacing(tmp_path: Path) -> None:

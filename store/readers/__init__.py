@@ -25,7 +25,7 @@ WINDOW_BYTES = 16 << 20  # read window for Fortran-ordered files, whose z-slabs 
 # the format modules come after the names above: binary reads WINDOW_BYTES from this package when it reads
 from lodcast.store.readers.base import Reader, finish  # noqa: E402
 from lodcast.store.readers.binary import open_npy, open_nrrd, open_raw  # noqa: E402
-from lodcast.store.readers.dicom import DicomReader, is_dicom  # noqa: E402
+from lodcast.store.readers.dicom import is_dicom, open_dicom  # noqa: E402
 from lodcast.store.readers.nifti import NiftiReader  # noqa: E402
 from lodcast.store.readers.tiff import open_tiff  # noqa: E402
 from lodcast.store.readers.zarr_source import ZarrReader  # noqa: E402
@@ -58,7 +58,7 @@ def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[
     elif fmt == "nrrd":
         reader = open_nrrd(p, index, detached)
     else:
-        reader = {"npy": open_npy, "nifti": NiftiReader, "tiff": open_tiff, "dicom": DicomReader,
+        reader = {"npy": open_npy, "nifti": NiftiReader, "tiff": open_tiff, "dicom": open_dicom,
                   "zarr": ZarrReader}[fmt](p, index)
     try:
         return finish(reader, spacing, origin, units)

@@ -1,4 +1,4 @@
-"""DICOM series: a folder of single-frame grayscale files (or one file). Headers are read once, keeping only the few
+"""DICOM series: a folder of single-frame grayscale files (or one file; one multi-frame file: dicom_multiframe.py). Headers are read once, keeping only the few
 fields a series needs; the largest series is kept when several share a folder, slices are sorted along the normal of
 their orientation, RescaleSlope/Intercept are applied into the smallest type that holds every value, and pixels are
 decoded only for the slab asked for.
@@ -13,7 +13,35 @@ import numpy as np
 from lodcast.errors import SourceError
 from lodcast.store.readers.base import Reader, files_in, shape_text, source_info, tidy
 
-__all__ = ["DicomReader", "is_dicom"]
+__all__ = ["DicomReader", "open_dicom", "is_dicom", "rescaled_dtype"]
+
+
+def open_dicom(path: Path, index: int | None) -> Reader:
+    """A series of single-frame files (a folder, or one file), or one multi-frame (enhanced) file."""
+    from lodcast.store.readers.dicom_multiframe import MultiFrameDicomReader, frame_count
+
+    files = [path] if path.is_file() else files_in(path, is_dicom)
+    if files and is_dicom(files[0]) and frame_count(files[0]) > 1:
+        if len(files) > 1:
+            raise SourceError(f"{path} holds {len(files)} DICOM files and {files[0].name} has several frames; "
+                              f"ingest one multi-frame file at a time")
+        return MultiFrameDicomReader(files[0], index)
+    return DicomReader(path, index)
+
+
+def rescaled_dtype(pixel: np.dtype, bits_stored: int, rescale: list[tuple[float, float]]) -> np.dtype:
+    """The stored pixels' type when nothing is rescaled; else the smallest of int16/int32 that holds every
+    rescaled value when slopes and intercepts are whole (CT Hounsfield units), float32 otherwise."""
+    if all(r == (1.0, 0.0) for r in rescale):
+        return pixel
+    signed = pixel.kind == "i"
+    lo, hi = (-(2 ** (bits_stored - 1)), 2 ** (bits_stored - 1) - 1) if signed else (0, 2**bits_stored - 1)
+    if all(s.is_integer() and i.is_integer() for s, i in rescale):
+        ends = [v for s, i in rescale for v in (s * lo + i, s * hi + i)]
+        for candidate in (np.int16, np.int32):
+            if np.iinfo(candidate).min <= min(ends) and max(ends) <= np.iinfo(candidate).max:
+                return np.dtype(candidate)
+    return np.dtype(np.float32)
 
 
 def is_dicom(p: Path) -> bool:
@@ -109,7 +137,7 @@ class DicomReader(Reader):
         self.rereads_cheaply = all(layout is not None for layout in self._native_layout)
         self._rescale = [(float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0))
                          for _, ds in slices]
-        dtype = self._rescaled_dtype(pixel_dtype, int(slices[0][1].get("BitsStored", pixel_dtype.itemsize * 8)))
+        dtype = rescaled_dtype(pixel_dtype, int(slices[0][1].get("BitsStored", pixel_dtype.itemsize * 8)), self._rescale)
         if dtype != pixel_dtype:
             provenance["scaling"] = {"slope": sorted({s for s, _ in self._rescale}),
                                      "intercept": sorted({i for _, i in self._rescale})}
@@ -185,20 +213,6 @@ class DicomReader(Reader):
         # world (z, y, x) = index × spacing + origin holds only when rows run along +x, columns along +y
         aligned = np.allclose(orientation, [1, 0, 0, 0, 1, 0], atol=1e-4)
         return slices, dz, (ipp[2], ipp[1], ipp[0]) if aligned else (0.0, 0.0, 0.0)
-
-    def _rescaled_dtype(self, pixel: np.dtype, bits_stored: int) -> np.dtype:
-        """The stored pixels' type when nothing is rescaled; else the smallest of int16/int32 that holds every
-        rescaled value when slopes and intercepts are whole (CT Hounsfield units), float32 otherwise."""
-        if all(r == (1.0, 0.0) for r in self._rescale):
-            return pixel
-        signed = pixel.kind == "i"
-        lo, hi = (-(2 ** (bits_stored - 1)), 2 ** (bits_stored - 1) - 1) if signed else (0, 2**bits_stored - 1)
-        if all(s.is_integer() and i.is_integer() for s, i in self._rescale):
-            ends = [v for s, i in self._rescale for v in (s * lo + i, s * hi + i)]
-            for candidate in (np.int16, np.int32):
-                if np.iinfo(candidate).min <= min(ends) and max(ends) <= np.iinfo(candidate).max:
-                    return np.dtype(candidate)
-        return np.dtype(np.float32)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)

@@ -1,0 +1,139 @@
+"""Enhanced (multi-frame) DICOM: one file whose frames are the slices (Enhanced CT / MR Image Storage and other
+multi-frame grayscale objects). Geometry and rescaling come from the functional groups: the shared group, else
+each frame's own (PlanePositionSequence, PlaneOrientationSequence, PixelMeasuresSequence,
+PixelValueTransformationSequence), else the top-level attributes. Frames are sorted along the slice normal and
+decoded one at a time (pydicom's `pixel_array(..., index=i)`), so memory holds a slab, never the whole file.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lodcast.errors import SourceError
+from lodcast.store.readers.base import Reader, shape_text, source_info, tidy
+
+__all__ = ["MultiFrameDicomReader", "frame_count"]
+
+_PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1): np.int16,
+                 (32, 0): np.uint32, (32, 1): np.int32}
+
+
+def frame_count(f: Path) -> int:
+    """NumberOfFrames of a DICOM file (1 for single-frame files and unreadable ones)."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=["NumberOfFrames"])
+        return int(ds.get("NumberOfFrames", 1) or 1)
+    except Exception:  # pydicom raises many types on corrupt files: the series reader reports them
+        return 1
+
+
+def _group(ds: Any, k: int, sequence: str) -> Any:
+    """The first item of functional group `sequence` for frame k: per frame, else shared, else None."""
+    for groups, i in (("PerFrameFunctionalGroupsSequence", k), ("SharedFunctionalGroupsSequence", 0)):
+        seq = ds.get(groups)
+        inner = seq[i].get(sequence) if seq is not None and len(seq) > i else None
+        if inner:
+            return inner[0]
+    return None
+
+
+class MultiFrameDicomReader(Reader):
+    """The frames of one multi-frame DICOM file as a volume; RescaleSlope/Intercept applied into the smallest of
+    int16 / int32 that holds every value when they are whole, float32 otherwise."""
+
+    def __init__(self, path: Path, index: int | None) -> None:
+        import pydicom
+
+        from lodcast.store.readers.dicom import rescaled_dtype
+
+        if index is not None:
+            raise SourceError(f"index {index} given but DICOM file {path} is a single 3D volume")
+        try:
+            ds = pydicom.dcmread(path, defer_size=4096)
+        except Exception as exc:
+            raise SourceError(f"unreadable DICOM file {path}: {exc}") from None
+        self._path, n = path, int(ds.get("NumberOfFrames", 1) or 1)
+        if int(ds.get("SamplesPerPixel", 1)) != 1:
+            raise SourceError(f"non-scalar data: DICOM file {path} has {ds.SamplesPerPixel} samples per pixel; "
+                              f"expected one (grayscale)")
+        bits, signed = int(ds.get("BitsAllocated", 16)), int(ds.get("PixelRepresentation", 0))
+        if (bits, signed) not in _PIXEL_DTYPES:
+            raise SourceError(f"DICOM file {path} has {bits}-bit pixels; expected 8, 16 or 32")
+        pixel_dtype = np.dtype(_PIXEL_DTYPES[bits, signed])
+        provenance: dict[str, Any] = {"frames": n, "warnings": []}
+        positions, orientations, rescale = [], [], []
+        for k in range(n):
+            pos = _group(ds, k, "PlanePositionSequence")
+            ori = _group(ds, k, "PlaneOrientationSequence")
+            trans = _group(ds, k, "PixelValueTransformationSequence")
+            positions.append(None if pos is None or "ImagePositionPatient" not in pos else
+                             [float(v) for v in pos.ImagePositionPatient])
+            orientations.append([float(v) for v in (ori.ImageOrientationPatient if ori is not None and
+                                                    "ImageOrientationPatient" in ori else
+                                                    ds.get("ImageOrientationPatient", [1, 0, 0, 0, 1, 0]))])
+            src = trans if trans is not None else ds
+            rescale.append((float(src.get("RescaleSlope", 1) or 1), float(src.get("RescaleIntercept", 0) or 0)))
+        measures = _group(ds, 0, "PixelMeasuresSequence")
+        pixel_spacing = measures.get("PixelSpacing") if measures is not None else ds.get("PixelSpacing")
+        thickness = float((measures.get("SpacingBetweenSlices") or measures.get("SliceThickness") or 1.0)
+                          if measures is not None else ds.get("SliceThickness", 1.0) or 1.0)
+        if pixel_spacing is None:
+            provenance["warnings"].append("no PixelSpacing; y and x spacing taken as 1")
+            pixel_spacing = (1.0, 1.0)
+        orientation = np.array(orientations[0])
+        if any(not np.allclose(o, orientation, atol=1e-4) for o in orientations):
+            raise SourceError(f"DICOM file {path} mixes frame orientations; expected one volume")
+        origin = (0.0, 0.0, 0.0)
+        if None in positions:
+            provenance["warnings"].append(f"frames lack PlanePositionSequence; in file order, z spacing {thickness}")
+            order, dz = list(range(n)), thickness
+        else:
+            normal = np.cross(orientation[:3], orientation[3:])
+            depth = np.array([np.dot(p, normal) for p in positions])
+            order = [int(i) for i in np.argsort(depth, kind="stable")]
+            steps = np.diff(depth[order])
+            if len(steps) and steps.min() <= 1e-6 * max(1.0, abs(steps.max())):
+                raise SourceError(f"DICOM file {path} has two frames at one position ({depth[order][int(np.argmin(steps))]:g}"
+                                  f" mm); expected one frame per slice (a 4D series is not supported)")
+            dz = tidy(float(steps.mean())) if len(steps) else thickness
+            if len(steps) and np.abs(steps - dz).max() > 0.01 * dz:
+                provenance["warnings"].append(f"frame positions are not evenly spaced; z spacing {thickness} "
+                                              f"taken from the header")
+                dz = thickness
+            first = positions[order[0]]
+            if np.allclose(orientation, [1, 0, 0, 0, 1, 0], atol=1e-4):
+                origin = (first[2], first[1], first[0])
+            provenance["orientation"], provenance["first_position"] = orientation.tolist(), first
+        self._order, self._rescale, self._pixel_dtype = order, [rescale[i] for i in order], pixel_dtype
+        dtype = rescaled_dtype(pixel_dtype, int(ds.get("BitsStored", bits)), self._rescale)
+        if dtype != pixel_dtype:
+            provenance["scaling"] = {"slope": sorted({s for s, _ in rescale}),
+                                     "intercept": sorted({i for _, i in rescale})}
+        for key in ("Modality", "SeriesDescription"):
+            if key in ds:
+                provenance[key.lower()] = str(ds.get(key))
+        if not provenance["warnings"]:
+            del provenance["warnings"]
+        self.info = source_info((n, int(ds.Rows), int(ds.Columns)), dtype, "dicom", path,
+                                spacing=(dz, *map(float, pixel_spacing)), origin=origin, **provenance)
+        self.info.provenance["dtype"] = pixel_dtype.name
+
+    def _slab(self, z0: int, z1: int) -> np.ndarray:
+        from pydicom.pixels import pixel_array
+
+        out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
+        for k in range(z0, z1):
+            try:
+                pixels = pixel_array(self._path, index=self._order[k])
+            except Exception as exc:  # decoding errors come from pydicom and its image plugins
+                raise SourceError(f"cannot decode frame {self._order[k]} of DICOM file {self._path}: {exc}") from None
+            if pixels.shape != self.info.shape[1:]:
+                raise SourceError(f"frame {self._order[k]} of {self._path} is {shape_text(pixels.shape)}; expected "
+                                  f"{shape_text(self.info.shape[1:])}")
+            slope, intercept = self._rescale[k]
+            out[k - z0] = pixels if (slope, intercept) == (1.0, 0.0) else pixels * slope + intercept
+        return out
