@@ -30,7 +30,7 @@ from lodcast.environment import environment
 from lodcast.errors import SourceError, StoreExists
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
-from lodcast.store.ome import multiscales
+from lodcast.store.ome import multiscales, omero
 from lodcast.store.atomic import move_into_place, remove_stale
 from lodcast.store.remote import is_url
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
@@ -361,6 +361,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         bins = Bins.for_range(lo, hi, integer=dtype.kind in "iu", max_bins=n_bins)
         seg = min(segments, bins.count)
         blocks = group.create_group("blocks")
+        overall = np.zeros(bins.count)  # the volume's histogram (borders counted twice): the omero window
         hist_arr = blocks.create_array("hist", shape=lay.grid + (bins.count,), dtype=np.uint32,
                                        chunks=(1, gy, gx, bins.count), compressors=compressor, fill_value=0)
         starts_arr = blocks.create_array("hist_starts", shape=lay.grid + (seg + 1,), dtype=np.uint16,
@@ -393,6 +394,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                 hist, mn, mx = acc.pop(row)
                 starts, heights = simplify(hist.reshape(gy * gx, -1), seg)
                 hist_arr[row], starts_arr[row], heights_arr[row] = hist, starts.reshape(gy, gx, -1), heights.reshape(gy, gx, -1)
+                overall += hist.reshape(-1, bins.count).sum(axis=0)
                 stats["min_border"][row], stats["max_border"][row] = mn, mx
                 bar.update(1)
         for name, values in stats.items():
@@ -403,6 +405,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         reader.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
     attrs = _attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label, std_max)
+    attrs["ome"]["omero"] = omero(Path(source_label).name or "volume", overall, bins.edges, (lo, hi))
     attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
     group.attrs.update(attrs)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-__all__ = ["multiscales"]
+__all__ = ["multiscales", "omero"]
 
 _UNITS = {"mm": "millimeter", "um": "micrometer", "µm": "micrometer", "nm": "nanometer", "m": "meter", "cm": "centimeter"}
 
@@ -12,6 +12,28 @@ _UNITS = {"mm": "millimeter", "um": "micrometer", "µm": "micrometer", "nm": "na
 def ome_unit(units: str) -> str:
     """The OME (UDUNITS-2) name for a length unit, e.g. 'mm' -> 'millimeter'."""
     return _UNITS.get(units, units)
+
+
+def omero(label: str, hist: Sequence[int], edges: Sequence[float], value_range: Sequence[float],
+          clip: float = 0.005) -> dict:
+    """The `omero` rendering settings viewers start from: a greyscale window over the values between the 0.5th
+    and 99.5th percentiles of the volume's histogram, so that a CT or a 16-bit micrograph is not shown as black."""
+    import numpy as np
+
+    h = np.asarray(hist, dtype=np.float64)
+    e = np.asarray(edges, dtype=np.float64)
+    lo, hi = (float(v) for v in value_range)
+    start, end = lo, hi
+    if h.sum() > 0:
+        cdf = np.cumsum(h) / h.sum()
+        start = float(e[int(np.searchsorted(cdf, clip))])
+        end = float(e[min(len(e) - 1, int(np.searchsorted(cdf, 1.0 - clip)) + 1)])
+    if not end > start:
+        start, end = lo, hi if hi > lo else lo + 1.0
+    return {"channels": [{"label": label, "color": "FFFFFF", "active": True, "coefficient": 1.0, "family": "linear",
+                          "inverted": False,
+                          "window": {"min": lo, "max": hi, "start": max(lo, start), "end": min(hi, end)}}],
+            "rdefs": {"model": "greyscale", "defaultZ": 0, "defaultT": 0}}
 
 
 def multiscales(name: str, n_levels: int, spacing: Sequence[float], origin: Sequence[float], units: str) -> dict:

@@ -315,3 +315,19 @@ def test_shards_are_no_larger_than_their_level():
             sh, lv = lay.shard_shape(k), lay.level_shape(k)
             assert all(s % c == 0 and s <= ceil(n / c) * c for s, n in zip(sh, lv)), (shape, k, sh, lv)
             assert sh[0] == min(max(c, b << k), ceil(lv[0] / c) * c)  # the ingest buffer's depth where it fits
+
+
+def test_the_omero_window_spans_the_bulk_of_the_values(tmp_path: Path):
+    """OME viewers start from `omero`'s window: the 0.5th to 99.5th percentile of the volume's values, so a few
+    outliers (metal in a CT, hot pixels) do not leave the picture black."""
+    from ome_zarr_models.v05.image import Image
+
+    rng = np.random.default_rng(2)
+    vol = rng.uniform(100, 200, (40, 40, 40))
+    vol.flat[rng.choice(vol.size, 50, replace=False)] = rng.choice([0.0, 4000.0], 50)
+    st = lodcast.ingest(vol.astype(np.float32), tmp_path / "w.zarr")
+    Image.from_zarr(zarr.open_group(str(tmp_path / "w.zarr"), mode="r"))  # still valid OME-Zarr 0.5
+    win = st.attrs["ome"]["omero"]["channels"][0]["window"]
+    assert (win["min"], win["max"]) == (0.0, 4000.0)
+    width = (4000.0 - 0.0) / st.bins.count
+    assert 100 - 2 * width <= win["start"] <= 100 + 2 * width and 200 - 2 * width <= win["end"] <= 200 + 2 * width, win
