@@ -82,27 +82,39 @@ def check_tf(data: Any, loc: tuple) -> dict | str:
     return data
 
 
+def _stamp(path: Path) -> tuple[int, int] | None:
+    try:
+        st = (path / "zarr.json").stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
 class RenderEngine:
     """Per-process rendering: opened stores are kept (LRU) and every render goes through lodcast.render, whose
     renderer keeps its brick cache and compiled programs at module level, shared by all requests of the process."""
 
     def __init__(self, max_open: int = 32) -> None:
-        self._stores: OrderedDict[Path, Any] = OrderedDict()
+        self._stores: OrderedDict[Path, tuple[Any, Any]] = OrderedDict()  # path -> (zarr.json stamp, store)
         self._lock = threading.Lock()
         self._max_open = max_open
 
     def store(self, path: Path) -> Any:
+        """The opened store at `path`, reopened when the folder was replaced since (another process ingested it
+        again with --overwrite: a new folder renamed into place, so its root zarr.json has a new inode)."""
         from lodcast.store.store import open_store
 
         path = Path(path)
+        stamp = _stamp(path)
         with self._lock:
-            st = self._stores.get(path)
-            if st is not None:
+            hit = self._stores.get(path)
+            if hit is not None and hit[0] == stamp:
                 self._stores.move_to_end(path)
-                return st
+                return hit[1]
         st = open_store(path)
         with self._lock:
-            self._stores[path] = st
+            self._stores[path] = (stamp, st)
+            self._stores.move_to_end(path)
             while len(self._stores) > self._max_open:
                 self._stores.popitem(last=False)
         return st
