@@ -31,6 +31,7 @@ import lodcast
 from lodcast.errors import LodcastError, StoreCorrupt, StoreInvalid, StoreNotFound
 from lodcast.renderer.cost import CostError
 from lodcast.renderer.scene import Scene
+from lodcast.service.asgi import BodyLimit, offline_docs
 from lodcast.service.jobs import IngestJob, Job, animation_path, validate_job
 from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeSummary, errors
 from lodcast.service.records import status_json
@@ -69,10 +70,6 @@ class HttpError(Exception):
         self.status, self.detail, self.headers = status, detail, headers
 
 
-class _TooLarge(Exception):
-    pass
-
-
 def _store_error(volume_id: str, path: Any, exc: Exception) -> "HttpError":
     """A volume whose store cannot be used: 409 when its files changed since ingest (StoreCorrupt), else 404;
     the message names the volume and the array, not the server's paths."""
@@ -84,51 +81,6 @@ def _store_error(volume_id: str, path: Any, exc: Exception) -> "HttpError":
 
 class _ClientGone(Exception):
     """Raised between launch bands when the client of a render has disconnected."""
-
-
-class BodyLimit:
-    """ASGI middleware: request bodies above `limit` bytes are refused with 413 before a route parses them (by
-    Content-Length, and by counting for chunked bodies), except on the upload route, which streams to disk under
-    its own limit. A 200 MB JSON body took 2 GB of memory to parse and stalled every other request."""
-
-    def __init__(self, app: Any, limit: int) -> None:
-        self.app, self.limit = app, limit
-
-    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
-        if scope["type"] != "http" or scope["path"].endswith("/upload"):
-            return await self.app(scope, receive, send)
-        declared = dict(scope.get("headers") or []).get(b"content-length", b"")
-        if declared.isdigit() and int(declared) > self.limit:
-            return await self._refuse(send)
-        seen, over, refused = 0, False, False
-
-        async def counted() -> dict:
-            nonlocal seen, over
-            msg = await receive()
-            if msg["type"] == "http.request":
-                seen += len(msg.get("body", b""))
-                if seen > self.limit:
-                    over = True
-                    raise _TooLarge
-            return msg
-
-        async def guarded(msg: dict) -> None:  # the route turns a failed body read into its own error: send ours
-            nonlocal refused
-            if not over:
-                return await send(msg)
-            if not refused:
-                refused = True
-                await self._refuse(send)
-
-        try:
-            await self.app(scope, counted, guarded)
-        except _TooLarge:
-            if not refused:
-                await self._refuse(send)
-
-    async def _refuse(self, send: Any) -> None:
-        await JSONResponse({"detail": f"body: larger than the limit of {self.limit} bytes (LODCAST_MAX_BODY_BYTES)"},
-                           status_code=413)({"type": "http"}, None, send)
 
 
 class IngestRequest(BaseModel):
@@ -164,28 +116,6 @@ def _finite(obj: Any) -> Any:
         except (TypeError, ValueError):
             return str(obj)
     return obj
-
-
-def _offline_docs(app: FastAPI) -> None:
-    """Swagger UI at /docs from the swagger-ui-bundle package's files (FastAPI's default page loads them from a
-    CDN: a server without internet access showed a blank page)."""
-    import swagger_ui_bundle
-    from fastapi.openapi.docs import get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-    from fastapi.staticfiles import StaticFiles
-
-    app.mount("/docs/assets", StaticFiles(directory=swagger_ui_bundle.swagger_ui_path), name="docs-assets")
-
-    @app.get("/docs", include_in_schema=False)
-    def docs() -> Response:
-        return get_swagger_ui_html(openapi_url=app.openapi_url or "/openapi.json", title="lodcast API",
-                                   swagger_js_url="/docs/assets/swagger-ui-bundle.js",
-                                   swagger_css_url="/docs/assets/swagger-ui.css",
-                                   swagger_favicon_url="/docs/assets/favicon-32x32.png",
-                                   oauth2_redirect_url="/docs/oauth2-redirect")
-
-    @app.get("/docs/oauth2-redirect", include_in_schema=False)
-    def docs_redirect() -> Response:
-        return get_swagger_ui_oauth2_redirect_html()
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -224,7 +154,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         docs_url=None,
         redoc_url=None,
     )
-    _offline_docs(app)
+    offline_docs(app)
     app.state.settings = settings
     app.state.jobs = jobs
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
