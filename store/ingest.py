@@ -108,10 +108,11 @@ def ingest(
 #: ingest's working set per voxel of one block-slab (B slices of Y x X): the source slab, every level's shard-deep
 #: buffer (2·B·Y·X voxels together) and the standard deviations beside them, in the voxel type, plus float32
 #: temporaries per row of blocks. Peak RSS measured at B = 16, 48 slices: uint8 2048² 616 MB, uint16 1024² 306 MB,
-#: uint16 2048² 705 MB, float32 1536² 662 MB; this formula is 4-19 % above each, an upper estimate
+#: uint16 2048² 705 MB, float32 1536² 662 MB; this formula is 9-24 % above each, an upper estimate (a fresh CI
+#: install peaked at 342 MB for uint16 40 x 1024², 8 % under it)
 WORKING_BYTES_PER_ITEM, WORKING_BYTES_EXTRA = 3, 4
 #: the interpreter, NumPy, zarr, numcodecs and the thread pools, before any voxel
-BASE_BYTES = 170_000_000
+BASE_BYTES = 200_000_000
 
 
 def working_bytes(shape: tuple[int, ...], dtype: np.dtype, block_size: int) -> int:
