@@ -106,7 +106,7 @@ def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
     if hit is not None:
         return hit, True
     t = time.perf_counter()
-    data = np.ascontiguousarray(vol.read_level0(), dtype=np.float32)
+    data = np.ascontiguousarray(vol.read_level0(np.float32))
     if tuple(data.shape) != tuple(vol.shape):
         raise DeviceError(f"level 0 has shape {data.shape}, the store says {vol.shape}")
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=max(4, data.nbytes))

@@ -38,8 +38,10 @@ class VolumeView:
     def n_voxels(self) -> int:
         return int(np.prod(self.shape, dtype=np.int64))
 
-    def read_level0(self) -> np.ndarray:
-        return self._read0()
+    def read_level0(self, dtype: Any = None) -> np.ndarray:
+        """Level 0, in `dtype` when given (a store converts while it decodes, in its reading threads)."""
+        a = self._read0(dtype)
+        return a if dtype is None else np.asarray(a, dtype=dtype)
 
     def read_level0_region(self, region: tuple) -> np.ndarray:
         """Voxels `region` (slices, z-y-x) of level 0: a pass of a render in several reads only its part."""
@@ -132,7 +134,7 @@ def _from_array(a: np.ndarray, spacing=None, origin=None, block_size: int = 16) 
         min_border=mn,
         max_border=mx,
         key=None,
-        _read0=lambda: a,
+        _read0=lambda dtype=None: a,
         source=a,
     )
 
@@ -149,7 +151,7 @@ def _from_store(s: Any) -> VolumeView:
         min_border=np.asarray(st.min_border, dtype=np.float64),
         max_border=np.asarray(st.max_border, dtype=np.float64),
         key=("store", str(path), _stamp(path), getattr(s, "generation", None)) if path is not None else None,
-        _read0=lambda: s.read_level(0),
+        _read0=lambda dtype=None: s.read_region(0, ..., dtype),
         source=s,
     )
 

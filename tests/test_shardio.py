@@ -207,3 +207,17 @@ def test_work_units_tile_the_region_once(tmp_path):
         want = np.zeros_like(hits)
         want[tuple(slice(a // 8, -(-b // 8)) for a, b in zip(lo, hi))] = 1
         assert np.array_equal(hits, want)
+
+
+def test_a_region_read_in_another_dtype_is_the_cast_of_the_region(tmp_path):
+    """`read_region(..., dtype)` casts as it places each chunk: the same values as reading, then converting."""
+    import lodcast
+
+    rng = np.random.default_rng(8)
+    vol = rng.integers(-1024, 3000, (37, 50, 45)).astype(np.int16)
+    st = lodcast.ingest(vol, tmp_path / "v.zarr")
+    for region in (..., (slice(3, 30), slice(0, 50), slice(7, 41)), (slice(0, 1), slice(5, 6), slice(0, 45))):
+        want = vol[region if region is not ... else ()].astype(np.float32)
+        got = st.read_region(0, region, np.float32)
+        assert got.dtype == np.float32 and np.array_equal(got, want)
+    assert st.read_region(1, ..., np.float64).dtype == np.float64
