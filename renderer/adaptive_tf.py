@@ -114,11 +114,15 @@ def volume_peaks(vol: Any) -> tuple[float, float]:
 
 
 def resolved(scene: Any, vol: Any) -> Any:
-    """`scene` with its adaptive TFs (AdaptiveTF) replaced by the control points they take on `vol`."""
-    from lodcast.renderer.scene import AdaptiveTF, TransferFunction
+    """`scene` as it renders on `vol`: its adaptive TFs (AdaptiveTF) replaced by the control points they take on
+    it, and an orbit camera's named view by its azimuth and elevation (renderer/camera.py, resolve_view)."""
+    from lodcast.renderer.camera import resolve_view
+    from lodcast.renderer.scene import AdaptiveTF, OrbitCamera, TransferFunction
 
-    update = {key: TransferFunction.model_validate(adaptive_tf(tf.template, vol, tf.unit_distance))
-              for key in ("tf", "tf2") if isinstance(tf := getattr(scene, key), AdaptiveTF)}
+    update: dict[str, Any] = {key: TransferFunction.model_validate(adaptive_tf(tf.template, vol, tf.unit_distance))
+                              for key in ("tf", "tf2") if isinstance(tf := getattr(scene, key), AdaptiveTF)}
+    if isinstance(scene.camera, OrbitCamera) and scene.camera.view is not None:
+        update["camera"] = resolve_view(scene.camera, getattr(vol.source, "orientation", None))
     return scene.model_copy(update=update) if update else scene
 
 

@@ -12,9 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lodcast.renderer.scene import LookAtCamera, OrbitCamera
+from lodcast.renderer.scene import LookAtCamera, OrbitCamera, SceneError
 
-__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays", "ray_box", "rays_at"]
+__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays", "ray_box", "rays_at",
+           "resolve_view"]
 
 
 def box_world(shape_zyx, spacing_zyx, origin_zyx) -> tuple[np.ndarray, np.ndarray]:
@@ -63,6 +64,22 @@ def fit_distance(box_lo, box_hi, azimuth: float, elevation: float, fov: float = 
     # a corner at depth (c·f + d R) needs |c·r| <= t·aspect·depth and |c·u| <= t·depth
     need = np.maximum(np.abs(corners @ fr.r) / (t * aspect), np.abs(corners @ fr.u) / t) - corners @ fr.f
     return float(need.max() / radius)
+
+
+def resolve_view(cam: OrbitCamera, codes: list[str] | None) -> OrbitCamera:
+    """An orbit camera's named `view` as the azimuth and elevation that put the eye on that side of the patient,
+    given the patient direction of world +x, +y, +z (store/orientation.py)."""
+    if cam.view is None:
+        return cam
+    if codes is None:
+        raise SceneError(f"camera.view: {cam.view!r} needs the patient orientation, which this volume's source did "
+                         f"not give (DICOM, NIfTI and NRRD do); use azimuth/elevation")
+    from lodcast.store.orientation import view_direction
+
+    d = view_direction(cam.view, codes)
+    elevation = float(np.degrees(np.arcsin(np.clip(d[2], -1.0, 1.0))))
+    azimuth = float(np.degrees(np.arctan2(d[0], -d[1]))) if abs(d[2]) < 1.0 else 0.0
+    return cam.model_copy(update={"azimuth": azimuth, "elevation": elevation, "view": None})
 
 
 def look_at(eye, target, up, fov: float, width: int, height: int, orthographic: bool = False,

@@ -121,12 +121,17 @@ class OrbitCamera(_Model):
     azimuth: Finite = 0.0
     elevation: Annotated[float, Field(ge=-90.0, le=90.0)] = 0.0
     distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+    view: Literal["anterior", "posterior", "left", "right", "superior", "inferior"] | None = Field(
+        None, description="an anatomical view instead of azimuth/elevation: the eye on that side of the patient, "
+                          "whichever way the file stored the volume (needs a DICOM, NIfTI or NRRD source)")
     fov: Annotated[float, Field(gt=0.0, lt=180.0)] = 30.0
     projection: Literal["perspective", "orthographic"] = "perspective"
     view_height: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
 
     @model_validator(mode="after")
     def _ortho(self) -> "OrbitCamera":
+        if self.view is not None and {"azimuth", "elevation"} & self.model_fields_set:
+            raise ValueError("camera.view: give either a view or azimuth/elevation, not both")
         if self.projection == "orthographic" and self.view_height is None:
             raise ValueError("camera.view_height: required with projection 'orthographic'")
         return self

@@ -62,6 +62,8 @@ class VolumeSummary(_Out):
     spacing: list[float] = Field(description="z, y, x, world units per voxel")
     origin: list[float] = Field(description="world position z, y, x of voxel (0, 0, 0)'s centre")
     units: str | None
+    orientation: list[str] | None = Field(None, description='the patient direction of world +x, +y, +z, e.g. '
+                                                           '["L", "P", "S"]; null when the source gave none')
     block_size: int
     levels: list[Level]
     value_range: list[float | None] = Field(description="min, max of the finite voxels (null when none is)")

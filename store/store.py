@@ -209,6 +209,14 @@ class Store:
             return None
         return sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
 
+    @cached_property
+    def orientation(self) -> list[str] | None:
+        """The patient direction of world +x, +y, +z (e.g. ["L", "P", "S"]), from the source's geometry; None
+        when the source gave none (store/orientation.py)."""
+        from lodcast.store.orientation import axis_codes
+
+        return axis_codes(self.attrs.get("source") or {})
+
     def summary(self) -> dict[str, Any]:
         """What `lodcast info` prints."""
         lay = self.layout
@@ -231,6 +239,7 @@ class Store:
             "spacing": list(self.spacing),
             "origin": list(self.origin),
             "units": self.units,
+            "orientation": self.orientation,
             "block_size": self.block_size,
             "levels": levels,
             "value_range": list(self.value_range),
