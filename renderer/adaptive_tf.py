@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ADAPTIVE", "alpha_histogram", "tissue_peaks", "volume_peaks", "adaptive_tf", "resolved"]
+from lodcast.renderer.cache import ByteLru
+
+__all__ = ["ADAPTIVE", "alpha_histogram", "tissue_peaks", "volume_peaks", "adaptive_tf", "resolve_tfs"]
 
 ALPHA = 4.0  # the thesis' figures emphasise minor coherent features from α ≈ 2..8; noise grows with α
 BINS = 256
@@ -39,15 +41,22 @@ ADAPTIVE: dict[str, dict[str, Any]] = {
 }
 
 
-def alpha_histogram(hist: np.ndarray, alpha: float = ALPHA) -> np.ndarray:
-    """Eq. 3.4 over per-block histograms (…, bins): each block's histogram normalised to a distribution first, so
-    that edge blocks with fewer voxels weigh as much as whole ones."""
+def _distributions(hist: np.ndarray) -> np.ndarray:
+    """Per-block histograms (…, bins) as distributions (N, bins), empty blocks left out: edge blocks with fewer
+    voxels weigh as much as whole ones."""
     h = np.asarray(hist, dtype=np.float64).reshape(-1, np.shape(hist)[-1])
     total = h.sum(axis=1, keepdims=True)
-    h = h[total[:, 0] > 0] / total[total[:, 0] > 0]
-    if not len(h):
-        return np.zeros(np.shape(hist)[-1])
-    return (h**alpha).sum(axis=0) ** (1.0 / alpha)
+    keep = total[:, 0] > 0
+    return h[keep] / total[keep]
+
+
+def _alpha(dist: np.ndarray, alpha: float) -> np.ndarray:
+    return (dist**alpha).sum(axis=0) ** (1.0 / alpha)
+
+
+def alpha_histogram(hist: np.ndarray, alpha: float = ALPHA) -> np.ndarray:
+    """Eq. 3.4 over per-block histograms (…, bins), each normalised to a distribution first."""
+    return _alpha(_distributions(hist), alpha)
 
 
 def _block_histograms(a: np.ndarray, edges: np.ndarray, block: int = 16) -> np.ndarray:
@@ -75,11 +84,12 @@ def _histograms(vol: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def tissue_peaks(hist: np.ndarray, centres: np.ndarray) -> tuple[float, float]:
     """(background, tissue): the most common value, and the α-histogram peak above it with the most weight."""
-    plain = alpha_histogram(hist, 1.0)
+    dist = _distributions(hist)  # once: for a whole store it is blocks x bins float64
+    plain = dist.sum(axis=0)
     if not plain.any():
         return float(centres[0]), float(centres[-1])
     bg = int(np.argmax(plain))
-    ha = alpha_histogram(hist)
+    ha = _alpha(dist, ALPHA)
     # in decades, smoothed over a few bins: peaks are shapes, not single noisy bins
     log = np.log10(ha + 1e-9 * ha.max())
     kernel = np.exp(-0.5 * (np.arange(-4, 5) / 1.5) ** 2)
@@ -98,32 +108,25 @@ def tissue_peaks(hist: np.ndarray, centres: np.ndarray) -> tuple[float, float]:
     return float(centres[bg]), float(centres[tissue])
 
 
-_PEAKS: dict[Any, tuple[float, float]] = {}  # by store identity: a turntable or a TF sweep finds them once
+_PEAKS = ByteLru(64)  # by store identity (one unit each): a turntable or a TF sweep finds them once
 
 
 def volume_peaks(vol: Any) -> tuple[float, float]:
     """`tissue_peaks` of a VolumeView, kept per store."""
-    if vol.key is not None and vol.key in _PEAKS:
-        return _PEAKS[vol.key]
-    peaks = tissue_peaks(*_histograms(vol))
-    if vol.key is not None:
-        if len(_PEAKS) >= 64:
-            _PEAKS.pop(next(iter(_PEAKS)))
-        _PEAKS[vol.key] = peaks
+    peaks = _PEAKS.get(vol.key) if vol.key is not None else None
+    if peaks is None:
+        peaks = tissue_peaks(*_histograms(vol))
+        if vol.key is not None:
+            _PEAKS.put(vol.key, peaks, 1)
     return peaks
 
 
-def resolved(scene: Any, vol: Any) -> Any:
-    """`scene` as it renders on `vol`: its adaptive TFs (AdaptiveTF) replaced by the control points they take on
-    it, and an orbit camera's named view by its azimuth and elevation (renderer/camera.py, resolve_view)."""
-    from lodcast.renderer.camera import resolve_view
-    from lodcast.renderer.scene import AdaptiveTF, OrbitCamera, TransferFunction
+def resolve_tfs(scene: Any, vol: Any) -> dict[str, Any]:
+    """The scene fields to replace for `vol`: each adaptive TF (AdaptiveTF) by the control points it takes on it."""
+    from lodcast.renderer.scene import AdaptiveTF, TransferFunction
 
-    update: dict[str, Any] = {key: TransferFunction.model_validate(adaptive_tf(tf.template, vol, tf.unit_distance))
-                              for key in ("tf", "tf2") if isinstance(tf := getattr(scene, key), AdaptiveTF)}
-    if isinstance(scene.camera, OrbitCamera) and scene.camera.view is not None:
-        update["camera"] = resolve_view(scene.camera, getattr(vol.source, "orientation", None))
-    return scene.model_copy(update=update) if update else scene
+    return {key: TransferFunction.model_validate(adaptive_tf(tf.template, vol, tf.unit_distance))
+            for key in ("tf", "tf2") if isinstance(tf := getattr(scene, key), AdaptiveTF)}
 
 
 def adaptive_tf(name: str, vol: Any, unit_distance: float | None = None) -> dict[str, Any]:

@@ -31,7 +31,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.environment import environment
-from lodcast.renderer.adaptive_tf import resolved
+from lodcast.renderer.adaptive_tf import resolve_tfs
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
@@ -45,7 +45,7 @@ from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
 from lodcast.opencl import device_info, get_context, get_program
-from lodcast.renderer.scene import QualityBudget, QualityReduction, Scene, SceneError
+from lodcast.renderer.scene import OrbitCamera, QualityBudget, QualityReduction, Scene, SceneError
 from lodcast.renderer.structs import STATE_FLOATS
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.volume import VolumeView, as_volume
@@ -277,11 +277,20 @@ def _cost(scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float, sample_li
     return estimated
 
 
+def _resolved(scene: Scene, vol: VolumeView) -> Scene:
+    """`scene` as it renders on `vol`: adaptive TFs as the control points they take on it, an orbit camera's
+    named view as its azimuth and elevation."""
+    update = resolve_tfs(scene, vol)
+    if isinstance(scene.camera, OrbitCamera) and scene.camera.view is not None:
+        update["camera"] = cam.resolve_view(scene.camera, getattr(vol.source, "orientation", None))
+    return scene.model_copy(update=update) if update else scene
+
+
 def check_cost(store: Any, scene: Any, sample_limit: int | None = None) -> int:
     """The samples `scene` of `store` would take (renderer/cost.py), before anything is loaded or built; raises
     CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES or 2·10⁹)."""
     vol = as_volume(store)
-    scene = resolved(Scene.parse(scene), vol)
+    scene = _resolved(Scene.parse(scene), vol)
     _, fr, kbox, step_world = _geometry(vol, scene)
     return _cost(scene, fr, kbox, step_world, sample_limit)
 
@@ -291,7 +300,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     """Everything a launch needs. `sample_limit`: the most samples the render may take (estimated before it starts:
     renderer/cost.py), default LODCAST_MAX_SAMPLES or 2·10⁹; above it CostError (a SceneError) names the field."""
     vol = as_volume(store, spacing=spacing, origin=origin)
-    scene = resolved(Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
+    scene = _resolved(Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
     box, fr, kbox, step_world = _geometry(vol, scene)
     estimated = _cost(scene, fr, kbox, step_world, sample_limit)
     unit = unit_distance(scene.tf, vol.spacing)

@@ -23,6 +23,7 @@ from pydantic import (
 )
 
 from lodcast.errors import LodcastError
+from lodcast.renderer.adaptive_tf import ADAPTIVE
 from lodcast.renderer.presets import preset
 
 __all__ = [
@@ -272,16 +273,12 @@ class AdaptiveTF(_Model):
     """A TF template placed on the volume's α-histogram peaks when the renderer knows the volume
     (renderer/adaptive_tf.py); given as `"tf": "auto"` (or another adaptive preset's name)."""
 
-    template: Literal["auto", "mr-soft"]
+    template: Literal[tuple(ADAPTIVE)]  # type: ignore[valid-type]
     unit_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
 
 
 def _named_tf(v: Any) -> Any:
     """A preset name stands for its TF (renderer/presets.py); an adaptive one for its template."""
-    from lodcast.renderer.adaptive_tf import ADAPTIVE
-
-    if isinstance(v, str) and v in ADAPTIVE:
-        return {"template": v}
     if isinstance(v, str):
         try:
             return preset(v)
