@@ -13,7 +13,8 @@ import numpy as np
 from lodcast.errors import SourceError
 from lodcast.store.readers.base import Reader, files_in, shape_text, source_info, tidy
 
-__all__ = ["DicomReader", "open_dicom", "is_dicom", "rescaled_dtype"]
+__all__ = ["DicomReader", "open_dicom", "is_dicom", "rescaled_dtype", "coincident", "z_spacing", "patient_origin",
+           "PIXEL_DTYPES"]
 
 
 def open_dicom(path: Path, index: int | None) -> Reader:
@@ -27,6 +28,36 @@ def open_dicom(path: Path, index: int | None) -> Reader:
                               f"ingest one multi-frame file at a time")
         return MultiFrameDicomReader(files[0], index)
     return DicomReader(path, index)
+
+
+def coincident(depth: Any) -> int | None:
+    """The index of the first of two slices at one position along the normal (`depth` ascending), or None."""
+    steps = np.diff(depth)
+    if len(steps) and steps.min() <= 1e-6 * max(1.0, abs(steps.max())):
+        return int(np.argmin(steps))
+    return None
+
+
+def z_spacing(depth: Any, thickness: float, provenance: dict[str, Any], what: str) -> float:
+    """The mean step between the (ascending) slice positions; the header's `thickness`, with a warning, when the
+    steps differ by more than 1 %."""
+    steps = np.diff(depth)
+    dz = tidy(float(steps.mean())) if len(steps) else thickness
+    if len(steps) and np.abs(steps - dz).max() > 0.01 * dz:
+        provenance["warnings"].append(f"{what} positions are not evenly spaced ({steps.min():g} to "
+                                      f"{steps.max():g} mm); z spacing {thickness} taken from the header")
+        dz = thickness
+    return dz
+
+
+def patient_origin(orientation: Any, first: list[float], provenance: dict[str, Any]) -> tuple[float, float, float]:
+    """The store's origin (z, y, x): the first slice's position where world (z, y, x) = index × spacing + origin
+    holds, i.e. rows run along +x and columns along +y; else 0. Orientation and position go into `provenance`."""
+    orientation = np.asarray(orientation, dtype=np.float64)
+    provenance["orientation"], provenance["first_position"] = orientation.tolist(), list(first)
+    if np.allclose(orientation, [1, 0, 0, 0, 1, 0], atol=1e-4):
+        return (first[2], first[1], first[0])
+    return (0.0, 0.0, 0.0)
 
 
 def rescaled_dtype(pixel: np.dtype, bits_stored: int, rescale: list[tuple[float, float]]) -> np.dtype:
@@ -52,7 +83,7 @@ def is_dicom(p: Path) -> bool:
         return False
 
 
-_PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1): np.int16,
+PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1): np.int16,
                  (32, 0): np.uint32, (32, 1): np.int32}
 
 
@@ -174,9 +205,9 @@ class DicomReader(Reader):
             if image != first:
                 raise SourceError(f"DICOM series has inconsistent images: {slices[0][0].name} is {first[0]}x{first[1]} "
                                   f"of {first[2]} bits but {f.name} is {image[0]}x{image[1]} of {image[2]} bits")
-        if (first[2], first[3]) not in _PIXEL_DTYPES:
+        if (first[2], first[3]) not in PIXEL_DTYPES:
             raise SourceError(f"DICOM file {slices[0][0]} has {first[2]}-bit pixels; expected 8, 16 or 32")
-        return first[0], first[1], np.dtype(_PIXEL_DTYPES[first[2], first[3]])
+        return first[0], first[1], np.dtype(PIXEL_DTYPES[first[2], first[3]])
 
     @staticmethod
     def _sort(slices: list[tuple[Path, dict[str, Any]]], provenance: dict[str, Any]
@@ -197,22 +228,13 @@ class DicomReader(Reader):
                          for f, ds in slices), key=lambda s: s[:2])
         slices = [(f, ds) for _, _, f, ds in placed]
         depth = [d for d, *_ in placed]
-        steps = np.diff(depth)
-        if len(steps) and steps.min() <= 1e-6 * max(1.0, abs(steps.max())):
-            where = int(np.argmin(steps))
+        where = coincident(depth)
+        if where is not None:
             raise SourceError(f"DICOM series has two slices at position {depth[where]:g} mm ({slices[where][0].name}, "
                               f"{slices[where + 1][0].name}); expected one slice per position")
-        dz = tidy(float(steps.mean())) if len(steps) else thickness
-        if len(steps) and np.abs(steps - dz).max() > 0.01 * dz:
-            provenance["warnings"].append(f"slice positions are not evenly spaced ({steps.min():g} to "
-                                          f"{steps.max():g} mm); z spacing {thickness} taken from the header")
-            dz = thickness
+        dz = z_spacing(depth, thickness, provenance, "slice")
         ipp = [float(v) for v in slices[0][1]["ImagePositionPatient"]]
-        provenance["orientation"] = orientation.tolist()
-        provenance["first_position"] = ipp
-        # world (z, y, x) = index × spacing + origin holds only when rows run along +x, columns along +y
-        aligned = np.allclose(orientation, [1, 0, 0, 0, 1, 0], atol=1e-4)
-        return slices, dz, (ipp[2], ipp[1], ipp[0]) if aligned else (0.0, 0.0, 0.0)
+        return slices, dz, patient_origin(orientation, ipp, provenance)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)

@@ -12,13 +12,9 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import Reader, shape_text, source_info, tidy
+from lodcast.store.readers.base import Reader, shape_text, source_info
 
 __all__ = ["MultiFrameDicomReader", "frame_count"]
-
-_PIXEL_DTYPES = {(8, 0): np.uint8, (8, 1): np.int8, (16, 0): np.uint16, (16, 1): np.int16,
-                 (32, 0): np.uint32, (32, 1): np.int32}
-
 
 def frame_count(f: Path) -> int:
     """NumberOfFrames of a DICOM file (1 for single-frame files and unreadable ones)."""
@@ -48,7 +44,7 @@ class MultiFrameDicomReader(Reader):
     def __init__(self, path: Path, index: int | None) -> None:
         import pydicom
 
-        from lodcast.store.readers.dicom import rescaled_dtype
+        from lodcast.store.readers.dicom import PIXEL_DTYPES, coincident, patient_origin, rescaled_dtype, z_spacing
 
         if index is not None:
             raise SourceError(f"index {index} given but DICOM file {path} is a single 3D volume")
@@ -61,9 +57,9 @@ class MultiFrameDicomReader(Reader):
             raise SourceError(f"non-scalar data: DICOM file {path} has {ds.SamplesPerPixel} samples per pixel; "
                               f"expected one (grayscale)")
         bits, signed = int(ds.get("BitsAllocated", 16)), int(ds.get("PixelRepresentation", 0))
-        if (bits, signed) not in _PIXEL_DTYPES:
+        if (bits, signed) not in PIXEL_DTYPES:
             raise SourceError(f"DICOM file {path} has {bits}-bit pixels; expected 8, 16 or 32")
-        pixel_dtype = np.dtype(_PIXEL_DTYPES[bits, signed])
+        pixel_dtype = np.dtype(PIXEL_DTYPES[bits, signed])
         provenance: dict[str, Any] = {"frames": n, "warnings": []}
         positions, orientations, rescale = [], [], []
         for k in range(n):
@@ -95,19 +91,12 @@ class MultiFrameDicomReader(Reader):
             normal = np.cross(orientation[:3], orientation[3:])
             depth = np.array([np.dot(p, normal) for p in positions])
             order = [int(i) for i in np.argsort(depth, kind="stable")]
-            steps = np.diff(depth[order])
-            if len(steps) and steps.min() <= 1e-6 * max(1.0, abs(steps.max())):
-                raise SourceError(f"DICOM file {path} has two frames at one position ({depth[order][int(np.argmin(steps))]:g}"
-                                  f" mm); expected one frame per slice (a 4D series is not supported)")
-            dz = tidy(float(steps.mean())) if len(steps) else thickness
-            if len(steps) and np.abs(steps - dz).max() > 0.01 * dz:
-                provenance["warnings"].append(f"frame positions are not evenly spaced; z spacing {thickness} "
-                                              f"taken from the header")
-                dz = thickness
-            first = positions[order[0]]
-            if np.allclose(orientation, [1, 0, 0, 0, 1, 0], atol=1e-4):
-                origin = (first[2], first[1], first[0])
-            provenance["orientation"], provenance["first_position"] = orientation.tolist(), first
+            where = coincident(depth[order])
+            if where is not None:
+                raise SourceError(f"DICOM file {path} has two frames at one position ({depth[order][where]:g} mm); "
+                                  f"expected one frame per slice (a 4D series is not supported)")
+            dz = z_spacing(depth[order], thickness, provenance, "frame")
+            origin = patient_origin(orientation, positions[order[0]], provenance)
         self._order, self._rescale, self._pixel_dtype = order, [rescale[i] for i in order], pixel_dtype
         dtype = rescaled_dtype(pixel_dtype, int(ds.get("BitsStored", bits)), self._rescale)
         if dtype != pixel_dtype:
