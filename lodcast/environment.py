@@ -69,9 +69,10 @@ def _number(name: str, default: float, *, positive: bool = True, optional: bool 
     return value
 
 
-def _count(name: str, default: float) -> int:
-    value = _number(name, default)
-    assert value is not None
+def _count(name: str, default: float, optional: bool = False) -> int | None:
+    value = _number(name, default, optional=optional)
+    if value is None:
+        return None
     if value < 1 or (value != int(value) and value < 1e6):  # "2e9" is a count; "1.5" threads is not
         raise EnvironmentInvalid(f"{name}: must be a whole number of at least 1, got {os.environ.get(name)!r}")
     return int(value)
@@ -89,15 +90,14 @@ def _cache_dir() -> Path:
 def environment() -> Environment:
     """The variables as they are now (cheap: a few dictionary lookups)."""
     budget = _number("LODCAST_DEVICE_BUDGET_MB", 0, optional=True)
-    voxels = _number("LODCAST_MAX_VOXELS", 0, optional=True)
     ingest_mb = _number("LODCAST_MAX_INGEST_MEMORY_MB", 0, optional=True)
     return Environment(
         brick_cache_bytes=int(_number("LODCAST_BRICK_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
         device_cache_bytes=int(_number("LODCAST_DEVICE_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
         device_budget_bytes=None if budget is None else int(budget * 1e6),
-        read_threads=_count("LODCAST_READ_THREADS", 8),
-        max_samples=_count("LODCAST_MAX_SAMPLES", 2e9),
-        max_voxels=None if voxels is None else _count("LODCAST_MAX_VOXELS", 0),
+        read_threads=_count("LODCAST_READ_THREADS", 8),  # type: ignore[arg-type]
+        max_samples=_count("LODCAST_MAX_SAMPLES", 2e9),  # type: ignore[arg-type]
+        max_voxels=_count("LODCAST_MAX_VOXELS", 0, optional=True),
         max_ingest_bytes=None if ingest_mb is None else int(ingest_mb * 1e6),
         lossless_zeta=float(_number("LODCAST_LOSSLESS_ZETA", 0.5, positive=False)),  # type: ignore[arg-type]
         significance_numpy=os.environ.get("LODCAST_SIGNIFICANCE_NUMPY", "").strip().lower() not in ("", "0", "false", "no"),

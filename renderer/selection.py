@@ -50,7 +50,7 @@ lossless … 100:1: Spearman 0.94 against the measured mean ΔE, within a factor
 5:1 the measured error is mostly the step's own sampling error, which the selection cannot see). It is an
 estimate of DESIGN.md's measured ΔE, not a bound. TF-empty blocks are excluded (they show nothing either way), as
 are blocks outside the crop. "lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at
-most LOSSLESS_ZETA.
+most LODCAST_LOSSLESS_ZETA (`environment().lossless_zeta`, 0.5 unless set).
 """
 from __future__ import annotations
 
@@ -70,10 +70,6 @@ BYTES_PER_SAMPLE = 4
 MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
 
 METHODS = ("tf", "tf_full_hist", "l2", "uniform")
-#: "lossless" with per-level significance: every block at the coarsest level whose ζ (RMS unit-slab ΔE per voxel),
-#: scaled to the image as the predicted ΔE is (IMAGE_GAIN / ā), stays within this of level 0
-#: (LODCAST_LOSSLESS_ZETA overrides it for experiments: lodcast.environment)
-LOSSLESS_ZETA = 0.5
 #: image-space calibration of the predicted ΔE (see module doc): fitted on the chest CT (ct-bone, ct-skin,
 #: ct-skin-bone, two views, lossless ... 100:1, geometric mean of measured / predicted = 1): mean ΔE ≈
 #: IMAGE_GAIN · RMS(ζ) / ā, ā the opacity-weighted mean opacity of the loaded voxels (translucent structures add
@@ -386,7 +382,8 @@ def select_from_meta(
         refine = loaded & (drive > 0) & (maxlev < L - 1)
         base_samples = int(loaded.sum()) * int(nsamp[L - 1])
         if kind == "lossless" and per_level:
-            # the coarsest level each block shows within LOSSLESS_ZETA of its level-0 colours
+            # the coarsest level each block shows within ζ of its level-0 colours (ζ · IMAGE_GAIN / ā, the predicted
+            # ΔE, at most environment().lossless_zeta)
             # (levels finer than a block's max level count as fine: they are not allowed anyway)
             gain = _image_gain(opac, meta.count, loaded)
             ok = (zeta_tab * gain <= environment().lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])

@@ -296,7 +296,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if not dtype:
                 raise RequestInvalid.one(("query", "dtype"), "raw uploads need a dtype")
             options.update(shape=dims, dtype=dtype)
-        uploads = settings.root / ".uploads"
+        uploads = settings.uploads_dir
         uploads.mkdir(parents=True, exist_ok=True)
         ext = {"nifti": "nii", "tiff": "tif"}.get(format, format)
         dest = uploads / f"{uuid.uuid4().hex}.{ext}"

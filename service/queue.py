@@ -119,14 +119,11 @@ class JobQueue:
             self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ACTIVE})
         return self.get(job_id)
 
-    def uploads_dir(self) -> Path:
-        return self.settings.root / ".uploads"
-
     def sweep_uploads(self) -> list[str]:
         """Delete uploaded files that no queued or running job will read (a job cancelled while running, a crash
         between an upload's last byte and its job's record) once they are `upload_grace_s` old: an upload still
         arriving is younger, its file being written."""
-        folder = self.uploads_dir()
+        folder = self.settings.uploads_dir
         if not folder.is_dir():
             return []
         wanted = {json.loads(r["spec"] or "{}").get("source") for r in self.records.list(limit=100_000, states=ACTIVE)
@@ -241,7 +238,7 @@ class JobQueue:
     def _unplaced(self, message: str) -> str:
         """A job's error as its client may read it: paths relative to the store root and the import roots (an
         upload's file is "the upload"), never where they lie on the server."""
-        message = re.sub(re.escape(str(self.uploads_dir())) + r"/[0-9a-f]{32}\.\w+", "the upload", message)
+        message = re.sub(re.escape(str(self.settings.uploads_dir)) + r"/[0-9a-f]{32}\.\w+", "the upload", message)
         for base in (*self.settings.import_roots, self.settings.root):
             message = message.replace(str(base) + os.sep, "").replace(str(base), ".")
         return message

@@ -111,6 +111,11 @@ class Settings(BaseSettings):
         return self.root / ".jobs"
 
     @property
+    def uploads_dir(self) -> Path:
+        """Uploaded files waiting for their ingest job."""
+        return self.root / ".uploads"
+
+    @property
     def is_redis(self) -> bool:
         return bool(self.queue) and str(self.queue).startswith(("redis://", "rediss://", "unix://"))
 

@@ -72,7 +72,7 @@ def test_fig_3_4_ordering_on_the_chest_ct_with_the_thesis_block_size(ct16):
 
 def test_virtually_lossless_is_virtually_exact(ct16):
     """Virtually lossless: every block the TF can see, at the coarsest level whose per-voxel significance stays
-    predicted within 0.5 ΔE of level 0 (selection.LOSSLESS_ZETA), and nothing else. A block left out has a
+    predicted within 0.5 ΔE of level 0 (LODCAST_LOSSLESS_ZETA's default), and nothing else. A block left out has a
     border-inclusive range where the TF is zero, so its neighbours' facing voxels are transparent too and nothing
     interpolates across. On the chest CT with the bone preset, measured: 5.1:1 at 16³ blocks, mean ΔE 0.23 against
     full resolution (every visible block at level 0 gave 4.3:1 and the same image to 1e-4)."""

@@ -204,7 +204,7 @@ class BackendMixin:
         job of one cancelled while it ran, an upload whose job was never recorded)."""
         jq = self.local(root, queue)
         jq.settings.upload_grace_s = 30.0
-        up = jq.uploads_dir()
+        up = jq.settings.uploads_dir
         up.mkdir()
         files = {name: up / f"{name}.npy" for name in ("queued", "running_cancelled", "never_submitted")}
         for p in files.values():
