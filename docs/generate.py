@@ -23,16 +23,12 @@ def _type(annotation: Any) -> str:
         base, *meta = args
         text = _type(base)
         bounds = []
-        for m in meta:
-            for attr, sym in (("ge", "≥"), ("gt", ">"), ("le", "≤"), ("lt", "<")):
-                v = getattr(m, attr, None)
-                if v is not None:
-                    bounds.append(f"{sym} {v:g}" if isinstance(v, (int, float)) else f"{sym} {v}")
-            for sub in getattr(m, "metadata", []) or []:
+        for m in meta:  # a constraint itself, or a FieldInfo holding them
+            for c in (m, *(getattr(m, "metadata", None) or ())):
                 for attr, sym in (("ge", "≥"), ("gt", ">"), ("le", "≤"), ("lt", "<")):
-                    v = getattr(sub, attr, None)
+                    v = getattr(c, attr, None)
                     if v is not None:
-                        bounds.append(f"{sym} {v:g}")
+                        bounds.append(f"{sym} {v:g}" if isinstance(v, (int, float)) else f"{sym} {v}")
         return f"{text} ({', '.join(bounds)})" if bounds else text
     if origin is typing.Literal:
         return " \\| ".join(f'`"{a}"`' if isinstance(a, str) else f"`{a}`" for a in args)

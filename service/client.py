@@ -130,6 +130,8 @@ class _Bar:
             self.bar.close()
 
 
+#: failures of the connection, not answers of the server: _delay decides whether to try again
+_TRANSPORT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError)
 #: methods a retry cannot duplicate (a render has no side effect, so its POST is one of them)
 _IDEMPOTENT = ("GET", "HEAD", "DELETE", "PUT")
 
@@ -253,7 +255,7 @@ class Client(_Api):
         for attempt in range(self.retries + 1):
             try:
                 r = self._http.request(method, url, **kw)
-            except (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError) as exc:
+            except _TRANSPORT as exc:
                 delay = self._delay(attempt, again, None, exc)
                 if delay is None:
                     raise
@@ -327,7 +329,7 @@ class AsyncClient(_Api):
         for attempt in range(self.retries + 1):
             try:
                 r = await self._http.request(method, url, **kw)
-            except (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError) as exc:
+            except _TRANSPORT as exc:
                 delay = self._delay(attempt, again, None, exc)
                 if delay is None:
                     raise
