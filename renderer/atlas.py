@@ -39,7 +39,7 @@ from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
 
 __all__ = ["BrickCache", "brick_cache", "AtlasLoad", "DeviceAtlas", "load_bricks", "pack", "pack_index",
-           "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes"]
+           "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells"]
 
 MISSING = 0
 
@@ -286,6 +286,7 @@ class DeviceAtlas:
     read_ms: float
     upload_ms: float
     reused: bool  # the device buffers of a recent render with the same store and levels were reused
+    key: tuple | None = None  # its device-cache key (None: not kept)
 
 
 def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
@@ -320,7 +321,51 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     queue.finish()
     nbytes = atlas.nbytes + (sig.nbytes if sig is not None else 0)
     da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, ld.read, ld.cached, ld.skipped,
-                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False)
+                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key)
     if key is not None:
         device_cache().put(key, da, nbytes + index.nbytes)
     return da
+
+
+@dataclass(frozen=True)
+class AtlasCells:
+    """What the field sampled from an atlas can take in each half-block cell (grid 2G, C order; atlas_cells.cl):
+    the extrema of its values (NaN: nothing to see) and the largest standard deviation behind them (0 at level 0
+    and without distributions), in the data's units."""
+
+    vmin: np.ndarray
+    vmax: np.ndarray
+    std: np.ndarray
+
+
+def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
+                std_unit: float = 1.0) -> AtlasCells:
+    """The half-block cells of atlas `da` (block grid `grid`, z-y-x), computed on the device and kept beside the
+    atlas in the device cache: empty-space skipping on the atlas walks these cells (renderer/render.py)."""
+    from lodcast.opencl import get_program
+
+    key = None if da.key is None else ("cells", da.key, interpolation)
+    hit = device_cache().get(key) if key is not None else None
+    if hit is not None:
+        return hit
+    ctx, queue = get_context()
+    shape = tuple(2 * g for g in grid)
+    n = int(np.prod(shape))
+    d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
+    opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB"]
+    std = da.std
+    if std is not None:
+        opts.append("-DLC_DIST")
+    else:
+        std = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=8)
+    kern = cl.Kernel(get_program("atlas_cells.cl", opts).program, "lc_atlas_cells")
+    g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
+    kern(queue, (shape[2], shape[1], shape[0]), None, da.atlas, std, da.index, g4, *d_out)
+    out = [np.empty(shape, np.float32) for _ in range(3)]
+    for h, d in zip(out, d_out):
+        cl.enqueue_copy(queue, h, d)
+    queue.finish()
+    cells = AtlasCells(out[0], out[1], out[2] * np.float32(std_unit))
+    if key is not None:
+        device_cache().put(key, cells, 3 * 4 * n)
+    return cells

@@ -91,6 +91,20 @@ class DistTable:
             spans[0, j, :2] = nz[0], nz[-1]
         return np.ascontiguousarray(np.concatenate([t, spans], axis=0))
 
+    def visible(self, vmin, vmax, std) -> np.ndarray:
+        """True where a sample of mean in [vmin, vmax] and standard deviation in (0, std] may have a non-zero
+        expected extinction: the kernel's test (the spans of `kernel_table`, for every row pair up to std's), half
+        an entry wider each side for float32 rounding. False where std is 0 (such samples take the point
+        classification) or the bounds are not finite."""
+        vmin, vmax, std = (np.asarray(a, np.float64) for a in (vmin, vmax, std))
+        spans = self.kernel_table[-1, : self.rows, :2].astype(np.float64)
+        lo, hi = np.minimum.accumulate(spans[:, 0]), np.maximum.accumulate(spans[:, 1])
+        ok = np.isfinite(vmin) & np.isfinite(vmax) & (std > 0)
+        fj = np.minimum(np.sqrt(np.where(ok, std, 0.0)) * self.std_scale + 1e-3, self.rows - 1.0)  # rounding, too
+        j = fj.astype(np.intp)
+        with np.errstate(invalid="ignore"):
+            return ok & ((vmax - self.lo) * self.scale > lo[j] - 1.5) & ((vmin - self.lo) * self.scale < hi[j] + 1.5)
+
     def interp(self, grid: np.ndarray, mean, std) -> np.ndarray:
         """Bilinear interpolation of `grid` (rows, n, C), any per-entry quantity of this table, at (mean, std), as
         the kernel looks the table up (clamped at both axes' ends), float64 (..., C)."""

@@ -228,6 +228,7 @@ class PassData:
     cell_min: np.ndarray | None = None  # full resolution: the border-inclusive extrema of the cells of
     cell_max: np.ndarray | None = None  # empty-space skipping (of the pass's own blocks; NaN elsewhere)
     cell: int = 0  # their edge in voxels
+    cells: "lod_atlas.AtlasCells | None" = None  # the atlas: its half-block cells (with empty-space skipping)
 
 
 def _empty_region(levels: np.ndarray | None) -> Region:
@@ -257,7 +258,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
             da = lod_atlas.device_atlas(vol, lod.levels, with_std=cfg.distribution)
             stats.read, stats.cached, stats.upload_ms, stats.device_bytes = da.read, da.cached, da.upload_ms, da.nbytes
             yield PassData(None, da.atlas, da.index, da.std if cfg.distribution else placeholder, steps,
-                           np.ones(1, np.uint8))
+                           np.ones(1, np.uint8), cells=_cells(pr, da))
         return
     device_cache().clear()  # a render beyond the budget has the device to itself
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
@@ -286,11 +287,21 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
             stats.upload_ms += da.upload_ms
             nbytes = da.nbytes
             data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
-                            pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own)
+                            pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own,
+                            cells=_cells(pr, da))
         stats.passes += 1
         stats.device_bytes = max(stats.device_bytes, nbytes)
         yield data
         del data
+
+
+def _cells(pr, da: "lod_atlas.DeviceAtlas") -> "lod_atlas.AtlasCells | None":
+    """The atlas's half-block cells, where the walk can skip on them (renderer/render.py: _walk_info)."""
+    cfg = pr.config
+    if not cfg.ess or pr.scene.mode in ("average", "iso") or pr.volume.block_size % 2:
+        return None
+    return lod_atlas.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
+                                 pr.volume.std_unit if cfg.distribution else 1.0)
 
 
 def fill_pass(p: np.ndarray, region: Region | None, pr, first: bool) -> None:

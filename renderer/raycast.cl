@@ -22,8 +22,8 @@
  *                     of coarse samples: the store keeps no coarse maximum)
  *   LC_ORTHO          orthographic projection (default: perspective)
  *   LC_ESS            empty-space skipping: march cell by cell (3D DDA over P->ess_grid: at full resolution cells
- *                     finer than the blocks, on the atlas the blocks) and skip cells whose block_info says nothing
- *                     there can contribute, without sampling them
+ *                     finer than the blocks, on the atlas half-block cells) and skip cells whose block_info says
+ *                     nothing there can contribute, without sampling them
  *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)
  *   LC_PRECISE        compensated (Kahan) sums of optical depth and colour, for rays of very many samples
  *   LC_BACKGROUND     composite the background under the integral
@@ -338,9 +338,12 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
         const int gx = P->ess_grid.x, gy = P->ess_grid.y, gz = P->ess_grid.z;
         LC_DDA_BEGIN(B, gx, gy, gz)
         int inside = 1;
+#if defined(LC_PASSES) || defined(LC_SAMPLER_ATLAS)
+        const int cpb = P->grid.w / P->ess_grid.w; /* walk cells per block edge */
+#endif
 #ifdef LC_PASSES
         int owned = 1; /* the last block's owner is this pass (samples past the grid's last block go with it) */
-        const int cpb = P->grid.w / P->ess_grid.w, bgx = P->grid.x, bgy = P->grid.y; /* walk cells per block */
+        const int bgx = P->grid.x, bgy = P->grid.y;
 #endif
         while (k < n && !done) {
 #ifdef LC_PASSES
@@ -354,7 +357,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
                 const float info = block_info[(bz * gy + by) * gx + bx];
 #endif
 #if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
-                blk = lc_blk(imap, geom, bx, by, bz);
+                blk = lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
 #endif
 #ifndef LC_ESS
 #elif defined(LC_MODE_MIP)

@@ -140,10 +140,15 @@ def range_info(vmin: np.ndarray, vmax: np.ndarray, lut: Lut, mode: str,
 
 def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """(the block walk's info, its grid (x, y, z, cell edge)): at full resolution over the fine cells of
-    empty-space skipping (data.cell voxels, sampler.ess_cell), with the clip region's cells outside empty; on the atlas the
-    selection's block info."""
+    empty-space skipping (data.cell voxels, sampler.ess_cell), with the clip region's cells outside empty; on the
+    atlas over its half-block cells (data.cells): the selection's block info where the cell's field can show
+    something (`atlas_cell_info`), else the block info."""
     vol = pr.volume
     B = int(vol.block_size)
+    if data.cells is not None:
+        info = atlas_cell_info(pr, data.cells)
+        g = info.shape
+        return info, (g[2], g[1], g[0], B // 2)
     if data.cell_min is None or not pr.config.ess:
         return pr.block_info, (vol.grid[2], vol.grid[1], vol.grid[0], B)
     C = data.cell
@@ -154,6 +159,45 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
         info = np.where(keep, info, -np.inf if pr.scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
     g = info.shape
     return np.ascontiguousarray(info), (g[2], g[1], g[0], C)
+
+
+def atlas_cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells") -> np.ndarray:
+    """The walk's info over the atlas's half-block cells: the selection's block info (pr.block_info) where the
+    field sampled in the cell can be visible, empty (0; MIP: its largest value, MinIP: minus its smallest) where
+    it cannot: every value there is invisible under the point classification and, with distribution
+    classification, under the TF's distribution table for deviations up to the cell's largest. Where the block
+    info already says empty it stays so, so the image is the block walk's: only samples that add nothing are
+    left out (tests/test_atlas_cells.py)."""
+    up = pr.block_info
+    for a in range(3):
+        up = np.repeat(up, 2, axis=a)
+    mode = pr.scene.mode
+    if mode in EXTREMUM_MODES:
+        ext = cells.vmax if mode == "mip" else -cells.vmin.astype(np.float64)
+        ext = np.where(np.isfinite(ext), ext, -np.inf)
+        return np.ascontiguousarray(np.minimum(up, ext), dtype=np.float32)
+
+    def seen(lut: Lut, dist: DistTable | None) -> np.ndarray:
+        vis = lut.visible(cells.vmin, cells.vmax)
+        return vis | dist.visible(cells.vmin, cells.vmax, cells.std) if dist is not None else vis
+
+    vis = seen(pr.lut, pr.dist)
+    if pr.second is not None:
+        vis = dual.visibility_bits(vis, seen(pr.second.lut, pr.second.dist))
+        return np.ascontiguousarray(np.bitwise_and(up.astype(np.int64), vis.astype(np.int64)), dtype=np.float32)
+    return np.ascontiguousarray(np.where(vis, up, 0.0), dtype=np.float32)
+
+
+def walk_steps(pr: "Prepared", steps: np.ndarray, walk: np.ndarray) -> np.ndarray:
+    """Adaptive sampling's step levels with the cells the walk's info marks empty skipped (-1): interblock's cells
+    are the walk's half-block cells, nearest block's the blocks (skipped when all eight of theirs are empty)."""
+    if pr.scene.mode != "composite" or not pr.config.ess:
+        return steps
+    empty = walk == 0.0
+    if steps.shape != empty.shape:
+        g = steps.shape
+        empty = empty.reshape(g[0], 2, g[1], 2, g[2], 2).all(axis=(1, 3, 5))
+    return np.ascontiguousarray(np.where(empty, -1, steps).astype(np.int8))
 
 
 @dataclass(frozen=True)
@@ -510,7 +554,8 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
             kern = cl.Kernel(built.program, "lc_render")
         d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
         d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-        d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.steps)
+        steps = walk_steps(pr, data.steps, walk) if cfg.adaptive and data.cells is not None else data.steps
+        d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)
         d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
         kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,
                       d_ptab, d_prio, d_spos, d_own, d_state)

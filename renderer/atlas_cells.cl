@@ -1,0 +1,79 @@
+/* atlas_cells.cl: what the multiresolution field can take inside each half-block cell, for empty-space skipping on
+ * the brick atlas (renderer/atlas.py: atlas_cells), computed where the atlas already is.
+ *
+ * Half-block cell h (grid 2G, edge C = B/2) covers voxel coordinates [h C - 1/2, (h + 1) C - 1/2) and lies in block
+ * h >> 1 and in one interblock neighbourhood, the blocks c - 1 and c per axis, c = (h + 1) >> 1 (lc_atlas.h). Every
+ * sample there is a convex combination of nearest-block samples of those blocks (LC_INTERP_II; LC_INTERP_NB: of the
+ * own block alone), each a trilinear combination of its brick's samples around the clamped brick coordinate. So the
+ * values any sample of the cell takes lie in [min, max] of the brick samples those coordinates reach, and its
+ * standard deviation (LC_DIST) is at most their largest one (level 0 bricks: none, 0).
+ *
+ * Work-item (x, y, z) is cell h = (x, y, z): out_min/out_max the extrema of the values (NaN ignored; no finite
+ * value, or the own block not loaded: NaN, nothing to see), out_sd the largest deviation in the sig buffer's units. */
+#include "lc_common.h"
+#include "lc_atlas.h"
+
+/* brick-sample index range [i0, i1] that brick coordinates of the voxel interval [a, b] reach (clamped, trilinear) */
+static inline int2 lc_reach(const float a, const float b, const float lo_face, const float s, const int n) {
+    const float nm = (float)(n - 1);
+    float la = (a + 0.5f - lo_face) * s - 0.5f, lb = (b + 0.5f - lo_face) * s - 0.5f;
+    la = la > 0.0f ? (la < nm ? la : nm) : 0.0f;
+    lb = lb > 0.0f ? (lb < nm ? lb : nm) : 0.0f;
+    const int i0 = (int)la;
+    int i1 = (int)ceil(lb);
+    i1 = i1 < n - 1 ? i1 : n - 1;
+    return (int2)(i0, i1);
+}
+
+__kernel void lc_atlas_cells(__global const float* atlas, __global const ushort* sig, __global const ulong* imap,
+                             const int4 grid, __global float* out_min, __global float* out_max,
+                             __global float* out_sd) {
+    const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    const int hx = 2 * grid.x, hy = 2 * grid.y, hz = 2 * grid.z;
+    if (x >= hx || y >= hy || z >= hz) return;
+    LcAtlasGeom g;
+    g.gx = grid.x; g.gy = grid.y; g.gz = grid.z; g.B = (float)grid.w;
+    const float C = 0.5f * g.B, eps = 1e-3f; /* eps: samples assigned to the cell within rounding of its faces */
+    const float3 a = (float3)((float)x * C - 0.5f - eps, (float)y * C - 0.5f - eps, (float)z * C - 0.5f - eps);
+    const float3 b = a + (C + 2.0f * eps);
+    float mn = INFINITY, mx = -INFINITY, sd = 0.0f;
+    if (LC_IMAP(x >> 1, y >> 1, z >> 1)) {
+#ifdef LC_INTERP_II
+        const int cx = (x + 1) >> 1, cy = (y + 1) >> 1, cz = (z + 1) >> 1;
+        const int x0 = max(cx - 1, 0), x1 = min(cx, g.gx - 1), y0 = max(cy - 1, 0), y1 = min(cy, g.gy - 1);
+        const int z0 = max(cz - 1, 0), z1 = min(cz, g.gz - 1);
+#else
+        const int x0 = x >> 1, x1 = x0, y0 = y >> 1, y1 = y0, z0 = z >> 1, z1 = z0;
+#endif
+        for (int bz = z0; bz <= z1; ++bz)
+            for (int by = y0; by <= y1; ++by)
+                for (int bx = x0; bx <= x1; ++bx) {
+                    const ulong ent = LC_IMAP(bx, by, bz);
+                    if (!ent) continue; /* a missing neighbour weighs 0 */
+                    const int lvl = (int)(ent & 15UL) - 1, n = (int)g.B >> lvl;
+                    const float s = 1.0f / (float)(1 << lvl);
+                    const ulong off = ent >> 16;
+                    const int2 rx = lc_reach(a.x, b.x, (float)bx * g.B, s, n);
+                    const int2 ry = lc_reach(a.y, b.y, (float)by * g.B, s, n);
+                    const int2 rz = lc_reach(a.z, b.z, (float)bz * g.B, s, n);
+                    for (int k = rz.x; k <= rz.y; ++k)
+                        for (int j = ry.x; j <= ry.y; ++j) {
+                            const ulong row = off + ((ulong)k * (ulong)n + (ulong)j) * (ulong)n;
+                            for (int i = rx.x; i <= rx.y; ++i) {
+                                const float v = atlas[row + (ulong)i];
+                                if (v == v) { mn = v < mn ? v : mn; mx = v > mx ? v : mx; }
+#ifdef LC_DIST
+                                if (lvl > 0) {
+                                    const float d = lc_f16(sig[row + (ulong)i]);
+                                    sd = d > sd ? d : sd;
+                                }
+#endif
+                            }
+                        }
+                }
+    }
+    const uint o = ((uint)z * (uint)hy + (uint)y) * (uint)hx + (uint)x;
+    out_min[o] = mn <= mx ? mn : NAN;
+    out_max[o] = mn <= mx ? mx : NAN;
+    out_sd[o] = sd;
+}
