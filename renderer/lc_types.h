@@ -45,9 +45,9 @@ typedef struct LcParams {
     float4 shade;       /* LC_SHADE: ambient, diffuse, specular, shininess */
     float shade_gmin;   /* LC_SHADE: gradient magnitude (data units per world unit) below which a sample is unlit */
     int n_clip;         /* LC_CLIP: planes in use (<= 6) */
-    int pre_n;          /* LC_PREINT: the pre-integration table has pre_n x pre_n entries over values */
-    float pre_lo;       /* pre_lo + k / pre_scale */
-    float pre_scale;
+    int pre_n;          /* LC_PREINT: the pre-integration table has pre_n x pre_n entries, then pre_knots rows */
+    int pre_knots;      /* of its axis' warp (lc_preint.h) */
+    int pad9;
     float iso;          /* LC_MODE_ISO: the iso value */
     float shade_gref;   /* LC_SHADE: gradient magnitude at which a sample is fully lit (0: no weighting) */
     int pad3;
@@ -65,8 +65,8 @@ typedef struct LcParams {
     int tf2_dist_n;     /* its distribution table's mean axis (rows and std axis as the first's) */
     float tf2_dist_lo;
     float tf2_dist_scale;
-    float tf2_pre_lo;   /* its pre-integration table's axes */
-    float tf2_pre_scale;
+    int tf2_pre_knots;  /* its pre-integration table's axis */
+    int pad10;
     int tf2_pre_n;
     int prio_tile;      /* priority map: one byte per prio_tile x prio_tile pixels (0: no map, every pixel has */
     int prio_w;         /* priority), prio_w tiles per row */
@@ -82,7 +82,7 @@ typedef struct LcParams {
     int pad7;
     int pad8;
     int4 ess_grid;      /* LC_ESS: the block walk's cells (x, y, z; w: edge in voxels, dividing grid.w): full
-                         * resolution walks cells finer than the blocks, the atlas its blocks */
+                         * resolution walks cells finer than the blocks, the atlas half-block cells */
 } LcParams;
 
 #endif

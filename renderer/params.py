@@ -44,7 +44,7 @@ def fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: L
     p["max_samples"] = max_samples
     p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
     if pre is not None:
-        p["pre_n"], p["pre_lo"], p["pre_scale"] = pre.n, pre.lo, pre.scale
+        p["pre_n"], p["pre_knots"] = pre.n, len(pre.warp)
     p["clip"] = clipping.kernel_planes(scene.clip)
     p["n_clip"] = 0 if scene.clip is None else len(scene.clip.planes)
     sh = scene.shading
@@ -103,8 +103,7 @@ def tables(pr: "Prepared", kind: str) -> np.ndarray | None:
     own = getattr(pr, kind)  # Prepared and SecondTf name them alike
     if own is None:
         return None
-    attr = {"dist": "kernel_table", "preint": "table"}[kind]
-    tabs = [getattr(t, attr) for t in (own, getattr(pr.second, kind, None)) if t is not None]
+    tabs = [t.kernel_table for t in (own, getattr(pr.second, kind, None)) if t is not None]
     return np.ascontiguousarray(np.concatenate([np.asarray(t, np.float32).reshape(-1, 4) for t in tabs]))
 
 
@@ -122,7 +121,7 @@ def fill_tf2(p: np.ndarray, pr: "Prepared") -> None:
         q["tf2_dtab_at"] = np.asarray(pr.dist.kernel_table).reshape(-1, 4).shape[0]
         q["tf2_dist_n"], q["tf2_dist_lo"], q["tf2_dist_scale"] = sec.dist.n, sec.dist.lo, sec.dist.scale
     if sec.preint is not None:
-        q["tf2_ptab_at"] = np.asarray(pr.preint.table).reshape(-1, 4).shape[0]
-        q["tf2_pre_n"], q["tf2_pre_lo"], q["tf2_pre_scale"] = sec.preint.n, sec.preint.lo, sec.preint.scale
+        q["tf2_ptab_at"] = pr.preint.kernel_table.shape[0]
+        q["tf2_pre_n"], q["tf2_pre_knots"] = sec.preint.n, len(sec.preint.warp)
     if pr.priority is not None:
         q["prio_tile"], q["prio_w"] = pr.priority.tile, pr.priority.tiles.shape[1]

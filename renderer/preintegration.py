@@ -11,9 +11,18 @@ computed in float64 without a Riemann sum: the segment is cut where s crosses a 
 c(x) are linear on every piece; there tau is exact in closed form (∫ −ln(1 − a) da = (1 − a)(ln(1 − a) − 1)),
 and by parts C = Σ_pieces [c e^−tau]_end^start + c' ∫ e^−tau dx, whose last integrand is smooth and bounded, by
 16-point Gauss–Legendre. Every entry is therefore exact for any TF, near-opaque and a = 1 included, hard steps in
-the TF (two control points at one value) too. Between entries the kernel interpolates bilinearly, which smears a
-hard step over one table interval (the data range / 255): there pre-integration is no better than point sampling
-(measured on a ramp through a hard step at step ¼: mean ΔE 0.50 against point sampling's 0.09).
+the TF (two control points at one value) too.
+
+Between entries the kernel interpolates bilinearly. So that interpolation never straddles a TF control point, the
+table's axis is not uniform over the value range but piecewise uniform between the control points (`axis`): every
+control point is a grid line, the lines between two control points are spread in proportion to their distance,
+and a hard step at v takes two lines, v from below and v from above, one table interval apart in the kernel's
+coordinate (the `warp` rows: values in [b_k, b_k+1) sit at table coordinate g_k + (s − b_k)·slope_k, found by a
+binary search over the control points). A segment that crosses a hard step is cut where the (linear) field
+crosses it, and each piece is looked up between its own ends on its own side of the step (lc_preint.h), so a hard
+step is exact: on a ramp through one the image equals the float64 reference (tests/test_illumination_clip.py;
+a uniform axis smeared the step over one table interval, mean ΔE 0.88–14.6 there, worse than point sampling). A
+TF of more than PREINT_N/2 control points has only its hard steps aligned (of those, at most PREINT_N/2).
 
 Other segment lengths l (the last, shorter segment of a ray, clipped segments, adaptive steps of l0·2^k) scale the
 entry as Roettger describes: alpha_l = 1 − (1 − alpha)^(l/l0) and the colour keeps its average (C/alpha): exact
@@ -29,7 +38,7 @@ import numpy as np
 
 from lodcast.renderer.scene import TransferFunction
 
-__all__ = ["PreintTable", "preintegrate", "segment_integral", "PREINT_N"]
+__all__ = ["PreintTable", "preintegrate", "segment_integral", "axis", "PREINT_N"]
 
 PREINT_N = 256  # entries per axis: 16 B x 256² = 1 MiB
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
@@ -38,11 +47,58 @@ _GL_X, _GL_W = 0.5 * (_GL_X + 1.0), 0.5 * _GL_W  # on [0, 1]
 
 @dataclass(frozen=True)
 class PreintTable:
-    lo: float  # entry k at value lo + k / scale, on both axes
-    scale: float
+    values: np.ndarray  # (n,) float64: the value of each grid line, on both axes (hard steps: just below, above)
+    warp: np.ndarray  # (K, 4) float32: (b_k, g_k, slope_k, hard_k), s in [b_k, b_k+1) -> g_k + (s − b_k) slope_k;
+    #                   hard_k = 1: a hard step at b_k (line g_k − 1 is b_k from below)
     n: int
     table: np.ndarray  # (n, n, 4) float32: [front, back] -> (C premultiplied rgb, alpha) for the base step
     build_ms: float
+
+    @property
+    def kernel_table(self) -> np.ndarray:
+        """The table's n·n float4 entries, then the K warp rows (lc_preint.h)."""
+        return np.ascontiguousarray(np.concatenate([self.table.reshape(-1, 4), self.warp]), dtype=np.float32)
+
+    def coord(self, s) -> np.ndarray:
+        """The kernel's table coordinate of values s (float64): the last warp row at or below s, clamped."""
+        w = self.warp.astype(np.float64)
+        k = np.clip(np.searchsorted(w[:, 0], np.asarray(s, np.float64), side="right") - 1, 0, len(w) - 1)
+        return np.clip(w[k, 1] + (s - w[k, 0]) * w[k, 2], 0.0, self.n - 1.0)
+
+
+def axis(tf: TransferFunction, lo: float, hi: float, n: int = PREINT_N) -> tuple[np.ndarray, np.ndarray]:
+    """(grid line values (n,), warp rows (K, 4)) of a table over [lo, hi] whose grid lines fall on the TF's
+    control points (see the module's docstring)."""
+    hi = hi if hi > lo else lo + 1.0
+    v = np.array([p.value for p in tf.points], np.float64)
+    inside = v[(v > lo) & (v < hi)]
+    knots, counts = np.unique(inside, return_counts=True)
+    hard = counts > 1
+    if knots.size > n // 2:
+        knots, hard = knots[hard][: n // 2], hard[hard][: n // 2]
+    b = np.concatenate([[lo], knots, [hi]])
+    jump = np.concatenate([hard, [False]])  # a hard step at the end of interval i (at b[i + 1])
+    w = np.diff(b)
+    units = n - 1 - int(jump.sum())  # table intervals left for the value intervals
+    m = np.maximum(1, np.floor(w / w.sum() * units).astype(np.int64))
+    while m.sum() > units:  # more intervals than lines: take from the widest
+        m[np.argmax(m)] -= 1
+    while m.sum() < units:  # hand out what rounding left, to the interval furthest below its share
+        m[np.argmax(w / w.sum() * units - m)] += 1
+    eps = 1e-9 * max(hi - lo, float(np.abs(b).max()))
+    lines, rows, g = [], [], 0
+    for i in range(len(w)):
+        seg = b[i] + w[i] * np.arange(m[i] + 1) / m[i]
+        if i and jump[i - 1]:
+            seg[0] += eps  # a hard step from above
+        if jump[i]:
+            seg[-1] -= eps  # and from below
+        lines.append(seg if i == 0 or jump[i - 1] else seg[1:])
+        rows.append((b[i], g, m[i] / w[i], 1.0 if i and jump[i - 1] else 0.0))
+        g += int(m[i]) + int(jump[i])
+    values = np.concatenate(lines)
+    assert values.size == n and g == n - 1, (values.size, g, n)
+    return values, np.array(rows, np.float32)
 
 
 def _tf_arrays(tf: TransferFunction) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -112,10 +168,10 @@ def segment_integral(tf: TransferFunction, sf, sb, ratio: float) -> tuple[np.nda
 def _cached(tf_json: str, lo: float, hi: float, ratio: float, n: int) -> PreintTable:
     t = time.perf_counter()
     tf = TransferFunction.model_validate_json(tf_json)
-    s = lo + (hi - lo) * np.arange(n) / (n - 1)
+    s, warp = axis(tf, lo, hi, n)
     C, alpha = segment_integral(tf, s[:, None], s[None, :], ratio)
     tab = np.concatenate([C, alpha[..., None]], -1).astype(np.float32)
-    return PreintTable(lo, (n - 1) / (hi - lo), n, np.ascontiguousarray(tab), (time.perf_counter() - t) * 1e3)
+    return PreintTable(s, warp, n, np.ascontiguousarray(tab), (time.perf_counter() - t) * 1e3)
 
 
 def preintegrate(tf: TransferFunction, lo: float, hi: float, ratio: float, n: int = PREINT_N) -> PreintTable:

@@ -16,13 +16,13 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     f[45] = P->dist_lo; f[46] = P->dist_scale; f[47] = P->dist_sscale;
     for (int k = 0; k < 6; ++k) vstore4(P->clip[k], 12 + k, f); /* f[48..71] */
     vstore4(P->light, 18, f); vstore4(P->shade, 19, f);       /* f[72..79] */
-    f[80] = P->shade_gmin; f[81] = P->pre_lo; f[82] = P->pre_scale; f[83] = P->iso; f[84] = P->shade_gref;
+    f[80] = P->shade_gmin; f[83] = P->iso; f[84] = P->shade_gref;
     n[16] = P->n_clip; n[17] = P->pre_n;
     n[18] = P->tf2_lut_at; n[19] = P->tf2_ext_at; n[20] = P->tf2_dtab_at; n[21] = P->tf2_ptab_at;
     n[22] = P->tf2_lut_n; n[23] = P->tf2_dist_n; n[24] = P->tf2_pre_n; n[25] = P->prio_tile; n[26] = P->prio_w;
     f[85] = P->tf2_lut_lo; f[86] = P->tf2_lut_scale; f[87] = P->tf2_vis_lo; f[88] = P->tf2_vis_hi;
-    f[89] = P->tf2_inv_unit; f[90] = P->tf2_dist_lo; f[91] = P->tf2_dist_scale; f[92] = P->tf2_pre_lo;
-    f[93] = P->tf2_pre_scale;
+    f[89] = P->tf2_inv_unit; f[90] = P->tf2_dist_lo; f[91] = P->tf2_dist_scale;
+    n[44] = P->pre_knots; n[45] = P->tf2_pre_knots;
     vstore4(P->pass_lo, 24, f); vstore4(P->pass_hi, 25, f); /* f[96..103] */
     vstore4(P->pass_off, 7, n); vstore4(P->pass_dims, 8, n); /* n[28..35] */
     n[36] = P->pass_first;

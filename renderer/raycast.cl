@@ -162,8 +162,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
 #ifdef LC_PREINT
     __global const float4* ptab2 = ptab + P->tf2_ptab_at;
-    const float pre_lo2 = P->tf2_pre_lo, pre_scale2 = P->tf2_pre_scale, unit_w2 = 1.0f / P->tf2_inv_unit;
-    const int pre_n2 = P->tf2_pre_n;
+    const float unit_w2 = 1.0f / P->tf2_inv_unit;
+    const int pre_n2 = P->tf2_pre_n, pre_knots2 = P->tf2_pre_knots;
     float3 pre_q2 = (float3)(INFINITY);
     float pre_v2 = 0.0f;
 #endif
@@ -184,8 +184,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
 #endif
 #endif
 #ifdef LC_PREINT
-    const float pre_lo = P->pre_lo, pre_scale = P->pre_scale;
-    const int pre_n = P->pre_n;
+    const int pre_n = P->pre_n, pre_knots = P->pre_knots;
     float3 pre_q = (float3)(INFINITY); /* the last segment's back end and its value */
     float pre_v = 0.0f;
 #endif

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.preintegration import segment_integral
+from lodcast.renderer.preintegration import axis, preintegrate, segment_integral
 from lodcast.renderer.scene import Scene, SceneError, TransferFunction
 from lodcast.renderer.selection import select_lod
 from reference import delta_e, reference_render
@@ -243,6 +243,52 @@ def test_preintegration_resolves_a_hard_step_exactly():
     a1, a2 = 1 - 0.8**0.5, 1 - 0.1**0.5
     assert abs(alpha - (1 - (1 - a1) * (1 - a2))) < 1e-12
     np.testing.assert_allclose(C, [a1, 0, (1 - a1) * a2], atol=1e-12)
+
+
+def test_preintegration_axis_puts_every_control_point_on_a_grid_line():
+    tf = TransferFunction.model_validate(HARD_STEP)
+    lo, hi = -0.1, 1.3
+    values, warp = axis(tf, lo, hi, 64)
+    assert values.size == 64 and np.all(np.diff(values) > 0)
+    table = preintegrate(tf, lo, hi, 1.0, 64)
+    for v in (0.2, 0.5137, 0.9):  # the knots: lines; the hard step: two lines one table interval apart
+        v32 = np.float32(v)  # the kernel's values and warp rows are float32
+        below, above = table.coord(float(np.nextafter(v32, np.float32(-np.inf)))), table.coord(float(v32))
+        assert abs(below - round(below)) < 1e-5 and abs(above - round(above)) < 1e-5
+        assert abs(above - below - (1.0 if v == 0.5137 else 0.0)) < 1e-5
+    np.testing.assert_allclose(values[np.rint(table.coord(values)).astype(int)], values, rtol=0, atol=1e-7)
+
+
+HARD_STEP = {"points": [{"value": 0.2, "color": [1, 0.2, 0.1], "opacity": 0.0},
+                        {"value": 0.5137, "color": [1, 0.2, 0.1], "opacity": 0.08},
+                        {"value": 0.5137, "color": [0.2, 0.4, 1], "opacity": 0.7},
+                        {"value": 0.9, "color": [0.2, 0.4, 1], "opacity": 0.7}]}
+
+
+@pytest.mark.parametrize("outlier", [None, 200.0])
+@pytest.mark.parametrize("step", [0.25, 1.0])
+def test_preintegration_is_exact_on_a_ramp_through_a_hard_step(step, outlier):
+    """A linear ramp through a hard TF step (at a value no uniform table axis would hit): pre-integration cuts each
+    segment where the field crosses the step and looks each piece up on its own side, so its image matches the
+    float64 reference, where point sampling places the step only to within a sampling step. With an outlier voxel
+    the table spans a value range 170x the ramp's, so that a table interval is many segments wide (a uniform axis
+    measured mean ΔE 14.6 there)."""
+    x = np.linspace(0.0, 1.2, 48)
+    vol = np.broadcast_to(x[None, None, :], (20, 24, 48)).astype(np.float32).copy()
+    if outlier is not None:
+        vol[0, 0, 0] = outlier
+    scene = {"camera": {"azimuth": 70, "elevation": 25}, "width": 40, "height": 32, "tf": HARD_STEP,
+             "format": "npy"}
+    want = reference_render(vol, scene)
+    s = {"step": step, "early_termination": 1.0}
+    pre = lodcast.render(vol, {**scene, "sampling": {**s, "preintegration": True}}).rgba
+    pt = lodcast.render(vol, {**scene, "sampling": s}).rgba
+    e_pre, e_pt = delta_e(pre, want), delta_e(pt, want)
+    # measured: no outlier 0.000 (point sampling 0.13 at step 1/4, 0.56 at 1); outlier 0.037 and 0.022 (max 3.9,
+    # in the pixels whose rays pass the outlier's steep neighbourhood) against 0.07 and 0.55
+    mean, mx = (0.005, 0.1) if outlier is None else (0.06, 6.0)
+    assert e_pre["mean"] < mean and e_pre["mean"] < 0.6 * e_pt["mean"], (e_pre, e_pt)
+    assert e_pre["max"] < mx, e_pre
 
 
 @pytest.mark.parametrize("step", [0.37, 1.0, 3.0, 8.0])

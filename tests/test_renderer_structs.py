@@ -31,13 +31,14 @@ def test_every_field_reads_back_through_the_kernel():
     p["dist_lo"], p["dist_scale"], p["dist_sscale"] = -1024.5, 0.25, 3.75
     p["clip"] = (np.arange(24).reshape(6, 4) + 0.5)
     p["light"], p["shade"] = (1.5, 2.5, 3.5, 4.5), (5.5, 6.5, 7.5, 8.5)
-    p["shade_gmin"], p["pre_lo"], p["pre_scale"], p["iso"] = 0.125, -7.5, 2.25, 3.625
+    p["shade_gmin"], p["iso"] = 0.125, 3.625
+    p["pre_knots"], p["tf2_pre_knots"] = 61, 62
     p["shade_gref"] = 9.5
     p["n_clip"], p["pre_n"] = 5, 9
     ints2 = ["tf2_lut_at", "tf2_ext_at", "tf2_dtab_at", "tf2_ptab_at", "tf2_lut_n", "tf2_dist_n", "tf2_pre_n",
              "prio_tile", "prio_w"]
     floats2 = ["tf2_lut_lo", "tf2_lut_scale", "tf2_vis_lo", "tf2_vis_hi", "tf2_inv_unit", "tf2_dist_lo",
-               "tf2_dist_scale", "tf2_pre_lo", "tf2_pre_scale"]
+               "tf2_dist_scale"]
     for k, name in enumerate(ints2):
         p[name] = 31 + k
     for k, name in enumerate(floats2):
@@ -48,7 +49,7 @@ def test_every_field_reads_back_through_the_kernel():
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
     f = np.zeros(104, np.float32)
-    n = np.zeros(44, np.int32)
+    n = np.zeros(46, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
     prg = get_program("probe.cl").program
@@ -68,10 +69,11 @@ def test_every_field_reads_back_through_the_kernel():
     assert f[45:48].tolist() == [-1024.5, 0.25, 3.75]
     assert np.array_equal(f[48:72].reshape(6, 4), p["clip"][0])
     assert np.array_equal(f[72:76], p["light"][0]) and np.array_equal(f[76:80], p["shade"][0])
-    assert f[80:85].tolist() == [0.125, -7.5, 2.25, 3.625, 9.5]
+    assert f[80] == 0.125 and f[83:85].tolist() == [3.625, 9.5]
     assert n[16:18].tolist() == [5, 9]
     assert n[18:27].tolist() == [31 + k for k in range(len(ints2))]
-    assert f[85:94].tolist() == [-50.75 + 1.5 * k for k in range(len(floats2))]
+    assert f[85:92].tolist() == [-50.75 + 1.5 * k for k in range(len(floats2))]
     assert f[96:104].tolist() == [-1.5, -2.5, -3.5, 0.0, 4.25, 5.25, 6.25, 0.0]
     assert n[28:37].tolist() == [41, 42, 43, 0, 44, 45, 46, 0, 1]
     assert n[40:44].tolist() == [51, 52, 53, 8]
+    assert n[44:46].tolist() == [61, 62]
