@@ -341,11 +341,12 @@ class AtlasCells:
 def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
                 std_unit: float = 1.0) -> AtlasCells:
     """The half-block cells of atlas `da` (block grid `grid`, z-y-x), computed on the device and kept beside the
-    atlas in the device cache: empty-space skipping on the atlas walks these cells (renderer/render.py)."""
+    atlas (host arrays, in a cache of their own keyed by the atlas's device-cache key): empty-space skipping on the
+    atlas walks these cells (renderer/render.py)."""
     from lodcast.opencl import get_program
 
     key = None if da.key is None else ("cells", da.key, interpolation)
-    hit = device_cache().get(key) if key is not None else None
+    hit = _cells_cache().get(key) if key is not None else None
     if hit is not None:
         return hit
     ctx, queue = get_context()
@@ -367,5 +368,10 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
     queue.finish()
     cells = AtlasCells(out[0], out[1], out[2] * np.float32(std_unit))
     if key is not None:
-        device_cache().put(key, cells, 3 * 4 * n)
+        _cells_cache().put(key, cells, 3 * 4 * n)
     return cells
+
+
+@functools.cache
+def _cells_cache() -> ByteLru:
+    return ByteLru(256 << 20)
