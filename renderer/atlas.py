@@ -34,12 +34,12 @@ import pyopencl as cl
 
 from lodcast.environment import environment
 from lodcast.renderer.cache import ByteLru
-from lodcast.opencl import DeviceError, get_context
+from lodcast.opencl import DeviceError, get_context, get_program
 from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
 
 __all__ = ["BrickCache", "brick_cache", "AtlasLoad", "DeviceAtlas", "load_bricks", "pack", "pack_index",
-           "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells"]
+           "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells"]
 
 MISSING = 0
 
@@ -267,6 +267,13 @@ def step_levels(levels: np.ndarray, interpolation: str, skip: np.ndarray | None 
     return np.ascontiguousarray(out.astype(np.int8))
 
 
+def half_cells(a: np.ndarray) -> np.ndarray:
+    """A per-block array over the half-block cells (grid 2G): cell h takes block h >> 1's value."""
+    for ax in range(3):
+        a = np.repeat(a, 2, axis=ax)
+    return a
+
+
 def max_alloc_bytes() -> int:
     ctx, _ = get_context()
     return int(ctx.devices[0].max_mem_alloc_size)
@@ -343,8 +350,6 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
     """The half-block cells of atlas `da` (block grid `grid`, z-y-x), computed on the device and kept beside the
     atlas (host arrays, in a cache of their own keyed by the atlas's device-cache key): empty-space skipping on the
     atlas walks these cells (renderer/render.py)."""
-    from lodcast.opencl import get_program
-
     key = None if da.key is None else ("cells", da.key, interpolation)
     hit = _cells_cache().get(key) if key is not None else None
     if hit is not None:

@@ -4,8 +4,9 @@
  * ends, s_f at q - u len dq and s_b at q + (1 - u) len dq, through ptab (lodcast.renderer.preintegration: exact
  * float64 integral of the piecewise-linear TF with self-attenuation for the base step dt; bilinear in both
  * scalars, at table coordinates from the axis' warp rows after the n x n entries: its grid lines fall on the TF's
- * control points, a hard step between two lines). A segment of another length (the last, shorter one; a clipped one; an adaptive step of dt 2^k) scales
- * the entry as Roettger et al. do: alpha = 1 - (1 - alpha_0)^(len / dt), with the segment's average colour kept.
+ * control points, a hard step between two lines). A segment of another length (the last, shorter one; a clipped
+ * one; an adaptive step of dt 2^k) scales the entry as Roettger et al. do: alpha = 1 - (1 - alpha_0)^(len / dt),
+ * with the segment's average colour kept.
  * The back sample of a segment is the front of the next one, so a ray takes one extra sample per segment, not two
  * (reused when the next front lies within 1e-4 voxels of it). A NaN at either end makes the segment transparent.
  * Coarse samples under LC_DIST keep their distribution classification (the `else` of LC_DIST_BODY leads here).

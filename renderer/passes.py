@@ -200,8 +200,8 @@ def pass_levels(levels: np.ndarray, region: Region) -> np.ndarray:
 
 def pass_steps(steps: np.ndarray, own: np.ndarray, interpolation: str) -> np.ndarray:
     """Adaptive sampling's step levels with every cell outside the pass's blocks skipped (-1)."""
-    if interpolation == "interblock":  # half-block cells: cell h lies in block h >> 1
-        own = np.repeat(np.repeat(np.repeat(own, 2, 0), 2, 1), 2, 2)
+    if interpolation == "interblock":
+        own = lod_atlas.half_cells(own)
     return np.ascontiguousarray(np.where(own > 0, steps, -1).astype(np.int8))
 
 
@@ -298,7 +298,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
 def _cells(pr, da: "lod_atlas.DeviceAtlas") -> "lod_atlas.AtlasCells | None":
     """The atlas's half-block cells, where the walk can skip on them (renderer/render.py: _walk_info)."""
     cfg = pr.config
-    if not cfg.ess or pr.scene.mode in ("average", "iso") or pr.volume.block_size % 2:
+    if not cfg.ess or pr.volume.block_size % 2:  # (average and iso have no walk: cfg.ess is off for them)
         return None
     return lod_atlas.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
                                  pr.volume.std_unit if cfg.distribution else 1.0)

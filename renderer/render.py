@@ -168,9 +168,7 @@ def atlas_cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells") -> np.ndarray
     classification, under the TF's distribution table for deviations up to the cell's largest. Where the block
     info already says empty it stays so, so the image is the block walk's: only samples that add nothing are
     left out (tests/test_atlas_cells.py)."""
-    up = pr.block_info
-    for a in range(3):
-        up = np.repeat(up, 2, axis=a)
+    up = lod_atlas.half_cells(pr.block_info)
     mode = pr.scene.mode
     if mode in EXTREMUM_MODES:
         ext = cells.vmax if mode == "mip" else -cells.vmin.astype(np.float64)
@@ -191,7 +189,7 @@ def atlas_cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells") -> np.ndarray
 def walk_steps(pr: "Prepared", steps: np.ndarray, walk: np.ndarray) -> np.ndarray:
     """Adaptive sampling's step levels with the cells the walk's info marks empty skipped (-1): interblock's cells
     are the walk's half-block cells, nearest block's the blocks (skipped when all eight of theirs are empty)."""
-    if pr.scene.mode != "composite" or not pr.config.ess:
+    if pr.scene.mode != "composite":
         return steps
     empty = walk == 0.0
     if steps.shape != empty.shape:
