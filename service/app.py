@@ -128,7 +128,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if state["jobs"] is None:
                 from lodcast.service.queue import JobQueue
 
-                settings.root.mkdir(parents=True, exist_ok=True)
+                settings.local_root.mkdir(parents=True, exist_ok=True)
                 state["jobs"] = JobQueue(settings)
             return state["jobs"]
 
@@ -334,7 +334,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             return _finite(volume_summary(settings.root, volume_id))
         except StoreInvalid as exc:
-            raise _store_error(volume_id, settings.root / volume_id, exc) from None
+            raise _store_error(volume_id, volume_path(settings.root, volume_id, must_exist=False), exc) from None
 
     @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=auth, summary="Delete a volume's store",
                 response_model=Deleted, responses=errors(400, 401, 404))

@@ -21,8 +21,10 @@ def _settings(args: argparse.Namespace, **extra: Any) -> Any:
         kw["root"] = args.root
     if getattr(args, "queue", None):
         kw["queue"] = args.queue
+    if getattr(args, "state_root", None):
+        kw["state_root"] = args.state_root
     settings = Settings(**kw)
-    if not getattr(args, "url", None) and not settings.root.is_dir():
+    if not getattr(args, "url", None) and not settings.remote and not settings.root.is_dir():
         raise ValueError(f"--root: {settings.root} is not a folder")
     return settings
 
@@ -47,6 +49,8 @@ def _url_opts(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", default=os.environ.get("LODCAST_URL"), help="server URL (default LODCAST_URL); without one, the local queue under --root")
     p.add_argument("--token", default=None, help="bearer token (default LODCAST_TOKEN)")
     p.add_argument("--root", default=None, help="store root for local use (default LODCAST_ROOT, else the current folder)")
+    p.add_argument("--state-root", default=None, help="local use: folder of the job results and the embedded queue "
+                   "(default LODCAST_STATE_ROOT, else the root)")
     p.add_argument("--queue", default=None, help="local use: queue URL (default: embedded SQLite; redis://host:port/db)")
 
 
@@ -65,7 +69,10 @@ def _plain(obj: Any) -> Any:
 
 def add_serve(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="serve the HTTP API over the volumes under a store root (with an embedded job queue and worker)")
-    p.add_argument("--root", default=None, help="store root; volumes are stores directly under it (default LODCAST_ROOT, else .)")
+    p.add_argument("--root", default=None, help="store root, a folder or a URL such as s3://bucket/prefix; volumes are "
+                   "stores directly under it (default LODCAST_ROOT, else .)")
+    p.add_argument("--state-root", default=None, help="folder for job results, the embedded queue and uploads (default "
+                   "LODCAST_STATE_ROOT, else the root when it is a folder, else ~/.lodcast/state/HASH of a root URL)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface; set a --token then)")
     p.add_argument("--port", type=int, default=8000, help="TCP port to listen on")
     p.add_argument("--queue", default=None, help="redis://host:port/db to share jobs with `lodcast worker`s on other hosts (default: embedded SQLite)")
@@ -88,6 +95,20 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                          import_roots=args.import_root, token=args.token,
                          max_samples=None if args.max_samples is None else int(args.max_samples))
     return serve_forever(settings, host=args.host, port=args.port, log_level=args.log_level)
+
+
+def _check_remote_root(url: str) -> None:
+    """A root URL the service cannot list is a one-line error before the banner (a missing bucket, no
+    credentials, no fsspec driver for the scheme)."""
+    import fsspec
+
+    try:
+        fs, path = fsspec.core.url_to_fs(url)
+        fs.ls(path.split("/", 1)[0] if "/" in path else path)  # the bucket: the prefix may not exist yet
+    except ImportError as exc:
+        raise ValueError(f"--root: cannot open {url}: {exc} (for s3:// install lodcast[s3])") from None
+    except Exception as exc:  # noqa: BLE001 - whatever the filesystem raises is the same user error
+        raise ValueError(f"--root: cannot list {url}: {' '.join(str(exc).split()) or type(exc).__name__}") from None
 
 
 def _port_free(host: str, port: int) -> None:
@@ -119,7 +140,9 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
         raise ValueError(f"--port: {port} is not a TCP port")
     from lodcast.service.queue import JobQueue
 
-    settings.root.mkdir(parents=True, exist_ok=True)
+    settings.local_root.mkdir(parents=True, exist_ok=True)
+    if settings.remote:
+        _check_remote_root(settings.root)
     JobQueue(settings).check()  # an unreachable Redis is a one-line error now, not a failing request later
     url = f"http://{host if ':' not in host else '[' + host + ']'}:{port}"
     vols = list_volumes(settings.root)
@@ -151,7 +174,10 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
 
 def add_worker(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("worker", help="run batch jobs from the queue (SIGTERM / Ctrl-C: finish the frame, hand the job back)")
-    p.add_argument("--root", default=None, help="store root (default LODCAST_ROOT, else .); shared by every worker and the service")
+    p.add_argument("--root", default=None, help="store root, a folder or a URL such as s3://bucket/prefix (default "
+                   "LODCAST_ROOT, else .); shared by every worker and the service")
+    p.add_argument("--state-root", default=None, help="folder for job results, the embedded queue and uploads (default "
+                   "LODCAST_STATE_ROOT, else the root when it is a folder, else ~/.lodcast/state/HASH of a root URL)")
     p.add_argument("--queue", default=None, help="redis://host:port/db for a shared queue (default: the root's embedded SQLite queue)")
     p.add_argument("--threads", type=int, default=1, help="jobs run at once by this process (default 1)")
     _device_budget_opt(p)

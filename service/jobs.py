@@ -15,7 +15,7 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Field
 
 from lodcast.service.rendering import RequestInvalid, check_tf, parse_scene, scene_format
-from lodcast.service.volumes import BadId, VolumeNotFound, check_volume_id, safe_import_path, volume_path
+from lodcast.service.volumes import BadId, VolumeNotFound, check_volume_id, safe_import_path, volume_exists, volume_path
 
 __all__ = [
     "Job",
@@ -122,7 +122,7 @@ def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
         for key in job.options:
             if key not in INGEST_OPTIONS:
                 raise RequestInvalid.one(("body", "options", key), f"unknown ingest option (known: {', '.join(sorted(INGEST_OPTIONS))})")
-        if not job.overwrite and (settings.root / job.name).exists():
+        if not job.overwrite and volume_exists(settings.root, job.name, "name"):
             raise RequestInvalid.one(("body", "name"), f"volume {job.name!r} exists (set overwrite)")
         return job.model_copy(update={"source": source})
     if isinstance(job, TurntableJob):

@@ -82,7 +82,18 @@ def check_tf(data: Any, loc: tuple) -> dict | str:
     return data
 
 
-def _stamp(path: Path) -> tuple[int, int] | None:
+def _stamp(path: Path | str) -> tuple | None:
+    """What changes when the store at `path` is replaced: its root zarr.json's inode and mtime (a new folder
+    renamed into place), or on object storage that object's ETag and modification time (published anew)."""
+    if isinstance(path, str):
+        import fsspec
+
+        try:
+            fs, p = fsspec.core.url_to_fs(path)
+            info = fs.info(f"{p.rstrip('/')}/zarr.json", refresh=True)
+        except (OSError, ValueError):  # FileNotFoundError included: the open that follows says what is wrong
+            return None
+        return info.get("ETag"), str(info.get("LastModified") or info.get("mtime") or ""), info.get("size")
     try:
         st = (path / "zarr.json").stat()
     except OSError:
@@ -95,16 +106,17 @@ class RenderEngine:
     renderer keeps its brick cache and compiled programs at module level, shared by all requests of the process."""
 
     def __init__(self, max_open: int = 32) -> None:
-        self._stores: OrderedDict[Path, tuple[Any, Any]] = OrderedDict()  # path -> (zarr.json stamp, store)
+        self._stores: OrderedDict[Path | str, tuple[Any, Any]] = OrderedDict()  # path or URL -> (stamp, store)
         self._lock = threading.Lock()
         self._max_open = max_open
 
-    def store(self, path: Path) -> Any:
-        """The opened store at `path`, reopened when the folder was replaced since (another process ingested it
-        again with --overwrite: a new folder renamed into place, so its root zarr.json has a new inode)."""
+    def store(self, path: Path | str) -> Any:
+        """The opened store at `path` (a folder, or a URL: a str), reopened when it was replaced since (another
+        process ingested it again with --overwrite: a new folder renamed into place, so its root zarr.json has a
+        new inode; on object storage a new root zarr.json)."""
         from lodcast.store.store import open_store
 
-        path = Path(path)
+        path = path if isinstance(path, str) else Path(path)
         stamp = _stamp(path)
         with self._lock:
             hit = self._stores.get(path)
@@ -119,9 +131,9 @@ class RenderEngine:
                 self._stores.popitem(last=False)
         return st
 
-    def forget(self, path: Path) -> None:
+    def forget(self, path: Path | str) -> None:
         with self._lock:
-            self._stores.pop(Path(path), None)
+            self._stores.pop(path if isinstance(path, str) else Path(path), None)
 
     def render(self, path: Path, scene: Any, sample_limit: int | None = None, stop: Any = None) -> Any:
         from lodcast.renderer.render import render

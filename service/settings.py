@@ -1,6 +1,7 @@
 """Service settings: environment variables (prefix ``LODCAST_``) or keyword arguments; nothing is read at import time."""
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -15,13 +16,20 @@ __all__ = ["Settings"]
 class Settings(BaseSettings):
     """Everything the HTTP service, the job queue and the workers need to agree on.
 
-    ``root`` is the store root: volumes are stores directly under it (their id is the folder name); job results,
-    the embedded SQLite queue and the job records live in hidden folders beside them (``.jobs/``, ``.lodcast/``).
+    ``root`` is the store root: volumes are stores directly under it (their id is the folder name). It is a folder
+    or an fsspec URL (``s3://bucket/prefix``: stores on object storage, read with shard-level range requests and
+    published atomically by ingest). Job results, the embedded SQLite queue and uploads live in hidden folders
+    (``.jobs/``, ``.lodcast/``, ``.uploads/``) of the state folder: the root itself when it is a folder, else
+    ``state_root`` (LODCAST_STATE_ROOT).
     """
 
     model_config = SettingsConfigDict(env_prefix="LODCAST_", extra="ignore")
 
-    root: Path = Field(default=Path("."), description="store root (LODCAST_ROOT)")
+    root: Path | str = Field(default=Path("."), description="store root: a folder, or an fsspec URL such as "
+                             "s3://bucket/prefix (LODCAST_ROOT)")
+    state_root: Path | None = Field(default=None, description="local folder for job results, the embedded SQLite "
+                                    "queue and uploads (LODCAST_STATE_ROOT); default: the root when it is a folder, else "
+                               "~/.lodcast/state/<the root's hash>")
     token: str | None = Field(default=None, description="bearer token every route but /healthz and the docs requires (LODCAST_TOKEN)")
     queue: str | None = Field(
         default=None,
@@ -78,8 +86,18 @@ class Settings(BaseSettings):
 
     @field_validator("root", mode="after")
     @classmethod
-    def _absolute(cls, v: Path) -> Path:
-        return Path(v).expanduser().resolve()
+    def _absolute(cls, v: Path | str) -> Path | str:
+        text = os.fspath(v)
+        if "://" in text:  # a URL: kept as given, without a trailing slash (ids are appended with one)
+            if text.startswith("file://"):
+                return Path(text[len("file://"):]).expanduser().resolve()
+            return text.rstrip("/")
+        return Path(text).expanduser().resolve()
+
+    @field_validator("state_root", mode="after")
+    @classmethod
+    def _absolute_state(cls, v: Path | None) -> Path | None:
+        return None if v is None else Path(v).expanduser().resolve()
 
     @field_validator("max_samples", "max_voxels", mode="before")
     @classmethod
@@ -103,17 +121,32 @@ class Settings(BaseSettings):
 
     # --- derived paths --------------------------------------------------------------------------------------
     @property
+    def remote(self) -> bool:
+        """Whether the store root is a URL (object storage) rather than a folder."""
+        return isinstance(self.root, str)
+
+    @property
+    def local_root(self) -> Path:
+        """The folder holding the service's own files: ``state_root``, else the root folder, else a folder per root URL
+        under ~/.lodcast/state (so that a restarted service finds its jobs again)."""
+        if self.state_root is not None:
+            return self.state_root
+        if isinstance(self.root, Path):
+            return self.root
+        return Path.home() / ".lodcast" / "state" / hashlib.sha1(self.root.encode()).hexdigest()[:16]
+
+    @property
     def state_dir(self) -> Path:
-        return self.root / ".lodcast"
+        return self.local_root / ".lodcast"
 
     @property
     def jobs_dir(self) -> Path:
-        return self.root / ".jobs"
+        return self.local_root / ".jobs"
 
     @property
     def uploads_dir(self) -> Path:
         """Uploaded files waiting for their ingest job."""
-        return self.root / ".uploads"
+        return self.local_root / ".uploads"
 
     @property
     def is_redis(self) -> bool:

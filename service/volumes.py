@@ -3,6 +3,11 @@
 A volume is a store directly under the root; its id is the folder name. No request may name a path outside the
 root: ids are matched against a strict pattern, resolved, and checked to stay inside the root (a symlink that leads
 out of it is refused). Hidden folders (``.jobs``, ``.lodcast``) never match the pattern, so they are never volumes.
+
+The root may also be an fsspec URL (``s3://bucket/prefix``, a `str`; a folder is a `Path`): a volume is then the
+store at ``ROOT/ID`` (an id holds no "/", so it cannot leave the prefix), and it exists once its root
+``zarr.json`` is there (ingest publishes that object last, store/remote.py); deletion takes that object away
+first, so a store being deleted is never listed half there.
 """
 from __future__ import annotations
 
@@ -23,6 +28,7 @@ __all__ = [
     "VolumeNotFound",
     "check_volume_id",
     "volume_path",
+    "volume_exists",
     "list_volumes",
     "volume_summary",
     "delete_volume",
@@ -65,9 +71,39 @@ def _inside(path: Path, root: Path) -> bool:
         return False
 
 
-def volume_path(root: Path, volume_id: Any, *, must_exist: bool = True, field: str = "volume") -> Path:
-    """The store folder of a volume, refusing bad ids and anything that resolves outside ``root``."""
+def _remote(root: Path | str) -> bool:
+    return isinstance(root, str) and "://" in root
+
+
+def _fs(url: str) -> tuple[Any, str]:
+    """The fsspec filesystem of `url` and the path in it, with no listing cached (another process may have
+    published or deleted a store since)."""
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(url)
+    fs.invalidate_cache()
+    return fs, path.rstrip("/")
+
+
+def volume_exists(root: Path | str, volume_id: Any, field: str = "volume") -> bool:
+    """Whether something is at the volume's place: a folder (or file) under a root folder, a published store under a
+    root URL."""
+    path = volume_path(root, volume_id, must_exist=False, field=field)
+    if isinstance(path, str):
+        fs, p = _fs(path)
+        return bool(fs.exists(f"{p}/zarr.json"))
+    return path.exists()
+
+
+def volume_path(root: Path | str, volume_id: Any, *, must_exist: bool = True, field: str = "volume") -> Path | str:
+    """The store of a volume (a folder, or a URL under a root URL), refusing bad ids and anything that resolves
+    outside ``root``."""
     vid = check_volume_id(volume_id, field)
+    if _remote(root):
+        url = f"{str(root).rstrip('/')}/{vid}"
+        if must_exist and not volume_exists(root, vid, field):
+            raise VolumeNotFound(vid)
+        return url
     root = Path(root).resolve()
     path = root / vid
     if not _inside(path, root):
@@ -77,8 +113,15 @@ def volume_path(root: Path, volume_id: Any, *, must_exist: bool = True, field: s
     return path
 
 
-def list_volumes(root: Path) -> list[str]:
+def list_volumes(root: Path | str) -> list[str]:
     """Ids of the folders directly under ``root`` that look like stores (a zarr group), sorted."""
+    if _remote(root):
+        fs, base = _fs(str(root))
+        try:
+            names = [str(e).rstrip("/").rsplit("/", 1)[-1] for e in fs.ls(base, detail=False)]
+        except FileNotFoundError:
+            return []
+        return sorted(n for n in names if VOLUME_ID.match(n) and fs.exists(f"{base}/{n}/zarr.json"))
     root = Path(root).resolve()
     out: list[str] = []
     try:
@@ -96,7 +139,7 @@ def list_volumes(root: Path) -> list[str]:
     return sorted(out)
 
 
-def volume_summary(root: Path, volume_id: Any) -> dict[str, Any]:
+def volume_summary(root: Path | str, volume_id: Any) -> dict[str, Any]:
     """The store's attributes (``Store.summary()``) plus its id; raises VolumeNotFound / StoreInvalid."""
     from lodcast.errors import StoreNotFound
 
@@ -115,9 +158,15 @@ def volume_summary(root: Path, volume_id: Any) -> dict[str, Any]:
     return {"id": str(volume_id), **summary}
 
 
-def delete_volume(root: Path, volume_id: Any) -> None:
-    """Remove a volume's store: renamed aside first (atomic), then deleted, so it never looks half there."""
+def delete_volume(root: Path | str, volume_id: Any) -> None:
+    """Remove a volume's store: renamed aside first (atomic; under a root URL its root zarr.json goes first), then
+    deleted, so it never looks half there."""
     path = volume_path(root, volume_id)
+    if isinstance(path, str):
+        fs, p = _fs(path)
+        fs.rm(f"{p}/zarr.json")  # unpublished: no reader opens it from now on
+        fs.rm(p, recursive=True)
+        return
     if not (path / "zarr.json").is_file():  # only stores are volumes: never delete another folder under the root
         raise VolumeNotFound(str(volume_id))
     if path.is_symlink():

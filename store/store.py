@@ -203,7 +203,16 @@ class Store:
 
     # --- reporting ------------------------------------------------------------------------------------------
     def bytes_on_disk(self) -> int | None:
-        """Size of every file of the store, or None for a remote store."""
+        """Size of every file of the store; on object storage of every object (one listing); None where the
+        filesystem cannot list (plain HTTP)."""
+        if "://" in self.location:
+            import fsspec
+
+            try:
+                fs, path = fsspec.core.url_to_fs(self.location)
+                return int(fs.du(path.rstrip("/"), total=True))
+            except (NotImplementedError, OSError, ValueError):
+                return None
         root = Path(self.location)
         if not root.is_dir():
             return None

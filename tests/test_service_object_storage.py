@@ -1,0 +1,177 @@
+"""The service over a store root on object storage (issue 14 item 3): `lodcast serve --root s3://bucket/prefix`
+lists, describes, renders, ingests and deletes the volumes there, against a real S3-compatible server (moto's
+server mode on loopback, lodcast.service.testing.s3_server). Images are those of the same store on local disk, bit
+for bit; an ingest job publishes its store atomically (the root zarr.json last, so a listing never shows a half
+store); the queue, job results and uploads stay in the local state folder, none of them in the bucket."""
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("s3fs")
+pytest.importorskip("moto")
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    from fastapi.testclient import TestClient
+
+import lodcast  # noqa: E402
+from lodcast.service.app import create_app  # noqa: E402
+from lodcast.service.settings import Settings  # noqa: E402
+from lodcast.service.testing import free_port, make_volume, running, s3_server, start_serve, tiny_scene  # noqa: E402
+
+BUCKET = "lodcast-svc"
+ROOT = f"s3://{BUCKET}/volumes"
+
+
+def _objects(fs, prefix: str) -> list[str]:
+    fs.invalidate_cache()
+    try:
+        return sorted(fs.find(prefix))
+    except FileNotFoundError:
+        return []
+
+
+@pytest.fixture(scope="module")
+def svc(tmp_path_factory):
+    import fsspec
+
+    base = tmp_path_factory.mktemp("s3svc")
+    local, imports, state = base / "local", base / "imports", base / "state"
+    for d in (local, imports):
+        d.mkdir()
+    make_volume(local, "tiny")
+    np.save(imports / "blob.npy", np.random.default_rng(3).random((20, 18, 22), dtype=np.float32) * 1000)
+    with s3_server() as srv:
+        fs = fsspec.filesystem("s3", skip_instance_cache=True)
+        fs.mkdir(BUCKET)
+        lodcast.ingest(local / "tiny", f"{ROOT}/tiny", block_size=8)  # a zarr source, published to S3
+        settings = Settings(root=ROOT, state_root=state, import_roots=[imports], workers=1, poll_s=0.05)
+        with TestClient(create_app(settings)) as client:
+            yield client, fs, local, imports, state, srv
+
+
+def _wait(client, job_id: str, timeout: float = 120.0) -> dict:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        st = client.get(f"/jobs/{job_id}").json()
+        if st["state"] in ("done", "failed", "cancelled"):
+            return st
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} still {st['state']} after {timeout} s")
+
+
+def test_a_root_url_is_kept_and_its_state_lives_locally(tmp_path):
+    s = Settings(root="s3://bucket/prefix/")
+    assert s.remote and s.root == "s3://bucket/prefix"
+    assert s.local_root.is_relative_to(Path.home() / ".lodcast" / "state")
+    assert Settings(root="s3://bucket/prefix").local_root == s.local_root  # the same root finds its jobs again
+    assert Settings(root="s3://bucket/other").local_root != s.local_root
+    t = Settings(root="s3://bucket/prefix", state_root=tmp_path)
+    assert t.jobs_dir == tmp_path / ".jobs" and t.sqlite_path() == tmp_path / ".lodcast" / "queue.db"
+    local = Settings(root=tmp_path)
+    assert not local.remote and local.local_root == tmp_path.resolve()  # a folder root keeps its state as before
+    assert Settings(root=f"file://{tmp_path}").root == tmp_path.resolve()
+
+
+def test_volumes_on_s3_are_listed_and_described(svc):
+    client, fs, *_ = svc
+    assert [v["id"] for v in client.get("/volumes").json()] == ["tiny"]
+    info = client.get("/volumes/tiny").json()
+    assert info["shape"] == [24, 24, 24] and info["block_size"] == 8
+    missing = client.get("/volumes/nope")
+    assert missing.status_code == 404 and "nope" in missing.json()["detail"]
+    bad = client.get("/volumes/..%2Fetc")
+    assert bad.status_code in (400, 404, 422)
+
+
+def test_a_render_from_s3_is_the_local_render_bit_for_bit(svc):
+    client, fs, local, *_ = svc
+    for quality in ("full", "lossless", {"reduction": 4}):
+        scene = tiny_scene(24, quality=quality, format="npy")
+        resp = client.post("/volumes/tiny/render", json=scene)
+        assert resp.status_code == 200, resp.text
+        got = np.load(io.BytesIO(resp.content))
+        want = lodcast.render(local / "tiny", scene).rgba
+        assert got.shape == want.shape and np.array_equal(got, want), (quality, float(np.abs(got - want).max()))
+        assert want[..., 3].max() > 0.1  # not vacuous: the blobs show
+
+
+def test_ingest_job_publishes_to_s3_and_delete_removes_it(svc):
+    client, fs, local, imports, state, srv = svc
+    resp = client.post("/volumes", json={"name": "blob", "source": "blob.npy", "options": {"block_size": 8}})
+    assert resp.status_code == 202, resp.text
+    st = _wait(client, resp.json()["id"])
+    assert st["state"] == "done", st
+    assert [v["id"] for v in client.get("/volumes").json()] == ["blob", "tiny"]
+    # the store is where the root says, readable by anyone with the URL, and equal to the source
+    store = lodcast.open_store(f"{ROOT}/blob")
+    assert store.shape == (20, 18, 22)
+    want = np.load(imports / "blob.npy")
+    img = client.post("/volumes/blob/render", json=tiny_scene(16, format="npy"))
+    assert img.status_code == 200
+    np.testing.assert_array_equal(np.asarray(store.level(0)[...]), want)
+    # nothing of the service's own state went to the bucket: queue and records are in the state folder
+    assert not [o for o in _objects(fs, BUCKET) if "/." in o], _objects(fs, BUCKET)
+    assert (state / ".lodcast" / "queue.db").is_file()
+    # a second ingest under the same name is refused at submission, naming the field
+    again = client.post("/volumes", json={"name": "blob", "source": "blob.npy"})
+    assert again.status_code == 422 and "name" in again.text
+    # delete: the listing loses it and no object of it is left
+    assert client.delete("/volumes/blob").json() == {"deleted": "blob"}
+    assert [v["id"] for v in client.get("/volumes").json()] == ["tiny"]
+    assert _objects(fs, f"{BUCKET}/volumes/blob") == []
+    assert client.get("/volumes/blob").status_code == 404
+
+
+def test_a_store_without_its_root_metadata_is_not_a_volume(svc):
+    """What a listing sees while an ingest is uploading (or after a killed upload): objects but no root zarr.json."""
+    client, fs, *_ = svc
+    fs.pipe(f"{BUCKET}/volumes/half/levels/0/c/0/0/0", b"x" * 100)
+    try:
+        assert [v["id"] for v in client.get("/volumes").json()] == ["tiny"]
+        assert client.get("/volumes/half").status_code == 404
+        assert client.post("/volumes/half/render", json=tiny_scene(8)).status_code == 404
+    finally:
+        fs.rm(f"{BUCKET}/volumes/half", recursive=True)
+
+
+def test_turntable_job_on_s3_writes_its_frames_to_the_state_folder(svc):
+    client, fs, local, imports, state, srv = svc
+    job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16, quality={"reduction": 4}), "frames": 3}
+    st = _wait(client, client.post("/jobs", json=job).json()["id"])
+    assert st["state"] == "done" and st["progress"] == {"done": 3, "total": 3}
+    frames = sorted((state / ".jobs" / st["id"]).glob("frame_*.png"))
+    assert len(frames) == 3
+    assert client.get(f"/jobs/{st['id']}/results/2").content == frames[2].read_bytes()
+
+
+def test_lodcast_serve_with_a_root_url(svc, tmp_path):
+    """The command as a user runs it: the banner names the volume on S3, which lists and renders over HTTP; a
+    missing bucket is one line and exit 2 before any banner."""
+    import httpx
+
+    srv = svc[-1]
+    port = free_port()
+    log = tmp_path / "serve.log"
+    proc = start_serve(ROOT, port, extra=["--state-root", str(tmp_path / "state")], log=log)
+    with running(proc):
+        url = f"http://127.0.0.1:{port}"
+        assert [v["id"] for v in httpx.get(f"{url}/volumes", timeout=30).json()] == ["tiny"]
+        r = httpx.post(f"{url}/volumes/tiny/render", json=tiny_scene(16), timeout=60)
+        assert r.status_code == 200 and r.content[:8] == b"\x89PNG\r\n\x1a\n"
+    assert f"serving 1 volume(s) from {ROOT}" in log.read_text()
+    p = subprocess.run([sys.executable, "-m", "lodcast.service.cli", "serve", "--root", "s3://no-such-bucket/x",
+                        "--state-root", str(tmp_path), "--port", str(free_port())], capture_output=True, text=True,
+                       env={**os.environ, "AWS_ENDPOINT_URL": srv.endpoint}, timeout=120)
+    assert p.returncode == 2, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "--root" in lines[0] and "no-such-bucket" in lines[0], p.stderr
