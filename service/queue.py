@@ -69,6 +69,7 @@ class JobQueue:
         self.records = records or open_records(settings)
         self.huey = make_huey(settings)
         self._task = self.huey.task(name="lodcast_job", retries=0)(self._execute)
+        self._help_task = self.huey.task(name="lodcast_help", retries=0)(self._help)
         self.stopping = threading.Event()
         self.owner_prefix = f"{socket.gethostname()}:{os.getpid()}"
 
@@ -152,7 +153,7 @@ class JobQueue:
 
     def _pending_ids(self) -> set[str]:
         try:
-            return {str(t.args[0]) for t in self.huey.pending() if t.args}
+            return {str(t.args[0]) for t in self.huey.pending() if t.args and t.name == "lodcast_job"}
         except Exception:  # an unreadable message must not stop the reaper
             log.exception("could not list pending messages")
             return set()
@@ -171,6 +172,7 @@ class JobQueue:
                     expect={"state": ("running",), "owner": (rec["owner"],), "heartbeat": (rec["heartbeat"],)},
                 ):
                     log.warning("job %s: heartbeat stale (owner %s), re-enqueued", jid, rec["owner"])
+                    self.records.drop_leases(jid, rec["owner"])  # its frame in flight is free at once
                     self._task(jid)
                     out.append(jid)
             elif rec["state"] == "queued" and (rec["enqueued"] or 0.0) < stale:
@@ -191,6 +193,7 @@ class JobQueue:
         gone = []
         for jid in self.records.finished_before(time.time() - keep):
             self.delete_results(jid)
+            self.records.drop_leases(jid)
             if self.records.delete_final(jid):
                 gone.append(jid)
         if gone:
@@ -234,6 +237,7 @@ class JobQueue:
         finally:
             beat.set()
             hb.join(timeout=5)
+            self.records.drop_leases(job_id, owner)
 
     def _unplaced(self, message: str) -> str:
         """A job's error as its client may read it: paths relative to the store root and the import roots (an
@@ -276,28 +280,29 @@ class JobQueue:
         exts = [frame_ext(s) for _, s in plan]
         paths = [frame_path(d, i, e) for i, e in enumerate(exts)]
 
-        def count() -> int:
-            return sum(p.exists() for p in paths)
-
-        self.records.update(job_id, {"total": len(plan), "done": count()}, expect={"owner": (owner,)})
-        eng = engine()
-        ahead = _Prefetch(eng, self.settings)
-        for i, (vid, scene_dict) in enumerate(plan):
-            if paths[i].exists():
-                continue  # written before a crash or a release: never rendered twice
-            if not self._mine(job_id, owner):
-                return "lost"  # cancelled, or re-assigned after a stall
-            if self.stopping.is_set():
-                self._release(job_id, owner)
-                return "released"
-            scene = parse_scene(scene_dict, self.settings, ("scene",))
-            ahead.next(plan[i + 1] if i + 1 < len(plan) and not paths[i + 1].exists() else None)
-            result = eng.render(volume_path(self.settings.root, vid), scene, self.settings.max_samples)
-            data, _ = encode(result, scene)
-            write_atomic(paths[i], data)
-            if self.settings.frame_delay_s:
-                time.sleep(self.settings.frame_delay_s)
-            self.records.update(job_id, {"done": count()}, expect={"state": ("running",), "owner": (owner,)})
+        self.records.update(job_id, {"total": len(plan), "done": _count(paths)}, expect={"owner": (owner,)})
+        for _ in range(min(self.settings.job_helpers, len(plan) - 1)):
+            self._help_task(job_id)  # idle workers, here or on other hosts, take frames of this job beside this one
+        frames = _Frames(self, job_id, plan, paths)
+        todo = [i for i in range(len(plan)) if not paths[i].exists()]  # frames written before a crash or a release
+        while todo:
+            took = False
+            for n, i in enumerate(todo):
+                if paths[i].exists():
+                    continue  # a helper's
+                if not self._mine(job_id, owner):
+                    return "lost"  # cancelled, or re-assigned after a stall
+                if self.stopping.is_set():
+                    self._release(job_id, owner)
+                    return "released"
+                took |= frames.render(i, owner, todo[n + 1] if n + 1 < len(todo) else None)
+            todo = [i for i in todo if not paths[i].exists()]
+            if todo and not took:  # the rest are under helpers' leases: their frames come, or a dead one's lapses
+                if not self._mine(job_id, owner):
+                    return "lost"
+                if self.stopping.wait(self.settings.poll_s):
+                    self._release(job_id, owner)
+                    return "released"
         if isinstance(job, TurntableJob) and job.animation:
             out = animation_path(d, job.animation)
             if not out.exists():
@@ -305,6 +310,35 @@ class JobQueue:
                     return "lost"
                 write_atomic(out, encode_animation(paths, job.animation, job.fps))
         return "done" if self._mine(job_id, owner) else "lost"
+
+    def _help(self, job_id: str) -> None:
+        """A help message (enqueued by the job's owner): render frames of the running job that no one has leased,
+        beside its owner, until none is left. Never marks the job done (its owner does, once every frame is
+        there); a frame that fails here is left to the owner, which renders it and reports the error."""
+        rec = self.records.get(job_id)
+        if rec is None or rec["state"] != "running" or self.stopping.is_set():
+            return
+        spec = json.loads(rec["spec"])
+        spec.pop("_upload", None)
+        job = parse_job(spec)
+        if isinstance(job, IngestJob):
+            return
+        plan = plan_frames(job)
+        d = self.job_dir(job_id)
+        paths = [frame_path(d, i, frame_ext(s)) for i, (_, s) in enumerate(plan)]
+        helper = f"{self.owner_prefix}:{uuid.uuid4().hex[:8]}:helper"
+        frames = _Frames(self, job_id, plan, paths)
+        try:
+            for i in range(len(plan)):
+                cur = self.records.get(job_id)
+                if self.stopping.is_set() or cur is None or cur["state"] != "running":
+                    return
+                if not paths[i].exists():
+                    frames.render(i, helper, i + 1 if i + 1 < len(plan) else None)
+        except Exception:  # noqa: BLE001 - the owner meets the same error on that frame and records it
+            log.exception("job %s: a helper's frame failed; left to the job's owner", job_id)
+        finally:
+            self.records.drop_leases(job_id, helper)
 
     def _run_ingest(self, job_id: str, owner: str, job: IngestJob, rec: dict[str, Any], upload: bool) -> str:
         from lodcast.errors import StoreExists
@@ -331,6 +365,56 @@ class JobQueue:
 
     def delete_results(self, job_id: str) -> None:
         shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+
+
+def _count(paths: list[Path]) -> int:
+    return sum(p.exists() for p in paths)
+
+
+class _Frames:
+    """Rendering one frame of a job under its lease (records.lease), for the job's owner and its helpers alike: a
+    frame is rendered only by the worker that holds its lease, renewed every heartbeat while it renders, so that
+    each frame is rendered once while its worker lives (and again only after that worker died mid-frame)."""
+
+    def __init__(self, jq: "JobQueue", job_id: str, plan: list, paths: list[Path]) -> None:
+        self.jq, self.job_id, self.plan, self.paths = jq, job_id, plan, paths
+        self.eng = engine()
+        self.ahead = _Prefetch(self.eng, jq.settings)
+
+    def render(self, i: int, owner: str, nxt: int | None) -> bool:
+        """Render frame i if its lease can be had; whether it was rendered here."""
+        st, rec = self.jq.settings, self.jq.records
+        if not rec.lease(self.job_id, i, owner, st.stale_after_s):
+            return False
+        stop = threading.Event()
+
+        def renew() -> None:
+            while not stop.wait(st.heartbeat_s):
+                try:
+                    rec.lease(self.job_id, i, owner, st.stale_after_s)
+                except Exception:  # noqa: BLE001 - a missed renewal only risks a second render of this frame
+                    log.exception("job %s: renewing the lease of frame %d", self.job_id, i)
+
+        keeper = threading.Thread(target=renew, daemon=True, name=f"lease-{self.job_id[:8]}-{i}")
+        keeper.start()
+        try:
+            if self.paths[i].exists():  # written between the look and the lease
+                return False
+            vid, scene_dict = self.plan[i]
+            scene = parse_scene(scene_dict, st, ("scene",))
+            if nxt is not None and not self.paths[nxt].exists():
+                self.ahead.next(self.plan[nxt])
+            result = self.eng.render(volume_path(st.root, vid), scene, st.max_samples)
+            data, _ = encode(result, scene)
+            write_atomic(self.paths[i], data)
+        finally:
+            stop.set()
+            keeper.join(timeout=5)
+        log.info("job %s: frame %d rendered by %s", self.job_id, i, owner)
+        if st.frame_delay_s:
+            time.sleep(st.frame_delay_s)
+        rec.update(self.job_id, {"done": _count(self.paths)}, expect={"state": ("running",)})
+        return True
 
 
 class _Prefetch:

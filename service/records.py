@@ -68,6 +68,16 @@ class Records:
         """Remove the record if the job is in a final state (never a queued or running one)."""
         raise NotImplementedError
 
+    def lease(self, job_id: str, frame: int, owner: str, ttl: float) -> bool:
+        """Take frame `frame` of a job for `owner` for `ttl` seconds; true if it was free, its lease had lapsed, or
+        `owner` held it already (then it is renewed). The workers that share a job's frames render a frame only
+        under its lease, so that while its holder lives no one else renders it."""
+        raise NotImplementedError
+
+    def drop_leases(self, job_id: str, owner: str | None = None) -> None:
+        """Remove a job's frame leases (only `owner`'s, given one)."""
+        raise NotImplementedError
+
     def close(self) -> None:
         pass
 
@@ -86,6 +96,8 @@ class SqliteRecords(Records):
         with self._conn() as c:
             c.execute(f"CREATE TABLE IF NOT EXISTS jobs ({cols})")
             c.execute("CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state)")
+            c.execute("CREATE TABLE IF NOT EXISTS leases (job TEXT, frame INTEGER, owner TEXT, until REAL, "
+                      "PRIMARY KEY (job, frame))")
 
     def _conn(self) -> sqlite3.Connection:
         conn = getattr(self._local, "conn", None)
@@ -147,6 +159,20 @@ class SqliteRecords(Records):
         )
         return cur.rowcount == 1
 
+    def lease(self, job_id: str, frame: int, owner: str, ttl: float) -> bool:
+        now = time.time()
+        cur = self._conn().execute(
+            "INSERT INTO leases (job, frame, owner, until) VALUES (?, ?, ?, ?) ON CONFLICT (job, frame) DO UPDATE "
+            "SET owner = excluded.owner, until = excluded.until WHERE leases.until < ? OR leases.owner = excluded.owner",
+            (job_id, int(frame), owner, now + ttl, now))
+        return cur.rowcount == 1
+
+    def drop_leases(self, job_id: str, owner: str | None = None) -> None:
+        if owner is None:
+            self._conn().execute("DELETE FROM leases WHERE job = ?", (job_id,))
+        else:
+            self._conn().execute("DELETE FROM leases WHERE job = ? AND owner = ?", (job_id, owner))
+
     def close(self) -> None:
         conn = getattr(self._local, "conn", None)
         if conn is not None:
@@ -205,6 +231,17 @@ return 0
 """
 
 
+# KEYS = the lease. ARGV = owner, ttl in ms. Taken when free (an expired key is gone) or already the owner's.
+_LEASE = """
+local cur = redis.call('GET', KEYS[1])
+if (not cur) or cur == ARGV[1] then
+  redis.call('SET', KEYS[1], ARGV[1], 'PX', ARGV[2])
+  return 1
+end
+return 0
+"""
+
+
 def _enc(v: Any) -> str:
     return "" if v is None else repr(v) if isinstance(v, float) else str(v)
 
@@ -224,6 +261,7 @@ class RedisRecords(Records):
         self.prefix = prefix
         self._cas = self.client.register_script(_CAS)
         self._delete_final = self.client.register_script(_DELETE_FINAL)
+        self._lease = self.client.register_script(_LEASE)
 
     def _key(self, job_id: str) -> str:
         return f"{self.prefix}:job:{job_id}"
@@ -309,6 +347,15 @@ class RedisRecords(Records):
 
     def delete_final(self, job_id: str) -> bool:
         return bool(self._delete_final(keys=[self._key(job_id), self._index], args=[job_id, *FINAL]))
+
+    def lease(self, job_id: str, frame: int, owner: str, ttl: float) -> bool:
+        key = f"{self.prefix}:lease:{job_id}:{int(frame)}"
+        return bool(self._lease(keys=[key], args=[owner, max(1, int(ttl * 1000))]))
+
+    def drop_leases(self, job_id: str, owner: str | None = None) -> None:
+        for key in self.client.scan_iter(match=f"{self.prefix}:lease:{job_id}:*", count=1000):
+            if owner is None or self.client.get(key) == owner:
+                self.client.delete(key)
 
     def close(self) -> None:
         self.client.close()

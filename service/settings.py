@@ -73,6 +73,9 @@ class Settings(BaseSettings):
     render_timeout_s: float = Field(default=120.0, gt=0, description="a render still running after this many seconds "
                                     "is stopped between launch bands (LODCAST_RENDER_TIMEOUT_S)")
     workers: int = Field(default=1, ge=0, description="in-process job workers of `lodcast serve` (0: none)")
+    job_helpers: int = Field(default=3, ge=0, description="a running job asks this many idle workers (here or on "
+                             "other hosts sharing the queue) to render its frames beside it, each frame once "
+                             "(LODCAST_JOB_HELPERS)")
 
     # crash safety
     heartbeat_s: float = Field(default=2.0, gt=0, description="how often a running job refreshes its heartbeat")
