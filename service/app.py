@@ -32,7 +32,8 @@ from lodcast.errors import LodcastError, StoreCorrupt, StoreInvalid, StoreNotFou
 from lodcast.renderer.cost import CostError
 from lodcast.renderer.scene import Scene
 from lodcast.service.asgi import BodyLimit, offline_docs
-from lodcast.service.jobs import IngestJob, Job, animation_path, validate_job
+from lodcast.service.jobs import IngestJob, Job, validate_job
+from lodcast.service.results import JobFiles, frame_name
 from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeSummary, errors
 from lodcast.service.records import status_json
 from lodcast.service.rendering import RequestInvalid, encode, engine, parse_scene
@@ -101,6 +102,19 @@ def _bytes_in(folder: Any) -> int:
         except FileNotFoundError:  # ingested and removed meanwhile
             continue
     return total
+
+
+def _result(files: JobFiles, name: str, media: str) -> Response | None:
+    """A job's result file as the response (served from disk where the results are a local folder, else read
+    from object storage), or None while it is not written."""
+    local = files.local(name)
+    if local is not None:
+        return FileResponse(local, media_type=media, filename=name) if local.is_file() else None
+    try:
+        data = files.read(name)
+    except FileNotFoundError:
+        return None
+    return Response(data, media_type=media, headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
 def _finite(obj: Any) -> Any:
@@ -440,15 +454,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
              responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}},
                                           "application/x-npy": {"schema": {"type": "string", "format": "binary"}}},
                               "description": "the frame"}, **errors(401, 404, 422, 503)})
-    def get_result(job_id: JobId, n: Annotated[int, PathParam(ge=0, le=10_000_000)]) -> FileResponse:
+    def get_result(job_id: JobId, n: Annotated[int, PathParam(ge=0, le=10_000_000)]) -> Response:
         rec = get_record(job_id)
         if n >= max(int(rec["total"] or 0), 0) or rec["kind"] == "ingest":
             raise HttpError(404, f"n: job {job_id} has no result {n} (it has {0 if rec['kind'] == 'ingest' else rec['total']})")
-        d = jobs().job_dir(job_id)
+        files = jobs().files(job_id)
         for ext, media in (("png", "image/png"), ("npy", "application/x-npy")):
-            p = d / f"frame_{n:05d}.{ext}"
-            if p.is_file():
-                return FileResponse(p, media_type=media, filename=p.name)
+            found = _result(files, frame_name(n, ext), media)
+            if found is not None:
+                return found
         raise HttpError(404, f"n: result {n} of job {job_id} is not written yet (state {rec['state']})")
 
     @app.get("/jobs/{job_id}/animation", tags=["jobs"], dependencies=auth, response_class=FileResponse,
@@ -456,13 +470,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
              responses={200: {"content": {"image/gif": {"schema": {"type": "string", "format": "binary"}},
                                           "video/mp4": {"schema": {"type": "string", "format": "binary"}}},
                               "description": "the animation"}, **errors(401, 404, 503)})
-    def get_animation(job_id: JobId) -> FileResponse:
+    def get_animation(job_id: JobId) -> Response:
         rec = get_record(job_id)
-        d = jobs().job_dir(job_id)
+        files = jobs().files(job_id)
         for fmt, media in (("gif", "image/gif"), ("mp4", "video/mp4")):
-            p = animation_path(d, fmt)
-            if p.is_file():
-                return FileResponse(p, media_type=media, filename=p.name)
+            found = _result(files, f"turntable.{fmt}", media)
+            if found is not None:
+                return found
         raise HttpError(404, f"animation: job {job_id} has no animation (state {rec['state']})")
 
 

@@ -323,11 +323,13 @@ def _cmd_jobs(args: argparse.Namespace) -> int:
 
 def _local_results(jq: Any, job_id: str, dest: Path) -> list[Path]:
     """Copies of a local job's frames (as written so far) in `dest`."""
-    import shutil
-
-    frames = sorted(jq.job_dir(job_id).glob("frame_*.*"))
+    files = jq.files(job_id)
     dest.mkdir(parents=True, exist_ok=True)
-    return [Path(shutil.copy2(f, dest / f.name)) for f in frames if not f.name.startswith(".")]
+    out = []
+    for name in files.frames():
+        (dest / name).write_bytes(files.read(name))
+        out.append(dest / name)
+    return out
 
 
 def _report_results(paths: list) -> int:

@@ -27,10 +27,7 @@ __all__ = [
     "parse_job",
     "validate_job",
     "plan_frames",
-    "frame_path",
-    "frame_files",
     "write_atomic",
-    "animation_path",
 ]
 
 Scene = dict[str, Any]
@@ -212,18 +209,6 @@ def frame_ext(scene: Any) -> str:
     return scene_format(scene)
 
 
-def frame_path(job_dir: Path, n: int, ext: str) -> Path:
-    return Path(job_dir) / f"frame_{n:05d}.{ext}"
-
-
-def frame_files(job_dir: Path) -> list[Path]:
-    return sorted(Path(job_dir).glob("frame_*.*")) if Path(job_dir).is_dir() else []
-
-
-def animation_path(job_dir: Path, fmt: str) -> Path:
-    return Path(job_dir) / f"turntable.{fmt}"
-
-
 def write_atomic(path: Path, data: bytes) -> None:
     """Write to a temporary file in the same folder, fsync, then rename: the file is complete or absent."""
     path = Path(path)
@@ -242,21 +227,22 @@ def write_atomic(path: Path, data: bytes) -> None:
         raise
 
 
-def encode_animation(frames: list[Path], fmt: str, fps: float) -> bytes:
-    """Frames (PNG) to an animated GIF (Pillow) or an H.264/MPEG-4 MP4 (PyAV), over opaque black."""
+def encode_animation(frames: list[tuple[str, bytes]], fmt: str, fps: float) -> bytes:
+    """Frames (name, PNG or .npy bytes) to an animated GIF (Pillow) or an H.264/MPEG-4 MP4 (PyAV), over opaque
+    black."""
     import io
 
     import numpy as np
     from PIL import Image
 
     images = []
-    for p in frames:
-        if p.suffix == ".npy":
-            rgba = np.load(p)
+    for name, data in frames:
+        if name.endswith(".npy"):
+            rgba = np.load(io.BytesIO(data), allow_pickle=False)
             rgb = np.clip(rgba[..., :3], 0, 1)  # premultiplied: over black is the colour itself
             images.append(Image.fromarray(np.round(rgb * 255).astype(np.uint8), "RGB"))
         else:
-            im = Image.open(p).convert("RGBA")
+            im = Image.open(io.BytesIO(data)).convert("RGBA")
             bg = Image.new("RGBA", im.size, (0, 0, 0, 255))
             images.append(Image.alpha_composite(bg, im).convert("RGB"))
     buf = io.BytesIO()

@@ -14,7 +14,6 @@ import json
 import logging
 import os
 import re
-import shutil
 import signal
 import socket
 import threading
@@ -23,18 +22,9 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from lodcast.service.jobs import (
-    IngestJob,
-    TurntableJob,
-    animation_path,
-    encode_animation,
-    frame_ext,
-    frame_path,
-    parse_job,
-    plan_frames,
-    write_atomic,
-)
+from lodcast.service.jobs import IngestJob, TurntableJob, encode_animation, frame_ext, parse_job, plan_frames
 from lodcast.service.records import ACTIVE, Records, open_records
+from lodcast.service.results import JobFiles, frame_name
 from lodcast.service.rendering import encode, engine, parse_scene
 from lodcast.service.volumes import JOB_ID, volume_path
 
@@ -86,9 +76,16 @@ class JobQueue:
 
     # --- client side ----------------------------------------------------------------------------------------
     def job_dir(self, job_id: str) -> Path:
+        """The local folder of a job's results (a root folder's; service/results.py)."""
         if not JOB_ID.match(job_id):
             raise ValueError(f"id: invalid job id {job_id[:40]!r}")
         return self.settings.jobs_dir / job_id
+
+    def files(self, job_id: str) -> JobFiles:
+        """A job's results, wherever they live (the state folder, or object storage under a root URL)."""
+        if not JOB_ID.match(job_id):
+            raise ValueError(f"id: invalid job id {job_id[:40]!r}")
+        return JobFiles(self.settings.results, job_id)
 
     def submit(self, job: Any, *, upload: Path | None = None) -> dict[str, Any]:
         job_id = uuid.uuid4().hex
@@ -273,22 +270,19 @@ class JobQueue:
         if isinstance(job, IngestJob):
             return self._run_ingest(job_id, owner, job, rec, upload)
         plan = plan_frames(job)
-        d = self.job_dir(job_id)
-        d.mkdir(parents=True, exist_ok=True)
-        for tmp in d.glob(".*.tmp"):  # a frame half-written by a worker that died: never a result
-            tmp.unlink(missing_ok=True)
-        exts = [frame_ext(s) for _, s in plan]
-        paths = [frame_path(d, i, e) for i, e in enumerate(exts)]
-
-        self.records.update(job_id, {"total": len(plan), "done": _count(paths)}, expect={"owner": (owner,)})
+        files = self.files(job_id)
+        files.clear_partial()  # a frame half-written by a worker that died: never a result
+        names = [frame_name(i, frame_ext(s)) for i, (_, s) in enumerate(plan)]
+        there = files.names()
+        self.records.update(job_id, {"total": len(plan), "done": len(there & set(names))}, expect={"owner": (owner,)})
         for _ in range(min(self.settings.job_helpers, len(plan) - 1)):
             self._help_task(job_id)  # idle workers, here or on other hosts, take frames of this job beside this one
-        frames = _Frames(self, job_id, plan, paths)
-        todo = [i for i in range(len(plan)) if not paths[i].exists()]  # frames written before a crash or a release
+        frames = _Frames(self, job_id, plan, files, names)
+        todo = [i for i in range(len(plan)) if names[i] not in there]  # frames written before a crash or a release
         while todo:
             took = False
             for n, i in enumerate(todo):
-                if paths[i].exists():
+                if files.exists(names[i]):
                     continue  # a helper's
                 if not self._mine(job_id, owner):
                     return "lost"  # cancelled, or re-assigned after a stall
@@ -296,7 +290,8 @@ class JobQueue:
                     self._release(job_id, owner)
                     return "released"
                 took |= frames.render(i, owner, todo[n + 1] if n + 1 < len(todo) else None)
-            todo = [i for i in todo if not paths[i].exists()]
+            there = files.names()
+            todo = [i for i in todo if names[i] not in there]
             if todo and not took:  # the rest are under helpers' leases: their frames come, or a dead one's lapses
                 if not self._mine(job_id, owner):
                     return "lost"
@@ -304,11 +299,11 @@ class JobQueue:
                     self._release(job_id, owner)
                     return "released"
         if isinstance(job, TurntableJob) and job.animation:
-            out = animation_path(d, job.animation)
-            if not out.exists():
+            out = f"turntable.{job.animation}"
+            if not files.exists(out):
                 if not self._mine(job_id, owner):
                     return "lost"
-                write_atomic(out, encode_animation(paths, job.animation, job.fps))
+                files.write(out, encode_animation([(n, files.read(n)) for n in names], job.animation, job.fps))
         return "done" if self._mine(job_id, owner) else "lost"
 
     def _help(self, job_id: str) -> None:
@@ -324,16 +319,17 @@ class JobQueue:
         if isinstance(job, IngestJob):
             return
         plan = plan_frames(job)
-        d = self.job_dir(job_id)
-        paths = [frame_path(d, i, frame_ext(s)) for i, (_, s) in enumerate(plan)]
+        files = self.files(job_id)
+        names = [frame_name(i, frame_ext(s)) for i, (_, s) in enumerate(plan)]
         helper = f"{self.owner_prefix}:{uuid.uuid4().hex[:8]}:helper"
-        frames = _Frames(self, job_id, plan, paths)
+        frames = _Frames(self, job_id, plan, files, names)
         try:
+            there = files.names()
             for i in range(len(plan)):
                 cur = self.records.get(job_id)
                 if self.stopping.is_set() or cur is None or cur["state"] != "running":
                     return
-                if not paths[i].exists():
+                if names[i] not in there:
                     frames.render(i, helper, i + 1 if i + 1 < len(plan) else None)
         except Exception:  # noqa: BLE001 - the owner meets the same error on that frame and records it
             log.exception("job %s: a helper's frame failed; left to the job's owner", job_id)
@@ -364,11 +360,7 @@ class JobQueue:
         return "done" if self._mine(job_id, owner) else "lost"
 
     def delete_results(self, job_id: str) -> None:
-        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
-
-
-def _count(paths: list[Path]) -> int:
-    return sum(p.exists() for p in paths)
+        self.files(job_id).delete()
 
 
 class _Frames:
@@ -376,8 +368,8 @@ class _Frames:
     frame is rendered only by the worker that holds its lease, renewed every heartbeat while it renders, so that
     each frame is rendered once while its worker lives (and again only after that worker died mid-frame)."""
 
-    def __init__(self, jq: "JobQueue", job_id: str, plan: list, paths: list[Path]) -> None:
-        self.jq, self.job_id, self.plan, self.paths = jq, job_id, plan, paths
+    def __init__(self, jq: "JobQueue", job_id: str, plan: list, files: JobFiles, names: list[str]) -> None:
+        self.jq, self.job_id, self.plan, self.files, self.names = jq, job_id, plan, files, names
         self.eng = engine()
         self.ahead = _Prefetch(self.eng, jq.settings)
 
@@ -398,22 +390,22 @@ class _Frames:
         keeper = threading.Thread(target=renew, daemon=True, name=f"lease-{self.job_id[:8]}-{i}")
         keeper.start()
         try:
-            if self.paths[i].exists():  # written between the look and the lease
+            if self.files.exists(self.names[i]):  # written between the look and the lease
                 return False
             vid, scene_dict = self.plan[i]
             scene = parse_scene(scene_dict, st, ("scene",))
-            if nxt is not None and not self.paths[nxt].exists():
+            if nxt is not None:
                 self.ahead.next(self.plan[nxt])
             result = self.eng.render(volume_path(st.root, vid), scene, st.max_samples)
             data, _ = encode(result, scene)
-            write_atomic(self.paths[i], data)
+            self.files.write(self.names[i], data)
         finally:
             stop.set()
             keeper.join(timeout=5)
         log.info("job %s: frame %d rendered by %s", self.job_id, i, owner)
         if st.frame_delay_s:
             time.sleep(st.frame_delay_s)
-        rec.update(self.job_id, {"done": _count(self.paths)}, expect={"state": ("running",)})
+        rec.update(self.job_id, {"done": len(self.files.names() & set(self.names))}, expect={"state": ("running",)})
         return True
 
 

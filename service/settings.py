@@ -18,9 +18,9 @@ class Settings(BaseSettings):
 
     ``root`` is the store root: volumes are stores directly under it (their id is the folder name). It is a folder
     or an fsspec URL (``s3://bucket/prefix``: stores on object storage, read with shard-level range requests and
-    published atomically by ingest). Job results, the embedded SQLite queue and uploads live in hidden folders
-    (``.jobs/``, ``.lodcast/``, ``.uploads/``) of the state folder: the root itself when it is a folder, else
-    ``state_root`` (LODCAST_STATE_ROOT).
+    published atomically by ingest). The embedded SQLite queue and uploads live in hidden folders (``.lodcast/``,
+    ``.uploads/``) of the state folder: ``state_root`` (LODCAST_STATE_ROOT), else the root itself when it is a
+    folder. Job results go to ``.jobs/`` of the state folder, or of the root when it is a URL (``results``).
     """
 
     model_config = SettingsConfigDict(env_prefix="LODCAST_", extra="ignore")
@@ -145,6 +145,12 @@ class Settings(BaseSettings):
     @property
     def jobs_dir(self) -> Path:
         return self.local_root / ".jobs"
+
+    @property
+    def results(self) -> Path | str:
+        """Where job results go (service/results.py): the state folder's .jobs/, or ROOT/.jobs on object storage
+        when the root is a URL, shared by every host that shares the queue."""
+        return f"{self.root}/.jobs" if isinstance(self.root, str) else self.jobs_dir
 
     @property
     def uploads_dir(self) -> Path:

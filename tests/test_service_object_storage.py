@@ -2,7 +2,8 @@
 lists, describes, renders, ingests and deletes the volumes there, against a real S3-compatible server (moto's
 server mode on loopback, lodcast.service.testing.s3_server). Images are those of the same store on local disk, bit
 for bit; an ingest job publishes its store atomically (the root zarr.json last, so a listing never shows a half
-store); the queue, job results and uploads stay in the local state folder, none of them in the bucket."""
+store); job results go to ROOT/.jobs on the same storage, while the queue and uploads stay in the local state
+folder."""
 from __future__ import annotations
 
 import io
@@ -26,7 +27,7 @@ with warnings.catch_warnings():
 import lodcast  # noqa: E402
 from lodcast.service.app import create_app  # noqa: E402
 from lodcast.service.settings import Settings  # noqa: E402
-from lodcast.service.testing import free_port, make_volume, running, s3_server, start_serve, tiny_scene  # noqa: E402
+from lodcast.service.testing import Proc, free_port, make_volume, running, s3_server, start_serve, tiny_scene  # noqa: E402
 
 BUCKET = "lodcast-svc"
 ROOT = f"s3://{BUCKET}/volumes"
@@ -119,8 +120,8 @@ def test_ingest_job_publishes_to_s3_and_delete_removes_it(svc):
     img = client.post("/volumes/blob/render", json=tiny_scene(16, format="npy"))
     assert img.status_code == 200
     np.testing.assert_array_equal(np.asarray(store.level(0)[...]), want)
-    # nothing of the service's own state went to the bucket: queue and records are in the state folder
-    assert not [o for o in _objects(fs, BUCKET) if "/." in o], _objects(fs, BUCKET)
+    # the queue, the records and uploads are in the state folder, not in the bucket
+    assert not [o for o in _objects(fs, BUCKET) if "/.lodcast" in o or "/.uploads" in o], _objects(fs, BUCKET)
     assert (state / ".lodcast" / "queue.db").is_file()
     # a second ingest under the same name is refused at submission, naming the field
     again = client.post("/volumes", json={"name": "blob", "source": "blob.npy"})
@@ -144,14 +145,24 @@ def test_a_store_without_its_root_metadata_is_not_a_volume(svc):
         fs.rm(f"{BUCKET}/volumes/half", recursive=True)
 
 
-def test_turntable_job_on_s3_writes_its_frames_to_the_state_folder(svc):
+def test_turntable_results_go_to_the_bucket(svc):
+    """Results under ROOT/.jobs on the object storage, where every host sharing the queue reads them; not in the
+    state folder, and never listed as a volume."""
     client, fs, local, imports, state, srv = svc
-    job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16, quality={"reduction": 4}), "frames": 3}
+    job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16, quality={"reduction": 4}), "frames": 3,
+           "animation": "gif"}
     st = _wait(client, client.post("/jobs", json=job).json()["id"])
-    assert st["state"] == "done" and st["progress"] == {"done": 3, "total": 3}
-    frames = sorted((state / ".jobs" / st["id"]).glob("frame_*.png"))
-    assert len(frames) == 3
-    assert client.get(f"/jobs/{st['id']}/results/2").content == frames[2].read_bytes()
+    assert st["state"] == "done" and st["progress"] == {"done": 3, "total": 3}, st
+    prefix = f"{BUCKET}/volumes/.jobs/{st['id']}"
+    names = [o.rsplit("/", 1)[-1] for o in _objects(fs, prefix)]
+    assert names == ["frame_00000.png", "frame_00001.png", "frame_00002.png", "turntable.gif"], names
+    got = client.get(f"/jobs/{st['id']}/results/2")
+    assert got.status_code == 200 and got.headers["content-type"] == "image/png"
+    assert got.content == fs.cat(f"{prefix}/frame_00002.png")
+    assert client.get(f"/jobs/{st['id']}/animation").content[:3] == b"GIF"
+    assert client.get(f"/jobs/{st['id']}/results/3").status_code == 404
+    assert not (state / ".jobs" / st["id"]).exists()
+    assert [v["id"] for v in client.get("/volumes").json()] == ["tiny"]
 
 
 def test_lodcast_serve_with_a_root_url(svc, tmp_path):
@@ -175,3 +186,46 @@ def test_lodcast_serve_with_a_root_url(svc, tmp_path):
     assert p.returncode == 2, p.stderr
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "--root" in lines[0] and "no-such-bucket" in lines[0], p.stderr
+
+
+def test_two_workers_on_redis_and_s3_split_a_turntable_each_frame_once(svc, tmp_path):
+    """Issue 14 item 4: two `lodcast worker` processes (as on two hosts: each with a state folder of its own,
+    sharing only the loopback Redis queue and the S3 bucket) split a 36-frame turntable between them; every frame
+    is rendered exactly once (each worker logs the frames it renders) and all 36 are in the bucket."""
+    import re
+
+    from lodcast.service.jobs import TurntableJob
+    from lodcast.service.queue import JobQueue
+    from lodcast.service.testing import RedisServer, in_ci, redis_available, start_worker
+
+    if redis_available() is None:
+        if in_ci():
+            pytest.fail("redis-server missing under CI (Debian package redis-server)")
+        pytest.skip("redis-server not installed (Debian package redis-server)")
+    fs, srv = svc[1], svc[-1]
+    redis = RedisServer(tmp_path / "redis")
+    env = {"AWS_ENDPOINT_URL": srv.endpoint, "LODCAST_FRAME_DELAY_S": "0.05", "LODCAST_HEARTBEAT_S": "0.5",
+           "LODCAST_REAP_EVERY_S": "1"}
+    logs = [tmp_path / f"worker{k}.log" for k in (1, 2)]
+    workers = [Proc([sys.executable, "-m", "lodcast.service.cli", "--log-level", "info", "worker", "--root", ROOT,
+                     "--queue", redis.url, "--state-root", str(tmp_path / f"host{k}")], env=env, log=logs[k - 1])
+               for k in (1, 2)]
+    try:
+        with running(*workers):
+            jq = JobQueue(Settings(root=ROOT, queue=redis.url, state_root=tmp_path / "client"))
+            scene = tiny_scene(48, quality={"reduction": 4})
+            rec = jq.submit(TurntableJob(kind="turntable", volume="tiny", scene=scene, frames=36))
+            st = jq.wait(rec["id"], timeout=240)
+            assert st["state"] == "done" and st["done"] == 36, (st, [p.read_text()[-2000:] for p in logs])
+    finally:
+        redis.stop()
+    rendered = [re.findall(rf"job {rec['id']}: frame (\d+) rendered by", p.read_text()) for p in logs]
+    counts = [len(r) for r in rendered]
+    frames = sorted(int(i) for r in rendered for i in r)
+    assert frames == list(range(36)), (counts, frames)  # each frame once, by one of the two
+    assert min(counts) >= 1, counts  # split between them, not one worker doing it all
+    print(f"frames per worker: {counts}")
+    objects = [o.rsplit("/", 1)[-1] for o in _objects(fs, f"{BUCKET}/volumes/.jobs/{rec['id']}")]
+    assert objects == [f"frame_{i:05d}.png" for i in range(36)]
+    first, last = (fs.cat(f"{BUCKET}/volumes/.jobs/{rec['id']}/frame_{i:05d}.png") for i in (0, 9))
+    assert first != last  # the camera turned

@@ -1,0 +1,91 @@
+"""Where a job's results live: ``<results>/<job id>/frame_NNNNN.<png|npy>`` (and ``turntable.<gif|mp4>``).
+
+With a store root folder, ``<results>`` is the state folder's ``.jobs/`` (a shared filesystem when workers run on
+several hosts). With a root URL (``s3://bucket/prefix``) it is ``ROOT/.jobs/`` on the same object storage, so that
+every host sharing the queue reads what any worker wrote, with nothing shared but the queue and the bucket. Either
+way a result is complete or absent: a local file is written to a temporary name and renamed, an object is one PUT.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+from lodcast.service.jobs import write_atomic
+
+__all__ = ["JobFiles", "frame_name"]
+
+
+def frame_name(n: int, ext: str) -> str:
+    return f"frame_{n:05d}.{ext}"
+
+
+class JobFiles:
+    """The result files of one job under `base` (a folder, or a URL: a str)."""
+
+    def __init__(self, base: Path | str, job_id: str) -> None:
+        self.fs: Any = None
+        if isinstance(base, str):
+            import fsspec
+
+            self.fs, path = fsspec.core.url_to_fs(base)
+            self.dir: Path | str = f"{path.rstrip('/')}/{job_id}"
+        else:
+            self.dir = Path(base) / job_id
+
+    def _at(self, name: str) -> Path | str:
+        return f"{self.dir}/{name}" if self.fs is not None else Path(self.dir) / name
+
+    def names(self) -> set[str]:
+        """The complete results there now (one listing)."""
+        if self.fs is not None:
+            self.fs.invalidate_cache(self.dir)
+            try:
+                return {str(p).rstrip("/").rsplit("/", 1)[-1] for p in self.fs.ls(self.dir, detail=False)}
+            except FileNotFoundError:
+                return set()
+        try:
+            return {n for n in os.listdir(self.dir) if not n.startswith(".")}
+        except FileNotFoundError:
+            return set()
+
+    def frames(self) -> list[str]:
+        return sorted(n for n in self.names() if n.startswith("frame_"))
+
+    def exists(self, name: str) -> bool:
+        if self.fs is not None:
+            self.fs.invalidate_cache(self.dir)
+            return bool(self.fs.exists(self._at(name)))
+        return Path(self._at(name)).is_file()
+
+    def write(self, name: str, data: bytes) -> None:
+        if self.fs is not None:
+            self.fs.pipe(self._at(name), data)  # one PUT: the object is complete or absent
+            return
+        Path(self.dir).mkdir(parents=True, exist_ok=True)
+        write_atomic(Path(self._at(name)), data)
+
+    def read(self, name: str) -> bytes:
+        if self.fs is not None:
+            return bytes(self.fs.cat(self._at(name)))
+        return Path(self._at(name)).read_bytes()
+
+    def local(self, name: str) -> Path | None:
+        """The file's path when the results are a local folder (to be served as a file), else None."""
+        return None if self.fs is not None else Path(self._at(name))
+
+    def clear_partial(self) -> None:
+        """Temporary files of a worker that died mid-write: never results (objects have none)."""
+        if self.fs is None and Path(self.dir).is_dir():
+            for tmp in Path(self.dir).glob(".*.tmp"):
+                tmp.unlink(missing_ok=True)
+
+    def delete(self) -> None:
+        if self.fs is not None:
+            try:
+                self.fs.rm(self.dir, recursive=True)
+            except FileNotFoundError:
+                pass
+            return
+        shutil.rmtree(self.dir, ignore_errors=True)
