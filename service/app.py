@@ -17,6 +17,7 @@ import threading
 import time
 import uuid
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 from typing import Annotated, Any, Literal
 
@@ -102,6 +103,14 @@ def _bytes_in(folder: Any) -> int:
         except FileNotFoundError:  # ingested and removed meanwhile
             continue
     return total
+
+
+def _park(local: Path, url: str) -> None:
+    """Upload a file to object storage (an upload for the workers of every host)."""
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(url)
+    fs.put_file(str(local), path)
 
 
 def _result(files: JobFiles, name: str, media: str) -> Response | None:
@@ -337,10 +346,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     f.write(chunk)
             if size == 0:
                 raise RequestInvalid.one(("body",), "body: the upload is empty")
+            parked: Path | str = dest
+            if settings.remote:  # the worker that ingests it may be on another host: parked beside the volumes
+                parked = f"{settings.root}/.uploads/{dest.name}"
+                await run_in_threadpool(_park, dest, parked)
+                job = job.model_copy(update={"source": parked})
         except BaseException:
             dest.unlink(missing_ok=True)
             raise
-        return status_json(await run_in_threadpool(jobs().submit, job, upload=dest))
+        if settings.remote:
+            dest.unlink(missing_ok=True)
+        return status_json(await run_in_threadpool(jobs().submit, job, upload=parked))
 
     @app.get("/volumes/{volume_id}", tags=["volumes"], dependencies=auth, summary="One volume's attributes",
              response_model=VolumeSummary, responses=errors(400, 401, 404, 409))

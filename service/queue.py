@@ -87,7 +87,7 @@ class JobQueue:
             raise ValueError(f"id: invalid job id {job_id[:40]!r}")
         return JobFiles(self.settings.results, job_id)
 
-    def submit(self, job: Any, *, upload: Path | None = None) -> dict[str, Any]:
+    def submit(self, job: Any, *, upload: Path | str | None = None) -> dict[str, Any]:
         job_id = uuid.uuid4().hex
         spec = job.model_dump(mode="json")
         if upload is not None:
@@ -112,7 +112,7 @@ class JobQueue:
         if self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ("queued",)}):
             spec = json.loads((self.get(job_id) or {}).get("spec") or "{}")
             if spec.get("_upload"):
-                Path(spec["source"]).unlink(missing_ok=True)
+                _drop_upload(spec["source"])
         else:
             self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ACTIVE})
         return self.get(job_id)
@@ -122,18 +122,21 @@ class JobQueue:
         between an upload's last byte and its job's record) once they are `upload_grace_s` old: an upload still
         arriving is younger, its file being written."""
         folder = self.settings.uploads_dir
-        if not folder.is_dir():
-            return []
         wanted = {json.loads(r["spec"] or "{}").get("source") for r in self.records.list(limit=100_000, states=ACTIVE)
                   if r["kind"] == "ingest"}
         cutoff, gone = time.time() - self.settings.upload_grace_s, []
-        for p in folder.iterdir():
+        for p in (folder.iterdir() if folder.is_dir() else ()):
             try:
                 if str(p) not in wanted and p.is_file() and p.stat().st_mtime < cutoff:
                     p.unlink()
                     gone.append(p.name)
             except FileNotFoundError:
                 continue
+        if self.settings.remote:  # uploads parked on object storage for a worker on another host
+            for url, mtime in _remote_uploads(f"{self.settings.root}/.uploads"):
+                if url not in wanted and mtime < cutoff:
+                    _drop_upload(url)
+                    gone.append(url.rsplit("/", 1)[-1])
         if gone:
             log.info("deleted %d uploaded files no job reads", len(gone))
         return gone
@@ -239,7 +242,7 @@ class JobQueue:
     def _unplaced(self, message: str) -> str:
         """A job's error as its client may read it: paths relative to the store root and the import roots (an
         upload's file is "the upload"), never where they lie on the server."""
-        message = re.sub(re.escape(str(self.settings.uploads_dir)) + r"/[0-9a-f]{32}\.\w+", "the upload", message)
+        message = re.sub(r"\S*/\.uploads/[0-9a-f]{32}\.\w+", "the upload", message)  # a local file or a parked object
         for base in (*self.settings.import_roots, self.settings.root):
             message = message.replace(str(base) + os.sep, "").replace(str(base), ".")
         return message
@@ -341,9 +344,18 @@ class JobQueue:
         from lodcast.store.ingest import ingest
 
         dest = volume_path(self.settings.root, job.name, must_exist=False, field="name")
+        source, fetched = job.source, None
+        if upload and "://" in source:  # parked on object storage by the API host (it may be another host): fetch it
+            import fsspec
+
+            fetched = self.settings.uploads_dir / f"{job_id}-{source.rsplit('/', 1)[-1]}"
+            fetched.parent.mkdir(parents=True, exist_ok=True)
+            fs, path = fsspec.core.url_to_fs(source)
+            fs.get(path, str(fetched))
+            source = str(fetched)
         try:
             # an upload is one file: it may not name others (a detached NRRD header could read any server file)
-            ingest(job.source, dest, overwrite=job.overwrite, max_voxels=self.settings.max_voxels,
+            ingest(source, dest, overwrite=job.overwrite, max_voxels=self.settings.max_voxels,
                    max_memory=int(self.settings.max_ingest_memory_mb * 1e6), **job.options,
                    **({"detached": False} if upload else {}))
         except StoreExists:
@@ -351,16 +363,51 @@ class JobQueue:
                 raise
         except Exception:
             if upload:  # the job fails for good: the uploaded file is of no further use
-                Path(job.source).unlink(missing_ok=True)
+                _drop_upload(job.source)
             raise
+        finally:
+            if fetched is not None:
+                fetched.unlink(missing_ok=True)
         if upload:
-            Path(job.source).unlink(missing_ok=True)
+            _drop_upload(job.source)
         engine().forget(dest)
         self.records.update(job_id, {"done": 1}, expect={"owner": (owner,)})
         return "done" if self._mine(job_id, owner) else "lost"
 
     def delete_results(self, job_id: str) -> None:
         self.files(job_id).delete()
+
+
+def _drop_upload(source: str) -> None:
+    """Delete an uploaded file: in the local uploads folder, or parked under a root URL's .uploads/."""
+    if "://" not in source:
+        Path(source).unlink(missing_ok=True)
+        return
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(source)
+    try:
+        fs.rm(path)
+    except FileNotFoundError:
+        pass
+
+
+def _remote_uploads(url: str) -> list[tuple[str, float]]:
+    """(URL, modification time) of the uploads parked under `url`."""
+    import fsspec
+
+    fs, base = fsspec.core.url_to_fs(url)
+    fs.invalidate_cache(base)
+    try:
+        entries = fs.ls(base, detail=True)
+    except FileNotFoundError:
+        return []
+    out = []
+    for e in entries:
+        t = e.get("LastModified") or e.get("mtime")
+        stamp = t.timestamp() if hasattr(t, "timestamp") else float(t or 0.0)
+        out.append((f"{url}/{str(e['name']).rstrip('/').rsplit('/', 1)[-1]}", stamp))
+    return out
 
 
 class _Frames:

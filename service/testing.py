@@ -192,6 +192,13 @@ def _proxy(server: S3Server, upstream_port: int) -> ThreadingHTTPServer:
     return ThreadingHTTPServer(("127.0.0.1", 0), Handler)
 
 
+def _forget_s3_clients() -> None:
+    with contextlib.suppress(ImportError):
+        import s3fs
+
+        s3fs.S3FileSystem.clear_instance_cache()
+
+
 @contextlib.contextmanager
 def s3_server() -> Iterator[S3Server]:
     """moto's S3 on loopback behind the counting proxy, with the AWS environment variables a client needs (dummy
@@ -218,8 +225,10 @@ def s3_server() -> Iterator[S3Server]:
         srv.endpoint = f"http://127.0.0.1:{httpd.server_address[1]}"
         os.environ.update(AWS_ACCESS_KEY_ID="testing", AWS_SECRET_ACCESS_KEY="testing", AWS_DEFAULT_REGION="us-east-1",
                           AWS_ENDPOINT_URL=srv.endpoint)
+        _forget_s3_clients()  # fsspec keeps filesystems per arguments, not per endpoint: one of an earlier server
         yield srv
     finally:
+        _forget_s3_clients()
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)

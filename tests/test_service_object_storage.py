@@ -133,6 +133,27 @@ def test_ingest_job_publishes_to_s3_and_delete_removes_it(svc):
     assert client.get("/volumes/blob").status_code == 404
 
 
+def test_an_upload_is_parked_in_the_bucket_for_whichever_worker_ingests_it(svc):
+    """With a root URL the worker that ingests an upload may run on another host: the API host parks the file
+    under ROOT/.uploads/ and the job's source is that object; once ingested it is gone from both places."""
+    client, fs, local, imports, state, srv = svc
+    vol = np.random.default_rng(5).random((14, 16, 18), dtype=np.float32)
+    buf = io.BytesIO()
+    np.save(buf, vol)
+    resp = client.post("/volumes/up/upload?format=npy", content=buf.getvalue(),
+                       headers={"Content-Type": "application/octet-stream"})
+    assert resp.status_code == 202, resp.text
+    jq = client.app.state.jobs()
+    spec = jq.get(resp.json()["id"])["spec"]
+    assert f'"source": "{ROOT}/.uploads/' in spec, spec
+    st = _wait(client, resp.json()["id"])
+    assert st["state"] == "done", st
+    np.testing.assert_array_equal(np.asarray(lodcast.open_store(f"{ROOT}/up").level(0)[...]), vol)
+    assert _objects(fs, f"{BUCKET}/volumes/.uploads") == []
+    assert not list((state / ".uploads").glob("*")) if (state / ".uploads").is_dir() else True
+    assert client.delete("/volumes/up").status_code == 200
+
+
 def test_a_store_without_its_root_metadata_is_not_a_volume(svc):
     """What a listing sees while an ingest is uploading (or after a killed upload): objects but no root zarr.json."""
     client, fs, *_ = svc
