@@ -110,6 +110,24 @@ class BackendMixin:
         rec = self.check_complete(jq, job_id, 16)
         assert rec["attempts"] >= 2, rec  # 2, or more if a loaded machine starved a heartbeat
 
+    def test_two_workers_share_a_job_and_survive_one_killed(self, root: Path, queue: str | None, tmp_path: Path):
+        """Two workers share one job's frames (the owner and a helper, each frame under a lease); SIGKILL of one of
+        them mid-job loses nothing: a dead helper's lease lapses and the owner renders that frame, a dead owner's
+        job is re-enqueued and the other worker finishes it. Every frame is written, the job completes once."""
+        jq = self.local(root, queue)
+        job_id = self.submit(jq, frames=24)
+        ws = [start_worker(root, queue=queue, env=self.env(jq), log=tmp_path / f"w{k}.log") for k in (1, 2)]
+        try:
+            wait_for(lambda: (jq.get(job_id)["done"] or 0) >= 6, what="6 frames", timeout=90)
+            ws[1].kill(signal.SIGKILL)  # the owner or the helper, whichever the second process is
+            ws[1].p.wait(10)
+            assert jq.get(job_id)["done"] < 24
+            wait_for(lambda: jq.get(job_id)["state"] not in ("queued", "running"), timeout=90, what="job end")
+        finally:
+            for w in ws:
+                w.stop()
+        self.check_complete(jq, job_id, 24)
+
     def test_service_restart_mid_job(self, root: Path, queue: str | None, tmp_path: Path):
         jq = self.local(root, queue)
         job_id = self.submit(jq, frames=14)
