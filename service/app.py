@@ -34,7 +34,7 @@ from lodcast.renderer.cost import CostError
 from lodcast.renderer.scene import Scene
 from lodcast.service.asgi import BodyLimit, offline_docs
 from lodcast.service.jobs import IngestJob, Job, validate_job
-from lodcast.service.results import JobFiles, frame_name
+from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeSummary, errors
 from lodcast.service.records import status_json
 from lodcast.service.rendering import RequestInvalid, encode, engine, parse_scene
@@ -103,14 +103,6 @@ def _bytes_in(folder: Any) -> int:
         except FileNotFoundError:  # ingested and removed meanwhile
             continue
     return total
-
-
-def _park(local: Path, url: str) -> None:
-    """Upload a file to object storage (an upload for the workers of every host)."""
-    import fsspec
-
-    fs, path = fsspec.core.url_to_fs(url)
-    fs.put_file(str(local), path)
 
 
 def _result(files: JobFiles, name: str, media: str) -> Response | None:
@@ -349,7 +341,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             parked: Path | str = dest
             if settings.remote:  # the worker that ingests it may be on another host: parked beside the volumes
                 parked = f"{settings.root}/.uploads/{dest.name}"
-                await run_in_threadpool(_park, dest, parked)
+                await run_in_threadpool(park_upload, dest, parked)
                 job = job.model_copy(update={"source": parked})
         except BaseException:
             dest.unlink(missing_ok=True)

@@ -24,8 +24,9 @@ from typing import Any
 
 from lodcast.service.jobs import IngestJob, TurntableJob, encode_animation, frame_ext, parse_job, plan_frames
 from lodcast.service.records import ACTIVE, Records, open_records
-from lodcast.service.results import JobFiles, frame_name
-from lodcast.service.rendering import encode, engine, parse_scene
+from lodcast.service.frames import FrameRenderer
+from lodcast.service.results import JobFiles, drop_upload, frame_name, parked_uploads
+from lodcast.service.rendering import engine
 from lodcast.service.volumes import JOB_ID, volume_path
 
 __all__ = ["make_huey", "JobQueue", "Worker"]
@@ -112,7 +113,7 @@ class JobQueue:
         if self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ("queued",)}):
             spec = json.loads((self.get(job_id) or {}).get("spec") or "{}")
             if spec.get("_upload"):
-                _drop_upload(spec["source"])
+                drop_upload(spec["source"])
         else:
             self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ACTIVE})
         return self.get(job_id)
@@ -133,9 +134,9 @@ class JobQueue:
             except FileNotFoundError:
                 continue
         if self.settings.remote:  # uploads parked on object storage for a worker on another host
-            for url, mtime in _remote_uploads(f"{self.settings.root}/.uploads"):
+            for url, mtime in parked_uploads(f"{self.settings.root}/.uploads"):
                 if url not in wanted and mtime < cutoff:
-                    _drop_upload(url)
+                    drop_upload(url)
                     gone.append(url.rsplit("/", 1)[-1])
         if gone:
             log.info("deleted %d uploaded files no job reads", len(gone))
@@ -280,7 +281,7 @@ class JobQueue:
         self.records.update(job_id, {"total": len(plan), "done": len(there & set(names))}, expect={"owner": (owner,)})
         for _ in range(min(self.settings.job_helpers, len(plan) - 1)):
             self._help_task(job_id)  # idle workers, here or on other hosts, take frames of this job beside this one
-        frames = _Frames(self, job_id, plan, files, names)
+        frames = FrameRenderer(self.settings, self.records, job_id, plan, files, names)
         todo = [i for i in range(len(plan)) if names[i] not in there]  # frames written before a crash or a release
         while todo:
             took = False
@@ -301,6 +302,7 @@ class JobQueue:
                 if self.stopping.wait(self.settings.poll_s):
                     self._release(job_id, owner)
                     return "released"
+        files.clear_partial()  # what a helper killed mid-write left
         if isinstance(job, TurntableJob) and job.animation:
             out = f"turntable.{job.animation}"
             if not files.exists(out):
@@ -325,7 +327,7 @@ class JobQueue:
         files = self.files(job_id)
         names = [frame_name(i, frame_ext(s)) for i, (_, s) in enumerate(plan)]
         helper = f"{self.owner_prefix}:{uuid.uuid4().hex[:8]}:helper"
-        frames = _Frames(self, job_id, plan, files, names)
+        frames = FrameRenderer(self.settings, self.records, job_id, plan, files, names)
         try:
             there = files.names()
             for i in range(len(plan)):
@@ -363,132 +365,19 @@ class JobQueue:
                 raise
         except Exception:
             if upload:  # the job fails for good: the uploaded file is of no further use
-                _drop_upload(job.source)
+                drop_upload(job.source)
             raise
         finally:
             if fetched is not None:
                 fetched.unlink(missing_ok=True)
         if upload:
-            _drop_upload(job.source)
+            drop_upload(job.source)
         engine().forget(dest)
         self.records.update(job_id, {"done": 1}, expect={"owner": (owner,)})
         return "done" if self._mine(job_id, owner) else "lost"
 
     def delete_results(self, job_id: str) -> None:
         self.files(job_id).delete()
-
-
-def _drop_upload(source: str) -> None:
-    """Delete an uploaded file: in the local uploads folder, or parked under a root URL's .uploads/."""
-    if "://" not in source:
-        Path(source).unlink(missing_ok=True)
-        return
-    import fsspec
-
-    fs, path = fsspec.core.url_to_fs(source)
-    try:
-        fs.rm(path)
-    except FileNotFoundError:
-        pass
-
-
-def _remote_uploads(url: str) -> list[tuple[str, float]]:
-    """(URL, modification time) of the uploads parked under `url`."""
-    import fsspec
-
-    fs, base = fsspec.core.url_to_fs(url)
-    fs.invalidate_cache(base)
-    try:
-        entries = fs.ls(base, detail=True)
-    except FileNotFoundError:
-        return []
-    out = []
-    for e in entries:
-        t = e.get("LastModified") or e.get("mtime")
-        stamp = t.timestamp() if hasattr(t, "timestamp") else float(t or 0.0)
-        out.append((f"{url}/{str(e['name']).rstrip('/').rsplit('/', 1)[-1]}", stamp))
-    return out
-
-
-class _Frames:
-    """Rendering one frame of a job under its lease (records.lease), for the job's owner and its helpers alike: a
-    frame is rendered only by the worker that holds its lease, renewed every heartbeat while it renders, so that
-    each frame is rendered once while its worker lives (and again only after that worker died mid-frame)."""
-
-    def __init__(self, jq: "JobQueue", job_id: str, plan: list, files: JobFiles, names: list[str]) -> None:
-        self.jq, self.job_id, self.plan, self.files, self.names = jq, job_id, plan, files, names
-        self.eng = engine()
-        self.ahead = _Prefetch(self.eng, jq.settings)
-
-    def render(self, i: int, owner: str, nxt: int | None) -> bool:
-        """Render frame i if its lease can be had; whether it was rendered here."""
-        st, rec = self.jq.settings, self.jq.records
-        if not rec.lease(self.job_id, i, owner, st.stale_after_s):
-            return False
-        stop = threading.Event()
-
-        def renew() -> None:
-            while not stop.wait(st.heartbeat_s):
-                try:
-                    rec.lease(self.job_id, i, owner, st.stale_after_s)
-                except Exception:  # noqa: BLE001 - a missed renewal only risks a second render of this frame
-                    log.exception("job %s: renewing the lease of frame %d", self.job_id, i)
-
-        keeper = threading.Thread(target=renew, daemon=True, name=f"lease-{self.job_id[:8]}-{i}")
-        keeper.start()
-        try:
-            if self.files.exists(self.names[i]):  # written between the look and the lease
-                return False
-            vid, scene_dict = self.plan[i]
-            scene = parse_scene(scene_dict, st, ("scene",))
-            if nxt is not None:
-                self.ahead.next(self.plan[nxt])
-            result = self.eng.render(volume_path(st.root, vid), scene, st.max_samples)
-            data, _ = encode(result, scene)
-            self.files.write(self.names[i], data)
-        finally:
-            stop.set()
-            keeper.join(timeout=5)
-        log.info("job %s: frame %d rendered by %s", self.job_id, i, owner)
-        if st.frame_delay_s:
-            time.sleep(st.frame_delay_s)
-        rec.update(self.job_id, {"done": len(self.files.names() & set(self.names))}, expect={"state": ("running",)})
-        return True
-
-
-class _Prefetch:
-    """Reads the next frame's bricks into the brick cache while the current frame renders (a TF sweep or a scenes
-    job changes the selection from frame to frame; a turntable's stays, so after its first frame this finds
-    everything cached). One frame ahead, on one thread; a failure only costs the prefetch (the render reads the
-    bricks itself and reports any error)."""
-
-    _pool = None
-    _lock = threading.Lock()
-
-    def __init__(self, eng: Any, settings: Any):
-        self.eng, self.settings = eng, settings
-
-    @classmethod
-    def _executor(cls) -> Any:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with cls._lock:
-            if cls._pool is None:
-                cls._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lodcast-prefetch")
-            return cls._pool
-
-    def next(self, item: tuple[str, Any] | None) -> None:
-        if item is None:
-            return
-        vid, scene_dict = item
-        self._executor().submit(self._run, vid, scene_dict)
-
-    def _run(self, vid: str, scene_dict: Any) -> None:
-        try:
-            scene = parse_scene(scene_dict, self.settings, ("scene",))
-            self.eng.prefetch(volume_path(self.settings.root, vid), scene)
-        except Exception as exc:  # the render of that frame meets (and reports) whatever this met
-            log.debug("prefetch of a frame of %s failed: %s", vid, exc)
 
 
 class Worker:

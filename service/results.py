@@ -1,9 +1,14 @@
-"""Where a job's results live: ``<results>/<job id>/frame_NNNNN.<png|npy>`` (and ``turntable.<gif|mp4>``).
+"""A job's files: where its results live, and where an upload waits for its ingest job.
+
+Results:  ``<results>/<job id>/frame_NNNNN.<png|npy>`` (and ``turntable.<gif|mp4>``).
 
 With a store root folder, ``<results>`` is the state folder's ``.jobs/`` (a shared filesystem when workers run on
 several hosts). With a root URL (``s3://bucket/prefix``) it is ``ROOT/.jobs/`` on the same object storage, so that
 every host sharing the queue reads what any worker wrote, with nothing shared but the queue and the bucket. Either
 way a result is complete or absent: a local file is written to a temporary name and renamed, an object is one PUT.
+
+Uploads: a file sent to `POST /volumes/{id}/upload` lands in the state folder's ``.uploads/``; with a root URL the
+API host parks it under ``ROOT/.uploads/`` on the object storage, so that a worker on any host can ingest it.
 """
 from __future__ import annotations
 
@@ -14,7 +19,7 @@ from typing import Any
 
 from lodcast.service.jobs import write_atomic
 
-__all__ = ["JobFiles", "frame_name"]
+__all__ = ["JobFiles", "frame_name", "park_upload", "drop_upload", "parked_uploads"]
 
 
 def frame_name(n: int, ext: str) -> str:
@@ -89,3 +94,43 @@ class JobFiles:
                 pass
             return
         shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def park_upload(local: Path, url: str) -> None:
+    """Upload a file to object storage (an upload for the workers of every host)."""
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(url)
+    fs.put_file(str(local), path)
+
+
+def drop_upload(source: str) -> None:
+    """Delete an uploaded file: in the local uploads folder, or parked under a root URL's .uploads/."""
+    if "://" not in source:
+        Path(source).unlink(missing_ok=True)
+        return
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(source)
+    try:
+        fs.rm(path)
+    except FileNotFoundError:
+        pass
+
+
+def parked_uploads(url: str) -> list[tuple[str, float]]:
+    """(URL, modification time) of the uploads parked under `url`."""
+    import fsspec
+
+    fs, base = fsspec.core.url_to_fs(url)
+    fs.invalidate_cache(base)
+    try:
+        entries = fs.ls(base, detail=True)
+    except FileNotFoundError:
+        return []
+    out = []
+    for e in entries:
+        t = e.get("LastModified") or e.get("mtime")
+        stamp = t.timestamp() if hasattr(t, "timestamp") else float(t or 0.0)
+        out.append((f"{url}/{str(e['name']).rstrip('/').rsplit('/', 1)[-1]}", stamp))
+    return out
