@@ -27,7 +27,7 @@ import hashlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import pyopencl as cl
@@ -38,14 +38,15 @@ from lodcast.opencl import DeviceError, get_context, get_program
 from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import Layout
 
-__all__ = ["BrickCache", "brick_cache", "AtlasLoad", "DeviceAtlas", "load_bricks", "pack", "pack_index",
+__all__ = ["BrickCache", "brick_cache", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
            "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells"]
 
 MISSING = 0
 
 
 class BrickCache(ByteLru):
-    """Bricks (float32 arrays) keyed by (store key, level, bz, by, bx), LRU by bytes; counts the bricks read."""
+    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations float16) keyed
+    by (kind, store key, level, bz, by, bx), LRU by bytes; counts the bricks read."""
 
     def __init__(self, max_bytes: int):
         super().__init__(max_bytes)
@@ -69,7 +70,7 @@ def _read_pool() -> ThreadPoolExecutor:
 
 @dataclass(frozen=True)
 class AtlasLoad:
-    bricks: dict  # (level, bz, by, bx) -> float32 brick
+    bricks: dict  # (level, bz, by, bx) -> brick (iter_bricks)
     read: int  # bricks read from the store by this call
     cached: int  # bricks found in the cache
     skipped: int  # blocks not loaded (level -1)
@@ -84,8 +85,9 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
     lo = [min(r[a].start for r in regs) for a in range(3)]
     hi = [max(r[a].stop for r in regs) for a in range(3)]
     region = tuple(slice(l, h) for l, h in zip(lo, hi))
-    if what == "mean":
-        data, dtype = vol.read_region(level, region), np.float32
+    if what == "mean":  # the store's own type where it is narrower than float32 (exact in the atlas's float32)
+        data = vol.read_region(level, region)
+        dtype = data.dtype if data.dtype.kind in "iu" and data.dtype.itemsize <= 2 else np.float32
     else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
         data, dtype = vol.read_std_region(level, region) / np.float32(vol.std_unit), np.float16
     e = lay.block_edge(level)
@@ -99,11 +101,24 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
     return out
 
 
-def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean") -> AtlasLoad:
-    """Every brick `levels` selects, from `cache` (default: the process's) or read from the store (missing ones
-    only, grouped by shard, shards read in parallel); read bricks enter the cache. what="std": the standard
-    deviations of the coarse bricks (level >= 1; level 0 has none) instead of the values."""
+@dataclass
+class BrickStats:
+    read: int = 0  # bricks read from the store
+    cached: int = 0  # bricks found in the cache
+    skipped: int = 0  # blocks not loaded (level -1)
+    shards: int = 0  # shard read requests issued
+    read_ms: float = 0.0
+
+
+def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean",
+                stats: BrickStats | None = None) -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
+    """((level, bz, by, bx), brick) for every brick `levels` selects, from `cache` (default: the process's) or
+    read from the store (missing ones only, grouped by shard, shards read in parallel, a few at a time so that
+    bricks stream through rather than pile up: a caller that places each one keeps none); read bricks enter the
+    cache. Values keep the store's type up to 16-bit integers, else float32. what="std": the standard deviations
+    of the coarse bricks (level >= 1; level 0 has none), float16, instead of the values. `stats` is filled in."""
     cache = brick_cache() if cache is None else cache
+    stats = BrickStats() if stats is None else stats
     t = time.perf_counter()
     lay = Layout(tuple(vol.shape), int(vol.block_size))
     levels = np.asarray(levels)
@@ -112,30 +127,44 @@ def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
     bz, by, bx = np.nonzero(levels >= (0 if what == "mean" else 1))
     lv = levels[bz, by, bx].astype(np.int64)
     base = ("bricks" if what == "mean" else "std", vol.key)
-    bricks: dict = {}
     groups: dict[tuple, list] = {}
+    stats.skipped = int(np.count_nonzero(levels < 0))
     for k, z, y, x in zip(lv.tolist(), bz.tolist(), by.tolist(), bx.tolist()):
         a = cache.get((base, k, z, y, x)) if vol.key is not None else None
         if a is not None:
-            bricks[(k, z, y, x)] = a
+            stats.cached += 1
+            yield (k, z, y, x), a
             continue
         e = lay.block_edge(k)
         sh = lay.shard_shape(k)
         groups.setdefault((k, z * e // sh[0], y * e // sh[1], x * e // sh[2]), []).append((z, y, x))
-    n_cached = len(bricks)
-    futs = [_read_pool().submit(_read_group, vol, lay, g[0], blks, what) for g, blks in sorted(groups.items())]
-    n_read = 0
-    for f in futs:
-        got = f.result()
-        n_read += len(got)
-        for key, a in got.items():
-            bricks[key] = a
-            if vol.key is not None:
-                cache.put((base, *key), a)
+    todo = sorted(groups.items())
+    stats.shards = len(todo)
+    window = 2 * environment().read_threads
+    futs: list = []
+    for i in range(len(todo) + window):
+        if i < len(todo):
+            g, blks = todo[i]
+            futs.append(_read_pool().submit(_read_group, vol, lay, g[0], blks, what))
+        if i >= window or i >= len(todo):
+            if not futs:
+                break
+            got = futs.pop(0).result()
+            stats.read += len(got)
+            for key, a in got.items():
+                if vol.key is not None:
+                    cache.put((base, *key), a)
+                yield key, a
     if what == "mean":
-        cache.reads += n_read
-    return AtlasLoad(bricks, n_read, n_cached, int(np.count_nonzero(levels < 0)), len(futs),
-                     (time.perf_counter() - t) * 1e3)
+        cache.reads += stats.read
+    stats.read_ms = (time.perf_counter() - t) * 1e3
+
+
+def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean") -> AtlasLoad:
+    """iter_bricks as a dict, with its counts."""
+    st = BrickStats()
+    bricks = dict(iter_bricks(vol, levels, cache, what, st))
+    return AtlasLoad(bricks, st.read, st.cached, st.skipped, st.shards, st.read_ms)
 
 
 def neighbourhood_max(levels: np.ndarray) -> np.ndarray:
@@ -201,14 +230,9 @@ def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarra
     return sizes, offsets
 
 
-def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
-         slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(atlas float32 1D, index map uint64 grid-shaped). Bricks are packed in C order of the grid. Raises
-    DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation). `slices`: the
-    index map's slice maxima (default slice_max(levels); a pass of a render in several packs part of a selection
-    with the whole selection's)."""
-    levels = np.asarray(levels)
-    lv = levels.astype(np.int64)
+def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None) -> tuple[np.ndarray, int]:
+    """(offsets, total elements) of the atlas of `levels`; DeviceError when it would exceed `max_bytes`
+    (default: the device's max allocation)."""
     sizes, offsets = _offsets(levels, block_size)
     total = int(sizes.sum())
     limit = max_alloc_bytes() if max_bytes is None else int(max_bytes)
@@ -218,15 +242,32 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
             f"largest allocation ({limit / 2**20:.1f} MiB, CL_DEVICE_MAX_MEM_ALLOC_SIZE); choose a smaller "
             "budget_mb or a larger reduction"
         )
+    return offsets, total
+
+
+def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> None:
+    """Write each ((level, bz, by, bx), brick) of `items` at its block's offset in `out` (cast to out's type)."""
+    for (k, z, y, x), a in items:
+        o = int(offsets[(z * grid[1] + y) * grid[2] + x])
+        out[o:o + a.size] = a.ravel()
+
+
+def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
+         slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(atlas float32 1D, index map uint64 grid-shaped). Bricks are packed in C order of the grid. Raises
+    DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation). `slices`: the
+    index map's slice maxima (default slice_max(levels); a pass of a render in several packs part of a selection
+    with the whole selection's)."""
+    levels = np.asarray(levels)
+    offsets, total = _checked_offsets(levels, block_size, max_bytes)
     atlas = np.empty(max(total, 1), np.float32)
-    flat = lv.ravel()
-    sel = np.flatnonzero(flat >= 0)
-    zz, yy, xx = np.unravel_index(sel, levels.shape)
-    for i, k, z, y, x in zip(sel.tolist(), flat[sel].tolist(), zz.tolist(), yy.tolist(), xx.tolist()):
-        o, n = int(offsets[i]), int(sizes[i])
-        atlas[o:o + n] = bricks[(k, z, y, x)].ravel()
+    _place(atlas, levels.shape, offsets, bricks.items())
+    return atlas, _index(levels, offsets, slices)
+
+
+def _index(levels: np.ndarray, offsets: np.ndarray, slices: np.ndarray | None) -> np.ndarray:
     sl = slice_max(levels) if slices is None else slices
-    return atlas, pack_index(offsets, flat, sl.reshape(-1, 3)).reshape(levels.shape)
+    return pack_index(offsets, np.asarray(levels).astype(np.int64).ravel(), sl.reshape(-1, 3)).reshape(levels.shape)
 
 
 def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
@@ -234,13 +275,7 @@ def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarra
     `std_bricks` ((level, bz, by, bx) -> brick), zeros for level 0 (the kernel never reads those)."""
     sizes, offsets = _offsets(levels, block_size)
     out = np.zeros(max(int(sizes.sum()), 1), np.float16)
-    if not std_bricks:
-        return out
-    keys = list(std_bricks)
-    flat = np.ravel_multi_index(tuple(np.array([k[1:] for k in keys]).T), np.asarray(levels).shape)  # one call
-    for key, i in zip(keys, flat.tolist()):
-        o, n = int(offsets[i]), int(sizes[i])
-        out[o:o + n] = np.asarray(std_bricks[key], np.float16).ravel()
+    _place(out, np.asarray(levels).shape, offsets, std_bricks.items())
     return out
 
 
@@ -312,26 +347,41 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     if hit is not None:
         return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
     t_read = time.perf_counter()
-    ld = load_bricks(vol, levels, cache)
-    atlas, index = pack(levels, ld.bricks, int(vol.block_size), max_bytes, slices)
-    sig = pack_std(levels, load_bricks(vol, levels, cache, what="std").bricks, int(vol.block_size)) if with_std else None
-    t = time.perf_counter()
+    offsets, total = _checked_offsets(levels, int(vol.block_size), max_bytes)
+    index = _index(levels, offsets, slices)
     ctx, queue = get_context()
-    mf = cl.mem_flags
-    d_atlas = cl.Buffer(ctx, mf.READ_ONLY, size=atlas.nbytes)
-    cl.enqueue_copy(queue, d_atlas, atlas)
+    st = BrickStats()
+    # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
+    # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
+    d_atlas = _filled(ctx, queue, max(total, 1), np.float32, levels.shape, offsets, iter_bricks(vol, levels, cache, stats=st))
     d_std = None
-    if sig is not None:
-        d_std = cl.Buffer(ctx, mf.READ_ONLY, size=sig.nbytes)
-        cl.enqueue_copy(queue, d_std, sig)
-    d_index = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=index)
+    if with_std:
+        d_std = _filled(ctx, queue, max(total, 1), np.float16, levels.shape, offsets,
+                        iter_bricks(vol, levels, cache, what="std"), zero=True)
+    t = time.perf_counter()
+    d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
     queue.finish()
-    nbytes = atlas.nbytes + (sig.nbytes if sig is not None else 0)
-    da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, ld.read, ld.cached, ld.skipped,
+    nbytes = max(total, 1) * (4 + (2 if with_std else 0))
+    da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, st.read, st.cached, st.skipped,
                      (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key)
     if key is not None:
         device_cache().put(key, da, nbytes + index.nbytes)
     return da
+
+
+def _filled(ctx: Any, queue: Any, n: int, dtype: Any, grid: tuple, offsets: np.ndarray, items: Any,
+            zero: bool = False) -> cl.Buffer:
+    """A device buffer of n elements with every brick of `items` placed at its offset (the rest zero if `zero`),
+    written through a host mapping."""
+    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
+    host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
+    try:
+        if zero:
+            host.fill(0)
+        _place(host, grid, offsets, items)
+    finally:
+        host.base.release(queue)
+    return buf
 
 
 @dataclass(frozen=True)

@@ -482,9 +482,12 @@ def prefetch(store: Any, scene: Any) -> int:
     pr = prepare(store, scene)
     if pr.lod is None or pr.volume.key is None:
         return 0
-    n = lod_atlas.load_bricks(pr.volume, pr.lod.levels).read
-    if pr.config.distribution:
-        n += lod_atlas.load_bricks(pr.volume, pr.lod.levels, what="std").read
+    n = 0
+    for what in ("mean", "std") if pr.config.distribution else ("mean",):
+        st = lod_atlas.BrickStats()
+        for _ in lod_atlas.iter_bricks(pr.volume, pr.lod.levels, what=what, stats=st):
+            pass  # into the brick cache only: holding them all here would cost the selection's size
+        n += st.read
     return n
 
 

@@ -105,9 +105,10 @@ def ingest(
     return open_store(dest)
 
 
-#: ingest's working set per voxel of one block-slab (B slices of Y x X): the source slab, every level's shard-deep
-#: buffer (2·B·Y·X voxels together) and the standard deviations beside them, in the voxel type, plus float32
-#: temporaries per row of blocks. Peak RSS measured at B = 16, 48 slices: uint8 2048² 616 MB, uint16 1024² 306 MB,
+#: ingest's working set per voxel of one block-slab (B slices of Y x X): the source slab and the next one being
+#: read, in the voxel type, the levels and standard deviations of the slab, plus float32 temporaries per row of
+#: blocks (the coarse levels' rows wait for their shard depth in a temporary file, not in memory: 128 x 2048²
+#: uint16 went from 840 to 743 MB peak). Peak RSS measured at B = 16, 48 slices: uint8 2048² 616 MB, uint16 1024² 306 MB,
 #: uint16 2048² 705 MB, float32 1536² 662 MB; this formula is 9-24 % above each, an upper estimate (a fresh CI
 #: install peaked at 342 MB for uint16 40 x 1024², 8 % under it)
 WORKING_BYTES_PER_ITEM, WORKING_BYTES_EXTRA = 3, 4
@@ -179,39 +180,63 @@ COMPLETE = {"write_empty_chunks": True}
 
 
 class _LevelWriter:
-    """Buffers level-k slabs until a whole shard depth is filled, then writes them: shards are written once."""
+    """Collects level-k slabs until a whole shard depth is there, then writes those shards: shards are written once
+    (no read-modify-write). The rows wait in a temporary file beside the store rather than in memory (a level-k
+    shard is 4^k block-slabs deep: kept in memory, every level's rows came to another slab's worth), and are
+    written one band of shards across y at a time, so memory holds one band."""
 
-    def __init__(self, array: zarr.Array, depth: int):
+    def __init__(self, array: zarr.Array, depth: int, spill: Path):
         self.array = array
         self.depth = min(depth, array.shape[0])
-        self.buffer: np.ndarray | None = None  # allocated on first use: level 0 never needs one
-        self.start = 0  # level z of buffer[0]
+        self.spill = spill  # created on first use: level 0 never needs it
+        self.file: Any = None
+        self.start = 0  # level z of the first row waiting
         self.filled = 0
+        self.row = int(np.prod(array.shape[1:])) * array.dtype.itemsize  # bytes of one level row
 
     def add(self, rows: np.ndarray) -> None:
         n = rows.shape[0]
         if self.filled == 0 and (n == self.depth or self.start + n == self.array.shape[0]):
-            self._write(rows)  # a whole shard depth: no need to buffer
+            self._write(lambda y0, y1: rows[:, y0:y1], n)  # a whole shard depth: nothing to wait for
             return
-        if self.buffer is None:
-            self.buffer = np.empty((self.depth,) + tuple(self.array.shape[1:]), self.array.dtype)
-        self.buffer[self.filled : self.filled + n] = rows
+        if self.file is None:
+            self.file = open(self.spill, "w+b")
+        self.file.seek(self.filled * self.row)
+        self.file.write(np.ascontiguousarray(rows, self.array.dtype).tobytes())
         self.filled += n
         if self.filled == self.depth or self.start + self.filled == self.array.shape[0]:
             self.flush()
 
     def flush(self) -> None:
-        if self.filled and self.buffer is not None:
-            self._write(self.buffer[: self.filled])
+        if self.filled and self.file is not None:
+            self.file.flush()
+            self._write(self._waiting, self.filled)
             self.filled = 0
 
-    def _write(self, rows: np.ndarray) -> None:
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+            self.file = None
+            self.spill.unlink(missing_ok=True)
+
+    def _waiting(self, y0: int, y1: int) -> np.ndarray:
+        """Rows [0, filled) of the waiting ones, y in [y0, y1), read back from the temporary file."""
+        _, ny, nx = self.array.shape
+        out = np.empty((self.filled, y1 - y0, nx), self.array.dtype)
+        size = self.array.dtype.itemsize
+        for z in range(self.filled):
+            self.file.seek(z * self.row + y0 * nx * size)
+            self.file.readinto(memoryview(out[z]).cast("B"))
+        return out
+
+    def _write(self, band_of: Any, n: int) -> None:
         """One band of shards across y at a time: every call still writes whole shards, and zarr's encoding
         temporaries stay a band's size rather than a slab's."""
         band = self.array.shards[1]
-        for y0 in range(0, rows.shape[1], band):
-            self.array[self.start : self.start + rows.shape[0], y0 : y0 + band] = rows[:, y0 : y0 + band]
-        self.start += rows.shape[0]
+        for y0 in range(0, self.array.shape[1], band):
+            y1 = min(y0 + band, self.array.shape[1])
+            self.array[self.start : self.start + n, y0:y1] = band_of(y0, y1)
+        self.start += n
 
 
 def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, np.ndarray]]:
@@ -250,6 +275,7 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list
         sq *= real
         s1 = values * real
     levels, stds = [], []
+    std_max = 0.0
     block_var = np.zeros((lay.grid[2], lay.n_levels))
     for k in range(1, lay.n_levels):
         values = _pool2(values).astype(np.float64, copy=False)
@@ -269,12 +295,15 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list
         rows, cols = min(e, lz - bz * e), min(e, ly - by * e)
         levels.append(round_to_dtype(mean[:rows, :cols, :lx], slab.dtype))
         v = var[:rows, :cols, :lx]
-        stds.append(np.sqrt(v))
+        sd = np.sqrt(v)
+        std_max = max(std_max, float(sd.max(initial=0.0)))  # exact, before the storage type rounds it
+        stds.append(sd.astype(std_dtype(slab.dtype)))  # stored so: a slab's float64 copy would be its size
         starts = np.arange(0, lx, e)
         widths = np.diff(np.append(starts, lx))
         block_var[:, k] = np.add.reduceat(v.sum(axis=(0, 1)), starts) / (rows * cols * widths)
     stats = _interior_stats(strip, b)
     stats["level_var"] = block_var
+    stats["std_max"] = std_max
     return levels, stds, stats
 
 
@@ -315,7 +344,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             compressors=compressor, fill_value=np.nan if dtype.kind == "f" else 0, dimension_names=("z", "y", "x"),
             config=COMPLETE,
         )
-        writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
+        writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-{k}"))
     std_writers = []
     std_group = group.create_group("std")
     sdtype = std_dtype(dtype)
@@ -325,7 +354,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             compressors=BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle), fill_value=0,
             dimension_names=("z", "y", "x"), config=COMPLETE,
         )
-        std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0]))
+        std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-std-{k}"))
     stats = {name: np.full(lay.grid, np.nan) for name in ("min", "max", "mean", "count", "min_border", "max_border")}
     level_var = np.zeros(lay.grid + (lay.n_levels,))
     std_max = 0.0
@@ -342,9 +371,8 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             for k, w in enumerate(writers[1:]):
                 w.add(np.concatenate([levels[k] for levels, _, _ in parts], axis=1))
             for k, w in enumerate(std_writers):
-                sd = np.concatenate([stds[k] for _, stds, _ in parts], axis=1)
-                std_max = max(std_max, float(sd.max(initial=0.0)))
-                w.add(sd.astype(sdtype))
+                w.add(np.concatenate([stds[k] for _, stds, _ in parts], axis=1))
+            std_max = max([std_max] + [p[2]["std_max"] for p in parts])
             st = {key: np.stack([p[2][key] for p in parts]) for key in ("min", "max", "sum", "count", "level_var")}
             level_var[bz] = st["level_var"]
             stats["min"][bz], stats["max"][bz], stats["count"][bz] = st["min"], st["max"], st["count"]
@@ -354,7 +382,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             bar.update(1)
         for w in writers + std_writers:
             w.flush()
-            w.buffer = None
+            w.close()
         del slab, parts  # pass 2 needs the memory
         if not (stats["count"] > 0).any():
             raise SourceError("the volume holds no valid voxel (every value is NaN)")
@@ -402,6 +430,8 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             blocks.create_array(name, data=values, chunks=lay.grid, fill_value=np.nan)
         blocks.create_array("level_std", data=np.sqrt(level_var), chunks=lay.grid + (lay.n_levels,), fill_value=0.0)
     finally:
+        for w in writers + std_writers:
+            w.close()
         bar.close()
         reader.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
