@@ -112,6 +112,8 @@ def ingest(
 #: uint16 2048² 705 MB, float32 1536² 662 MB; this formula is 9-24 % above each, an upper estimate (a fresh CI
 #: install peaked at 342 MB for uint16 40 x 1024², 8 % under it)
 WORKING_BYTES_PER_ITEM, WORKING_BYTES_EXTRA = 3, 4
+#: slabs up to this size are read while the last one is processed; larger ones after it (memory over speed)
+READ_AHEAD_BYTES = 64 << 20
 #: the interpreter, NumPy, zarr, numcodecs and the thread pools, before any voxel
 BASE_BYTES = 200_000_000
 
@@ -364,7 +366,9 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     try:
         # pass 1: the next slab is read while rows of this one are downsampled on the pool and level 0 is written
         nan_count = 0
-        for bz, slab in enumerate(_read_ahead(lambda z: _read_slab(src, lay, z), gz, reader)):
+        # a slab of wide slices is read after the last one is done with, not beside it: two would be its memory
+        ahead = lay.block_size * lay.shape[1] * lay.shape[2] * dtype.itemsize <= READ_AHEAD_BYTES
+        for bz, slab in enumerate(_read_ahead(lambda z: _read_slab(src, lay, z), gz, reader if ahead else None)):
             rows = [pool.submit(_strip_levels, slab, lay, bz, by) for by in range(gy)]
             writers[0].add(slab)
             parts = [f.result() for f in rows]
@@ -380,10 +384,10 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                 stats["mean"][bz] = np.where(st["count"] > 0, st["sum"] / np.maximum(st["count"], 1), np.nan)
             nan_count += int(slab.size - st["count"].sum())
             bar.update(1)
+            del slab, parts, rows  # before the next slab is read
         for w in writers + std_writers:
             w.flush()
             w.close()
-        del slab, parts  # pass 2 needs the memory
         if not (stats["count"] > 0).any():
             raise SourceError("the volume holds no valid voxel (every value is NaN)")
         lo, hi = float(np.nanmin(stats["min"])), float(np.nanmax(stats["max"]))
@@ -411,10 +415,10 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         acc: dict[int, list[np.ndarray]] = {}
         task = pool.submit(_slab_histograms, read(0), lay, bins)
         for bz in range(gz):
-            nxt = read(bz + 1) if bz + 1 < gz else None
+            nxt = read(bz + 1) if ahead and bz + 1 < gz else None
             own, first, last = task.result()
-            if nxt is not None:
-                task = pool.submit(_slab_histograms, nxt, lay, bins)
+            if bz + 1 < gz:
+                task = pool.submit(_slab_histograms, read(bz + 1) if nxt is None else nxt, lay, bins)
                 del nxt
             for row, part in ((bz, own), (bz - 1, first), (bz + 1, last)):
                 if 0 <= row < gz:
@@ -514,8 +518,13 @@ def _read_slab(src: VolumeSource, lay: Layout, bz: int) -> np.ndarray:
     return slab
 
 
-def _read_ahead(read, count: int, reader: ThreadPoolExecutor) -> Iterator[np.ndarray]:
-    """read(0), read(1), … read(count − 1), each started on `reader` while the previous one is being used."""
+def _read_ahead(read, count: int, reader: ThreadPoolExecutor | None) -> Iterator[np.ndarray]:
+    """read(0), read(1), … read(count − 1), each started on `reader` while the previous one is being used (without
+    a reader, each when the previous one is done with)."""
+    if reader is None:
+        for i in range(count):
+            yield read(i)
+        return
     nxt = reader.submit(read, 0)
     for i in range(count):
         item = nxt.result()
