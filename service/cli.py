@@ -49,7 +49,8 @@ EXAMPLES = {
                "lodcast render chest.zarr -o lod.png --scene scene.json --report report.json   # quality, shading"),
     "serve": ("serve the HTTP API (OpenAPI at /docs) over the stores under a root, with a job queue and a worker",
               "lodcast serve --root stores/ --port 8000\n"
-              "LODCAST_TOKEN=secret lodcast serve --root stores/ --host 0.0.0.0 --queue redis://localhost:6379/0"),
+              "LODCAST_TOKEN=secret lodcast serve --root stores/ --host 0.0.0.0 --queue redis://localhost:6379/0\n"
+              "lodcast serve --root s3://bucket/volumes --queue redis://queue-host:6379/0   # AWS_* credentials"),
     "worker": ("run batch jobs from the queue: SIGTERM or Ctrl-C finishes the frame and hands the job back",
                "lodcast worker --root stores/ --queue redis://queue-host:6379/0 --threads 2"),
     "submit": ("submit a batch job (turntable, scenes, tf_sweep, volumes, ingest) to a server, or run it here "

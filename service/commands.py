@@ -71,8 +71,9 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="serve the HTTP API over the volumes under a store root (with an embedded job queue and worker)")
     p.add_argument("--root", default=None, help="store root, a folder or a URL such as s3://bucket/prefix; volumes are "
                    "stores directly under it (default LODCAST_ROOT, else .)")
-    p.add_argument("--state-root", default=None, help="folder for job results, the embedded queue and uploads (default "
-                   "LODCAST_STATE_ROOT, else the root when it is a folder, else ~/.lodcast/state/HASH of a root URL)")
+    p.add_argument("--state-root", default=None, help="local folder for the embedded queue, uploads and (with a root "
+                   "folder) job results; a root URL keeps results in ROOT/.jobs (default LODCAST_STATE_ROOT, else the "
+                   "root when it is a folder, else ~/.lodcast/state/HASH of the root URL)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface; set a --token then)")
     p.add_argument("--port", type=int, default=8000, help="TCP port to listen on")
     p.add_argument("--queue", default=None, help="redis://host:port/db to share jobs with `lodcast worker`s on other hosts (default: embedded SQLite)")
@@ -176,8 +177,9 @@ def add_worker(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("worker", help="run batch jobs from the queue (SIGTERM / Ctrl-C: finish the frame, hand the job back)")
     p.add_argument("--root", default=None, help="store root, a folder or a URL such as s3://bucket/prefix (default "
                    "LODCAST_ROOT, else .); shared by every worker and the service")
-    p.add_argument("--state-root", default=None, help="folder for job results, the embedded queue and uploads (default "
-                   "LODCAST_STATE_ROOT, else the root when it is a folder, else ~/.lodcast/state/HASH of a root URL)")
+    p.add_argument("--state-root", default=None, help="local folder for the embedded queue, uploads and (with a root "
+                   "folder) job results; a root URL keeps results in ROOT/.jobs (default LODCAST_STATE_ROOT, else the "
+                   "root when it is a folder, else ~/.lodcast/state/HASH of the root URL)")
     p.add_argument("--queue", default=None, help="redis://host:port/db for a shared queue (default: the root's embedded SQLite queue)")
     p.add_argument("--threads", type=int, default=1, help="jobs run at once by this process (default 1)")
     _device_budget_opt(p)
