@@ -129,14 +129,15 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
     base = ("bricks" if what == "mean" else "std", vol.key)
     groups: dict[tuple, list] = {}
     stats.skipped = int(np.count_nonzero(levels < 0))
+    # per level once, not per brick (a million bricks: seconds of layout arithmetic)
+    geom = {k: (lay.block_edge(k), lay.shard_shape(k)) for k in range(lay.n_levels)}
     for k, z, y, x in zip(lv.tolist(), bz.tolist(), by.tolist(), bx.tolist()):
         a = cache.get((base, k, z, y, x)) if vol.key is not None else None
         if a is not None:
             stats.cached += 1
             yield (k, z, y, x), a
             continue
-        e = lay.block_edge(k)
-        sh = lay.shard_shape(k)
+        e, sh = geom[k]
         groups.setdefault((k, z * e // sh[0], y * e // sh[1], x * e // sh[2]), []).append((z, y, x))
     todo = sorted(groups.items())
     stats.shards = len(todo)
