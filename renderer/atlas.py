@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any, Iterator
@@ -142,20 +143,22 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
     todo = sorted(groups.items())
     stats.shards = len(todo)
     window = 2 * environment().read_threads
-    futs: list = []
-    for i in range(len(todo) + window):
-        if i < len(todo):
-            g, blks = todo[i]
-            futs.append(_read_pool().submit(_read_group, vol, lay, g[0], blks, what))
-        if i >= window or i >= len(todo):
-            if not futs:
-                break
-            got = futs.pop(0).result()
-            stats.read += len(got)
-            for key, a in got.items():
-                if vol.key is not None:
-                    cache.put((base, *key), a)
-                yield key, a
+    futs: deque = deque()
+
+    def take() -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
+        got = futs.popleft().result()
+        stats.read += len(got)
+        for key, a in got.items():
+            if vol.key is not None:
+                cache.put((base, *key), a)
+            yield key, a
+
+    for g, blks in todo:
+        futs.append(_read_pool().submit(_read_group, vol, lay, g[0], blks, what))
+        if len(futs) > window:
+            yield from take()
+    while futs:
+        yield from take()
     if what == "mean":
         cache.reads += stats.read
     stats.read_ms = (time.perf_counter() - t) * 1e3

@@ -28,6 +28,7 @@ from lodcast.service.frames import FrameRenderer
 from lodcast.service.results import JobFiles, drop_upload, frame_name, parked_uploads
 from lodcast.service.rendering import engine
 from lodcast.service.volumes import JOB_ID, volume_path
+from lodcast.store.remote import is_url
 
 __all__ = ["make_huey", "JobQueue", "Worker"]
 
@@ -347,7 +348,7 @@ class JobQueue:
 
         dest = volume_path(self.settings.root, job.name, must_exist=False, field="name")
         source, fetched = job.source, None
-        if upload and "://" in source:  # parked on object storage by the API host (it may be another host): fetch it
+        if upload and is_url(source):  # parked on object storage by the API host (it may be another host): fetch it
             import fsspec
 
             fetched = self.settings.uploads_dir / f"{job_id}-{source.rsplit('/', 1)[-1]}"

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from lodcast.service.jobs import write_atomic
+from lodcast.store.remote import is_url
 
 __all__ = ["JobFiles", "frame_name", "park_upload", "drop_upload", "parked_uploads"]
 
@@ -106,7 +107,7 @@ def park_upload(local: Path, url: str) -> None:
 
 def drop_upload(source: str) -> None:
     """Delete an uploaded file: in the local uploads folder, or parked under a root URL's .uploads/."""
-    if "://" not in source:
+    if not is_url(source):
         Path(source).unlink(missing_ok=True)
         return
     import fsspec

@@ -10,6 +10,8 @@ from typing import Annotated
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from lodcast.store.remote import is_url
+
 __all__ = ["Settings"]
 
 
@@ -91,7 +93,7 @@ class Settings(BaseSettings):
     @classmethod
     def _absolute(cls, v: Path | str) -> Path | str:
         text = os.fspath(v)
-        if "://" in text:  # a URL: kept as given, without a trailing slash (ids are appended with one)
+        if is_url(text):  # a URL: kept as given, without a trailing slash (ids are appended with one)
             if text.startswith("file://"):
                 return Path(text[len("file://"):]).expanduser().resolve()
             return text.rstrip("/")

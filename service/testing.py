@@ -22,6 +22,7 @@ __all__ = [
     "TINY_TF",
     "tiny_scene",
     "make_volume",
+    "wait_job",
     "free_port",
     "redis_available",
     "RedisServer",
@@ -56,6 +57,18 @@ def make_volume(root: Path, name: str = "tiny", n: int = 24, block_size: int = 8
     v = np.maximum(blob, blob2).astype(np.float32)
     lodcast.ingest(v, Path(root) / name, block_size=block_size)
     return Path(root) / name
+
+
+def wait_job(client: Any, job_id: str, timeout: float = 120.0) -> dict[str, Any]:
+    """The status of a job once it ended, polled over HTTP (a TestClient or an httpx client); AssertionError after
+    `timeout` seconds."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        st = client.get(f"/jobs/{job_id}").json()
+        if st["state"] in ("done", "failed", "cancelled"):
+            return st
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} still {st['state']} after {timeout} s")
 
 
 def free_port() -> int:

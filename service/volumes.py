@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from lodcast.errors import LodcastError
+from lodcast.store.remote import is_url, published
 
 __all__ = [
     "VOLUME_ID",
@@ -71,10 +72,6 @@ def _inside(path: Path, root: Path) -> bool:
         return False
 
 
-def _remote(root: Path | str) -> bool:
-    return isinstance(root, str) and "://" in root
-
-
 def _fs(url: str) -> tuple[Any, str]:
     """The fsspec filesystem of `url` and the path in it, with no listing cached (another process may have
     published or deleted a store since)."""
@@ -89,17 +86,14 @@ def volume_exists(root: Path | str, volume_id: Any, field: str = "volume") -> bo
     """Whether something is at the volume's place: a folder (or file) under a root folder, a published store under a
     root URL."""
     path = volume_path(root, volume_id, must_exist=False, field=field)
-    if isinstance(path, str):
-        fs, p = _fs(path)
-        return bool(fs.exists(f"{p}/zarr.json"))
-    return path.exists()
+    return published(path) if isinstance(path, str) else path.exists()
 
 
 def volume_path(root: Path | str, volume_id: Any, *, must_exist: bool = True, field: str = "volume") -> Path | str:
     """The store of a volume (a folder, or a URL under a root URL), refusing bad ids and anything that resolves
     outside ``root``."""
     vid = check_volume_id(volume_id, field)
-    if _remote(root):
+    if isinstance(root, str) and is_url(root):
         url = f"{str(root).rstrip('/')}/{vid}"
         if must_exist and not volume_exists(root, vid, field):
             raise VolumeNotFound(vid)
@@ -115,7 +109,7 @@ def volume_path(root: Path | str, volume_id: Any, *, must_exist: bool = True, fi
 
 def list_volumes(root: Path | str) -> list[str]:
     """Ids of the folders directly under ``root`` that look like stores (a zarr group), sorted."""
-    if _remote(root):
+    if isinstance(root, str) and is_url(root):
         fs, base = _fs(str(root))
         try:
             names = [str(e).rstrip("/").rsplit("/", 1)[-1] for e in fs.ls(base, detail=False)]

@@ -204,7 +204,7 @@ class _LevelWriter:
         if self.file is None:
             self.file = open(self.spill, "w+b")
         self.file.seek(self.filled * self.row)
-        self.file.write(np.ascontiguousarray(rows, self.array.dtype).tobytes())
+        self.file.write(np.ascontiguousarray(rows, self.array.dtype))  # its buffer, no bytes copy
         self.filled += n
         if self.filled == self.depth or self.start + self.filled == self.array.shape[0]:
             self.flush()

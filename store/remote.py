@@ -25,10 +25,12 @@ def is_url(dest: Any) -> bool:
 
 
 def published(url: str) -> bool:
-    """Whether a store is published at `url` (its root zarr.json exists)."""
+    """Whether a store is published at `url` now (its root zarr.json exists; no cached listing is trusted, another
+    process may have published or deleted it since)."""
     import fsspec
 
     fs, root = fsspec.core.url_to_fs(url)
+    fs.invalidate_cache(root.rstrip("/"))
     return bool(fs.exists(f"{root.rstrip('/')}/zarr.json"))
 
 

@@ -17,7 +17,7 @@ with warnings.catch_warnings():
 import lodcast
 from lodcast.service.app import create_app
 from lodcast.service.settings import Settings
-from lodcast.service.testing import TINY_TF, make_volume, tiny_scene
+from lodcast.service.testing import TINY_TF, make_volume, tiny_scene, wait_job
 
 TOKEN = "s3cret-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -40,16 +40,6 @@ def env(tmp_path_factory: pytest.TempPathFactory):
                         min_step=0.25, max_upload_bytes=64 * 1024, workers=1, poll_s=0.05)
     with TestClient(create_app(settings), headers=AUTH) as client:  # reads need the token too
         yield client, root, imports, outside
-
-
-def wait_job(client: TestClient, job_id: str, timeout: float = 120) -> dict:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        st = client.get(f"/jobs/{job_id}").json()
-        if st["state"] in ("done", "failed", "cancelled"):
-            return st
-        time.sleep(0.1)
-    raise AssertionError(f"job {job_id} still {st['state']} after {timeout} s")
 
 
 def names_field(resp, field: str) -> bool:

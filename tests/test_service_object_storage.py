@@ -10,7 +10,6 @@ import io
 import os
 import subprocess
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -27,7 +26,7 @@ with warnings.catch_warnings():
 import lodcast  # noqa: E402
 from lodcast.service.app import create_app  # noqa: E402
 from lodcast.service.settings import Settings  # noqa: E402
-from lodcast.service.testing import Proc, free_port, make_volume, running, s3_server, start_serve, tiny_scene  # noqa: E402
+from lodcast.service.testing import Proc, free_port, make_volume, running, s3_server, start_serve, tiny_scene, wait_job  # noqa: E402
 
 BUCKET = "lodcast-svc"
 ROOT = f"s3://{BUCKET}/volumes"
@@ -58,16 +57,6 @@ def svc(tmp_path_factory):
         settings = Settings(root=ROOT, state_root=state, import_roots=[imports], workers=1, poll_s=0.05)
         with TestClient(create_app(settings)) as client:
             yield client, fs, local, imports, state, srv
-
-
-def _wait(client, job_id: str, timeout: float = 120.0) -> dict:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        st = client.get(f"/jobs/{job_id}").json()
-        if st["state"] in ("done", "failed", "cancelled"):
-            return st
-        time.sleep(0.1)
-    raise AssertionError(f"job {job_id} still {st['state']} after {timeout} s")
 
 
 def test_a_root_url_is_kept_and_its_state_lives_locally(tmp_path):
@@ -110,7 +99,7 @@ def test_ingest_job_publishes_to_s3_and_delete_removes_it(svc):
     client, fs, local, imports, state, srv = svc
     resp = client.post("/volumes", json={"name": "blob", "source": "blob.npy", "options": {"block_size": 8}})
     assert resp.status_code == 202, resp.text
-    st = _wait(client, resp.json()["id"])
+    st = wait_job(client, resp.json()["id"])
     assert st["state"] == "done", st
     assert [v["id"] for v in client.get("/volumes").json()] == ["blob", "tiny"]
     # the store is where the root says, readable by anyone with the URL, and equal to the source
@@ -146,7 +135,7 @@ def test_an_upload_is_parked_in_the_bucket_for_whichever_worker_ingests_it(svc):
     jq = client.app.state.jobs()
     spec = jq.get(resp.json()["id"])["spec"]
     assert f'"source": "{ROOT}/.uploads/' in spec, spec
-    st = _wait(client, resp.json()["id"])
+    st = wait_job(client, resp.json()["id"])
     assert st["state"] == "done", st
     np.testing.assert_array_equal(np.asarray(lodcast.open_store(f"{ROOT}/up").level(0)[...]), vol)
     assert _objects(fs, f"{BUCKET}/volumes/.uploads") == []
@@ -172,7 +161,7 @@ def test_turntable_results_go_to_the_bucket(svc):
     client, fs, local, imports, state, srv = svc
     job = {"kind": "turntable", "volume": "tiny", "scene": tiny_scene(16, quality={"reduction": 4}), "frames": 3,
            "animation": "gif"}
-    st = _wait(client, client.post("/jobs", json=job).json()["id"])
+    st = wait_job(client, client.post("/jobs", json=job).json()["id"])
     assert st["state"] == "done" and st["progress"] == {"done": 3, "total": 3}, st
     prefix = f"{BUCKET}/volumes/.jobs/{st['id']}"
     names = [o.rsplit("/", 1)[-1] for o in _objects(fs, prefix)]
@@ -217,7 +206,7 @@ def test_two_workers_on_redis_and_s3_split_a_turntable_each_frame_once(svc, tmp_
 
     from lodcast.service.jobs import TurntableJob
     from lodcast.service.queue import JobQueue
-    from lodcast.service.testing import RedisServer, in_ci, redis_available, start_worker
+    from lodcast.service.testing import RedisServer, in_ci, redis_available
 
     if redis_available() is None:
         if in_ci():
