@@ -69,6 +69,7 @@ __all__ = [
     "orbit_to_lookat",
     "project_point",
     "box_bounds",
+    "ray_box",
     "sample_field",
     "TransferFunction",
     "delta_e",
@@ -199,7 +200,7 @@ def project_point(camera: Mapping[str, Any], width: int, height: int, point_xyz:
     return float(i), float(j)
 
 
-def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Slab intersection; returns (t0, t1) with t0 clipped to 0; a miss has t1 ≤ t0."""
     with np.errstate(divide="ignore", invalid="ignore"):
         ta, tb = (lo - o) / d, (hi - o) / d
@@ -300,7 +301,7 @@ class _Integrator:
 
     def ray_interval(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """[t0, t1] of each ray inside the box, the crop box and every plane's kept half-space n·(x − p) ≥ 0."""
-        t0, t1 = _ray_box(o, d, self.lo, self.hi)
+        t0, t1 = ray_box(o, d, self.lo, self.hi)
         for n, p in self.planes:
             nd, no = d @ n, (o - p) @ n
             with np.errstate(divide="ignore", invalid="ignore"):
