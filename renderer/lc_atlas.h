@@ -63,6 +63,12 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
  * at the same offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
 static inline float2 lc_brick(__global const float* atlas, __global const ushort* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
+    if (n == 1) /* a one-sample brick (level log2 B): its value, without eight reads of the same element */
+#ifdef LC_DIST
+        return (float2)(atlas[off], coarse ? lc_f16(sig[off]) : 0.0f);
+#else
+        return (float2)(atlas[off], 0.0f);
+#endif
     const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
     const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
     const ulong dx = fx > 0.0f ? 1UL : 0UL;
@@ -98,7 +104,6 @@ static inline float2 lc_nb(__global const float* atlas, __global const ushort* s
 
 #define LC_IMAP(x, y, z) imap[((ulong)(z) * (ulong)g.gy + (ulong)(y)) * (ulong)g.gx + (ulong)(x)]
 
-#ifdef LC_INTERP_II
 /* half-sample width of the level in the 4-bit field at `shift` of an entry, in level-0 voxels: 2^(level - 1) */
 static inline float lc_hw(const ulong entry, const int shift) {
     return 0.5f * (float)(1 << ((int)((entry >> shift) & 15UL) - 1));
@@ -110,12 +115,77 @@ static inline float lc_half(const ulong entry) {
     return 0.5f * (float)(1 << lvl);
 }
 
-/* edge weight e(x) = clamp((x + hl) / (hl + hu), 0, 1), all in level-0 voxels */
-static inline float lc_edge(const float x, const float hl, const float hu) {
-    const float e = (x + hl) / (hl + hu);
+/* edge weight e(x) = clamp((x + hl) / (hl + hu), 0, 1), all in level-0 voxels, with rinv = 1 / (hl + hu): a
+ * neighbourhood's reciprocals are taken once (LcHood), and every path multiplies by the same one, so that all give
+ * the same bits */
+static inline float lc_edge_r(const float x, const float hl, const float rinv) {
+    const float e = (x + hl) * rinv;
     return e > 0.0f ? (e < 1.0f ? e : 1.0f) : 0.0f;
 }
-#endif
+
+static inline float lc_edge(const float x, const float hl, const float hu) {
+    return lc_edge_r(x, hl, 1.0f / (hl + hu));
+}
+
+/* The interblock neighbourhood of the cell with corner c (the eight blocks c - 1 + s around the blocks' common
+ * corner, clamped to the grid): their index entries and half-sample widths, and the reciprocal of each edge's
+ * (hl + hu). Constant over a half-block cell, so the march sets it up once per cell (LcBlk) instead of per sample:
+ * eight index reads and twelve divisions. */
+typedef struct LcHood {
+    ulong E[8];
+    float h[8];
+    float rx[4], ry[4], rz[4]; /* x-edges join s and s|1 (index (sy, sz)), y-edges s and s|2, z-edges s and s|4 */
+    int X[2], Y[2], Z[2];
+    int cx, cy, cz; /* the corner; cx = -1: none set up */
+} LcHood;
+
+static inline void lc_hood(LcHood* hd, __global const ulong* imap, const LcAtlasGeom g, const int cx, const int cy,
+                           const int cz) {
+    hd->cx = cx; hd->cy = cy; hd->cz = cz;
+    hd->X[0] = lc_clampi(cx - 1, g.gx - 1); hd->X[1] = lc_clampi(cx, g.gx - 1);
+    hd->Y[0] = lc_clampi(cy - 1, g.gy - 1); hd->Y[1] = lc_clampi(cy, g.gy - 1);
+    hd->Z[0] = lc_clampi(cz - 1, g.gz - 1); hd->Z[1] = lc_clampi(cz, g.gz - 1);
+    for (int s = 0; s < 8; ++s) {
+        hd->E[s] = LC_IMAP(hd->X[s & 1], hd->Y[(s >> 1) & 1], hd->Z[s >> 2]);
+        hd->h[s] = lc_half(hd->E[s]);
+    }
+    for (int k = 0; k < 4; ++k) {
+        const int sx = 2 * k, sy = (k & 1) | ((k & 2) << 1), sz = k; /* the lower block of each edge */
+        hd->rx[k] = 1.0f / (hd->h[sx] + hd->h[sx | 1]);
+        hd->ry[k] = 1.0f / (hd->h[sy] + hd->h[sy | 2]);
+        hd->rz[k] = 1.0f / (hd->h[sz] + hd->h[sz | 4]);
+    }
+}
+
+/* eq. 3.6 at q, a point of the neighbourhood's cell */
+static inline float2 lc_hood_sample(__global const float* atlas, __global const ushort* sig, const LcAtlasGeom g,
+                                    const LcHood* hd, const float3 q) {
+    /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
+    const float xs = q.x + 0.5f - (float)hd->cx * g.B, ys = q.y + 0.5f - (float)hd->cy * g.B;
+    const float zs = q.z + 0.5f - (float)hd->cz * g.B;
+    float ex[4], ey[4], ez[4];
+    for (int k = 0; k < 4; ++k) {
+        const int sx = 2 * k, sy = (k & 1) | ((k & 2) << 1), sz = k;
+        ex[k] = lc_edge_r(xs, hd->h[sx], hd->rx[k]);
+        ey[k] = lc_edge_r(ys, hd->h[sy], hd->ry[k]);
+        ez[k] = lc_edge_r(zs, hd->h[sz], hd->rz[k]);
+    }
+    float wsum = 0.0f;
+    float2 acc = (float2)(0.0f);
+    for (int s = 0; s < 8; ++s) {
+        if (!hd->E[s]) continue;
+        const int sx = s & 1, sy = (s >> 1) & 1, sz = s >> 2;
+        const float fx = ex[s >> 1];      /* x-edge index: (sy, sz) */
+        const float fy = ey[sx + 2 * sz]; /* y-edge index: (sx, sz) */
+        const float fz = ez[sx + 2 * sy]; /* z-edge index: (sx, sy) */
+        const float w = (sx ? fx : 1.0f - fx) * (sy ? fy : 1.0f - fy) * (sz ? fz : 1.0f - fz);
+        if (w > 0.0f) {
+            acc += w * lc_nb(atlas, sig, hd->E[s], hd->X[sx], hd->Y[sy], hd->Z[sz], g, q);
+            wsum += w;
+        }
+    }
+    return acc / wsum;
+}
 
 #ifdef LC_INTERP_II
 /* A sample of block (bx, by, bz) (NB sample a, half-sample width ho) in the blend zone of one face only, along x
@@ -140,8 +210,10 @@ static inline float2 lc_face_blend(__global const float* atlas, __global const u
 }
 #endif
 
-static inline float2 lc_sample_atlas(__global const float* atlas, __global const ushort* sig,
-                                     __global const ulong* imap, const LcAtlasGeom g, const float3 q) {
+/* The multiresolution field at q. hd: the last interblock neighbourhood this ray set up (cx = -1: none), reused
+ * while the ray's samples stay in it */
+static inline float2 lc_sample_atlas_h(__global const float* atlas, __global const ushort* sig,
+                                       __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q) {
     /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
      * PoCL's out-of-line floor() */
     const float3 p = (q + 0.5f) * (1.0f / g.B);
@@ -171,43 +243,17 @@ static inline float2 lc_sample_atlas(__global const float* atlas, __global const
             return lc_face_blend(atlas, sig, imap, g, lc_nb(atlas, sig, own, bx, by, bz, g, q), lc_half(own), bx, by, bz,
                                  in_x, in_y, in_x ? ox : (in_y ? oy : oz), q);
     }
-    const float cxf = (float)(int)(p.x + 0.5f), cyf = (float)(int)(p.y + 0.5f), czf = (float)(int)(p.z + 0.5f);
-    /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
-    const float xs = q.x + 0.5f - cxf * g.B, ys = q.y + 0.5f - cyf * g.B, zs = q.z + 0.5f - czf * g.B;
-    const int cx = (int)cxf, cy = (int)cyf, cz = (int)czf;
-    const int X[2] = {lc_clampi(cx - 1, g.gx - 1), lc_clampi(cx, g.gx - 1)};
-    const int Y[2] = {lc_clampi(cy - 1, g.gy - 1), lc_clampi(cy, g.gy - 1)};
-    const int Z[2] = {lc_clampi(cz - 1, g.gz - 1), lc_clampi(cz, g.gz - 1)};
-    ulong E[8];
-    float h[8];
-    for (int s = 0; s < 8; ++s) {
-        E[s] = LC_IMAP(X[s & 1], Y[(s >> 1) & 1], Z[s >> 2]);
-        h[s] = lc_half(E[s]);
-    }
-    /* edge weights: x-edges join s and s|1 (s with bit 0 clear), y-edges s and s|2, z-edges s and s|4 */
-    float ex[4], ey[4], ez[4];
-    ex[0] = lc_edge(xs, h[0], h[1]); ex[1] = lc_edge(xs, h[2], h[3]);
-    ex[2] = lc_edge(xs, h[4], h[5]); ex[3] = lc_edge(xs, h[6], h[7]);
-    ey[0] = lc_edge(ys, h[0], h[2]); ey[1] = lc_edge(ys, h[1], h[3]);
-    ey[2] = lc_edge(ys, h[4], h[6]); ey[3] = lc_edge(ys, h[5], h[7]);
-    ez[0] = lc_edge(zs, h[0], h[4]); ez[1] = lc_edge(zs, h[1], h[5]);
-    ez[2] = lc_edge(zs, h[2], h[6]); ez[3] = lc_edge(zs, h[3], h[7]);
-    float wsum = 0.0f;
-    float2 acc = (float2)(0.0f);
-    for (int s = 0; s < 8; ++s) {
-        if (!E[s]) continue;
-        const int sx = s & 1, sy = (s >> 1) & 1, sz = s >> 2;
-        const float fx = ex[(s >> 1)];           /* x-edge index: (sy, sz) */
-        const float fy = ey[sx + 2 * sz];        /* y-edge index: (sx, sz) */
-        const float fz = ez[sx + 2 * sy];        /* z-edge index: (sx, sy) */
-        const float w = (sx ? fx : 1.0f - fx) * (sy ? fy : 1.0f - fy) * (sz ? fz : 1.0f - fz);
-        if (w > 0.0f) {
-            acc += w * lc_nb(atlas, sig, E[s], X[sx], Y[sy], Z[sz], g, q);
-            wsum += w;
-        }
-    }
-    return acc / wsum;
+    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
+    if (cx != hd->cx || cy != hd->cy || cz != hd->cz) lc_hood(hd, imap, g, cx, cy, cz);
+    return lc_hood_sample(atlas, sig, g, hd, q);
 #endif
+}
+
+static inline float2 lc_sample_atlas(__global const float* atlas, __global const ushort* sig,
+                                     __global const ulong* imap, const LcAtlasGeom g, const float3 q) {
+    LcHood hd;
+    hd.cx = -1;
+    return lc_sample_atlas_h(atlas, sig, imap, g, &hd, q);
 }
 
 /* A block the ray marches through (raycast.cl sets it up once per block/cell of its DDA): brick coordinates are
@@ -255,7 +301,7 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
 }
 
 static inline float2 lc_sample_blk(__global const float* atlas, __global const ushort* sig, __global const ulong* imap,
-                                   const LcAtlasGeom g, const LcBlk b, const float3 q) {
+                                   const LcAtlasGeom g, const LcBlk b, LcHood* hd, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II
     /* the own NB sample always (inside the fast window it is the answer), the face neighbour's only in a one-face
@@ -263,7 +309,7 @@ static inline float2 lc_sample_blk(__global const float* atlas, __global const u
      * zones then add one NB sample to the others' work, not a whole second path */
     const int in_x = !(l.x >= b.lo.x && l.x <= b.hi.x), in_y = !(l.y >= b.lo.y && l.y <= b.hi.y);
     const int in_z = !(l.z >= b.lo.z && l.z <= b.hi.z);
-    if (!b.n || in_x + in_y + in_z > 1) return lc_sample_atlas(atlas, sig, imap, g, q);
+    if (!b.n || in_x + in_y + in_z > 1) return lc_sample_atlas_h(atlas, sig, imap, g, hd, q);
     const float nm = (float)(b.n - 1);
     const float cx = l.x > 0.0f ? (l.x < nm ? l.x : nm) : 0.0f, cy = l.y > 0.0f ? (l.y < nm ? l.y : nm) : 0.0f;
     const float cz = l.z > 0.0f ? (l.z < nm ? l.z : nm) : 0.0f;
@@ -272,7 +318,7 @@ static inline float2 lc_sample_blk(__global const float* atlas, __global const u
     return lc_face_blend(atlas, sig, imap, g, a, b.ho, b.bx, b.by, b.bz, in_x, in_y,
                          ((in_x ? l.x : (in_y ? l.y : l.z)) + 0.5f) / b.s, q);
 #else
-    if (!b.n) return lc_sample_atlas(atlas, sig, imap, g, q);
+    if (!b.n) return lc_sample_atlas_h(atlas, sig, imap, g, hd, q);
     l.x = l.x > 0.0f ? (l.x < b.hi.x ? l.x : b.hi.x) : 0.0f;
     l.y = l.y > 0.0f ? (l.y < b.hi.y ? l.y : b.hi.y) : 0.0f;
     l.z = l.z > 0.0f ? (l.z < b.hi.z ? l.z : b.hi.z) : 0.0f;

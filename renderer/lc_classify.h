@@ -100,7 +100,7 @@
 #else
 #define LC_DIST_COMPOSITE(e, r, q, S)                                            \
     {                                                                            \
-        const float wgt = T##S * (1.0f - native_exp(-e.w * LC_LEN_UNITS(r, S))); \
+        const float wgt = T##S * lc_alpha_of_depth(e.w * LC_LEN_UNITS(r, S)); \
         LC_BLEND(wgt, LC_SHADE_COL(e.xyz, q), S)                                 \
     }
 #endif

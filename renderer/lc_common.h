@@ -12,6 +12,23 @@
 /* v clamped to [0, hi] */
 static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
 
+/* 1 - e^-x for an optical depth x >= 0, to float32's precision (relative error below 4e-7, tested against
+ * float64), without a library call: PoCL calls exp and native_exp out of line, and the call makes every live value
+ * of the march spill (measured: 30-40% of a nearest-block LOD render's kernel time). A series where 1 - e^-x would
+ * cancel; else e^-x = 2^-k 2^-f from the exponent bits and a series in f ln 2 <= 0.694 (truncation < 1e-7). */
+static inline float lc_alpha_of_depth(const float x) {
+    if (x < 0.25f)
+        return x * (1.0f - x * (0.5f - x * (1.0f / 6.0f - x * (1.0f / 24.0f - x * (1.0f / 120.0f - x * (1.0f / 720.0f))))));
+    if (x > 87.0f)
+        return 1.0f;
+    const float y = x * 1.44269504089f; /* e^-x = 2^-y */
+    const int k = (int)y;               /* y > 0: truncation is floor */
+    const float g = (y - (float)k) * 0.69314718056f;
+    const float p = 1.0f - g * (1.0f - g * (0.5f - g * (1.0f / 6.0f - g * (1.0f / 24.0f - g * (1.0f / 120.0f -
+                    g * (1.0f / 720.0f - g * (1.0f / 5040.0f - g * (1.0f / 40320.0f))))))));
+    return 1.0f - p * as_float((uint)(127 - k) << 23);
+}
+
 static inline uint lc_hash(uint x) {
     x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
     return x;

@@ -65,9 +65,9 @@
 #ifdef LC_SAMPLER_ATLAS
 #include "lc_atlas.h"
 /* (value, standard deviation) of the multiresolution field at q */
-#define LC_SAMPLE(q) lc_sample_atlas(vol, sig, imap, geom, (q))
+#define LC_SAMPLE(q) lc_sample_atlas_h(vol, sig, imap, geom, &hood, (q))
 /* inside the block (or adaptive cell) the march is in: its brick set up once (lc_blk), see lc_atlas.h */
-#define LC_SAMPLE_B(q) lc_sample_blk(vol, sig, imap, geom, blk, (q))
+#define LC_SAMPLE_B(q) lc_sample_blk(vol, sig, imap, geom, blk, &hood, (q))
 #elif defined(LC_PASSES)
 #define LC_SAMPLE(q) ((float2)(lc_sample_pass(vol, pdims, pmax, qmax, poff, (q)), 0.0f))
 #define LC_SAMPLE_B(q) LC_SAMPLE(q)
@@ -117,6 +117,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const float* vol,
     geom.gx = P->grid.x; geom.gy = P->grid.y; geom.gz = P->grid.z; geom.B = (float)P->grid.w;
     LcBlk blk;
     blk.n = 0; blk.off = 0; blk.s = 1.0f; blk.lo = (float3)(0.0f); blk.hi = (float3)(-1.0f); blk.c = (float3)(0.0f);
+    LcHood hood; /* the interblock neighbourhood last set up (lc_atlas.h) */
+    hood.cx = -1;
 #endif
     const float lut_scale = P->lut_scale, lut_off = -P->lut_lo * P->lut_scale, lut_fmax = (float)(P->lut_n - 1);
     const float lut_vis_lo = P->lut_vis_lo, lut_vis_hi = P->lut_vis_hi;
