@@ -378,6 +378,11 @@ def test_tiff_hyperstack_and_refusals(tmp_path: Path) -> None:
 
 # --- DICOM -------------------------------------------------------------------------------------------------------
 
+#: JPEG lossless transfer syntaxes (process 14) and the predictor each is written with: SV1 (first-order
+#: prediction, the one most scanners write) and the general one with another predictor
+JPEG_LOSSLESS = {"1.2.840.10008.1.2.4.70": 1, "1.2.840.10008.1.2.4.57": 6}
+
+
 def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826.0.1.1", slope: float = 1.0,
                 intercept: float = -1024.0, samples: int = 1, syntax: str | None = None) -> None:
     meta = FileMetaDataset()
@@ -398,7 +403,17 @@ def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826
     ds.ImagePositionPatient, ds.ImageOrientationPatient = [-10.0, -20.0, z], [1, 0, 0, 0, 1, 0]
     ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
     ds.PixelData = pixels.astype(np.uint16).tobytes()
-    if syntax is not None:  # compressed by pydicom's own encoders and its plugins (pyjpegls, pylibjpeg-openjpeg)
+    if syntax in JPEG_LOSSLESS:  # pydicom has no JPEG lossless encoder: libjpeg-turbo's, through imagecodecs
+        import imagecodecs
+        from pydicom.encaps import encapsulate
+
+        frame = imagecodecs.jpeg8_encode(pixels.astype(np.uint16), lossless=True, predictor=JPEG_LOSSLESS[syntax],
+                                         bitspersample=12)
+        assert frame.find(b"\xff\xc3") > 0  # SOF3: the lossless process, not a DCT one
+        ds.PixelData = encapsulate([frame])
+        ds["PixelData"].VR = "OB"
+        meta.TransferSyntaxUID = syntax
+    elif syntax is not None:  # compressed by pydicom's own encoders and its plugins (pyjpegls, pylibjpeg-openjpeg)
         ds.compress(syntax)
     ds.save_as(path, enforce_file_format=True)
 
@@ -428,10 +443,12 @@ def test_dicom_series_sorted_and_rescaled_to_int16(tmp_path: Path) -> None:
         check(src, stored.astype(np.int16) - 1024)
 
 
-@pytest.mark.parametrize("syntax", ["1.2.840.10008.1.2.5", "1.2.840.10008.1.2.4.80", "1.2.840.10008.1.2.4.90"],
-                         ids=["rle", "jpeg-ls", "jpeg2000"])
+@pytest.mark.parametrize("syntax", ["1.2.840.10008.1.2.5", "1.2.840.10008.1.2.4.80", "1.2.840.10008.1.2.4.90",
+                                    *JPEG_LOSSLESS],
+                         ids=["rle", "jpeg-ls", "jpeg2000", "jpeg-lossless-sv1", "jpeg-lossless-p6"])
 def test_compressed_dicom_series(tmp_path: Path, syntax: str) -> None:
-    """RLE, JPEG-LS and JPEG 2000 (lossless) series, written by pydicom with its encoders, read back exactly."""
+    """RLE, JPEG-LS and JPEG 2000 (lossless) series written by pydicom with its encoders, and JPEG lossless ones
+    (process 14) by libjpeg-turbo, read back exactly."""
     stored = RNG.integers(0, 4096, (5, 64, 48)).astype(np.uint16)  # openjpeg needs more than 16 x 12 pixels
     (tmp_path / "ct").mkdir()
     for k in range(5):
