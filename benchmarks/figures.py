@@ -72,7 +72,7 @@ def gallery(rows_by_volume: dict[str, list[dict]], path: Path) -> Path:
             ax.set_title(f"{name}: {q}", fontsize=8)
             ax.text(0.5, -0.04, f"ΔE {r['delta_e']:.2f} · {r['ms']:,.0f} ms", transform=ax.transAxes,
                     ha="center", va="top", fontsize=8)
-    fig.tight_layout()
+    fig.tight_layout(h_pad=2.5)
     fig.savefig(path, facecolor="white")
     plt.close(fig)
     return path
