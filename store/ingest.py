@@ -332,6 +332,19 @@ def _interior_stats(strip: np.ndarray, b: int) -> dict[str, np.ndarray]:
 
 # --- the writer ----------------------------------------------------------------------------------------------
 
+class _Unlisted:
+    """Arrays at ROOT/PREFIX/NAME with no group node at PREFIX. The level arrays stay the root group's only
+    members, so a reader that takes a group's members for the image sees the image alone: napari's built-in
+    reader opens the first subgroup if there is one, else the root's arrays in order of name. lodcast opens these
+    arrays by path (`std/1`, `blocks/hist`)."""
+
+    def __init__(self, root: Path, prefix: str):
+        self.folder = root / prefix
+
+    def create_array(self, name: str, **kwargs: Any) -> zarr.Array:
+        return zarr.create_array(store=str(self.folder / name), zarr_format=3, **kwargs)
+
+
 def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: int,
            workers: int | None, show: bool, source_label: str) -> None:
     info = src.info
@@ -348,7 +361,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         )
         writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-{k}"))
     std_writers = []
-    std_group = group.create_group("std")
+    std_group = _Unlisted(root, "std")
     sdtype = std_dtype(dtype)
     for k in range(1, lay.n_levels):
         arr = std_group.create_array(
@@ -393,7 +406,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         lo, hi = float(np.nanmin(stats["min"])), float(np.nanmax(stats["max"]))
         bins = Bins.for_range(lo, hi, integer=dtype.kind in "iu", max_bins=n_bins)
         seg = min(segments, bins.count)
-        blocks = group.create_group("blocks")
+        blocks = _Unlisted(root, "blocks")
         overall = np.zeros(bins.count)  # the volume's histogram (borders counted twice): the omero window
         hist_arr = blocks.create_array("hist", shape=lay.grid + (bins.count,), dtype=np.uint32,
                                        chunks=(1, gy, gx, bins.count), compressors=compressor, fill_value=0)

@@ -8,9 +8,14 @@ Layout of a store (all written by `lodcast.store.ingest`):
   OME-Zarr 0.5 block under `ome`;
 - arrays `0` … `L`: level k, shape ceil(shape / 2^k), inner chunks of one block (or a cube of blocks once blocks
   are under 16 samples across), grouped into shards by the sharding codec;
+- arrays `std/1` … `std/L`: the standard deviation of the level-0 values behind each voxel of level k;
 - arrays under `blocks/`, indexed by block (z, y, x): `min`, `max`, `mean`, `count` over the block's own valid
   voxels, `min_border`, `max_border` and `hist` over the block grown by one voxel into its neighbours, and the
   simplified histogram `hist_starts` (bin index where each piece starts, plus the end) and `hist_heights`.
+
+`std/` and `blocks/` have no group node (stores written before this layout have one there and read the same),
+so that the level arrays are the root group's only members: what napari's built-in reader and
+other tools that list a group's members take for the image.
 """
 from __future__ import annotations
 
@@ -178,8 +183,8 @@ class Store:
 
     @cached_property
     def stats(self) -> BlockStats:
-        b = self.group["blocks"]
-        return BlockStats(**{f: np.asarray(b[f][...]) for f in ("min", "max", "mean", "count", "min_border", "max_border")})
+        return BlockStats(**{f: np.asarray(self.group[f"blocks/{f}"][...])
+                             for f in ("min", "max", "mean", "count", "min_border", "max_border")})
 
     @cached_property
     def level_std(self) -> np.ndarray | None:

@@ -173,6 +173,40 @@ def test_addressing_beyond_2_31_voxels():
     assert lay.block_region(63, 63, 31, border=1) == (slice(2015, 2048), slice(2015, 2048), slice(991, 1024))
 
 
+def test_other_readers_see_the_image_alone(tmp_path: Path):
+    """The level arrays are the root group's only members (std/ and blocks/ have no group node): napari's
+    built-in reader, which opens a group's first subgroup if it has one, opens the levels in order; ome-zarr-py
+    reads the levels with their scale, translation and the omero window."""
+    rng = np.random.default_rng(3)
+    vol = rng.normal(100.0, 20.0, (40, 50, 36)).astype(np.float32)
+    vol[10:30, 10:40, 8:28] += 400.0
+    st = lodcast.ingest(vol, tmp_path / "v.zarr", spacing=(2.0, 0.5, 0.25), origin=(10.0, -5.0, 1.0), block_size=8)
+    g = zarr.open_group(str(tmp_path / "v.zarr"), mode="r")
+    with pytest.warns(UserWarning, match="not recognized as a component"):  # std/, blocks/: prefixes, not nodes
+        members = dict(g.members())
+    assert sorted(members, key=int) == [str(k) for k in range(st.n_levels)] and not list(g.group_keys())
+    assert all(isinstance(a, zarr.Array) for a in members.values())
+    assert np.array_equal(st.read_std_region(1), np.asarray(g["std/1"][...]))  # lodcast's own arrays, by path
+    assert g["blocks/hist"].shape[:3] == st.grid
+
+    napari_read = pytest.importorskip("napari_builtins.io._read")
+    layers = napari_read.napari_get_reader(str(tmp_path / "v.zarr"))(str(tmp_path / "v.zarr"))
+    levels = layers[0][0]
+    assert [lv.shape for lv in levels] == [st.level(k).shape for k in range(st.n_levels)]
+    assert np.array_equal(np.asarray(levels[0]), vol) and np.array_equal(np.asarray(levels[2]), st.read_level(2))
+
+    from ome_zarr.io import parse_url
+    from ome_zarr.reader import Reader
+
+    (node,) = list(Reader(parse_url(str(tmp_path / "v.zarr")))())[:1]
+    assert [d.shape for d in node.data] == [st.level(k).shape for k in range(st.n_levels)]
+    assert np.array_equal(np.asarray(node.data[1]), st.read_level(1))
+    ct = node.metadata["coordinateTransformations"]
+    assert ct[1][0]["scale"] == [4.0, 1.0, 0.5] and ct[0][1]["translation"] == [10.0, -5.0, 1.0]
+    lo, hi = node.metadata["contrast_limits"][0]
+    assert float(vol.min()) <= lo < 150.0 < 450.0 < hi <= float(vol.max())  # the omero window spans both tissues
+
+
 def test_chunks_shards_and_ome_metadata(tmp_path: Path):
     from ome_zarr_models.v05.image import Image
 
