@@ -48,6 +48,9 @@ static inline float lc_f16(const ushort h) {
     return as_float(e ? ((((uint)h & 0x8000u) << 16) | ((e + 0x1c000u) << 13) | (((uint)h & 0x03ffu) << 13)) : 0u);
 }
 
+/* 2^-k for a level k in [0, 126], exactly, from the exponent bits: no division per sample */
+static inline float lc_exp2_neg(const int k) { return as_float((uint)(127 - k) << 23); }
+
 /* Trilinear interpolation of the corner values v_zyx (v001: x + 1) with fractions fx, fy, fz. */
 static inline float lc_tri8(const float v000, const float v001, const float v010, const float v011, const float v100,
                             const float v101, const float v110, const float v111, const float fx, const float fy,
@@ -90,7 +93,7 @@ static inline float2 lc_nb(__global const float* atlas, __global const ushort* s
                            const int by, const int bz, const LcAtlasGeom g, const float3 q) {
     const int lvl = (int)(entry & 15UL) - 1;
     const int n = (int)g.B >> lvl;
-    const float s = 1.0f / (float)(1 << lvl);
+    const float s = lc_exp2_neg(lvl);
     const float nm = (float)(n - 1);
     float lx = (q.x + 0.5f - (float)bx * g.B) * s - 0.5f;
     float ly = (q.y + 0.5f - (float)by * g.B) * s - 0.5f;
@@ -285,7 +288,7 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.off = ent >> 16;
     b.n = (int)g.B >> lvl;
     b.coarse = lvl > 0;
-    b.s = 1.0f / (float)(1 << lvl);
+    b.s = lc_exp2_neg(lvl);
     b.c = ((float3)(0.5f) - (float3)((float)bx, (float)by, (float)bz) * g.B) * b.s - 0.5f;
     b.bx = bx; b.by = by; b.bz = bz;
     b.ho = 0.5f / b.s;
