@@ -63,7 +63,7 @@ def main() -> None:
         for name, sc in variants.items():
             feat[f"{name}_ms"] = best(store, sc, a.repeat).report["kernel_ms"]
         out["features"].append(feat)
-    lines.append(f"| TF | step | point ΔE | point ms | pre-int ΔE | pre-int ms | table ms |\n|---|---|---|---|---|---|---|")
+    lines.append("| TF | step | point ΔE | point ms | pre-int ΔE | pre-int ms | table ms |\n|---|---|---|---|---|---|---|")
     for r in out["preintegration"]:
         lines.append(f"| {r['tf']} | {r['step']:g} | {r['point_delta_e']:.2f} | {r['point_ms']:.0f} | "
                      f"{r['pre_delta_e']:.2f} | {r['pre_ms']:.0f} | {r['table_ms']:.0f} |")

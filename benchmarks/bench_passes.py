@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-import lodcast
 from bench_consistent_lod import DATA, RESULTS, best, store_of
 from lodcast.renderer import sampler
 from lodcast.renderer.image_error import delta_e_stats

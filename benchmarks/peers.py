@@ -37,12 +37,10 @@ def available() -> str | None:
     if not os.environ.get("DISPLAY"):  # VTK would try X first and log a warning before falling back to EGL
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     try:
-        import vtk  # noqa: F401
+        import vtk
     except ImportError as e:
         return f"VTK is not installed ({e}; pip install vtk)"
     try:
-        import vtk
-
         w = vtk.vtkRenderWindow()
         w.SetOffScreenRendering(1)
         w.SetSize(8, 8)

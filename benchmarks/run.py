@@ -75,11 +75,6 @@ class Case:
     samples: int | None = None
     reduction: float | None = None
 
-    @property
-    def label(self) -> str:
-        step = "default" if self.step is None else f"{self.step:g}"
-        return f"{self.renderer} {self.quality} step {step}"
-
 
 def volumes(quick: bool) -> list[Volume]:
     engine = Volume("engine CT", DATA / "engine.nii.gz", {"metal": ENGINE_METAL, "translucent": ENGINE_DENSE})
@@ -136,7 +131,7 @@ def _timed(fn) -> float:
     return time.perf_counter() - t
 
 
-def measure(store, level0: np.ndarray, vol: Volume, tf_name: str, size: int, steps: list[float], repeat: int,
+def measure(store, vol: Volume, tf_name: str, size: int, steps: list[float], repeat: int,
             vtk_fp, ref: np.ndarray) -> list[dict]:
     tf = vol.tfs[tf_name]
     base = {"camera": CAMERA, "width": size, "height": size, "tf": tf}
@@ -308,7 +303,7 @@ def main(argv=None) -> int:
             ref = reference_image(level0, scene, store.spacing, store.origin, volume_id=f"{vol.source.name}:"
                                   f"{store.generation}", cache=args.out / "reference", log=log)
             log(f"{vol.name}, {tf_name}: {repeat} round(s) of every case")
-            got = measure(store, level0, vol, tf_name, size, steps, repeat, fp, ref)
+            got = measure(store, vol, tf_name, size, steps, repeat, fp, ref)
             rows += got
             if i == 0 and tf_name == next(iter(vol.tfs)):  # the first volume's first TF in the gallery
                 gallery[vol.name] = [r for r in got if r["renderer"] == "lodcast" and
