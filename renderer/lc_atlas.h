@@ -132,8 +132,9 @@ static inline float lc_edge(const float x, const float hl, const float hu) {
 
 /* The interblock neighbourhood of the cell with corner c (the eight blocks c - 1 + s around the blocks' common
  * corner, clamped to the grid): their index entries and half-sample widths, and the reciprocal of each edge's
- * (hl + hu). Constant over a half-block cell, so the march sets it up once per cell (LcBlk) instead of per sample:
- * eight index reads and twelve divisions. */
+ * (hl + hu). The same for every sample with the same corner (a half-block cell), so a ray keeps the last one it set
+ * up (raycast.cl's `hood`) and reuses it while its samples stay there, instead of eight index reads and twelve
+ * divisions per sample. */
 typedef struct LcHood {
     ulong E[8];
     float h[8];
