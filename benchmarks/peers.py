@@ -1,6 +1,6 @@
 """VTK's CPU ray caster (vtkFixedPointVolumeRayCastMapper) set up to render what lodcast renders, for `run.py`.
 
-Conventions matched to DESIGN.md (each one changes the image measurably if left at VTK's default):
+Conventions matched to lodcast's (docs/reference.md; each one changes the image measurably if left at VTK's default):
 * the box: VTK's volume ends at the outer voxel centres, lodcast's half a voxel further out (the field clamped to
   the edge value). The volume is padded by one edge-replicated voxel on each side and clipped to lodcast's box
   with six clipping planes;

@@ -1,13 +1,13 @@
 """A float64 fixed-step reference image for the benchmark: every renderer in `run.py` (lodcast and its peers) is
-measured against it, with DESIGN.md's ΔE, so that no renderer is judged by its own output.
+measured against it, with lodcast's ΔE, so that no renderer is judged by its own output.
 
-It is written from DESIGN.md's conventions and shares no code with lodcast's kernel: rays and the box come from
-tests/reference.py (the suite's independent reference, too slow for 512² images of a 72-million-voxel CT), the
-field is trilinear between voxel centres in float64 and clamped in the half-voxel rim, and each ray's segment in
-the box is cut into equal parts no longer than `step` × the smallest spacing, each classified at its midpoint and
-composited front to back with α = 1 − (1 − a)^(Δ/unit). Rays stop once their transmittance is below 1e-7 (the
-image moves by less than that). Images are cached under benchmarks/results/reference/ by a hash of everything
-that determines them, so a second run of the benchmark costs nothing here.
+It is written from lodcast's documented conventions (docs/reference.md) and shares no code with lodcast's kernel:
+rays and the box come from tests/reference.py (the suite's independent reference, too slow for 512² images of a
+72-million-voxel CT), the field is trilinear between voxel centres in float64 and clamped in the half-voxel rim,
+and each ray's segment in the box is cut into equal parts no longer than `step` × the smallest spacing, each
+classified at its midpoint and composited front to back with α = 1 − (1 − a)^(Δ/unit). Rays stop once their transmittance is below 1e-7 (the
+image moves by less than that). run.py caches the images in its output folder (reference/) by a hash of
+everything that determines them, so a second run of the benchmark costs nothing here.
 """
 from __future__ import annotations
 

@@ -8,7 +8,8 @@ independent float64 reference, with the machine's own limits measured in the sam
 For each volume and transfer function (a sparse one, bone or metal, and a dense translucent one): lodcast at full
 resolution at steps 1, ½ and ¼, lodcast at `quality` "lossless", 30:1 and 100:1 with its default sampling, and VTK
 FixedPoint (benchmarks/peers.py) at the same steps, all on the same voxels, view, image size and TF. Each image's
-mean ΔE (DESIGN.md's, over the footprint) is taken against a float64 reference at step ¼
+mean ΔE (lodcast's: CIE76 in CIELUV over the footprint, renderer/image_error.py) is taken against a float64
+reference at step ¼
 (benchmarks/reference64.py). Times are wall-clock seconds of a call that returns the image (lodcast: `render`, the
 volume already on the device; VTK: `Render()`), medians of `--repeat` runs taken round robin (so that load from
 elsewhere on a shared machine hits every case alike), with min and max. Ratios compare figures of this one run.
@@ -17,7 +18,8 @@ benchmarks/bench_render.py) against lodcast's full render in samples per second.
 
 Writes OUT/benchmark.json (rows, ratios, goals, machine: CPU, cores, OpenCL platform and device, versions),
 OUT/error_vs_time.png, OUT/gallery.png (the chest CT and, where it can be fetched, the demo MR head at full,
-lossless, 30:1 and 100:1) and OUT/report.png (`lodcast report`'s error-against-time plot); prints one table.
+lossless, 30:1 and 100:1) and OUT/report/report.png (`lodcast report`'s error-against-time plot); prints one
+table. The volumes come from ../shared/data beside the checkout (or LODCAST_SHARED_DATA).
 """
 from __future__ import annotations
 
@@ -283,6 +285,11 @@ def main(argv=None) -> int:
     size = args.size or (96 if args.quick else 512)
     repeat = args.repeat or (1 if args.quick else 3)
     steps = args.steps or ([1.0, 0.5] if args.quick else [1.0, 0.5, 0.25])
+    missing = [str(v.source) for v in volumes(args.quick) if not v.source.exists()]
+    if missing:
+        print(f"run.py: volume not found: {', '.join(missing)} (set LODCAST_SHARED_DATA to the folder of real "
+              "volumes)", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
 
