@@ -5,9 +5,9 @@ It is written from lodcast's documented conventions (docs/reference.md) and shar
 rays and the box come from tests/reference.py (the suite's independent reference, too slow for 512² images of a
 72-million-voxel CT), the field is trilinear between voxel centres in float64 and clamped in the half-voxel rim,
 and each ray's segment in the box is cut into equal parts no longer than `step` × the smallest spacing, each
-classified at its midpoint and composited front to back with α = 1 − (1 − a)^(Δ/unit). Rays stop once their transmittance is below 1e-7 (the
-image moves by less than that). run.py caches the images in its output folder (reference/) by a hash of
-everything that determines them, so a second run of the benchmark costs nothing here.
+classified at its midpoint and composited front to back with α = 1 − (1 − a)^(Δ/unit). Rays stop once their
+transmittance is below 1e-7 (the image moves by less than that). run.py caches the images in its output folder
+(reference/) by a hash of everything that determines them, so a second run of the benchmark costs nothing here.
 """
 from __future__ import annotations
 
