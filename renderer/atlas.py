@@ -2,7 +2,7 @@
 
 A level selection (grid-shaped int8: the store level of every block, -1 = not loaded) becomes:
 
-- the **atlas**: one float32 buffer holding the selected bricks one after another, each the block's
+- the **atlas**: one buffer (the voxel type of `volume.device_dtype`) holding the selected bricks one after another, each the block's
   (B >> level)³ samples in C order (z, y, x), no sample replication (PoCL measured trilinear sampling from a plain
   buffer ~2x faster than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else
   `DeviceError` says how much it needs and what the device allows;
@@ -37,6 +37,7 @@ from lodcast.environment import environment
 from lodcast.renderer.cache import ByteLru
 from lodcast.opencl import DeviceError, get_context, get_program
 from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.volume import device_dtype, voxel_options
 from lodcast.store.layout import Layout
 
 __all__ = ["BrickCache", "brick_cache", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
@@ -86,9 +87,9 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
     lo = [min(r[a].start for r in regs) for a in range(3)]
     hi = [max(r[a].stop for r in regs) for a in range(3)]
     region = tuple(slice(l, h) for l, h in zip(lo, hi))
-    if what == "mean":  # the store's own type where it is narrower than float32 (exact in the atlas's float32)
+    if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
         data = vol.read_region(level, region)
-        dtype = data.dtype if data.dtype.kind in "iu" and data.dtype.itemsize <= 2 else np.float32
+        dtype = device_dtype(data.dtype)
     else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
         data, dtype = vol.read_std_region(level, region) / np.float32(vol.std_unit), np.float16
     e = lay.block_edge(level)
@@ -234,15 +235,16 @@ def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarra
     return sizes, offsets
 
 
-def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None) -> tuple[np.ndarray, int]:
-    """(offsets, total elements) of the atlas of `levels`; DeviceError when it would exceed `max_bytes`
-    (default: the device's max allocation)."""
+def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None,
+                     itemsize: int = 4) -> tuple[np.ndarray, int]:
+    """(offsets, total elements) of the atlas of `levels` (voxels of `itemsize` bytes); DeviceError when it would
+    exceed `max_bytes` (default: the device's max allocation)."""
     sizes, offsets = _offsets(levels, block_size)
     total = int(sizes.sum())
     limit = max_alloc_bytes() if max_bytes is None else int(max_bytes)
-    if total * 4 > limit:
+    if total * itemsize > limit:
         raise DeviceError(
-            f"the level-of-detail selection needs a {total * 4 / 2**20:.1f} MiB brick atlas, more than the device's "
+            f"the level-of-detail selection needs a {total * itemsize / 2**20:.1f} MiB brick atlas, more than the device's "
             f"largest allocation ({limit / 2**20:.1f} MiB, CL_DEVICE_MAX_MEM_ALLOC_SIZE); choose a smaller "
             "budget_mb or a larger reduction"
         )
@@ -257,14 +259,14 @@ def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> Non
 
 
 def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
-         slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(atlas float32 1D, index map uint64 grid-shaped). Bricks are packed in C order of the grid. Raises
+         slices: np.ndarray | None = None, dtype: Any = np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """(atlas 1D of `dtype`, index map uint64 grid-shaped). Bricks are packed in C order of the grid. Raises
     DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation). `slices`: the
     index map's slice maxima (default slice_max(levels); a pass of a render in several packs part of a selection
     with the whole selection's)."""
     levels = np.asarray(levels)
-    offsets, total = _checked_offsets(levels, block_size, max_bytes)
-    atlas = np.empty(max(total, 1), np.float32)
+    offsets, total = _checked_offsets(levels, block_size, max_bytes, np.dtype(dtype).itemsize)
+    atlas = np.empty(max(total, 1), dtype)
     _place(atlas, levels.shape, offsets, bricks.items())
     return atlas, _index(levels, offsets, slices)
 
@@ -333,6 +335,7 @@ class DeviceAtlas:
     upload_ms: float
     reused: bool  # the device buffers of a recent render with the same store and levels were reused
     key: tuple | None = None  # its device-cache key (None: not kept)
+    voxel: tuple[str, ...] = ()  # the -D option of its voxel type (volume.voxel_options)
 
 
 def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
@@ -351,13 +354,14 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     if hit is not None:
         return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
     t_read = time.perf_counter()
-    offsets, total = _checked_offsets(levels, int(vol.block_size), max_bytes)
+    dtype = vol.voxel_dtype
+    offsets, total = _checked_offsets(levels, int(vol.block_size), max_bytes, dtype.itemsize)
     index = _index(levels, offsets, slices)
     ctx, queue = get_context()
     st = BrickStats()
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
-    d_atlas = _filled(ctx, queue, max(total, 1), np.float32, levels.shape, offsets, iter_bricks(vol, levels, cache, stats=st))
+    d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels.shape, offsets, iter_bricks(vol, levels, cache, stats=st))
     d_std = None
     if with_std:
         d_std = _filled(ctx, queue, max(total, 1), np.float16, levels.shape, offsets,
@@ -365,9 +369,9 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
     queue.finish()
-    nbytes = max(total, 1) * (4 + (2 if with_std else 0))
+    nbytes = max(total, 1) * (dtype.itemsize + (2 if with_std else 0))
     da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, st.read, st.cached, st.skipped,
-                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key)
+                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype))
     if key is not None:
         device_cache().put(key, da, nbytes + index.nbytes)
     return da
@@ -412,7 +416,7 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
     shape = tuple(2 * g for g in grid)
     n = int(np.prod(shape))
     d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
-    opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB"]
+    opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", *da.voxel]
     std = da.std
     if std is not None:
         opts.append("-DLC_DIST")

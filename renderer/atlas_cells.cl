@@ -25,7 +25,7 @@ static inline int2 lc_reach(const float a, const float b, const float lo_face, c
     return (int2)(i0, i1);
 }
 
-__kernel void lc_atlas_cells(__global const float* atlas, __global const ushort* sig, __global const ulong* imap,
+__kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
                              const int4 grid, __global float* out_min, __global float* out_max,
                              __global float* out_sd) {
     const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);

@@ -5,7 +5,9 @@
  * [c C - 1, (c + 1) C] of the volume (clipped to its dims), read from a sub-volume of `sub` voxels whose first
  * voxel is the volume's voxel `off`, which holds them. No finite voxel: NaN, as lodcast.renderer.volume's
  * cell_minmax_border gives. */
-__kernel void lc_cell_range(__global const float* vol, const int4 sub, const int4 off, const int4 dims, const int C,
+#include "lc_common.h"
+
+__kernel void lc_cell_range(__global const lc_voxel* vol, const int4 sub, const int4 off, const int4 dims, const int C,
                             const int4 lo, const int4 n, __global float* out_min, __global float* out_max) {
     const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
     if (x >= n.x || y >= n.y || z >= n.z) return;

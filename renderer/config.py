@@ -33,6 +33,7 @@ class KernelConfig:
     tf2: bool = False  # dual-TF compositing, a second TF integrated concurrently (composite only)
     screen: bool = False  # adaptive screen-space sampling: rays through given image positions (tile samples)
     passes: bool = False  # one pass of a render in several (the volume data exceeds the device budget)
+    voxel: str = "float"  # the OpenCL C type of the volume's and atlas's voxels (volume.VOXEL_CTYPES)
 
     def __post_init__(self) -> None:
         if self.sampler not in ("full", "atlas"):
@@ -53,6 +54,8 @@ class KernelConfig:
             raise ValueError("a second transfer function (tf2) needs composite mode")
         if self.passes and self.adaptive_naive:
             raise ValueError("naive adaptive sampling cannot be split into passes (its steps run across blocks)")
+        if self.voxel not in ("float", "char", "uchar", "short", "ushort"):
+            raise ValueError(f"voxel type {self.voxel!r} is not implemented")
         if self.ess and self.mode in ("average", "iso"):
             raise ValueError(f"mode {self.mode!r} reads every sample: no empty-space skipping")
 
@@ -83,4 +86,6 @@ class KernelConfig:
         ):
             if flag:
                 opts.append(f"-D{name}")
+        if self.voxel != "float":
+            opts.append(f"-DLC_VOXEL={self.voxel}")
         return tuple(opts)

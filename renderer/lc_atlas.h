@@ -64,13 +64,13 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
 /* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]:
  * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (float16 bits)
  * at the same offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
-static inline float2 lc_brick(__global const float* atlas, __global const ushort* sig, const ulong off, const int n,
+static inline float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
     if (n == 1) /* a one-sample brick (level log2 B): its value, without eight reads of the same element */
 #ifdef LC_DIST
-        return (float2)(atlas[off], coarse ? lc_f16(sig[off]) : 0.0f);
+        return (float2)((float)atlas[off], coarse ? lc_f16(sig[off]) : 0.0f);
 #else
-        return (float2)(atlas[off], 0.0f);
+        return (float2)((float)atlas[off], 0.0f);
 #endif
     const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
     const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
@@ -78,8 +78,9 @@ static inline float2 lc_brick(__global const float* atlas, __global const ushort
     const ulong dy = fy > 0.0f ? (ulong)n : 0UL;
     const ulong dz = fz > 0.0f ? (ulong)n * (ulong)n : 0UL;
     const ulong b = off + ((ulong)z0 * (ulong)n + (ulong)y0) * (ulong)n + (ulong)x0, c = b + dz;
-    float2 out = (float2)(lc_tri8(atlas[b], atlas[b + dx], atlas[b + dy], atlas[b + dy + dx], atlas[c], atlas[c + dx],
-                                  atlas[c + dy], atlas[c + dy + dx], fx, fy, fz), 0.0f);
+    float2 out = (float2)(lc_tri8((float)atlas[b], (float)atlas[b + dx], (float)atlas[b + dy], (float)atlas[b + dy + dx],
+                                  (float)atlas[c], (float)atlas[c + dx], (float)atlas[c + dy], (float)atlas[c + dy + dx],
+                                  fx, fy, fz), 0.0f);
 #ifdef LC_DIST
     if (coarse)
         out.y = lc_tri8(lc_f16(sig[b]), lc_f16(sig[b + dx]), lc_f16(sig[b + dy]), lc_f16(sig[b + dy + dx]), lc_f16(sig[c]),
@@ -89,7 +90,7 @@ static inline float2 lc_brick(__global const float* atlas, __global const ushort
 }
 
 /* NB sample of a loaded block (entry != 0) at level-0 voxel coordinates q. */
-static inline float2 lc_nb(__global const float* atlas, __global const ushort* sig, const ulong entry, const int bx,
+static inline float2 lc_nb(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry, const int bx,
                            const int by, const int bz, const LcAtlasGeom g, const float3 q) {
     const int lvl = (int)(entry & 15UL) - 1;
     const int n = (int)g.B >> lvl;
@@ -162,7 +163,7 @@ static inline void lc_hood(LcHood* hd, __global const ulong* imap, const LcAtlas
 }
 
 /* eq. 3.6 at q, a point of the neighbourhood's cell */
-static inline float2 lc_hood_sample(__global const float* atlas, __global const ushort* sig, const LcAtlasGeom g,
+static inline float2 lc_hood_sample(__global const lc_voxel* atlas, __global const ushort* sig, const LcAtlasGeom g,
                                     const LcHood* hd, const float3 q) {
     /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
     const float xs = q.x + 0.5f - (float)hd->cx * g.B, ys = q.y + 0.5f - (float)hd->cy * g.B;
@@ -197,7 +198,7 @@ static inline float2 lc_hood_sample(__global const float* atlas, __global const 
  * the own one and its neighbour across that face has weight 0 (the fast path's argument, below), and these two take
  * (1 - e, e) of the face's edge weight (the other axes' factors saturate to 1 for both): two NB samples instead of
  * the cell's eight. */
-static inline float2 lc_face_blend(__global const float* atlas, __global const ushort* sig, __global const ulong* imap,
+static inline float2 lc_face_blend(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const float2 a, const float ho, const int bx, const int by,
                                    const int bz, const int in_x, const int in_y, const float o, const float3 q) {
     const int up = o > 0.5f * g.B; /* the face above the own block along that axis */
@@ -216,7 +217,7 @@ static inline float2 lc_face_blend(__global const float* atlas, __global const u
 
 /* The multiresolution field at q. hd: the last interblock neighbourhood this ray set up (cx = -1: none), reused
  * while the ray's samples stay in it */
-static inline float2 lc_sample_atlas_h(__global const float* atlas, __global const ushort* sig,
+static inline float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global const ushort* sig,
                                        __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q) {
     /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
      * PoCL's out-of-line floor() */
@@ -253,7 +254,7 @@ static inline float2 lc_sample_atlas_h(__global const float* atlas, __global con
 #endif
 }
 
-static inline float2 lc_sample_atlas(__global const float* atlas, __global const ushort* sig,
+static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global const ushort* sig,
                                      __global const ulong* imap, const LcAtlasGeom g, const float3 q) {
     LcHood hd;
     hd.cx = -1;
@@ -304,7 +305,7 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     return b;
 }
 
-static inline float2 lc_sample_blk(__global const float* atlas, __global const ushort* sig, __global const ulong* imap,
+static inline float2 lc_sample_blk(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const LcBlk b, LcHood* hd, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II

@@ -5,6 +5,14 @@
 #define LC_COMMON_H
 #include "lc_types.h"
 
+/* The voxel type of the volume and atlas buffers (-DLC_VOXEL=short etc.; KernelConfig.voxel): the store's own
+ * integer type up to 16 bits, else float. Integer voxels convert exactly to float on reading, so only the bytes on
+ * the device differ: half (or a quarter) of float32's. */
+#ifndef LC_VOXEL
+#define LC_VOXEL float
+#endif
+typedef LC_VOXEL lc_voxel;
+
 /* Linear voxel offset: ulong so that volumes beyond 2^31 voxels address correctly
  * (mirrored by lodcast.renderer.sampler.voxel_offset). */
 #define LC_OFFSET(x, y, z, nx, ny) (((ulong)(z) * (ulong)(ny) + (ulong)(y)) * (ulong)(nx) + (ulong)(x))
@@ -87,7 +95,7 @@ static inline int lc_hit_box(__constant const LcParams* P, float3 o, float3 d, f
  * stencil yields NaN (the caller treats it as transparent). The stencil is {floor, ceil} per axis: a voxel of
  * zero weight is not read (matters for NaN in the rim). 1-voxel-thick axes work (the stencil collapses).
  * Written without builtins (clamp, fmin, ...): PoCL calls them out of line, which costs more than the sample. */
-static inline float lc_sample(__global const float* vol, const int4 dims, const float3 qmax, float3 q) {
+static inline float lc_sample(__global const lc_voxel* vol, const int4 dims, const float3 qmax, float3 q) {
     float cx = q.x > 0.0f ? (q.x < qmax.x ? q.x : qmax.x) : 0.0f;
     float cy = q.y > 0.0f ? (q.y < qmax.y ? q.y : qmax.y) : 0.0f;
     float cz = q.z > 0.0f ? (q.z < qmax.z ? q.z : qmax.z) : 0.0f;
@@ -97,9 +105,9 @@ static inline float lc_sample(__global const float* vol, const int4 dims, const 
     ulong dy = (fy > 0.0f) ? (ulong)dims.x : 0UL;
     ulong dz = (fz > 0.0f) ? (ulong)dims.x * (ulong)dims.y : 0UL;
     ulong b = LC_OFFSET(x0, y0, z0, dims.x, dims.y);
-    float v000 = vol[b], v001 = vol[b + dx], v010 = vol[b + dy], v011 = vol[b + dy + dx];
+    float v000 = (float)vol[b], v001 = (float)vol[b + dx], v010 = (float)vol[b + dy], v011 = (float)vol[b + dy + dx];
     b += dz;
-    float v100 = vol[b], v101 = vol[b + dx], v110 = vol[b + dy], v111 = vol[b + dy + dx];
+    float v100 = (float)vol[b], v101 = (float)vol[b + dx], v110 = (float)vol[b + dy], v111 = (float)vol[b + dy + dx];
     float a0 = v000 + (v001 - v000) * fx, a1 = v010 + (v011 - v010) * fx;
     float a2 = v100 + (v101 - v100) * fx, a3 = v110 + (v111 - v110) * fx;
     float b0 = a0 + (a1 - a0) * fy, b1 = a2 + (a3 - a2) * fy;

@@ -87,7 +87,7 @@ static inline int lc_meets_box(const float3 lo, const float3 hi, const float3 o,
 /* The full sampler on a pass's sub-volume: q clamped to the whole volume (as lc_sample does), then moved into the
  * sub-volume, which holds every voxel an owned sample's stencil reads (exact: the offset is an integer and q is far
  * below 2^24, so the fractions do not change). The second clamp only guards memory. */
-static inline float lc_sample_pass(__global const float* vol, const int4 pdims, const float3 pmax, const float3 qmax,
+static inline float lc_sample_pass(__global const lc_voxel* vol, const int4 pdims, const float3 pmax, const float3 qmax,
                                    const float3 poff, float3 q) {
     q.x = q.x > 0.0f ? (q.x < qmax.x ? q.x : qmax.x) : 0.0f;
     q.y = q.y > 0.0f ? (q.y < qmax.y ? q.y : qmax.y) : 0.0f;

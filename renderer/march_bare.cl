@@ -2,7 +2,7 @@
  * step, no transfer function, no compositing: the machine's practical limit for this access pattern. */
 #include "lc_common.h"
 
-__kernel void lc_march_bare(__constant const LcParams* P, __global const float* vol, __global float* out,
+__kernel void lc_march_bare(__constant const LcParams* P, __global const lc_voxel* vol, __global float* out,
                             __global uint* nsamples) {
     const int j = get_global_id(0), i = get_global_id(1);
     if (j >= P->width || i >= P->height) return;

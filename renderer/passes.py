@@ -144,6 +144,7 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
     0, full resolution); `unsampled`: the blocks the kernel never samples in this scene (empty-space skipping, or
     adaptive cells all skipped): regions of only those are left out."""
     G, B, shape = vol.grid, int(vol.block_size), vol.shape
+    size = vol.voxel_dtype.itemsize  # bytes of a voxel on the device
     if levels is None:
         g = ghost_voxels(step_voxels)
 
@@ -151,12 +152,12 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
             return tuple(slice(max(0, lo[a] * B - g), min(shape[a], hi[a] * B + g)) for a in range(3))
 
         def nbytes(lo, hi) -> int:
-            return 4 * math.prod(s.stop - s.start for s in data_box(lo, hi))
+            return size * math.prod(s.stop - s.start for s in data_box(lo, hi))
 
-        single = 4 * vol.n_voxels
+        single = size * vol.n_voxels
     else:
         lv = np.asarray(levels).astype(np.int64)
-        per = np.where(lv >= 0, (B >> np.maximum(lv, 0)) ** 3, 0) * (6 if with_std else 4)
+        per = np.where(lv >= 0, (B >> np.maximum(lv, 0)) ** 3, 0) * (size + (2 if with_std else 0))
         total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
 
         def data_box(lo, hi) -> tuple[slice, ...]:
@@ -269,7 +270,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
         own = own_mask(vol.grid, reg)
         t = time.perf_counter()
         if lod is None:
-            sub = np.ascontiguousarray(vol.read_level0_region(reg.data), dtype=np.float32)
+            sub = np.ascontiguousarray(vol.read_level0_region(reg.data), dtype=vol.voxel_dtype)
             buf = cl.Buffer(ctx, mf.READ_ONLY, size=max(4, sub.nbytes))
             cl.enqueue_copy(queue, buf, sub)
             queue.finish()

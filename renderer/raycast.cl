@@ -81,7 +81,7 @@
 #include "lc_shade.h"
 #include "lc_classify.h"
 
-__kernel void lc_render(__constant const LcParams* P, __global const float* vol, __global const float4* lut,
+__kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
                         __global const ushort* sig, __global const float4* dtab, __global const float4* ptab,

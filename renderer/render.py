@@ -48,7 +48,7 @@ from lodcast.opencl import device_info, get_context, get_program
 from lodcast.renderer.scene import OrbitCamera, QualityBudget, QualityReduction, Scene, SceneError
 from lodcast.renderer.structs import STATE_FLOATS
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
-from lodcast.renderer.volume import VolumeView, as_volume
+from lodcast.renderer.volume import VOXEL_CTYPES, VolumeView, as_volume
 
 __all__ = ["RenderResult", "Prepared", "render", "prepare", "prefetch", "check_cost", "launch", "kernel_config", "block_info", "LOCAL_SIZE",
            "MAX_SAMPLES_PER_RAY"]
@@ -364,7 +364,8 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
         n_empty = int(np.count_nonzero(info == 0.0)) if scene.mode == "composite" else 0
     lod = None
     use_lod = levels is not None or scene.quality != "full"
-    cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution)
+    cfg = replace(kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution),
+                  voxel=VOXEL_CTYPES[vol.voxel_dtype])
     if use_lod:
         lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode, keep)
         if cfg.distribution and not (lod.levels > 0).any():

@@ -1,4 +1,5 @@
-"""Device-side voxels kept between renders: level 0 as one float32 buffer for quality "full" (on PoCL trilinear
+"""Device-side voxels kept between renders: level 0 as one buffer for quality "full" (the store's integer type up
+to 16 bits, else float32: volume.device_dtype; on PoCL trilinear
 from a plain buffer measured ~2x faster than from a 3D image), and the device cache that keeps those buffers and
 the LOD atlases (`atlas.device_atlas`) resident, LRU by bytes (``LODCAST_DEVICE_CACHE_MB``, default 1024): a service
 alternating between a few volumes or selections uploads nothing. The newest entry stays even when it alone exceeds
@@ -16,7 +17,7 @@ import pyopencl as cl
 from lodcast.environment import environment
 from lodcast.renderer.cache import ByteLru
 from lodcast.opencl import DeviceError, get_context
-from lodcast.renderer.volume import VolumeView
+from lodcast.renderer.volume import VolumeView, voxel_options
 
 __all__ = ["DeviceVolume", "upload_level0", "voxel_offset", "device_cache", "ess_cell", "level0_cells"]
 
@@ -60,7 +61,7 @@ def level0_cells(buf: cl.Buffer, sub_shape: tuple[int, int, int], start: tuple[i
     parts = [np.empty(n, np.float32) for _ in range(2)]
     d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=p.nbytes) for p in parts]
     xyz = lambda v: np.array([v[2], v[1], v[0], 0], np.int32)  # noqa: E731
-    kern = cl.Kernel(get_program("cells.cl").program, "lc_cell_range")
+    kern = cl.Kernel(get_program("cells.cl", voxel_options(vol.voxel_dtype)).program, "lc_cell_range")
     kern(queue, (n[2], n[1], n[0]), None, buf, xyz(sub_shape), xyz(start), xyz(vol.shape), np.int32(C),
          xyz([c.start for c in cells]), xyz(n), *d_out)
     for p, d in zip(parts, d_out):
@@ -93,11 +94,12 @@ def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
     """(device volume, whether it came from the cache). Raises DeviceError when level 0 exceeds the device's
     largest allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)."""
     ctx, queue = get_context()
-    nbytes = vol.n_voxels * 4
+    dtype = vol.voxel_dtype
+    nbytes = vol.n_voxels * dtype.itemsize
     limit = int(ctx.devices[0].max_mem_alloc_size)
     if nbytes > limit:
         raise DeviceError(
-            f"level 0 of this volume needs {nbytes / 2**30:.2f} GiB as float32, more than the device's largest "
+            f"level 0 of this volume needs {nbytes / 2**30:.2f} GiB as {dtype.name}, more than the device's largest "
             f"allocation ({limit / 2**30:.2f} GiB, CL_DEVICE_MAX_MEM_ALLOC_SIZE); quality 'full' cannot render it "
             "on this device"
         )
@@ -106,7 +108,7 @@ def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
     if hit is not None:
         return hit, True
     t = time.perf_counter()
-    data = np.ascontiguousarray(vol.read_level0(np.float32))
+    data = np.ascontiguousarray(vol.read_level0(dtype))
     if tuple(data.shape) != tuple(vol.shape):
         raise DeviceError(f"level 0 has shape {data.shape}, the store says {vol.shape}")
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=max(4, data.nbytes))

@@ -10,7 +10,24 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["VolumeView", "as_volume", "block_minmax_border"]
+__all__ = ["VolumeView", "as_volume", "block_minmax_border", "device_dtype", "voxel_options", "VOXEL_CTYPES"]
+
+#: OpenCL C names of the voxel types the device keeps as they are (renderer/lc_common.h's LC_VOXEL)
+VOXEL_CTYPES = {np.dtype(np.int8): "char", np.dtype(np.uint8): "uchar", np.dtype(np.int16): "short",
+                np.dtype(np.uint16): "ushort", np.dtype(np.float32): "float"}
+
+
+def device_dtype(dtype: Any) -> np.dtype:
+    """The type voxels of `dtype` have on the device (level 0 and the atlas): integers of up to 16 bits as they
+    are (the kernel converts them to float exactly), anything else float32."""
+    d = np.dtype(dtype)
+    return d if d.kind in "iu" and d.itemsize <= 2 else np.dtype(np.float32)
+
+
+def voxel_options(dtype: Any) -> tuple[str, ...]:
+    """The -D option that makes a kernel read voxels of `dtype` (none for float32)."""
+    c = VOXEL_CTYPES[device_dtype(dtype)]
+    return () if c == "float" else (f"-DLC_VOXEL={c}",)
 
 
 @dataclass
@@ -33,6 +50,11 @@ class VolumeView:
     @property
     def n_blocks(self) -> int:
         return int(np.prod(self.grid))
+
+    @property
+    def voxel_dtype(self) -> np.dtype:
+        """The type of this volume's voxels on the device (`device_dtype` of the source's)."""
+        return device_dtype(getattr(self.source, "dtype", np.float32))
 
     @property
     def n_voxels(self) -> int:
