@@ -69,11 +69,12 @@ def run_bare(store, scene: dict) -> dict:
     from lodcast.opencl import get_context, get_program
     from lodcast.renderer.render import launch, prepare
     from lodcast.renderer.sampler import upload_level0
+    from lodcast.renderer.volume import voxel_options
 
     ctx, queue = get_context()
     pr = prepare(store, scene)
     W, H = pr.scene.width, pr.scene.height
-    opts = ("-DLC_SAMPLER_FULL",) + (("-DLC_ORTHO",) if pr.config.orthographic else ())
+    opts = ("-DLC_SAMPLER_FULL",) + (("-DLC_ORTHO",) if pr.config.orthographic else ()) + voxel_options(pr.volume.voxel_dtype)
     prg = get_program("march_bare.cl", opts).program
     dvol, _ = upload_level0(pr.volume)
     mf = cl.mem_flags

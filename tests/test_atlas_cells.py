@@ -38,7 +38,7 @@ def ribs(tmp_path_factory):
 
 def _probe(da: lod_atlas.DeviceAtlas, grid, B: int, interp: str, pts: np.ndarray) -> np.ndarray:
     ctx, queue = get_context()
-    opts = ["-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB", "-DLC_DIST"]
+    opts = ["-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB", "-DLC_DIST", *da.voxel]
     p4 = np.zeros((len(pts), 4), np.float32)
     p4[:, :3] = pts
     d_pts = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=p4)
