@@ -1,8 +1,9 @@
 /* lc_atlas.h: sampling the multiresolution field (thesis §3.5) from the brick atlas through the block index map.
  *
- * Atlas: one float buffer, the selected bricks packed one after another (no sample replication); the brick of a
- * level-k block holds n = B >> k samples per edge in C order (z, y, x). Index map: one ulong per block of the
- * grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else
+ * Atlas: one buffer of lc_voxel (the volume's device type, lc_common.h), the selected bricks packed one after
+ * another (no sample replication); the brick of a level-k block holds n = B >> k samples per edge in C order
+ * (z, y, x). Index map: one ulong per block of the grid (C order z, y, x): 0 = block not loaded (level -1: empty
+ * space), else
  * (offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1), offset the brick's first
  * element in the atlas (48 bits), s_a the coarsest level among the 3x3 blocks of the block's own slice across axis
  * a (unloaded blocks count as level 0): see the fast path below and lodcast.renderer.atlas.pack_index.

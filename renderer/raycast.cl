@@ -1,7 +1,7 @@
 /* raycast.cl: lodcast's ray caster. One work-item per pixel.
  *
  * Specialised only by -D options (lodcast.renderer.config.KernelConfig.build_options()):
- *   LC_SAMPLER_FULL   sample the full-resolution volume from a plain float buffer
+ *   LC_SAMPLER_FULL   sample the full-resolution volume from a plain buffer of lc_voxel (LC_VOXEL: lc_common.h)
  *   LC_SAMPLER_ATLAS  sample the multiresolution field from the brick atlas through the block index map
  *                     (lc_atlas.h), with LC_INTERP_NB (nearest block, eq. 3.5) or LC_INTERP_II (interblock, eq. 3.6)
  *   LC_ADAPTIVE       (atlas) adaptive object-space sampling (thesis §3.6.1): march cells (NB: the blocks; II:
