@@ -2,9 +2,9 @@
 
 A level selection (grid-shaped int8: the store level of every block, -1 = not loaded) becomes:
 
-- the **atlas**: one buffer (the voxel type of `volume.device_dtype`) holding the selected bricks one after another, each the block's
-  (B >> level)³ samples in C order (z, y, x), no sample replication (PoCL measured trilinear sampling from a plain
-  buffer ~2x faster than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else
+- the **atlas**: one buffer (of `volume.device_dtype`) holding the selected bricks one after another, each the
+  block's (B >> level)³ samples in C order (z, y, x), no sample replication (PoCL measured trilinear sampling from
+  a plain buffer ~2x faster than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else
   `DeviceError` says how much it needs and what the device allows;
 - the **index map**: one uint64 per block (C order of the grid): 0 for a block that is not loaded, else
   ``(offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1)``, offset = the brick's
@@ -259,14 +259,15 @@ def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> Non
 
 
 def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
-         slices: np.ndarray | None = None, dtype: Any = np.float32) -> tuple[np.ndarray, np.ndarray]:
-    """(atlas 1D of `dtype`, index map uint64 grid-shaped). Bricks are packed in C order of the grid. Raises
+         slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(atlas float32 1D, index map uint64 grid-shaped), on the host (tests, references; renders use
+    device_atlas). Bricks are packed in C order of the grid. Raises
     DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation). `slices`: the
     index map's slice maxima (default slice_max(levels); a pass of a render in several packs part of a selection
     with the whole selection's)."""
     levels = np.asarray(levels)
-    offsets, total = _checked_offsets(levels, block_size, max_bytes, np.dtype(dtype).itemsize)
-    atlas = np.empty(max(total, 1), dtype)
+    offsets, total = _checked_offsets(levels, block_size, max_bytes)
+    atlas = np.empty(max(total, 1), np.float32)
     _place(atlas, levels.shape, offsets, bricks.items())
     return atlas, _index(levels, offsets, slices)
 

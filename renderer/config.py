@@ -4,11 +4,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["KernelConfig", "PRECISE_SAMPLES", "MODES", "EXTREMUM_MODES"]
+__all__ = ["KernelConfig", "PRECISE_SAMPLES", "MODES", "EXTREMUM_MODES", "VOXEL_TYPES", "voxel_define"]
 
 MODES = ("composite", "mip", "minip", "average", "iso")
 #: projections by an extremum: the block walk skips blocks that cannot beat the extremum so far
 EXTREMUM_MODES = ("mip", "minip")
+
+#: OpenCL C types of the voxels a kernel reads (renderer/lc_common.h's LC_VOXEL; float unless told otherwise)
+VOXEL_TYPES = ("float", "char", "uchar", "short", "ushort")
+
+
+def voxel_define(ctype: str) -> tuple[str, ...]:
+    """The -D option that makes a kernel read voxels of OpenCL C type `ctype` (none for float)."""
+    return () if ctype == "float" else (f"-DLC_VOXEL={ctype}",)
+
 
 #: Rays with more samples than this use compensated sums (the error of plain float32 sums grows with the count).
 PRECISE_SAMPLES = 4096
@@ -33,7 +42,7 @@ class KernelConfig:
     tf2: bool = False  # dual-TF compositing, a second TF integrated concurrently (composite only)
     screen: bool = False  # adaptive screen-space sampling: rays through given image positions (tile samples)
     passes: bool = False  # one pass of a render in several (the volume data exceeds the device budget)
-    voxel: str = "float"  # the OpenCL C type of the volume's and atlas's voxels (volume.VOXEL_CTYPES)
+    voxel: str = "float"  # the OpenCL C type of the volume's and atlas's voxels (VOXEL_TYPES)
 
     def __post_init__(self) -> None:
         if self.sampler not in ("full", "atlas"):
@@ -54,7 +63,7 @@ class KernelConfig:
             raise ValueError("a second transfer function (tf2) needs composite mode")
         if self.passes and self.adaptive_naive:
             raise ValueError("naive adaptive sampling cannot be split into passes (its steps run across blocks)")
-        if self.voxel not in ("float", "char", "uchar", "short", "ushort"):
+        if self.voxel not in VOXEL_TYPES:
             raise ValueError(f"voxel type {self.voxel!r} is not implemented")
         if self.ess and self.mode in ("average", "iso"):
             raise ValueError(f"mode {self.mode!r} reads every sample: no empty-space skipping")
@@ -86,6 +95,4 @@ class KernelConfig:
         ):
             if flag:
                 opts.append(f"-D{name}")
-        if self.voxel != "float":
-            opts.append(f"-DLC_VOXEL={self.voxel}")
-        return tuple(opts)
+        return tuple(opts) + voxel_define(self.voxel)

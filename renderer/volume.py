@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from lodcast.renderer.config import voxel_define
+
 __all__ = ["VolumeView", "as_volume", "block_minmax_border", "device_dtype", "voxel_options", "VOXEL_CTYPES"]
 
 #: OpenCL C names of the voxel types the device keeps as they are (renderer/lc_common.h's LC_VOXEL)
@@ -26,8 +28,7 @@ def device_dtype(dtype: Any) -> np.dtype:
 
 def voxel_options(dtype: Any) -> tuple[str, ...]:
     """The -D option that makes a kernel read voxels of `dtype` (none for float32)."""
-    c = VOXEL_CTYPES[device_dtype(dtype)]
-    return () if c == "float" else (f"-DLC_VOXEL={c}",)
+    return voxel_define(VOXEL_CTYPES[device_dtype(dtype)])
 
 
 @dataclass

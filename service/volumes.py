@@ -93,7 +93,7 @@ def volume_path(root: Path | str, volume_id: Any, *, must_exist: bool = True, fi
     """The store of a volume (a folder, or a URL under a root URL), refusing bad ids and anything that resolves
     outside ``root``."""
     vid = check_volume_id(volume_id, field)
-    if isinstance(root, str) and is_url(root):
+    if is_url(root):
         url = f"{str(root).rstrip('/')}/{vid}"
         if must_exist and not volume_exists(root, vid, field):
             raise VolumeNotFound(vid)
@@ -109,7 +109,7 @@ def volume_path(root: Path | str, volume_id: Any, *, must_exist: bool = True, fi
 
 def list_volumes(root: Path | str) -> list[str]:
     """Ids of the folders directly under ``root`` that look like stores (a zarr group), sorted."""
-    if isinstance(root, str) and is_url(root):
+    if is_url(root):
         fs, base = _fs(str(root))
         try:
             names = [str(e).rstrip("/").rsplit("/", 1)[-1] for e in fs.ls(base, detail=False)]

@@ -14,8 +14,8 @@ Layout of a store (all written by `lodcast.store.ingest`):
   simplified histogram `hist_starts` (bin index where each piece starts, plus the end) and `hist_heights`.
 
 `std/` and `blocks/` have no group node (stores written before this layout have one there and read the same),
-so that the level arrays are the root group's only members: what napari's built-in reader and
-other tools that list a group's members take for the image.
+so that the level arrays are the root group's only members: what napari's built-in reader and other tools that
+list a group's members take for the image.
 """
 from __future__ import annotations
 
