@@ -132,10 +132,15 @@ def reference() -> str:
         out.append(_model(cls))
     out += ["## Camera conventions", "",
             "World coordinates are the store's: voxel (z, y, x) sits at origin + index × spacing, and the world's "
-            "x, y, z axes run along the volume's x, y, z. The orbit camera circles the box's centre: azimuth 0, "
-            "elevation 0 looks from −y towards +y with +z up; a positive azimuth turns the eye towards +x, a "
-            "positive elevation lifts it towards +z; `distance` is in multiples of the box's bounding-sphere "
-            "radius. Images have row 0 at the top.", "", "![the orbit camera](images/camera.png)", "",
+            "x, y, z axes run along the volume's x, y, z. For a source with patient geometry (DICOM, NIfTI, NRRD) "
+            "`lodcast info` gives `orientation`, the patient direction (LPS letters) of world +x, +y, +z, and "
+            "`direction`; `lodcast ingest --orient LPS` turns the array (axes swapped and reversed, no resampling) "
+            "so that +x, +y, +z point left, posterior, superior. The orbit camera circles the box's centre: "
+            "azimuth 0, elevation 0 looks from −y towards +y with +z up (in LPS: at the face); a positive azimuth "
+            "turns the eye towards +x, a positive elevation lifts it towards +z; `distance` is in multiples of the "
+            "box's bounding-sphere radius; `view` names a side of the patient instead. Images have row 0 at the "
+            "top.", "",
+            "![the orbit camera](images/camera.png)", "",
             "## Transfer functions", "",
             "`tf` (and `tf2`) is a piecewise-linear function of the data value, constant beyond its first and last "
             "points; or a preset's name (below); or an adaptive preset, placed on each volume's histogram.", "",

@@ -111,6 +111,10 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--origin", type=_triple(float, "--origin"), help="world position z,y,x of voxel (0,0,0)'s centre")
     p.add_argument("--units", help="unit of the spacing (mm, um, nm, cm, m; overrides the file's)")
     p.add_argument("--index", type=int, help="which volume of a 4D series (time point or channel) to ingest")
+    p.add_argument("--orient", choices=("source", "LPS"), default="source",
+                   help="source: keep the file's array axes (default); LPS: turn DICOM, NIfTI or NRRD data so that "
+                        "x, y, z point to the patient's left, posterior, superior (axes swapped and reversed, no "
+                        "resampling): every format then shows the face at azimuth 0")
     p.add_argument("--block-size", type=int, default=16, help="block edge B in voxels, a power of two (default 16)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: when stderr is a terminal)")
     p.add_argument("--json", action="store_true", help="print the store's attributes as JSON (what `lodcast info` prints) "
@@ -127,7 +131,7 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
         store = ingest(args.src, args.dest, overwrite=args.overwrite, format=args.format, shape=args.shape,
                        dtype=args.dtype, byte_order=args.byte_order, header_bytes=args.header_bytes,
                        spacing=args.spacing, origin=args.origin, index=args.index, block_size=args.block_size,
-                       progress=args.progress, units=args.units)
+                       progress=args.progress, units=args.units, orient=args.orient)
     except OSError as exc:  # a full disk names no file of its own: say where it was writing
         if exc.filename is None and not isinstance(exc, LodcastError):
             exc.filename = args.dest
@@ -143,6 +147,10 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
     print(f"{args.dest}: {shape} {info['dtype']} voxels (z, y, x) of {spacing} {info['units'] or 'units'}, {values}\n  {len(info['levels'])} levels, {info['blocks']} blocks of {info['block_size']}³, "
           f"{on_disk}in {time.perf_counter() - t0:.1f} s "
           f"(`lodcast info {args.dest}` for everything)")
+    turned = (info.get("source") or {}).get("reoriented")
+    if turned:
+        print(f"  the file's axes point {', '.join(turned['source_axes'])}: turned to {', '.join(info['orientation'] or [])} "
+              f"(x, y, z) by reversing and swapping axes, no resampling")
     for warning in (info.get("source") or {}).get("warnings", []):
         print(f"  notice: {warning}")
     return 0

@@ -32,7 +32,8 @@ __all__ = [
 
 Scene = dict[str, Any]
 #: keyword options of lodcast.ingest an ingest job may pass (reader options and the block size)
-INGEST_OPTIONS = frozenset({"format", "shape", "dtype", "byte_order", "header_bytes", "spacing", "origin", "index", "block_size", "units"})
+INGEST_OPTIONS = frozenset({"format", "shape", "dtype", "byte_order", "header_bytes", "spacing", "origin", "index",
+                            "block_size", "units", "orient"})
 
 
 class _Job(BaseModel):
@@ -84,7 +85,9 @@ class IngestJob(_Job):
     source: str = Field(min_length=1, max_length=4096, description="server-side path under a configured import root")
     name: str = Field(max_length=128, description="volume id of the new store")
     overwrite: bool = False
-    options: dict[str, Any] = Field(default_factory=dict, description="reader options (format, shape, dtype, spacing ...)")
+    options: dict[str, Any] = Field(default_factory=dict, description=(
+        "ingest options, as `lodcast ingest` takes them: format, shape, dtype, byte_order, header_bytes, spacing, "
+        "origin, units, index, block_size, orient (`source` or `LPS`)"))
 
 
 Job = Annotated[Union[TurntableJob, ScenesJob, TfSweepJob, VolumesJob, IngestJob], Field(discriminator="kind")]

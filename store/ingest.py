@@ -34,6 +34,7 @@ from lodcast.store.ome import multiscales, omero
 from lodcast.store.atomic import move_into_place, remove_stale
 from lodcast.store.remote import is_url
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
+from lodcast.store.orientation import axis_codes
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
 __all__ = ["ingest", "level_mean", "round_to_dtype", "std_dtype", "tame_malloc"]
@@ -56,7 +57,7 @@ def ingest(
     """Write `source` (a file or folder path, a NumPy array, or a VolumeSource) as a store at `dest`.
 
     `reader_options` go to `lodcast.store.readers.open_source` (format, shape, dtype, byte_order, header_bytes,
-    spacing, origin, index); spacing and origin also apply to arrays. Raises SourceNotFound / SourceError for bad
+    spacing, origin, units, index, orient); spacing and origin also apply to arrays. Raises SourceNotFound / SourceError for bad
     input and StoreExists when `dest` exists and `overwrite` is false; nothing is left behind in either case.
     A source that declares more than `max_voxels` voxels (default LODCAST_MAX_VOXELS, else no limit) is refused
     from its header, before anything is read or allocated: a small compressed file may declare a huge volume.
@@ -573,6 +574,9 @@ def _attributes(src: VolumeSource, lay: Layout, dtype: np.dtype, vrange: tuple[f
         "distribution": {"kind": "gaussian", "std": "std/{level}", "dtype": std_dtype(dtype).name, "std_max": std_max,
                          "block_level_std": "blocks/level_std"},
         "source": {"path": source_label, "format": info.format, **info.provenance},
+        **({} if info.direction is None else {"orientation": {
+            "space": info.space, "axes": axis_codes(info.space, info.direction),
+            "direction": [list(row) for row in info.direction]}}),
         "provenance": {
             "lodcast_version": lodcast.__version__,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),

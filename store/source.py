@@ -22,7 +22,10 @@ SUPPORTED_DTYPES = tuple(
 
 @dataclass(frozen=True)
 class SourceInfo:
-    """Geometry and provenance of a source volume, in the store's (z, y, x) order and world units."""
+    """Geometry and provenance of a source volume, in the store's (z, y, x) order and world units. `space` and
+    `direction` say which way the axes point where the source knows it: `direction` holds the unit vectors, in
+    `space` (x, y, z components), of one step along the array's x, y and z (rows in that order), and `origin` is
+    then voxel (0, 0, 0)'s position in that space (store/orientation.py)."""
 
     shape: tuple[int, int, int]
     dtype: np.dtype
@@ -31,6 +34,8 @@ class SourceInfo:
     units: str = "millimeter"
     format: str = ""
     provenance: dict[str, Any] = field(default_factory=dict)
+    space: str | None = None
+    direction: tuple[tuple[float, float, float], ...] | None = None
 
 
 class VolumeSource(abc.ABC):

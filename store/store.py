@@ -225,11 +225,19 @@ class Store:
 
     @cached_property
     def orientation(self) -> list[str] | None:
-        """The patient direction of world +x, +y, +z (e.g. ["L", "P", "S"]), from the source's geometry; None
-        when the source gave none (store/orientation.py)."""
-        from lodcast.store.orientation import axis_codes
+        """The patient direction of world +x, +y, +z: ["L", "P", "S"] for a source with patient geometry (turned
+        to LPS at ingest, store/orientation.py); None when the source gave none."""
+        from lodcast.store.orientation import legacy_axis_codes
 
-        return axis_codes(self.attrs.get("source") or {})
+        if "orientation" in self.attrs:
+            return self.attrs["orientation"]["axes"]
+        return legacy_axis_codes(self.attrs.get("source") or {})
+
+    @property
+    def direction(self) -> list[list[float]] | None:
+        """Unit vectors of world x, y, z in the source's space (LPS for patient data; near the identity, the tilt
+        of an oblique acquisition); None when the source gave no geometry or the store predates it."""
+        return (self.attrs.get("orientation") or {}).get("direction")
 
     def summary(self) -> dict[str, Any]:
         """What `lodcast info` prints."""
@@ -254,6 +262,7 @@ class Store:
             "origin": list(self.origin),
             "units": self.units,
             "orientation": self.orientation,
+            "direction": self.direction,
             "block_size": self.block_size,
             "levels": levels,
             "value_range": list(self.value_range),

@@ -204,7 +204,8 @@ def test_nrrd_detached_spacings_oblique_and_4d(tmp_path: Path) -> None:
     nrrd.write(str(tmp_path / "o.nrrd"), a.transpose(2, 1, 0),
                {"space": "RAS", "space directions": oblique, "space origin": np.array([1.0, 2.0, 3.0])})
     with open_source(tmp_path / "o.nrrd") as src:
-        assert src.info.spacing == (3.0, 1.0, 2.0) and src.info.origin == (0.0, 0.0, 0.0)
+        # the file's axes kept; the origin is the space origin (1, 2, 3) seen along them (rows (0, 1, 0), (-1, 0, 0)…)
+        assert src.info.spacing == (3.0, 1.0, 2.0) and src.info.origin == (3.0, -1.0, 2.0)
         assert src.info.provenance["space_directions"] == oblique.tolist()
         check(src, a)
     image = volume((4, 6), "uint16")  # a 2D NRRD is one slice
@@ -268,7 +269,7 @@ def test_nifti_oblique_4d_and_refusals(tmp_path: Path) -> None:
     rotated = np.array([[0, -1, 0, 5], [1, 0, 0, 6], [0, 0, 1, 7], [0, 0, 0, 1]], float)
     nib.save(nib.Nifti1Image(data, rotated), tmp_path / "o.nii")
     with open_source(tmp_path / "o.nii") as src:
-        assert src.info.origin == (0.0, 0.0, 0.0)
+        assert src.info.origin == (7.0, -5.0, 6.0)  # (5, 6, 7) seen along i = (0, 1, 0), j = (-1, 0, 0), k
         assert src.info.provenance["affine"] == rotated.tolist()
         check(src, data.transpose(2, 1, 0))
     series = volume((4, 5, 6, 3), "uint16")
@@ -384,7 +385,8 @@ JPEG_LOSSLESS = {"1.2.840.10008.1.2.4.70": 1, "1.2.840.10008.1.2.4.57": 6}
 
 
 def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826.0.1.1", slope: float = 1.0,
-                intercept: float = -1024.0, samples: int = 1, syntax: str | None = None) -> None:
+                intercept: float = -1024.0, samples: int = 1, syntax: str | None = None,
+                orientation=(1, 0, 0, 0, 1, 0), position=None) -> None:
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = CTImageStorage
     meta.MediaStorageSOPInstanceUID = generate_uid()
@@ -400,7 +402,8 @@ def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826
         ds.PlanarConfiguration = 0
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
     ds.PixelSpacing, ds.SliceThickness = [0.5, 0.25], 2.0
-    ds.ImagePositionPatient, ds.ImageOrientationPatient = [-10.0, -20.0, z], [1, 0, 0, 0, 1, 0]
+    ds.ImagePositionPatient = list(position) if position is not None else [-10.0, -20.0, z]
+    ds.ImageOrientationPatient = list(orientation)
     ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
     ds.PixelData = pixels.astype(np.uint16).tobytes()
     if syntax in JPEG_LOSSLESS:  # pydicom has no JPEG lossless encoder: libjpeg-turbo's, through imagecodecs
@@ -799,7 +802,9 @@ def test_real_flair_nrrd_oblique(shared_data: Path) -> None:
     with open_source(p) as src:
         assert src.info.shape == (140, 160, 124) and src.info.dtype == np.uint8
         assert src.info.spacing == (1.0, 1.0, 1.0)  # norms of the direction vectors, rounding noise removed
-        assert src.info.origin == (0.0, 0.0, 0.0)
+        unit = header["space directions"] / np.linalg.norm(header["space directions"], axis=1)[:, None]
+        np.testing.assert_allclose(src.info.origin, (unit @ header["space origin"])[::-1], atol=1e-9)
+        np.testing.assert_allclose(src.info.direction, unit, atol=1e-12)
         np.testing.assert_allclose(src.info.provenance["space_directions"], header["space directions"])
         np.testing.assert_array_equal(read_all(src), data.transpose(2, 1, 0))
 

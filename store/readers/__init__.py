@@ -27,6 +27,7 @@ from lodcast.store.readers.base import Reader, finish  # noqa: E402
 from lodcast.store.readers.binary import open_npy, open_nrrd, open_raw  # noqa: E402
 from lodcast.store.readers.dicom import is_dicom, open_dicom  # noqa: E402
 from lodcast.store.readers.nifti import NiftiReader  # noqa: E402
+from lodcast.store.readers.reorient import reorient  # noqa: E402
 from lodcast.store.readers.tiff import open_tiff  # noqa: E402
 from lodcast.store.readers.zarr_source import ZarrReader  # noqa: E402
 
@@ -34,10 +35,13 @@ from lodcast.store.readers.zarr_source import ZarrReader  # noqa: E402
 def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[int] | None = None,
                 dtype: Any = None, byte_order: str = "little", header_bytes: int = 0,
                 spacing: Sequence[float] | None = None, origin: Sequence[float] | None = None,
-                index: int | None = None, detached: bool = True, units: str | None = None) -> VolumeSource:
+                index: int | None = None, detached: bool = True, units: str | None = None,
+                orient: str = "source") -> VolumeSource:
     """Open a volume for ingest. `format` is guessed from the extension or folder content when None; `shape`
     (z, y, x), `dtype`, `byte_order` ('little' or 'big') and `header_bytes` describe raw files; `spacing` and
-    `origin` (z, y, x) and `units` (e.g. "mm", "µm") override the file's; `index` picks one volume of a 4D series (time or channel axis);
+    `origin` (z, y, x) and `units` (e.g. "mm", "µm") override the file's, in the store's axes; `orient` "source"
+    keeps the file's array axes, "LPS" turns a source with patient geometry so that x, y, z point left, posterior,
+    superior (store/orientation.py); `index` picks one volume of a 4D series (time or channel axis);
     `detached=False` refuses sources that name other files (a detached NRRD header), for uploads. Every reader reads
     only the source itself or files beside it in its own folder (symlinks resolved).
     Raises SourceNotFound for a missing path and SourceError for anything that cannot be ingested."""
@@ -61,7 +65,7 @@ def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[
         reader = {"npy": open_npy, "nifti": NiftiReader, "tiff": open_tiff, "dicom": open_dicom,
                   "zarr": ZarrReader}[fmt](p, index)
     try:
-        return finish(reader, spacing, origin, units)
+        return finish(reorient(reader, orient), spacing, origin, units)
     except BaseException:
         reader.close()
         raise

@@ -3,7 +3,7 @@
 build a `SourceInfo`, `finish` which checks empty axes, settles the stored dtype (narrowing 64-bit integers after a
 value scan) and applies spacing/origin overrides, and helpers: `pick_volume` for 2D/3D/4D shapes and `index`,
 `read_exact` / `skip_bytes` on a stream, `files_in` a folder, `UNITS` names, `tidy` spacings, `shape_text`,
-`axis_aligned` direction matrices.
+`source_info`'s direction rows made unit.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from lodcast.errors import SourceError
 from lodcast.store.source import SUPPORTED_DTYPES, SourceInfo, VolumeSource
 
 __all__ = ["Reader", "source_info", "finish", "pick_volume", "read_exact", "skip_bytes", "files_in", "tidy",
-           "shape_text", "axis_aligned", "UNITS", "READ_CHUNK"]
+           "shape_text", "UNITS", "READ_CHUNK"]
 
 
 _SLAB = 32  # ingest's block thickness, also the step of the 64-bit value scan
@@ -55,7 +55,10 @@ def files_in(folder: Path, keep) -> list[Path]:
 
 
 def source_info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spacing: Sequence[float] = (1.0, 1.0, 1.0),
-          origin: Sequence[float] = (0.0, 0.0, 0.0), units: str = "millimeter", **provenance: Any) -> SourceInfo:
+                origin: Sequence[float] = (0.0, 0.0, 0.0), units: str = "millimeter", space: str | None = None,
+                direction: Any = None, **provenance: Any) -> SourceInfo:
+    """`direction`: rows of (x, y, z) vectors in `space` for the array's x, y, z axes, of any length."""
+    direction = _unit_rows(direction)
     return SourceInfo(
         shape=tuple(int(s) for s in shape),  # type: ignore[arg-type]
         dtype=np.dtype(dtype),
@@ -64,6 +67,8 @@ def source_info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spa
         units=units,
         format=fmt,
         provenance={"format": fmt, "path": str(path), "dtype": str(np.dtype(dtype)), **provenance},
+        space=space if direction is not None else None,
+        direction=direction,
     )
 
 
@@ -195,7 +200,15 @@ def skip_bytes(f: IO[bytes], n: int, name: object) -> None:
         n -= len(chunk)
 
 
-def axis_aligned(m: np.ndarray) -> bool:
-    """Whether the rows of `m` point along +x, +y, +z: then index × spacing + origin is the world position."""
-    diag = np.diag(m)
-    return bool(np.all(diag > 0) and np.allclose(m, np.diag(diag), atol=1e-6 * float(np.abs(diag).max())))
+def _unit_rows(direction: Any) -> tuple[tuple[float, float, float], ...] | None:
+    """Three unit rows, or None for a geometry that says nothing usable (missing, partial, degenerate): then the
+    index axes stay the world's."""
+    if direction is None:
+        return None
+    d = np.asarray(direction, dtype=np.float64)
+    if d.shape != (3, 3) or not np.isfinite(d).all() or not np.linalg.norm(d, axis=1).all():
+        return None
+    d = d / np.linalg.norm(d, axis=1)[:, None]
+    if abs(np.linalg.det(d)) < 0.5:  # two axes nearly along one direction
+        return None
+    return tuple(tuple(float(v) for v in row) for row in d)  # type: ignore[return-value]

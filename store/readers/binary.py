@@ -17,8 +17,9 @@ import numpy as np
 
 import lodcast.store.readers as _package
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import (UNITS, Reader, axis_aligned, shape_text, source_info, pick_volume, read_exact, skip_bytes,
+from lodcast.store.readers.base import (UNITS, Reader, shape_text, source_info, pick_volume, read_exact, skip_bytes,
                                         tidy)
+from lodcast.store.orientation import space_name
 from lodcast.store.source import SourceInfo
 
 __all__ = ["open_npy", "open_raw", "open_nrrd"]
@@ -172,8 +173,8 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
 
     spatial = keep[:3]
     directions = header.get("space directions")
-    provenance: dict[str, Any] = {"space": header.get("space"), "encoding": encoding}
-    origin = [0.0, 0.0, 0.0]
+    provenance: dict[str, Any] = {"encoding": encoding}
+    origin, geometry = [0.0, 0.0, 0.0], {}
     if directions is not None:
         d = np.asarray([directions[a] for a in spatial], dtype=float)
         spacing = [tidy(v) for v in np.linalg.norm(d, axis=1)]
@@ -181,14 +182,18 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
         o = header.get("space origin")
         if o is not None:
             provenance["space_origin"] = [float(v) for v in o]
-            if d.shape == (3, 3) and axis_aligned(d):
+        if d.shape == (3, 3):
+            geometry = {"space": space_name(header.get("space")), "direction": d}
+            if o is not None and len(o) == 3:
                 origin = [float(v) for v in o]
     else:
         spacing = [float(header.get("spacings", [1.0] * len(sizes))[a]) for a in spatial]
     spacing += [1.0] * (3 - len(spacing))  # a 2D image is one slice of unit thickness
     units = header.get("space units")
     info = source_info(shape4[1:], dtype, "nrrd", path, spacing=spacing[::-1], origin=origin[::-1],
-                 units=UNITS.get(str(units[0]), "millimeter") if units else "millimeter", **provenance)
+                       units=UNITS.get(str(units[0]), "millimeter") if units else "millimeter", **geometry,
+                       **provenance)
+    info.provenance["space"] = header.get("space")
 
     data_path, start = path, data_start
     if "data file" in header or "datafile" in header:

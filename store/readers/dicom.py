@@ -13,7 +13,7 @@ import numpy as np
 from lodcast.errors import SourceError
 from lodcast.store.readers.base import Reader, files_in, shape_text, source_info, tidy
 
-__all__ = ["DicomReader", "open_dicom", "is_dicom", "rescaled_dtype", "coincident", "z_spacing", "patient_origin",
+__all__ = ["DicomReader", "open_dicom", "is_dicom", "rescaled_dtype", "coincident", "z_spacing", "patient_geometry",
            "PIXEL_DTYPES"]
 
 
@@ -50,14 +50,13 @@ def z_spacing(depth: Any, thickness: float, provenance: dict[str, Any], what: st
     return dz
 
 
-def patient_origin(orientation: Any, first: list[float], provenance: dict[str, Any]) -> tuple[float, float, float]:
-    """The store's origin (z, y, x): the first slice's position where world (z, y, x) = index × spacing + origin
-    holds, i.e. rows run along +x and columns along +y; else 0. Orientation and position go into `provenance`."""
+def patient_geometry(orientation: Any, first: list[float], provenance: dict[str, Any]) -> dict[str, Any]:
+    """`source_info`'s geometry of a series sorted along its slice normal: LPS, the direction of rows, columns and
+    the normal, and the first slice's position as the origin (z, y, x). Both also go into `provenance`."""
     orientation = np.asarray(orientation, dtype=np.float64)
     provenance["orientation"], provenance["first_position"] = orientation.tolist(), list(first)
-    if np.allclose(orientation, [1, 0, 0, 0, 1, 0], atol=1e-4):
-        return (first[2], first[1], first[0])
-    return (0.0, 0.0, 0.0)
+    return {"space": "LPS", "direction": [orientation[:3], orientation[3:], np.cross(orientation[:3], orientation[3:])],
+            "origin": (first[2], first[1], first[0])}
 
 
 def rescaled_dtype(pixel: np.dtype, bits_stored: int, rescale: list[tuple[float, float]]) -> np.dtype:
@@ -161,7 +160,7 @@ class DicomReader(Reader):
             provenance["warnings"].append(f"{len(by_series)} series in {path}; "
                                           f"kept the largest, {uid} ({len(slices)} files)")
         ny, nx, pixel_dtype = self._check_images(slices)
-        slices, dz, origin = self._sort(slices, provenance)
+        slices, dz, geometry = self._sort(slices, provenance)
         self._files = [f for f, _ in slices]
         self._pixel_dtype = pixel_dtype
         self._native_layout = [self._native_of(ds, pixel_dtype) for _, ds in slices]
@@ -184,7 +183,7 @@ class DicomReader(Reader):
             del provenance["warnings"]
         # PixelSpacing is (between rows, between columns) = (y, x)
         self.info = source_info((len(slices), ny, nx), dtype, "dicom", path, spacing=(dz, *map(float, pixel_spacing)),
-                          origin=origin, **provenance)
+                                **geometry, **provenance)
         self.info.provenance["dtype"] = pixel_dtype.name
 
     @staticmethod
@@ -211,14 +210,14 @@ class DicomReader(Reader):
 
     @staticmethod
     def _sort(slices: list[tuple[Path, dict[str, Any]]], provenance: dict[str, Any]
-              ) -> tuple[list[tuple[Path, dict[str, Any]]], float, tuple[float, float, float]]:
-        """Slices in order along the normal of their orientation, z spacing and origin (z, y, x)."""
+              ) -> tuple[list[tuple[Path, dict[str, Any]]], float, dict[str, Any]]:
+        """Slices in order along the normal of their orientation, z spacing and geometry (patient_geometry)."""
         first = slices[0][1]
         thickness = float(first.get("SpacingBetweenSlices", first.get("SliceThickness", 1.0)) or 1.0)
         if not all("ImagePositionPatient" in ds and "ImageOrientationPatient" in ds for _, ds in slices):
             provenance["warnings"].append("slices lack ImagePositionPatient/ImageOrientationPatient; "
                                           f"sorted by InstanceNumber, z spacing {thickness} from the header")
-            return sorted(slices, key=lambda s: int(s[1].get("InstanceNumber", 0) or 0)), thickness, (0.0, 0.0, 0.0)
+            return sorted(slices, key=lambda s: int(s[1].get("InstanceNumber", 0) or 0)), thickness, {}
         orientation = np.array([float(v) for v in first["ImageOrientationPatient"]])
         for f, ds in slices:
             if not np.allclose([float(v) for v in ds["ImageOrientationPatient"]], orientation, atol=1e-4):
@@ -234,7 +233,7 @@ class DicomReader(Reader):
                               f"{slices[where + 1][0].name}); expected one slice per position")
         dz = z_spacing(depth, thickness, provenance, "slice")
         ipp = [float(v) for v in slices[0][1]["ImagePositionPatient"]]
-        return slices, dz, patient_origin(orientation, ipp, provenance)
+        return slices, dz, patient_geometry(orientation, ipp, provenance)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)

@@ -44,7 +44,7 @@ class MultiFrameDicomReader(Reader):
     def __init__(self, path: Path, index: int | None) -> None:
         import pydicom
 
-        from lodcast.store.readers.dicom import PIXEL_DTYPES, coincident, patient_origin, rescaled_dtype, z_spacing
+        from lodcast.store.readers.dicom import PIXEL_DTYPES, coincident, patient_geometry, rescaled_dtype, z_spacing
 
         if index is not None:
             raise SourceError(f"index {index} given but DICOM file {path} is a single 3D volume")
@@ -83,7 +83,7 @@ class MultiFrameDicomReader(Reader):
         orientation = np.array(orientations[0])
         if any(not np.allclose(o, orientation, atol=1e-4) for o in orientations):
             raise SourceError(f"DICOM file {path} mixes frame orientations; expected one volume")
-        origin = (0.0, 0.0, 0.0)
+        geometry: dict[str, Any] = {}
         if None in positions:
             provenance["warnings"].append(f"frames lack PlanePositionSequence; in file order, z spacing {thickness}")
             order, dz = list(range(n)), thickness
@@ -96,7 +96,7 @@ class MultiFrameDicomReader(Reader):
                 raise SourceError(f"DICOM file {path} has two frames at one position ({depth[order][where]:g} mm); "
                                   f"expected one frame per slice (a 4D series is not supported)")
             dz = z_spacing(depth[order], thickness, provenance, "frame")
-            origin = patient_origin(orientation, positions[order[0]], provenance)
+            geometry = patient_geometry(orientation, positions[order[0]], provenance)
         self._order, self._rescale, self._pixel_dtype = order, [rescale[i] for i in order], pixel_dtype
         dtype = rescaled_dtype(pixel_dtype, int(ds.get("BitsStored", bits)), self._rescale)
         if dtype != pixel_dtype:
@@ -108,7 +108,7 @@ class MultiFrameDicomReader(Reader):
         if not provenance["warnings"]:
             del provenance["warnings"]
         self.info = source_info((n, int(ds.Rows), int(ds.Columns)), dtype, "dicom", path,
-                                spacing=(dz, *map(float, pixel_spacing)), origin=origin, **provenance)
+                                spacing=(dz, *map(float, pixel_spacing)), **geometry, **provenance)
         self.info.provenance["dtype"] = pixel_dtype.name
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:

@@ -1,6 +1,7 @@
-"""NIfTI-1/2 (and Analyze .hdr/.img pairs) through nibabel. The data axes (i, j, k) are the store's (x, y, z) with no
-reorientation; scaled data is stored as float32, 4D series give one volume chosen by `index` (vector-like intents are
-refused as non-scalar), and slabs are read in pieces so that nibabel's temporaries stay small beside them.
+"""NIfTI-1/2 (and Analyze .hdr/.img pairs) through nibabel. The data axes (i, j, k) are read as (x, y, z) and the
+sform (else qform) affine, in RAS, tells `store/readers/reorient.py` how to turn them into the store's LPS; scaled
+data is stored as float32, 4D series give one volume chosen by `index` (vector-like intents are refused as
+non-scalar), and slabs are read in pieces so that nibabel's temporaries stay small beside them.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import READ_CHUNK, UNITS, Reader, axis_aligned, shape_text, source_info, pick_volume
+from lodcast.store.readers.base import READ_CHUNK, UNITS, Reader, shape_text, source_info, pick_volume
 
 __all__ = ["NiftiReader"]
 
@@ -21,8 +22,8 @@ _NIFTI_VECTOR_INTENTS = {"vector", "displacement vector", "rgb vector", "rgba ve
 
 
 class NiftiReader(Reader):
-    """NIfTI-1/2 (and Analyze) through nibabel. Data axes (i, j, k) are the store's (x, y, z): no reorientation, so
-    the store is exactly `transpose(data, (2, 1, 0))`. The proxy keeps its file open so that a .gz reads forwards."""
+    """NIfTI-1/2 (and Analyze) through nibabel: slabs are `transpose(data, (2, 1, 0))`, before reorientation. The
+    proxy keeps its file open so that a .gz reads forwards."""
 
     def __init__(self, path: Path, index: int | None) -> None:
         import nibabel as nib
@@ -52,7 +53,14 @@ class NiftiReader(Reader):
         scaled = (slope, inter) != (1.0, 0.0)
         zooms = [float(z) for z in img.header.get_zooms()[:3]] + [1.0] * (3 - min(3, len(shape)))
         affine = np.asarray(img.affine, dtype=float)
-        origin = affine[:3, 3][::-1] if axis_aligned(affine[:3, :3]) else (0.0, 0.0, 0.0)
+        # the scanner or standard-space affine (sform, else qform); neither coded: NIfTI says nothing of where
+        # the patient is, and nibabel's fallback affine is only a guess
+        coded = None
+        if hasattr(img.header, "get_sform"):  # Analyze headers have neither
+            coded = next((a for a, code in (img.header.get_sform(coded=True), img.header.get_qform(coded=True))
+                          if code and a is not None), None)
+        geometry = {} if coded is None else {"space": "RAS", "direction": np.asarray(coded)[:3, :3].T,
+                                             "origin": np.asarray(coded)[:3, 3][::-1]}
         units = img.header.get_xyzt_units()[0] if hasattr(img.header, "get_xyzt_units") else "unknown"
         provenance: dict[str, Any] = {"affine": affine.tolist(), "intent": intent}
         if scaled:
@@ -60,7 +68,7 @@ class NiftiReader(Reader):
         if index is not None:
             provenance["index"] = t
         self.info = source_info(shape4[1:], np.float32 if scaled else ondisk, "nifti", path, spacing=zooms[::-1],
-                          origin=origin, units=UNITS.get(units, "millimeter"), **provenance)
+                                units=UNITS.get(units, "millimeter"), **geometry, **provenance)
         self.info.provenance["dtype"] = str(ondisk)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
