@@ -40,7 +40,8 @@ class Environment:
 
 #: name, default as the README gives it, what it sets
 VARIABLES: tuple[tuple[str, str, str], ...] = (
-    ("LODCAST_BRICK_CACHE_MB", "1024", "host cache of bricks read from stores (MiB)"),
+    ("LODCAST_BRICK_CACHE_MB", "1024", "host cache of bricks read from stores (MiB; on a CPU device, whose buffers "
+     "are host memory, less what the device cache holds, down to an eighth)"),
     ("LODCAST_DEVICE_CACHE_MB", "1024", "device cache of level-0 volumes and atlases (MiB; also bounded by the budget)"),
     ("LODCAST_DEVICE_BUDGET_MB", "one allocation", "most device memory (10⁶ bytes) of one render's volume data"),
     ("LODCAST_READ_THREADS", "8", "threads reading shards"),

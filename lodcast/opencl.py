@@ -10,6 +10,7 @@ built, how long that took.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import re
@@ -23,7 +24,8 @@ import pyopencl as cl
 from lodcast.environment import environment
 from lodcast.errors import LodcastError
 
-__all__ = ["DeviceError", "Built", "get_context", "get_program", "kernel_source", "cache_dir", "device_info"]
+__all__ = ["DeviceError", "Built", "get_context", "get_program", "kernel_source", "cache_dir", "device_info",
+           "device_memory_is_host"]
 
 def _renderer_folder() -> Path:
     """Where the renderer's `.cl` files are (found without importing the renderer: this module lies below it)."""
@@ -116,6 +118,18 @@ def device_info() -> dict:
         "max_mem_alloc_size": int(d.max_mem_alloc_size),
         "global_mem_size": int(d.global_mem_size),
     }
+
+
+@functools.cache
+def device_memory_is_host() -> bool:
+    """Whether the device's buffers live in the host's memory (a CPU device such as PoCL's, or an integrated GPU
+    that says so): then they count in the process's resident memory beside the host caches."""
+    d = get_context()[0].devices[0]
+    try:
+        unified = bool(d.host_unified_memory)
+    except cl.Error:  # an OpenCL 3 driver may no longer answer the 1.x query
+        unified = False
+    return unified or bool(d.type & cl.device_type.CPU)
 
 
 def kernel_source(name: str, folder: Path | None = None) -> str:

@@ -14,7 +14,7 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
 - the **step-level grid** for adaptive object-space sampling (half-block cells, see raycast.cl).
 
 Bricks come from a **brick cache** shared by every render of the process (`brick_cache()`, LRU by bytes, size
-``LODCAST_BRICK_CACHE_MB``, default 1024): only missing bricks are read, in parallel (a thread pool, one task per
+``LODCAST_BRICK_CACHE_MB``, default 1024, less what a CPU device's buffers hold): only missing bricks are read, in parallel (a thread pool, one task per
 shard: the bricks of one shard are read together, as one region, since the number of requests dominates I/O), so a
 camera change reads nothing and a TF change reads only the bricks whose level changed. The device buffers of the
 selections stay in the device cache too (`sampler.device_cache`: same store and levels, nothing is packed or
@@ -22,46 +22,81 @@ uploaded again).
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
+import threading
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import pyopencl as cl
 
 from lodcast.environment import environment
 from lodcast.renderer.cache import ByteLru
-from lodcast.opencl import DeviceError, get_context, get_program
+from lodcast.opencl import DeviceError, device_memory_is_host, get_context, get_program
 from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import device_dtype, voxel_options
 from lodcast.store.layout import Layout
 
-__all__ = ["BrickCache", "brick_cache", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
+__all__ = ["BrickCache", "BRICK_ENTRY_BYTES", "brick_cache", "brick_cache_bound", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
            "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells"]
 
 MISSING = 0
 
 
+#: what a cached brick costs beyond its voxels: the array object, its key and the LRU's entry (measured ~440
+#: bytes), so that a million small coarse bricks count for what they hold
+BRICK_ENTRY_BYTES = 448
+
+
 class BrickCache(ByteLru):
     """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations float16) keyed
-    by (kind, store key, level, bz, by, bx), LRU by bytes; counts the bricks read."""
+    by (kind, store key, level, bz, by, bx), LRU by bytes (each brick's voxels plus BRICK_ENTRY_BYTES); counts
+    the bricks read."""
 
-    def __init__(self, max_bytes: int):
+    def __init__(self, max_bytes: "int | Callable[[], int]"):
         super().__init__(max_bytes)
         self.reads = 0  # bricks of values read from stores since creation (tests count these)
 
     def put(self, key: tuple, a: np.ndarray) -> None:  # type: ignore[override]
-        super().put(key, a, a.nbytes)
+        super().put(key, a, a.nbytes + BRICK_ENTRY_BYTES)
+
+
+_FILLING = [0]  # bytes of device atlases being filled right now
+_FILLING_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _filling(nbytes: int) -> Iterator[None]:
+    with _FILLING_LOCK:
+        _FILLING[0] += nbytes
+    try:
+        yield
+    finally:
+        with _FILLING_LOCK:
+            _FILLING[0] -= nbytes
+
+
+def brick_cache_bound(cap: int) -> Callable[[], int]:
+    """The brick cache's bound: `cap`, except where device buffers are host memory (a CPU device): there the
+    same bricks would be held twice, in the cache and in the device cache's atlases (and the one being filled),
+    so the cache gives way to them, down to an eighth of `cap`."""
+    def bound() -> int:
+        if not device_memory_is_host():
+            return cap
+        return max(cap // 8, cap - device_cache().nbytes - _FILLING[0])
+    return bound
 
 
 @functools.cache
 def brick_cache() -> BrickCache:
-    """The process's brick cache, shared by all renders (``LODCAST_BRICK_CACHE_MB``, default 1024)."""
-    return BrickCache(environment().brick_cache_bytes)
+    """The process's brick cache, shared by all renders (``LODCAST_BRICK_CACHE_MB``, default 1024; see
+    `brick_cache_bound`)."""
+    return BrickCache(brick_cache_bound(environment().brick_cache_bytes))
 
 
 @functools.cache
@@ -360,21 +395,24 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     index = _index(levels, offsets, slices)
     ctx, queue = get_context()
     st = BrickStats()
+    nbytes = max(total, 1) * (dtype.itemsize + (2 if with_std else 0))
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
-    d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels.shape, offsets, iter_bricks(vol, levels, cache, stats=st))
-    d_std = None
-    if with_std:
-        d_std = _filled(ctx, queue, max(total, 1), np.float16, levels.shape, offsets,
-                        iter_bricks(vol, levels, cache, what="std"), zero=True)
+    with _filling(nbytes):
+        d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels.shape, offsets,
+                          iter_bricks(vol, levels, cache, stats=st))
+        d_std = None
+        if with_std:
+            d_std = _filled(ctx, queue, max(total, 1), np.float16, levels.shape, offsets,
+                            iter_bricks(vol, levels, cache, what="std"), zero=True)
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
     queue.finish()
-    nbytes = max(total, 1) * (dtype.itemsize + (2 if with_std else 0))
     da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, st.read, st.cached, st.skipped,
                      (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype))
     if key is not None:
         device_cache().put(key, da, nbytes + index.nbytes)
+    (brick_cache() if cache is None else cache).trim()  # its bound may follow the device cache's bytes
     return da
 
 

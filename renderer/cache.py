@@ -51,6 +51,11 @@ class ByteLru:
             self._bytes += int(nbytes)
             self._evict()
 
+    def trim(self) -> None:
+        """Evict down to the bound now (a bound that is a function may have shrunk since the last insertion)."""
+        with self._lock:
+            self._evict()
+
     def clear(self) -> None:
         with self._lock:
             self._d.clear()

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["PATIENT_SPACE", "FRAMES", "OPPOSITE", "VIEWS", "Turn", "space_name", "to_lps", "axis_codes", "legacy_axis_codes",
-           "turn_of", "view_direction"]
+__all__ = ["PATIENT_SPACE", "FRAMES", "OPPOSITE", "VIEWS", "Turn", "space_name", "to_lps", "axis_codes",
+           "legacy_axis_codes", "turn_of", "view_direction"]
 
 PATIENT_SPACE = "LPS"
 OPPOSITE = {"L": "R", "R": "L", "A": "P", "P": "A", "S": "I", "I": "S"}
@@ -67,8 +67,8 @@ def axis_codes(space: str | None, direction: Any) -> list[str] | None:
 
 
 def legacy_axis_codes(provenance: dict[str, Any]) -> list[str] | None:
-    """Codes of a store written before stores were reoriented (no `orientation` attribute): its world axes are the
-    source's index axes, whose geometry its provenance recorded."""
+    """Codes of a store written before the `orientation` attribute: its world axes are the source's index axes,
+    whose geometry its provenance recorded."""
     fmt = provenance.get("format")
     if fmt == "dicom" and provenance.get("orientation") is not None:
         o = np.asarray(provenance["orientation"], dtype=np.float64)

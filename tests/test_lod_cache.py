@@ -101,10 +101,10 @@ def test_reads_are_grouped_by_shard_and_run_in_parallel(store):
 
 
 def test_lru_is_bounded_by_bytes():
-    c = lod_atlas.BrickCache(3 * 4 * 64)  # three 4x4x4 float32 bricks
+    c = lod_atlas.BrickCache(3 * (4 * 64 + lod_atlas.BRICK_ENTRY_BYTES))  # three 4x4x4 float32 bricks
     for i in range(5):
         c.put(("s", 0, i), np.full((4, 4, 4), i, np.float32))
-    assert len(c) == 3 and c.nbytes == 3 * 256 and c.get(("s", 0, 0)) is None
+    assert len(c) == 3 and c.nbytes == 3 * (256 + lod_atlas.BRICK_ENTRY_BYTES) and c.get(("s", 0, 0)) is None
     c.get(("s", 0, 2))  # touched: survives the next insertion
     c.put(("s", 0, 9), np.zeros((4, 4, 4), np.float32))
     assert c.get(("s", 0, 2)) is not None and c.get(("s", 0, 3)) is None
@@ -182,3 +182,25 @@ def test_a_camera_change_selects_nothing_again(store, monkeypatch):
     tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 0, 0], "opacity": 0.5}]}
     render(store, {**scene, "tf": tf2})
     assert len(calls) == 2
+
+
+def test_on_a_cpu_device_the_brick_cache_gives_way_to_the_device_cache(store):
+    """A CPU device's buffers are host memory: an atlas kept in the device cache holds the same bricks as the brick
+    cache, so the brick cache's bound shrinks by what the device cache (and an atlas being filled) holds, down to
+    an eighth of its cap. Without the shrink every brick of the selection would stay cached twice."""
+    from lodcast.opencl import device_memory_is_host
+
+    assert device_memory_is_host()  # PoCL; a discrete GPU keeps the full bound (covered by the same function)
+    vol = as_volume(store)
+    lv = np.zeros(store.grid, np.int8)
+    plain = lod_atlas.BrickCache(2**30)
+    lod_atlas.load_bricks(vol, lv, plain)
+    cap = plain.nbytes  # every brick of the selection would fit
+    shared = lod_atlas.BrickCache(lod_atlas.brick_cache_bound(cap))
+    da = lod_atlas.device_atlas(vol, lv, cache=shared)
+    held = device_cache().nbytes
+    assert held >= da.nbytes > cap // 2
+    assert shared.nbytes <= max(cap // 8, cap - held) < plain.nbytes
+    assert shared.max_bytes == max(cap // 8, cap - held)
+    device_cache().clear()
+    assert shared.max_bytes == cap

@@ -8,8 +8,8 @@ import tempfile
 
 import numpy as np
 
-from lodcast.store.orientation import FRAMES, OPPOSITE, PATIENT_SPACE, Turn, space_name, to_lps, turn_of
 from lodcast.errors import SourceError
+from lodcast.store.orientation import FRAMES, OPPOSITE, PATIENT_SPACE, Turn, space_name, to_lps, turn_of
 from lodcast.store.readers.base import Reader
 from lodcast.store.source import SourceInfo, VolumeSource
 
@@ -64,7 +64,7 @@ def reorient(reader: VolumeSource, orient: str = "source") -> VolumeSource:
 class _Reoriented(Reader):
     """A source turned by permutations and flips. While the source's slice axis stays the store's z, unreversed,
     each slab is turned as it is read (streaming as the source does); otherwise the source is first copied once,
-    in its own order, to a temporary file from which the store's slabs are cut."""
+    in its own order, to a temporary file (in TMPDIR; removed by `close`) from which the store's slabs are cut."""
 
     def __init__(self, inner: VolumeSource, turn: Turn, info: SourceInfo) -> None:
         self._inner, self._turn, self.info = inner, turn, info
