@@ -108,16 +108,26 @@ class DistTable:
     def interp(self, grid: np.ndarray, mean, std) -> np.ndarray:
         """Bilinear interpolation of `grid` (rows, n, C), any per-entry quantity of this table, at (mean, std), as
         the kernel looks the table up (clamped at both axes' ends), float64 (..., C)."""
-        m = np.asarray(mean, np.float64)
-        s = np.asarray(std, np.float64)
-        fi = np.clip((m - self.lo) * self.scale, 0.0, self.n - 1.0)
+        return self.lerp(grid, self.mean_axis(mean), self.std_axis(std))
+
+    def mean_axis(self, mean) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(entry, next entry, weight[..., None]) of `mean` along the table's value axis, for `lerp`."""
+        fi = np.clip((np.asarray(mean, np.float64) - self.lo) * self.scale, 0.0, self.n - 1.0)
         i = np.minimum(fi.astype(np.intp), max(self.n - 2, 0))
-        wi = (fi - i)[..., None]
-        i1 = i + (self.n > 1)
-        fj = np.clip(np.sqrt(np.maximum(s, 0.0)) * self.std_scale, 0.0, self.rows - 1.0)
+        return i, i + (self.n > 1), (fi - i)[..., None]
+
+    def std_axis(self, std) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(row, next row, weight[..., None]) of `std` along the table's √σ axis, for `lerp`."""
+        fj = np.clip(np.sqrt(np.maximum(np.asarray(std, np.float64), 0.0)) * self.std_scale, 0.0, self.rows - 1.0)
         j = np.minimum(fj.astype(np.intp), max(self.rows - 2, 0))
-        wj = (fj - j)[..., None]
-        j1 = j + (self.rows > 1)
+        return j, j + (self.rows > 1), (fj - j)[..., None]
+
+    @staticmethod
+    def lerp(grid: np.ndarray, mean_axis: tuple, std_axis: tuple) -> np.ndarray:
+        """`interp` from the two axes' positions, which broadcast against each other: a caller that looks many
+        deviations up at the same values (or one deviation per row of values) works each axis out once."""
+        i, i1, wi = mean_axis
+        j, j1, wj = std_axis
         a = grid[j, i] + (grid[j, i1] - grid[j, i]) * wi
         b = grid[j1, i] + (grid[j1, i1] - grid[j1, i]) * wi
         return a + (b - a) * wj

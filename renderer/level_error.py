@@ -80,7 +80,8 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
         total = w.sum(axis=1)
         x = 0.5 * (lo + hi)[..., None] + 0.5 * (hi - lo)[..., None] * _NODES  # (m, K, 3) values
         wq = (w[..., None] * _WEIGHTS * 2.0) / np.maximum(total, 1e-300)[:, None, None]
-        tstar = t.interp(luv, x, np.zeros_like(x))
+        at_x = t.mean_axis(x)  # the same values at every level: their table position once
+        tstar = t.lerp(luv, at_x, t.std_axis(0.0))
         a = evaluate(tf, x)[1]
         vis_frac = (wq * (a > 0)).sum(axis=(1, 2))
         opac[rows, 0] = (wq * a).sum(axis=(1, 2))
@@ -91,7 +92,7 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
         sheet = np.maximum(vis_frac, 1.0 / (1 << (n_lv - 1)))  # n_vis / n, at least a one-voxel sheet
         for k in range(1, n_lv):
             if classification == "distribution":
-                shown = t.interp(luv, x, s[:, k][:, None, None] * np.ones_like(x))
+                shown = t.lerp(luv, at_x, t.std_axis(s[:, k][:, None, None]))  # one deviation per block
             else:
                 rho = np.sqrt(np.clip(1.0 - (s[:, k] / s_top) ** 2, 0.0, 1.0))[:, None, None]
                 shown = t.interp(luv, mbar + rho * (x - mbar), np.zeros_like(x))
