@@ -33,8 +33,8 @@ from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales, omero
 from lodcast.store.atomic import move_into_place, remove_stale
 from lodcast.store.remote import is_url
-from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
 from lodcast.store.orientation import axis_codes
+from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
 __all__ = ["ingest", "level_mean", "round_to_dtype", "std_dtype", "tame_malloc"]
@@ -57,9 +57,9 @@ def ingest(
     """Write `source` (a file or folder path, a NumPy array, or a VolumeSource) as a store at `dest`.
 
     `reader_options` go to `lodcast.store.readers.open_source` (format, shape, dtype, byte_order, header_bytes,
-    spacing, origin, units, index, orient); spacing and origin also apply to arrays. Raises SourceNotFound / SourceError for bad
-    input and StoreExists when `dest` exists and `overwrite` is false; nothing is left behind in either case.
-    A source that declares more than `max_voxels` voxels (default LODCAST_MAX_VOXELS, else no limit) is refused
+    spacing, origin, units, index, orient); spacing and origin also apply to arrays. Raises SourceNotFound /
+    SourceError for bad input and StoreExists when `dest` exists and `overwrite` is false; nothing is left behind
+    in either case. A source that declares more than `max_voxels` voxels (default LODCAST_MAX_VOXELS, else no limit) is refused
     from its header, before anything is read or allocated: a small compressed file may declare a huge volume.
     Likewise one whose working set (`working_bytes`: it grows with the slice's Y × X, not with the depth) exceeds
     `max_memory` bytes (default LODCAST_MAX_INGEST_MEMORY_MB, else no limit).

@@ -1,7 +1,8 @@
-"""NIfTI-1/2 (and Analyze .hdr/.img pairs) through nibabel. The data axes (i, j, k) are read as (x, y, z) and the
-sform (else qform) affine, in RAS, tells `store/readers/reorient.py` how to turn them into the store's LPS; scaled
-data is stored as float32, 4D series give one volume chosen by `index` (vector-like intents are refused as
-non-scalar), and slabs are read in pieces so that nibabel's temporaries stay small beside them.
+"""NIfTI-1/2 (and Analyze .hdr/.img pairs) through nibabel. The data axes (i, j, k) are the store's (x, y, z) (the
+store is `transpose(data, (2, 1, 0))`) unless ingest is asked to turn them to LPS; the coded sform (else qform)
+affine, in RAS, is the patient geometry `store/readers/reorient.py` records or turns by; scaled data is stored as
+float32, 4D series give one volume chosen by `index` (vector-like intents are refused as non-scalar), and slabs
+are read in pieces so that nibabel's temporaries stay small beside them.
 """
 from __future__ import annotations
 
@@ -22,8 +23,8 @@ _NIFTI_VECTOR_INTENTS = {"vector", "displacement vector", "rgb vector", "rgba ve
 
 
 class NiftiReader(Reader):
-    """NIfTI-1/2 (and Analyze) through nibabel: slabs are `transpose(data, (2, 1, 0))`, before reorientation. The
-    proxy keeps its file open so that a .gz reads forwards."""
+    """NIfTI-1/2 (and Analyze) through nibabel: slabs of `transpose(data, (2, 1, 0))`. The proxy keeps its file
+    open so that a .gz reads forwards."""
 
     def __init__(self, path: Path, index: int | None) -> None:
         import nibabel as nib
