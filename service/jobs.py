@@ -122,6 +122,11 @@ def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
         for key in job.options:
             if key not in INGEST_OPTIONS:
                 raise RequestInvalid.one(("body", "options", key), f"unknown ingest option (known: {', '.join(sorted(INGEST_OPTIONS))})")
+        from lodcast.store.readers.reorient import ORIENTS
+
+        if job.options.get("orient", "source") not in ORIENTS:
+            raise RequestInvalid.one(("body", "options", "orient"), f"{job.options['orient']!r} is not one of "
+                                     f"{', '.join(ORIENTS)}")
         if not job.overwrite and volume_exists(settings.root, job.name, "name"):
             raise RequestInvalid.one(("body", "name"), f"volume {job.name!r} exists (set overwrite)")
         return job.model_copy(update={"source": source})
