@@ -14,11 +14,11 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
 - the **step-level grid** for adaptive object-space sampling (half-block cells, see raycast.cl).
 
 Bricks come from a **brick cache** shared by every render of the process (`brick_cache()`, LRU by bytes, size
-``LODCAST_BRICK_CACHE_MB``, default 1024, less what a CPU device's buffers hold): only missing bricks are read, in parallel (a thread pool, one task per
-shard: the bricks of one shard are read together, as one region, since the number of requests dominates I/O), so a
-camera change reads nothing and a TF change reads only the bricks whose level changed. The device buffers of the
-selections stay in the device cache too (`sampler.device_cache`: same store and levels, nothing is packed or
-uploaded again).
+``LODCAST_BRICK_CACHE_MB``, default 1024, less what a CPU device's buffers hold): only missing bricks are read, in
+parallel (a thread pool, one task per shard: the bricks of one shard are read together, as one region, since the
+number of requests dominates I/O), so a camera change reads nothing and a TF change reads only the bricks whose
+level changed. The device buffers of the selections stay in the device cache too (`sampler.device_cache`: same
+store and levels, nothing is packed or uploaded again).
 """
 from __future__ import annotations
 
@@ -390,6 +390,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     if hit is not None:
         return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
     t_read = time.perf_counter()
+    cache = brick_cache() if cache is None else cache
     dtype = vol.voxel_dtype
     offsets, total = _checked_offsets(levels, int(vol.block_size), max_bytes, dtype.itemsize)
     index = _index(levels, offsets, slices)
@@ -412,7 +413,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
                      (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype))
     if key is not None:
         device_cache().put(key, da, nbytes + index.nbytes)
-    (brick_cache() if cache is None else cache).trim()  # its bound may follow the device cache's bytes
+    cache.trim()  # its bound may follow the device cache's bytes
     return da
 
 

@@ -111,6 +111,7 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--origin", type=_triple(float, "--origin"), help="world position z,y,x of voxel (0,0,0)'s centre")
     p.add_argument("--units", help="unit of the spacing (mm, um, nm, cm, m; overrides the file's)")
     p.add_argument("--index", type=int, help="which volume of a 4D series (time point or channel) to ingest")
+    # store.readers.reorient.ORIENTS, spelled out so that `lodcast --help` does not import the readers
     p.add_argument("--orient", choices=("source", "LPS"), default="source",
                    help="source: keep the file's array axes (default); LPS: turn DICOM, NIfTI or NRRD data so that "
                         "x, y, z point to the patient's left, posterior, superior (axes swapped and reversed, no "

@@ -63,11 +63,12 @@ class VolumeSummary(_Out):
     origin: list[float] = Field(description="world position z, y, x of voxel (0, 0, 0)'s centre")
     units: str | None
     orientation: list[str] | None = Field(None, description='the patient direction of world +x, +y, +z, e.g. '
-                                                           '["L", "P", "S"] (ingest turns patient data to LPS); null '
-                                                           'when the source gave none')
-    direction: list[list[float]] | None = Field(None, description="unit vectors of world x, y, z in the source's "
-                                                "patient coordinates (LPS): the tilt of an oblique acquisition, "
-                                                "near the identity; null without geometry")
+                                                           '["L", "P", "S"] (always so when ingested with orient '
+                                                           'LPS); null when the source gave none')
+    direction: list[list[float]] | None = Field(None, description="unit vectors of world x, y, z in patient "
+                                                "coordinates (LPS): near the identity, up to an oblique "
+                                                "acquisition's tilt, when ingested with orient LPS; null without "
+                                                "geometry")
     block_size: int
     levels: list[Level]
     value_range: list[float | None] = Field(description="min, max of the finite voxels (null when none is)")
