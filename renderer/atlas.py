@@ -42,7 +42,7 @@ from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import device_dtype, voxel_options
 from lodcast.store.layout import Layout
 
-__all__ = ["BrickCache", "BRICK_ENTRY_BYTES", "brick_cache", "brick_cache_bound", "device_held", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
+__all__ = ["BrickCache", "BRICK_ENTRY_BYTES", "brick_cache", "brick_cache_bound", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
            "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells"]
 
 MISSING = 0
@@ -66,32 +66,29 @@ class BrickCache(ByteLru):
         super().put(key, a, a.nbytes + BRICK_ENTRY_BYTES)
 
 
-_HELD = [0]  # bytes of device buffers in use outside the device cache: atlases being filled, a pass's data
-_HELD_LOCK = threading.Lock()
+_FILLING = [0]  # bytes of device atlases being filled right now
+_FILLING_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def device_held(nbytes: int) -> Iterator[None]:
-    """Counts `nbytes` of volume data on the device that the device cache does not hold (an atlas being filled,
-    the data of one pass of a render in several) while the block runs, so that the brick cache gives way to it."""
-    with _HELD_LOCK:
-        _HELD[0] += nbytes
+def _filling(nbytes: int) -> Iterator[None]:
+    with _FILLING_LOCK:
+        _FILLING[0] += nbytes
     try:
-        brick_cache().trim()
         yield
     finally:
-        with _HELD_LOCK:
-            _HELD[0] -= nbytes
+        with _FILLING_LOCK:
+            _FILLING[0] -= nbytes
 
 
 def brick_cache_bound(cap: int) -> Callable[[], int]:
     """The brick cache's bound: `cap`, except where device buffers are host memory (a CPU device): there the
-    same bricks would be held twice, in the cache and in the device cache's atlases (and the data in use beside
-    it: `device_held`), so the cache gives way to them, down to an eighth of `cap`."""
+    same bricks would be held twice, in the cache and in the device cache's atlases (and the one being filled),
+    so the cache gives way to them, down to an eighth of `cap`."""
     def bound() -> int:
         if not device_memory_is_host():
             return cap
-        return max(cap // 8, cap - device_cache().nbytes - _HELD[0])
+        return max(cap // 8, cap - device_cache().nbytes - _FILLING[0])
     return bound
 
 
@@ -402,7 +399,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     nbytes = max(total, 1) * (dtype.itemsize + (2 if with_std else 0))
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
-    with device_held(nbytes):
+    with _filling(nbytes):
         d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels.shape, offsets,
                           iter_bricks(vol, levels, cache, stats=st))
         d_std = None

@@ -18,7 +18,6 @@ device cache itself is bounded by it.
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -270,35 +269,31 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     for reg in regions:
         own = own_mask(vol.grid, reg)
         t = time.perf_counter()
-        # on a CPU device the brick cache gives way to the pass's data while it is in use (atlas.device_held)
-        with contextlib.ExitStack() as held:
-            if lod is None:
-                nbytes = math.prod(s.stop - s.start for s in reg.data) * vol.voxel_dtype.itemsize
-                held.enter_context(lod_atlas.device_held(nbytes))  # before the read: its host copy counts too
-                sub = np.ascontiguousarray(vol.read_level0_region(reg.data), dtype=vol.voxel_dtype)
-                buf = cl.Buffer(ctx, mf.READ_ONLY, size=max(4, sub.nbytes))
-                cl.enqueue_copy(queue, buf, sub)
-                queue.finish()
-                stats.read += int(own.sum())
-                cmin, cmax = level0_cells(buf, sub.shape, tuple(s.start for s in reg.data), reg.blocks, vol)
-                data = PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.block_size))
-                del sub
-                stats.upload_ms += (time.perf_counter() - t) * 1e3
-            else:
-                da = lod_atlas.device_atlas(vol, pass_levels(lod.levels, reg), with_std=cfg.distribution,
-                                            slices=slices, keep=False)
-                nbytes = da.nbytes
-                held.enter_context(lod_atlas.device_held(nbytes))
-                stats.read += da.read
-                stats.cached += da.cached
-                stats.upload_ms += da.upload_ms
-                data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
-                                pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own,
-                                cells=_cells(pr, da))
-            stats.passes += 1
-            stats.device_bytes = max(stats.device_bytes, nbytes)
-            yield data
-            del data
+        if lod is None:
+            sub = np.ascontiguousarray(vol.read_level0_region(reg.data), dtype=vol.voxel_dtype)
+            buf = cl.Buffer(ctx, mf.READ_ONLY, size=max(4, sub.nbytes))
+            cl.enqueue_copy(queue, buf, sub)
+            queue.finish()
+            stats.read += int(own.sum())
+            cmin, cmax = level0_cells(buf, sub.shape, tuple(s.start for s in reg.data), reg.blocks, vol)
+            nbytes, data = sub.nbytes, PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax,
+                                                ess_cell(vol.block_size))
+            del sub
+            stats.upload_ms += (time.perf_counter() - t) * 1e3
+        else:
+            da = lod_atlas.device_atlas(vol, pass_levels(lod.levels, reg), with_std=cfg.distribution, slices=slices,
+                                        keep=False)
+            stats.read += da.read
+            stats.cached += da.cached
+            stats.upload_ms += da.upload_ms
+            nbytes = da.nbytes
+            data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
+                            pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own,
+                            cells=_cells(pr, da))
+        stats.passes += 1
+        stats.device_bytes = max(stats.device_bytes, nbytes)
+        yield data
+        del data
 
 
 def _cells(pr, da: "lod_atlas.DeviceAtlas") -> "lod_atlas.AtlasCells | None":

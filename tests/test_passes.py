@@ -172,29 +172,3 @@ def test_naive_adaptive_sampling_is_refused_in_passes_only(monkeypatch, store):
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "0.12")
     with pytest.raises(SceneError, match="sampling.adaptive_naive"):
         render(store, scene)
-
-
-def test_on_a_cpu_device_the_brick_cache_gives_way_to_each_pass_s_data(monkeypatch, store):
-    """A pass's volume data is host memory on a CPU device; while the pass is in use the brick cache's bound shrinks
-    by its bytes (with the 8 GiB volume the lossless passes after a turntable held both: issue 14's peak), and the
-    bound comes back once the render is done."""
-    from lodcast.environment import environment
-    from lodcast.opencl import device_memory_is_host
-    from lodcast.renderer import atlas as lod_atlas
-
-    seen = []
-    real = mp.level0_cells
-
-    def spy(buf, shape, start, blocks, vol):
-        seen.append((lod_atlas._HELD[0], lod_atlas.brick_cache().max_bytes, int(np.prod(shape)) * vol.voxel_dtype.itemsize))
-        return real(buf, shape, start, blocks, vol)
-
-    monkeypatch.setattr(mp, "level0_cells", spy)
-    monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", str(VOL.nbytes / 4 / 1e6))
-    got = render(store, {"tf": TF, "width": 40, "height": 32})
-    cap = environment().brick_cache_bytes
-    assert len(seen) == got.report["passes"] >= 4
-    for held, bound, nbytes in seen:
-        assert held == nbytes > 0  # the pass's region, counted from before its read
-        assert bound == (max(cap // 8, cap - device_cache().nbytes - held) if device_memory_is_host() else cap)
-    assert lod_atlas._HELD[0] == 0 and lod_atlas.brick_cache().max_bytes == cap - (device_memory_is_host() and device_cache().nbytes)
