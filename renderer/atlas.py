@@ -436,24 +436,35 @@ def _filled(ctx: Any, queue: Any, n: int, dtype: Any, grid: tuple, offsets: np.n
 class AtlasCells:
     """What the field sampled from an atlas can take in each half-block cell (grid 2G, C order; atlas_cells.cl):
     the extrema of its values (NaN: nothing to see) and the largest standard deviation behind them (0 at level 0
-    and without distributions), in the data's units."""
+    and without distributions), in the data's units; over the cells of the blocks `blocks` (z, y, x slices of the
+    block grid; None: all), which a pass of a render in several needs alone."""
 
     vmin: np.ndarray
     vmax: np.ndarray
     std: np.ndarray
+    blocks: tuple[slice, slice, slice] | None = None
+
+    @property
+    def at(self) -> tuple[slice, slice, slice]:
+        """Where these cells lie in the whole grid of half-block cells."""
+        if self.blocks is None:
+            return (slice(None),) * 3
+        return tuple(slice(2 * b.start, 2 * b.stop) for b in self.blocks)
 
 
 def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
-                std_unit: float = 1.0) -> AtlasCells:
-    """The half-block cells of atlas `da` (block grid `grid`, z-y-x), computed on the device and kept beside the
-    atlas (host arrays, in a cache of their own keyed by the atlas's device-cache key): empty-space skipping on the
-    atlas walks these cells (renderer/render.py)."""
-    key = None if da.key is None else ("cells", da.key, interpolation)
+                std_unit: float = 1.0, blocks: tuple[slice, slice, slice] | None = None) -> AtlasCells:
+    """The half-block cells of atlas `da` (block grid `grid`, z-y-x), or those of `blocks` only, computed on the
+    device and kept beside the atlas (host arrays, in a cache of their own keyed by the atlas's device-cache key):
+    empty-space skipping on the atlas walks these cells (renderer/render.py)."""
+    key = None if da.key is None else ("cells", da.key, interpolation, None if blocks is None else str(blocks))
     hit = _cells_cache().get(key) if key is not None else None
     if hit is not None:
         return hit
     ctx, queue = get_context()
-    shape = tuple(2 * g for g in grid)
+    lo = (0, 0, 0) if blocks is None else tuple(2 * b.start for b in blocks)
+    hi = tuple(2 * g for g in grid) if blocks is None else tuple(2 * b.stop for b in blocks)
+    shape = tuple(h - l for l, h in zip(lo, hi))
     n = int(np.prod(shape))
     d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
     opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", *da.voxel]
@@ -462,14 +473,16 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
         opts.append("-DLC_DIST")
     else:
         std = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=8)
-    kern = cl.Kernel(get_program("atlas_cells.cl", opts).program, "lc_atlas_cells")
-    g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
-    kern(queue, (shape[2], shape[1], shape[0]), None, da.atlas, std, da.index, g4, *d_out)
     out = [np.empty(shape, np.float32) for _ in range(3)]
-    for h, d in zip(out, d_out):
-        cl.enqueue_copy(queue, h, d)
-    queue.finish()
-    cells = AtlasCells(out[0], out[1], out[2] * np.float32(std_unit))
+    if n:
+        kern = cl.Kernel(get_program("atlas_cells.cl", opts).program, "lc_atlas_cells")
+        g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
+        lo4, hi4 = (np.array([c[2], c[1], c[0], 0], np.int32) for c in (lo, hi))
+        kern(queue, (shape[2], shape[1], shape[0]), None, da.atlas, std, da.index, g4, lo4, hi4, *d_out)
+        for h, d in zip(out, d_out):
+            cl.enqueue_copy(queue, h, d)
+        queue.finish()
+    cells = AtlasCells(out[0], out[1], out[2] * np.float32(std_unit), blocks)
     if key is not None:
         _cells_cache().put(key, cells, 3 * 4 * n)
     return cells

@@ -26,11 +26,11 @@ static inline int2 lc_reach(const float a, const float b, const float lo_face, c
 }
 
 __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
-                             const int4 grid, __global float* out_min, __global float* out_max,
-                             __global float* out_sd) {
-    const int x = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
-    const int hx = 2 * grid.x, hy = 2 * grid.y, hz = 2 * grid.z;
-    if (x >= hx || y >= hy || z >= hz) return;
+                             const int4 grid, const int4 lo, const int4 hi, __global float* out_min,
+                             __global float* out_max, __global float* out_sd) {
+    /* the cells [lo, hi) of the grid (x, y, z), written in C order over that box */
+    const int x = lo.x + get_global_id(0), y = lo.y + get_global_id(1), z = lo.z + get_global_id(2);
+    if (x >= hi.x || y >= hi.y || z >= hi.z) return;
     LcAtlasGeom g;
     g.gx = grid.x; g.gy = grid.y; g.gz = grid.z; g.B = (float)grid.w;
     const float C = 0.5f * g.B, eps = 1e-3f; /* eps: samples assigned to the cell within rounding of its faces */
@@ -72,7 +72,7 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const usho
                         }
                 }
     }
-    const uint o = ((uint)z * (uint)hy + (uint)y) * (uint)hx + (uint)x;
+    const uint o = ((uint)(z - lo.z) * (uint)(hi.y - lo.y) + (uint)(y - lo.y)) * (uint)(hi.x - lo.x) + (uint)(x - lo.x);
     out_min[o] = mn <= mx ? mn : NAN;
     out_max[o] = mn <= mx ? mx : NAN;
     out_sd[o] = sd;

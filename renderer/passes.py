@@ -289,20 +289,21 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
             nbytes = da.nbytes
             data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
                             pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own,
-                            cells=_cells(pr, da))
+                            cells=_cells(pr, da, reg.blocks))
         stats.passes += 1
         stats.device_bytes = max(stats.device_bytes, nbytes)
         yield data
         del data
 
 
-def _cells(pr, da: "lod_atlas.DeviceAtlas") -> "lod_atlas.AtlasCells | None":
-    """The atlas's half-block cells, where the walk can skip on them (renderer/render.py: _walk_info)."""
+def _cells(pr, da: "lod_atlas.DeviceAtlas", blocks: tuple[slice, slice, slice] | None = None) -> "lod_atlas.AtlasCells | None":
+    """The atlas's half-block cells, where the walk can skip on them (renderer/render.py: _walk_info); a pass needs
+    those of the blocks it owns (`blocks`) only."""
     cfg = pr.config
     if not cfg.ess or pr.volume.block_size % 2:  # (average and iso have no walk: cfg.ess is off for them)
         return None
     return lod_atlas.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
-                                 pr.volume.std_unit if cfg.distribution else 1.0)
+                                 pr.volume.std_unit if cfg.distribution else 1.0, blocks)
 
 
 def fill_pass(p: np.ndarray, region: Region | None, pr, first: bool) -> None:

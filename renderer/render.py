@@ -171,8 +171,19 @@ def atlas_cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells") -> np.ndarray
     it cannot: every value there is invisible under the point classification and, with distribution
     classification, under the TF's distribution table for deviations up to the cell's largest. Where the block
     info already says empty it stays so, so the image is the block walk's: only samples that add nothing are
-    left out (tests/test_atlas_cells.py)."""
-    up = lod_atlas.half_cells(pr.block_info)
+    left out (tests/test_atlas_cells.py). Cells of a pass's blocks only (cells.blocks): the rest are empty, the
+    pass samples nothing there."""
+    mode = pr.scene.mode
+    part = _cell_info(pr, cells, pr.block_info if cells.blocks is None else pr.block_info[cells.blocks])
+    if cells.blocks is None:
+        return part
+    out = np.full(tuple(2 * g for g in pr.block_info.shape), -np.inf if mode in EXTREMUM_MODES else 0.0, np.float32)
+    out[cells.at] = part
+    return out
+
+
+def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.ndarray) -> np.ndarray:
+    up = lod_atlas.half_cells(block_info)
     mode = pr.scene.mode
     if mode in EXTREMUM_MODES:
         ext = cells.vmax if mode == "mip" else -cells.vmin.astype(np.float64)
