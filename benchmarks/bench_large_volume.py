@@ -160,42 +160,13 @@ def render_step(store_path: str, frames: int, size: int) -> None:
     print(json.dumps(out))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--shape", default="1024,2048,2048")
-    ap.add_argument("--frames", type=int, default=36)
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--json", type=Path, default=RESULTS / "large_volume.json")
-    ap.add_argument("--render-step", help=argparse.SUPPRESS)
-    ap.add_argument("--ingest-step", nargs=2, help=argparse.SUPPRESS)
-    a = ap.parse_args()
-    if a.render_step:
-        return render_step(a.render_step, a.frames, a.size)
-    if a.ingest_step:
-        return ingest_step(*a.ingest_step)
-    shape = tuple(int(s) for s in a.shape.split(","))
-    LARGE.mkdir(parents=True, exist_ok=True)
-    raw = LARGE / f"body_{'x'.join(map(str, shape))}.npy"
-    if not raw.exists():
-        make(raw, shape)
-    size = raw.stat().st_size
-    store = LARGE / f"body_{'x'.join(map(str, shape))}.zarr"
-    res: dict = {"shape": shape, "voxels": int(np.prod(shape)), "raw_bytes": size}
-    ingest_json = store.with_suffix(".ingest.json")  # kept beside the store: a rerun measures the renders only
-    if not store.exists():
-        dt, got = child([sys.executable, __file__, "--ingest-step", str(raw), str(store)])
-        ingest_json.write_text(json.dumps({"s": dt, "mb_per_s": size / 1e6 / dt, "peak_rss_mb": got["peak_rss"] / 1e6}))
-    if ingest_json.exists():
-        res["ingest"] = json.loads(ingest_json.read_text())
-        print(res["ingest"], flush=True)
-    res["page_cache_dropped"] = drop_caches()
-    dt, res["render"] = child([sys.executable, __file__, "--render-step", str(store), "--frames", str(a.frames),
-                               "--size", str(a.size)],
-                              env={"LODCAST_BRICK_CACHE_MB": "512"})
+def report_table(res: dict, px: int) -> str:
+    """The markdown table of a run's JSON (`res`), images of px² pixels."""
+    shape, size = res["shape"], res["raw_bytes"]
     r = res["render"]
     tt = r["turntable"]
     hit = sum(f["bricks_cached"] for f in tt) / max(1, sum(f["bricks_cached"] + f["bricks_read"] for f in tt))
-    lines = [f"{shape[0]}x{shape[1]}x{shape[2]} uint16 ({size / 2**30:.1f} GiB), ct-bone, {a.size}²", "",
+    lines = [f"{shape[0]}x{shape[1]}x{shape[2]} uint16 ({size / 2**30:.1f} GiB), ct-bone, {px}²", "",
              "| step | figure |", "|---|---|"]
     if "ingest" in res:
         lines.append(f"| ingest | {res['ingest']['mb_per_s']:.1f} MB/s, peak RSS {res['ingest']['peak_rss_mb']:.0f} MB |")
@@ -214,7 +185,42 @@ def main() -> None:
         f"the first image {r['first_image']['peak_rss_mb']:.0f}, the turntable {r['turntable_peak_rss_mb']:.0f}, "
         f"lossless {r['lossless']['peak_rss_mb']:.0f}, full {r['full']['peak_rss_mb']:.0f} MB |",
     ]
-    table = "\n".join(lines)
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--shape", default="1024,2048,2048")
+    ap.add_argument("--frames", type=int, default=36)
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--json", type=Path, default=RESULTS / "large_volume.json")
+    ap.add_argument("--render-step", help=argparse.SUPPRESS)
+    ap.add_argument("--ingest-step", nargs=2, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.render_step:
+        return render_step(a.render_step, a.frames, a.size)
+    if a.ingest_step:
+        return ingest_step(*a.ingest_step)
+    shape = tuple(int(s) for s in a.shape.split(","))
+    LARGE.mkdir(parents=True, exist_ok=True)
+    raw = LARGE / f"body_{'x'.join(map(str, shape))}.npy"
+    size = int(np.prod(shape)) * 2  # uint16 voxels
+    store = LARGE / f"body_{'x'.join(map(str, shape))}.zarr"
+    res: dict = {"shape": shape, "voxels": int(np.prod(shape)), "raw_bytes": size}
+    ingest_json = store.with_suffix(".ingest.json")  # kept beside the store: a rerun measures the renders only
+    if not store.exists():
+        if not raw.exists():  # (the raw volume is needed for ingest only: it may be deleted afterwards)
+            make(raw, shape)
+        dt, got = child([sys.executable, __file__, "--ingest-step", str(raw), str(store)])
+        ingest_json.write_text(json.dumps({"s": dt, "mb_per_s": size / 1e6 / dt, "peak_rss_mb": got["peak_rss"] / 1e6}))
+    if ingest_json.exists():
+        res["ingest"] = json.loads(ingest_json.read_text())
+        print(res["ingest"], flush=True)
+    res["page_cache_dropped"] = drop_caches()
+    dt, res["render"] = child([sys.executable, __file__, "--render-step", str(store), "--frames", str(a.frames),
+                               "--size", str(a.size)],
+                              env={"LODCAST_BRICK_CACHE_MB": "512"})
+    table = report_table(res, a.size)
     res["table"] = table
     print("\n" + table)
     a.json.write_text(json.dumps(res, indent=2))
