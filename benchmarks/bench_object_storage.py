@@ -3,6 +3,10 @@ loopback (behind a counting proxy), a turntable at 30:1, lossless and full resol
 reader and with zarr-python's per-chunk reads for comparison.
 
     .venv/bin/python benchmarks/bench_object_storage.py [--frames 6] [--size 256] [--json benchmarks/results/object_storage.json]
+        [--store PATH] [--readers lodcast zarr-python] [--qualities 30 lossless full]
+
+`--store` puts another local store on the server instead (e.g. the 8 GiB volume of bench_large_volume.py:
+`--store benchmarks/results/large/body_1024x2048x2048.zarr --readers lodcast --qualities 30`).
 
 Per quality: the first frame after opening (cold: no brick cached; the store's per-block statistics were read by
 a warm-up render at another quality) and the mean of the following frames (each a new azimuth: bricks come from
@@ -36,24 +40,33 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--json", type=Path, default=RESULTS / "object_storage.json")
+    ap.add_argument("--store", type=Path, help="a local store to put on the server (default: the chest CT's)")
+    ap.add_argument("--readers", nargs="+", default=["lodcast", "zarr-python"], choices=["lodcast", "zarr-python"])
+    ap.add_argument("--qualities", nargs="+", default=["30", "lossless", "full"],
+                    help="reductions (numbers), lossless, full")
     a = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
-    local = store_of("ct_chest", DATA / "ct_chest_dicom")
+    local = lodcast.open_store(a.store) if a.store else store_of("ct_chest", DATA / "ct_chest_dicom")
+    qualities = [q if q in ("lossless", "full") else {"reduction": float(q)} for q in a.qualities]
+    name = Path(local.location).name
     rows = []
     with s3_server() as srv:
         fs = fsspec.filesystem("s3", skip_instance_cache=True)
         fs.mkdir("bench")
         t = time.perf_counter()
-        fs.put(str(local.location), "bench/chest.zarr", recursive=True)
+        fs.put(str(local.location), f"bench/{name}", recursive=True)
         upload_s = time.perf_counter() - t
-        on_s3 = sum(f["size"] for f in fs.find("bench/chest.zarr", detail=True).values())
-        for reader in ("lodcast", "zarr-python"):
-            for quality in ({"reduction": 30}, "lossless", "full"):
+        on_s3 = sum(f["size"] for f in fs.find(f"bench/{name}", detail=True).values())
+        print(f"{on_s3 / 1e6:.0f} MB uploaded in {upload_s:.0f} s", flush=True)
+        for reader in a.readers:
+            for quality in qualities:
                 _fresh()
-                st = lodcast.open_store("s3://bench/chest.zarr")
+                st = lodcast.open_store(f"s3://bench/{name}")
                 if reader == "zarr-python":
-                    st._readers.update({k: False for k in ["0", "1", "2", "3", "4", "std/1", "std/2", "std/3", "std/4"]})
-                lodcast.render(st, {"tf": "ct-bone", "width": 8, "height": 8, "quality": "lossless"})  # statistics
+                    n = st.layout.n_levels
+                    st._readers.update({k: False for k in [str(i) for i in range(n)] + [f"std/{i}" for i in range(1, n)]})
+                # the store's per-block statistics and histograms, with a few bricks (cleared next)
+                lodcast.render(st, {"tf": "ct-bone", "width": 8, "height": 8, "quality": {"reduction": 1000}})
                 _fresh()
                 frames = []
                 for i in range(a.frames):
@@ -65,13 +78,13 @@ def main() -> None:
                     frames.append({"ms": (time.perf_counter() - t) * 1e3, "requests": n, "bytes": nbytes,
                                    "bricks_read": r.report["bricks_read"]})
                 warm = frames[1:]
-                rows.append({"reader": reader, "quality": quality if isinstance(quality, str) else "30:1",
+                rows.append({"reader": reader, "quality": quality if isinstance(quality, str) else f"{quality['reduction']:g}:1",
                              "cold": frames[0],
                              "warm_ms": float(np.mean([f["ms"] for f in warm])) if warm else None,
                              "warm_requests": float(np.mean([f["requests"] for f in warm])) if warm else None,
                              "warm_bytes": float(np.mean([f["bytes"] for f in warm])) if warm else None})
                 print(rows[-1], flush=True)
-    lines = [f"chest CT store on loopback S3 ({on_s3 / 1e6:.0f} MB, uploaded in {upload_s:.1f} s), ct-bone, "
+    lines = [f"{name} on loopback S3 ({on_s3 / 1e6:.0f} MB, uploaded in {upload_s:.1f} s), ct-bone, "
              f"{a.size}², {a.frames} frames", "",
              "| reader | quality | cold: requests | cold: MB | cold: bricks | cold ms | warm: requests/frame | "
              "warm ms/frame |", "|" + "---|" * 8]

@@ -12,6 +12,11 @@ Conventions matched to lodcast's (docs/reference.md; each one changes the image 
 * the image: FixedPoint's own ray-cast image (15-bit fixed point, premultiplied, bottom-up), read before the
   render window resamples it onto the screen by half a pixel, flipped to top-down and scaled to [0, 1].
 It needs an OpenGL context for the render window (EGL or OSMesa offscreen, or X); `available()` says why not.
+
+VTK's GPU ray caster (vtkOpenGLGPUVolumeRayCastMapper, `GpuRayCast`) gets the same set-up where an OpenGL context
+can be had; its image is the window's RGBA (premultiplied over a transparent black background, 8 bits per channel,
+bottom-up) read back as floats. `renderer_name()` says what runs it: on a machine without a GPU, Mesa's llvmpipe,
+which runs the GPU mapper's shaders on the CPU cores.
 """
 from __future__ import annotations
 
@@ -27,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from reference import box_bounds, orbit_to_lookat  # noqa: E402
 
-__all__ = ["available", "FixedPoint"]
+__all__ = ["available", "renderer_name", "FixedPoint", "GpuRayCast"]
 
 FP_SCALE = 32767.0  # VTKKW_FP_SCALE: FixedPoint's 1.0
 
@@ -58,8 +63,33 @@ def _vtk_array(vol: np.ndarray):
                                       array_type=numpy_support.get_vtk_array_type(vol.dtype))
 
 
-class FixedPoint:
-    """One volume in one render window; `render(scene)` returns (premultiplied RGBA top-down, seconds)."""
+def renderer_name() -> str:
+    """The OpenGL renderer VTK's windows get here (e.g. "llvmpipe (LLVM 15.0.6, 256 bits)")."""
+    import vtk
+
+    w = vtk.vtkRenderWindow()
+    w.SetOffScreenRendering(1)
+    w.SetSize(8, 8)
+    w.Render()
+    caps = w.ReportCapabilities() or ""
+    w.Finalize()
+    for line in caps.splitlines():
+        if line.startswith("OpenGL renderer string:"):
+            return line.split(":", 1)[1].strip()
+    return "unknown"
+
+
+class _VtkPeer:
+    """One volume in one render window, with lodcast's conventions (module doc); `render(scene, step)` returns
+    (premultiplied RGBA top-down, seconds)."""
+
+    name = ""
+
+    def _mapper(self, threads: int) -> Any:
+        raise NotImplementedError
+
+    def _image(self, W: int, H: int) -> np.ndarray:
+        raise NotImplementedError
 
     def __init__(self, vol: np.ndarray, spacing, origin, threads: int = 2):
         import vtk
@@ -73,9 +103,8 @@ class FixedPoint:
         img.SetSpacing(*sp_xyz)
         img.SetOrigin(*(np.asarray(origin, np.float64)[::-1] - sp_xyz))
         img.GetPointData().SetScalars(_vtk_array(padded))
-        self.mapper = m = vtk.vtkFixedPointVolumeRayCastMapper()
+        self.mapper = m = self._mapper(threads)
         m.SetInputData(img)
-        m.SetNumberOfThreads(threads)
         m.SetAutoAdjustSampleDistances(0)
         m.SetLockSampleDistanceToInputSpacing(0)
         m.SetImageSampleDistance(1.0)
@@ -98,8 +127,10 @@ class FixedPoint:
         self.renderer = vtk.vtkRenderer()
         self.renderer.SetBackground(0, 0, 0)
         self.renderer.AddVolume(self.volume)
+        self.renderer.SetBackgroundAlpha(0.0)
         self.window = vtk.vtkRenderWindow()
         self.window.SetOffScreenRendering(1)
+        self.window.SetAlphaBitPlanes(1)
         self.window.AddRenderer(self.renderer)
         self._tf_key = None
 
@@ -133,8 +164,22 @@ class FixedPoint:
         self.renderer.ResetCameraClippingRange()
         t = time.perf_counter()
         self.window.Render()
-        seconds = time.perf_counter() - t
-        return self._image(W, H), seconds
+        img = self._image(W, H)  # timed with it: lodcast's wall time ends with the image on the host too
+        return img, time.perf_counter() - t
+
+    def close(self) -> None:
+        self.window.Finalize()
+
+
+class FixedPoint(_VtkPeer):
+    """vtkFixedPointVolumeRayCastMapper on `threads` CPU threads; its own 15-bit ray-cast image."""
+
+    name = "VTK FixedPoint"
+
+    def _mapper(self, threads: int) -> Any:
+        m = self.vtk.vtkFixedPointVolumeRayCastMapper()
+        m.SetNumberOfThreads(threads)
+        return m
 
     def _image(self, W: int, H: int) -> np.ndarray:
         ri = self.mapper.GetRayCastImage()
@@ -151,5 +196,20 @@ class FixedPoint:
         out[oy:oy + uh, ox:ox + uw] = raw[:uh, :uw] / FP_SCALE
         return out[::-1].copy()
 
-    def close(self) -> None:
-        self.window.Finalize()
+
+class GpuRayCast(_VtkPeer):
+    """vtkOpenGLGPUVolumeRayCastMapper (on the OpenGL the window gets: `renderer_name`); the window's RGBA."""
+
+    name = "VTK GPU"
+
+    def _mapper(self, threads: int) -> Any:
+        m = self.vtk.vtkOpenGLGPUVolumeRayCastMapper()
+        m.SetUseJittering(0)
+        return m
+
+    def _image(self, W: int, H: int) -> np.ndarray:
+        from vtk.util import numpy_support
+
+        arr = self.vtk.vtkFloatArray()
+        self.window.GetRGBAPixelData(0, 0, W - 1, H - 1, 0, arr)
+        return numpy_support.vtk_to_numpy(arr).reshape(H, W, 4)[::-1].astype(np.float64)

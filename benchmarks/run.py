@@ -7,11 +7,12 @@ independent float64 reference, with the machine's own limits measured in the sam
 
 For each volume and transfer function (a sparse one, bone or metal, and a dense translucent one): lodcast at full
 resolution at steps 1, ½ and ¼, lodcast at `quality` "lossless", 30:1 and 100:1 with its default sampling, and VTK
-FixedPoint (benchmarks/peers.py) at the same steps, all on the same voxels, view, image size and TF. Each image's
+FixedPoint and VTK's GPU ray caster on whatever OpenGL the machine has (benchmarks/peers.py; Mesa's llvmpipe on a
+machine without a GPU) at the same steps, all on the same voxels, view, image size and TF. Each image's
 mean ΔE (lodcast's: CIE76 in CIELUV over the footprint, renderer/image_error.py) is taken against a float64
 reference at step ¼
 (benchmarks/reference64.py). Times are wall-clock seconds of a call that returns the image (lodcast: `render`, the
-volume already on the device; VTK: `Render()`), medians of `--repeat` runs taken round robin (so that load from
+volume already on the device; VTK: `Render()` and reading its image), medians of `--repeat` runs taken round robin (so that load from
 elsewhere on a shared machine hits every case alike), with min and max. Ratios compare figures of this one run.
 Also measured: memory-copy bandwidth, and the bare trilinear march (same rays and sampler, no TF, no compositing:
 benchmarks/bench_render.py) against lodcast's full render in samples per second.
@@ -68,7 +69,7 @@ class Volume:
 
 @dataclass
 class Case:
-    renderer: str  # "lodcast" or "VTK FixedPoint"
+    renderer: str  # "lodcast" or a peer's name ("VTK FixedPoint", "VTK GPU (llvmpipe)")
     quality: str  # "full", "lossless", "30:1", "100:1"
     step: float | None  # None: lodcast's default sampling
     seconds: list[float] = field(default_factory=list)
@@ -134,12 +135,13 @@ def _timed(fn) -> float:
 
 
 def measure(store, vol: Volume, tf_name: str, size: int, steps: list[float], repeat: int,
-            vtk_fp, ref: np.ndarray) -> list[dict]:
+            vtk: dict, ref: np.ndarray) -> list[dict]:
+    """`vtk`: the peers by their row name (peers.py)."""
     tf = vol.tfs[tf_name]
     base = {"camera": CAMERA, "width": size, "height": size, "tf": tf}
     cases = [Case("lodcast", "full", s) for s in steps] + [Case("lodcast", q, None) for q in LOD]
-    if vtk_fp is not None:
-        cases += [Case("VTK FixedPoint", "full", s) for s in steps]
+    for name in vtk:
+        cases += [Case(name, "full", s) for s in steps]
 
     def run(case: Case) -> None:
         if case.renderer == "lodcast":
@@ -155,7 +157,7 @@ def measure(store, vol: Volume, tf_name: str, size: int, steps: list[float], rep
             case.image, case.samples = r.rgba, int(r.report["samples"])
             case.reduction = r.report.get("reduction")
         else:
-            case.image, s = vtk_fp.render(base, case.step)
+            case.image, s = vtk[case.renderer].render(base, case.step)
             case.seconds.append(s)
 
     for case in cases:  # warm-up: programs built, volume and bricks on the device
@@ -178,25 +180,26 @@ def measure(store, vol: Volume, tf_name: str, size: int, steps: list[float], rep
 
 
 def ratios(rows: list[dict]) -> list[dict]:
-    """Per volume and TF: VTK against lodcast full at the same step, at equal or lower error (the fastest lodcast
-    full image whose ΔE is no larger than VTK's), and lodcast's 30:1 against VTK's fastest full image."""
+    """Per volume, TF and peer: the peer against lodcast full at the same step, at equal or lower error (the fastest
+    lodcast full image whose ΔE is no larger than the peer's), and lodcast's 30:1 against the peer's fastest full
+    image."""
     out = []
     for key in sorted({(r["volume"], r["tf"]) for r in rows}):
         rs = [r for r in rows if (r["volume"], r["tf"]) == key]
         full = [r for r in rs if r["renderer"] == "lodcast" and r["quality"] == "full"]
-        vtk = [r for r in rs if r["renderer"] != "lodcast"]
-        for v in vtk:
-            same = next(r for r in full if r["step"] == v["step"])
-            ok = [r for r in full if r["delta_e"] <= v["delta_e"]]
-            eq = min(ok, key=lambda r: r["ms"]) if ok else None
-            out.append({"volume": key[0], "tf": key[1], "vtk_step": v["step"],
-                        "same_step": v["ms"] / same["ms"],
-                        "equal_error": v["ms"] / eq["ms"] if eq else None,
-                        "equal_error_step": eq["step"] if eq else None})
         lod30 = next(r for r in rs if r["quality"] == "30:1")
-        if vtk:
+        for peer in sorted({r["renderer"] for r in rs} - {"lodcast"}):
+            vtk = [r for r in rs if r["renderer"] == peer]
+            for v in vtk:
+                same = next(r for r in full if r["step"] == v["step"])
+                ok = [r for r in full if r["delta_e"] <= v["delta_e"]]
+                eq = min(ok, key=lambda r: r["ms"]) if ok else None
+                out.append({"volume": key[0], "tf": key[1], "peer": peer, "vtk_step": v["step"],
+                            "same_step": v["ms"] / same["ms"],
+                            "equal_error": v["ms"] / eq["ms"] if eq else None,
+                            "equal_error_step": eq["step"] if eq else None})
             fastest = min(vtk, key=lambda r: r["ms"])
-            out.append({"volume": key[0], "tf": key[1], "lod30_vs_vtk": fastest["ms"] / lod30["ms"],
+            out.append({"volume": key[0], "tf": key[1], "peer": peer, "lod30_vs_vtk": fastest["ms"] / lod30["ms"],
                         "lod30_delta_e": lod30["delta_e"], "vtk_step": fastest["step"]})
     return out
 
@@ -226,16 +229,16 @@ def table(rows: list[dict], ratio_rows: list[dict], limits: dict) -> str:
         q = r["quality"] if r["reduction"] is None or r["quality"] == "full" else f"{r['quality']} ({r['reduction']:.1f}:1)"
         lines.append(f"| {r['volume']} | {r['tf']} | {r['renderer']} | {q} | {step} | {r['ms']:,.0f} "
                      f"({r['ms_min']:,.0f}–{r['ms_max']:,.0f}) | {r['delta_e']:.2f} | {r['delta_e_p95']:.2f} |")
-    lines += ["", "| volume | TF | comparison | ratio (VTK ms / lodcast ms) |", "|---|---|---|---|"]
+    lines += ["", "| volume | TF | peer | comparison | ratio (peer ms / lodcast ms) |", "|---|---|---|---|---|"]
     for x in ratio_rows:
         if "same_step" in x:
             eq = ("no lodcast image as accurate" if x["equal_error"] is None
                   else f"{x['equal_error']:.2f}× (lodcast at step {x['equal_error_step']:g})")
-            lines.append(f"| {x['volume']} | {x['tf']} | VTK step {x['vtk_step']:g}: same step "
+            lines.append(f"| {x['volume']} | {x['tf']} | {x['peer']} | step {x['vtk_step']:g}: same step "
                          f"{x['same_step']:.2f}×; equal or lower ΔE | {eq} |")
         else:
-            lines.append(f"| {x['volume']} | {x['tf']} | lodcast 30:1 (ΔE {x['lod30_delta_e']:.2f}) against VTK's "
-                         f"fastest full image (step {x['vtk_step']:g}) | {x['lod30_vs_vtk']:.2f}× |")
+            lines.append(f"| {x['volume']} | {x['tf']} | {x['peer']} | lodcast 30:1 (ΔE {x['lod30_delta_e']:.2f}) "
+                         f"against the peer's fastest full image (step {x['vtk_step']:g}) | {x['lod30_vs_vtk']:.2f}× |")
     bm = limits.get("bare")
     lines += ["", f"memory copy {limits['copy_gb_s']:.1f} GB/s (read + write)"]
     if bm:
@@ -246,6 +249,8 @@ def table(rows: list[dict], ratio_rows: list[dict], limits: dict) -> str:
 
 
 def goals(ratio_rows: list[dict], limits: dict) -> list[dict]:
+    """The issue's goals, which are stated against VTK FixedPoint."""
+    ratio_rows = [x for x in ratio_rows if x["peer"] == peers.FixedPoint.name]
     eq = [x["equal_error"] for x in ratio_rows if "same_step" in x]
     lod = [x for x in ratio_rows if "lod30_vs_vtk" in x]
     out = []
@@ -295,32 +300,35 @@ def main(argv=None) -> int:
 
     info = machine()
     vtk_reason = "left out (--no-vtk)" if args.no_vtk else peers.available()
+    gpu_name = None if vtk_reason else f"{peers.GpuRayCast.name} ({peers.renderer_name().split(' (')[0]})"
+    info["opengl"] = None if vtk_reason else peers.renderer_name()
     log(f"{info['cpu']}, {info['cores']} cores; OpenCL {info['opencl']['name']} ({info['opencl']['platform']}); "
-        f"VTK: {vtk_reason or info['versions'].get('vtk')}")
+        f"VTK: {vtk_reason or info['versions'].get('vtk')}; OpenGL: {info['opengl']}")
     limits = {"copy_gb_s": copy_bandwidth()}
     rows: list[dict] = []
     gallery: dict[str, list[dict]] = {}
     for i, vol in enumerate(volumes(args.quick)):
         store = store_of(vol, args.out)
         level0 = np.asarray(store.read_level(0))
-        fp = None if vtk_reason else peers.FixedPoint(level0, store.spacing, store.origin)
+        vtk = {} if vtk_reason else {p.name if p is peers.FixedPoint else gpu_name: p(level0, store.spacing, store.origin)
+                                     for p in (peers.FixedPoint, peers.GpuRayCast)}
         for tf_name in vol.tfs:
             scene = {"camera": CAMERA, "width": size, "height": size, "tf": vol.tfs[tf_name]}
             log(f"{vol.name}, {tf_name}: float64 reference (cached in {args.out / 'reference'})")
             ref = reference_image(level0, scene, store.spacing, store.origin, volume_id=f"{vol.source.name}:"
                                   f"{store.generation}", cache=args.out / "reference", log=log)
             log(f"{vol.name}, {tf_name}: {repeat} round(s) of every case")
-            got = measure(store, vol, tf_name, size, steps, repeat, fp, ref)
+            got = measure(store, vol, tf_name, size, steps, repeat, vtk, ref)
             rows += got
             if i == 0 and tf_name == next(iter(vol.tfs)):  # the first volume's first TF in the gallery
                 gallery[vol.name] = [r for r in got if r["renderer"] == "lodcast" and
                                      (r["quality"] != "full" or r["step"] == 0.5)]
-        if fp is not None:
-            fp.close()
+        for peer in vtk.values():
+            peer.close()
         if vol.name == "chest CT" or args.quick:
             limits["bare"] = bare_march(store, size, repeat)
     ratio_rows = ratios(rows) if not vtk_reason else []
-    result = {"machine": info, "vtk": vtk_reason or "FixedPoint", "size": size, "repeat": repeat, "steps": steps,
+    result = {"machine": info, "vtk": vtk_reason or ["FixedPoint", gpu_name], "size": size, "repeat": repeat, "steps": steps,
               "camera": CAMERA, "limits": limits, "rows": [{k: v for k, v in r.items() if k != "image"} for r in rows],
               "ratios": ratio_rows, "goals": goals(ratio_rows, limits),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

@@ -89,5 +89,13 @@ def test_quick_benchmark_runs_and_measures_against_the_reference(shared_data, tm
         pytest.skip(f"VTK peer not measured: {vtk_reason}")
     vtk = rows[("VTK FixedPoint", "full", 0.5)]
     assert vtk["delta_e"] < 2.5, vtk  # 1.37 measured; twice the opacity unit distance measures 6.96
-    same = next(x for x in out["ratios"] if x.get("vtk_step") == 0.5 and "same_step" in x)
+    same = next(x for x in out["ratios"]
+                if x["peer"] == "VTK FixedPoint" and x.get("vtk_step") == 0.5 and "same_step" in x)
     assert same["same_step"] == pytest.approx(vtk["ms"] / full["ms"])
+    # VTK's GPU ray caster with the same conventions, on the machine's OpenGL (Mesa's llvmpipe without a GPU)
+    gpu_name = out["vtk"][1]
+    assert gpu_name.startswith("VTK GPU (") and m["opengl"]
+    gpu = rows[(gpu_name, "full", 0.5)]
+    assert gpu["delta_e"] < 2.5, gpu  # its 8-bit framebuffer
+    assert any(x["peer"] == gpu_name and "lod30_vs_vtk" in x for x in out["ratios"])
+    assert all(g["goal"].count("FixedPoint") for g in out["goals"] if "VTK" in g["goal"])
