@@ -32,7 +32,9 @@ def error_vs_time(rows: list[dict], path: Path) -> Path:
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.8), dpi=110, squeeze=False)
     for ax, key in zip(axes[0], keys):
         rs = [r for r in rows if (r["volume"], r["tf"]) == key]
-        for renderer, style in (("lodcast", "C0o-"), ("VTK FixedPoint", "C3s--")):
+        peers = sorted({r["renderer"] for r in rs} - {"lodcast", "VTK FixedPoint"})
+        styles = [("lodcast", "C0o-"), ("VTK FixedPoint", "C3s--")] + [(p, f"C{4 + i}D:") for i, p in enumerate(peers)]
+        for renderer, style in styles:
             pts = sorted((r["ms"], r["delta_e"], r["step"]) for r in rs
                          if r["renderer"] == renderer and r["quality"] == "full")
             if pts:

@@ -296,7 +296,8 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
         del data
 
 
-def _cells(pr, da: "lod_atlas.DeviceAtlas", blocks: tuple[slice, slice, slice] | None = None) -> "lod_atlas.AtlasCells | None":
+def _cells(pr, da: "lod_atlas.DeviceAtlas",
+           blocks: tuple[slice, slice, slice] | None = None) -> "lod_atlas.AtlasCells | None":
     """The atlas's half-block cells, where the walk can skip on them (renderer/render.py: _walk_info); a pass needs
     those of the blocks it owns (`blocks`) only."""
     cfg = pr.config
