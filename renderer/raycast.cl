@@ -233,6 +233,14 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         /* sample k < nlast sits at t = t0 + (k + u) dt, i.e. at voxel coordinates qu + k dqk */
         const float3 qu = q0 + (t0 + u * dt) * dq, dqk = dt * dq;
 #define LC_POS(kk) ((kk) < nlast ? t0 + ((float)(kk) + u) * dt : last + u * len_last)
+/* out = the first sample index >= kk whose position is at or after time tb (n: none) */
+#define LC_FIRST_AT(tb, kk, out)                                                     \
+    {                                                                            \
+        const float kf_ = ceil(((tb) - t0) * inv_dt - u);                        \
+        out = kf_ < (float)(kk) ? (kk) : (kf_ > (float)nlast ? nlast : (int)kf_); \
+        while (out > (kk) && LC_POS(out - 1) >= (tb)) out--;                     \
+        while (out < n && LC_POS(out) < (tb)) out++;                             \
+    }
 
 #ifdef LC_ADAPTIVE
         /* 3D DDA over cells. II: half-block cells, cell h covers voxel coordinates [h B/2 - 1/2, (h + 1) B/2 - 1/2),
@@ -346,6 +354,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         int owned = 1; /* the last block's owner is this pass (samples past the grid's last block go with it) */
         const int bgx = P->grid.x, bgy = P->grid.y;
 #endif
+        /* A run of skipped cells costs its DDA steps only: the first sample after it is found once, where the
+         * run ends (t_skip: the time it ends at; -inf: none), with the same result as cell by cell (the first
+         * index >= k whose position is >= the time, and positions are monotone in k). */
+        float t_skip = -INFINITY;
         while (k < n && !done) {
 #ifdef LC_PASSES
             if (LC_POS(k) > t_pass_end) break; /* past the region: nothing more of this pass's */
@@ -356,9 +368,6 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                 const float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves block */
 #ifdef LC_ESS
                 const float info = block_info[(bz * gy + by) * gx + bx];
-#endif
-#if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
-                blk = lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
 #endif
 #ifndef LC_ESS
 #elif defined(LC_MODE_MIP)
@@ -372,12 +381,17 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                 owned = own[((bz / cpb) * bgy + by / cpb) * bgx + bx / cpb];
                 skip = skip || !owned;
 #endif
-                if (tb < t1) {
-                    /* first sample at or after tb; positions are monotone in k */
-                    float kf = ceil((tb - t0) * inv_dt - u);
-                    k_end = kf < (float)k ? k : (kf > (float)nlast ? nlast : (int)kf);
-                    while (k_end > k && LC_POS(k_end - 1) >= tb) k_end--;
-                    while (k_end < n && LC_POS(k_end) < tb) k_end++;
+                if (!skip) {
+#if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
+                    blk = lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
+#endif
+                    if (t_skip > -INFINITY) {
+                        int k_at;
+                        LC_FIRST_AT(t_skip, k, k_at)
+                        k = k_at;
+                        t_skip = -INFINITY;
+                    }
+                    if (tb < t1) LC_FIRST_AT(tb, k, k_end)
                 }
                 if (tnx <= tny && tnx <= tnz) {
                     bx += sx; tnx += tdx; inside = bx >= 0 && bx < gx;
@@ -386,8 +400,22 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                 } else {
                     bz += sz; tnz += tdz; inside = bz >= 0 && bz < gz;
                 }
+                if (skip) {
+                    if (tb >= t1) break; /* the ray leaves the box in this cell: nothing after it */
+#ifdef LC_PASSES
+                    if (tb > t_pass_end) break; /* every later sample lies past the region */
+#endif
+                    t_skip = tb;
+                    continue;
+                }
             }
             else {
+                if (t_skip > -INFINITY) {
+                    int k_at;
+                    LC_FIRST_AT(t_skip, k, k_at)
+                    k = k_at;
+                    t_skip = -INFINITY;
+                }
 #ifdef LC_SAMPLER_ATLAS
                 blk.n = 0; /* rounding left samples beyond the grid's last block: march them (general sampler) */
 #endif
@@ -429,6 +457,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         }
 #endif /* LC_ADAPTIVE */
 #undef LC_POS
+#undef LC_FIRST_AT
     }
 
 #ifdef LC_PASSES
