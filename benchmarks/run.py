@@ -300,8 +300,8 @@ def main(argv=None) -> int:
 
     info = machine()
     vtk_reason = "left out (--no-vtk)" if args.no_vtk else peers.available()
-    gpu_name = None if vtk_reason else f"{peers.GpuRayCast.name} ({peers.renderer_name().split(' (')[0]})"
     info["opengl"] = None if vtk_reason else peers.renderer_name()
+    gpu_name = None if vtk_reason else f"{peers.GpuRayCast.name} ({info['opengl'].split(' (')[0]})"
     log(f"{info['cpu']}, {info['cores']} cores; OpenCL {info['opencl']['name']} ({info['opencl']['platform']}); "
         f"VTK: {vtk_reason or info['versions'].get('vtk')}; OpenGL: {info['opengl']}")
     limits = {"copy_gb_s": copy_bandwidth()}
@@ -310,8 +310,8 @@ def main(argv=None) -> int:
     for i, vol in enumerate(volumes(args.quick)):
         store = store_of(vol, args.out)
         level0 = np.asarray(store.read_level(0))
-        vtk = {} if vtk_reason else {p.name if p is peers.FixedPoint else gpu_name: p(level0, store.spacing, store.origin)
-                                     for p in (peers.FixedPoint, peers.GpuRayCast)}
+        vtk = {} if vtk_reason else {peers.FixedPoint.name: peers.FixedPoint(level0, store.spacing, store.origin),
+                                     gpu_name: peers.GpuRayCast(level0, store.spacing, store.origin)}
         for tf_name in vol.tfs:
             scene = {"camera": CAMERA, "width": size, "height": size, "tf": vol.tfs[tf_name]}
             log(f"{vol.name}, {tf_name}: float64 reference (cached in {args.out / 'reference'})")
@@ -328,7 +328,7 @@ def main(argv=None) -> int:
         if vol.name == "chest CT" or args.quick:
             limits["bare"] = bare_march(store, size, repeat)
     ratio_rows = ratios(rows) if not vtk_reason else []
-    result = {"machine": info, "vtk": vtk_reason or ["FixedPoint", gpu_name], "size": size, "repeat": repeat, "steps": steps,
+    result = {"machine": info, "vtk": vtk_reason or [peers.FixedPoint.name, gpu_name], "size": size, "repeat": repeat, "steps": steps,
               "camera": CAMERA, "limits": limits, "rows": [{k: v for k, v in r.items() if k != "image"} for r in rows],
               "ratios": ratio_rows, "goals": goals(ratio_rows, limits),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

@@ -385,12 +385,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
                     blk = lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
 #endif
-                    if (t_skip > -INFINITY) {
-                        int k_at;
-                        LC_FIRST_AT(t_skip, k, k_at)
-                        k = k_at;
-                        t_skip = -INFINITY;
-                    }
+                    /* from k before a pending run of skipped cells is resolved below: the same index, since the
+                     * samples the run covers lie before t_skip <= tb */
                     if (tb < t1) LC_FIRST_AT(tb, k, k_end)
                 }
                 if (tnx <= tny && tnx <= tnz) {
@@ -410,18 +406,18 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                 }
             }
             else {
-                if (t_skip > -INFINITY) {
-                    int k_at;
-                    LC_FIRST_AT(t_skip, k, k_at)
-                    k = k_at;
-                    t_skip = -INFINITY;
-                }
 #ifdef LC_SAMPLER_ATLAS
                 blk.n = 0; /* rounding left samples beyond the grid's last block: march them (general sampler) */
 #endif
 #ifdef LC_PASSES
                 skip = !owned;
 #endif
+            }
+            if (t_skip > -INFINITY) { /* the first sample after the run of skipped cells just left */
+                int k_at;
+                LC_FIRST_AT(t_skip, k, k_at)
+                k = k_at;
+                t_skip = -INFINITY;
             }
             if (skip) {
                 k = k_end;
