@@ -321,26 +321,37 @@ def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarra
     return out
 
 
-def step_levels(levels: np.ndarray, interpolation: str, skip: np.ndarray | None = None) -> np.ndarray:
-    """Adaptive sampling's step level per cell (C order, int8; -1: skip the cell). interblock: half-block cells
-    (grid 2G): cell h lies in block h >> 1 and its interblock neighbourhood is the blocks c - 1 and c per axis,
-    c = (h + 1) >> 1; its level is the finest loaded level among those eight blocks (thesis §3.6.1: the minimum
-    over the neighbouring blocks). nearest_block: the cells are the blocks (grid G), each with its own level.
-    Cells of skipped blocks (`skip`, and every level -1 block) are -1."""
+def step_levels(levels: np.ndarray, interpolation: str, block_size: int,
+                skip: np.ndarray | None = None) -> np.ndarray:
+    """Adaptive sampling's step level per cell (C order, int8; -1: skip the cell): the kernel steps step * 2^s in
+    a cell of step level s. interblock: half-block cells (grid 2G): cell h lies in block h >> 1 and its
+    interblock neighbourhood is the blocks c - 1 and c per axis, c = (h + 1) >> 1; its level k is the finest
+    loaded level among those eight blocks (thesis §3.6.1: the minimum over the neighbouring blocks).
+    nearest_block: the cells are the blocks (grid G), each with its own level. Cells of skipped blocks (`skip`,
+    and every level -1 block) are -1.
+
+    s = k at level 0, s = k + 1 at coarse levels (capped at log2 B, the longest step the kernel has a table for;
+    a step never runs past its cell anyway): the base step over-samples level 0 (default 1/2 voxel: a sharp TF
+    edge crossed inside a voxel), while a level-k field is a smooth average, classified by a distribution that
+    blurs the TF by the spread behind it, and needs no more than about one sample per coarse voxel (2^k voxels
+    at the default step). Measured on the chest and engine CTs (3 + 2 TFs, 10:1 to 100:1, 256²): 1.1-1.8x fewer
+    samples than step * 2^k, mean ΔE within ±0.25 of it (benchmarks/bench_consistent_lod.py)."""
     lv = np.asarray(levels).astype(np.int64)
     G = lv.shape
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
     if interpolation != "interblock":
-        return np.ascontiguousarray(np.where(off, -1, lv).astype(np.int8))
-    own = [np.arange(2 * g) >> 1 for g in G]
-    big = np.where(lv < 0, 99, lv)
-    c = [(np.arange(2 * g) + 1) >> 1 for g in G]
-    out = np.full(tuple(2 * g for g in G), 99, np.int64)
-    for s in range(8):
-        ix = [np.clip(c[a] - 1 + ((s >> (2 - a)) & 1), 0, G[a] - 1) for a in range(3)]
-        out = np.minimum(out, big[np.ix_(*ix)])
-    out[off[np.ix_(*own)]] = -1
-    out[out >= 99] = -1
+        out = lv.copy()
+    else:
+        big = np.where(lv < 0, 99, lv)
+        c = [(np.arange(2 * g) + 1) >> 1 for g in G]
+        out = np.full(tuple(2 * g for g in G), 99, np.int64)
+        for s in range(8):
+            ix = [np.clip(c[a] - 1 + ((s >> (2 - a)) & 1), 0, G[a] - 1) for a in range(3)]
+            out = np.minimum(out, big[np.ix_(*ix)])
+        off = off[np.ix_(*[np.arange(2 * g) >> 1 for g in G])]
+    out[off | (out >= 99)] = -1
+    np.add(out, 1, out=out, where=out >= 1)
+    np.minimum(out, int(block_size).bit_length() - 1, out=out)
     return np.ascontiguousarray(out.astype(np.int8))
 
 

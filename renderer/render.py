@@ -307,18 +307,18 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     steps = None
     if cfg.adaptive:
         skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
-        steps = _step_levels(lv, scene.sampling.interpolation, skip)
+        steps = _step_levels(lv, scene.sampling.interpolation, int(B), skip)
     return LodPlan(lv, reduction, pred, steps, sel), info, n_empty, cfg
 
 
-def _step_levels(lv: np.ndarray, interpolation: str, skip: np.ndarray | None) -> np.ndarray:
+def _step_levels(lv: np.ndarray, interpolation: str, block_size: int, skip: np.ndarray | None) -> np.ndarray:
     """atlas.step_levels, kept for the last few (levels, skip) pairs: a turntable asks for the same each frame, and
     on a grid of a million blocks it costs 0.6 s."""
-    key = (interpolation, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
+    key = (interpolation, block_size, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
            None if skip is None else hashlib.sha1(np.packbits(skip).tobytes()).hexdigest())
     hit = _STEPS.get(key)
     if hit is None:
-        hit = lod_atlas.step_levels(lv, interpolation, skip)
+        hit = lod_atlas.step_levels(lv, interpolation, block_size, skip)
         _STEPS.put(key, hit, hit.nbytes)
     return hit
 

@@ -116,8 +116,9 @@ def test_interblock_limited_adaptive_follows_the_finest_neighbour(store):
 
 @pytest.mark.parametrize("level, step", [(4, 0.5), (2, 0.5), (1, 0.3), (3, 0.7)])
 def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
-    """Opacity correction: a constant volume at a coarse level, stepped at 2^level x the base step (whole steps
-    take their alpha from the per-level tables, cut ones from the extinction), gives 1 - (1 - a)^(L / unit)."""
+    """Opacity correction: a constant volume at a coarse level k, stepped at 2^(k + 1) x the base step (capped at
+    2^4 = B: renderer/atlas.py's step_levels; whole steps take their alpha from the per-level tables, cut ones
+    from the extinction), gives 1 - (1 - a)^(L / unit)."""
     st = lodcast.ingest(np.ones(SHAPE, np.float32), tmp_path / "c.zarr", block_size=B, progress=False)
     for f in ((1, 0, 0), (1, 0.3, -0.2)):
         cam = _cam(f)
@@ -128,7 +129,7 @@ def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
         if f[1] == 0:
             np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 80, atol=2e-5)
             n_cells, cell = 10, B / 2
-            assert r.report["samples"] == n_cells * int(np.ceil(cell / (step * 2**level) - 1e-6)) * W * H
+            assert r.report["samples"] == n_cells * int(np.ceil(cell / (step * 2 ** min(level + 1, 4)) - 1e-6)) * W * H
 
 
 def test_huge_steps_still_cross_every_cell(store):
@@ -137,3 +138,22 @@ def test_huge_steps_still_cross_every_cell(store):
     r = render(store, _scene(cam, step=500.0, adaptive_object=True, early_termination=1.0), levels=LEVELS)
     assert r.report["samples"] == 3 * W * H  # NB: blocks 1, 2, 3, one (cut) step each
     np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 16, atol=2e-5)
+
+
+def test_step_levels_one_sample_per_coarse_voxel():
+    """Step level per cell: 0 where the finest level of the cell's blocks is 0 (the base step), k + 1 where it is
+    k >= 1 (one sample per level-k voxel at the default step 1/2), capped at log2 B, -1 for unloaded or skipped
+    blocks; interblock takes the finest level of each half-block cell's neighbourhood."""
+    from lodcast.renderer.atlas import step_levels
+
+    lv = np.array([4, 3, 0, 1, 2, -1, 2], np.int8).reshape(1, 1, 7)
+    nb = step_levels(lv, "nearest_block", 16)
+    assert nb.ravel().tolist() == [4, 4, 0, 2, 3, -1, 3]
+    skip = np.zeros(lv.shape, bool)
+    skip[..., 6] = True
+    assert step_levels(lv, "nearest_block", 16, skip).ravel().tolist() == [4, 4, 0, 2, 3, -1, -1]
+    assert step_levels(lv, "nearest_block", 8).ravel().tolist() == [3, 3, 0, 2, 3, -1, 3]
+    # half-block cells: cell h's neighbourhood is blocks (h+1)//2 - 1 and (h+1)//2 (clamped to the grid)
+    ii = step_levels(lv, "interblock", 16)
+    assert ii.shape == (2, 2, 14) and (ii == ii[:1, :1]).all()
+    assert ii[0, 0].tolist() == [4, 4, 4, 0, 0, 0, 0, 2, 2, 3, -1, -1, 3, 3]
