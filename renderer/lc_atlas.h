@@ -65,7 +65,7 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
 /* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]:
  * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (float16 bits)
  * at the same offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
-static inline float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
+static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
     if (n == 1) /* a one-sample brick (level log2 B): its value, without eight reads of the same element */
 #ifdef LC_DIST
@@ -91,7 +91,7 @@ static inline float2 lc_brick(__global const lc_voxel* atlas, __global const ush
 }
 
 /* NB sample of a loaded block (entry != 0) at level-0 voxel coordinates q. */
-static inline float2 lc_nb(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry, const int bx,
+static LC_HOT float2 lc_nb(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry, const int bx,
                            const int by, const int bz, const LcAtlasGeom g, const float3 q) {
     const int lvl = (int)(entry & 15UL) - 1;
     const int n = (int)g.B >> lvl;
@@ -306,7 +306,34 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     return b;
 }
 
-static inline float2 lc_sample_blk(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
+#ifdef LC_INTERP_II
+/* lc_blk for the samples of half-block cell (hx, hy, hz) of the block walk: the cell lies in one interblock
+ * neighbourhood (its block's octant towards the cell's side on every axis), so on the near side of each axis a the
+ * fast window needs only the half-sample widths of the four blocks of that neighbourhood that share the block's
+ * a-coordinate (the argument above, restricted to the cell's own neighbourhood), not the largest of the 3x3 slice:
+ * the window widens wherever a coarser block of the slice lies on the far side. The far side keeps lc_blk's bound
+ * (a sample rounded into the next cell is still sampled exactly). Six more index reads per cell. */
+static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g, const int hx, const int hy,
+                                const int hz) {
+    const int bx = hx >> 1, by = hy >> 1, bz = hz >> 1;
+    LcBlk b = lc_blk(imap, g, bx, by, bz);
+    if (!b.n) return b;
+    /* the neighbours towards the cell's side, clamped to the grid (where the neighbourhood folds onto the block) */
+    const int nx = lc_clampi(bx + ((hx & 1) ? 1 : -1), g.gx - 1), ny = lc_clampi(by + ((hy & 1) ? 1 : -1), g.gy - 1);
+    const int nz = lc_clampi(bz + ((hz & 1) ? 1 : -1), g.gz - 1);
+    const float hX = lc_half(LC_IMAP(nx, by, bz)), hY = lc_half(LC_IMAP(bx, ny, bz)), hZ = lc_half(LC_IMAP(bx, by, nz));
+    const float hXY = lc_half(LC_IMAP(nx, ny, bz)), hXZ = lc_half(LC_IMAP(nx, by, nz)), hYZ = lc_half(LC_IMAP(bx, ny, nz));
+    const float3 hm = (float3)(fmax(fmax(b.ho, hY), fmax(hZ, hYZ)), fmax(fmax(b.ho, hX), fmax(hZ, hXZ)),
+                               fmax(fmax(b.ho, hX), fmax(hY, hXY)));
+    const float3 lo = hm * b.s - 0.5f, hi = (float)b.n - 0.5f - hm * b.s;
+    if (hx & 1) b.hi.x = hi.x; else b.lo.x = lo.x;
+    if (hy & 1) b.hi.y = hi.y; else b.lo.y = lo.y;
+    if (hz & 1) b.hi.z = hi.z; else b.lo.z = lo.z;
+    return b;
+}
+#endif
+
+static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const LcBlk b, LcHood* hd, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II

@@ -17,6 +17,15 @@ typedef LC_VOXEL lc_voxel;
  * (mirrored by lodcast.renderer.sampler.voxel_offset). */
 #define LC_OFFSET(x, y, z, nx, ny) (((ulong)(z) * (ulong)(ny) + (ulong)(y)) * (ulong)(nx) + (ulong)(x))
 
+/* For the atlas sampler's per-sample functions: PoCL's clang leaves them out of line (they have several callers),
+ * and a call in the march makes every live value spill (measured on the chest CT at 30:1, 256²: nearest block
+ * 1.2-1.35x, interblock 1.07x faster inlined). Other compilers keep their own judgement. */
+#ifdef __clang__
+#define LC_HOT inline __attribute__((always_inline))
+#else
+#define LC_HOT inline
+#endif
+
 /* v clamped to [0, hi] */
 static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
 

@@ -250,11 +250,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #ifdef LC_INTERP_II
         const float Hc = 0.5f * (float)P->grid.w;
         const int hx = 2 * P->grid.x, hy = 2 * P->grid.y, hz = 2 * P->grid.z;
-#define LC_CELL_BLOCK(c) ((c) >> 1)
 #else /* nearest block: the step level is constant over a block, so the cells are the blocks */
         const float Hc = (float)P->grid.w;
         const int hx = P->grid.x, hy = P->grid.y, hz = P->grid.z;
-#define LC_CELL_BLOCK(c) (c)
 #endif
         LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
@@ -301,8 +299,11 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #else
             if (lvl >= 0 && tb > t) { /* limited: segments of step * 2^lvl from t, the last one cut at tb */
                 const float h = dt * (float)(1 << lvl);
-                blk = lc_blk(imap, geom, LC_CELL_BLOCK(lc_clampi(bx, hx - 1)), LC_CELL_BLOCK(lc_clampi(by, hy - 1)),
-                             LC_CELL_BLOCK(lc_clampi(bz, hz - 1)));
+#ifdef LC_INTERP_II
+                blk = lc_blk_cell(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1));
+#else
+                blk = lc_blk(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1));
+#endif
                 const float span = tb - t;
                 int m = (int)ceil(span / h); /* segments; all whole but the last */
                 m = m < 1 ? 1 : m;
@@ -338,7 +339,6 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
         }
 #undef LC_R
-#undef LC_CELL_BLOCK
 #else
         int k = 0;
 #if defined(LC_ESS) || defined(LC_PASSES)
@@ -383,7 +383,11 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
                 if (!skip) {
 #if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
+#ifdef LC_INTERP_II
+                    blk = cpb == 2 ? lc_blk_cell(imap, geom, bx, by, bz) : lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
+#else
                     blk = lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
+#endif
 #endif
                     /* from k before a pending run of skipped cells is resolved below: the same index, since the
                      * samples the run covers lie before t_skip <= tb */
