@@ -323,8 +323,10 @@ static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g,
     const int nz = lc_clampi(bz + ((hz & 1) ? 1 : -1), g.gz - 1);
     const float hX = lc_half(LC_IMAP(nx, by, bz)), hY = lc_half(LC_IMAP(bx, ny, bz)), hZ = lc_half(LC_IMAP(bx, by, nz));
     const float hXY = lc_half(LC_IMAP(nx, ny, bz)), hXZ = lc_half(LC_IMAP(nx, by, nz)), hYZ = lc_half(LC_IMAP(bx, ny, nz));
-    const float3 hm = (float3)(fmax(fmax(b.ho, hY), fmax(hZ, hYZ)), fmax(fmax(b.ho, hX), fmax(hZ, hXZ)),
-                               fmax(fmax(b.ho, hX), fmax(hY, hXY)));
+#define LC_MAX4(a, b, c, d) (((a) > (b) ? (a) : (b)) > ((c) > (d) ? (c) : (d)) ? ((a) > (b) ? (a) : (b)) : ((c) > (d) ? (c) : (d)))
+    /* (no fmax: PoCL calls builtins out of line) */
+    const float3 hm = (float3)(LC_MAX4(b.ho, hY, hZ, hYZ), LC_MAX4(b.ho, hX, hZ, hXZ), LC_MAX4(b.ho, hX, hY, hXY));
+#undef LC_MAX4
     const float3 lo = hm * b.s - 0.5f, hi = (float)b.n - 0.5f - hm * b.s;
     if (hx & 1) b.hi.x = hi.x; else b.lo.x = lo.x;
     if (hy & 1) b.hi.y = hi.y; else b.lo.y = lo.y;
