@@ -307,6 +307,12 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
 }
 
 #ifdef LC_INTERP_II
+/* the largest of four (no fmax: PoCL calls builtins out of line) */
+static inline float lc_max4(const float a, const float b, const float c, const float d) {
+    const float ab = a > b ? a : b, cd = c > d ? c : d;
+    return ab > cd ? ab : cd;
+}
+
 /* lc_blk for the samples of half-block cell (hx, hy, hz) of the block walk: the cell lies in one interblock
  * neighbourhood (its block's octant towards the cell's side on every axis), so on the near side of each axis a the
  * fast window needs only the half-sample widths of the four blocks of that neighbourhood that share the block's
@@ -323,10 +329,7 @@ static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g,
     const int nz = lc_clampi(bz + ((hz & 1) ? 1 : -1), g.gz - 1);
     const float hX = lc_half(LC_IMAP(nx, by, bz)), hY = lc_half(LC_IMAP(bx, ny, bz)), hZ = lc_half(LC_IMAP(bx, by, nz));
     const float hXY = lc_half(LC_IMAP(nx, ny, bz)), hXZ = lc_half(LC_IMAP(nx, by, nz)), hYZ = lc_half(LC_IMAP(bx, ny, nz));
-#define LC_MAX4(a, b, c, d) (((a) > (b) ? (a) : (b)) > ((c) > (d) ? (c) : (d)) ? ((a) > (b) ? (a) : (b)) : ((c) > (d) ? (c) : (d)))
-    /* (no fmax: PoCL calls builtins out of line) */
-    const float3 hm = (float3)(LC_MAX4(b.ho, hY, hZ, hYZ), LC_MAX4(b.ho, hX, hZ, hXZ), LC_MAX4(b.ho, hX, hY, hXY));
-#undef LC_MAX4
+    const float3 hm = (float3)(lc_max4(b.ho, hY, hZ, hYZ), lc_max4(b.ho, hX, hZ, hXZ), lc_max4(b.ho, hX, hY, hXY));
     const float3 lo = hm * b.s - 0.5f, hi = (float)b.n - 0.5f - hm * b.s;
     if (hx & 1) b.hi.x = hi.x; else b.lo.x = lo.x;
     if (hy & 1) b.hi.y = hi.y; else b.lo.y = lo.y;
