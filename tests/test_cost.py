@@ -199,4 +199,6 @@ def test_a_small_render_does_not_wait_behind_a_big_one(tmp_path, monkeypatch):
 
     (big_sent, big_s), (small_sent, small_s) = asyncio.run(race())
     assert big_sent[0]["status"] == 200 and small_sent[0]["status"] == 200
-    assert small_s < 0.3 * big_s, (small_s, big_s)  # measured 0.08 of 0.34 s at 256²
+    # measured 0.08 of 0.34 s at 256² on an idle machine, 0.42 of 1.25 s with another process on both cores;
+    # waiting behind the big render would take all of it
+    assert small_s < 0.5 * big_s, (small_s, big_s)
