@@ -45,25 +45,25 @@ class ByteLru:
             old = self._d.pop(key, None)
             if old is not None:
                 self._bytes -= old[1]
-            if nbytes > self.max_bytes and not self.keep_last:
+            bound = self.max_bytes  # once: a function bound is asked per insertion (a million bricks in a cold image)
+            if nbytes > bound and not self.keep_last:
                 return
             self._d[key] = (value, int(nbytes))
             self._bytes += int(nbytes)
-            self._evict()
+            self._evict(bound)
 
     def trim(self) -> None:
         """Evict down to the bound now (a bound that is a function may have shrunk since the last insertion)."""
         with self._lock:
-            self._evict()
+            self._evict(self.max_bytes)
 
     def clear(self) -> None:
         with self._lock:
             self._d.clear()
             self._bytes = 0
 
-    def _evict(self) -> None:
+    def _evict(self, bound: int) -> None:
         floor = 1 if self.keep_last else 0
-        bound = self.max_bytes
         while self._bytes > bound and len(self._d) > floor:
             _, (_, n) = self._d.popitem(last=False)
             self._bytes -= n
