@@ -312,31 +312,34 @@ static inline float lc_max4(const float a, const float b, const float c, const f
     const float ab = a > b ? a : b, cd = c > d ? c : d;
     return ab > cd ? ab : cd;
 }
+#endif
 
-/* lc_blk for the samples of half-block cell (hx, hy, hz) of the block walk: the cell lies in one interblock
- * neighbourhood (its block's octant towards the cell's side on every axis), so on the near side of each axis a the
- * fast window needs only the half-sample widths of the four blocks of that neighbourhood that share the block's
- * a-coordinate (the argument above, restricted to the cell's own neighbourhood), not the largest of the 3x3 slice:
- * the window widens wherever a coarser block of the slice lies on the far side. The far side keeps lc_blk's bound
- * (a sample rounded into the next cell is still sampled exactly). Six more index reads per cell. */
-static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g, const int hx, const int hy,
-                                const int hz) {
-    const int bx = hx >> 1, by = hy >> 1, bz = hz >> 1;
+/* lc_blk for the samples of cell (x, y, z) of a walk with cpb cells per block edge. With II and half-block cells
+ * (cpb 2) the cell lies in one interblock neighbourhood (its block's octant towards the cell's side on every
+ * axis), so on the near side of each axis a the fast window needs only the half-sample widths of the four blocks
+ * of that neighbourhood that share the block's a-coordinate (the argument above, restricted to the cell's own
+ * neighbourhood), not the largest of the 3x3 slice: the window widens wherever a coarser block of the slice lies
+ * on the far side. The far side keeps lc_blk's bound (a sample rounded into the next cell is still sampled
+ * exactly). Six more index reads per cell. */
+static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g, const int x, const int y,
+                                const int z, const int cpb) {
+    const int bx = x / cpb, by = y / cpb, bz = z / cpb;
     LcBlk b = lc_blk(imap, g, bx, by, bz);
-    if (!b.n) return b;
+#ifdef LC_INTERP_II
+    if (cpb != 2 || !b.n) return b;
     /* the neighbours towards the cell's side, clamped to the grid (where the neighbourhood folds onto the block) */
-    const int nx = lc_clampi(bx + ((hx & 1) ? 1 : -1), g.gx - 1), ny = lc_clampi(by + ((hy & 1) ? 1 : -1), g.gy - 1);
-    const int nz = lc_clampi(bz + ((hz & 1) ? 1 : -1), g.gz - 1);
+    const int nx = lc_clampi(bx + ((x & 1) ? 1 : -1), g.gx - 1), ny = lc_clampi(by + ((y & 1) ? 1 : -1), g.gy - 1);
+    const int nz = lc_clampi(bz + ((z & 1) ? 1 : -1), g.gz - 1);
     const float hX = lc_half(LC_IMAP(nx, by, bz)), hY = lc_half(LC_IMAP(bx, ny, bz)), hZ = lc_half(LC_IMAP(bx, by, nz));
     const float hXY = lc_half(LC_IMAP(nx, ny, bz)), hXZ = lc_half(LC_IMAP(nx, by, nz)), hYZ = lc_half(LC_IMAP(bx, ny, nz));
     const float3 hm = (float3)(lc_max4(b.ho, hY, hZ, hYZ), lc_max4(b.ho, hX, hZ, hXZ), lc_max4(b.ho, hX, hY, hXY));
     const float3 lo = hm * b.s - 0.5f, hi = (float)b.n - 0.5f - hm * b.s;
-    if (hx & 1) b.hi.x = hi.x; else b.lo.x = lo.x;
-    if (hy & 1) b.hi.y = hi.y; else b.lo.y = lo.y;
-    if (hz & 1) b.hi.z = hi.z; else b.lo.z = lo.z;
+    if (x & 1) b.hi.x = hi.x; else b.lo.x = lo.x;
+    if (y & 1) b.hi.y = hi.y; else b.lo.y = lo.y;
+    if (z & 1) b.hi.z = hi.z; else b.lo.z = lo.z;
+#endif
     return b;
 }
-#endif
 
 static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const LcBlk b, LcHood* hd, const float3 q) {

@@ -9,8 +9,8 @@
  *                     block's level (NB) or the finest of the eight blocks of the cell's interblock neighbourhood
  *                     (II), one more at coarse levels; -1 = skip) the step is step * 2^s, and the steps restart
  *                     at every cell boundary (limited: a long step never runs into a finer block); each segment's
- *                     opacity is corrected for its length (whole steps from a
- *                     per-level alpha table, the cut one from the extinction): constant regions stay exact
+ *                     opacity is corrected for its length (whole steps from a per-level alpha table, the cut one
+ *                     from the extinction): constant regions stay exact
  *   LC_ADAPTIVE_NAIVE with LC_ADAPTIVE: for comparison/benchmarks only: the step is chosen by the cell where it
  *                     starts and is not cut at cell boundaries (it may run deep into a finer block)
  *   LC_DIST           (atlas, composite) classification by distribution: coarse samples carry the standard
@@ -249,12 +249,12 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
          * block centres); NB: the blocks. step_level holds the cell's step level (grid 2G for II, G for NB, C order
          * z, y, x; -1: skip the cell). */
 #ifdef LC_INTERP_II
-        const float Hc = 0.5f * (float)P->grid.w;
-        const int hx = 2 * P->grid.x, hy = 2 * P->grid.y, hz = 2 * P->grid.z;
+        const int cpb = 2; /* cells per block edge */
 #else /* nearest block: the step level is constant over a block, so the cells are the blocks */
-        const float Hc = (float)P->grid.w;
-        const int hx = P->grid.x, hy = P->grid.y, hz = P->grid.z;
+        const int cpb = 1;
 #endif
+        const float Hc = (float)P->grid.w / (float)cpb;
+        const int hx = cpb * P->grid.x, hy = cpb * P->grid.y, hz = cpb * P->grid.z;
         LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
         float t = t0;
@@ -300,11 +300,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #else
             if (lvl >= 0 && tb > t) { /* limited: segments of step * 2^lvl from t, the last one cut at tb */
                 const float h = dt * (float)(1 << lvl);
-#ifdef LC_INTERP_II
-                blk = lc_blk_cell(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1));
-#else
-                blk = lc_blk(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1));
-#endif
+                blk = lc_blk_cell(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1), cpb);
                 const float span = tb - t;
                 int m = (int)ceil(span / h); /* segments; all whole but the last */
                 m = m < 1 ? 1 : m;
@@ -384,11 +380,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
                 if (!skip) {
 #if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
-#ifdef LC_INTERP_II
-                    blk = cpb == 2 ? lc_blk_cell(imap, geom, bx, by, bz) : lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
-#else
-                    blk = lc_blk(imap, geom, bx / cpb, by / cpb, bz / cpb);
-#endif
+                    blk = lc_blk_cell(imap, geom, bx, by, bz, cpb);
 #endif
                     /* from k before a pending run of skipped cells is resolved below: the same index, since the
                      * samples the run covers lie before t_skip <= tb */
