@@ -2,9 +2,10 @@
 
 Pass 1 reads the source once, slab by slab: every level is built by average downsampling within each block
 (thesis §3.1: levels B, B/2, … 1 per block; padding by edge replication), written shard by shard, and the
-per-block min/max/mean/count gathered. Pass 2 reads level 0 back from the new store, slab by slab with a one-voxel
-halo, for the border-inclusive histograms, their simplified forms and the border-inclusive min/max, which need
-the volume's value range first. Peak memory is a few slabs whatever the depth.
+per-block min/max/mean/count gathered. Pass 2 reads level 0 again in z order (the source in pieces of a few
+slices when it re-reads cheaply, else the new store slab by slab) for the border-inclusive histograms, their
+simplified forms and the border-inclusive min/max, which need the volume's value range first. Peak memory is a
+few slabs whatever the depth.
 
 The store is written under a hidden temporary name beside the destination and renamed into place when complete,
 so a killed ingest never leaves anything at the destination that opens as a store.
@@ -106,17 +107,22 @@ def ingest(
     return open_store(dest)
 
 
-#: ingest's working set per voxel of one block-slab (B slices of Y x X): the source slab and the next one being
-#: read, in the voxel type, the levels and standard deviations of the slab, plus float32 temporaries per row of
-#: blocks (the coarse levels' rows wait for their shard depth in a temporary file, not in memory: 128 x 2048²
-#: uint16 went from 840 to 743 MB peak). Peak RSS measured at B = 16, 48 slices: uint8 2048² 616 MB, uint16 1024² 306 MB,
-#: uint16 2048² 705 MB, float32 1536² 662 MB; this formula is 9-24 % above each, an upper estimate (a fresh CI
-#: install peaked at 342 MB for uint16 40 x 1024², 8 % under it)
-WORKING_BYTES_PER_ITEM, WORKING_BYTES_EXTRA = 3, 4
+#: ingest's working set per voxel of one block-slab (B slices of Y x X): the source slab, plus the levels and
+#: standard deviations of the slab and float32 temporaries per row of blocks (the coarse levels' rows wait for their
+#: shard depth in a temporary file, and the per-block statistics go to the store row by row, not held in memory).
+#: Peak RSS measured at B = 16, 48 slices: uint8 2048² 335 MB, uint16 1024² 251 MB, uint16 2048² 391 MB, float32
+#: 1536² 446 MB (1024x2048² uint16, 8 GiB: 533 MB before the statistics went row by row); this formula is 27-71 %
+#: above each, an upper estimate with room for the base of another installation (a fresh CI install once peaked
+#: 90 MB above this machine)
+WORKING_BYTES_PER_ITEM, WORKING_BYTES_EXTRA = 1, 3
 #: slabs up to this size are read while the last one is processed; larger ones after it (memory over speed)
 READ_AHEAD_BYTES = 64 << 20
-#: the interpreter, NumPy, zarr, numcodecs and the thread pools, before any voxel
-BASE_BYTES = 200_000_000
+#: pass 2 (histograms) reads a cheaply re-read source in pieces of up to this many bytes (at least a slice), one
+#: counted while the next is read: on 2048² uint16 slices a whole 16-slice slab was 128 MB of its peak
+COUNT_BYTES = 32 << 20
+#: the interpreter, NumPy, zarr, numcodecs, the thread pools and the OpenCL device (simplified histograms), before
+#: any voxel
+BASE_BYTES = 300_000_000
 
 
 def working_bytes(shape: tuple[int, ...], dtype: np.dtype, block_size: int) -> int:
@@ -371,12 +377,17 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             dimension_names=("z", "y", "x"), config=COMPLETE,
         )
         std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-std-{k}"))
-    stats = {name: np.full(lay.grid, np.nan) for name in ("min", "max", "mean", "count", "min_border", "max_border")}
-    level_var = np.zeros(lay.grid + (lay.n_levels,))
-    std_max = 0.0
+    # per-block statistics go to the store a row of blocks at a time: held whole, a 1024x2048² volume's came to
+    # 92 MB of ingest's peak, growing with the depth
+    blocks = _Unlisted(root, "blocks")
+    stats = {name: blocks.create_array(name, shape=lay.grid, dtype=np.float64, chunks=(1, gy, gx), fill_value=np.nan)
+             for name in ("min", "max", "mean", "count", "min_border", "max_border")}
+    level_std = blocks.create_array("level_std", shape=lay.grid + (lay.n_levels,), dtype=np.float64,
+                                    chunks=(1, gy, gx, lay.n_levels), fill_value=0.0)
+    lo, hi, std_max = np.inf, -np.inf, 0.0
     pool = ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1)
     reader = ThreadPoolExecutor(max_workers=1)  # sources are read in order, one slab ahead
-    bar = _progress(2 * gz, show, f"ingest {Path(source_label).name}")
+    bar = _progress(3 * gz, show, f"ingest {Path(source_label).name}")
     try:
         # pass 1: the next slab is read while rows of this one are downsampled on the pool and level 0 is written
         nan_count = 0
@@ -392,61 +403,65 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                 w.add(np.concatenate([stds[k] for _, stds, _ in parts], axis=1))
             std_max = max([std_max] + [p[2]["std_max"] for p in parts])
             st = {key: np.stack([p[2][key] for p in parts]) for key in ("min", "max", "sum", "count", "level_var")}
-            level_var[bz] = st["level_var"]
+            level_std[bz] = np.sqrt(st["level_var"])
             stats["min"][bz], stats["max"][bz], stats["count"][bz] = st["min"], st["max"], st["count"]
             with np.errstate(invalid="ignore", divide="ignore"):
                 stats["mean"][bz] = np.where(st["count"] > 0, st["sum"] / np.maximum(st["count"], 1), np.nan)
+            if (st["count"] > 0).any():
+                lo, hi = min(lo, float(np.nanmin(st["min"]))), max(hi, float(np.nanmax(st["max"])))
             nan_count += int(slab.size - st["count"].sum())
             bar.update(1)
             del slab, parts, rows  # before the next slab is read
         for w in writers + std_writers:
             w.flush()
             w.close()
-        if not (stats["count"] > 0).any():
+        if lo > hi:
             raise SourceError("the volume holds no valid voxel (every value is NaN)")
-        lo, hi = float(np.nanmin(stats["min"])), float(np.nanmax(stats["max"]))
         bins = Bins.for_range(lo, hi, integer=dtype.kind in "iu", max_bins=n_bins)
         seg = min(segments, bins.count)
-        blocks = _Unlisted(root, "blocks")
         overall = np.zeros(bins.count)  # the volume's histogram (borders counted twice): the omero window
         hist_arr = blocks.create_array("hist", shape=lay.grid + (bins.count,), dtype=np.uint32,
                                        chunks=(1, gy, gx, bins.count), compressors=compressor, fill_value=0)
+        # pass 2: level 0 again, in z order (from the source when that is cheap, else read back from the store).
+        # Each piece is counted alone: into its own row of blocks, and a row's first and last slices also into the
+        # borders of the rows below and above. A row is complete once the first piece of the next one is counted,
+        # so only the piece being counted, the one being read and up to three rows of counts are alive.
+        level0 = group["0"]
+        if src.rereads_cheaply:  # pieces of a few slices: a slab of wide slices is this pass's largest array
+            read = lambda z0, z1: _read_slices(src, lay, z0, z1)  # noqa: E731
+            step = _count_slices(lay, dtype)
+        else:  # whole block-slabs: a thinner read of the store would decode each chunk several times
+            read = lambda z0, z1: _read_banded(level0, z0, z1)  # noqa: E731
+            step = lay.block_size
+        pieces = _pieces(lay, step)
+        acc: dict[int, list[np.ndarray]] = {}
+        task = pool.submit(_piece_histograms, read(*pieces[0][1:]), lay, bins, *_borders(lay, *pieces[0]))
+        for i, (bz, z0, _) in enumerate(pieces):
+            nxt = read(*pieces[i + 1][1:]) if i + 1 < len(pieces) else None  # read while this one is counted
+            parts = task.result()
+            if nxt is not None:
+                task = pool.submit(_piece_histograms, nxt, lay, bins, *_borders(lay, *pieces[i + 1]))
+                del nxt
+            for row, part in zip((bz, bz - 1, bz + 1), parts):
+                if part is not None:
+                    _merge(acc, row, part)
+            done = [bz - 1] if bz > 0 and z0 == bz * lay.block_size else []
+            for row in done + ([bz] if i == len(pieces) - 1 else []):
+                hist, stats["min_border"][row], stats["max_border"][row] = acc.pop(row)
+                hist_arr[row] = hist
+                overall += hist.reshape(-1, bins.count).sum(axis=0)
+                bar.update(1)
+            del parts
+        # the simplified histograms, once the volume's data is no longer in memory: the OpenCL device that finds
+        # them took 100-150 MB of the process's memory (PoCL's compiler and threads) from the moment it started
         starts_arr = blocks.create_array("hist_starts", shape=lay.grid + (seg + 1,), dtype=np.uint16,
                                          chunks=(1, gy, gx, seg + 1), fill_value=0)
         heights_arr = blocks.create_array("hist_heights", shape=lay.grid + (seg,), dtype=np.float32,
                                           chunks=(1, gy, gx, seg), fill_value=0)
-        # pass 2: level 0 slab by slab (from the source again when that is cheap, else read back from the store);
-        # each slab travels with its neighbours' facing slices
-        level0 = group["0"]
-        b = lay.block_size
-        # Each slab is counted alone: into its own blocks, and its first and last slices into the borders of
-        # the blocks above and below. A row of blocks is complete once its next slab is counted, so only the
-        # slab being counted and the one being decoded are alive.
-        if src.rereads_cheaply:
-            read = lambda z: _read_slab(src, lay, z)  # noqa: E731
-        else:
-            read = lambda z: _read_banded(level0, z * b, (z + 1) * b)  # noqa: E731
-        acc: dict[int, list[np.ndarray]] = {}
-        task = pool.submit(_slab_histograms, read(0), lay, bins)
-        for bz in range(gz):
-            nxt = read(bz + 1) if ahead and bz + 1 < gz else None
-            own, first, last = task.result()
-            if bz + 1 < gz:
-                task = pool.submit(_slab_histograms, read(bz + 1) if nxt is None else nxt, lay, bins)
-                del nxt
-            for row, part in ((bz, own), (bz - 1, first), (bz + 1, last)):
-                if 0 <= row < gz:
-                    _merge(acc, row, part)
-            for row in ([bz - 1] if bz > 0 else []) + ([bz] if bz == gz - 1 else []):
-                hist, mn, mx = acc.pop(row)
-                starts, heights = simplify(hist.reshape(gy * gx, -1), seg)
-                hist_arr[row], starts_arr[row], heights_arr[row] = hist, starts.reshape(gy, gx, -1), heights.reshape(gy, gx, -1)
-                overall += hist.reshape(-1, bins.count).sum(axis=0)
-                stats["min_border"][row], stats["max_border"][row] = mn, mx
-                bar.update(1)
-        for name, values in stats.items():
-            blocks.create_array(name, data=values, chunks=lay.grid, fill_value=np.nan)
-        blocks.create_array("level_std", data=np.sqrt(level_var), chunks=lay.grid + (lay.n_levels,), fill_value=0.0)
+        for row in range(gz):
+            starts, heights = simplify(np.asarray(hist_arr[row]).reshape(gy * gx, -1), seg)
+            starts_arr[row], heights_arr[row] = starts.reshape(gy, gx, -1), heights.reshape(gy, gx, -1)
+            bar.update(1)
     finally:
         for w in writers + std_writers:
             w.close()
@@ -468,10 +483,29 @@ def _merge(acc: dict[int, list[np.ndarray]], row: int, part: tuple[np.ndarray, n
     acc[row][2] = np.fmax(acc[row][2], part[2])
 
 
-def _slab_histograms(slab: np.ndarray, lay: Layout, bins: Bins) -> tuple:
-    """A slab's counts for its own row of blocks, and those of its first and last slices, which are border
-    voxels of the rows of blocks above and below."""
-    return _layer_histograms(slab, lay, bins), _layer_histograms(slab[:1], lay, bins), _layer_histograms(slab[-1:], lay, bins)
+def _count_slices(lay: Layout, dtype: np.dtype) -> int:
+    """Slices per piece of pass 2: up to COUNT_BYTES, at least one, at most a block-slab."""
+    return max(1, min(lay.block_size, COUNT_BYTES // (lay.shape[1] * lay.shape[2] * np.dtype(dtype).itemsize)))
+
+
+def _pieces(lay: Layout, step: int) -> list[tuple[int, int, int]]:
+    """(row of blocks, z0, z1) of pass 2's pieces: every row cut into runs of `step` slices, in z order."""
+    b, depth = lay.block_size, lay.shape[0]
+    return [(bz, z0, min(z0 + step, (bz + 1) * b, depth))
+            for bz in range(lay.grid[0]) for z0 in range(bz * b, min((bz + 1) * b, depth), step)]
+
+
+def _borders(lay: Layout, bz: int, z0: int, z1: int) -> tuple[bool, bool]:
+    """Whether a piece's first slice borders the row below and its last slice the row above."""
+    b = lay.block_size
+    return bz > 0 and z0 == bz * b, bz + 1 < lay.grid[0] and z1 == (bz + 1) * b
+
+
+def _piece_histograms(piece: np.ndarray, lay: Layout, bins: Bins, below: bool, above: bool) -> tuple:
+    """A piece's counts for its own row of blocks, and (when it starts or ends that row) those of its first and
+    last slices, which are border voxels of the rows below and above (else None)."""
+    return (_layer_histograms(piece, lay, bins), _layer_histograms(piece[:1], lay, bins) if below else None,
+            _layer_histograms(piece[-1:], lay, bins) if above else None)
 
 
 def _layer_histograms(layer: np.ndarray, lay: Layout, bins: Bins) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -523,8 +557,11 @@ def _read_banded(array: zarr.Array, z0: int, z1: int) -> np.ndarray:
 
 
 def _read_slab(src: VolumeSource, lay: Layout, bz: int) -> np.ndarray:
-    b, depth = lay.block_size, lay.shape[0]
-    z0, z1 = bz * b, min(depth, (bz + 1) * b)
+    b = lay.block_size
+    return _read_slices(src, lay, bz * b, min(lay.shape[0], (bz + 1) * b))
+
+
+def _read_slices(src: VolumeSource, lay: Layout, z0: int, z1: int) -> np.ndarray:
     slab = np.asarray(src.read(z0, z1))
     expected = (z1 - z0,) + tuple(lay.shape[1:])
     if slab.shape != expected:
