@@ -42,7 +42,7 @@ from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import device_dtype, voxel_options
 from lodcast.store.layout import Layout
 
-__all__ = ["BrickCache", "BRICK_ENTRY_BYTES", "brick_cache", "brick_cache_bound", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
+__all__ = ["BrickCache", "BRICK_ENTRY_BYTES", "brick_cache", "brick_cache_bound", "holding", "AtlasLoad", "BrickStats", "DeviceAtlas", "iter_bricks", "load_bricks", "pack", "pack_index",
            "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells"]
 
 MISSING = 0
@@ -66,12 +66,14 @@ class BrickCache(ByteLru):
         super().put(key, a, a.nbytes + BRICK_ENTRY_BYTES)
 
 
-_FILLING = [0]  # bytes of device atlases being filled right now
+_FILLING = [0]  # bytes of device buffers being filled or used right now outside the device cache
 _FILLING_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def _filling(nbytes: int) -> Iterator[None]:
+def holding(nbytes: int) -> Iterator[None]:
+    """While in this context, `nbytes` of device buffers outside the device cache are alive (an atlas being
+    filled, a pass's volume data): on a CPU device the brick cache gives way to them (`brick_cache_bound`)."""
     with _FILLING_LOCK:
         _FILLING[0] += nbytes
     try:
@@ -83,8 +85,8 @@ def _filling(nbytes: int) -> Iterator[None]:
 
 def brick_cache_bound(cap: int) -> Callable[[], int]:
     """The brick cache's bound: `cap`, except where device buffers are host memory (a CPU device): there the
-    same bricks would be held twice, in the cache and in the device cache's atlases (and the one being filled),
-    so the cache gives way to them, down to an eighth of `cap`."""
+    same bricks would be held twice, in the cache and in the device cache's atlases (and the buffers `holding`
+    counts), so the cache gives way to them, down to an eighth of `cap`."""
     def bound() -> int:
         if not device_memory_is_host():
             return cap
@@ -410,7 +412,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     nbytes = max(total, 1) * (dtype.itemsize + (2 if with_std else 0))
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
-    with _filling(nbytes):
+    with holding(nbytes):
         d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels.shape, offsets,
                           iter_bricks(vol, levels, cache, stats=st))
         d_std = None

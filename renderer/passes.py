@@ -18,6 +18,7 @@ device cache itself is bounded by it.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -27,6 +28,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.environment import environment
+from lodcast.malloc import release_free_memory
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer.camera import Frame
 from lodcast.opencl import DeviceError, get_context
@@ -269,31 +271,47 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     for reg in regions:
         own = own_mask(vol.grid, reg)
         t = time.perf_counter()
-        if lod is None:
-            sub = np.ascontiguousarray(vol.read_level0_region(reg.data), dtype=vol.voxel_dtype)
-            buf = cl.Buffer(ctx, mf.READ_ONLY, size=max(4, sub.nbytes))
-            cl.enqueue_copy(queue, buf, sub)
-            queue.finish()
-            stats.read += int(own.sum())
-            cmin, cmax = level0_cells(buf, sub.shape, tuple(s.start for s in reg.data), reg.blocks, vol)
-            nbytes, data = sub.nbytes, PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax,
-                                                ess_cell(vol.block_size))
-            del sub
-            stats.upload_ms += (time.perf_counter() - t) * 1e3
-        else:
-            da = lod_atlas.device_atlas(vol, pass_levels(lod.levels, reg), with_std=cfg.distribution, slices=slices,
-                                        keep=False)
-            stats.read += da.read
-            stats.cached += da.cached
-            stats.upload_ms += da.upload_ms
-            nbytes = da.nbytes
-            data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
-                            pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own,
-                            cells=_cells(pr, da, reg.blocks))
-        stats.passes += 1
-        stats.device_bytes = max(stats.device_bytes, nbytes)
-        yield data
-        del data
+        with contextlib.ExitStack() as held:
+            if lod is None:
+                shape = tuple(r.stop - r.start for r in reg.data)
+                nbytes = math.prod(shape) * vol.voxel_dtype.itemsize
+                # a CPU device's buffer is host memory: the brick cache gives way to it while the pass lasts
+                held.enter_context(lod_atlas.holding(nbytes))
+                lod_atlas.brick_cache().trim()
+                data = _level0_pass(vol, reg, shape, nbytes, own, steps, placeholder)
+                stats.read += int(own.sum())
+                stats.upload_ms += (time.perf_counter() - t) * 1e3
+            else:
+                da = lod_atlas.device_atlas(vol, pass_levels(lod.levels, reg), with_std=cfg.distribution,
+                                            slices=slices, keep=False)
+                stats.read += da.read
+                stats.cached += da.cached
+                stats.upload_ms += da.upload_ms
+                nbytes = da.nbytes
+                data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
+                                pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own,
+                                cells=_cells(pr, da, reg.blocks))
+            stats.passes += 1
+            stats.device_bytes = max(stats.device_bytes, nbytes)
+            yield data
+            del data
+        release_free_memory()  # the pass's bricks or voxels, freed by many threads, leave the process
+
+
+def _level0_pass(vol, reg: Region, shape: tuple[int, ...], nbytes: int, own: np.ndarray, steps: np.ndarray,
+                 placeholder: cl.Buffer) -> PassData:
+    """A full-resolution pass's data: its voxels read straight into a mapped device buffer (no host copy beside
+    it), and the value ranges of its cells for empty-space skipping."""
+    ctx, queue = get_context()
+    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=max(4, nbytes))
+    host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, vol.voxel_dtype)
+    try:
+        vol.read_level0_region(reg.data, host)
+    finally:
+        host.base.release(queue)
+    queue.finish()
+    cmin, cmax = level0_cells(buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
+    return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.block_size))
 
 
 def _cells(pr, da: "lod_atlas.DeviceAtlas",

@@ -66,11 +66,13 @@ class VolumeView:
         a = self._read0(dtype)
         return a if dtype is None else np.asarray(a, dtype=dtype)
 
-    def read_level0_region(self, region: tuple) -> np.ndarray:
-        """Voxels `region` (slices, z-y-x) of level 0: a pass of a render in several reads only its part."""
+    def read_level0_region(self, region: tuple, out: np.ndarray) -> np.ndarray:
+        """Voxels `region` (slices, z-y-x) of level 0 into `out` (of the region's shape, in its dtype): a pass of a
+        render in several reads only its part, straight into its mapped device buffer."""
         if self.has_levels:
-            return self.source.read_region(0, region)
-        return np.asarray(self.source)[region]
+            return self.source.read_region(0, region, out.dtype, out)
+        out[...] = np.asarray(self.source)[region]
+        return out
 
     @property
     def has_levels(self) -> bool:

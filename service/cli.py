@@ -124,7 +124,8 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_ingest(args: argparse.Namespace) -> int:
-    from lodcast.store.ingest import ingest, tame_malloc
+    from lodcast.malloc import tame_malloc
+    from lodcast.store.ingest import ingest
 
     tame_malloc()
     t0 = time.perf_counter()

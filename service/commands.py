@@ -88,7 +88,7 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    from lodcast.store.ingest import tame_malloc
+    from lodcast.malloc import tame_malloc
 
     _apply_device_budget(args)
     tame_malloc()  # its workers run ingest jobs
@@ -191,7 +191,7 @@ def _cmd_worker(args: argparse.Namespace) -> int:
 
     if args.threads < 1:
         raise ValueError(f"--threads: must be at least 1, got {args.threads}")
-    from lodcast.store.ingest import tame_malloc
+    from lodcast.malloc import tame_malloc
 
     _apply_device_budget(args)
     tame_malloc()  # it runs ingest jobs

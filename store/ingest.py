@@ -38,7 +38,7 @@ from lodcast.store.orientation import axis_codes
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
-__all__ = ["ingest", "level_mean", "round_to_dtype", "std_dtype", "tame_malloc"]
+__all__ = ["ingest", "level_mean", "round_to_dtype", "std_dtype"]
 
 
 def ingest(
@@ -636,23 +636,6 @@ def _open(source: Any, options: dict[str, Any]) -> VolumeSource:
     from lodcast.store.readers import open_source
 
     return open_source(source, **{k: v for k, v in options.items() if v is not None})
-
-
-def tame_malloc() -> None:
-    """For processes that ingest (the CLI, the service's workers; `ingest()` leaves the host process's allocator
-    alone): ingest allocates and frees slab-sized arrays on several threads. glibc then grows per-thread arenas and
-    raises its mmap threshold, so freed slabs stay resident: measured 2.3 GB peak RSS for a 1 GiB volume whose
-    live arrays never exceeded a few hundred MB. A fixed threshold returns every large array to the OS; at
-    16 MiB rather than 1 MiB, row-of-blocks temporaries stay on the heap, which cut system time by a third
-    (chest CT 36 -> 44 MB/s) for 350 MB peak RSS on the 1 GiB volume (344 MB at 1 MiB)."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 16 << 20)  # M_MMAP_THRESHOLD (fixing it also turns off the dynamic adjustment)
-        libc.mallopt(-8, 2)  # M_ARENA_MAX
-    except (OSError, AttributeError):
-        pass  # not glibc: nothing to tune
 
 
 def _show_progress(progress: bool | None) -> bool:

@@ -204,3 +204,24 @@ def test_on_a_cpu_device_the_brick_cache_gives_way_to_the_device_cache(store):
     assert shared.max_bytes == max(cap // 8, cap - held)
     device_cache().clear()
     assert shared.max_bytes == cap
+
+
+def test_a_full_resolution_pass_makes_the_brick_cache_give_way(store, monkeypatch):
+    """On a CPU device a pass's voxels are host memory too: while a full-resolution pass beyond the device budget
+    lasts, the brick cache shrinks by the pass's buffer (down to an eighth of its cap), so that the bricks of
+    earlier renders and the pass's voxels are not both held; afterwards its bound is whole again. Without it the
+    cache below would keep every brick through the render."""
+    vol = as_volume(store)
+    lv = np.zeros(store.grid, np.int8)
+    shared = lod_atlas.BrickCache(2**30)
+    lod_atlas.load_bricks(vol, lv, shared)
+    cap = shared.nbytes  # every level-0 brick fits
+    shared = lod_atlas.BrickCache(lod_atlas.brick_cache_bound(cap))
+    monkeypatch.setattr(lod_atlas, "brick_cache", lambda: shared)
+    lod_atlas.load_bricks(vol, lv, shared)
+    assert shared.nbytes == cap
+    monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", str(cap / 4 / 1e6))
+    r = render(store, {**_scene(30), "quality": "full"})
+    assert r.report["passes"] >= 4
+    assert shared.nbytes <= max(cap // 8, cap - r.report["device_bytes"]) < cap
+    assert shared.max_bytes == cap  # the passes are over
