@@ -425,7 +425,8 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         # pass 2: level 0 again, in z order (from the source when that is cheap, else read back from the store).
         # Each piece is counted alone: into its own row of blocks, and a row's first and last slices also into the
         # borders of the rows below and above. A row is complete once the first piece of the next one is counted,
-        # so only the piece being counted, the one being read and up to three rows of counts are alive.
+        # so only the piece being counted, the one being read (when pieces are small) and up to three rows of
+        # counts are alive.
         level0 = group["0"]
         if src.rereads_cheaply:  # pieces of a few slices: a slab of wide slices is this pass's largest array
             read = lambda z0, z1: _read_slices(src, lay, z0, z1)  # noqa: E731
@@ -434,24 +435,20 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             read = lambda z0, z1: _read_banded(level0, z0, z1)  # noqa: E731
             step = lay.block_size
         pieces = _pieces(lay, step)
+        ahead = step * lay.shape[1] * lay.shape[2] * dtype.itemsize <= READ_AHEAD_BYTES  # as in pass 1
         acc: dict[int, list[np.ndarray]] = {}
-        task = pool.submit(_piece_histograms, read(*pieces[0][1:]), lay, bins, *_borders(lay, *pieces[0]))
-        for i, (bz, z0, _) in enumerate(pieces):
-            nxt = read(*pieces[i + 1][1:]) if i + 1 < len(pieces) else None  # read while this one is counted
-            parts = task.result()
-            if nxt is not None:
-                task = pool.submit(_piece_histograms, nxt, lay, bins, *_borders(lay, *pieces[i + 1]))
-                del nxt
-            for row, part in zip((bz, bz - 1, bz + 1), parts):
+        for i, piece in enumerate(_read_ahead(lambda j: read(*pieces[j][1:]), len(pieces), reader if ahead else None)):
+            bz, z0, z1 = pieces[i]
+            below, above = _borders(lay, bz, z0, z1)
+            for row, part in zip((bz, bz - 1, bz + 1), _piece_histograms(piece, lay, bins, below, above)):
                 if part is not None:
                     _merge(acc, row, part)
-            done = [bz - 1] if bz > 0 and z0 == bz * lay.block_size else []
-            for row in done + ([bz] if i == len(pieces) - 1 else []):
+            del piece  # without read-ahead, before the next one is read
+            for row in ([bz - 1] if below else []) + ([bz] if i == len(pieces) - 1 else []):
                 hist, stats["min_border"][row], stats["max_border"][row] = acc.pop(row)
                 hist_arr[row] = hist
                 overall += hist.reshape(-1, bins.count).sum(axis=0)
                 bar.update(1)
-            del parts
         # the simplified histograms, once the volume's data is no longer in memory: the OpenCL device that finds
         # them took 100-150 MB of the process's memory (PoCL's compiler and threads) from the moment it started
         starts_arr = blocks.create_array("hist_starts", shape=lay.grid + (seg + 1,), dtype=np.uint16,
