@@ -34,7 +34,7 @@ import numpy as np
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.significance import BlockMeta, as_tf, effective_starts, srgb_to_luv
 
-__all__ = ["level_zeta", "luv_table"]
+__all__ = ["level_zeta", "luv_table", "step_zeta"]
 
 _NODES = np.array([-np.sqrt(3 / 5), 0.0, np.sqrt(3 / 5)])
 _WEIGHTS = np.array([5 / 9, 8 / 9, 5 / 9]) / 2.0  # on [−1, 1], normalised to the piece width
@@ -54,6 +54,32 @@ def luv_table(tf: Any, value_range: tuple[float, float], std_max: float) -> tupl
     return t, _luv(t)
 
 
+def _pieces(meta: BlockMeta, starts: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The quadrature of the blocks `rows`: values x (m, K, 3), three Gauss–Legendre nodes on each piece of the
+    simplified histogram (`starts`: effective_starts, restricted to the block's border-inclusive range), and
+    weights wq summing to 1 per block."""
+    edges = meta.bins.edges
+    st = starts[rows]
+    lo, hi = edges[st[:, :-1]], edges[st[:, 1:]]  # (m, K) value interval of each piece
+    w = (st[:, 1:] - st[:, :-1]) * meta.heights[rows].astype(np.float64)  # voxels in each piece
+    total = w.sum(axis=1)
+    x = 0.5 * (lo + hi)[..., None] + 0.5 * (hi - lo)[..., None] * _NODES
+    return x, (w[..., None] * _WEIGHTS * 2.0) / np.maximum(total, 1e-300)[:, None, None]
+
+
+def _evaluated(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
+    """The blocks worth evaluating: visible, not constant, with a value."""
+    return np.flatnonzero(visible & (meta.max_border > meta.min_border) & np.isfinite(meta.mean))
+
+
+def _opacity_moments(tf: Any, x: np.ndarray, wq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per block the mean TF opacity and mean squared TF opacity over its values, and its visible share."""
+    from lodcast.renderer.transfer_function import evaluate
+
+    a = evaluate(tf, x)[1]
+    return (wq * a).sum(axis=(1, 2)), (wq * a * a).sum(axis=(1, 2)), (wq * (a > 0)).sum(axis=(1, 2))
+
+
 def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
                classification: str = "distribution") -> tuple[np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L) float64: 0 at level 0, 0 for invisible and constant blocks; per block the
@@ -63,29 +89,18 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
     n_lv = meta.n_levels
     out = np.zeros((meta.n, n_lv))
     opac = np.zeros((meta.n, 2))
-    todo = np.flatnonzero(visible & (meta.max_border > meta.min_border) & np.isfinite(meta.mean))
+    todo = _evaluated(meta, visible)
     if todo.size == 0 or n_lv == 1:
         return out, opac
-    from lodcast.renderer.transfer_function import evaluate
-
     tf = as_tf(tf)
     t, luv = luv_table(tf, value_range, std_max)
-    edges = meta.bins.edges
     starts = effective_starts(meta)
     for c0 in range(0, todo.size, _CHUNK):
         rows = todo[c0 : c0 + _CHUNK]
-        st = starts[rows]
-        lo, hi = edges[st[:, :-1]], edges[st[:, 1:]]  # (m, K) value interval of each piece
-        w = (st[:, 1:] - st[:, :-1]) * meta.heights[rows].astype(np.float64)  # voxels in each piece
-        total = w.sum(axis=1)
-        x = 0.5 * (lo + hi)[..., None] + 0.5 * (hi - lo)[..., None] * _NODES  # (m, K, 3) values
-        wq = (w[..., None] * _WEIGHTS * 2.0) / np.maximum(total, 1e-300)[:, None, None]
+        x, wq = _pieces(meta, starts, rows)
         at_x = t.mean_axis(x)  # the same values at every level: their table position once
         tstar = t.lerp(luv, at_x, t.std_axis(0.0))
-        a = evaluate(tf, x)[1]
-        vis_frac = (wq * (a > 0)).sum(axis=(1, 2))
-        opac[rows, 0] = (wq * a).sum(axis=(1, 2))
-        opac[rows, 1] = (wq * a * a).sum(axis=(1, 2))
+        opac[rows, 0], opac[rows, 1], vis_frac = _opacity_moments(tf, x, wq)
         mbar = meta.mean[rows][:, None, None]
         s = np.asarray(meta.level_std[rows], np.float64)  # (m, L)
         s_top = np.maximum(s[:, -1], 1e-300)
@@ -98,4 +113,31 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
                 shown = t.interp(luv, mbar + rho * (x - mbar), np.zeros_like(x))
             d2 = ((tstar - shown) ** 2).sum(axis=-1)
             out[rows, k] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0) / sheet)
+    return out, opac
+
+
+def step_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float],
+              std_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """(ζ_step per block (N,), opacity moments (N, 2) as level_zeta's): the RMS change of the unit-slab colour
+    over one voxel along a ray, per visible voxel, from the block's histogram and its level-1 spread s_1 (the
+    spread of the values within 2³ voxels: a ray crossing one voxel sees values change by about that much),
+    ½ |T*(v + s_1) − T*(v − s_1)| at every value v of the block. What a ray marcher misses between samples h
+    voxels apart grows as h² times this (selection.step_delta_e). 0 for invisible and constant blocks."""
+    assert meta.level_std is not None and meta.n_levels > 1, "step_zeta needs per-level spreads (format >= 2)"
+    out = np.zeros(meta.n)
+    opac = np.zeros((meta.n, 2))
+    todo = _evaluated(meta, visible)
+    tf = as_tf(tf)
+    t, luv = luv_table(tf, value_range, std_max)
+    row0 = t.std_axis(0.0)
+    starts = effective_starts(meta)
+    for c0 in range(0, todo.size, _CHUNK):
+        rows = todo[c0 : c0 + _CHUNK]
+        x, wq = _pieces(meta, starts, rows)
+        opac[rows, 0], opac[rows, 1], vis_frac = _opacity_moments(tf, x, wq)
+        s1 = np.asarray(meta.level_std[rows, 1], np.float64)[:, None, None]
+        d = t.lerp(luv, t.mean_axis(x + s1), row0) - t.lerp(luv, t.mean_axis(x - s1), row0)
+        d2 = 0.25 * (d * d).sum(axis=-1)
+        sheet = np.maximum(vis_frac, 1.0 / (1 << (meta.n_levels - 1)))
+        out[rows] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0) / sheet)
     return out, opac

@@ -7,7 +7,7 @@ and each image is compared with the scene's reference — its full-resolution re
 the smallest spacing and no LOD or adaptive sampling (DESIGN.md) — by ΔE (mean, p95, max over the footprint).
 Each configuration is rendered once to warm the brick cache and the program cache, then timed `repeat` times
 (the fastest run counts: the machine is shared). Output: a Markdown table, JSON, and a PNG plot of ΔE against
-milliseconds with the selection's predicted ΔE beside the measured one.
+milliseconds with the report's predicted ΔE (level of detail plus step) beside the measured one.
 """
 from __future__ import annotations
 

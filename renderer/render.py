@@ -55,6 +55,7 @@ __all__ = ["RenderResult", "Prepared", "render", "prepare", "prefetch", "check_c
 
 LOCAL_SIZE = (8, 8)
 _SELECTIONS = ByteLru(4)  # the last 4 level-of-detail selections (store, TFs, quality, classification, crop)
+_STEP_ERRORS = ByteLru(8)  # the last 8 predicted step errors (store, TFs, step, crop)
 _STEPS = ByteLru(64 << 20)  # adaptive sampling's step levels of recent selections
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
 MAX_SAMPLES_PER_RAY = 2**30
@@ -249,6 +250,7 @@ class Prepared:
     priority: "dual.PriorityMap | None" = None  # tf2 with sampling.priority_map only
     screen: "screen_space.ScreenPlan | None" = None  # sampling.adaptive_screen only
     passes: "multipass.PassPlan | None" = None  # volume data beyond the device budget only (LC_PASSES)
+    step_delta_e: float = 0.0  # the step's predicted error (selection.step_delta_e), composite renders of a store
 
 
 @dataclass(frozen=True)
@@ -258,6 +260,24 @@ class LodPlan:
     predicted_delta_e: float | None
     step_levels: np.ndarray | None  # adaptive sampling: int8 per half-block cell (atlas.step_levels)
     selection: Any = None
+
+
+def _step_error(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float:
+    """selection.step_delta_e for the scene's TFs, step and clip region (kept for the last few: a turntable asks
+    for the same each frame); 0 where it does not apply (an array, a projection mode)."""
+    if scene.mode != "composite" or not vol.has_levels or vol.key is None:
+        return 0.0
+    from lodcast.renderer.selection import step_delta_e
+    from lodcast.renderer.significance import meta_of_store
+
+    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
+    key = (vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True), scene.sampling.step,
+           None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest())
+    hit = _STEP_ERRORS.get(key)
+    if hit is None:
+        hit = step_delta_e(meta_of_store(vol.source), tfs, scene.sampling.step, keep)
+        _STEP_ERRORS.put(key, hit, 1)
+    return hit
 
 
 def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None,
@@ -416,7 +436,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     if pp is not None:
         cfg = replace(cfg, passes=True)
     pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio,
-                  plan, pp)
+                  plan, pp, _step_error(vol, scene, keep))
     if second is not None:
         fill_tf2(params, pr)
     return pr
@@ -609,10 +629,11 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
     n_blocks = vol.n_blocks
     if pr.lod is None:
         skipped = pr.n_empty if (scene.sampling.empty_space_skipping and scene.mode == "composite") else 0
-        reduction, pred, quality = 1.0, 0.0, "full"
+        reduction, pred, quality = 1.0, pr.step_delta_e, "full"
     else:
         skipped = int(np.count_nonzero(pr.lod.levels < 0))
-        reduction, pred = pr.lod.reduction, pr.lod.predicted_delta_e
+        reduction = pr.lod.reduction
+        pred = None if pr.lod.predicted_delta_e is None else pr.lod.predicted_delta_e + pr.step_delta_e
         quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
     report = {
         "wall_ms": (time.perf_counter() - t_start) * 1e3,

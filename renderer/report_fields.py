@@ -12,9 +12,9 @@ REPORT_FIELDS: dict[str, str] = {
     "bricks_cached": "bricks found in the brick cache",
     "bricks_skipped": "blocks the selection left out: invisible under the transfer function",
     "reduction": "data reduction of the level-of-detail selection: level-0 bytes of the visible blocks / bytes used",
-    "predicted_delta_e": "the selection's predicted mean image error, ΔE (CIE76 in CIELUV) against full resolution "
-                         "at the same fixed step: the level of detail's own error, without that of adaptive steps or "
-                         "of the step itself",
+    "predicted_delta_e": "the predicted mean image error, ΔE (CIE76 in CIELUV), against the reference (full "
+                         "resolution at step ¼): the level of detail's own (its selection's) plus the step's (a "
+                         "calibrated model of the unshaded composite; 0 for an array and in the projection modes)",
     "samples": "samples the rays took",
     "estimated_samples": "samples estimated before the render started (the cost LODCAST_MAX_SAMPLES limits)",
     "launches": "kernel launches (bands of rows, so that a long render can stop between them)",
