@@ -13,7 +13,7 @@ from pathlib import Path
 
 from lodcast.errors import LodcastError
 
-__all__ = ["Environment", "EnvironmentInvalid", "environment", "VARIABLES"]
+__all__ = ["Environment", "EnvironmentInvalid", "environment", "read_threads_for", "VARIABLES"]
 
 
 class EnvironmentInvalid(LodcastError, ValueError):
@@ -27,7 +27,7 @@ class Environment:
     brick_cache_bytes: int  # LODCAST_BRICK_CACHE_MB (MiB)
     device_cache_bytes: int  # LODCAST_DEVICE_CACHE_MB (MiB)
     device_budget_bytes: int | None  # LODCAST_DEVICE_BUDGET_MB (MB = 10⁶ bytes, DESIGN.md Limits)
-    read_threads: int  # LODCAST_READ_THREADS
+    read_threads: int | None  # LODCAST_READ_THREADS; None: read_threads_for() decides
     max_samples: int  # LODCAST_MAX_SAMPLES
     max_voxels: int | None  # LODCAST_MAX_VOXELS
     max_ingest_bytes: int | None  # LODCAST_MAX_INGEST_MEMORY_MB (MB = 10⁶ bytes)
@@ -44,7 +44,8 @@ VARIABLES: tuple[tuple[str, str, str], ...] = (
      "are host memory, less what the device cache holds, down to an eighth)"),
     ("LODCAST_DEVICE_CACHE_MB", "1024", "device cache of level-0 volumes and atlases (MiB; also bounded by the budget)"),
     ("LODCAST_DEVICE_BUDGET_MB", "one allocation", "most device memory (10⁶ bytes) of one render's volume data"),
-    ("LODCAST_READ_THREADS", "8", "threads reading shards"),
+    ("LODCAST_READ_THREADS", "the CPU count; 8 on object storage", "threads reading shards (local files: decoding "
+     "is the work, and threads beyond the cores only contend; object storage: requests wait on the network)"),
     ("LODCAST_MAX_SAMPLES", "2·10⁹", "most samples one render may take, estimated before it starts"),
     ("LODCAST_MAX_VOXELS", "no limit", "largest volume ingest accepts, checked on the source's declared shape"),
     ("LODCAST_MAX_INGEST_MEMORY_MB", "no limit", "most memory (10⁶ bytes) ingest may plan for, checked on the "
@@ -88,6 +89,17 @@ def _cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("lodcast"))
 
 
+def read_threads_for(remote: bool) -> int:
+    """Threads reading shards: LODCAST_READ_THREADS, else the CPU count for local files (a first lossless render
+    of the chest CT on 2 cores: 1.0 s with 2 threads, 1.4-1.7 s with 8) and 8 for object storage."""
+    n = environment().read_threads
+    if n is not None:
+        return n
+    if remote:
+        return 8
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def environment() -> Environment:
     """The variables as they are now (cheap: a few dictionary lookups)."""
     budget = _number("LODCAST_DEVICE_BUDGET_MB", 0, optional=True)
@@ -96,7 +108,7 @@ def environment() -> Environment:
         brick_cache_bytes=int(_number("LODCAST_BRICK_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
         device_cache_bytes=int(_number("LODCAST_DEVICE_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
         device_budget_bytes=None if budget is None else int(budget * 1e6),
-        read_threads=_count("LODCAST_READ_THREADS", 8),  # type: ignore[arg-type]
+        read_threads=_count("LODCAST_READ_THREADS", 0, optional=True),
         max_samples=_count("LODCAST_MAX_SAMPLES", 2e9),  # type: ignore[arg-type]
         max_voxels=_count("LODCAST_MAX_VOXELS", 0, optional=True),
         max_ingest_bytes=None if ingest_mb is None else int(ingest_mb * 1e6),

@@ -35,7 +35,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 import pyopencl as cl
 
-from lodcast.environment import environment
+from lodcast.environment import environment, read_threads_for
 from lodcast.renderer.cache import ByteLru
 from lodcast.opencl import DeviceError, device_memory_is_host, get_context, get_program
 from lodcast.renderer.sampler import device_cache
@@ -102,9 +102,8 @@ def brick_cache() -> BrickCache:
 
 
 @functools.cache
-def _read_pool() -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=environment().read_threads,
-                              thread_name_prefix="lodcast-bricks")
+def _read_pool(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="lodcast-bricks")
 
 
 @dataclass(frozen=True)
@@ -118,24 +117,26 @@ class AtlasLoad:
 
 
 def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, int]], what: str = "mean") -> dict:
-    """The bricks `blocks` (all in one shard of `level`), read as one region and cut into edge-padded bricks:
-    the values ("mean") or the standard deviations behind them ("std", float16 in units of vol.std_unit)."""
-    regs = [lay.block_region(*b, level=level) for b in blocks]
-    lo = [min(r[a].start for r in regs) for a in range(3)]
-    hi = [max(r[a].stop for r in regs) for a in range(3)]
-    region = tuple(slice(l, h) for l, h in zip(lo, hi))
-    if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
-        data = vol.read_region(level, region)
-        dtype = device_dtype(data.dtype)
-    else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
-        data, dtype = vol.read_std_region(level, region) / np.float32(vol.std_unit), np.float16
+    """The bricks `blocks` (all in one shard of `level`), cut into edge-padded bricks from the inner chunks that
+    hold them and no others (a brick lies in one chunk: chunks are whole blocks or cubes of them): the values
+    ("mean") or the standard deviations behind them ("std", float16 in units of vol.std_unit)."""
     e = lay.block_edge(level)
+    c = np.array(lay.chunk_shape(level))
+    start = np.array(blocks, np.int64).reshape(-1, 3) * e  # the bricks' first samples in the level
+    stop = np.minimum(start + e, np.array(lay.level_shape(level)))
+    where = start // c
+    need, which = np.unique(where, axis=0, return_inverse=True)
+    chunks = vol.read_chunks(level, need, std=what != "mean")
+    lo, hi = start - where * c, stop - where * c  # within the chunk
     out = {}
-    for b, r in zip(blocks, regs):
-        sub = data[tuple(slice(s.start - l, s.stop - l) for s, l in zip(r, lo))]
-        pad = [(0, e - n) for n in sub.shape]
-        if any(p for _, p in pad):
-            sub = np.pad(sub, pad, mode="edge")
+    for b, i, a, z in zip(blocks, which.ravel().tolist(), lo.tolist(), hi.tolist()):
+        sub = chunks[i][a[0]:z[0], a[1]:z[1], a[2]:z[2]]
+        if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
+            dtype = device_dtype(sub.dtype)
+        else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
+            sub, dtype = sub / np.float32(vol.std_unit), np.float16
+        if sub.shape != (e, e, e):
+            sub = np.pad(sub, [(0, e - n) for n in sub.shape], mode="edge")
         out[(level, *b)] = np.ascontiguousarray(sub, dtype=dtype)
     return out
 
@@ -180,7 +181,8 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
         groups.setdefault((k, z * e // sh[0], y * e // sh[1], x * e // sh[2]), []).append((z, y, x))
     todo = sorted(groups.items())
     stats.shards = len(todo)
-    window = 2 * environment().read_threads
+    threads = read_threads_for("://" in str(getattr(vol.source, "location", "")))
+    window = 2 * threads
     futs: deque = deque()
 
     def take() -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
@@ -192,7 +194,7 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
             yield key, a
 
     for g, blks in todo:
-        futs.append(_read_pool().submit(_read_group, vol, lay, g[0], blks, what))
+        futs.append(_read_pool(threads).submit(_read_group, vol, lay, g[0], blks, what))
         if len(futs) > window:
             yield from take()
     while futs:

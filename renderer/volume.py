@@ -98,8 +98,13 @@ class VolumeView:
         """Standard deviations behind `region` of level `level` (the brick loader's read for classification)."""
         return self.source.read_std_region(level, region)
 
+    def read_chunks(self, level: int, chunks: Any, std: bool = False) -> list[np.ndarray]:
+        """The store's inner chunks `chunks` (n, 3) of level `level`, all in one shard, each cut to the level's
+        shape (std: the standard deviations behind them): the brick loader's read."""
+        return self.source.read_chunks(level, chunks, std)
+
     def read_region(self, level: int, region: tuple) -> np.ndarray:
-        """Samples `region` (slices) of level `level` of the store (the brick loader's only read)."""
+        """Samples `region` (slices) of level `level` of the store."""
         if not self.has_levels:
             raise ValueError("level-of-detail rendering needs a lodcast store (an array has no coarser levels)")
         return self.source.read_region(level, region)

@@ -231,10 +231,18 @@ class ShardedReader:
                     units.append((pre + (k,) + a[axis + 1:], tuple(x + 1 for x in pre) + (min(k + step, b[axis]),) + b[axis + 1:]))
         return units
 
-    def _read_unit(self, out: np.ndarray, lo: tuple[int, ...], hi: tuple[int, ...], c0: tuple[int, ...], c1: tuple[int, ...]) -> None:
-        counts = tuple(b - a for a, b in zip(c0, c1))
-        box = np.empty((prod(counts), *self.chunk), self._chunk_dtype)
-        shard = tuple(a // p for a, p in zip(c0, self._per_shard))
+    def read_chunks(self, coords: np.ndarray) -> np.ndarray:
+        """The inner chunks at chunk coordinates `coords` (n, ndim), all in one shard: (n, *chunk) in the chunks'
+        own type, whole (a chunk on the array's edge holds what ingest wrote beyond it). Only these chunks' bytes
+        are read and decoded, where a region would take every chunk of its bounding box."""
+        coords = np.asarray(coords, np.int64).reshape(-1, len(self.chunk))
+        shard = coords[0] // np.array(self._per_shard)
+        assert (coords // np.array(self._per_shard) == shard).all(), "read_chunks: chunks of more than one shard"
+        return self._read_box(tuple(int(v) for v in shard), coords)
+
+    def _read_box(self, shard: tuple[int, ...], coords: np.ndarray) -> np.ndarray:
+        """Chunks `coords` (n, ndim) of shard `shard`, decoded into an (n, *chunk) buffer."""
+        box = np.empty((len(coords), *self.chunk), self._chunk_dtype)
         key = self._array.metadata.encode_chunk_key(shard)
         name = self._files.name(key)
         try:
@@ -242,7 +250,7 @@ class ShardedReader:
         except FileNotFoundError:
             fd = None
         try:
-            entries = None if fd is None else self._entries(fd, name, counts, c0)
+            entries = None if fd is None else self._entries(fd, name, coords)
             if entries is None:  # no shard file (remote: found on its first read)
                 if self.complete:
                     raise StoreCorrupt(f"{name}: shard file missing (ingest wrote it): the store is damaged, "
@@ -262,6 +270,13 @@ class ShardedReader:
         finally:
             if fd is not None:
                 self._files.close(fd)
+        return box
+
+    def _read_unit(self, out: np.ndarray, lo: tuple[int, ...], hi: tuple[int, ...], c0: tuple[int, ...], c1: tuple[int, ...]) -> None:
+        counts = tuple(b - a for a, b in zip(c0, c1))
+        shard = tuple(a // p for a, p in zip(c0, self._per_shard))
+        coords = (np.indices(counts).reshape(len(counts), -1) + np.array(c0)[:, None]).T  # C order, like the box
+        box = self._read_box(shard, coords)
         # box (k, cz, cy, cx) holds chunks in C order of the chunk box: seen as (kz, ky, kx, cz, cy, cx) it is
         # copied once into the region seen as (kz, cz, ky, cy, kx, cx); a box clipped by the region goes through
         # a contiguous copy of the whole box first
@@ -278,14 +293,14 @@ class ShardedReader:
             grid = grid.reshape(tuple(k * c for k, c in zip(counts, self.chunk)))
             out[dst] = grid[tuple(slice(max(l, s) - s, min(h, e) - s) for l, h, s, e in zip(lo, hi, start, ends))]
 
-    def _entries(self, fd: Any, name: str, counts: tuple[int, ...], c0: tuple[int, ...]) -> np.ndarray | None:
-        """The index entries of the chunk box from c0, C order (None: the shard object does not exist)."""
+    def _entries(self, fd: Any, name: str, coords: np.ndarray) -> np.ndarray | None:
+        """The index entries of the chunks `coords` (n, ndim), in their order (None: the shard object does not
+        exist)."""
         try:
             index = self._index(fd, name)
         except FileNotFoundError:
             return None
-        coords = np.indices(counts).reshape(len(counts), -1) + np.array(c0)[:, None]  # C order, like the box
-        return index[np.ravel_multi_index(tuple(coords % np.array(self._per_shard)[:, None]), self._per_shard)]
+        return index[np.ravel_multi_index(tuple((coords % np.array(self._per_shard)).T), self._per_shard)]
 
     def _decode(self, fd: Any, entries: np.ndarray, full: np.ndarray, box: np.ndarray, name: str) -> None:
         if not full.all():

@@ -123,10 +123,8 @@ class Store:
         array of the region's shape, when given)."""
         return self._read(str(k), region, dtype, out)
 
-    def _read(self, path: str, region: tuple, dtype: Any = None, out: np.ndarray | None = None) -> np.ndarray:
-        """A region of the array at `path` through the shard-level reader (store/shardio.py: locally 8-10x
-        zarr-python's per-chunk cost on 16³ and 8³ blocks; on object storage a few range requests per shard
-        instead of one per chunk), else through zarr-python."""
+    def _reader(self, path: str) -> Any:
+        """The shard-level reader of the array at `path` (store/shardio.py), or False where zarr-python reads."""
         reader = self._readers.get(path)
         if reader is None:
             from lodcast.store.shardio import fast_reader
@@ -134,6 +132,13 @@ class Store:
             complete = self.manifest is not None and not path.startswith("blocks")  # levels and std: every chunk
             url = self.location if "://" in self.location else None
             reader = self._readers[path] = fast_reader(self._array(path), complete, url) or False
+        return reader
+
+    def _read(self, path: str, region: tuple, dtype: Any = None, out: np.ndarray | None = None) -> np.ndarray:
+        """A region of the array at `path` through the shard-level reader (store/shardio.py: locally 8-10x
+        zarr-python's per-chunk cost on 16³ and 8³ blocks; on object storage a few range requests per shard
+        instead of one per chunk), else through zarr-python."""
+        reader = self._reader(path)
         if reader is not False:
             return reader.read_region(tuple(slice(None) for _ in range(3)) if region is ... else region, dtype, out)
         # zarr decodes one inner chunk at a time unless batched: for a whole level of the chest CT at 16³ blocks
@@ -147,6 +152,25 @@ class Store:
 
     def read_level(self, k: int) -> np.ndarray:
         return self.read_region(k)
+
+    def read_chunks(self, k: int, chunks: Any, std: bool = False) -> list[np.ndarray]:
+        """The inner chunks of level k (std: of its standard deviations, `read_std_region`'s array) at chunk
+        coordinates `chunks` (n, 3), all in one shard, each cut to the level's shape: what a brick loader needs
+        when the bricks it wants lie scattered over a shard, without the rest of their bounding box."""
+        self.layout._check_level(k)
+        coords = np.asarray(chunks, np.int64).reshape(-1, 3)
+        c = np.array(self.layout.chunk_shape(k))
+        shape = np.array(self.layout.level_shape(k))
+        cut = [tuple(slice(0, int(n)) for n in np.minimum(c, shape - co * c)) for co in coords]
+        if std and (k == 0 or not self.has_distribution):
+            return [np.zeros(tuple(s.stop for s in sl), np.float32) for sl in cut]
+        path = f"std/{k}" if std else str(k)
+        reader = self._reader(path)
+        if reader is not False:
+            box = reader.read_chunks(coords).astype(reader.dtype, copy=False)  # the array's (native) type
+            return [box[i][sl] for i, sl in enumerate(cut)]
+        return [self._read(path, tuple(slice(int(a), int(a) + s.stop) for a, s in zip(co * c, sl)))
+                for co, sl in zip(coords, cut)]
 
     @cached_property
     def generation(self) -> str | None:

@@ -2,6 +2,7 @@
 values are refused naming the variable, and every one of them is in the README's table."""
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.environment import VARIABLES, EnvironmentInvalid, environment
+from lodcast.environment import VARIABLES, EnvironmentInvalid, environment, read_threads_for
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -20,13 +21,17 @@ def test_defaults_and_units(monkeypatch):
     env = environment()
     assert env.brick_cache_bytes == env.device_cache_bytes == 1024 * 2**20  # MiB
     assert env.device_budget_bytes is None and env.max_voxels is None
-    assert env.max_samples == 2_000_000_000 and env.read_threads == 8 and env.lossless_zeta == 0.5
+    assert env.max_samples == 2_000_000_000 and env.read_threads is None and env.lossless_zeta == 0.5
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert read_threads_for(remote=False) == cores and read_threads_for(remote=True) == 8
     assert env.significance_numpy is False and env.tmp is None
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # DESIGN.md, Limits: MB = 10⁶ bytes
     monkeypatch.setenv("LODCAST_MAX_SAMPLES", "2e7")
     monkeypatch.setenv("LODCAST_SIGNIFICANCE_NUMPY", "1")
+    monkeypatch.setenv("LODCAST_READ_THREADS", "3")
     env = environment()
     assert env.device_budget_bytes == 64_000_000 and env.max_samples == 20_000_000 and env.significance_numpy
+    assert read_threads_for(remote=False) == read_threads_for(remote=True) == 3
 
 
 @pytest.mark.parametrize("name, value", [("LODCAST_BRICK_CACHE_MB", "lots"), ("LODCAST_DEVICE_CACHE_MB", "-1"),

@@ -221,3 +221,47 @@ def test_a_region_read_in_another_dtype_is_the_cast_of_the_region(tmp_path):
         got = st.read_region(0, region, np.float32)
         assert got.dtype == np.float32 and np.array_equal(got, want)
     assert st.read_region(1, ..., np.float64).dtype == np.float64
+
+
+@pytest.mark.parametrize("shape,dtype,chunks,shards,compressors", CASES, ids=[f"{c[1]}-{c[0]}" for c in CASES])
+def test_scattered_chunks_match_zarr(tmp_path, shape, dtype, chunks, shards, compressors):
+    """read_chunks of random scattered chunks of each shard (edge chunks included) returns each whole chunk, and
+    its part inside the array is zarr-python's region of that chunk."""
+    arr = _array(tmp_path, "a", shape, dtype, chunks, shards, compressors)
+    reader = fast_reader(arr)
+    rng = np.random.default_rng(sum(shape))
+    per = [s // c for s, c in zip(shards, chunks)]
+    n_chunks = [-(-s // c) for s, c in zip(shape, chunks)]
+    for shard in np.ndindex(*[-(-n // p) for n, p in zip(n_chunks, per)]):
+        inside = [(sh * p, min((sh + 1) * p, n)) for sh, p, n in zip(shard, per, n_chunks)]
+        every = np.array(list(np.ndindex(*[b - a for a, b in inside]))) + np.array([a for a, _ in inside])
+        pick = every[rng.choice(len(every), size=max(1, len(every) // 3), replace=False)]
+        box = reader.read_chunks(pick)
+        assert box.shape == (len(pick), *chunks)
+        for got, co in zip(box, pick):
+            region = tuple(slice(int(c) * k, min((int(c) + 1) * k, s)) for c, k, s in zip(co, chunks, shape))
+            want = np.asarray(arr[region])
+            part = got[tuple(slice(0, r.stop - r.start) for r in region)].astype(want.dtype)
+            assert np.array_equal(part, want, equal_nan=want.dtype.kind == "f"), co
+
+
+def test_scattered_chunks_read_no_other_chunk(tmp_path):
+    """Two chunks at opposite corners of a shard whose middle chunk is damaged: read_chunks decodes only the two
+    (a region spanning them would take the damaged one and fail)."""
+    arr = _array(tmp_path, "d", (8, 16, 16), "uint16", (4, 4, 4), (8, 16, 16))
+    reader = fast_reader(arr)
+    index = reader._index(reader._files.open(arr.metadata.encode_chunk_key((0, 0, 0))), "d")
+    middle = np.ravel_multi_index((0, 1, 1), (2, 4, 4))
+    off, size = (int(v) for v in index[middle])
+    shard = tmp_path / "d" / "c" / "0" / "0" / "0"
+    raw = bytearray(shard.read_bytes())
+    raw[off:off + size] = b"\xff" * size
+    shard.write_bytes(bytes(raw))
+    box = reader.read_chunks(np.array([[0, 0, 0], [1, 3, 3]]))
+    want = _data((8, 16, 16), "uint16")
+    assert np.array_equal(box[0], want[:4, :4, :4]) and np.array_equal(box[1], want[4:, 12:, 12:])
+    with pytest.raises(shardio.StoreCorrupt):
+        reader.read_region((slice(0, 8), slice(0, 16), slice(0, 16)))
+    with pytest.raises(AssertionError, match="more than one shard"):
+        _array(tmp_path, "e", (8, 16, 16), "uint16", (4, 4, 4), (8, 8, 8))
+        fast_reader(zarr.open_group(tmp_path, mode="r")["e"]).read_chunks(np.array([[0, 0, 0], [0, 3, 3]]))

@@ -373,3 +373,25 @@ def test_the_omero_window_spans_the_bulk_of_the_values(tmp_path: Path):
     assert (win["min"], win["max"]) == (0.0, 4000.0)
     width = (4000.0 - 0.0) / st.bins.count
     assert 100 - 2 * width <= win["start"] <= 100 + 2 * width and 200 - 2 * width <= win["end"] <= 200 + 2 * width, win
+
+
+def test_read_chunks_are_the_level_regions_of_those_chunks(tmp_path):
+    """Store.read_chunks, of levels and of their standard deviations, on a volume that is no multiple of the
+    block: each chunk is the level's region under it, cut at the level's edge, for random subsets of each
+    shard's chunks."""
+    vol = np.random.default_rng(11).normal(400, 150, (37, 45, 29)).astype(np.float32)
+    st = lodcast.ingest(vol, tmp_path / "r.zarr", block_size=8, progress=False)
+    lay = st.layout
+    rng = np.random.default_rng(2)
+    for k in range(lay.n_levels):
+        c, sh, shape = np.array(lay.chunk_shape(k)), np.array(lay.shard_shape(k)), np.array(lay.level_shape(k))
+        every = np.array(list(np.ndindex(*(-(-shape // c)))))
+        for shard in np.unique(every // (sh // c), axis=0):
+            own = every[(every // (sh // c) == shard).all(axis=1)]
+            pick = own[rng.choice(len(own), size=max(1, len(own) // 2), replace=False)]
+            for std in (False, True):
+                got = st.read_chunks(k, pick, std=std)
+                for a, co in zip(got, pick):
+                    region = tuple(slice(int(x) * int(n), min((int(x) + 1) * int(n), int(s))) for x, n, s in zip(co, c, shape))
+                    want = st.read_std_region(k, region) if std else st.read_region(k, region)
+                    assert a.shape == want.shape and np.array_equal(a, want, equal_nan=True), (k, co, std)
