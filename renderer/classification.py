@@ -34,11 +34,12 @@ import numpy as np
 
 from lodcast.renderer.transfer_function import Lut, build_lut, extinction
 
-__all__ = ["EXT_CAP", "EXT_ZERO", "DIST_STD_ROWS", "DIST_MAX_ENTRIES", "DistTable", "dist_table", "cached_dist_table",
+__all__ = ["EXT_CAP", "EXT_ZERO", "EXT_ZERO_REL", "DIST_STD_ROWS", "DIST_MAX_ENTRIES", "DistTable", "dist_table", "cached_dist_table",
            "gaussian_expectation"]
 
 EXT_CAP = 30.0
 EXT_ZERO = 1e-7
+EXT_ZERO_REL = 1e-4
 DIST_STD_ROWS = 64
 DIST_MAX_ENTRIES = 4096
 
@@ -208,10 +209,16 @@ def dist_table(lut: Lut, std_max: float, rows: int = DIST_STD_ROWS) -> DistTable
     out = np.empty((rows, 4, n))
     for j, sd in enumerate(stds):
         out[j] = gaussian_expectation(chan, sd / h)
-    # FFT rounding leaves ~1e-16 of the largest value where the expectation is 0, and a Gaussian's far tail adds
-    # extinctions no image can show: below EXT_ZERO per unit distance (opacity 1e-4 over a thousand units) it is
-    # zeroed, so that the kernel's visible spans skip what only a far tail reaches
+    # FFT rounding leaves ~1e-16 of the largest value where the expectation is 0: below EXT_ZERO per unit distance
+    # it is zeroed. In the coarse rows, expected extinctions below EXT_ZERO_REL of the TF's strongest are zeroed
+    # too, so that the kernel's visible spans skip the cells only such a weak tail reaches: mostly tails from values
+    # the TF shows nothing at (fat and muscle under a bone TF). On the chest CT (ct-bone, 256²) that is 8% of
+    # lossless's samples and 7% of 30:1's, at mean ΔE within 0.02; on the engine CT within 0.04. A floor ten
+    # times higher saved twice that on the chest but cost the engine 0.5 ΔE at 30:1: there a tail stands for real
+    # level-0 voxels just above the TF's threshold. Row 0 (std 0) stays the point classification exactly.
     np.copyto(out, 0.0, where=(out[:, :1, :] < EXT_ZERO))
+    floor = EXT_ZERO_REL * float(sigma.max(initial=0.0))
+    np.copyto(out[1:], 0.0, where=(out[1:, :1, :] < floor))
     return DistTable(lut.lo, lut.scale / stride, n, std_max, rows, out[:, 0, :], np.moveaxis(out[:, 1:, :], 1, 2), rgb)
 
 

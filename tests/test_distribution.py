@@ -45,8 +45,15 @@ def point_channels(lut) -> np.ndarray:
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 
-#: the table zeroes expected extinctions below this (a far tail no image shows), colour included
+#: the table zeroes expected extinctions below EXT_ZERO (FFT rounding), and in its rows of std > 0 below EXT_ZERO_REL
+#: of the TF's largest extinction (a tail from values the TF shows nothing at), colour included
 EXT_ZERO = float(getattr(classification, "EXT_ZERO", 0.0))
+EXT_ZERO_REL = float(getattr(classification, "EXT_ZERO_REL", 0.0))
+
+
+def zeroed_below(j: int, largest: float) -> float:
+    """What row j of a TF's table zeroes: expected extinctions below this."""
+    return max(EXT_ZERO, EXT_ZERO_REL * largest) if j > 0 else EXT_ZERO
 
 
 def quad_expectation(xs: np.ndarray, f: np.ndarray, m: float, s: float) -> np.ndarray:
@@ -111,8 +118,9 @@ def test_dist_table_equals_float64_quadrature(name):
     """ext[j, i] = E[sigma_t(v)] and emission[j, i] = E[(sigma_t rgb)(v)] under N(m_i, s_j^2), sigma_t and sigma_t*rgb
     piecewise linear between the LUT entries (constant beyond), against 16-point Gauss-Legendre quadrature on panels
     of s/4: |table - quad| <= 1e-9 |quad| + 1e-12 max(sigma_t) (measured: <= 6e-11 relative, <= 2.2e-13 of the
-    largest extinction absolute), except where the exact extinction is below EXT_ZERO, which the table zeroes (a
-    far tail, opacity 1e-4 over a thousand units). The axes are m_i = lo + i/scale and s_j = std_max (j/(rows-1))^2."""
+    largest extinction absolute), except where the exact extinction is below what the table zeroes (zeroed_below:
+    in coarse rows 10^-4 of the TF's largest extinction). The axes are m_i = lo + i/scale and
+    s_j = std_max (j/(rows-1))^2."""
     tf, vr, smax = TABLE_CASES[name]
     lut = lut_of(tf, vr)
     assert lut.n <= 4096  # the table keeps every LUT entry (no subsampling) for these TFs
@@ -139,9 +147,9 @@ def test_dist_table_equals_float64_quadrature(name):
         for i in cols:
             want = quad_expectation(xs, f, float(xs[i]), s)
             got = np.r_[tab.ext[j, i], tab.emission[j, i]]
-            if want[0] < EXT_ZERO * (1 + 1e-6) and not got.any():
+            if want[0] < zeroed_below(j, smax_sig) * (1 + 1e-6) and not got.any():
                 n_zeroed += 1
-                continue  # a far tail below EXT_ZERO, zeroed on purpose
+                continue  # a tail below the table's floor, zeroed on purpose
             err = np.abs(got - want)
             assert (err <= 1e-9 * np.abs(want) + 1e-12 * smax_sig).all(), (j, i, got, want)
             n_checked += 1
@@ -169,8 +177,10 @@ def test_dist_table_with_tiny_std_is_the_point_classification(name):
     kink = 0.4e-9 * np.abs(np.diff(f, 2, axis=1)).max(axis=1)  # per channel
     assert kink.max() > 0
     for j in range(tab.rows):
-        np.testing.assert_allclose(tab.ext[j], f[0], rtol=1e-9, atol=kink[0])
-        np.testing.assert_allclose(tab.emission[j], f[1:].T, rtol=1e-9, atol=kink[1:].max())
+        kept = f[0] >= zeroed_below(j, float(f[0].max()))  # coarse rows zero what is below their floor
+        np.testing.assert_allclose(tab.ext[j][kept], f[0][kept], rtol=1e-9, atol=kink[0])
+        np.testing.assert_allclose(tab.emission[j][kept], f[1:].T[kept], rtol=1e-9, atol=kink[1:].max())
+        assert (tab.ext[j][~kept] <= zeroed_below(j, float(f[0].max())) * (1 + 1e-6)).all()
     # colour (emission / extinction) at a visible entry is the TF colour, and lookup at std 0 reads row 0
     col, ext = tab.lookup(lut.values, np.zeros(lut.n))
     vis = f[0] > 1e-3
@@ -624,3 +634,29 @@ def test_sampler_interpolates_the_std_like_the_values(interp):
         g2 = ref.probe(lk, ref.bricks_of(lk, pyr, B7), B7, pts, interp, std_bricks=sb).astype(np.float64)
         s16 = [p.astype(np.float16).astype(np.float64) for p in spyr]
         np.testing.assert_allclose(g2[:, 1], [ref.trilinear_level(s16, 2, B7, q) for q in pts], atol=2e-6)
+
+
+def test_coarse_cells_reached_only_by_a_weak_tail_are_skipped(tmp_path, monkeypatch):
+    """Fat and muscle (-100 and 50 HU, alternating voxel by voxel) around a bone ball, rendered from level 1 under
+    ct-bone: each coarse voxel of the soft tissue has mean -25 and spread 75, so its Gaussian reaches the TF's
+    range (250 HU and up) only 3.7 spreads out, an expected extinction of ~3e-6 per unit, far below 10^-4 of
+    the TF's strongest, which the table zeroes, so the march skips those cells. Without the floor it takes every
+    one of them; the image is the same to 1/255 of opacity or colour."""
+    rng = np.random.default_rng(4)
+    z, y, x = np.indices((48, 48, 48))
+    vol = (np.where((z + y + x) % 2, 50.0, -100.0) + rng.normal(0, 5, z.shape)).astype(np.float32)
+    vol[(z - 24) ** 2 + (y - 24) ** 2 + (x - 24) ** 2 < 8 ** 2] = 1200.0
+    st = lodcast.ingest(vol, tmp_path / "tail.zarr", block_size=8, progress=False)
+    scene = {"tf": "ct-bone", "width": 48, "height": 48, "camera": {"azimuth": 20, "elevation": 10},
+             "quality": {"reduction": 2}, "sampling": {"adaptive_object": False}, "format": "npy"}
+    levels = np.ones(st.grid, np.int8)
+    kept = render(st, scene, levels=levels)
+    monkeypatch.setattr(classification, "EXT_ZERO_REL", 0.0)
+    classification._cached.cache_clear()
+    try:
+        every = render(st, scene, levels=levels)
+    finally:
+        classification._cached.cache_clear()
+    assert kept.report["samples"] < 0.5 * every.report["samples"], (kept.report["samples"], every.report["samples"])
+    assert np.abs(kept.rgba - every.rgba).max() < 1 / 255
+    assert kept.rgba[..., 3].max() > 0.5  # the ball shows
