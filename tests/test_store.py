@@ -375,12 +375,18 @@ def test_the_omero_window_spans_the_bulk_of_the_values(tmp_path: Path):
     assert 100 - 2 * width <= win["start"] <= 100 + 2 * width and 200 - 2 * width <= win["end"] <= 200 + 2 * width, win
 
 
-def test_read_chunks_are_the_level_regions_of_those_chunks(tmp_path):
+@pytest.mark.parametrize("reader", ["shard-level", "zarr-python"])
+def test_read_chunks_are_the_level_regions_of_those_chunks(tmp_path, monkeypatch, reader):
     """Store.read_chunks, of levels and of their standard deviations, on a volume that is no multiple of the
     block: each chunk is the level's region under it, cut at the level's edge, for random subsets of each
-    shard's chunks."""
+    shard's chunks; through the shard-level reader and through zarr-python (where that reader declines)."""
     vol = np.random.default_rng(11).normal(400, 150, (37, 45, 29)).astype(np.float32)
     st = lodcast.ingest(vol, tmp_path / "r.zarr", block_size=8, progress=False)
+    if reader == "zarr-python":
+        from lodcast.store import shardio
+
+        monkeypatch.setattr(shardio, "fast_reader", lambda *a, **k: None)
+        st = lodcast.open_store(tmp_path / "r.zarr")
     lay = st.layout
     rng = np.random.default_rng(2)
     for k in range(lay.n_levels):
