@@ -94,20 +94,12 @@ class VolumeView:
         unit keeps float16's 2^-11 relative precision (a float volume in metres or in micro-units alike)."""
         return self.std_max / 32768.0 if self.std_max > 0 else 1.0
 
-    def read_std_region(self, level: int, region: tuple) -> np.ndarray:
-        """Standard deviations behind `region` of level `level` (the brick loader's read for classification)."""
-        return self.source.read_std_region(level, region)
-
     def read_chunks(self, level: int, chunks: Any, std: bool = False) -> list[np.ndarray]:
         """The store's inner chunks `chunks` (n, 3) of level `level`, all in one shard, each cut to the level's
-        shape (std: the standard deviations behind them): the brick loader's read."""
-        return self.source.read_chunks(level, chunks, std)
-
-    def read_region(self, level: int, region: tuple) -> np.ndarray:
-        """Samples `region` (slices) of level `level` of the store."""
+        shape (std: the standard deviations behind them): the brick loader's only read."""
         if not self.has_levels:
             raise ValueError("level-of-detail rendering needs a lodcast store (an array has no coarser levels)")
-        return self.source.read_region(level, region)
+        return self.source.read_chunks(level, chunks, std)
 
 
 def block_minmax_border(a: np.ndarray, B: int) -> tuple[np.ndarray, np.ndarray]:
