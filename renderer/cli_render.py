@@ -35,6 +35,23 @@ def _floats(name: str, n: int):
     return parse
 
 
+def _quality(text: str) -> Any:
+    """--quality: "full" | "lossless" | "30" or "30:1" (a reduction) | JSON; the scene validates the value."""
+    t = text.strip()
+    if t in ("full", "lossless"):
+        return t
+    if t.startswith("{"):
+        try:
+            return json.loads(t)
+        except json.JSONDecodeError as exc:
+            raise argparse.ArgumentTypeError(f"not valid JSON ({exc.msg} at character {exc.pos})") from None
+    try:
+        return {"reduction": float(t[:-2] if t.endswith(":1") else t)}
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected full, lossless, a reduction such as 30 or 30:1, or JSON "
+                                         "such as {\"budget_mb\": 64}") from None
+
+
 def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a store locally to PNG (straight alpha) or .npy (float32 premultiplied RGBA)")
     p.add_argument("store", help="a lodcast store (folder written by `lodcast ingest`)")
@@ -52,6 +69,8 @@ def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser
     p.add_argument("--elevation", type=float, help="orbit camera: degrees towards +z")
     p.add_argument("--distance", type=float, help="orbit camera: multiples of the box's bounding-sphere radius")
     p.add_argument("--fov", type=float, help="vertical field of view in degrees")
+    p.add_argument("--quality", type=_quality, help="full, lossless, a data reduction (30 or 30:1: "
+                   "{\"reduction\": 30}) or a quality as JSON ({\"budget_mb\": 64})")
     p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
     p.add_argument("--mode", choices=MODES, help="composite (default), mip, minip, average or iso (with --isovalue)")
     p.add_argument("--isovalue", type=float, help="mode iso: the data value of the surface")
@@ -99,7 +118,7 @@ def scene_from_args(args: argparse.Namespace):
             data[key] = _load_json(v, f"--{key}")
     if "tf" not in data:
         raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
-    for key in ("width", "height", "mode", "isovalue"):
+    for key in ("width", "height", "mode", "isovalue", "quality"):
         if getattr(args, key) is not None:
             data[key] = getattr(args, key)
     if args.shading is not None:

@@ -71,6 +71,24 @@ def test_cli_render_scene_file_flags_and_report(store, tmp_path):
     assert np.asarray(Image.open(tmp_path / "o.png")).shape == (10, 12, 4)
 
 
+def test_cli_quality_shortcut(store, tmp_path):
+    """--quality takes full, lossless, a reduction as 4 or 4:1, or JSON, into the scene's quality (the report says
+    what was asked and what the selection reached); anything else exits 2 naming the flag."""
+    tf = tmp_path / "tf.json"
+    tf.write_text(json.dumps(TF))
+    for given, want in (("4:1", {"reduction": 4.0}), ("4", {"reduction": 4.0}), ("lossless", "lossless"),
+                        ('{"budget_mb": 0.01}', {"budget_mb": 0.01})):
+        p = lodcast_cli("render", store, "-o", tmp_path / "q.npy", "--tf", tf, "--width", 16, "--height", 12,
+                        "--quality", given, "--report", tmp_path / "q.json")
+        assert p.returncode == 0, (given, p.stderr)
+        rep = json.loads((tmp_path / "q.json").read_text())
+        assert rep["quality"] == want and "-DLC_SAMPLER_ATLAS" in rep["build_options"], (given, rep["quality"])
+        if "reduction" in want:
+            assert rep["reduction"] >= 4.0 - 1e-9
+    p = lodcast_cli("render", store, "-o", tmp_path / "q.npy", "--tf", tf, "--quality", "lots")
+    assert p.returncode == 2 and "--quality" in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
 def test_cli_tf_preset_renders_as_its_points(tmp_path):
     """`--tf ct-bone` is the preset's points: the same image as the same TF given as a file, and a volume in
     Hounsfield units shows bone (1000 HU) and hides soft tissue (40 HU)."""
