@@ -128,13 +128,15 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
     need, which = np.unique(where, axis=0, return_inverse=True)
     chunks = vol.read_chunks(level, need, std=what != "mean")
     lo, hi = start - where * c, stop - where * c  # within the chunk
+    if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
+        dtype, unit = device_dtype(chunks[0].dtype), None
+    else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
+        dtype, unit = np.dtype(np.float16), np.float32(vol.std_unit)
     out = {}
     for b, i, a, z in zip(blocks, which.ravel().tolist(), lo.tolist(), hi.tolist()):
         sub = chunks[i][a[0]:z[0], a[1]:z[1], a[2]:z[2]]
-        if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
-            dtype = device_dtype(sub.dtype)
-        else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
-            sub, dtype = sub / np.float32(vol.std_unit), np.float16
+        if unit is not None:
+            sub = sub / unit
         if sub.shape != (e, e, e):
             sub = np.pad(sub, [(0, e - n) for n in sub.shape], mode="edge")
         out[(level, *b)] = np.ascontiguousarray(sub, dtype=dtype)

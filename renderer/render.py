@@ -262,6 +262,14 @@ class LodPlan:
     selection: Any = None
 
 
+def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tuple[list, tuple]:
+    """The scene's TFs (tf, and tf2 when given), and the key of what is computed from them alone, not from the
+    view (the selection, the step's error): the volume, the TFs and the clip region's blocks."""
+    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
+    return tfs, (vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True),
+                 None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest())
+
+
 def _step_error(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float:
     """selection.step_delta_e for the scene's TFs, step and clip region (kept for the last few: a turntable asks
     for the same each frame); 0 where it does not apply (an array, a projection mode)."""
@@ -270,9 +278,8 @@ def _step_error(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float
     from lodcast.renderer.selection import step_delta_e
     from lodcast.renderer.significance import meta_of_store
 
-    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
-    key = (vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True), scene.sampling.step,
-           None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest())
+    tfs, base = _tfs_and_key(vol, scene, keep)
+    key = (*base, scene.sampling.step)
     hit = _STEP_ERRORS.get(key)
     if hit is None:
         hit = step_delta_e(meta_of_store(vol.source), tfs, scene.sampling.step, keep)
@@ -291,14 +298,12 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None,
         raise SceneError(f"quality: {scene.quality!r} needs a lodcast store (an array has only full resolution)")
     from lodcast.renderer.selection import select_lod
 
-    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
+    tfs, base = _tfs_and_key(vol, scene, keep)
     quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
     classification = scene.sampling.classification if scene.mode == "composite" else "mean"
     # the selection does not depend on the view: a turntable or a camera change selects once
-    key = None if vol.key is None else (
-        vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True), json.dumps(quality, sort_keys=True),
-        classification, None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest(),
-        environment().lossless_zeta)
+    key = None if vol.key is None else (*base, json.dumps(quality, sort_keys=True), classification,
+                                        environment().lossless_zeta)
     sel = _SELECTIONS.get(key) if key is not None else None
     if sel is None:
         sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification)
