@@ -72,11 +72,14 @@ def sweep(store, scene: dict, repeat: int) -> dict:
                "delta_e_vs_full": delta_e_stats(r.rgba, full.rgba)["mean"],
                "predicted": r.report["predicted_delta_e"], "kernel_ms": r.report["kernel_ms"],
                "speed_vs_full": out["full_ms"] / r.report["kernel_ms"], "samples_vs_full": r.report["samples"] / out["full_samples"]}
-        if q != "lossless":  # adaptive sampling's share: the same selection at fixed steps, and nearest block
+        if q != "lossless":  # adaptive sampling's share: the same selection at fixed steps, and nearest block;
+            # the selection without the view's weight (visibility.py)
             fixed = best(store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
             nb = best(store, {**scene, "quality": q, "sampling": {"interpolation": "nearest_block"}}, repeat)
+            blind = lodcast.render(store, {**scene, "quality": q, "sampling": {"lod_visibility": False}})
             row.update(fixed_ms=fixed.report["kernel_ms"], fixed_delta_e=delta_e_stats(fixed.rgba, ref.rgba)["mean"],
-                       nb_ms=nb.report["kernel_ms"], nb_delta_e=delta_e_stats(nb.rgba, ref.rgba)["mean"])
+                       nb_ms=nb.report["kernel_ms"], nb_delta_e=delta_e_stats(nb.rgba, ref.rgba)["mean"],
+                       blind_delta_e=delta_e_stats(blind.rgba, ref.rgba)["mean"], blind_predicted=blind.report["predicted_delta_e"])
         out["rows"].append(row)
     vis = select_lod(store, [scene["tf"]], "lossless").levels >= 0
     for k in (1, 2):  # every visible block at one level: the data bound of each classification
@@ -86,8 +89,10 @@ def sweep(store, scene: dict, repeat: int) -> dict:
                                                        "sampling": {"classification": cls, "adaptive_object": False}},
                                                levels=lv).rgba, ref.rgba)["mean"] for cls in ("mean", "distribution")}
         out["uniform"].append({"level": k, "reduction": red, **e})
-    for red in (10, 30, 64):  # thesis fig. 3.4 and issue 9: TF selection against L2 and uniform
-        e = {}
+    for red in (10, 30, 64):  # thesis fig. 3.4 and issue 9: TF selection (with the view's weight, the default, and
+        # without) against L2 and uniform
+        view = lodcast.render(store, {**scene, "quality": {"reduction": red}})
+        e = {"tf_view": delta_e_stats(view.rgba, ref.rgba)["mean"], "tf_view_reduction": view.report["reduction"]}
         for method in ("tf", "l2", "uniform"):
             sel = select_lod(store, [scene["tf"]], {"reduction": red}, method=method)
             img = lodcast.render(store, {**scene, "quality": {"reduction": red}}, levels=sel.levels)
@@ -156,18 +161,20 @@ def report(res: dict) -> str:
         lines += [f"### {c['volume']}, {c['tf']}, {c['size']}² — full resolution {c['full_ms']:.0f} ms, "
                   f"mean ΔE {c['full_delta_e']:.2f} (step ½ against step ¼), predicted {c['full_predicted']:.2f}", "",
                   "| quality | reduction | mean ΔE | p95 | ΔE vs full | predicted | kernel ms | × full speed | samples ÷ full |"
-                  " fixed-step ms · ΔE | nearest block ms · ΔE |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  " fixed-step ms · ΔE | nearest block ms · ΔE | no view weight: ΔE · predicted |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in c["rows"]:
-            extra = (f"{r['fixed_ms']:.0f} · {r['fixed_delta_e']:.2f} | {r['nb_ms']:.0f} · {r['nb_delta_e']:.2f}"
-                     if "fixed_ms" in r else "– | –")
+            extra = (f"{r['fixed_ms']:.0f} · {r['fixed_delta_e']:.2f} | {r['nb_ms']:.0f} · {r['nb_delta_e']:.2f} | "
+                     f"{r['blind_delta_e']:.2f} · {r['blind_predicted']:.2f}" if "fixed_ms" in r else "– | – | –")
             lines.append(f"| {r['quality']} | {r['reduction']:.1f} | {r['delta_e']:.2f} | {r['p95']:.1f} | "
                          f"{r['delta_e_vs_full']:.2f} | {r['predicted']:.2f} | {r['kernel_ms']:.0f} | {r['speed_vs_full']:.2f} | "
                          f"{r['samples_vs_full']:.2f} | {extra} |")
         lines += ["", "| every visible block at | reduction | mean ΔE by mean | by distribution |", "|---|---|---|---|"]
         lines += [f"| level {u['level']} | {u['reduction']:.1f} | {u['mean']:.2f} | {u['distribution']:.2f} |"
                   for u in c["uniform"]]
-        lines += ["", "| reduction | TF selection | L2 | uniform |", "|---|---|---|---|"]
-        lines += [f"| {f['reduction']}:1 | {f['tf']:.2f} | {f['l2']:.2f} | {f['uniform']:.2f} "
+        lines += ["", "| reduction | TF selection (default: weighed by the view) | TF alone | L2 | uniform |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {f['reduction']}:1 | {f['tf_view']:.2f} | {f['tf']:.2f} | {f['l2']:.2f} | {f['uniform']:.2f} "
                   f"({f['uniform_reduction']:.0f}:1) |" for f in c["fig34"]]
         lines.append("")
     p = res["prediction"]

@@ -41,6 +41,7 @@ from lodcast.renderer.cache import ByteLru
 from lodcast.renderer import passes as multipass
 from lodcast.renderer.params import ext_table, fill_params, fill_tf2, lut_table, tables
 from lodcast.renderer import screen as screen_space
+from lodcast.renderer import visibility
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
@@ -260,6 +261,7 @@ class LodPlan:
     predicted_delta_e: float | None
     step_levels: np.ndarray | None  # adaptive sampling: int8 per half-block cell (atlas.step_levels)
     selection: Any = None
+    view_weighted: bool = False  # the selection weighed what the camera sees (visibility.py)
 
 
 def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tuple[list, tuple]:
@@ -287,8 +289,27 @@ def _step_error(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float
     return hit
 
 
-def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None,
-            keep: np.ndarray | None) -> tuple[np.ndarray, Any]:
+def _view_weighted(scene: Scene) -> bool:
+    """Whether the selection weighs what the camera sees (visibility.py): sampling.lod_visibility, at the budgeted
+    qualities ('lossless' promises the full-resolution image from any view, and selects once per TF), for a single
+    TF composited (the projections and a second TF see through what one TF hides)."""
+    return (scene.sampling.lod_visibility and not isinstance(scene.quality, str) and scene.mode == "composite"
+            and scene.tf2 is None)
+
+
+def _view_key(scene: Scene, fr: cam.Frame, kbox: tuple) -> str:
+    """What the visibility of the blocks depends on besides the TF: the camera, the image's aspect, the box the rays
+    integrate and the clip planes."""
+    nums = np.concatenate([fr.eye, fr.f, fr.r, fr.u, [fr.half_w, fr.half_h, float(fr.orthographic)],
+                           np.ravel(kbox)]).astype(np.float64)
+    clip = None if scene.clip is None else scene.clip.model_dump(mode="json")
+    return hashlib.sha1(np.round(nums, 9).tobytes() + json.dumps(clip, sort_keys=True).encode()).hexdigest()
+
+
+def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None, keep: np.ndarray | None,
+            view: tuple | None = None) -> tuple[np.ndarray, Any]:
+    """The level per block: `levels` as given, or the selection for the scene's TFs and quality, weighted by the
+    blocks' visibility from the camera when `view` = (frame, ray box, LUT, unit distance) is given."""
     if levels is not None:
         lv = np.ascontiguousarray(levels, dtype=np.int8)
         if lv.shape != vol.grid:
@@ -301,23 +322,26 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None,
     tfs, base = _tfs_and_key(vol, scene, keep)
     quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
     classification = scene.sampling.classification if scene.mode == "composite" else "mean"
-    # the selection does not depend on the view: a turntable or a camera change selects once
+    # without the view's weight the selection does not depend on the view: a turntable selects once
     key = None if vol.key is None else (*base, json.dumps(quality, sort_keys=True), classification,
-                                        environment().lossless_zeta)
+                                        environment().lossless_zeta,
+                                        None if view is None else _view_key(scene, view[0], view[1]))
     sel = _SELECTIONS.get(key) if key is not None else None
     if sel is None:
-        sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification)
+        seen = None if view is None else visibility.block_visibility(vol, scene, *view)
+        sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification, visibility=seen)
         if key is not None:
             _SELECTIONS.put(key, sel, 1)
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
 
 
 def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
-              mode: str, keep: np.ndarray | None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
-    """The selection (blocks outside the clip region `keep` not loaded), the block info with unloaded blocks
-    marked empty, the number of empty blocks, and the kernel configuration (the default adaptive sampling is
-    dropped when every block is at level 0)."""
-    lv, sel = _select(vol, scene, levels, keep)
+              mode: str, keep: np.ndarray | None,
+              view: tuple | None = None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
+    """The selection (blocks outside the clip region `keep` not loaded; weighted by what the camera sees when
+    `view` is given, see _select), the block info with unloaded blocks marked empty, the number of empty blocks,
+    and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0)."""
+    lv, sel = _select(vol, scene, levels, keep, view)
     if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
         cfg = replace(cfg, adaptive=False)  # the default: every block at level 0 leaves nothing to step over
     info = info.copy()
@@ -341,7 +365,7 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     if cfg.adaptive:
         skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
         steps = _step_levels(lv, scene.sampling.interpolation, int(B), skip)
-    return LodPlan(lv, reduction, pred, steps, sel), info, n_empty, cfg
+    return LodPlan(lv, reduction, pred, steps, sel, view is not None), info, n_empty, cfg
 
 
 def _step_levels(lv: np.ndarray, interpolation: str, block_size: int, skip: np.ndarray | None) -> np.ndarray:
@@ -356,7 +380,7 @@ def _step_levels(lv: np.ndarray, interpolation: str, block_size: int, skip: np.n
     return hit
 
 
-def _geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
+def geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
     """(the volume's world box, the camera frame, the box the rays integrate (crop box applied), the step in world
     units)."""
     box = cam.box_world(vol.shape, vol.spacing, vol.origin)
@@ -374,7 +398,7 @@ def _cost(scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float, sample_li
     return estimated
 
 
-def _resolved(scene: Scene, vol: VolumeView) -> Scene:
+def resolved(scene: Scene, vol: VolumeView) -> Scene:
     """`scene` as it renders on `vol`: adaptive TFs as the control points they take on it, an orbit camera's
     named view as its azimuth and elevation."""
     update = resolve_tfs(scene, vol)
@@ -387,8 +411,8 @@ def check_cost(store: Any, scene: Any, sample_limit: int | None = None) -> int:
     """The samples `scene` of `store` would take (renderer/cost.py), before anything is loaded or built; raises
     CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES or 2·10⁹)."""
     vol = as_volume(store)
-    scene = _resolved(Scene.parse(scene), vol)
-    _, fr, kbox, step_world = _geometry(vol, scene)
+    scene = resolved(Scene.parse(scene), vol)
+    _, fr, kbox, step_world = geometry(vol, scene)
     return _cost(scene, fr, kbox, step_world, sample_limit)
 
 
@@ -397,8 +421,8 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     """Everything a launch needs. `sample_limit`: the most samples the render may take (estimated before it starts:
     renderer/cost.py), default LODCAST_MAX_SAMPLES or 2·10⁹; above it CostError (a SceneError) names the field."""
     vol = as_volume(store, spacing=spacing, origin=origin)
-    scene = _resolved(Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
-    box, fr, kbox, step_world = _geometry(vol, scene)
+    scene = resolved(Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
+    box, fr, kbox, step_world = geometry(vol, scene)
     estimated = _cost(scene, fr, kbox, step_world, sample_limit)
     unit = unit_distance(scene.tf, vol.spacing)
     diag = float(np.linalg.norm(box[1] - box[0]))
@@ -422,7 +446,8 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution,
                         voxel=VOXEL_CTYPES[vol.voxel_dtype])
     if use_lod:
-        lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode, keep)
+        view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene) else None
+        lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode, keep, view)
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
     dist, pre = _classification_tables(scene.tf, lut, unit, cfg, vol, step_world)
@@ -660,6 +685,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "interpolation": cfg.interpolation,
         "classification": _classification(pr),
         "adaptive": "naive" if cfg.adaptive_naive else ("limited" if cfg.adaptive else False),
+        "lod_visibility": pr.lod is not None and pr.lod.view_weighted,
         "blocks": n_blocks,
         "step_world": pr.step_world,
         "unit_distance": pr.unit,

@@ -27,6 +27,8 @@ REPORT_FIELDS: dict[str, str] = {
     "interpolation": "sampling across blocks of different levels: interblock or nearest_block",
     "classification": "how coarse samples were classified: by their distribution, by the mean, or point (level 0)",
     "adaptive": "adaptive object-space sampling: false, or how it was limited",
+    "lod_visibility": "whether the level-of-detail selection weighed what the camera sees of each block "
+                      "(sampling.lod_visibility, at the budgeted qualities)",
     "blocks": "blocks of the volume",
     "step_world": "the sampling step in world units",
     "unit_distance": "the length (world units) a TF's opacity is given for",

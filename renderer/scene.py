@@ -181,6 +181,11 @@ class Sampling(_Model):
     it a reduction saves memory but no time — and off at 'lossless' (which promises the full-resolution image)
     and at 'full', where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
     steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks).
+    `lod_visibility` (default on): at the budgeted qualities the level-of-detail selection weighs each block's
+    significance by how much of it the camera sees (a low-resolution cast of the view through a coarse level, renderer/visibility.py), so that
+    what lies behind opaque material stays coarse and the budget goes to what the picture shows; the selection
+    then follows the view (a turntable selects each frame). Off: it depends on the TFs alone. Composite with one
+    TF only (the projections and a second TF see what one TF hides).
     `adaptive_screen`: adaptive screen-space sampling (thesis §3.6.3): tiles of `screen_tile`² pixels rendered at
     2×2 up to full resolution, chosen by `screen_statistic` ("max", "average" or "rms") of the block scales along
     their rays, and reconstructed by intertile interpolation; at level 0 everywhere every tile is at full
@@ -198,6 +203,7 @@ class Sampling(_Model):
     early_termination: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
     empty_space_skipping: bool = True
     priority_map: bool = True
+    lod_visibility: bool = True
     screen_statistic: Literal["max", "average", "rms"] = "rms"
     screen_tile: Annotated[int, Field(ge=2, le=64)] = 16
 

@@ -51,12 +51,21 @@ report adds the step's own error (step_delta_e: against the step-¼ reference, S
 fitted on two CTs and seven TFs), so that it predicts what DESIGN.md measures; at 5:1 and below that is most of
 it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fit's rows (2.2: ct-skin-bone at
 5:1 measures 3.2 from one view and 0.8 from the other, which no view-independent figure can both meet within 2).
-Both are estimates of DESIGN.md's measured ΔE, not bounds. TF-empty blocks are excluded (they show nothing either
+Both are estimates of DESIGN.md's measured ΔE, not bounds.
+
+What the camera sees (`visibility`, renderer/visibility.py; a render passes it at the budgeted qualities unless
+`sampling.lod_visibility` is off): per block the largest transmittance with which a ray of a low-resolution cast
+of the view enters it. It multiplies ζ where the greedy weighs it, and the prediction counts each block's voxels
+times it (an occluded block's error does not reach the picture, and ā is that of what is seen), so a block behind
+opaque material stays coarse and the budget goes to what the image shows. 'lossless' does not take it (it
+promises the full-resolution image from any view); the "l2" and "uniform" baselines ignore it. TF-empty blocks are excluded (they show nothing either
 way), as are blocks outside the crop. "lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at
 most LODCAST_LOSSLESS_ZETA (`environment().lossless_zeta`, 0.5 unless set).
 """
 from __future__ import annotations
 
+import json
+import weakref
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -65,7 +74,9 @@ import numpy as np
 from lodcast.environment import environment
 from lodcast.renderer.clip import block_bounds
 from lodcast.renderer.level_error import level_zeta
-from lodcast.renderer.significance import BlockMeta, block_significance, level_profile, meta_of_store, tf_visible
+from lodcast.renderer.cache import ByteLru
+from lodcast.renderer.significance import (BlockMeta, as_tf, block_significance, level_profile, meta_of_store,
+                                           tf_visible)
 
 __all__ = ["LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "step_delta_e",
            "BYTES_PER_SAMPLE", "MB"]
@@ -376,6 +387,7 @@ def select_from_meta(
     max_level: np.ndarray | None = None,
     method: str = "tf",
     classification: str = "distribution",
+    visibility: np.ndarray | None = None,
 ) -> LodSelection:
     """select_lod on flattened block metadata (what the benchmarks and tests drive directly)."""
     if method not in METHODS:
@@ -391,20 +403,21 @@ def select_from_meta(
     per_level = meta.level_std is not None and method == "tf"
     opac = None
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
-        zeta_tab = np.zeros((n, L))
-        opac = np.zeros((n, 2))
-        visible = np.zeros(n, bool)
-        for t in ([tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs):
-            vis_t = tf_visible(t, meta.min_border, meta.max_border)
-            z_t, o_t = level_zeta(meta, t, vis_t, meta.value_range, meta.std_max, classification)
-            zeta_tab = np.maximum(zeta_tab, z_t)
-            opac = np.maximum(opac, o_t)
-            visible |= vis_t
+        zeta_tab, opac, visible = _level_tables(meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs,
+                                                classification)
         z0 = zeta_tab.max(axis=1)  # drives the refinement: a block is refined if some level loses anything
-        zeta_tab = zeta_tab.astype(np.float32)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
+    # what the selection weighs: ζ, times what the camera sees of the block (visibility.py) when that is given
+    seen = None if visibility is None or method not in ("tf", "tf_full_hist") else \
+        np.clip(np.asarray(visibility, np.float64).ravel(), 0.0, 1.0)
+    weight = meta.count if seen is None else meta.count * seen
+    if seen is not None:
+        z0 = z0 * seen
+        zeta_w = (zeta_tab * seen[:, None]).astype(np.float32)
+    else:
+        zeta_w = zeta_tab
     if kind == "full":
         levels = np.where(crop, maxlev, -1)
     else:
@@ -420,8 +433,8 @@ def select_from_meta(
             # the coarsest level each block shows within ζ of its level-0 colours (ζ · IMAGE_GAIN / ā, the predicted
             # ΔE, at most environment().lossless_zeta)
             # (levels finer than a block's max level count as fine: they are not allowed anyway)
-            gain = _image_gain(opac, meta.count, loaded)
-            ok = (zeta_tab * gain <= environment().lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
+            gain = _image_gain(opac, weight, loaded)
+            ok = (zeta_w * gain <= environment().lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
             first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
             levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
         elif kind == "lossless":
@@ -443,7 +456,7 @@ def select_from_meta(
                         break
             elif per_level:
                 rows = np.flatnonzero(refine)
-                levels[rows] = greedy(zeta_tab[rows].astype(np.float64), maxlev[rows], nsamp, budget_samples - base_samples)
+                levels[rows] = greedy(zeta_w[rows].astype(np.float64), maxlev[rows], nsamp, budget_samples - base_samples)
             else:
                 rows = np.flatnonzero(refine)
                 ztab = drive[rows, None] * prof[None, :]
@@ -454,11 +467,39 @@ def select_from_meta(
     return LodSelection(
         levels=levels.astype(np.int8).reshape(meta.grid),
         zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
-        predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, meta.count, opac),
+        predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, weight, opac),
         bytes=nbytes,
         reduction=(full_bytes / nbytes) if nbytes else float("inf"),
         blocks_skipped=int((~loaded).sum()),
     )
+
+
+_TABLES = ByteLru(256 << 20)  # the level tables of recent (store, TFs, classification): a turntable asks each frame
+
+
+def _level_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ζ(k) per block and level (N, L) float32, opacity moments (N, 2), TF-visible blocks (N,)): level_zeta's
+    maximum over the TFs. They depend on the store and the TFs, not on the view or the budget, and cost 0.1-0.2 s
+    on the chest CT: kept for the last few (keyed by the metadata object, which the store caches)."""
+    key = (id(meta), json.dumps([as_tf(t).model_dump(mode="json") for t in tfs], sort_keys=True), classification)
+    hit = _TABLES.get(key)
+    if hit is not None and hit[0]() is meta:
+        return hit[1]
+    n, L = meta.n, meta.n_levels
+    zeta_tab = np.zeros((n, L))
+    opac = np.zeros((n, 2))
+    visible = np.zeros(n, bool)
+    for t in tfs:
+        vis_t = tf_visible(t, meta.min_border, meta.max_border)
+        z_t, o_t = level_zeta(meta, t, vis_t, meta.value_range, meta.std_max, classification)
+        zeta_tab = np.maximum(zeta_tab, z_t)
+        opac = np.maximum(opac, o_t)
+        visible |= vis_t
+    out = (zeta_tab.astype(np.float32), opac, visible)
+    for a in out:
+        a.setflags(write=False)
+    _TABLES.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
+    return out
 
 
 def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
@@ -468,14 +509,16 @@ def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
 
 
 def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np.ndarray | None = None,
-               classification: str = "distribution") -> LodSelection:
+               classification: str = "distribution", visibility: np.ndarray | None = None) -> LodSelection:
     """Select a level per block for `tfs` (one TF, or a list: ζ is the max over them) under `quality`
     ("full" | "lossless" | {"budget_mb": x} | {"reduction": r}, or the scene's quality objects).
 
     crop: world box (lower, upper) in (z, y, x), or a grid-shaped bool mask; blocks outside it are not loaded. max_level: optional grid-shaped
     finest level per block (0 = full allowed). method: "tf" (eq. 3.1 on simplified histograms), "tf_full_hist",
     "l2" (data-error significance, same greedy) or "uniform" (one level for every loaded block, the finest that
-    fits). `zeta` and `predicted_delta_e` are always the ΔE significance (simplified, or full for tf_full_hist)."""
+    fits). `zeta` and `predicted_delta_e` are always the ΔE significance (simplified, or full for tf_full_hist).
+    visibility: optional grid-shaped weight per block in [0, 1], what the camera sees of it (visibility.py): the TF
+    methods weigh ζ by it and the prediction counts each block's voxels times it (module doc)."""
     meta = meta_of_store(store)
     in_crop = None
     if isinstance(crop, np.ndarray) and crop.dtype == bool:
@@ -494,4 +537,5 @@ def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np
         max_level=max_level,
         method=method,
         classification=classification,
+        visibility=visibility,
     )

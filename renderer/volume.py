@@ -74,6 +74,18 @@ class VolumeView:
         out[...] = np.asarray(self.source)[region]
         return out
 
+    def read_level(self, level: int, dtype: Any = None) -> np.ndarray:
+        """The whole of a store's level `level` (its level_shape), in `dtype` when given."""
+        assert self.has_levels, "only a lodcast store has coarse levels"
+        return self.source.read_region(level, ..., dtype)
+
+    def level_shape(self, level: int) -> tuple[int, int, int]:
+        return tuple(self.source.layout.level_shape(level))  # type: ignore[return-value]
+
+    @property
+    def n_levels(self) -> int:
+        return int(self.source.layout.n_levels) if self.has_levels else 1
+
     @property
     def has_levels(self) -> bool:
         """Whether the coarser levels exist (a lodcast store), which level-of-detail rendering needs."""

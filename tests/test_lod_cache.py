@@ -72,10 +72,12 @@ def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(
 def test_tf_change_through_the_selection_reads_only_changed_bricks(store):
     pytest.importorskip("lodcast.renderer.selection")
     tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [0, 0.5, 1], "opacity": 0.6}]}
-    a = render(store, {**_scene(0), "quality": {"reduction": 8}})
-    b = render(store, {**_scene(90), "quality": {"reduction": 8}})
+    # the view-independent selection (visibility.py's weight off): a camera change selects the same bricks
+    fixed = {"quality": {"reduction": 8}, "sampling": {"lod_visibility": False}}
+    a = render(store, {**_scene(0), **fixed})
+    b = render(store, {**_scene(90), **fixed})
     assert b.report["bricks_read"] == 0 and b.report["bricks_cached"] == a.report["bricks_read"]
-    c = render(store, {**_scene(90, tf2), "quality": {"reduction": 8}})
+    c = render(store, {**_scene(90, tf2), **fixed})
     from lodcast.renderer.selection import select_lod
     from lodcast.renderer.scene import Scene
 
@@ -166,22 +168,28 @@ def test_prefetch_reads_the_next_frames_bricks_so_its_render_reads_none(store):
 
 
 def test_a_camera_change_selects_nothing_again(store, monkeypatch):
-    """The level-of-detail selection depends on the TF, the quality and the clip region, not on the view: a
-    turntable selects once; a TF change selects again."""
+    """Without the view's weight (lod_visibility off) the level-of-detail selection depends on the TF, the quality
+    and the clip region, not on the view: a turntable selects once; a TF change selects again. With it (the
+    default) every new view selects, and a view seen before takes its kept selection."""
     import lodcast.renderer.selection as selection
 
     calls = []
     real = selection.select_lod
-    monkeypatch.setattr(selection, "select_lod", lambda *a, **k: calls.append(1) or real(*a, **k))
-    scene = {**_scene(0), "quality": {"reduction": 4}}
+    monkeypatch.setattr(selection, "select_lod", lambda *a, **k: calls.append(k.get("visibility")) or real(*a, **k))
+    scene = {**_scene(0), "quality": {"reduction": 4}, "sampling": {"lod_visibility": False}}
     first = render(store, scene)
     for az in (40, 200):
         r = render(store, {**scene, "camera": {"azimuth": az, "elevation": 15}})
         assert r.report["reduction"] == first.report["reduction"]
-    assert len(calls) == 1
+    assert calls == [None]
     tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 0, 0], "opacity": 0.5}]}
     render(store, {**scene, "tf": tf2})
-    assert len(calls) == 2
+    assert calls == [None, None]
+    calls.clear()
+    seen = {**scene, "sampling": {}}
+    for az in (0, 40, 0, 40):
+        render(store, {**seen, "camera": {"azimuth": az, "elevation": 15}})
+    assert len(calls) == 2 and all(c is not None and c.shape == store.grid for c in calls)
 
 
 def test_on_a_cpu_device_the_brick_cache_gives_way_to_the_device_cache(store):

@@ -171,7 +171,11 @@ def test_quality_goes_through_the_selection(store, quality):
     from lodcast.renderer.significance import meta_of_store
 
     tf = Scene.parse(sc).tf
-    sel = select_lod(store, [tf], quality)
+    from lodcast.renderer.visibility import scene_visibility
+
+    # the budgeted qualities weigh what the camera sees (lod_visibility, on by default); lossless does not
+    sel = select_lod(store, [tf], quality, visibility=None if quality == "lossless" else scene_visibility(store, sc))
+    assert r.report["lod_visibility"] is (quality != "lossless")
     rep = r.report
     assert rep["reduction"] == pytest.approx(float(sel.reduction))
     step = step_delta_e(meta_of_store(store), [tf], 0.5)  # the default step's own error, on top of the selection's
