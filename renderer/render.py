@@ -557,7 +557,8 @@ def _priority_report(pr: Prepared, nsamp: np.ndarray) -> dict | None:
 
 def prefetch(store: Any, scene: Any) -> int:
     """Read the bricks a render of `scene` will need (its level-of-detail selection, and the distributions behind
-    coarse bricks) into the brick cache, without touching the device: a job calls it for its next frame while the
+    coarse bricks) into the brick cache, without touching the device but for the small cast that weighs the
+    selection by the view (visibility.py, on a queue of its own): a job calls it for its next frame while the
     current one renders. The bricks read from the store (0: all cached already, or a scene at quality "full",
     whose level 0 goes to the device whole)."""
     pr = prepare(store, scene)

@@ -80,7 +80,8 @@ def block_visibility(vol: VolumeView, scene: Scene, fr: cam.Frame, kbox: tuple, 
     opts = ["-DLC_ORTHO"] if fr.orthographic else []
     if scene.clip is not None and scene.clip.planes:
         opts.append("-DLC_CLIP")
-    ctx, queue = get_context()
+    ctx, _ = get_context()
+    queue = cl.CommandQueue(ctx)  # its own: a job's prefetch casts the next frame while the current one renders
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
     d_a = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=alpha)
