@@ -12,7 +12,7 @@ Measured, each step in its own process (peak RSS: that process's VmHWM, /proc/se
 - the renderer (one process): the first image at 30:1 (cold: the page cache dropped first if this user may, else
   said so; under cProfile, whose table is written beside the store: where a cold image's time goes), a
   36-frame turntable at 30:1 (per-frame ms, bricks read per frame, brick-cache hit rate, MB read by
-  the process), one frame at "lossless" and one at "full" under LODCAST_DEVICE_BUDGET_MB=512 with the brick cache
+  the process; then every sixth frame with the selection weighed by the view, lod_visibility on), one frame at "lossless" and one at "full" under LODCAST_DEVICE_BUDGET_MB=512 with the brick cache
   capped (LODCAST_BRICK_CACHE_MB=512), and the process's peak RSS against a quarter of the volume's size.
 Prints a table and writes JSON. Takes tens of minutes on two cores, most of it ingest.
 """
@@ -157,6 +157,19 @@ def render_step(store_path: str, frames: int, size: int) -> None:
                   "upload_ms": r.report["upload_ms"], "mb_read": (_io() - io0) / 1e6,
                   "reduction": r.report["reduction"], "peak_rss_mb": peak_rss() / 1e6}
     out["peak_rss"] = peak_rss()
+    # last, apart from the figures above: a few of the turntable's frames with the selection weighed by the view
+    # (lod_visibility on; the default leaves it off on a volume this large): each view selects, reads and packs
+    # its atlas again, and the device cache fills with atlases
+    del os.environ["LODCAST_DEVICE_BUDGET_MB"]  # as the turntable ran
+    seen = []
+    for i in range(0, frames, max(1, frames // 6)):
+        io0, t = _io(), time.perf_counter()
+        r = lodcast.render(st, {**base, "quality": {"reduction": 30}, "camera": cam(i),
+                                "sampling": {"lod_visibility": True}})
+        seen.append({"ms": (time.perf_counter() - t) * 1e3, "bricks_read": r.report["bricks_read"],
+                     "bricks_cached": r.report["bricks_cached"], "mb_read": (_io() - io0) / 1e6})
+    out["turntable_view_weighted"] = seen
+    out["view_weighted_peak_rss_mb"] = peak_rss() / 1e6
     print(json.dumps(out))
 
 
@@ -177,6 +190,11 @@ def report_table(res: dict, px: int) -> str:
         f"| turntable 30:1, {len(tt)} frames | {np.median([f['ms'] for f in tt]):.0f} ms/frame (median), "
         f"{np.mean([f['bricks_read'] for f in tt]):.0f} bricks read/frame, hit rate {hit:.3f}, "
         f"{np.mean([f['mb_read'] for f in tt]):.1f} MB read/frame |",
+        *([f"| the same with the selection weighed by the view (lod_visibility on), {len(tv)} frames | "
+           f"{np.median([f['ms'] for f in tv]):.0f} ms/frame (median), "
+           f"{np.mean([f['bricks_read'] for f in tv]):.0f} bricks read/frame, peak RSS after them "
+           f"{r['view_weighted_peak_rss_mb']:.0f} MB (measured last) |"]
+          if (tv := r.get("turntable_view_weighted")) else []),
         f"| lossless, budget 512 MB | {r['lossless']['ms']:.0f} ms, {r['lossless']['passes']} passes, "
         f"{r['lossless']['device_mb']:.0f} MB on the device, {r['lossless']['mb_read']:.0f} MB read |",
         f"| full, budget 512 MB | {r['full']['ms']:.0f} ms, {r['full']['passes']} passes, "

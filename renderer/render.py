@@ -289,12 +289,15 @@ def _step_error(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float
     return hit
 
 
-def _view_weighted(scene: Scene) -> bool:
-    """Whether the selection weighs what the camera sees (visibility.py): sampling.lod_visibility, at the budgeted
-    qualities ('lossless' promises the full-resolution image from any view, and selects once per TF), for a single
-    TF composited (the projections and a second TF see through what one TF hides)."""
-    return (scene.sampling.lod_visibility and not isinstance(scene.quality, str) and scene.mode == "composite"
-            and scene.tf2 is None)
+def _view_weighted(scene: Scene, vol: VolumeView) -> bool:
+    """Whether the selection weighs what the camera sees (visibility.py): sampling.lod_visibility (null: on for
+    volumes of at most visibility.AUTO_VOXELS), at the budgeted qualities ('lossless' promises the full-resolution
+    image from any view, and selects once per TF), for a single TF composited (the projections and a second TF see
+    through what one TF hides)."""
+    on = scene.sampling.lod_visibility
+    if on is None:
+        on = vol.n_voxels <= visibility.AUTO_VOXELS
+    return on and not isinstance(scene.quality, str) and scene.mode == "composite" and scene.tf2 is None
 
 
 def _view_key(scene: Scene, fr: cam.Frame, kbox: tuple) -> str:
@@ -446,7 +449,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution,
                         voxel=VOXEL_CTYPES[vol.voxel_dtype])
     if use_lod:
-        view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene) else None
+        view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene, vol) else None
         lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode, keep, view)
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution

@@ -181,11 +181,15 @@ class Sampling(_Model):
     it a reduction saves memory but no time — and off at 'lossless' (which promises the full-resolution image)
     and at 'full', where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
     steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks).
-    `lod_visibility` (default on): at the budgeted qualities the level-of-detail selection weighs each block's
-    significance by how much of it the camera sees (a low-resolution cast of the view through a coarse level, renderer/visibility.py), so that
-    what lies behind opaque material stays coarse and the budget goes to what the picture shows; the selection
-    then follows the view (a turntable selects each frame). Off: it depends on the TFs alone. Composite with one
-    TF only (the projections and a second TF see what one TF hides).
+    `lod_visibility`: at the budgeted qualities the level-of-detail selection weighs each block's significance by
+    how much of it the camera sees (a low-resolution cast of the view through a coarse level,
+    renderer/visibility.py), so that what lies behind opaque material stays coarse and the budget goes to what the
+    picture shows; the selection then follows the view, and each new view selects and packs its atlas again. Left
+    out (null) it is on for volumes of at most 2^27 voxels (a 512³ CT: a new view costs a tenth of a second or
+    so) and off above (on the 8 GiB body a turntable frame took 24 s with it against 0.5 s without), and a
+    turntable job's frames take it off (one selection for the whole animation: nothing changes from frame to
+    frame but the view). Off: the selection depends on the TFs alone. Composite with one TF only (the projections
+    and a second TF see what one TF hides).
     `adaptive_screen`: adaptive screen-space sampling (thesis §3.6.3): tiles of `screen_tile`² pixels rendered at
     2×2 up to full resolution, chosen by `screen_statistic` ("max", "average" or "rms") of the block scales along
     their rays, and reconstructed by intertile interpolation; at level 0 everywhere every tile is at full
@@ -203,7 +207,7 @@ class Sampling(_Model):
     early_termination: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
     empty_space_skipping: bool = True
     priority_map: bool = True
-    lod_visibility: bool = True
+    lod_visibility: bool | None = None
     screen_statistic: Literal["max", "average", "rms"] = "rms"
     screen_tile: Annotated[int, Field(ge=2, le=64)] = 16
 

@@ -53,8 +53,8 @@ it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fi
 5:1 measures 3.2 from one view and 0.8 from the other, which no view-independent figure can both meet within 2).
 Both are estimates of DESIGN.md's measured ΔE, not bounds.
 
-What the camera sees (`visibility`, renderer/visibility.py; a render passes it at the budgeted qualities unless
-`sampling.lod_visibility` is off): per block the largest transmittance with which a ray of a low-resolution cast
+What the camera sees (`visibility`, renderer/visibility.py; a render passes it at the budgeted qualities where
+`sampling.lod_visibility` says so, by default for volumes of up to 2^27 voxels): per block the largest transmittance with which a ray of a low-resolution cast
 of the view enters it. It multiplies ζ where the greedy weighs it, and the prediction counts each block's voxels
 times it (an occluded block's error does not reach the picture, and ā is that of what is seen), so a block behind
 opaque material stays coarse and the budget goes to what the image shows. 'lossless' does not take it (it

@@ -182,8 +182,11 @@ def _cap(n: int, settings: Any, field: str) -> None:
 
 def _turn(scene: Scene, azimuth: float) -> Scene:
     """The scene seen from ``azimuth`` degrees: the convenience camera gets its azimuth replaced; a look-at camera
-    has its eye turned about the vertical axis (world z) through the target."""
+    has its eye turned about the vertical axis (world z) through the target. The level of detail is selected by
+    the TF alone unless the scene says otherwise (sampling.lod_visibility): one selection for the whole animation,
+    nothing changes from frame to frame but the view."""
     out = dict(scene)
+    out["sampling"] = {"lod_visibility": False, **(out.get("sampling") or {})}
     cam = dict(out.get("camera") or {})
     if "eye" in cam and "target" in cam:
         ex, ey, ez = (float(v) for v in cam["eye"])

@@ -141,3 +141,27 @@ def test_the_selection_spends_the_budget_on_what_the_camera_sees(tmp_path):
     assert lv_on[front].mean() < lv_off[front].mean()  # the front is finer
     e_on, e_off = delta_e_stats(on.rgba, ref)["mean"], delta_e_stats(off.rgba, ref)["mean"]
     assert e_on < 0.85 * e_off, (e_on, e_off)  # measured 3.0 against 3.9
+
+
+def test_left_out_it_is_on_for_volumes_up_to_the_auto_size(wall, monkeypatch):
+    """sampling.lod_visibility null: on for volumes of at most visibility.AUTO_VOXELS, off above (where a new
+    view's selection and atlas cost more than the picture); an explicit value wins; lossless never weighs the view."""
+    scene = {"tf": WALL, "width": 32, "height": 32, "format": "npy", "quality": {"reduction": 8},
+             "camera": _ortho(wall.shape, (1, 0, 0))}
+    assert render(wall, scene).report["lod_visibility"] is True
+    assert render(wall, {**scene, "quality": "lossless"}).report["lod_visibility"] is False
+    monkeypatch.setattr(visibility, "AUTO_VOXELS", int(np.prod(wall.shape)) - 1)
+    assert render(wall, scene).report["lod_visibility"] is False
+    assert render(wall, {**scene, "sampling": {"lod_visibility": True}}).report["lod_visibility"] is True
+
+
+def test_a_turntable_job_selects_once_unless_its_scene_says_otherwise():
+    """Every frame of a turntable job takes the selection by the TF alone (one selection for the animation, no level
+    changing between frames), unless the job's scene sets lod_visibility."""
+    from lodcast.service.jobs import parse_job, plan_frames
+
+    base = {"kind": "turntable", "volume": "v", "frames": 4, "scene": {"tf": WALL, "quality": {"reduction": 8}}}
+    frames = plan_frames(parse_job(base))
+    assert len(frames) == 4 and all(s["sampling"]["lod_visibility"] is False for _, s in frames)
+    asked = parse_job({**base, "scene": {**base["scene"], "sampling": {"lod_visibility": True, "step": 0.7}}})
+    assert all(s["sampling"] == {"lod_visibility": True, "step": 0.7} for _, s in plan_frames(asked))
