@@ -54,16 +54,20 @@ it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fi
 Both are estimates of DESIGN.md's measured ΔE, not bounds.
 
 What the camera sees (`visibility`, renderer/visibility.py; a render passes it at the budgeted qualities where
-`sampling.lod_visibility` says so, by default for volumes of up to 2^27 voxels): per block the largest transmittance with which a ray of a low-resolution cast
-of the view enters it. It multiplies ζ where the greedy weighs it, and the prediction counts each block's voxels
-times it (an occluded block's error does not reach the picture, and ā is that of what is seen), so a block behind
-opaque material stays coarse and the budget goes to what the image shows. 'lossless' does not take it (it
-promises the full-resolution image from any view); the "l2" and "uniform" baselines ignore it. TF-empty blocks are excluded (they show nothing either
-way), as are blocks outside the crop. "lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at
-most LODCAST_LOSSLESS_ZETA (`environment().lossless_zeta`, 0.5 unless set).
+`sampling.lod_visibility` says so, by default for volumes of up to 2^27 voxels): per block the largest
+transmittance with which a ray of a low-resolution cast of the view enters it. It multiplies ζ where the greedy
+weighs it, and the prediction counts each block's voxels times it (an occluded block's error does not reach the
+picture, and ā is that of what is seen), so a block behind opaque material stays coarse and the budget goes to
+what the image shows. 'lossless' does not take it (it promises the full-resolution image from any view); the "l2"
+and "uniform" baselines ignore it.
+
+TF-empty blocks are excluded from the prediction (they show nothing either way), as are blocks outside the crop.
+"lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at most LODCAST_LOSSLESS_ZETA
+(`environment().lossless_zeta`, 0.5 unless set).
 """
 from __future__ import annotations
 
+import functools
 import json
 import weakref
 from dataclasses import dataclass
@@ -474,7 +478,10 @@ def select_from_meta(
     )
 
 
-_TABLES = ByteLru(256 << 20)  # the level tables of recent (store, TFs, classification): a turntable asks each frame
+@functools.cache
+def _tables_cache() -> ByteLru:
+    """The level tables of recent (store, TFs, classification): a turntable asks for the same each frame."""
+    return ByteLru(256 << 20)
 
 
 def _level_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -482,7 +489,7 @@ def _level_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> t
     maximum over the TFs. They depend on the store and the TFs, not on the view or the budget, and cost 0.1-0.2 s
     on the chest CT: kept for the last few (keyed by the metadata object, which the store caches)."""
     key = (id(meta), json.dumps([as_tf(t).model_dump(mode="json") for t in tfs], sort_keys=True), classification)
-    hit = _TABLES.get(key)
+    hit = _tables_cache().get(key)
     if hit is not None and hit[0]() is meta:
         return hit[1]
     n, L = meta.n, meta.n_levels
@@ -498,7 +505,7 @@ def _level_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> t
     out = (zeta_tab.astype(np.float32), opac, visible)
     for a in out:
         a.setflags(write=False)
-    _TABLES.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
+    _tables_cache().put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
     return out
 
 
