@@ -3,8 +3,8 @@ reference:
 
 - docs/images/lod_classification.png: ct-bone at full resolution and at 30:1, coarse data classified by the mean
   and by distribution;
-- docs/images/lod_visibility.png: ct-skin-bone at full resolution and at 30:1, the selection by the TF alone and
-  weighed by what the camera sees (sampling.lod_visibility).
+- docs/images/lod_visibility.png: ct-skin-bone at full resolution and at 30:1, the selection without and with
+  the weight of what the camera sees (sampling.lod_visibility).
 
     .venv/bin/python benchmarks/figure_lod.py [--out docs/images]
 
@@ -30,7 +30,7 @@ FIGURES = {
         ("30:1, by distribution (default)", {"quality": THIRTY})]),
     "lod_visibility.png": ("ct-skin-bone", [
         ("full resolution", {}),
-        ("30:1, selected by the TF alone", {"quality": THIRTY, "sampling": {"lod_visibility": False}}),
+        ("30:1, without the view's weight", {"quality": THIRTY, "sampling": {"lod_visibility": False}}),
         ("30:1, weighed by the view (default)", {"quality": THIRTY})]),
 }
 
