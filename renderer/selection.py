@@ -84,7 +84,7 @@ import functools
 import json
 import weakref
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -384,13 +384,8 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
         return 0.0
     from lodcast.renderer.level_error import step_zeta
 
-    z = np.zeros(meta.n)
-    opac = np.zeros((meta.n, 2))
-    visible = np.zeros(meta.n, bool)
-    for t in tfs:
-        vis_t = tf_visible(t, meta.min_border, meta.max_border)
-        z_t, o_t = step_zeta(meta, t, vis_t, meta.value_range, meta.std_max)
-        z, opac, visible = np.maximum(z, z_t), np.maximum(opac, o_t), visible | vis_t
+    z, opac, visible = _max_over_tfs(meta, tfs, (meta.n,),
+                                     lambda t, vis: step_zeta(meta, t, vis, meta.value_range, meta.std_max))
     loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
     w = np.nan_to_num(meta.count[loaded].astype(np.float64))
     if not loaded.any() or w.sum() <= 0:
@@ -428,7 +423,6 @@ def select_from_meta(
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
         zeta_tab, opac, visible = _level_tables(meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs,
                                                 classification)
-        z0 = zeta_tab.max(axis=1)  # drives the refinement: a block is refined if some level loses anything
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
@@ -438,14 +432,13 @@ def select_from_meta(
         np.clip(np.asarray(visibility, np.float64).ravel(), 0.0, 1.0)
     weight = meta.count if seen is None else meta.count * seen
     zeta_w = zeta_tab if seen is None else (zeta_tab * seen[:, None]).astype(np.float32)
-    drive_tab = zeta_w
     if per_level:
         spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
         spread[:, 0] = 0.0
         drive_tab = np.sqrt(zeta_tab * spread)
         if seen is not None:
             drive_tab *= seen[:, None]
-        z0 = drive_tab.max(axis=1)
+        z0 = drive_tab.max(axis=1)  # drives the refinement: a block is refined if some level loses anything
     elif seen is not None:
         z0 = z0 * seen
     if kind == "full":
@@ -505,6 +498,18 @@ def select_from_meta(
     )
 
 
+def _max_over_tfs(meta: BlockMeta, tfs: Sequence[Any], shape: tuple,
+                  table: Callable[[Any, np.ndarray], tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ζ, opacity moments (N, 2), blocks any TF sees (N,)): the elementwise maxima over the TFs of `table(tf, the
+    blocks it sees)` = (ζ of `shape`, opacity moments), zeros where no TF gives more."""
+    z, opac, visible = np.zeros(shape), np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
+    for t in tfs:
+        vis_t = tf_visible(t, meta.min_border, meta.max_border)
+        z_t, o_t = table(t, vis_t)
+        z, opac, visible = np.maximum(z, z_t), np.maximum(opac, o_t), visible | vis_t
+    return z, opac, visible
+
+
 @functools.cache
 def _tables_cache() -> ByteLru:
     """The level tables of recent (store, TFs, classification): a turntable asks for the same each frame."""
@@ -519,16 +524,9 @@ def _level_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> t
     hit = _tables_cache().get(key)
     if hit is not None and hit[0]() is meta:
         return hit[1]
-    n, L = meta.n, meta.n_levels
-    zeta_tab = np.zeros((n, L))
-    opac = np.zeros((n, 2))
-    visible = np.zeros(n, bool)
-    for t in tfs:
-        vis_t = tf_visible(t, meta.min_border, meta.max_border)
-        z_t, o_t = level_zeta(meta, t, vis_t, meta.value_range, meta.std_max, classification)
-        zeta_tab = np.maximum(zeta_tab, z_t)
-        opac = np.maximum(opac, o_t)
-        visible |= vis_t
+    zeta_tab, opac, visible = _max_over_tfs(
+        meta, tfs, (meta.n, meta.n_levels),
+        lambda t, vis: level_zeta(meta, t, vis, meta.value_range, meta.std_max, classification))
     out = (zeta_tab.astype(np.float32), opac, visible)
     for a in out:
         a.setflags(write=False)

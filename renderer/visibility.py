@@ -57,7 +57,7 @@ def _coarse(vol: VolumeView, k: int) -> tuple[cl.Buffer, tuple[int, int, int]]:
     hit = device_cache().get(key) if key is not None else None
     if hit is not None:
         return hit
-    ctx, queue = get_context()
+    ctx, _ = get_context()
     a = np.ascontiguousarray(vol.read_level(k, np.float32))
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
     out = (buf, (a.shape[2], a.shape[1], a.shape[0]))
