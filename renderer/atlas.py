@@ -330,34 +330,32 @@ def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarra
 def step_levels(levels: np.ndarray, interpolation: str, block_size: int,
                 skip: np.ndarray | None = None) -> np.ndarray:
     """Adaptive sampling's step level per cell (C order, int8; -1: skip the cell): the kernel steps step * 2^s in
-    a cell of step level s. interblock: half-block cells (grid 2G): cell h lies in block h >> 1 and its
-    interblock neighbourhood is the blocks c - 1 and c per axis, c = (h + 1) >> 1; its level k is the finest
-    loaded level among those eight blocks (thesis §3.6.1: the minimum over the neighbouring blocks).
-    nearest_block: the cells are the blocks (grid G), each with its own level. Cells of skipped blocks (`skip`,
-    and every level -1 block) are -1.
+    a cell of step level s, and restarts its steps at every cell boundary (limited: a coarse step never runs into
+    a finer block). interblock: half-block cells (grid 2G, cell h in block h >> 1); nearest_block: the blocks
+    (grid G). A cell takes its own block's level k; cells of skipped blocks (`skip`, and every level -1 block)
+    are -1.
 
     s = k at level 0, s = k + 1 at coarse levels (capped at log2 B, the longest step the kernel has a table for;
     a step never runs past its cell anyway): the base step over-samples level 0 (default 1/2 voxel: a sharp TF
     edge crossed inside a voxel), while a level-k field is a smooth average, classified by a distribution that
     blurs the TF by the spread behind it, and needs no more than about one sample per coarse voxel (2^k voxels
     at the default step). Measured against step * 2^k over the same selections on the chest and engine CTs (3 + 2
-    TFs, 10:1 to 100:1, 256²): 1.1-1.8x fewer samples, mean ΔE within ±0.25."""
+    TFs, 10:1 to 100:1, 256²): 1.1-1.8x fewer samples, mean ΔE within ±0.25.
+
+    With interblock interpolation a coarse half-cell next to a finer block keeps its own step too (thesis §3.6.1
+    limits it by the finest of the eight blocks around): inside the coarse block the blend towards the finer
+    neighbour spans 2^(k-1) voxels and mixes in that neighbour's samples clamped to its face, which are constant
+    along the face's normal, so along the ray the field there varies no faster than a level-k field does. On the
+    chest and engine CTs (four TFs, two views, 5:1-100:1, 256²) the finest-of-eight rule took 1.28x the samples
+    (0.76 of full resolution's against 0.59) for the same summed mean ΔE (145.8 against 145.5 over 32 images)."""
     lv = np.asarray(levels).astype(np.int64)
-    G = lv.shape
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
-    if interpolation != "interblock":
-        out = lv  # (a copy of `levels` already)
-    else:
-        big = np.where(lv < 0, 99, lv)
-        c = [(np.arange(2 * g) + 1) >> 1 for g in G]
-        out = np.full(tuple(2 * g for g in G), 99, np.int64)
-        for s in range(8):
-            ix = [np.clip(c[a] - 1 + ((s >> (2 - a)) & 1), 0, G[a] - 1) for a in range(3)]
-            out = np.minimum(out, big[np.ix_(*ix)])
-        off = off[np.ix_(*[np.arange(2 * g) >> 1 for g in G])]
-    out[off | (out >= 99)] = -1
+    out = lv.copy()
+    out[off] = -1
     np.add(out, 1, out=out, where=out >= 1)
     np.minimum(out, int(block_size).bit_length() - 1, out=out)
+    if interpolation == "interblock":
+        out = half_cells(out)
     return np.ascontiguousarray(out.astype(np.int8))
 
 

@@ -6,11 +6,10 @@
  *                     (lc_atlas.h), with LC_INTERP_NB (nearest block, eq. 3.5) or LC_INTERP_II (interblock, eq. 3.6)
  *   LC_ADAPTIVE       (atlas) adaptive object-space sampling (thesis §3.6.1): march cells (NB: the blocks; II:
  *                     half blocks); in a cell whose step level is s (step_level, renderer/atlas.py: from the
- *                     block's level (NB) or the finest of the eight blocks of the cell's interblock neighbourhood
- *                     (II), one more at coarse levels; -1 = skip) the step is step * 2^s, and the steps restart
- *                     at every cell boundary (limited: a long step never runs into a finer block); each segment's
- *                     opacity is corrected for its length (whole steps from a per-level alpha table, the cut one
- *                     from the extinction): constant regions stay exact
+ *                     cell's block's level, one more at coarse levels; -1 = skip) the step is step * 2^s, and the
+ *                     steps restart at every cell boundary (limited: a long step never runs into a finer block);
+ *                     each segment's opacity is corrected for its length (whole steps from a per-level alpha
+ *                     table, the cut one from the extinction): constant regions stay exact
  *   LC_ADAPTIVE_NAIVE with LC_ADAPTIVE: for comparison/benchmarks only: the step is chosen by the cell where it
  *                     starts and is not cut at cell boundaries (it may run deep into a finer block)
  *   LC_DIST           (atlas, composite) classification by distribution: coarse samples carry the standard

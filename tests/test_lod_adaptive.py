@@ -90,28 +90,32 @@ def test_samples_landing_in_the_fine_block_along_x(store):
     """Along +x every ray crosses block 1 (NB: one cell of 16 voxels, a coarse step of 11.2 and a cut one), the
     fine block (ceil(16 / 0.7) = 23 base steps, the last cut at its far face) and block 3 (two steps); blocks 0
     and 4 are empty (skipped). Limited: exactly 27 samples per ray, 23 of them inside the fine block. With II the
-    cells are half blocks and the halves next to the fine block take its step (their interblock neighbourhood
-    holds it): 1 + 12 + 2 x 12 + 12 + 1 = 50 in blocks 1-3; blocks 0 and 4 are marched too (2 samples each), since
-    the interblock interpolation of the coarse blocks 1 and 3 reaches into them: 54."""
+    cells are half blocks, each stepped at its own block's level: one (cut) step in each of the eight coarse
+    halves (blocks 0 and 4 are marched too, since the interblock interpolation of the coarse blocks 1 and 3
+    reaches into them) and ceil(8 / 0.7) = 12 in each fine half: 8 + 24 = 32."""
     cam = _cam((1, 0, 0))
     lim = render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
     assert lim.report["samples"] == 27 * W * H
     ii = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
-    assert ii.report["samples"] == 54 * W * H
+    assert ii.report["samples"] == 32 * W * H
     naive = render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
     assert naive.report["samples"] < lim.report["samples"]
 
 
-def test_interblock_limited_adaptive_follows_the_finest_neighbour(store):
-    """With II the half-block cells next to the fine block take its step (the minimum over the neighbourhood), so
-    the ramp between the coarse and the fine block is sampled finely: close to a fine uniform reference."""
+def test_interblock_limited_adaptive_keeps_the_coarse_step_next_to_a_finer_block(store):
+    """With II each half-block cell steps at its own block's level, the half next to the fine block too (atlas.py's
+    step_levels: the blend towards a finer block spans half a coarse sample, so it varies no faster than the
+    coarse field). Here the extreme case, level 4 (one sample per block) beside level 0, the ramp filling the
+    whole coarse half: one cut step there leaves an opacity error of 8.4e-3 (of 0.91) against a fine reference,
+    bounded below by 1e-2; the naive steps, which run into the fine block, miss 4.8e-2. The fine block itself is
+    sampled at the base step over its whole length (its halves are level 0)."""
     cam = _cam((1, 0.3, 0.15))
     ref = render(store, _scene(cam, "interblock", step=0.02), levels=LEVELS).rgba[..., 3]
     lim = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
     naive = render(store, _scene(cam, "interblock", adaptive_naive=True), levels=LEVELS)
     e_lim = np.abs(lim.rgba[..., 3] - ref).max()
     e_naive = np.abs(naive.rgba[..., 3] - ref).max()
-    assert e_lim < 5e-3 and e_naive > 2 * e_lim
+    assert e_lim < 1e-2 and e_naive > 4 * e_lim
 
 
 @pytest.mark.parametrize("level, step", [(4, 0.5), (2, 0.5), (1, 0.3), (3, 0.7)])
@@ -141,9 +145,9 @@ def test_huge_steps_still_cross_every_cell(store):
 
 
 def test_step_levels_one_sample_per_coarse_voxel():
-    """Step level per cell: 0 where the finest level of the cell's blocks is 0 (the base step), k + 1 where it is
+    """Step level per cell: 0 where the cell's block is at level 0 (the base step), k + 1 where it is at level
     k >= 1 (one sample per level-k voxel at the default step 1/2), capped at log2 B, -1 for unloaded or skipped
-    blocks; interblock takes the finest level of each half-block cell's neighbourhood."""
+    blocks; interblock: the half-block cells of each block take its level."""
     from lodcast.renderer.atlas import step_levels
 
     lv = np.array([4, 3, 0, 1, 2, -1, 2], np.int8).reshape(1, 1, 7)
@@ -153,7 +157,7 @@ def test_step_levels_one_sample_per_coarse_voxel():
     skip[..., 6] = True
     assert step_levels(lv, "nearest_block", 16, skip).ravel().tolist() == [4, 4, 0, 2, 3, -1, -1]
     assert step_levels(lv, "nearest_block", 8).ravel().tolist() == [3, 3, 0, 2, 3, -1, 3]
-    # half-block cells: cell h's neighbourhood is blocks (h+1)//2 - 1 and (h+1)//2 (clamped to the grid)
     ii = step_levels(lv, "interblock", 16)
     assert ii.shape == (2, 2, 14) and (ii == ii[:1, :1]).all()
-    assert ii[0, 0].tolist() == [4, 4, 4, 0, 0, 0, 0, 2, 2, 3, -1, -1, 3, 3]
+    assert ii[0, 0].tolist() == [4, 4, 4, 4, 0, 0, 2, 2, 3, 3, -1, -1, 3, 3]
+    assert step_levels(lv, "interblock", 16, skip)[0, 0, -2:].tolist() == [-1, -1]
