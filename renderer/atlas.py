@@ -345,10 +345,11 @@ def step_levels(levels: np.ndarray, interpolation: str, block_size: int,
     With interblock interpolation a coarse half-cell next to a finer block keeps its own step too (thesis §3.6.1
     limits it by the finest of the eight blocks around): inside the coarse block the blend towards the finer
     neighbour spans 2^(k-1) voxels and mixes in that neighbour's samples clamped to its face, which are constant
-    along the face's normal, so along the ray the field there varies no faster than a level-k field does. On the
-    chest and engine CTs (four TFs, two views, 5:1-100:1, 256²: benchmarks/bench_lod_sweep.py) the finest-of-eight
-    rule took 1.28x the samples (0.76 of full resolution's against 0.59) for the same summed mean ΔE (145.8
-    against 145.5 over 32 images)."""
+    along the face's normal: along the normal the field there holds no finer detail than the coarse field (at
+    most twice as steep); what a coarse step can miss is the neighbour's detail across the face, met by oblique
+    rays. On the chest and engine CTs (four TFs, two views, 5:1-100:1, 256²: benchmarks/bench_lod_sweep.py) the
+    finest-of-eight rule took 1.28x the samples (0.76 of full resolution's against 0.59) for the same summed mean
+    ΔE (145.8 against 145.5 over 32 images)."""
     lv = np.asarray(levels).astype(np.int64)
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
     out = lv.copy()
