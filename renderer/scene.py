@@ -186,7 +186,7 @@ class Sampling(_Model):
     renderer/visibility.py), so that what lies behind opaque material stays coarse and the budget goes to what the
     picture shows; the selection then follows the view, and each new view selects and packs its atlas again. Left
     out (null) it is on for volumes of at most 2^27 voxels (a 512³ CT: a new view costs a tenth of a second or
-    so) and off above (on the 8 GiB body a turntable frame took 19 s with it against 0.5 s without), and a
+    so) and off above (on the 8 GiB body a turntable frame took 17-19 s with it against 0.5-0.7 s without), and a
     turntable job's frames take it off (one selection for the whole animation: nothing changes from frame to
     frame but the view). Off: the selection depends on the TFs alone. Composite with one TF only (the projections
     and a second TF see what one TF hides).
