@@ -24,7 +24,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import lodcast  # noqa: E402
-from bench_consistent_lod import DATA, ENGINE_TF, RESULTS, store_of  # noqa: E402
+from bench_consistent_lod import DATA, ENGINE_TF, RESULTS, best, store_of  # noqa: E402
 from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
 
 VIEWS = [{"azimuth": 30, "elevation": 15}, {"azimuth": 200, "elevation": -20}]
@@ -59,12 +59,9 @@ def main() -> None:
         for vi, cam in enumerate(VIEWS):
             scene = {"tf": tf, "camera": cam, "width": args.size, "height": args.size}
             ref = reference(store, f"{vname}_{tname}_{vi}_{args.size}", scene)
-            lodcast.render(store, scene)
-            full = lodcast.render(store, scene)
+            full = best(store, scene, 1)
             for red in REDUCTIONS:
-                q = {**scene, "quality": {"reduction": red}}
-                lodcast.render(store, q)
-                r = lodcast.render(store, q)
+                r = best(store, {**scene, "quality": {"reduction": red}}, 1)
                 rows.append({"volume": vname, "tf": tname, "view": vi, "reduction": red,
                              "delta_e": delta_e_stats(r.rgba, ref)["mean"],
                              "samples_vs_full": r.report["samples"] / full.report["samples"],

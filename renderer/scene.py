@@ -175,8 +175,8 @@ class Sampling(_Model):
     extinction and colour under the distribution of the level-0 values it stands for (kept by the store), "mean"
     by the TF at its mean value; at level 0 both are the same.
     `adaptive_object`: adaptive object-space sampling at LOD qualities (thesis §3.6.1: the step grows with the
-    block's level, limited at block boundaries: `step` in level-0 blocks, step·2^(k+1) — about
-    one sample per coarse voxel — in level-k blocks, up to step·B); left out (null), it is on at the budgeted qualities
+    block's level, limited at block boundaries: `step` in level-0 blocks, step·2^(k+1) — about one sample per
+    coarse voxel — in level-k blocks, up to step·B); left out (null), it is on at the budgeted qualities
     (`{"reduction": r}`, `{"budget_mb": m}`) — a coarse level holds no detail a finer step could find, and without
     it a reduction saves memory but no time — and off at 'lossless' (which promises the full-resolution image)
     and at 'full', where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose

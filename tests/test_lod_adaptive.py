@@ -105,10 +105,10 @@ def test_samples_landing_in_the_fine_block_along_x(store):
 def test_interblock_limited_adaptive_keeps_the_coarse_step_next_to_a_finer_block(store):
     """With II each half-block cell steps at its own block's level, the half next to the fine block too (atlas.py's
     step_levels: the blend towards a finer block spans half a coarse sample and holds no finer detail along the
-    face's normal than the coarse field). Here the extreme case, level 4 (one sample per block) beside level 0, the ramp filling the
-    whole coarse half: one cut step there leaves an opacity error of 8.4e-3 (of 0.91) against a fine reference,
-    bounded below by 1e-2; the naive steps, which run into the fine block, miss 4.8e-2. The fine block itself is
-    sampled at the base step over its whole length (its halves are level 0)."""
+    face's normal than the coarse field). Here the extreme case, level 4 (one sample per block) beside level 0,
+    the ramp filling the whole coarse half: one cut step there leaves an opacity error of 8.4e-3 (of 0.91) against
+    a fine reference, bounded below by 1e-2; the naive steps, which run into the fine block, miss 4.8e-2. The fine
+    block itself is sampled at the base step over its whole length (its halves are level 0)."""
     cam = _cam((1, 0.3, 0.15))
     ref = render(store, _scene(cam, "interblock", step=0.02), levels=LEVELS).rgba[..., 3]
     lim = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
