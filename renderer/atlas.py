@@ -54,7 +54,7 @@ BRICK_ENTRY_BYTES = 448
 
 
 class BrickCache(ByteLru):
-    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations float16) keyed
+    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations uint16 in units of the volume's std_unit) keyed
     by (kind, store key, level, bz, by, bx), LRU by bytes (each brick's voxels plus BRICK_ENTRY_BYTES); counts
     the bricks read."""
 
@@ -119,7 +119,7 @@ class AtlasLoad:
 def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, int]], what: str = "mean") -> dict:
     """The bricks `blocks` (all in one shard of `level`), cut into edge-padded bricks from the inner chunks that
     hold them and no others (a brick lies in one chunk: chunks are whole blocks or cubes of them): the values
-    ("mean") or the standard deviations behind them ("std", float16 in units of vol.std_unit)."""
+    ("mean") or the standard deviations behind them ("std", uint16 in units of vol.std_unit)."""
     e = lay.block_edge(level)
     c = np.array(lay.chunk_shape(level))
     start = np.array(blocks, np.int64).reshape(-1, 3) * e  # the bricks' first samples in the level
@@ -130,13 +130,13 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
     lo, hi = start - where * c, stop - where * c  # within the chunk
     if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
         dtype, unit = device_dtype(chunks[0].dtype), None
-    else:  # in units of vol.std_unit: float16 keeps its precision whatever the data's unit
-        dtype, unit = np.dtype(np.float16), np.float32(vol.std_unit)
+    else:  # whole units of vol.std_unit (volume.py says why)
+        dtype, unit = np.dtype(np.uint16), np.float64(vol.std_unit)
     out = {}
     for b, i, a, z in zip(blocks, which.ravel().tolist(), lo.tolist(), hi.tolist()):
         sub = chunks[i][a[0]:z[0], a[1]:z[1], a[2]:z[2]]
         if unit is not None:
-            sub = sub / unit
+            sub = np.clip(np.rint(np.nan_to_num(sub.astype(np.float64), nan=0.0) / unit), 0, 65535)
         if sub.shape != (e, e, e):
             sub = np.pad(sub, [(0, e - n) for n in sub.shape], mode="edge")
         out[(level, *b)] = np.ascontiguousarray(sub, dtype=dtype)
@@ -158,7 +158,7 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
     read from the store (missing ones only, grouped by shard, shards read in parallel, a few at a time so that
     bricks stream through rather than pile up: a caller that places each one keeps none); read bricks enter the
     cache. Values keep the store's type up to 16-bit integers, else float32. what="std": the standard deviations
-    of the coarse bricks (level >= 1; level 0 has none), float16, instead of the values. `stats` is filled in."""
+    of the coarse bricks (level >= 1; level 0 has none), uint16 in units of vol.std_unit, instead of the values. `stats` is filled in."""
     cache = brick_cache() if cache is None else cache
     stats = BrickStats() if stats is None else stats
     t = time.perf_counter()
@@ -319,10 +319,10 @@ def _index(levels: np.ndarray, offsets: np.ndarray, slices: np.ndarray | None) -
 
 
 def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
-    """The standard deviations beside the atlas (float16, same offsets as `pack`): coarse bricks from
+    """The standard deviations beside the atlas (uint16 in units of vol.std_unit, same offsets as `pack`): coarse bricks from
     `std_bricks` ((level, bz, by, bx) -> brick), zeros for level 0 (the kernel never reads those)."""
     sizes, offsets = _offsets(levels, block_size)
-    out = np.zeros(max(int(sizes.sum()), 1), np.float16)
+    out = np.zeros(max(int(sizes.sum()), 1), np.uint16)
     _place(out, np.asarray(levels).shape, offsets, std_bricks.items())
     return out
 
@@ -376,7 +376,7 @@ def max_alloc_bytes() -> int:
 @dataclass(frozen=True)
 class DeviceAtlas:
     atlas: cl.Buffer
-    std: cl.Buffer | None  # the standard deviations beside the atlas (float16), for distribution classification
+    std: cl.Buffer | None  # the standard deviations beside the atlas (uint16, vol.std_unit), for distribution classification
     index: cl.Buffer
     index_host: np.ndarray
     nbytes: int  # atlas bytes
@@ -421,7 +421,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
                           iter_bricks(vol, levels, cache, stats=st))
         d_std = None
         if with_std:
-            d_std = _filled(ctx, queue, max(total, 1), np.float16, levels.shape, offsets,
+            d_std = _filled(ctx, queue, max(total, 1), np.uint16, levels.shape, offsets,
                             iter_bricks(vol, levels, cache, what="std"), zero=True)
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)

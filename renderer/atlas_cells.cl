@@ -64,7 +64,7 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const usho
                                 if (v == v) { mn = v < mn ? v : mn; mx = v > mx ? v : mx; }
 #ifdef LC_DIST
                                 if (lvl > 0) {
-                                    const float d = lc_f16(sig[row + (ulong)i]);
+                                    const float d = (float)sig[row + (ulong)i];
                                     sd = d > sd ? d : sd;
                                 }
 #endif

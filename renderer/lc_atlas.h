@@ -41,14 +41,6 @@ typedef struct LcAtlasGeom {
     float B;        /* block edge in level-0 voxels */
 } LcAtlasGeom;
 
-/* float16 -> float with integer operations (PoCL calls vload_half out of line, which measured 2.2x the whole
- * nearest-block sample): normal numbers exactly, subnormals (below 6.1e-5) flushed to 0; no inf or NaN occur in
- * standard deviations. */
-static inline float lc_f16(const ushort h) {
-    const uint e = (uint)h & 0x7c00u;
-    return as_float(e ? ((((uint)h & 0x8000u) << 16) | ((e + 0x1c000u) << 13) | (((uint)h & 0x03ffu) << 13)) : 0u);
-}
-
 /* 2^-k for a level k in [0, 126], exactly, from the exponent bits: no division per sample */
 static inline float lc_exp2_neg(const int k) { return as_float((uint)(127 - k) << 23); }
 
@@ -63,13 +55,13 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
 }
 
 /* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]:
- * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (float16 bits)
+ * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (uint16, in units of the volume's std_unit)
  * at the same offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
 static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
     if (n == 1) /* a one-sample brick (level log2 B): its value, without eight reads of the same element */
 #ifdef LC_DIST
-        return (float2)((float)atlas[off], coarse ? lc_f16(sig[off]) : 0.0f);
+        return (float2)((float)atlas[off], coarse ? (float)sig[off] : 0.0f);
 #else
         return (float2)((float)atlas[off], 0.0f);
 #endif
@@ -84,8 +76,8 @@ static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ush
                                   fx, fy, fz), 0.0f);
 #ifdef LC_DIST
     if (coarse)
-        out.y = lc_tri8(lc_f16(sig[b]), lc_f16(sig[b + dx]), lc_f16(sig[b + dy]), lc_f16(sig[b + dy + dx]), lc_f16(sig[c]),
-                        lc_f16(sig[c + dx]), lc_f16(sig[c + dy]), lc_f16(sig[c + dy + dx]), fx, fy, fz);
+        out.y = lc_tri8((float)sig[b], (float)sig[b + dx], (float)sig[b + dy], (float)sig[b + dy + dx], (float)sig[c],
+                        (float)sig[c + dx], (float)sig[c + dy], (float)sig[c + dy + dx], fx, fy, fz);
 #endif
     return out;
 }

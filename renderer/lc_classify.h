@@ -77,15 +77,12 @@
 #define LC_LEN_UNITS(r, S) ((r) >= 0.0f ? (r) : dt_u##S * (float)(1 << (int)(-1.0f - (r))))
 #endif
 
-#define LC_DIST_LOOKUP(v, sd, e, S)                                              \
+/* the bilinear lookup at table coordinates (fi, fj), fi already clamped to the value axis */
+#define LC_DIST_LOOKUP(fi, fj, e, S)                                             \
     float4 e;                                                                    \
     {                                                                            \
-        float fi_ = (v) * dist_scale##S + dist_off##S;                           \
-        fi_ = fi_ > 0.0f ? (fi_ < dist_fmax##S ? fi_ : dist_fmax##S) : 0.0f;     \
-        float fj_ = sqrt(sd) * dist_sscale;                                      \
-        fj_ = fj_ < dist_jmax ? fj_ : dist_jmax;                                 \
-        const int ii_ = (int)fi_, jj_ = (int)fj_;                                \
-        const float wi_ = fi_ - (float)ii_, wj_ = fj_ - (float)jj_;              \
+        const int ii_ = (int)(fi), jj_ = (int)(fj);                              \
+        const float wi_ = (fi) - (float)ii_, wj_ = (fj) - (float)jj_;            \
         __global const float4* r0_ = dtab##S + jj_ * dist_row##S + ii_;          \
         const float4 a_ = r0_[0] + (r0_[1] - r0_[0]) * wi_;                      \
         const float4 b_ = r0_[dist_row##S] + (r0_[dist_row##S + 1] - r0_[dist_row##S]) * wi_; \
@@ -109,12 +106,13 @@
  * non-zero: outside it the sample is transparent without the bilinear lookup. */
 #define LC_DIST_BODY(v, sd, r, q, S)                                             \
     if ((sd) > 0.0f) {                                                           \
-        float fj0_ = sqrt(sd) * dist_sscale;                                     \
-        fj0_ = fj0_ < dist_jmax ? fj0_ : dist_jmax;                              \
-        const float4 sp_ = dtab##S[dist_spans##S + (int)fj0_];                   \
-        const float fi0_ = (v) * dist_scale##S + dist_off##S;                    \
-        if (fi0_ > sp_.x - 1.0f && fi0_ < sp_.y + 1.0f) {                        \
-            LC_DIST_LOOKUP(v, sd, e, S)                                          \
+        float fj_ = sqrt(sd) * dist_sscale;                                      \
+        fj_ = fj_ < dist_jmax ? fj_ : dist_jmax;                                 \
+        const float4 sp_ = dtab##S[dist_spans##S + (int)fj_];                    \
+        float fi_ = (v) * dist_scale##S + dist_off##S;                           \
+        if (fi_ > sp_.x - 1.0f && fi_ < sp_.y + 1.0f) {                          \
+            fi_ = fi_ > 0.0f ? (fi_ < dist_fmax##S ? fi_ : dist_fmax##S) : 0.0f; \
+            LC_DIST_LOOKUP(fi_, fj_, e, S)                                       \
             if (e.w > 0.0f) LC_DIST_COMPOSITE(e, r, q, S)                        \
         }                                                                        \
     } else

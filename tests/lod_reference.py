@@ -106,14 +106,15 @@ def trilinear_level(pyr, k: int, B: int, q) -> float:
 
 
 def probe(levels: np.ndarray, bricks: dict, B: int, pts: np.ndarray, interp: str = "interblock",
-          std_bricks: dict | None = None) -> np.ndarray:
+          std_bricks: dict | None = None, std_unit: float = 1.0) -> np.ndarray:
     """The kernel's sampler (lc_atlas.h through atlas_probe.cl) at pts (N, 3) = (x, y, z): the values, or with
-    `std_bricks` (value, standard deviation) pairs (N, 2) as the distribution sampler (LC_DIST) gives them."""
+    `std_bricks` (value, standard deviation) pairs (N, 2) as the distribution sampler (LC_DIST) gives them; the
+    deviations travel as the device holds them, whole multiples of `std_unit` in uint16 (volume.std_unit)."""
     ctx, queue = get_context()
     opts = ["-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB"] + (["-DLC_DIST"] if std_bricks else [])
     prg = get_program("atlas_probe.cl", opts).program
     atlas, idx = pack(levels, {k: np.asarray(v, np.float32) for k, v in bricks.items()}, B, max_bytes=2**31)
-    sig = pack_std(levels, std_bricks or {}, B)
+    sig = pack_std(levels, {k: np.rint(quantized_std(v, std_unit) / std_unit) for k, v in (std_bricks or {}).items()}, B)
     p4 = np.zeros((len(pts), 4), np.float32)
     p4[:, :3] = pts
     mf = cl.mem_flags
@@ -125,4 +126,12 @@ def probe(levels: np.ndarray, bricks: dict, B: int, pts: np.ndarray, interp: str
                                      np.array([G[2], G[1], G[0], B], np.int32), bufs[3], d_out, np.int32(len(pts)))
     cl.enqueue_copy(queue, out, d_out)
     queue.finish()
-    return out if std_bricks else out[:, 0]
+    if not std_bricks:
+        return out[:, 0]
+    out[:, 1] *= np.float32(std_unit)
+    return out
+
+
+def quantized_std(a: np.ndarray, unit: float) -> np.ndarray:
+    """Standard deviations as the device holds them: the nearest whole multiple of `unit` (uint16 range), float64."""
+    return np.clip(np.rint(np.asarray(a, np.float64) / unit), 0, 65535) * unit

@@ -510,7 +510,7 @@ def test_distribution_image_does_not_depend_on_the_data_unit(tmp_path, scale):
     """Scaling a float32 volume and its TF's control values by the same factor changes nothing physical: the image
     must stay the same (1e-3 in alpha). With the deviations on the device as float16 in data units the slab at
     level 1 fell from 0.831 to the mean's 0.205 at 1e-7 (std 5e-5 flushed to 0) and to 0.369 at 1e3 (std 5e5
-    overflowed); they are held in units of std_max / 32768 now."""
+    overflowed); they are held as uint16 multiples of std_max / 65535 now."""
     out = []
     for sc_ in (1.0, scale):
         vol = np.zeros((32, 32, 32), np.float32)
@@ -604,8 +604,8 @@ def std_pyramid(v0: np.ndarray, n_levels: int) -> list[np.ndarray]:
 def test_sampler_interpolates_the_std_like_the_values(interp):
     """probe with std bricks returns (value, std): the value as without them, and the std by the very formula the
     values follow (trilinear in a brick, eq. 3.5 / 3.6 across blocks) applied to the std bricks, level-0 blocks
-    contributing 0 (they have none). The std travels as float16: the reference uses the float16-rounded bricks, so
-    only float32 arithmetic remains (atol 2e-6)."""
+    contributing 0 (they have none). The std travels as uint16 multiples of a unit (std_max / 65535, as the renderer
+    holds it): the reference uses the rounded bricks, so only float32 arithmetic remains (atol 2e-6)."""
     rng = np.random.default_rng(12)
     G = (3, 3, 4)
     v0 = rng.random(tuple(g * B7 for g in G)) * (1 + rng.random(tuple(g * B7 for g in G)) ** 4 * 3)
@@ -613,10 +613,11 @@ def test_sampler_interpolates_the_std_like_the_values(interp):
     levels = rng.integers(-1, NL7, G).astype(np.int8)
     levels[1, 1, 1], levels[0, 0, 0], levels[2, 2, 3] = 0, 3, 1
     br = ref.bricks_of(levels, pyr, B7)
-    sbr_all = {key: a.astype(np.float16).astype(np.float64) for key, a in ref.bricks_of(levels, spyr, B7).items()}
+    unit = max(float(p.max()) for p in spyr) / 65535
+    sbr_all = {key: ref.quantized_std(a, unit) for key, a in ref.bricks_of(levels, spyr, B7).items()}
     sbr = {key: a for key, a in sbr_all.items() if key[0] >= 1}
     pts = rng.uniform(-0.5, np.array([G[2], G[1], G[0]]) * B7 - 0.5, (3000, 3))
-    got = ref.probe(levels, br, B7, pts, interp, std_bricks=sbr).astype(np.float64)
+    got = ref.probe(levels, br, B7, pts, interp, std_bricks=sbr, std_unit=unit).astype(np.float64)
     assert got.shape == (3000, 2)
     vals = ref.probe(levels, br, B7, pts, interp).astype(np.float64)
     want_v = np.array([ref.sample(levels, br, B7, q, interp) for q in pts])
@@ -630,9 +631,9 @@ def test_sampler_interpolates_the_std_like_the_values(interp):
     # all blocks at one coarse level, interblock: trilinear interpolation of that level's std
     if interp == "interblock":
         lk = np.full(G, 2, np.int8)
-        sb = {key: a.astype(np.float16).astype(np.float64) for key, a in ref.bricks_of(lk, spyr, B7).items()}
-        g2 = ref.probe(lk, ref.bricks_of(lk, pyr, B7), B7, pts, interp, std_bricks=sb).astype(np.float64)
-        s16 = [p.astype(np.float16).astype(np.float64) for p in spyr]
+        sb = {key: ref.quantized_std(a, unit) for key, a in ref.bricks_of(lk, spyr, B7).items()}
+        g2 = ref.probe(lk, ref.bricks_of(lk, pyr, B7), B7, pts, interp, std_bricks=sb, std_unit=unit).astype(np.float64)
+        s16 = [ref.quantized_std(p, unit) for p in spyr]
         np.testing.assert_allclose(g2[:, 1], [ref.trilinear_level(s16, 2, B7, q) for q in pts], atol=2e-6)
 
 
