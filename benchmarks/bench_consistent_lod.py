@@ -31,6 +31,7 @@ import lodcast  # noqa: E402
 from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
 from lodcast.renderer.selection import select_lod  # noqa: E402
 from lodcast.renderer.transfer_function import CT_PRESETS  # noqa: E402
+from lodcast.store.store import FORMAT_VERSION  # noqa: E402
 
 ENGINE_TF = {"points": [{"value": 150, "color": [1.0, 0.8, 0.5], "opacity": 0.0},
                         {"value": 200, "color": [1.0, 0.9, 0.7], "opacity": 0.8},
@@ -42,7 +43,7 @@ def store_of(name: str, source: Path, block: int = 16):
     dest = RESULTS / f"{name}_b{block}.zarr"
     if dest.exists():
         st = lodcast.open_store(dest)
-        if st.block_size == block and st.has_distribution:
+        if st.block_size == block and st.format_version == FORMAT_VERSION:  # else re-ingested in today's format
             return st
     return lodcast.ingest(source, dest, block_size=block, overwrite=True)
 

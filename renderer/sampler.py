@@ -18,6 +18,7 @@ from lodcast.environment import environment
 from lodcast.renderer.cache import ByteLru
 from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer.volume import VolumeView, voxel_options
+from lodcast.store.layout import cell_edge
 
 __all__ = ["DeviceVolume", "upload_level0", "voxel_offset", "device_cache", "ess_cell", "level0_cells"]
 
@@ -36,10 +37,8 @@ def device_cache() -> ByteLru:
 
 
 def ess_cell(block_size: int) -> int:
-    """The edge (voxels) of the cells of empty-space skipping at full resolution: finer than the store's blocks,
-    8 voxels (cells of 16³ blocks left 22% of the chest CT's volume to sample under ct-bone, cells of 8³ 13.5%),
-    or the block itself when it is not a multiple of 8."""
-    return 8 if block_size % 8 == 0 else block_size
+    """The edge (voxels) of the cells of empty-space skipping at full resolution (store.layout.cell_edge)."""
+    return cell_edge(block_size)
 
 
 def level0_cells(buf: cl.Buffer, sub_shape: tuple[int, int, int], start: tuple[int, int, int],

@@ -170,7 +170,9 @@ class Sampling(_Model):
     """`step` is in voxels of the finest level: multiples of the smallest spacing. `interpolation` chooses how
     the brick atlas is sampled across blocks of different levels; at quality 'full' every block is at level 0 and
     both choices are exactly trilinear interpolation. `priority_map` belongs to the dual-TF mode (tf2).
-    `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image.
+    `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image. (With coarse
+    levels from a store of format 3 the walk over cells runs anyway: it also leaves out the coarse cells whose
+    level-0 voxels the TF shows nothing of, which is part of what a coarse level shows.)
     `classification`: how a coarse sample (level >= 1) is classified: "distribution" (default) by the expected
     extinction and colour under the distribution of the level-0 values it stands for (kept by the store), "mean"
     by the TF at its mean value; at level 0 both are the same.

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.renderer.config import voxel_define
+from lodcast.store.layout import cell_edge
 
 __all__ = ["VolumeView", "as_volume", "block_minmax_border", "device_dtype", "voxel_options", "VOXEL_CTYPES"]
 
@@ -99,6 +100,34 @@ class VolumeView:
     @property
     def std_max(self) -> float:
         return float(getattr(self.source, "std_max", 0.0)) if self.has_distribution else 0.0
+
+    @property
+    def has_cell_ranges(self) -> bool:
+        """Whether the store keeps the level-0 value range of every cell (format >= 3)."""
+        return self.has_levels and getattr(self.source, "format_version", 0) >= 3
+
+    def half_cell_ranges(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(min, max) of the level-0 values of every half-block cell (grid 2G, C order, the atlas walk's cells),
+        from the store's cell ranges (store.layout.cell_edge); NaN where a cell holds no valid voxel. None when the
+        store keeps none (format < 3) or blocks have no halves (B = 1)."""
+        if not self.has_cell_ranges or self.block_size < 2:
+            return None
+        ranges = self.source.cell_ranges
+        half, c = self.block_size // 2, cell_edge(self.block_size)
+        g2 = tuple(2 * g for g in self.grid)
+        out = []
+        for a, reduce in ((ranges[0], np.fmin.reduce), (ranges[1], np.fmax.reduce)):
+            if half >= c:  # several cells per half-cell (B = 32: 2³)
+                f = half // c
+                a = np.pad(a, [(0, g * f - n) for g, n in zip(g2, a.shape)], constant_values=np.nan)
+                a = reduce(a.reshape(g2[0], f, g2[1], f, g2[2], f), axis=(1, 3, 5))
+            else:  # a cell per block (B < 8): each half-cell takes its block's
+                for ax in range(3):
+                    a = np.repeat(a, c // half, axis=ax)
+                a = np.pad(a, [(0, max(0, g - n)) for g, n in zip(g2, a.shape)], constant_values=np.nan)[
+                    : g2[0], : g2[1], : g2[2]]
+            out.append(np.ascontiguousarray(a, np.float32))
+        return out[0], out[1]
 
     @property
     def std_unit(self) -> float:

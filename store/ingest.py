@@ -311,9 +311,24 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list
         widths = np.diff(np.append(starts, lx))
         block_var[:, k] = np.add.reduceat(v.sum(axis=(0, 1)), starts) / (rows * cols * widths)
     stats = _interior_stats(strip, b)
+    stats["cell_min"], stats["cell_max"] = cell_ranges(strip, lay.cell_edge)
     stats["level_var"] = block_var
     stats["std_max"] = std_max
     return levels, stds, stats
+
+
+def cell_ranges(strip: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of the valid voxels of every c³ cell of `strip` (cells from its first voxel; NaN where a cell
+    holds none), as float32 rounded outwards, so that a range never excludes a value it holds."""
+    pad = [(0, -n % c) for n in strip.shape]
+    p = np.pad(strip, pad, mode="edge") if any(w for _, w in pad) else strip  # edge copies change no extremum
+    cells = p.reshape(p.shape[0] // c, c, p.shape[1] // c, c, p.shape[2] // c, c)
+    lo, hi = np.fmin.reduce(cells, axis=(1, 3, 5)), np.fmax.reduce(cells, axis=(1, 3, 5))  # fmin: NaN left out
+    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+        hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+    return lo32, hi32
 
 
 def _interior_stats(strip: np.ndarray, b: int) -> dict[str, np.ndarray]:
@@ -384,6 +399,9 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
              for name in ("min", "max", "mean", "count", "min_border", "max_border")}
     level_std = blocks.create_array("level_std", shape=lay.grid + (lay.n_levels,), dtype=np.float64,
                                     chunks=(1, gy, gx, lay.n_levels), fill_value=0.0)
+    cpb, cgrid = lay.block_size // lay.cell_edge, lay.cell_grid  # cells per block edge
+    cells = {name: blocks.create_array(name, shape=cgrid, dtype=np.float32, chunks=(cpb,) + cgrid[1:],
+                                       fill_value=np.nan) for name in ("cell_min", "cell_max")}
     lo, hi, std_max = np.inf, -np.inf, 0.0
     pool = ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1)
     reader = ThreadPoolExecutor(max_workers=1)  # sources are read in order, one slab ahead
@@ -403,6 +421,9 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                 w.add(np.concatenate([stds[k] for _, stds, _ in parts], axis=1))
             std_max = max([std_max] + [p[2]["std_max"] for p in parts])
             st = {key: np.stack([p[2][key] for p in parts]) for key in ("min", "max", "sum", "count", "level_var")}
+            for key, arr in cells.items():
+                part = np.concatenate([p[2][key] for p in parts], axis=1)
+                arr[bz * cpb : bz * cpb + part.shape[0]] = part
             level_std[bz] = np.sqrt(st["level_var"])
             stats["min"][bz], stats["max"][bz], stats["count"][bz] = st["min"], st["max"], st["count"]
             with np.errstate(invalid="ignore", divide="ignore"):

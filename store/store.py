@@ -39,8 +39,11 @@ __all__ = ["Store", "BlockStats", "open_store", "data_manifest", "FORMAT_VERSION
 
 #: 2: adds the distribution behind every coarse voxel (`std/{level}`, `blocks/level_std`). Stores of format 1
 #: still open and render; they have no distributions, so coarse samples are classified at their mean.
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: 3: adds the level-0 value range of every cell of Layout.cell_edge³ voxels (`blocks/cell_min`, `cell_max`).
+#: Stores of format 2 still open and render; coarse samples are then taken wherever their own field can show
+#: something, as before (renderer/render.py: `_cell_info`).
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 
 
 @dataclass(frozen=True)
@@ -186,6 +189,15 @@ class Store:
     def has_distribution(self) -> bool:
         """Whether the store keeps the spread of the level-0 values behind every coarse voxel (format >= 2)."""
         return self.format_version >= 2
+
+    @cached_property
+    def cell_ranges(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(min, max) of the level-0 values of every cell of Layout.cell_edge³ voxels, over Layout.cell_grid,
+        float32 rounded outwards, NaN where a cell holds no valid voxel (edge padding never counted); None for a
+        store of format < 3."""
+        if self.format_version < 3:
+            return None
+        return np.asarray(self.group["blocks/cell_min"][...]), np.asarray(self.group["blocks/cell_max"][...])
 
     @property
     def std_max(self) -> float:
