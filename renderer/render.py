@@ -200,17 +200,21 @@ def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.nda
         ext = np.where(np.isfinite(ext), ext, -np.inf)
         return np.ascontiguousarray(np.minimum(up, ext), dtype=np.float32)
 
-    # A coarse cell (its block at level >= 1) whose level-0 voxels the TF shows nothing of is not sampled, however
-    # its coarse field classifies: the exact classification of its coarse voxels (the mean of their classified
-    # level-0 values) is 0 there, and what the coarse field shows is blur from the neighbouring cells or the tail of
-    # a Gaussian (the haze that bimodal voxels, air against skin, give a bone TF). On the chest and engine CTs (32
-    # images, benchmarks/bench_lod_sweep.py) it left out a fifth of the LOD's samples (0.589 -> 0.494 of full
-    # resolution's) and lowered the summed mean ΔE (145.5 -> 139.7); with the cells' one-voxel borders counted, as
-    # full resolution's skipping must, it saved half that at a smaller gain (143.6).
+    # A coarse cell (its block at level >= 1) whose level-0 voxels, one-voxel border included, the TF shows nothing
+    # of is not sampled (the store's cell ranges), however its coarse field classifies: full resolution skips that
+    # cell too, and what the coarse field shows there is its blur of the neighbouring cells or a Gaussian's tail
+    # (the haze that bimodal voxels, air against skin, give a bone TF). On the chest and engine CTs (32 images,
+    # benchmarks/bench_lod_sweep.py) it left out a tenth of the LOD's samples (0.589 -> 0.524 of full
+    # resolution's) and lowered the summed mean ΔE (145.5 -> 143.6). Without the border it saved more (0.494,
+    # 139.7) but clipped silhouettes that end at a cell's face, which full resolution shows a voxel further.
+    # Without empty-space skipping (the walk then runs for this alone, prepare()) every other cell is sampled.
     level0 = pr.volume.half_cell_ranges() if pr.lod is not None else None
     if level0 is not None:
         coarse = lod_atlas.half_cells(pr.lod.levels >= 1)[cells.at]
         lo0, hi0 = (a[cells.at] for a in level0)
+    skip_empty = pr.scene.sampling.empty_space_skipping
+    if not skip_empty:
+        up = np.full(up.shape, 1.0 if pr.second is None else 3.0, np.float32)  # (tf2: both TFs' bits)
 
     def seen(lut: Lut, dist: DistTable | None) -> np.ndarray:
         # in pieces: the tests make float64 temporaries, ~60 bytes per cell (8M cells of a 1024 x 2048² volume)
@@ -218,8 +222,8 @@ def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.nda
         flat, lo, hi, sd = (a.reshape(-1) for a in (out, cells.vmin, cells.vmax, cells.std))
         for i in range(0, flat.size, _CELL_CHUNK):
             part = slice(i, i + _CELL_CHUNK)
-            flat[part] = lut.visible(lo[part], hi[part])
-            if dist is not None:
+            flat[part] = lut.visible(lo[part], hi[part]) if skip_empty else True
+            if dist is not None and skip_empty:
                 flat[part] |= dist.visible(lo[part], hi[part], sd[part])
             if level0 is not None:
                 flat[part] &= ~coarse.reshape(-1)[part] | lut.visible(lo0.reshape(-1)[part], hi0.reshape(-1)[part])
@@ -501,7 +505,8 @@ def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, 
         if cfg.interpolation == "interblock":
             st = st.reshape(st.shape[0] // 2, 2, st.shape[1] // 2, 2, st.shape[2] // 2, 2).max(axis=(1, 3, 5))
         unsampled = st < 0
-    elif cfg.ess:  # blocks the walk skips whatever the ray did before
+    elif cfg.ess and scene.sampling.empty_space_skipping:  # blocks the walk skips whatever the ray did before
+        # (without skipping the walk may still run, for the coarse cells' mask: it skips no block then)
         unsampled = info == (-np.inf if scene.mode in EXTREMUM_MODES else 0.0)
     else:
         unsampled = np.zeros(vol.grid, bool)
@@ -545,6 +550,15 @@ def _classification(pr: Prepared) -> str:
     if pr.scene.sampling.classification == "distribution" and pr.scene.mode == "composite" and not pr.volume.has_distribution:
         return "mean (this store keeps no distributions, format 1: re-ingest it for distribution classification)"
     return "mean"
+
+
+def _coarse_cells(pr: Prepared) -> str | None:
+    """What became of coarse cells whose level-0 voxels the TF shows nothing of (_cell_info), for the report."""
+    if pr.lod is None or not (pr.lod.levels > 0).any() or pr.scene.mode != "composite":
+        return None
+    if pr.volume.has_cell_ranges:
+        return "skipped"
+    return "sampled (this store keeps no level-0 cell ranges, format < 3: re-ingest it to skip them)"
 
 
 def _screen_report(pr: Prepared, reconstruct_ms: float) -> dict | None:
@@ -704,6 +718,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "level": 0 if pr.lod is None else None,
         "interpolation": cfg.interpolation,
         "classification": _classification(pr),
+        "coarse_cells": _coarse_cells(pr),
         "adaptive": "naive" if cfg.adaptive_naive else ("limited" if cfg.adaptive else False),
         "lod_visibility": pr.lod is not None and pr.lod.view_weighted,
         "blocks": n_blocks,

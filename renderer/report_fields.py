@@ -26,6 +26,9 @@ REPORT_FIELDS: dict[str, str] = {
     "level": "the store level rendered when one level was asked for, else null",
     "interpolation": "sampling across blocks of different levels: interblock or nearest_block",
     "classification": "how coarse samples were classified: by their distribution, by the mean, or point (level 0)",
+    "coarse_cells": "cells of coarse blocks whose level-0 voxels the TF shows nothing of: skipped (what the coarse "
+                    "field shows there is blur or a distribution's tail), or sampled on a store of format < 3, "
+                    "which keeps no level-0 cell ranges; null without coarse blocks or outside composite mode",
     "adaptive": "adaptive object-space sampling: false, or how it was limited",
     "lod_visibility": "whether the level-of-detail selection weighed what the camera sees of each block "
                       "(sampling.lod_visibility, at the budgeted qualities)",

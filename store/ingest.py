@@ -248,11 +248,13 @@ class _LevelWriter:
         self.start += n
 
 
-def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, np.ndarray]]:
+def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int,
+                  below: np.ndarray | None) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, np.ndarray]]:
     """Levels 1.. of one row of blocks (block row `by` of block-slab `bz`), each cut to its level's true extent,
     the standard deviation of the level-0 values behind every coarse voxel (NaN and edge padding left out: the
     distribution a coarse sample stands for), and the row's interior statistics, with the per-block mean
-    within-voxel variance of every level. Working per row keeps the float64 temporaries to a few MB."""
+    within-voxel variance of every level and its cells' grown ranges (_strip_cells; `below`: the previous slab's
+    last slice). Working per row keeps the float64 temporaries to a few MB."""
     b = lay.block_size
     strip = slab[:, by * b : (by + 1) * b]
     zs, ny, nx = strip.shape
@@ -311,19 +313,66 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int) -> tuple[list
         widths = np.diff(np.append(starts, lx))
         block_var[:, k] = np.add.reduceat(v.sum(axis=(0, 1)), starts) / (rows * cols * widths)
     stats = _interior_stats(strip, b)
-    stats["cell_min"], stats["cell_max"] = cell_ranges(strip, lay.cell_edge)
+    stats["cell_min"], stats["cell_max"] = _strip_cells(slab, lay, by, below)
     stats["level_var"] = block_var
     stats["std_max"] = std_max
     return levels, stds, stats
 
 
-def cell_ranges(strip: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) of the valid voxels of every c³ cell of `strip` (cells from its first voxel; NaN where a cell
-    holds none), as float32 rounded outwards, so that a range never excludes a value it holds."""
-    pad = [(0, -n % c) for n in strip.shape]
-    p = np.pad(strip, pad, mode="edge") if any(w for _, w in pad) else strip  # edge copies change no extremum
-    cells = p.reshape(p.shape[0] // c, c, p.shape[1] // c, c, p.shape[2] // c, c)
-    lo, hi = np.fmin.reduce(cells, axis=(1, 3, 5)), np.fmax.reduce(cells, axis=(1, 3, 5))  # fmin: NaN left out
+def _extrema3(lo: np.ndarray, hi: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """Three-tap minimum of `lo` and maximum of `hi` along `axis`: each voxel's and its two neighbours' (NaN left
+    out; at the ends, the two that exist)."""
+    a, b = np.moveaxis(lo, axis, 0), np.moveaxis(hi, axis, 0)
+    lo2, hi2 = a.copy(), b.copy()
+    if a.shape[0] > 1:
+        np.fmin(lo2[1:], a[:-1], out=lo2[1:])
+        np.fmin(lo2[:-1], a[1:], out=lo2[:-1])
+        np.fmax(hi2[1:], b[:-1], out=hi2[1:])
+        np.fmax(hi2[:-1], b[1:], out=hi2[:-1])
+    return np.moveaxis(lo2, 0, axis), np.moveaxis(hi2, 0, axis)
+
+
+def _per_cell(lo: np.ndarray, hi: np.ndarray, cz: int, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """The extrema of `lo` and `hi` over cells of cz x c x c voxels from the first (the last ones cut short)."""
+    pad = [(0, -n % e) for n, e in zip(lo.shape, (cz, c, c))]
+    if any(w for _, w in pad):  # edge copies change no extremum
+        lo, hi = np.pad(lo, pad, mode="edge"), np.pad(hi, pad, mode="edge")
+    z, y, x = lo.shape
+    shape = (z // cz, cz, y // c, c, x // c, c)
+    return np.fmin.reduce(lo.reshape(shape), axis=(1, 3, 5)), np.fmax.reduce(hi.reshape(shape), axis=(1, 3, 5))
+
+
+def _strip_cells(slab: np.ndarray, lay: Layout, by: int, below: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) over every cell (Layout.cell_edge) of block row `by` of a block-slab, grown by one voxel into its
+    neighbours (the voxels trilinear interpolation reads for a sample in the cell: full resolution's empty-space
+    skipping takes the same), NaN left out; `below`: the previous slab's last slice (None for the first slab). The
+    upper border of the slab's last row of cells lies in the next slab: `_slice_cells` adds it."""
+    b, c = lay.block_size, lay.cell_edge
+    y0, y1 = max(0, by * b - 1), min(slab.shape[1], (by + 1) * b + 1)
+    part = slab[:, y0:y1] if below is None else np.concatenate([below[None, y0:y1], slab[:, y0:y1]])
+    z0 = 0 if below is None else 1
+    # each row of cells over its slices and the one each side first (a c-fold smaller array for the 3-taps)
+    rows = range(0, slab.shape[0], c)
+    lo = np.stack([np.fmin.reduce(part[max(0, z0 + r - 1):z0 + r + c + 1], axis=0) for r in rows])
+    hi = np.stack([np.fmax.reduce(part[max(0, z0 + r - 1):z0 + r + c + 1], axis=0) for r in rows])
+    for ax in (1, 2):
+        lo, hi = _extrema3(lo, hi, ax)
+    ya, ny = by * b - y0, min(b, slab.shape[1] - by * b)
+    return _per_cell(lo[:, ya:ya + ny], hi[:, ya:ya + ny], 1, c)
+
+
+def _slice_cells(plane: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) over every column of c x c voxels of one slice, grown by one voxel across y and x: the upper
+    border that a slab's last row of cells takes from the next slab's first slice, (1, cells_y, cells_x)."""
+    lo, hi = plane[None], plane[None]
+    for ax in (1, 2):
+        lo, hi = _extrema3(lo, hi, ax)
+    return _per_cell(lo, hi, 1, c)
+
+
+def _outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 bounds that hold [lo, hi]: rounded outwards where float32 cannot hold a value."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
     with np.errstate(invalid="ignore"):
         lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
@@ -409,10 +458,11 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     try:
         # pass 1: the next slab is read while rows of this one are downsampled on the pool and level 0 is written
         nan_count = 0
+        below, pending = None, None  # the last slice of the previous slab; its last row of cells, unwritten
         # a slab of wide slices is read after the last one is done with, not beside it: two would be its memory
         ahead = lay.block_size * lay.shape[1] * lay.shape[2] * dtype.itemsize <= READ_AHEAD_BYTES
         for bz, slab in enumerate(_read_ahead(lambda z: _read_slab(src, lay, z), gz, reader if ahead else None)):
-            rows = [pool.submit(_strip_levels, slab, lay, bz, by) for by in range(gy)]
+            rows = [pool.submit(_strip_levels, slab, lay, bz, by, below) for by in range(gy)]
             writers[0].add(slab)
             parts = [f.result() for f in rows]
             for k, w in enumerate(writers[1:]):
@@ -421,9 +471,16 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                 w.add(np.concatenate([stds[k] for _, stds, _ in parts], axis=1))
             std_max = max([std_max] + [p[2]["std_max"] for p in parts])
             st = {key: np.stack([p[2][key] for p in parts]) for key in ("min", "max", "sum", "count", "level_var")}
-            for key, arr in cells.items():
-                part = np.concatenate([p[2][key] for p in parts], axis=1)
-                arr[bz * cpb : bz * cpb + part.shape[0]] = part
+            # cells: the last row waits for the next slab's first slice (its upper border)
+            clo, chi = (np.concatenate([p[2][key] for p in parts], axis=1) for key in ("cell_min", "cell_max"))
+            if pending is not None:
+                row, plo, phi = pending
+                slo, shi = _slice_cells(slab[0], lay.cell_edge)
+                _write_cells(cells, row, np.fmin(plo, slo), np.fmax(phi, shi))
+            keep = clo.shape[0] - (1 if bz + 1 < gz else 0)
+            _write_cells(cells, bz * cpb, clo[:keep], chi[:keep])
+            pending = (bz * cpb + keep, clo[keep:], chi[keep:]) if keep < clo.shape[0] else None
+            below = slab[-1].copy()
             level_std[bz] = np.sqrt(st["level_var"])
             stats["min"][bz], stats["max"][bz], stats["count"][bz] = st["min"], st["max"], st["count"]
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -490,6 +547,11 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     attrs["ome"]["omero"] = omero(Path(source_label).name or "volume", overall, bins.edges, (lo, hi))
     attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
     group.attrs.update(attrs)
+
+
+def _write_cells(cells: dict[str, Any], row: int, lo: np.ndarray, hi: np.ndarray) -> None:
+    if lo.shape[0]:
+        cells["cell_min"][row : row + lo.shape[0]], cells["cell_max"][row : row + lo.shape[0]] = _outward32(lo, hi)
 
 
 def _merge(acc: dict[int, list[np.ndarray]], row: int, part: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:

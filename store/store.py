@@ -317,6 +317,8 @@ class Store:
             "histogram": self.attrs["histogram"],
             "format_version": self.format_version,
             "distribution": self.attrs.get("distribution"),  # None: format 1, coarse samples classified by the mean
+            # the level-0 value range of every cell (blocks/cell_min, cell_max); None: format < 3
+            "cells": {"edge": lay.cell_edge, "grid": list(lay.cell_grid)} if self.format_version >= 3 else None,
             "source": self.attrs.get("source", {}),
             "provenance": self.attrs.get("provenance", {}),
         }
