@@ -225,8 +225,10 @@ def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.nda
             flat[part] = lut.visible(lo[part], hi[part]) if skip_empty else True
             if dist is not None and skip_empty:
                 flat[part] |= dist.visible(lo[part], hi[part], sd[part])
-            if level0 is not None:
-                flat[part] &= ~coarse.reshape(-1)[part] | lut.visible(lo0.reshape(-1)[part], hi0.reshape(-1)[part])
+            if level0 is not None:  # only where a coarse cell is still visible (8M cells of the 8 GiB volume)
+                sub = flat[part]
+                idx = np.flatnonzero(sub & coarse.reshape(-1)[part])
+                sub[idx] = lut.visible(lo0.reshape(-1)[part][idx], hi0.reshape(-1)[part][idx])
         return out
 
     vis = seen(pr.lut, pr.dist)
