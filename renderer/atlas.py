@@ -54,9 +54,9 @@ BRICK_ENTRY_BYTES = 448
 
 
 class BrickCache(ByteLru):
-    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations uint16 in units of the volume's std_unit) keyed
-    by (kind, store key, level, bz, by, bx), LRU by bytes (each brick's voxels plus BRICK_ENTRY_BYTES); counts
-    the bricks read."""
+    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations uint16 in units
+    of the volume's std_unit) keyed by (kind, store key, level, bz, by, bx), LRU by bytes (each brick's voxels plus
+    BRICK_ENTRY_BYTES); counts the bricks read."""
 
     def __init__(self, max_bytes: "int | Callable[[], int]"):
         super().__init__(max_bytes)
@@ -158,7 +158,8 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
     read from the store (missing ones only, grouped by shard, shards read in parallel, a few at a time so that
     bricks stream through rather than pile up: a caller that places each one keeps none); read bricks enter the
     cache. Values keep the store's type up to 16-bit integers, else float32. what="std": the standard deviations
-    of the coarse bricks (level >= 1; level 0 has none), uint16 in units of vol.std_unit, instead of the values. `stats` is filled in."""
+    of the coarse bricks (level >= 1; level 0 has none), uint16 in units of vol.std_unit, instead of the values.
+    `stats` is filled in."""
     cache = brick_cache() if cache is None else cache
     stats = BrickStats() if stats is None else stats
     t = time.perf_counter()
@@ -319,8 +320,8 @@ def _index(levels: np.ndarray, offsets: np.ndarray, slices: np.ndarray | None) -
 
 
 def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
-    """The standard deviations beside the atlas (uint16 in units of vol.std_unit, same offsets as `pack`): coarse bricks from
-    `std_bricks` ((level, bz, by, bx) -> brick), zeros for level 0 (the kernel never reads those)."""
+    """The standard deviations beside the atlas (uint16 in units of vol.std_unit, same offsets as `pack`): coarse
+    bricks from `std_bricks` ((level, bz, by, bx) -> brick), zeros for level 0 (the kernel never reads those)."""
     sizes, offsets = _offsets(levels, block_size)
     out = np.zeros(max(int(sizes.sum()), 1), np.uint16)
     _place(out, np.asarray(levels).shape, offsets, std_bricks.items())
@@ -376,7 +377,7 @@ def max_alloc_bytes() -> int:
 @dataclass(frozen=True)
 class DeviceAtlas:
     atlas: cl.Buffer
-    std: cl.Buffer | None  # the standard deviations beside the atlas (uint16, vol.std_unit), for distribution classification
+    std: cl.Buffer | None  # the deviations beside the atlas (uint16, vol.std_unit), for distribution classification
     index: cl.Buffer
     index_host: np.ndarray
     nbytes: int  # atlas bytes

@@ -55,8 +55,9 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
 }
 
 /* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]:
- * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (uint16, in units of the volume's std_unit)
- * at the same offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
+ * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (uint16, in
+ * units of the volume's std_unit) at the same offsets as the values; only coarse bricks (level >= 1) read them,
+ * level 0 has none. */
 static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
     if (n == 1) /* a one-sample brick (level log2 B): its value, without eight reads of the same element */

@@ -114,7 +114,8 @@ def probe(levels: np.ndarray, bricks: dict, B: int, pts: np.ndarray, interp: str
     opts = ["-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB"] + (["-DLC_DIST"] if std_bricks else [])
     prg = get_program("atlas_probe.cl", opts).program
     atlas, idx = pack(levels, {k: np.asarray(v, np.float32) for k, v in bricks.items()}, B, max_bytes=2**31)
-    sig = pack_std(levels, {k: np.rint(quantized_std(v, std_unit) / std_unit) for k, v in (std_bricks or {}).items()}, B)
+    sig = pack_std(levels, {k: np.rint(quantized_std(v, std_unit) / std_unit) for k, v in (std_bricks or {}).items()},
+                   B)
     p4 = np.zeros((len(pts), 4), np.float32)
     p4[:, :3] = pts
     mf = cl.mem_flags
