@@ -201,10 +201,9 @@ def pass_levels(levels: np.ndarray, region: Region) -> np.ndarray:
     return out
 
 
-def pass_steps(steps: np.ndarray, own: np.ndarray, interpolation: str) -> np.ndarray:
-    """Adaptive sampling's step levels with every cell outside the pass's blocks skipped (-1)."""
-    if interpolation == "interblock":
-        own = lod_atlas.half_cells(own)
+def pass_steps(steps: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """Adaptive sampling's step levels (half-block cells) with every cell outside the pass's blocks skipped (-1)."""
+    own = lod_atlas.half_cells(own)
     return np.ascontiguousarray(np.where(own > 0, steps, -1).astype(np.int8))
 
 
@@ -289,7 +288,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
                 stats.upload_ms += da.upload_ms
                 nbytes = da.nbytes
                 data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
-                                pass_steps(steps, own, cfg.interpolation) if cfg.adaptive else steps, own,
+                                pass_steps(steps, own) if cfg.adaptive else steps, own,
                                 cells=_cells(pr, da, reg.blocks))
             stats.passes += 1
             stats.device_bytes = max(stats.device_bytes, nbytes)

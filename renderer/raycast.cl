@@ -243,15 +243,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
     }
 
 #ifdef LC_ADAPTIVE
-        /* 3D DDA over cells. II: half-block cells, cell h covers voxel coordinates [h B/2 - 1/2, (h + 1) B/2 - 1/2),
-         * so each cell lies in one block and in one interblock neighbourhood (cell boundaries are block faces and
-         * block centres); NB: the blocks. step_level holds the cell's step level (grid 2G for II, G for NB, C order
-         * z, y, x; -1: skip the cell). */
-#ifdef LC_INTERP_II
+        /* 3D DDA over half-block cells: cell h covers voxel coordinates [h B/2 - 1/2, (h + 1) B/2 - 1/2), so each
+         * cell lies in one block and in one interblock neighbourhood (cell boundaries are block faces and block
+         * centres). step_level holds the cell's step level (grid 2G, C order z, y, x; -1: skip the cell). */
         const int cpb = 2; /* cells per block edge */
-#else /* nearest block: the step level is constant over a block, so the cells are the blocks */
-        const int cpb = 1;
-#endif
         const float Hc = (float)P->grid.w / (float)cpb;
         const int hx = cpb * P->grid.x, hy = cpb * P->grid.y, hz = cpb * P->grid.z;
         LC_DDA_BEGIN(Hc, hx, hy, hz)

@@ -98,7 +98,7 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
     adaptive = lod and (s.adaptive_object is True or (s.adaptive_object is None and auto) or s.adaptive_naive)
     return KernelConfig(
         sampler="atlas" if lod else "full",
-        interpolation=s.interpolation if lod else "trilinear",
+        interpolation=(s.interpolation or "interblock") if lod else "trilinear",  # None: see _lod_plan
         adaptive=adaptive,
         adaptive_naive=lod and s.adaptive_naive,
         distribution=lod and distribution and s.classification == "distribution" and scene.mode == "composite",
@@ -239,14 +239,10 @@ def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.nda
 
 
 def walk_steps(pr: "Prepared", steps: np.ndarray, walk: np.ndarray) -> np.ndarray:
-    """Adaptive sampling's step levels with the cells the walk's info marks empty skipped (-1): interblock's cells
-    are the walk's half-block cells, nearest block's the blocks (skipped when all eight of theirs are empty)."""
+    """Adaptive sampling's step levels with the half-block cells the walk's info marks empty skipped (-1)."""
     if pr.scene.mode != "composite":
         return steps
     empty = walk == 0.0
-    if steps.shape != empty.shape:
-        g = steps.shape
-        empty = empty.reshape(g[0], 2, g[1], 2, g[2], 2).all(axis=(1, 3, 5))
     return np.ascontiguousarray(np.where(empty, -1, steps).astype(np.int8))
 
 
@@ -358,6 +354,17 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None, keep: np.n
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
 
 
+# The default interpolation (sampling.interpolation left out) at the budgeted qualities: nearest block from this
+# reduction on, interblock below it (and at "lossless"). With classification by distribution and the coarse cells'
+# mask, nearest block's error is close to interblock's once coarse blocks carry most of the samples, in about half
+# the time, and only it makes a reduction render faster than full resolution (chest CT, 512², three TFs:
+# benchmarks/bench_consistent_lod.py, mean ΔE nearest / interblock at 30:1 3.70 / 3.84, 6.79 / 7.62, 3.33 / 3.29,
+# at 1.25-1.56x of full resolution's speed against 0.48-0.70x). At low reductions most visible blocks are at
+# level 0, where nearest block's clamp half a voxel inside every block face is its own error (5:1: 1.02 against
+# 0.51 on ct-bone) and saves too little to beat full resolution either way. 8 lies between the measured 5:1 and 10:1.
+NEAREST_BLOCK_FROM = 8.0
+
+
 def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
               mode: str, keep: np.ndarray | None,
               view: tuple | None = None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
@@ -367,6 +374,15 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     lv, sel = _select(vol, scene, levels, keep, view)
     if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
         cfg = replace(cfg, adaptive=False)  # the default: every block at level 0 leaves nothing to step over
+    B = vol.block_size
+    if sel is not None:
+        reduction, pred = (float(sel.reduction) if math.isfinite(sel.reduction) else None), float(sel.predicted_delta_e)  # None: nothing loaded (JSON has no inf)
+    else:
+        chosen = int(np.where(lv >= 0, (B >> np.maximum(lv.astype(np.int64), 0)) ** 3, 0).sum())
+        reduction, pred = (vol.n_blocks * B**3 / chosen if chosen else None), None
+    if (scene.sampling.interpolation is None and isinstance(scene.quality, (QualityReduction, QualityBudget))
+            and reduction is not None and reduction >= NEAREST_BLOCK_FROM):
+        cfg = replace(cfg, interpolation="nearest_block")
     info = info.copy()
     missing = lv < 0
     info[missing] = -np.inf if mode in EXTREMUM_MODES else 0.0
@@ -374,31 +390,25 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     # than the one-voxel border of the block ranges: where a coarse block is near, a block may show what its
     # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
     near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing
-    if near_coarse.any() and scene.sampling.interpolation == "interblock":  # nearest block reads its own block only
+    if near_coarse.any() and cfg.interpolation == "interblock":  # nearest block reads its own block only
         spread = lod_atlas.neighbourhood_max(info) if scene.tf2 is None else dual.dilate_bits(info, lod_atlas.neighbourhood_max)
         info = np.where(near_coarse, spread, info).astype(np.float32)
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
-    B = vol.block_size
-    if sel is not None:
-        reduction, pred = (float(sel.reduction) if math.isfinite(sel.reduction) else None), float(sel.predicted_delta_e)  # None: nothing loaded (JSON has no inf)
-    else:
-        chosen = int(np.where(lv >= 0, (B >> np.maximum(lv.astype(np.int64), 0)) ** 3, 0).sum())
-        reduction, pred = (vol.n_blocks * B**3 / chosen if chosen else None), None
     steps = None
     if cfg.adaptive:
         skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
-        steps = _step_levels(lv, scene.sampling.interpolation, int(B), skip)
+        steps = _step_levels(lv, int(B), skip)
     return LodPlan(lv, reduction, pred, steps, sel, view is not None), info, n_empty, cfg
 
 
-def _step_levels(lv: np.ndarray, interpolation: str, block_size: int, skip: np.ndarray | None) -> np.ndarray:
+def _step_levels(lv: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
     """atlas.step_levels, kept for the last few (levels, skip) pairs: a turntable asks for the same each frame, and
     on a grid of a million blocks it costs 0.6 s."""
-    key = (interpolation, block_size, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
+    key = (block_size, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
            None if skip is None else hashlib.sha1(np.packbits(skip).tobytes()).hexdigest())
     hit = _STEPS.get(key)
     if hit is None:
-        hit = lod_atlas.step_levels(lv, interpolation, block_size, skip)
+        hit = lod_atlas.step_levels(lv, block_size, skip)
         _STEPS.put(key, hit, hit.nbytes)
     return hit
 
@@ -504,9 +514,7 @@ def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, 
     limit, what = multipass.volume_limit(lod_atlas.max_alloc_bytes())
     if cfg.adaptive and lod is not None and lod.step_levels is not None:  # cells of level -1 are never sampled
         st = lod.step_levels
-        if cfg.interpolation == "interblock":
-            st = st.reshape(st.shape[0] // 2, 2, st.shape[1] // 2, 2, st.shape[2] // 2, 2).max(axis=(1, 3, 5))
-        unsampled = st < 0
+        unsampled = st.reshape(st.shape[0] // 2, 2, st.shape[1] // 2, 2, st.shape[2] // 2, 2).max(axis=(1, 3, 5)) < 0
     elif cfg.ess and scene.sampling.empty_space_skipping:  # blocks the walk skips whatever the ray did before
         # (without skipping the walk may still run, for the coarse cells' mask: it skips no block then)
         unsampled = info == (-np.inf if scene.mode in EXTREMUM_MODES else 0.0)

@@ -87,15 +87,14 @@ def test_limited_adaptive_samples_the_fine_block_over_its_whole_length(store, f)
 
 
 def test_samples_landing_in_the_fine_block_along_x(store):
-    """Along +x every ray crosses block 1 (NB: one cell of 16 voxels, a coarse step of 11.2 and a cut one), the
-    fine block (ceil(16 / 0.7) = 23 base steps, the last cut at its far face) and block 3 (two steps); blocks 0
-    and 4 are empty (skipped). Limited: exactly 27 samples per ray, 23 of them inside the fine block. With II the
-    cells are half blocks, each stepped at its own block's level: one (cut) step in each of the eight coarse
-    halves (blocks 0 and 4 are marched too, since the interblock interpolation of the coarse blocks 1 and 3
-    reaches into them) and ceil(8 / 0.7) = 12 in each fine half: 8 + 24 = 32."""
+    """The cells are half blocks (8 voxels), each stepped at its own block's level. Along +x every ray crosses
+    block 1 (one step of 11.2 voxels, cut at 8, in each half), the fine block (ceil(8 / 0.7) = 12 base steps in
+    each half, the last cut at the half's far face) and block 3 (one step per half); NB: blocks 0 and 4 are empty
+    (skipped): exactly 2 + 24 + 2 = 28 samples per ray. With II blocks 0 and 4 are marched too, since the
+    interblock interpolation of the coarse blocks 1 and 3 reaches into them: 8 + 24 = 32."""
     cam = _cam((1, 0, 0))
     lim = render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
-    assert lim.report["samples"] == 27 * W * H
+    assert lim.report["samples"] == 28 * W * H
     ii = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
     assert ii.report["samples"] == 32 * W * H
     naive = render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
@@ -136,28 +135,46 @@ def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
             assert r.report["samples"] == n_cells * int(np.ceil(cell / (step * 2 ** min(level + 1, 4)) - 1e-6)) * W * H
 
 
+def test_default_interpolation_follows_the_reduction(store):
+    """sampling.interpolation left out: interblock below 8:1 and at "lossless", nearest block from 8:1 on at the
+    budgeted qualities (renderer/render.py: NEAREST_BLOCK_FROM); a named interpolation is always kept. The default
+    renders exactly what naming it renders."""
+    cam = _cam((1, 0.35, 0.2))
+    scene = {"tf": TF, "width": W, "height": H, "camera": cam, "format": "npy"}
+    coarse = np.array([4, 4, 1, 4, 4], np.int8).reshape(1, 1, 5)  # 5 x 4096 voxels in 4 + 512: 39.7:1
+    cases = [({"reduction": 2}, LEVELS, "interblock"),  # 5 x 4096 voxels in 4 + 4096: 4.995:1
+             ({"reduction": 2}, coarse, "nearest_block"), ({"budget_mb": 1}, coarse, "nearest_block"),
+             ("lossless", coarse, "interblock")]
+    for quality, levels, expected in cases:
+        r = render(store, {**scene, "quality": quality}, levels=levels)
+        assert r.report["interpolation"] == expected, (quality, r.report["reduction"])
+        named = render(store, {**scene, "quality": quality, "sampling": {"interpolation": expected}}, levels=levels)
+        np.testing.assert_array_equal(r.rgba, named.rgba)
+    kept = render(store, {**scene, "quality": {"reduction": 2}, "sampling": {"interpolation": "interblock"}},
+                  levels=coarse)
+    assert kept.report["interpolation"] == "interblock"
+
+
 def test_huge_steps_still_cross_every_cell(store):
-    """A step longer than the volume: one sample per cell, and the march still reaches the far side."""
+    """A step longer than the volume: one sample per half-block cell, and the march still reaches the far side."""
     cam = _cam((1, 0, 0))
     r = render(store, _scene(cam, step=500.0, adaptive_object=True, early_termination=1.0), levels=LEVELS)
-    assert r.report["samples"] == 3 * W * H  # NB: blocks 1, 2, 3, one (cut) step each
+    assert r.report["samples"] == 6 * W * H  # NB: the halves of blocks 1, 2, 3, one (cut) step each
     np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 16, atol=2e-5)
 
 
 def test_step_levels_one_sample_per_coarse_voxel():
     """Step level per cell: 0 where the cell's block is at level 0 (the base step), k + 1 where it is at level
     k >= 1 (one sample per level-k voxel at the default step 1/2), capped at log2 B, -1 for unloaded or skipped
-    blocks; interblock: the half-block cells of each block take its level."""
+    blocks; the half-block cells of each block take its level."""
     from lodcast.renderer.atlas import step_levels
 
     lv = np.array([4, 3, 0, 1, 2, -1, 2], np.int8).reshape(1, 1, 7)
-    nb = step_levels(lv, "nearest_block", 16)
-    assert nb.ravel().tolist() == [4, 4, 0, 2, 3, -1, 3]
+    st = step_levels(lv, 16)
+    assert st.shape == (2, 2, 14) and (st == st[:1, :1]).all()
+    assert st[0, 0, ::2].tolist() == [4, 4, 0, 2, 3, -1, 3]
+    assert st[0, 0].tolist() == [4, 4, 4, 4, 0, 0, 2, 2, 3, 3, -1, -1, 3, 3]
     skip = np.zeros(lv.shape, bool)
     skip[..., 6] = True
-    assert step_levels(lv, "nearest_block", 16, skip).ravel().tolist() == [4, 4, 0, 2, 3, -1, -1]
-    assert step_levels(lv, "nearest_block", 8).ravel().tolist() == [3, 3, 0, 2, 3, -1, 3]
-    ii = step_levels(lv, "interblock", 16)
-    assert ii.shape == (2, 2, 14) and (ii == ii[:1, :1]).all()
-    assert ii[0, 0].tolist() == [4, 4, 4, 4, 0, 0, 2, 2, 3, 3, -1, -1, 3, 3]
-    assert step_levels(lv, "interblock", 16, skip)[0, 0, -2:].tolist() == [-1, -1]
+    assert step_levels(lv, 16, skip)[0, 0, ::2].tolist() == [4, 4, 0, 2, 3, -1, -1]
+    assert step_levels(lv, 8)[0, 0, ::2].tolist() == [3, 3, 0, 2, 3, -1, 3]

@@ -18,7 +18,10 @@ def test_defaults_follow_design():
     assert (s.width, s.height, s.quality, s.mode, s.format) == (512, 512, "full", "composite", "png")
     assert s.background == (0, 0, 0, 0) and s.tf2 is None and s.shading is None and s.clip is None
     sp = s.sampling
-    assert (sp.step, sp.interpolation, sp.jitter, sp.early_termination, sp.priority_map) == (0.5, "interblock", False, 0.99, True)
+    assert (sp.step, sp.jitter, sp.early_termination, sp.priority_map) == (0.5, False, 0.99, True)
+    # DESIGN's example names "interblock": left out, the interpolation is interblock, or nearest block at a
+    # budgeted quality's selection of 8:1 or more (tests/test_lod_adaptive.py, README "When it pays")
+    assert sp.interpolation is None
     assert isinstance(s.camera, OrbitCamera)
 
 
