@@ -170,10 +170,12 @@ class Sampling(_Model):
     """`step` is in voxels of the finest level: multiples of the smallest spacing. `interpolation` chooses how
     the brick atlas is sampled across blocks of different levels (thesis §3.5): "interblock" blends the blocks
     around a block face, "nearest_block" samples a position's own block only (clamped half a sample inside it);
-    left out (null), it is nearest block at the budgeted qualities (`{"reduction": r}`, `{"budget_mb": m}`: with
-    classification by distribution nearly the same error in about half the time, the choice that makes a
-    reduction render faster than full resolution) and interblock at 'lossless'; at quality 'full' the field is
-    trilinear interpolation of level 0 whatever it says. `priority_map` belongs to the dual-TF mode (tf2).
+    left out (null), it is nearest block at the budgeted qualities (`{"reduction": r}`, `{"budget_mb": m}`) once
+    the selection reduces the data 8:1 or more (with classification by distribution nearly the same error as
+    interblock there, in about half the time: the choice that makes a reduction render faster than full
+    resolution), and interblock below that and at 'lossless' (where most blocks are at level 0 and nearest block's
+    clamp inside every block face is its own error); at quality 'full' the field is trilinear interpolation of
+    level 0 whatever it says. `priority_map` belongs to the dual-TF mode (tf2).
     `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image. (With coarse
     levels from a store of format 3 the walk over cells runs anyway: it also leaves out the coarse cells whose
     level-0 voxels the TF shows nothing of, which is part of what a coarse level shows.)
