@@ -370,7 +370,8 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
               view: tuple | None = None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
     """The selection (blocks outside the clip region `keep` not loaded; weighted by what the camera sees when
     `view` is given, see _select), the block info with unloaded blocks marked empty, the number of empty blocks,
-    and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0)."""
+    and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0; the
+    default interpolation becomes nearest block from NEAREST_BLOCK_FROM on)."""
     lv, sel = _select(vol, scene, levels, keep, view)
     if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
         cfg = replace(cfg, adaptive=False)  # the default: every block at level 0 leaves nothing to step over
