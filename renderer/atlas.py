@@ -268,12 +268,22 @@ def pack_index(offset: np.ndarray, level: np.ndarray, slices: np.ndarray | None 
     return np.where(level >= 0, ent, np.uint64(MISSING)).astype(np.uint64)
 
 
-def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks)."""
+def brick_elements(levels: np.ndarray, block_size: int) -> np.ndarray:
+    """Atlas elements of every block's brick (grid-shaped int64, 0 for unloaded blocks): (B >> level) samples per
+    edge plus the one-sample apron on every face."""
     lv = np.asarray(levels).astype(np.int64)
-    sizes = np.where(lv >= 0, (block_size >> np.maximum(lv, 0)) ** 3, 0).ravel()
+    return np.where(lv >= 0, ((block_size >> np.maximum(lv, 0)) + 2) ** 3, 0)
+
+
+def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks). The
+    bricks of one level lie together, in C order of the grid within it, lowest level first: the aprons of a level
+    are filled with whole-array operations (`_fill_aprons`)."""
+    lv = np.asarray(levels).astype(np.int64).ravel()
+    sizes = brick_elements(lv, block_size)
+    order = np.lexsort((np.arange(lv.size), lv))  # stable: C order within a level
     offsets = np.zeros(sizes.size, np.int64)
-    np.cumsum(sizes[:-1], out=offsets[1:])
+    offsets[order[1:]] = np.cumsum(sizes[order])[:-1]
     return sizes, offsets
 
 
@@ -294,10 +304,60 @@ def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None,
 
 
 def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> None:
-    """Write each ((level, bz, by, bx), brick) of `items` at its block's offset in `out` (cast to out's type)."""
+    """Write each ((level, bz, by, bx), brick) of `items` into the inside of its block's apron-padded brick at its
+    offset in `out` (cast to out's type); the aprons are `_fill_aprons`' work."""
     for (k, z, y, x), a in items:
         o = int(offsets[(z * grid[1] + y) * grid[2] + x])
-        out[o:o + a.size] = a.ravel()
+        m = a.shape[0] + 2
+        out[o:o + m**3].reshape(m, m, m)[1:-1, 1:-1, 1:-1] = a
+
+
+def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int, first: int = 0) -> None:
+    """The aprons of the bricks of levels >= `first` in `out` (placed by `_place`). The apron sample beyond a face,
+    edge or corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves
+    the grid, d is 0 there and the sample repeats the brick's edge (the volume's clamp to edge). It is the sample of
+    block own + d when that block is loaded at the same level, else the brick's own nearest sample (clamp to edge).
+    Inside a region of one level, trilinear interpolation within a padded brick is then trilinear interpolation of
+    that level across the blocks' faces, clamped at the volume's faces as level 0 is (lc_atlas.h)."""
+    lv = np.asarray(levels).astype(np.int64)
+    G = np.array(lv.shape)
+    flat_off = offsets.reshape(lv.shape)
+    for k in range(max(first, 0), int(lv.max(initial=-1)) + 1):
+        where = lv == k
+        cnt = int(where.sum())
+        if not cnt:
+            continue
+        n = block_size >> k
+        m = n + 2
+        start = int(flat_off[where].min())
+        A = out[start:start + cnt * m**3].reshape(cnt, m, m, m)
+        assert int(flat_off[where].max()) == start + (cnt - 1) * m**3, "bricks of a level lie together"
+        # clamp to edge: x faces, then y (whole rows, x apron included), then z
+        A[:, 1:-1, 1:-1, 0], A[:, 1:-1, 1:-1, -1] = A[:, 1:-1, 1:-1, 1], A[:, 1:-1, 1:-1, -2]
+        A[:, 1:-1, 0, :], A[:, 1:-1, -1, :] = A[:, 1:-1, 1, :], A[:, 1:-1, -2, :]
+        A[:, 0], A[:, -1] = A[:, 1], A[:, -2]
+        rank = np.full(lv.shape, -1, np.int64)  # a brick's place in A; -1: not at level k
+        rank[where] = np.arange(cnt)
+        pos = np.stack(np.nonzero(where), axis=1)  # (cnt, 3) z, y, x in C order: the ranks 0 ... cnt - 1
+        for d in np.ndindex(3, 3, 3):
+            d = np.array(d) - 1
+            if not d.any():
+                continue
+            to = pos + d
+            folded = (to < 0) | (to >= G)  # (cnt, 3): off the grid along that axis
+            dd = np.where(folded, 0, d)  # the direction that stays on the grid
+            moved = dd.any(axis=1)
+            nb = np.full(cnt, -1, np.int64)
+            t = pos[moved] + dd[moved]
+            nb[moved] = rank[t[:, 0], t[:, 1], t[:, 2]]
+            for code in np.unique(folded[nb >= 0] @ np.array([4, 2, 1])):
+                fold = [(int(code) >> (2 - a)) & 1 for a in range(3)]
+                own = np.nonzero((nb >= 0) & ((folded @ np.array([4, 2, 1])) == code))[0]
+                dst = tuple(slice(1, n + 1) if e == 0 else (0 if e < 0 else n + 1) for e in d)
+                # along a folded axis the neighbour's edge sample on the own side (it shares the own coordinate)
+                src = tuple(slice(1, n + 1) if e == 0 else ((1 if e < 0 else n) if f else (n if e < 0 else 1))
+                            for e, f in zip(d, fold))
+                A[(own,) + dst] = A[(nb[own],) + src]
 
 
 def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
@@ -311,6 +371,7 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
     offsets, total = _checked_offsets(levels, block_size, max_bytes)
     atlas = np.empty(max(total, 1), np.float32)
     _place(atlas, levels.shape, offsets, bricks.items())
+    _fill_aprons(atlas, levels, offsets, block_size)
     return atlas, _index(levels, offsets, slices)
 
 
@@ -325,6 +386,7 @@ def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarra
     sizes, offsets = _offsets(levels, block_size)
     out = np.zeros(max(int(sizes.sum()), 1), np.uint16)
     _place(out, np.asarray(levels).shape, offsets, std_bricks.items())
+    _fill_aprons(out, levels, offsets, block_size, first=1)
     return out
 
 
@@ -418,11 +480,11 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
     with holding(nbytes):
-        d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels.shape, offsets,
+        d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, int(vol.block_size),
                           iter_bricks(vol, levels, cache, stats=st))
         d_std = None
         if with_std:
-            d_std = _filled(ctx, queue, max(total, 1), np.uint16, levels.shape, offsets,
+            d_std = _filled(ctx, queue, max(total, 1), np.uint16, levels, offsets, int(vol.block_size),
                             iter_bricks(vol, levels, cache, what="std"), zero=True)
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
@@ -435,16 +497,17 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     return da
 
 
-def _filled(ctx: Any, queue: Any, n: int, dtype: Any, grid: tuple, offsets: np.ndarray, items: Any,
-            zero: bool = False) -> cl.Buffer:
-    """A device buffer of n elements with every brick of `items` placed at its offset (the rest zero if `zero`),
-    written through a host mapping."""
+def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+            items: Any, zero: bool = False) -> cl.Buffer:
+    """A device buffer of n elements with every brick of `items` placed at its offset and its apron filled (the
+    rest zero if `zero`: the deviations, which have no level-0 bricks), written through a host mapping."""
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
     host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
     try:
         if zero:
             host.fill(0)
-        _place(host, grid, offsets, items)
+        _place(host, levels.shape, offsets, items)
+        _fill_aprons(host, levels, offsets, block_size, first=1 if zero else 0)
     finally:
         host.base.release(queue)
     return buf

@@ -1,30 +1,37 @@
 /* lc_atlas.h: sampling the multiresolution field (thesis §3.5) from the brick atlas through the block index map.
  *
  * Atlas: one buffer of lc_voxel (the volume's device type, lc_common.h), the selected bricks packed one after
- * another (no sample replication); the brick of a level-k block holds n = B >> k samples per edge in C order
- * (z, y, x). Index map: one ulong per block of the grid (C order z, y, x): 0 = block not loaded (level -1: empty
- * space), else
+ * another; the brick of a level-k block holds its n = B >> k samples per edge inside a one-sample apron, m = n + 2
+ * per edge in C order (z, y, x), sample (i, j, l) of the block at ((l + 1) * m + j + 1) * m + i + 1. The apron
+ * sample beyond a face, edge or corner is the neighbouring block's sample there when that block is loaded at the
+ * same level, else the brick's own nearest sample (renderer/atlas.py: _fill_aprons). Index map: one ulong per block
+ * of the grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else
  * (offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1), offset the brick's first
  * element in the atlas (48 bits), s_a the coarsest level among the 3x3 blocks of the block's own slice across axis
  * a (unloaded blocks count as level 0): see the fast path below and lodcast.renderer.atlas.pack_index.
  *
  * Coordinates: q = voxel coordinates of level 0 (centres at integers); block coordinates p = (q + 1/2) / B, so
- * block b covers p in [b, b + 1) and its level-k samples sit at intrablock coordinates (i + 1/2) / n.
+ * block b covers p in [b, b + 1) and its level-k samples sit at intrablock coordinates (i + 1/2) / n. Brick
+ * coordinates l = (q + 1/2 - bB)/2^k - 1/2: a position of the block has l in [-1/2, n - 1/2].
  *
- * LC_INTERP_NB, nearest block (eq. 3.5): the intrablock coordinate is clamped to [delta, 1 - delta], delta = 1/(2n)
- *   (half a sample of that block), then trilinear within the brick. In brick-sample units: l = (q + 1/2 - bB)/2^k
- *   - 1/2 clamped to [0, n - 1].
+ * LC_INTERP_NB, nearest block: trilinear within the padded brick at l (clamped to [-1, n] against rounding). Where
+ *   the neighbours are at the block's level this is trilinear interpolation of that level across the faces (no
+ *   seam); where a neighbour is at another level, or not loaded, the apron repeats the brick's edge and the sample
+ *   is eq. 3.5's, the intrablock coordinate clamped to [delta, 1 - delta], delta = 1/(2n) (half a sample of that
+ *   block). Eq. 3.5 alone would clamp at every face, and draw a seam wherever a ray grazes one.
  * LC_INTERP_II, interblock interpolation (eq. 3.6 in 3D): the cell between the eight block centres around p has
  *   corner c = floor(p + 1/2) and interblock coordinate p* = p - c in [-1/2, 1/2) (= frac(p + 1/2) - 1/2); its
  *   blocks are c - 1 + s, s in {0,1}^3 (clamped to the grid: at the volume's faces the cell folds onto the face
- *   blocks, which gives DESIGN's clamp to the edge). phi = sum_b w_b phi_b / sum_b w_b, phi_b the NB sample of
- *   block b at p, and w_b = prod over the three axes of (e if s_axis = 1 else 1 - e), e the edge weight of the
+ *   blocks, which gives DESIGN's clamp to the edge). phi = sum_b w_b phi_b / sum_b w_b, phi_b the eq. 3.5 sample
+ *   of block b at p (lc_nb: l clamped to [0, n - 1], the apron unused), and w_b = prod over the three axes of (e if
+ *   s_axis = 1 else 1 - e), e the edge weight of the
  *   edge of the cell's box that leaves b along that axis (the 2D weights of eq. 3.6, one more factor). Edge
  *   weight between a lower block L and an upper block U (half-sample widths delta_L, delta_U):
  *       e(x) = clamp((x + delta_L) / (delta_L + delta_U), 0, 1),   x = the axis' component of p*,
  *   i.e. 0 up to L's last sample, 1 from U's first sample on, linear between the two. Properties (tested in
  *   tests/test_lod_interblock.py): equal levels -> delta_L = delta_U = 1/(2n) and e is the trilinear fraction
- *   between L's last and U's first sample, so phi is trilinear interpolation of that level; C0: every e is
+ *   between L's last and U's first sample, so phi is trilinear interpolation of that level (which the walk takes
+ *   from the apron where all eight blocks share a level: lc_blk_cell); C0: every e is
  *   continuous, e = 0 at x = -1/2 and 1 at x = +1/2 for any delta <= 1/2, so on a cell's face only the face's
  *   blocks carry weight, with weights from edges that the neighbouring cell shares; sum_b w_b > 0 (the block
  *   that holds p has w > 0: 1 - e > 0 for x < 0 and e > 0 for x >= 0 on every edge); 1-sample blocks: n = 1,
@@ -54,24 +61,20 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
     return b0 + (b1 - b0) * fz;
 }
 
-/* Trilinear within a brick (n samples per edge, first element off) at brick coordinates l, already in [0, n-1]:
- * (value, standard deviation). The deviations (LC_DIST: distribution classification) live in `sig` (uint16, in
- * units of the volume's std_unit) at the same offsets as the values; only coarse bricks (level >= 1) read them,
- * level 0 has none. */
+/* Trilinear within a padded brick (n samples per edge inside the apron, first element off) at brick coordinates l,
+ * already in [-1, n]: (value, standard deviation). The deviations (LC_DIST: distribution classification) live in
+ * `sig` (uint16, in units of the volume's std_unit) at the same offsets as the values; only coarse bricks (level
+ * >= 1) read them, level 0 has none. */
 static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
-    if (n == 1) /* a one-sample brick (level log2 B): its value, without eight reads of the same element */
-#ifdef LC_DIST
-        return (float2)((float)atlas[off], coarse ? (float)sig[off] : 0.0f);
-#else
-        return (float2)((float)atlas[off], 0.0f);
-#endif
-    const int x0 = (int)lx, y0 = (int)ly, z0 = (int)lz;
-    const float fx = lx - (float)x0, fy = ly - (float)y0, fz = lz - (float)z0;
+    const float px = lx + 1.0f, py = ly + 1.0f, pz = lz + 1.0f; /* in the padded brick, >= 0 */
+    const int x0 = (int)px, y0 = (int)py, z0 = (int)pz;
+    const float fx = px - (float)x0, fy = py - (float)y0, fz = pz - (float)z0;
+    const ulong m = (ulong)n + 2UL;
     const ulong dx = fx > 0.0f ? 1UL : 0UL;
-    const ulong dy = fy > 0.0f ? (ulong)n : 0UL;
-    const ulong dz = fz > 0.0f ? (ulong)n * (ulong)n : 0UL;
-    const ulong b = off + ((ulong)z0 * (ulong)n + (ulong)y0) * (ulong)n + (ulong)x0, c = b + dz;
+    const ulong dy = fy > 0.0f ? m : 0UL;
+    const ulong dz = fz > 0.0f ? m * m : 0UL;
+    const ulong b = off + ((ulong)z0 * m + (ulong)y0) * m + (ulong)x0, c = b + dz;
     float2 out = (float2)(lc_tri8((float)atlas[b], (float)atlas[b + dx], (float)atlas[b + dy], (float)atlas[b + dy + dx],
                                   (float)atlas[c], (float)atlas[c + dx], (float)atlas[c + dy], (float)atlas[c + dy + dx],
                                   fx, fy, fz), 0.0f);
@@ -83,20 +86,28 @@ static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ush
     return out;
 }
 
-/* NB sample of a loaded block (entry != 0) at level-0 voxel coordinates q. */
-static LC_HOT float2 lc_nb(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry, const int bx,
-                           const int by, const int bz, const LcAtlasGeom g, const float3 q) {
+/* A sample of a loaded block (entry != 0) at level-0 voxel coordinates q, brick coordinates clamped to [lo, hi]:
+ * [0, n - 1] is eq. 3.5 (interblock's phi_b), [-1, n] nearest block through the apron. */
+static LC_HOT float2 lc_nb_in(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry,
+                              const int bx, const int by, const int bz, const LcAtlasGeom g, const float3 q,
+                              const float lo, const float hi_past) {
     const int lvl = (int)(entry & 15UL) - 1;
     const int n = (int)g.B >> lvl;
     const float s = lc_exp2_neg(lvl);
-    const float nm = (float)(n - 1);
+    const float hi = (float)(n - 1) + hi_past;
     float lx = (q.x + 0.5f - (float)bx * g.B) * s - 0.5f;
     float ly = (q.y + 0.5f - (float)by * g.B) * s - 0.5f;
     float lz = (q.z + 0.5f - (float)bz * g.B) * s - 0.5f;
-    lx = lx > 0.0f ? (lx < nm ? lx : nm) : 0.0f;
-    ly = ly > 0.0f ? (ly < nm ? ly : nm) : 0.0f;
-    lz = lz > 0.0f ? (lz < nm ? lz : nm) : 0.0f;
+    lx = lx > lo ? (lx < hi ? lx : hi) : lo;
+    ly = ly > lo ? (ly < hi ? ly : hi) : lo;
+    lz = lz > lo ? (lz < hi ? lz : hi) : lo;
     return lc_brick(atlas, sig, entry >> 16, n, lvl > 0, lx, ly, lz);
+}
+
+/* eq. 3.5 */
+static inline float2 lc_nb(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry, const int bx,
+                           const int by, const int bz, const LcAtlasGeom g, const float3 q) {
+    return lc_nb_in(atlas, sig, entry, bx, by, bz, g, q, 0.0f, 0.0f);
 }
 
 
@@ -222,7 +233,7 @@ static inline float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global 
     const ulong own = LC_IMAP(bx, by, bz);
     if (!own) return (float2)(NAN, 0.0f);
 #ifndef LC_INTERP_II
-    return lc_nb(atlas, sig, own, bx, by, bz, g, q);
+    return lc_nb_in(atlas, sig, own, bx, by, bz, g, q, -1.0f, 1.0f);
 #else
     {
         /* interior fast path (the thesis' II two-pass idea: NB inside the sample boundaries). A block b other than
@@ -256,10 +267,11 @@ static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global co
 }
 
 /* A block the ray marches through (raycast.cl sets it up once per block/cell of its DDA): brick coordinates are
- * l = q s + c there; NB clamps l to [0, n - 1]; II takes the brick directly where l lies in [lo, hi] (the interior
- * fast path above: every edge weight saturated) and the full interblock sum elsewhere. n = 0: no block (the
- * general sampler). Samples come out exactly as lc_sample_atlas gives them (NB: up to which of two blocks a
- * sample within rounding of their common face is assigned to). */
+ * l = q s + c there; NB clamps l to [-1, n] (the apron); II takes the brick directly where l lies in [lo, hi] (the
+ * interior fast path above: every edge weight saturated, or a one-level octant's apron) and the interblock sum
+ * elsewhere. n = 0: no block (the general sampler). Samples come out as lc_sample_atlas gives them (NB: up to
+ * which of two blocks a sample within rounding of their common face is assigned to; II in a one-level octant: up
+ * to float rounding, trilinear interpolation computed once from the apron, once as eq. 3.6's weighted sum). */
 typedef struct LcBlk {
     ulong off;
     int n;
@@ -293,8 +305,8 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.lo = hm * b.s - 0.5f;
     b.hi = (float)b.n - 0.5f - hm * b.s;
 #else
-    b.lo = (float3)(0.0f);
-    b.hi = (float3)((float)(b.n - 1));
+    b.lo = (float3)(-1.0f); /* the apron */
+    b.hi = (float3)((float)b.n);
 #endif
     return b;
 }
@@ -309,22 +321,36 @@ static inline float lc_max4(const float a, const float b, const float c, const f
 
 /* lc_blk for the samples of cell (x, y, z) of a walk with cpb cells per block edge. With II and half-block cells
  * (cpb 2) the cell lies in one interblock neighbourhood (its block's octant towards the cell's side on every
- * axis), so on the near side of each axis a the fast window needs only the half-sample widths of the four blocks
- * of that neighbourhood that share the block's a-coordinate (the argument above, restricted to the cell's own
- * neighbourhood), not the largest of the 3x3 slice: the window widens wherever a coarser block of the slice lies
- * on the far side. The far side keeps lc_blk's bound (a sample rounded into the next cell is still sampled
- * exactly). Six more index reads per cell. */
+ * axis). Where all eight blocks of that neighbourhood are loaded at one level, phi is trilinear interpolation of
+ * that level, which the padded brick holds for the whole octant (its apron is the neighbours' samples): the window
+ * becomes the apron on the near side. Else on the near side of each axis a the fast window needs only the
+ * half-sample widths of the four blocks of that neighbourhood that share the block's a-coordinate (the argument
+ * above, restricted to the cell's own neighbourhood), not the largest of the 3x3 slice: the window widens wherever a
+ * coarser block of the slice lies on the far side. The far side keeps lc_blk's bound (a sample rounded into the
+ * next cell is still sampled exactly). Seven more index reads per cell. */
 static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g, const int x, const int y,
                                 const int z, const int cpb) {
     const int bx = x / cpb, by = y / cpb, bz = z / cpb;
     LcBlk b = lc_blk(imap, g, bx, by, bz);
 #ifdef LC_INTERP_II
     if (cpb != 2 || !b.n) return b;
-    /* the neighbours towards the cell's side, clamped to the grid (where the neighbourhood folds onto the block) */
-    const int nx = lc_clampi(bx + ((x & 1) ? 1 : -1), g.gx - 1), ny = lc_clampi(by + ((y & 1) ? 1 : -1), g.gy - 1);
-    const int nz = lc_clampi(bz + ((z & 1) ? 1 : -1), g.gz - 1);
-    const float hX = lc_half(LC_IMAP(nx, by, bz)), hY = lc_half(LC_IMAP(bx, ny, bz)), hZ = lc_half(LC_IMAP(bx, by, nz));
-    const float hXY = lc_half(LC_IMAP(nx, ny, bz)), hXZ = lc_half(LC_IMAP(nx, by, nz)), hYZ = lc_half(LC_IMAP(bx, ny, nz));
+    /* the neighbours towards the cell's side (off the grid: the neighbourhood folds onto the block, and the apron
+     * there repeats the brick's edge, as the fold does) */
+    const int sx = (x & 1) ? 1 : -1, sy = (y & 1) ? 1 : -1, sz = (z & 1) ? 1 : -1;
+    const int nx = lc_clampi(bx + sx, g.gx - 1), ny = lc_clampi(by + sy, g.gy - 1), nz = lc_clampi(bz + sz, g.gz - 1);
+    const ulong eX = LC_IMAP(nx, by, bz), eY = LC_IMAP(bx, ny, bz), eZ = LC_IMAP(bx, by, nz);
+    const ulong eXY = LC_IMAP(nx, ny, bz), eXZ = LC_IMAP(nx, by, nz), eYZ = LC_IMAP(bx, ny, nz);
+    const ulong eXYZ = LC_IMAP(nx, ny, nz);
+    const ulong own = LC_IMAP(bx, by, bz) & 15UL; /* level + 1 */
+    if ((eX & 15UL) == own && (eY & 15UL) == own && (eZ & 15UL) == own && (eXY & 15UL) == own &&
+        (eXZ & 15UL) == own && (eYZ & 15UL) == own && (eXYZ & 15UL) == own) {
+        if (x & 1) b.hi.x = (float)b.n; else b.lo.x = -1.0f;
+        if (y & 1) b.hi.y = (float)b.n; else b.lo.y = -1.0f;
+        if (z & 1) b.hi.z = (float)b.n; else b.lo.z = -1.0f;
+        return b;
+    }
+    const float hX = lc_half(eX), hY = lc_half(eY), hZ = lc_half(eZ);
+    const float hXY = lc_half(eXY), hXZ = lc_half(eXZ), hYZ = lc_half(eYZ);
     const float3 hm = (float3)(lc_max4(b.ho, hY, hZ, hYZ), lc_max4(b.ho, hX, hZ, hXZ), lc_max4(b.ho, hX, hY, hXY));
     const float3 lo = hm * b.s - 0.5f, hi = (float)b.n - 0.5f - hm * b.s;
     if (x & 1) b.hi.x = hi.x; else b.lo.x = lo.x;
@@ -344,18 +370,21 @@ static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global cons
     const int in_x = !(l.x >= b.lo.x && l.x <= b.hi.x), in_y = !(l.y >= b.lo.y && l.y <= b.hi.y);
     const int in_z = !(l.z >= b.lo.z && l.z <= b.hi.z);
     if (!b.n || in_x + in_y + in_z > 1) return lc_sample_atlas_h(atlas, sig, imap, g, hd, q);
-    const float nm = (float)(b.n - 1);
-    const float cx = l.x > 0.0f ? (l.x < nm ? l.x : nm) : 0.0f, cy = l.y > 0.0f ? (l.y < nm ? l.y : nm) : 0.0f;
-    const float cz = l.z > 0.0f ? (l.z < nm ? l.z : nm) : 0.0f;
+    /* inside the window l lies in [0, n - 1], or in the apron of a one-level octant, [-1, n]; in a blend zone the
+     * own sample is eq. 3.5's, [0, n - 1] */
+    const int inside = !(in_x | in_y | in_z);
+    const float lo = inside ? -1.0f : 0.0f, hi = inside ? (float)b.n : (float)(b.n - 1);
+    const float cx = l.x > lo ? (l.x < hi ? l.x : hi) : lo, cy = l.y > lo ? (l.y < hi ? l.y : hi) : lo;
+    const float cz = l.z > lo ? (l.z < hi ? l.z : hi) : lo;
     const float2 a = lc_brick(atlas, sig, b.off, b.n, b.coarse, cx, cy, cz);
-    if (!(in_x | in_y | in_z)) return a;
+    if (inside) return a;
     return lc_face_blend(atlas, sig, imap, g, a, b.ho, b.bx, b.by, b.bz, in_x, in_y,
                          ((in_x ? l.x : (in_y ? l.y : l.z)) + 0.5f) / b.s, q);
 #else
     if (!b.n) return lc_sample_atlas_h(atlas, sig, imap, g, hd, q);
-    l.x = l.x > 0.0f ? (l.x < b.hi.x ? l.x : b.hi.x) : 0.0f;
-    l.y = l.y > 0.0f ? (l.y < b.hi.y ? l.y : b.hi.y) : 0.0f;
-    l.z = l.z > 0.0f ? (l.z < b.hi.z ? l.z : b.hi.z) : 0.0f;
+    l.x = l.x > b.lo.x ? (l.x < b.hi.x ? l.x : b.hi.x) : b.lo.x;
+    l.y = l.y > b.lo.y ? (l.y < b.hi.y ? l.y : b.hi.y) : b.lo.y;
+    l.z = l.z > b.lo.z ? (l.z < b.hi.z ? l.z : b.hi.z) : b.lo.z;
     return lc_brick(atlas, sig, b.off, b.n, b.coarse, l.x, l.y, l.z);
 #endif
 }

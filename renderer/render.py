@@ -525,7 +525,7 @@ def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, 
     if cfg.adaptive and lod is not None:
         reach *= 2.0 ** max(0, int(lod.levels.max(initial=0)))  # an adaptive segment's front end
     pp = multipass.plan(vol, fr, reach, None if lod is None else lod.levels, cfg.distribution, unsampled, limit,
-                        cfg.interpolation, what)
+                        what)
     if pp is not None and cfg.adaptive_naive:
         raise SceneError("sampling.adaptive_naive: naive adaptive steps run across blocks and cannot be split into "
                          "passes, which this volume needs on this device (LODCAST_DEVICE_BUDGET_MB)")

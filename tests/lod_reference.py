@@ -1,5 +1,6 @@
-"""Float64 NumPy evaluation of the multiresolution sampling formulas (thesis eq. 3.5 nearest block, eq. 3.6 in 3D
-interblock interpolation with the edge weights documented in renderer/lc_atlas.h), written from the formulas,
+"""Float64 NumPy evaluation of the multiresolution sampling formulas (nearest block through the bricks' aprons, thesis
+eq. 3.5 where a neighbour's level differs; eq. 3.6 in 3D interblock interpolation with the edge weights documented
+in renderer/lc_atlas.h), written from the formulas,
 plus a probe that runs the kernel's sampler at given points. Coordinates are level-0 voxel coordinates
 q = (x, y, z), voxel centres at integers; arrays are (z, y, x)."""
 from __future__ import annotations
@@ -59,6 +60,37 @@ def nb(levels, bricks, B, b, q) -> float:
     return _trilinear(bricks[(k, bz, by, bx)], tuple(v * n - 0.5 for v in pc))
 
 
+def nb_apron(levels, bricks, B, b, q) -> float:
+    """Nearest block as lodcast samples it: trilinear at block b's brick coordinate, where a stencil sample beyond
+    the brick is the sample of the block there when that block is at b's level, else b's own nearest sample (off
+    the grid along an axis: b's edge along that axis, the volume's clamp)."""
+    G = (levels.shape[2], levels.shape[1], levels.shape[0])
+    k = int(levels[b[2], b[1], b[0]])
+    n = B >> k
+    l = [min(max((q[a] + 0.5 - b[a] * B) / 2.0**k - 0.5, -1.0), float(n)) for a in range(3)]
+    i0 = [int(math.floor(v)) for v in l]
+    f = [v - i for v, i in zip(l, i0)]
+
+    def at(idx) -> float:
+        d = [-1 if i < 0 else (1 if i > n - 1 else 0) for i in idx]
+        for a in range(3):  # off the grid: the volume's clamp to edge along that axis
+            if not 0 <= b[a] + d[a] < G[a]:
+                d[a], idx[a] = 0, min(max(idx[a], 0), n - 1)
+        nbk = [b[a] + d[a] for a in range(3)]
+        if any(d) and levels[nbk[2], nbk[1], nbk[0]] == k:
+            j = [idx[a] - d[a] * n for a in range(3)]
+            return float(bricks[(k, nbk[2], nbk[1], nbk[0])][j[2], j[1], j[0]])
+        j = [min(max(i, 0), n - 1) for i in idx]
+        return float(bricks[(k, b[2], b[1], b[0])][j[2], j[1], j[0]])
+
+    r = 0.0
+    for s in range(8):
+        w = float(np.prod([f[a] if (s >> a) & 1 else 1 - f[a] for a in range(3)]))
+        if w:
+            r += w * at([i0[a] + ((s >> a) & 1) for a in range(3)])
+    return r
+
+
 def edge(x: float, hl: float, hu: float) -> float:
     return min(max((x + hl) / (hl + hu), 0.0), 1.0)
 
@@ -70,7 +102,7 @@ def sample(levels, bricks, B, q, interp: str = "interblock") -> float:
     if levels[own[2], own[1], own[0]] < 0:
         return float("nan")
     if interp == "nearest_block":
-        return nb(levels, bricks, B, own, q)
+        return nb_apron(levels, bricks, B, own, q)
     c = [math.floor(p[a] + 0.5) for a in range(3)]
     xs = [p[a] - c[a] for a in range(3)]  # interblock coordinate p* in block units
     blk = [[min(max(c[a] - 1 + s, 0), G[a] - 1) for s in (0, 1)] for a in range(3)]

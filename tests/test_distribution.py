@@ -646,7 +646,9 @@ def test_coarse_cells_reached_only_by_a_weak_tail_are_skipped(tmp_path, monkeypa
     range (250 HU and up) only 3.7 spreads out, an expected extinction of ~3e-6 per unit, far below 10^-4 of
     the TF's strongest, which the table zeroes, so the march skips those cells. Without the floor it takes every
     one of them; the image is the same to 1/255 of opacity or colour. (The floor alone: the level-0 cell ranges,
-    which skip these cells too, are left out; tests/test_lod_mask.py.)"""
+    which skip these cells too, are left out; tests/test_lod_mask.py.) Interblock: every cell of the ball's
+    interblock neighbourhoods reaches its values (measured 6,338 samples against 44,116 without the floor);
+    nearest block's cells beside the ball reach them through the aprons (3,952 against 5,953)."""
     monkeypatch.setattr(VolumeView, "has_cell_ranges", property(lambda self: False))
     rng = np.random.default_rng(4)
     z, y, x = np.indices((48, 48, 48))
@@ -654,7 +656,8 @@ def test_coarse_cells_reached_only_by_a_weak_tail_are_skipped(tmp_path, monkeypa
     vol[(z - 24) ** 2 + (y - 24) ** 2 + (x - 24) ** 2 < 8 ** 2] = 1200.0
     st = lodcast.ingest(vol, tmp_path / "tail.zarr", block_size=8, progress=False)
     scene = {"tf": "ct-bone", "width": 48, "height": 48, "camera": {"azimuth": 20, "elevation": 10},
-             "quality": {"reduction": 2}, "sampling": {"adaptive_object": False}, "format": "npy"}
+             "quality": {"reduction": 2}, "sampling": {"adaptive_object": False, "interpolation": "interblock"},
+             "format": "npy"}
     levels = np.ones(st.grid, np.int8)
     kept = render(st, scene, levels=levels)
     monkeypatch.setattr(classification, "EXT_ZERO_REL", 0.0)

@@ -64,10 +64,15 @@ def test_equal_levels_give_trilinear_interpolation_of_that_level():
     tri = np.array([ref.trilinear_level(pyr, int(k), B, q) for q, k in zip(pts[same >= 0], same[same >= 0])])
     np.testing.assert_allclose(f64, tri, atol=1e-12)  # the formula is trilinear (exactly, in float64)
     np.testing.assert_allclose(got, tri, atol=2e-6)  # and so is the kernel (float32)
+    # nearest block too, through the bricks' aprons (its stencil's blocks are among the cell's eight)
+    nb = ref.probe(levels, br, B, pts[same >= 0], "nearest_block").astype(np.float64)
+    np.testing.assert_allclose(nb, tri, atol=2e-6)
     # every block at level 0: trilinear interpolation of the full-resolution volume everywhere, rim included
     lv0 = np.zeros(G, np.int8)
-    got0 = ref.probe(lv0, ref.bricks_of(lv0, pyr, B), B, pts).astype(np.float64)
-    np.testing.assert_allclose(got0, [ref.trilinear_level(pyr, 0, B, q) for q in pts], atol=2e-6)
+    want0 = [ref.trilinear_level(pyr, 0, B, q) for q in pts]
+    for interp in ("interblock", "nearest_block"):
+        got0 = ref.probe(lv0, ref.bricks_of(lv0, pyr, B), B, pts, interp).astype(np.float64)
+        np.testing.assert_allclose(got0, want0, atol=2e-6)
 
 
 def _boundary_points(G, rng, n):
