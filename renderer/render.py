@@ -98,7 +98,7 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
     adaptive = lod and (s.adaptive_object is True or (s.adaptive_object is None and auto) or s.adaptive_naive)
     return KernelConfig(
         sampler="atlas" if lod else "full",
-        interpolation=(s.interpolation or "interblock") if lod else "trilinear",  # None: see _lod_plan
+        interpolation=(s.interpolation or "nearest_block") if lod else "trilinear",
         adaptive=adaptive,
         adaptive_naive=lod and s.adaptive_naive,
         distribution=lod and distribution and s.classification == "distribution" and scene.mode == "composite",
@@ -354,24 +354,12 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None, keep: np.n
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
 
 
-# The default interpolation (sampling.interpolation left out) at the budgeted qualities: nearest block from this
-# reduction on, interblock below it (and at "lossless"). With classification by distribution and the coarse cells'
-# mask, nearest block's error is close to interblock's once coarse blocks carry most of the samples, in about half
-# the time, and only it makes a reduction render faster than full resolution (chest CT, 512², three TFs:
-# benchmarks/bench_consistent_lod.py, mean ΔE nearest / interblock at 30:1 3.70 / 3.84, 6.79 / 7.62, 3.33 / 3.29,
-# at 1.25-1.56x of full resolution's speed against 0.48-0.70x). At low reductions most visible blocks are at
-# level 0, where nearest block's clamp half a voxel inside every block face is its own error (5:1: 1.02 against
-# 0.51 on ct-bone) and saves too little to beat full resolution either way. 8 lies between the measured 5:1 and 10:1.
-NEAREST_BLOCK_FROM = 8.0
-
-
 def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
               mode: str, keep: np.ndarray | None,
               view: tuple | None = None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
     """The selection (blocks outside the clip region `keep` not loaded; weighted by what the camera sees when
     `view` is given, see _select), the block info with unloaded blocks marked empty, the number of empty blocks,
-    and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0; the
-    default interpolation becomes nearest block from NEAREST_BLOCK_FROM on)."""
+    and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0)."""
     lv, sel = _select(vol, scene, levels, keep, view)
     if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
         cfg = replace(cfg, adaptive=False)  # the default: every block at level 0 leaves nothing to step over
@@ -381,17 +369,15 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     else:
         chosen = int(np.where(lv >= 0, (B >> np.maximum(lv.astype(np.int64), 0)) ** 3, 0).sum())
         reduction, pred = (vol.n_blocks * B**3 / chosen if chosen else None), None
-    if (scene.sampling.interpolation is None and isinstance(scene.quality, (QualityReduction, QualityBudget))
-            and reduction is not None and reduction >= NEAREST_BLOCK_FROM):
-        cfg = replace(cfg, interpolation="nearest_block")
     info = info.copy()
     missing = lv < 0
     info[missing] = -np.inf if mode in EXTREMUM_MODES else 0.0
-    # interblock interpolation reaches half a sample of a coarse block (2^(k-1) voxels) past its faces, further
-    # than the one-voxel border of the block ranges: where a coarse block is near, a block may show what its
-    # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
+    # interblock interpolation, and nearest block through the bricks' aprons, reach half a sample of a coarse block
+    # (2^(k-1) voxels) past its faces, further than the one-voxel border of the block ranges: where a coarse block
+    # is near, a block may show what its neighbours hold, so it takes its neighbourhood's info (empty-space
+    # skipping must not change the image)
     near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing
-    if near_coarse.any() and cfg.interpolation == "interblock":  # nearest block reads its own block only
+    if near_coarse.any():
         spread = lod_atlas.neighbourhood_max(info) if scene.tf2 is None else dual.dilate_bits(info, lod_atlas.neighbourhood_max)
         info = np.where(near_coarse, spread, info).astype(np.float32)
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())

@@ -168,7 +168,7 @@ def test_gradients_continuous_across_a_level_change_with_interblock(tmp_path):
     cam = {"eye": [15.5, -40, 7.5], "target": [15.5, 5, 7.5], "up": [0, 0, 1], "projection": "orthographic",
            "view_height": 10}
     base = {"camera": cam, "width": 32, "height": 16, "tf": RAMP_TF, "format": "npy", "shading": k,
-            "sampling": {"classification": "mean"}}
+            "sampling": {"classification": "mean", "interpolation": "interblock"}}
     l0 = lodcast.render(st, base, levels=np.zeros(st.grid, np.int8)).rgba
     ii = lodcast.render(st, base, levels=levels).rgba
     nb = lodcast.render(st, {**base, "sampling": {"interpolation": "nearest_block", "classification": "mean"}},

@@ -89,12 +89,13 @@ def test_limited_adaptive_samples_the_fine_block_over_its_whole_length(store, f)
 def test_samples_landing_in_the_fine_block_along_x(store):
     """The cells are half blocks (8 voxels), each stepped at its own block's level. Along +x every ray crosses
     block 1 (one step of 11.2 voxels, cut at 8, in each half), the fine block (ceil(8 / 0.7) = 12 base steps in
-    each half, the last cut at the half's far face) and block 3 (one step per half); NB: blocks 0 and 4 are empty
-    (skipped): exactly 2 + 24 + 2 = 28 samples per ray. With II blocks 0 and 4 are marched too, since the
-    interblock interpolation of the coarse blocks 1 and 3 reaches into them: 8 + 24 = 32."""
+    each half, the last cut at the half's far face) and block 3 (one step per half), and blocks 0 and 4, one step
+    per half, since the coarse blocks 1 and 3 reach into them (interblock interpolation blends them in; nearest
+    block's aprons hold their samples, both at level 4) and their ranges hold the fine block's border voxels:
+    8 + 24 = 32 samples per ray, with either interpolation."""
     cam = _cam((1, 0, 0))
     lim = render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
-    assert lim.report["samples"] == 28 * W * H
+    assert lim.report["samples"] == 32 * W * H
     ii = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
     assert ii.report["samples"] == 32 * W * H
     naive = render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
@@ -135,31 +136,28 @@ def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
             assert r.report["samples"] == n_cells * int(np.ceil(cell / (step * 2 ** min(level + 1, 4)) - 1e-6)) * W * H
 
 
-def test_default_interpolation_follows_the_reduction(store):
-    """sampling.interpolation left out: interblock below 8:1 and at "lossless", nearest block from 8:1 on at the
-    budgeted qualities (renderer/render.py: NEAREST_BLOCK_FROM); a named interpolation is always kept. The default
-    renders exactly what naming it renders."""
+def test_default_interpolation_is_nearest_block(store):
+    """sampling.interpolation left out: nearest block at every quality that samples the atlas; a named
+    interpolation is always kept. The default renders exactly what naming it renders."""
     cam = _cam((1, 0.35, 0.2))
     scene = {"tf": TF, "width": W, "height": H, "camera": cam, "format": "npy"}
-    coarse = np.array([4, 4, 1, 4, 4], np.int8).reshape(1, 1, 5)  # 5 x 4096 voxels in 4 + 512: 39.7:1
-    cases = [({"reduction": 2}, LEVELS, "interblock"),  # 5 x 4096 voxels in 4 + 4096: 4.995:1
-             ({"reduction": 2}, coarse, "nearest_block"), ({"budget_mb": 1}, coarse, "nearest_block"),
-             ("lossless", coarse, "interblock")]
-    for quality, levels, expected in cases:
+    coarse = np.array([4, 4, 1, 4, 4], np.int8).reshape(1, 1, 5)
+    for quality, levels in [({"reduction": 2}, LEVELS), ({"reduction": 2}, coarse), ({"budget_mb": 1}, coarse),
+                            ("lossless", coarse)]:
         r = render(store, {**scene, "quality": quality}, levels=levels)
-        assert r.report["interpolation"] == expected, (quality, r.report["reduction"])
-        named = render(store, {**scene, "quality": quality, "sampling": {"interpolation": expected}}, levels=levels)
+        assert r.report["interpolation"] == "nearest_block", quality
+        named = render(store, {**scene, "quality": quality, "sampling": {"interpolation": "nearest_block"}},
+                       levels=levels)
         np.testing.assert_array_equal(r.rgba, named.rgba)
-    kept = render(store, {**scene, "quality": {"reduction": 2}, "sampling": {"interpolation": "interblock"}},
-                  levels=coarse)
-    assert kept.report["interpolation"] == "interblock"
+        kept = render(store, {**scene, "quality": quality, "sampling": {"interpolation": "interblock"}}, levels=levels)
+        assert kept.report["interpolation"] == "interblock"
 
 
 def test_huge_steps_still_cross_every_cell(store):
     """A step longer than the volume: one sample per half-block cell, and the march still reaches the far side."""
     cam = _cam((1, 0, 0))
     r = render(store, _scene(cam, step=500.0, adaptive_object=True, early_termination=1.0), levels=LEVELS)
-    assert r.report["samples"] == 6 * W * H  # NB: the halves of blocks 1, 2, 3, one (cut) step each
+    assert r.report["samples"] == 10 * W * H  # the halves of the five blocks (see above), one (cut) step each
     np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 16, atol=2e-5)
 
 
