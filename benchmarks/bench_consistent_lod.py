@@ -102,14 +102,16 @@ def sweep(store, scene: dict, repeat: int) -> dict:
     return out
 
 
-def first_render(path: Path, scene: dict) -> float:
-    """Wall ms of the first lossless render of a store in a fresh process (empty brick cache; kernels from the
-    disk cache after a warm-up in another process)."""
+def first_render(path: Path, scene: dict, runs: int = 3) -> float:
+    """Wall ms of the first lossless render of a store in a fresh process (empty brick cache, lodcast's modules
+    imported by the call; kernels from the disk cache after a warm-up in another process): the median of `runs`
+    processes, one after another."""
     code = ("import json, sys, time, lodcast; t = time.perf_counter(); "
             "r = lodcast.render(sys.argv[1], json.loads(sys.argv[2])); print((time.perf_counter() - t) * 1e3)")
     args = [sys.executable, "-c", code, str(path), json.dumps({**scene, "quality": "lossless"})]
     subprocess.run(args, check=True, capture_output=True)  # builds the kernels into the disk cache
-    return float(subprocess.run(args, check=True, capture_output=True, text=True).stdout.split()[-1])
+    return float(np.median([float(subprocess.run(args, check=True, capture_output=True, text=True).stdout.split()[-1])
+                            for _ in range(runs)]))
 
 
 def spearman(a, b) -> float:
