@@ -25,7 +25,7 @@ import numpy as np
 
 import lodcast
 from bench_consistent_lod import DATA, RESULTS, store_of
-from lodcast.renderer.atlas import brick_cache
+from lodcast.renderer.bricks import brick_cache
 from lodcast.renderer.sampler import device_cache
 from lodcast.service.testing import s3_server
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import lodcast
 from bench_consistent_lod import DATA, RESULTS, store_of
-from lodcast.renderer.atlas import brick_cache
+from lodcast.renderer.bricks import brick_cache
 from lodcast.renderer.render import prefetch
 from lodcast.renderer.sampler import device_cache
 

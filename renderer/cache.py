@@ -1,4 +1,4 @@
-"""Byte-bounded LRU caches shared by every render in a process: host bricks (`atlas.brick_cache`) and device
+"""Byte-bounded LRU caches shared by every render in a process: host bricks (`bricks.brick_cache`) and device
 buffers (`sampler.device_cache`). Each is made on first use, sized from the environment then."""
 from __future__ import annotations
 

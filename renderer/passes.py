@@ -31,6 +31,7 @@ import pyopencl as cl
 from lodcast.environment import environment
 from lodcast.malloc import release_free_memory
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer import bricks
 from lodcast.renderer.camera import Frame
 from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer.sampler import device_cache, ess_cell, level0_cells, upload_level0
@@ -277,8 +278,8 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
                 shape = tuple(r.stop - r.start for r in reg.data)
                 nbytes = math.prod(shape) * vol.voxel_dtype.itemsize
                 # a CPU device's buffer is host memory: the brick cache gives way to it while the pass lasts
-                held.enter_context(lod_atlas.holding(nbytes))
-                lod_atlas.brick_cache().trim()
+                held.enter_context(bricks.holding(nbytes))
+                bricks.brick_cache().trim()
                 data = _level0_pass(vol, reg, shape, nbytes, own, steps, placeholder)
                 stats.read += int(own.sum())
                 stats.upload_ms += (time.perf_counter() - t) * 1e3

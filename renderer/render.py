@@ -33,6 +33,7 @@ import pyopencl as cl
 from lodcast.environment import environment
 from lodcast.renderer.adaptive_tf import resolve_tfs
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer import bricks
 from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
 from lodcast.renderer import cost
@@ -596,8 +597,8 @@ def prefetch(store: Any, scene: Any) -> int:
         return 0
     n = 0
     for what in ("mean", "std") if pr.config.distribution else ("mean",):
-        st = lod_atlas.BrickStats()
-        for _ in lod_atlas.iter_bricks(pr.volume, pr.lod.levels, what=what, stats=st):
+        st = bricks.BrickStats()
+        for _ in bricks.iter_bricks(pr.volume, pr.lod.levels, what=what, stats=st):
             pass  # into the brick cache only: holding them all here would cost the selection's size
         n += st.read
     return n

@@ -7,6 +7,7 @@ import pytest
 
 import lodcast
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer import bricks
 from lodcast.environment import EnvironmentInvalid, environment
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.render import render
@@ -28,11 +29,11 @@ def store(tmp_path_factory):
 def fresh():
     from lodcast.renderer import render as render_mod
 
-    lod_atlas.brick_cache().clear()
+    bricks.brick_cache().clear()
     device_cache().clear()
     render_mod._SELECTIONS.clear()
     yield
-    lod_atlas.brick_cache().clear()
+    bricks.brick_cache().clear()
     device_cache().clear()
 
 
@@ -50,14 +51,14 @@ def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(
     n1 = int((lv1 >= 0).sum())
     r = render(store, _scene(0), levels=lv1).report
     assert (r["bricks_read"], r["bricks_cached"], r["bricks_skipped"]) == (n1, 0, lv1.size - n1)
-    reads = lod_atlas.brick_cache().reads
+    reads = bricks.brick_cache().reads
     for az in (40, 170):  # camera only: nothing read, nothing packed again
         r = render(store, _scene(az), levels=lv1).report
         assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
     device_cache().clear()  # also from the host cache alone (e.g. after the device cache evicted it)
     r = render(store, _scene(80), levels=lv1).report
     assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
-    assert lod_atlas.brick_cache().reads == reads
+    assert bricks.brick_cache().reads == reads
     # a changed selection (what a TF change does): only the bricks it changes are read
     lv2 = lv1.copy()
     change = rng.random(lv1.shape) < 0.3
@@ -66,7 +67,7 @@ def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(
     assert new
     r = render(store, _scene(80), levels=lv2).report
     assert r["bricks_read"] == len(new) and r["bricks_cached"] == len(_pairs(lv2)) - len(new)
-    assert lod_atlas.brick_cache().reads == reads + len(new)
+    assert bricks.brick_cache().reads == reads + len(new)
 
 
 def test_tf_change_through_the_selection_reads_only_changed_bricks(store):
@@ -91,22 +92,22 @@ def test_reads_are_grouped_by_shard_and_run_in_parallel(store):
     lay = store.layout
     lv = np.zeros(store.grid, np.int8)
     lv[:, :, 5:] = 2
-    cache = lod_atlas.BrickCache(2**30)
-    ld = lod_atlas.load_bricks(vol, lv, cache)
+    cache = bricks.BrickCache(2**30)
+    ld = bricks.load_bricks(vol, lv, cache)
     shards = {(int(k), *(b * lay.block_edge(int(k)) // s for b, s in zip((z, y, x), lay.shard_shape(int(k)))))
               for (z, y, x), k in np.ndenumerate(lv)}
     assert ld.shards == len(shards) < ld.read == lv.size
     for (z, y, x), k in list(np.ndenumerate(lv))[::7]:
         np.testing.assert_array_equal(ld.bricks[(int(k), z, y, x)], store.read_brick(int(k), (z, y, x)))
-    again = lod_atlas.load_bricks(vol, lv, cache)
+    again = bricks.load_bricks(vol, lv, cache)
     assert (again.read, again.cached, again.shards) == (0, lv.size, 0)
 
 
 def test_lru_is_bounded_by_bytes():
-    c = lod_atlas.BrickCache(3 * (4 * 64 + lod_atlas.BRICK_ENTRY_BYTES))  # three 4x4x4 float32 bricks
+    c = bricks.BrickCache(3 * (4 * 64 + bricks.BRICK_ENTRY_BYTES))  # three 4x4x4 float32 bricks
     for i in range(5):
         c.put(("s", 0, i), np.full((4, 4, 4), i, np.float32))
-    assert len(c) == 3 and c.nbytes == 3 * (256 + lod_atlas.BRICK_ENTRY_BYTES) and c.get(("s", 0, 0)) is None
+    assert len(c) == 3 and c.nbytes == 3 * (256 + bricks.BRICK_ENTRY_BYTES) and c.get(("s", 0, 0)) is None
     c.get(("s", 0, 2))  # touched: survives the next insertion
     c.put(("s", 0, 9), np.zeros((4, 4, 4), np.float32))
     assert c.get(("s", 0, 2)) is not None and c.get(("s", 0, 3)) is None
@@ -115,7 +116,7 @@ def test_lru_is_bounded_by_bytes():
 
 
 def test_one_cache_per_process(store, monkeypatch):
-    assert lod_atlas.brick_cache() is lod_atlas.brick_cache() and device_cache() is device_cache()
+    assert bricks.brick_cache() is bricks.brick_cache() and device_cache() is device_cache()
     monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "3")
     assert environment().brick_cache_bytes == 3 * 2**20
     monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "lots")  # named, never a silent default
@@ -155,7 +156,7 @@ def test_prefetch_reads_the_next_frames_bricks_so_its_render_reads_none(store):
     scene = {**_scene(30), "quality": {"reduction": 4}}
     cold = render(store, scene)
     assert cold.report["bricks_read"] > 0
-    lod_atlas.brick_cache().clear()
+    bricks.brick_cache().clear()
     device_cache().clear()
     n = prefetch(store, scene)
     coarse = int((prepare(store, scene).lod.levels >= 1).sum())  # their distributions are read too
@@ -201,10 +202,10 @@ def test_on_a_cpu_device_the_brick_cache_gives_way_to_the_device_cache(store):
     assert device_memory_is_host()  # PoCL; a discrete GPU keeps the full bound (covered by the same function)
     vol = as_volume(store)
     lv = np.zeros(store.grid, np.int8)
-    plain = lod_atlas.BrickCache(2**30)
-    lod_atlas.load_bricks(vol, lv, plain)
+    plain = bricks.BrickCache(2**30)
+    bricks.load_bricks(vol, lv, plain)
     cap = plain.nbytes  # every brick of the selection would fit
-    shared = lod_atlas.BrickCache(lod_atlas.brick_cache_bound(cap))
+    shared = bricks.BrickCache(bricks.brick_cache_bound(cap))
     da = lod_atlas.device_atlas(vol, lv, cache=shared)
     held = device_cache().nbytes
     assert held >= da.nbytes > cap // 2
@@ -221,12 +222,13 @@ def test_a_full_resolution_pass_makes_the_brick_cache_give_way(store, monkeypatc
     cache below would keep every brick through the render."""
     vol = as_volume(store)
     lv = np.zeros(store.grid, np.int8)
-    shared = lod_atlas.BrickCache(2**30)
-    lod_atlas.load_bricks(vol, lv, shared)
+    shared = bricks.BrickCache(2**30)
+    bricks.load_bricks(vol, lv, shared)
     cap = shared.nbytes  # every level-0 brick fits
-    shared = lod_atlas.BrickCache(lod_atlas.brick_cache_bound(cap))
+    shared = bricks.BrickCache(bricks.brick_cache_bound(cap))
+    monkeypatch.setattr(bricks, "brick_cache", lambda: shared)
     monkeypatch.setattr(lod_atlas, "brick_cache", lambda: shared)
-    lod_atlas.load_bricks(vol, lv, shared)
+    bricks.load_bricks(vol, lv, shared)
     assert shared.nbytes == cap
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", str(cap / 4 / 1e6))
     r = render(store, {**_scene(30), "quality": "full"})

@@ -9,6 +9,7 @@ import pytest
 import lodcast
 import lod_reference as ref
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer import bricks
 from lodcast.renderer.render import render
 from lodcast.renderer.sampler import device_cache
 
@@ -113,7 +114,7 @@ def test_mip_all_level0_equals_full(store):
 
 def test_atlas_layout_and_max_alloc(store):
     lv = np.random.default_rng(2).integers(-1, store.n_levels, store.grid).astype(np.int8)
-    ld = lod_atlas.load_bricks(lodcast.renderer.volume.as_volume(store), lv, lod_atlas.BrickCache(2**30))
+    ld = bricks.load_bricks(lodcast.renderer.volume.as_volume(store), lv, bricks.BrickCache(2**30))
     atlas, index = lod_atlas.pack(lv, ld.bricks, B, max_bytes=2**30)
     sizes = [((B >> int(k)) + 2) ** 3 for k in lv.ravel() if k >= 0]  # each brick inside its apron
     assert atlas.size == sum(sizes) and index.dtype == np.uint64 and index.shape == lv.shape

@@ -15,7 +15,7 @@ pytest.importorskip("moto")
 
 import lodcast  # noqa: E402
 from lodcast.errors import StoreCorrupt, StoreNotFound  # noqa: E402
-from lodcast.renderer.atlas import brick_cache  # noqa: E402
+from lodcast.renderer.bricks import brick_cache  # noqa: E402
 from lodcast.renderer.sampler import device_cache  # noqa: E402
 from lodcast.service.testing import s3_server  # noqa: E402
 
