@@ -3,10 +3,10 @@
 A level selection (grid-shaped int8: the store level of every block, -1 = not loaded) becomes:
 
 - the **atlas**: one buffer (of `volume.device_dtype`) holding the selected bricks one after another, the bricks
-  of a level together, each the block's (B >> level)³ samples in C order (z, y, x) inside a one-sample apron of
-  its same-level neighbours' samples (`_fill_aprons`: nearest block reads one brick and is still trilinear across
-  faces between blocks of one level; PoCL measured trilinear sampling from a plain buffer ~2x faster than from a
-  3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how much it needs
+  of a level together, each the block's (B >> level)³ samples in C order (z, y, x), a level-0 brick inside a
+  one-sample apron of its level-0 neighbours' samples (`_fill_aprons`: nearest block reads one brick and is still
+  trilinear across faces between level-0 blocks; PoCL measured trilinear sampling from a plain buffer ~2x faster
+  than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how much it needs
   and what the device allows;
 - the **index map**: one uint64 per block (C order of the grid): 0 for a block that is not loaded, else
   ``(offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1)``, offset = the brick's
@@ -97,14 +97,15 @@ def pack_index(offset: np.ndarray, level: np.ndarray, slices: np.ndarray | None 
 
 def brick_elements(levels: np.ndarray, block_size: int) -> np.ndarray:
     """Atlas elements of every block's brick (grid-shaped int64, 0 for unloaded blocks): (B >> level) samples per
-    edge plus the one-sample apron on every face."""
+    edge, plus the one-sample apron on every face at level 0."""
     lv = np.asarray(levels).astype(np.int64)
-    return np.where(lv >= 0, ((block_size >> np.maximum(lv, 0)) + 2) ** 3, 0)
+    n = block_size >> np.maximum(lv, 0)
+    return np.where(lv >= 0, (n + 2 * (lv == 0)) ** 3, 0)
 
 
 def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
     """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks). The
-    bricks of one level lie together, in C order of the grid within it, lowest level first: the aprons of a level
+    bricks of one level lie together, in C order of the grid within it, lowest level first: the aprons of level 0
     are filled with whole-array operations (`_fill_aprons`)."""
     lv = np.asarray(levels).astype(np.int64).ravel()
     sizes = brick_elements(lv, block_size)
@@ -131,60 +132,64 @@ def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None,
 
 
 def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> None:
-    """Write each ((level, bz, by, bx), brick) of `items` into the inside of its block's apron-padded brick at its
-    offset in `out` (cast to out's type); the aprons are `_fill_aprons`' work."""
+    """Write each ((level, bz, by, bx), brick) of `items` at its block's offset in `out` (cast to out's type): a
+    level-0 brick inside its apron, which `_fill_aprons` fills."""
     for (k, z, y, x), a in items:
         o = int(offsets[(z * grid[1] + y) * grid[2] + x])
-        m = a.shape[0] + 2
-        out[o:o + m**3].reshape(m, m, m)[1:-1, 1:-1, 1:-1] = a
+        if k == 0:
+            m = a.shape[0] + 2
+            out[o:o + m**3].reshape(m, m, m)[1:-1, 1:-1, 1:-1] = a
+        else:
+            out[o:o + a.size] = a.ravel()
 
 
-def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int, first: int = 0) -> None:
-    """The aprons of the bricks of levels >= `first` in `out` (placed by `_place`). The apron sample beyond a face,
-    edge or corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves
-    the grid, d is 0 there and the sample repeats the brick's edge (the volume's clamp to edge). It is the sample of
-    block own + d when that block is loaded at the same level, else the brick's own nearest sample (clamp to edge).
-    Inside a region of one level, trilinear interpolation within a padded brick is then trilinear interpolation of
-    that level across the blocks' faces, clamped at the volume's faces as level 0 is (lc_atlas.h)."""
+def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int) -> None:
+    """The aprons of the level-0 bricks in `out` (placed by `_place`). The apron sample beyond a face, edge or
+    corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves the grid,
+    d is 0 there and the sample repeats the brick's edge (the volume's clamp to edge). It is the sample of block
+    own + d when that block is at level 0 too, else the brick's own nearest sample (clamp to edge). Inside a region
+    of level-0 blocks trilinear interpolation within a padded brick is then trilinear interpolation of level 0
+    across the blocks' faces, clamped at the volume's faces as full resolution is (lc_atlas.h). Coarse bricks have
+    no apron: theirs would take 1.95x (8³ of a 16³ block) to 27x (1³) their samples, and doubled the 30:1 atlas of
+    the 8 GiB volume (the renderer's peak RSS 1,731 -> 2,352 MB after its first image)."""
     lv = np.asarray(levels).astype(np.int64)
     G = np.array(lv.shape)
     flat_off = offsets.reshape(lv.shape)
-    for k in range(max(first, 0), int(lv.max(initial=-1)) + 1):
-        where = lv == k
-        cnt = int(where.sum())
-        if not cnt:
+    where = lv == 0
+    cnt = int(where.sum())
+    if not cnt:
+        return
+    n = block_size
+    m = n + 2
+    start = int(flat_off[where].min())
+    A = out[start:start + cnt * m**3].reshape(cnt, m, m, m)
+    assert int(flat_off[where].max()) == start + (cnt - 1) * m**3, "bricks of a level lie together"
+    # clamp to edge: x faces, then y (whole rows, x apron included), then z
+    A[:, 1:-1, 1:-1, 0], A[:, 1:-1, 1:-1, -1] = A[:, 1:-1, 1:-1, 1], A[:, 1:-1, 1:-1, -2]
+    A[:, 1:-1, 0, :], A[:, 1:-1, -1, :] = A[:, 1:-1, 1, :], A[:, 1:-1, -2, :]
+    A[:, 0], A[:, -1] = A[:, 1], A[:, -2]
+    rank = np.full(lv.shape, -1, np.int64)  # a brick's place in A; -1: not at level 0
+    rank[where] = np.arange(cnt)
+    pos = np.stack(np.nonzero(where), axis=1)  # (cnt, 3) z, y, x in C order: the ranks 0 ... cnt - 1
+    for d in np.ndindex(3, 3, 3):
+        d = np.array(d) - 1
+        if not d.any():
             continue
-        n = block_size >> k
-        m = n + 2
-        start = int(flat_off[where].min())
-        A = out[start:start + cnt * m**3].reshape(cnt, m, m, m)
-        assert int(flat_off[where].max()) == start + (cnt - 1) * m**3, "bricks of a level lie together"
-        # clamp to edge: x faces, then y (whole rows, x apron included), then z
-        A[:, 1:-1, 1:-1, 0], A[:, 1:-1, 1:-1, -1] = A[:, 1:-1, 1:-1, 1], A[:, 1:-1, 1:-1, -2]
-        A[:, 1:-1, 0, :], A[:, 1:-1, -1, :] = A[:, 1:-1, 1, :], A[:, 1:-1, -2, :]
-        A[:, 0], A[:, -1] = A[:, 1], A[:, -2]
-        rank = np.full(lv.shape, -1, np.int64)  # a brick's place in A; -1: not at level k
-        rank[where] = np.arange(cnt)
-        pos = np.stack(np.nonzero(where), axis=1)  # (cnt, 3) z, y, x in C order: the ranks 0 ... cnt - 1
-        for d in np.ndindex(3, 3, 3):
-            d = np.array(d) - 1
-            if not d.any():
-                continue
-            to = pos + d
-            folded = (to < 0) | (to >= G)  # (cnt, 3): off the grid along that axis
-            dd = np.where(folded, 0, d)  # the direction that stays on the grid
-            moved = dd.any(axis=1)
-            nb = np.full(cnt, -1, np.int64)
-            t = pos[moved] + dd[moved]
-            nb[moved] = rank[t[:, 0], t[:, 1], t[:, 2]]
-            for code in np.unique(folded[nb >= 0] @ np.array([4, 2, 1])):
-                fold = [(int(code) >> (2 - a)) & 1 for a in range(3)]
-                own = np.nonzero((nb >= 0) & ((folded @ np.array([4, 2, 1])) == code))[0]
-                dst = tuple(slice(1, n + 1) if e == 0 else (0 if e < 0 else n + 1) for e in d)
-                # along a folded axis the neighbour's edge sample on the own side (it shares the own coordinate)
-                src = tuple(slice(1, n + 1) if e == 0 else ((1 if e < 0 else n) if f else (n if e < 0 else 1))
-                            for e, f in zip(d, fold))
-                A[(own,) + dst] = A[(nb[own],) + src]
+        to = pos + d
+        folded = (to < 0) | (to >= G)  # (cnt, 3): off the grid along that axis
+        dd = np.where(folded, 0, d)  # the direction that stays on the grid
+        moved = dd.any(axis=1)
+        nb = np.full(cnt, -1, np.int64)
+        t = pos[moved] + dd[moved]
+        nb[moved] = rank[t[:, 0], t[:, 1], t[:, 2]]
+        for code in np.unique(folded[nb >= 0] @ np.array([4, 2, 1])):
+            fold = [(int(code) >> (2 - a)) & 1 for a in range(3)]
+            own = np.nonzero((nb >= 0) & ((folded @ np.array([4, 2, 1])) == code))[0]
+            dst = tuple(slice(1, n + 1) if e == 0 else (0 if e < 0 else n + 1) for e in d)
+            # along a folded axis the neighbour's edge sample on the own side (it shares the own coordinate)
+            src = tuple(slice(1, n + 1) if e == 0 else ((1 if e < 0 else n) if f else (n if e < 0 else 1))
+                        for e, f in zip(d, fold))
+            A[(own,) + dst] = A[(nb[own],) + src]
 
 
 def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
@@ -213,7 +218,6 @@ def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarra
     sizes, offsets = _offsets(levels, block_size)
     out = np.zeros(max(int(sizes.sum()), 1), np.uint16)
     _place(out, np.asarray(levels).shape, offsets, std_bricks.items())
-    _fill_aprons(out, levels, offsets, block_size, first=1)
     return out
 
 
@@ -334,7 +338,8 @@ def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offset
         if zero:
             host.fill(0)
         _place(host, levels.shape, offsets, items)
-        _fill_aprons(host, levels, offsets, block_size, first=1 if zero else 0)
+        if not zero:  # the deviations have no level-0 bricks, and so no aprons
+            _fill_aprons(host, levels, offsets, block_size)
     finally:
         host.base.release(queue)
     return buf

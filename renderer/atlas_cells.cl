@@ -4,33 +4,29 @@
  * Half-block cell h (grid 2G, edge C = B/2) covers voxel coordinates [h C - 1/2, (h + 1) C - 1/2) and lies in block
  * h >> 1 and in one interblock neighbourhood, the blocks c - 1 and c per axis, c = (h + 1) >> 1 (lc_atlas.h). Every
  * sample there is a convex combination of eq. 3.5 samples of those blocks (LC_INTERP_II: brick coordinates clamped
- * to [0, n - 1]; LC_INTERP_NB: the own block alone, clamped to [-1, n], its apron), each a trilinear combination of
- * its padded brick's samples around the clamped brick coordinate. So the values any sample of the cell takes lie in
- * [min, max] of the brick samples those coordinates reach, and its standard deviation (LC_DIST) is at most their
- * largest one (level 0 bricks: none, 0). (II in a one-level octant reads the apron, whose samples are those of the
- * neighbours that the loop over the neighbourhood reaches.)
+ * to [0, n - 1]; LC_INTERP_NB: the own block alone, clamped to [0, n - 1], or [-1, n] in a level-0 brick's apron),
+ * each a trilinear combination of its brick's samples around the clamped brick coordinate. So the values any sample
+ * of the cell takes lie in [min, max] of the brick samples those coordinates reach, and its standard deviation
+ * (LC_DIST) is at most their largest one (level 0 bricks: none, 0). (II in a level-0 octant reads the apron, whose
+ * samples are those of the neighbours that the loop over the neighbourhood reaches.)
  *
  * Work-item (x, y, z) is cell h = (x, y, z): out_min/out_max the extrema of the values (NaN ignored; no finite
  * value, or the own block not loaded: NaN, nothing to see), out_sd the largest deviation in the sig buffer's units. */
 #include "lc_common.h"
 #include "lc_atlas.h"
 
-#ifdef LC_INTERP_II
-#define LC_REACH_LO 0.0f /* eq. 3.5's clamp */
-#else
-#define LC_REACH_LO -1.0f /* the apron */
-#endif
-
-/* padded-brick sample index range [i0, i1] that brick coordinates of the voxel interval [a, b] reach (clamped to
- * [LC_REACH_LO, n - 1 - LC_REACH_LO], trilinear) */
-static inline int2 lc_reach(const float a, const float b, const float lo_face, const float s, const int n) {
-    const float lo = LC_REACH_LO, hi = (float)(n - 1) - LC_REACH_LO;
+/* brick sample index range [i0, i1] that brick coordinates of the voxel interval [a, b] reach, clamped to
+ * [-ext, n - 1 + ext] (ext 1: nearest block in a level-0 brick's apron), trilinear; indices in a brick stored
+ * `shift` samples into its allocation (1: a level-0 brick inside its apron) */
+static inline int2 lc_reach(const float a, const float b, const float lo_face, const float s, const int n,
+                            const int ext, const int shift) {
+    const float lo = -(float)ext, hi = (float)(n - 1 + ext);
     float la = (a + 0.5f - lo_face) * s - 0.5f, lb = (b + 0.5f - lo_face) * s - 0.5f;
     la = la > lo ? (la < hi ? la : hi) : lo;
     lb = lb > lo ? (lb < hi ? lb : hi) : lo;
-    const int i0 = (int)(la + 1.0f);
-    int i1 = (int)ceil(lb + 1.0f);
-    i1 = i1 < n + 1 ? i1 : n + 1;
+    const int i0 = (int)(la + (float)shift);
+    int i1 = (int)ceil(lb + (float)shift);
+    i1 = i1 < n - 1 + ext + shift ? i1 : n - 1 + ext + shift;
     return (int2)(i0, i1);
 }
 
@@ -62,12 +58,18 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const usho
                     const int lvl = (int)(ent & 15UL) - 1, n = (int)g.B >> lvl;
                     const float s = 1.0f / (float)(1 << lvl);
                     const ulong off = ent >> 16;
-                    const int2 rx = lc_reach(a.x, b.x, (float)bx * g.B, s, n);
-                    const int2 ry = lc_reach(a.y, b.y, (float)by * g.B, s, n);
-                    const int2 rz = lc_reach(a.z, b.z, (float)bz * g.B, s, n);
+                    const int pad = lvl == 0, m = n + 2 * pad; /* a level-0 brick sits inside its apron */
+#ifdef LC_INTERP_II
+                    const int ext = 0; /* eq. 3.5's samples */
+#else
+                    const int ext = pad;
+#endif
+                    const int2 rx = lc_reach(a.x, b.x, (float)bx * g.B, s, n, ext, pad);
+                    const int2 ry = lc_reach(a.y, b.y, (float)by * g.B, s, n, ext, pad);
+                    const int2 rz = lc_reach(a.z, b.z, (float)bz * g.B, s, n, ext, pad);
                     for (int k = rz.x; k <= rz.y; ++k)
                         for (int j = ry.x; j <= ry.y; ++j) {
-                            const ulong row = off + ((ulong)k * (ulong)(n + 2) + (ulong)j) * (ulong)(n + 2);
+                            const ulong row = off + ((ulong)k * (ulong)m + (ulong)j) * (ulong)m;
                             for (int i = rx.x; i <= rx.y; ++i) {
                                 const float v = atlas[row + (ulong)i];
                                 if (v == v) { mn = v < mn ? v : mn; mx = v > mx ? v : mx; }

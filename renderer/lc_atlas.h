@@ -1,10 +1,10 @@
 /* lc_atlas.h: sampling the multiresolution field (thesis §3.5) from the brick atlas through the block index map.
  *
  * Atlas: one buffer of lc_voxel (the volume's device type, lc_common.h), the selected bricks packed one after
- * another; the brick of a level-k block holds its n = B >> k samples per edge inside a one-sample apron, m = n + 2
- * per edge in C order (z, y, x), sample (i, j, l) of the block at ((l + 1) * m + j + 1) * m + i + 1. The apron
- * sample beyond a face, edge or corner is the neighbouring block's sample there when that block is loaded at the
- * same level, else the brick's own nearest sample (renderer/atlas.py: _fill_aprons). Index map: one ulong per block
+ * another; the brick of a level-k block holds its n = B >> k samples per edge in C order (z, y, x); a level-0 brick
+ * sits inside a one-sample apron, m = n + 2 per edge, sample (i, j, l) of the block at ((l + 1) m + j + 1) m + i + 1.
+ * The apron sample beyond a face, edge or corner is the neighbouring block's sample there when that block is at
+ * level 0 too, else the brick's own nearest sample (renderer/atlas.py: _fill_aprons). Index map: one ulong per block
  * of the grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else
  * (offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1), offset the brick's first
  * element in the atlas (48 bits), s_a the coarsest level among the 3x3 blocks of the block's own slice across axis
@@ -14,16 +14,15 @@
  * block b covers p in [b, b + 1) and its level-k samples sit at intrablock coordinates (i + 1/2) / n. Brick
  * coordinates l = (q + 1/2 - bB)/2^k - 1/2: a position of the block has l in [-1/2, n - 1/2].
  *
- * LC_INTERP_NB, nearest block: trilinear within the padded brick at l (clamped to [-1, n] against rounding). Where
- *   the neighbours are at the block's level this is trilinear interpolation of that level across the faces (no
- *   seam); where a neighbour is at another level, or not loaded, the apron repeats the brick's edge and the sample
- *   is eq. 3.5's, the intrablock coordinate clamped to [delta, 1 - delta], delta = 1/(2n) (half a sample of that
- *   block). Eq. 3.5 alone would clamp at every face, and draw a seam wherever a ray grazes one.
+ * LC_INTERP_NB, nearest block: eq. 3.5, the intrablock coordinate clamped to [delta, 1 - delta], delta = 1/(2n)
+ *   (half a sample of that block), i.e. l clamped to [0, n - 1], then trilinear within the brick; a level-0 brick
+ *   clamps to [-1, n] in its apron instead: trilinear interpolation of level 0 across faces between level-0 blocks
+ *   (every block at level 0 gives the full-resolution image), eq. 3.5 where the neighbour is coarser or not loaded.
  * LC_INTERP_II, interblock interpolation (eq. 3.6 in 3D): the cell between the eight block centres around p has
  *   corner c = floor(p + 1/2) and interblock coordinate p* = p - c in [-1/2, 1/2) (= frac(p + 1/2) - 1/2); its
  *   blocks are c - 1 + s, s in {0,1}^3 (clamped to the grid: at the volume's faces the cell folds onto the face
  *   blocks, which gives DESIGN's clamp to the edge). phi = sum_b w_b phi_b / sum_b w_b, phi_b the eq. 3.5 sample
- *   of block b at p (lc_nb: l clamped to [0, n - 1], the apron unused), and w_b = prod over the three axes of (e if
+ *   of block b at p (lc_nb: l clamped to [0, n - 1], an apron unused), and w_b = prod over the three axes of (e if
  *   s_axis = 1 else 1 - e), e the edge weight of the
  *   edge of the cell's box that leaves b along that axis (the 2D weights of eq. 3.6, one more factor). Edge
  *   weight between a lower block L and an upper block U (half-sample widths delta_L, delta_U):
@@ -31,7 +30,7 @@
  *   i.e. 0 up to L's last sample, 1 from U's first sample on, linear between the two. Properties (tested in
  *   tests/test_lod_interblock.py): equal levels -> delta_L = delta_U = 1/(2n) and e is the trilinear fraction
  *   between L's last and U's first sample, so phi is trilinear interpolation of that level (which the walk takes
- *   from the apron where all eight blocks share a level: lc_blk_cell); C0: every e is
+ *   from the apron where all eight blocks are at level 0: lc_blk_cell); C0: every e is
  *   continuous, e = 0 at x = -1/2 and 1 at x = +1/2 for any delta <= 1/2, so on a cell's face only the face's
  *   blocks carry weight, with weights from edges that the neighbouring cell shares; sum_b w_b > 0 (the block
  *   that holds p has w > 0: 1 - e > 0 for x < 0 and e > 0 for x >= 0 on every edge); 1-sample blocks: n = 1,
@@ -61,16 +60,17 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
     return b0 + (b1 - b0) * fz;
 }
 
-/* Trilinear within a padded brick (n samples per edge inside the apron, first element off) at brick coordinates l,
- * already in [-1, n]: (value, standard deviation). The deviations (LC_DIST: distribution classification) live in
- * `sig` (uint16, in units of the volume's std_unit) at the same offsets as the values; only coarse bricks (level
- * >= 1) read them, level 0 has none. */
+/* Trilinear within a brick (n samples per edge, first element off; a level-0 brick, !coarse, inside its apron) at
+ * brick coordinates l, already in [0, n - 1], or [-1, n] at level 0: (value, standard deviation). The deviations
+ * (LC_DIST: distribution classification) live in `sig` (uint16, in units of the volume's std_unit) at the same
+ * offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
 static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
-    const float px = lx + 1.0f, py = ly + 1.0f, pz = lz + 1.0f; /* in the padded brick, >= 0 */
+    const float pad = coarse ? 0.0f : 1.0f;
+    const float px = lx + pad, py = ly + pad, pz = lz + pad; /* in the (padded) brick, >= 0 */
     const int x0 = (int)px, y0 = (int)py, z0 = (int)pz;
     const float fx = px - (float)x0, fy = py - (float)y0, fz = pz - (float)z0;
-    const ulong m = (ulong)n + 2UL;
+    const ulong m = (ulong)n + (coarse ? 0UL : 2UL);
     const ulong dx = fx > 0.0f ? 1UL : 0UL;
     const ulong dy = fy > 0.0f ? m : 0UL;
     const ulong dz = fz > 0.0f ? m * m : 0UL;
@@ -86,15 +86,17 @@ static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ush
     return out;
 }
 
-/* A sample of a loaded block (entry != 0) at level-0 voxel coordinates q, brick coordinates clamped to [lo, hi]:
- * [0, n - 1] is eq. 3.5 (interblock's phi_b), [-1, n] nearest block through the apron. */
+/* A sample of a loaded block (entry != 0) at level-0 voxel coordinates q, brick coordinates clamped to [-a, n - 1
+ * + a]: a = 0 is eq. 3.5 (interblock's phi_b), a = 1 nearest block through a level-0 brick's apron (`apron`: use
+ * it where there is one). */
 static LC_HOT float2 lc_nb_in(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry,
                               const int bx, const int by, const int bz, const LcAtlasGeom g, const float3 q,
-                              const float lo, const float hi_past) {
+                              const int apron) {
     const int lvl = (int)(entry & 15UL) - 1;
     const int n = (int)g.B >> lvl;
     const float s = lc_exp2_neg(lvl);
-    const float hi = (float)(n - 1) + hi_past;
+    const float a = apron && lvl == 0 ? 1.0f : 0.0f;
+    const float lo = -a, hi = (float)(n - 1) + a;
     float lx = (q.x + 0.5f - (float)bx * g.B) * s - 0.5f;
     float ly = (q.y + 0.5f - (float)by * g.B) * s - 0.5f;
     float lz = (q.z + 0.5f - (float)bz * g.B) * s - 0.5f;
@@ -107,7 +109,7 @@ static LC_HOT float2 lc_nb_in(__global const lc_voxel* atlas, __global const ush
 /* eq. 3.5 */
 static inline float2 lc_nb(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry, const int bx,
                            const int by, const int bz, const LcAtlasGeom g, const float3 q) {
-    return lc_nb_in(atlas, sig, entry, bx, by, bz, g, q, 0.0f, 0.0f);
+    return lc_nb_in(atlas, sig, entry, bx, by, bz, g, q, 0);
 }
 
 
@@ -233,7 +235,7 @@ static inline float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global 
     const ulong own = LC_IMAP(bx, by, bz);
     if (!own) return (float2)(NAN, 0.0f);
 #ifndef LC_INTERP_II
-    return lc_nb_in(atlas, sig, own, bx, by, bz, g, q, -1.0f, 1.0f);
+    return lc_nb_in(atlas, sig, own, bx, by, bz, g, q, 1);
 #else
     {
         /* interior fast path (the thesis' II two-pass idea: NB inside the sample boundaries). A block b other than
@@ -267,10 +269,10 @@ static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global co
 }
 
 /* A block the ray marches through (raycast.cl sets it up once per block/cell of its DDA): brick coordinates are
- * l = q s + c there; NB clamps l to [-1, n] (the apron); II takes the brick directly where l lies in [lo, hi] (the
- * interior fast path above: every edge weight saturated, or a one-level octant's apron) and the interblock sum
+ * l = q s + c there; NB clamps l to [0, n - 1] ([-1, n] at level 0: the apron); II takes the brick directly where l lies in [lo, hi] (the
+ * interior fast path above: every edge weight saturated, or a level-0 octant's apron) and the interblock sum
  * elsewhere. n = 0: no block (the general sampler). Samples come out as lc_sample_atlas gives them (NB: up to
- * which of two blocks a sample within rounding of their common face is assigned to; II in a one-level octant: up
+ * which of two blocks a sample within rounding of their common face is assigned to; II in a level-0 octant: up
  * to float rounding, trilinear interpolation computed once from the apron, once as eq. 3.6's weighted sum). */
 typedef struct LcBlk {
     ulong off;
@@ -305,8 +307,8 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.lo = hm * b.s - 0.5f;
     b.hi = (float)b.n - 0.5f - hm * b.s;
 #else
-    b.lo = (float3)(-1.0f); /* the apron */
-    b.hi = (float3)((float)b.n);
+    b.lo = (float3)(lvl ? 0.0f : -1.0f); /* level 0: the apron */
+    b.hi = (float3)((float)(lvl ? b.n - 1 : b.n));
 #endif
     return b;
 }
@@ -321,9 +323,9 @@ static inline float lc_max4(const float a, const float b, const float c, const f
 
 /* lc_blk for the samples of cell (x, y, z) of a walk with cpb cells per block edge. With II and half-block cells
  * (cpb 2) the cell lies in one interblock neighbourhood (its block's octant towards the cell's side on every
- * axis). Where all eight blocks of that neighbourhood are loaded at one level, phi is trilinear interpolation of
- * that level, which the padded brick holds for the whole octant (its apron is the neighbours' samples): the window
- * becomes the apron on the near side. Else on the near side of each axis a the fast window needs only the
+ * axis). Where all eight blocks of that neighbourhood are at level 0, phi is trilinear interpolation of level 0,
+ * which the padded brick holds for the whole octant (its apron is the neighbours' samples): the window becomes the
+ * apron on the near side. Else on the near side of each axis a the fast window needs only the
  * half-sample widths of the four blocks of that neighbourhood that share the block's a-coordinate (the argument
  * above, restricted to the cell's own neighbourhood), not the largest of the 3x3 slice: the window widens wherever a
  * coarser block of the slice lies on the far side. The far side keeps lc_blk's bound (a sample rounded into the
@@ -342,7 +344,7 @@ static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g,
     const ulong eXY = LC_IMAP(nx, ny, bz), eXZ = LC_IMAP(nx, by, nz), eYZ = LC_IMAP(bx, ny, nz);
     const ulong eXYZ = LC_IMAP(nx, ny, nz);
     const ulong own = LC_IMAP(bx, by, bz) & 15UL; /* level + 1 */
-    if ((eX & 15UL) == own && (eY & 15UL) == own && (eZ & 15UL) == own && (eXY & 15UL) == own &&
+    if (own == 1UL && (eX & 15UL) == own && (eY & 15UL) == own && (eZ & 15UL) == own && (eXY & 15UL) == own &&
         (eXZ & 15UL) == own && (eYZ & 15UL) == own && (eXYZ & 15UL) == own) {
         if (x & 1) b.hi.x = (float)b.n; else b.lo.x = -1.0f;
         if (y & 1) b.hi.y = (float)b.n; else b.lo.y = -1.0f;
@@ -370,7 +372,7 @@ static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global cons
     const int in_x = !(l.x >= b.lo.x && l.x <= b.hi.x), in_y = !(l.y >= b.lo.y && l.y <= b.hi.y);
     const int in_z = !(l.z >= b.lo.z && l.z <= b.hi.z);
     if (!b.n || in_x + in_y + in_z > 1) return lc_sample_atlas_h(atlas, sig, imap, g, hd, q);
-    /* inside the window l lies in [0, n - 1], or in the apron of a one-level octant, [-1, n]; in a blend zone the
+    /* inside the window l lies in [0, n - 1], or in the apron of a level-0 octant, [-1, n]; in a blend zone the
      * own sample is eq. 3.5's, [0, n - 1] */
     const int inside = !(in_x | in_y | in_z);
     const float lo = inside ? -1.0f : 0.0f, hi = inside ? (float)b.n : (float)(b.n - 1);

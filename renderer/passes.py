@@ -7,8 +7,8 @@ regions of whole blocks, halving the longest extent until every region's data fi
 data: at full resolution the region's voxels plus a rim of `ghost_voxels` (the trilinear stencil, the gradient's
 central differences and a pre-integrated segment's front end reach that far past a sample), on the atlas the
 bricks of the region's blocks and of `ring_blocks` blocks around them (interblock interpolation reads the
-neighbouring blocks, nearest block their samples in the aprons, and their neighbours where a gradient or a
-segment end reaches into them). Each pass takes
+neighbouring blocks, nearest block a level-0 brick's apron, and their neighbours where a gradient or a segment end
+reaches into them). Each pass takes
 the samples of the blocks it owns and carries every ray's state to the next (lc_passes.h), in a front-to-back
 visibility order of the regions, the same for every ray of the view (`visibility_order`): the image is the
 single-pass image exactly. Regions whose blocks all are empty space for this scene are not uploaded at all.
@@ -62,13 +62,13 @@ def ghost_voxels(step_voxels: float) -> int:
     return int(math.ceil(step_voxels)) + 2
 
 
-def ring_blocks(step_voxels: float, block_size: int) -> int:
+def ring_blocks(step_voxels: float, block_size: int, interpolation: str) -> int:
     """Blocks around a region whose bricks a pass on the atlas loads: those within the ghost reach of its samples,
-    and half a block further: with interblock interpolation a position's neighbourhood spans the block centres
-    around it; with nearest block a brick's apron holds its same-level neighbours' samples (lc_atlas.h), up to
-    half a block (a coarse level's sample spacing) beyond the face of the last brick a sample reads, and a pass
-    fills the aprons from the bricks it loads."""
-    return int(math.ceil((ghost_voxels(step_voxels) + block_size / 2) / block_size))
+    and further: interblock interpolation by half a block (a position's neighbourhood spans the block centres
+    around it); nearest block by one voxel (a level-0 brick's apron, which a pass fills from the bricks it loads,
+    holds its neighbours' samples half a voxel past its faces)."""
+    extra = block_size / 2 if interpolation == "interblock" else 1
+    return int(math.ceil((ghost_voxels(step_voxels) + extra) / block_size))
 
 
 @dataclass(frozen=True)
@@ -144,7 +144,7 @@ def _box_sum(per_block: np.ndarray):
 
 
 def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std: bool, unsampled: np.ndarray,
-         limit: int, what: str = "LODCAST_DEVICE_BUDGET_MB") -> PassPlan | None:
+         limit: int, interpolation: str = "interblock", what: str = "LODCAST_DEVICE_BUDGET_MB") -> PassPlan | None:
     """The passes of a render, or None when its data fits `limit` in one. `levels`: the atlas selection (None: level
     0, full resolution); `unsampled`: the blocks the kernel never samples in this scene (empty-space skipping, or
     adaptive cells all skipped): regions of only those are left out."""
@@ -163,7 +163,7 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
     else:
         lv = np.asarray(levels).astype(np.int64)
         per = lod_atlas.brick_elements(lv, B) * (size + (2 if with_std else 0))
-        total, r = _box_sum(per), ring_blocks(step_voxels, B)
+        total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
 
         def data_box(lo, hi) -> tuple[slice, ...]:
             return tuple(slice(max(0, lo[a] - r), min(G[a], hi[a] + r)) for a in range(3))

@@ -373,12 +373,11 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     info = info.copy()
     missing = lv < 0
     info[missing] = -np.inf if mode in EXTREMUM_MODES else 0.0
-    # interblock interpolation, and nearest block through the bricks' aprons, reach half a sample of a coarse block
-    # (2^(k-1) voxels) past its faces, further than the one-voxel border of the block ranges: where a coarse block
-    # is near, a block may show what its neighbours hold, so it takes its neighbourhood's info (empty-space
-    # skipping must not change the image)
+    # interblock interpolation reaches half a sample of a coarse block (2^(k-1) voxels) past its faces, further
+    # than the one-voxel border of the block ranges: where a coarse block is near, a block may show what its
+    # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
     near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing
-    if near_coarse.any():
+    if near_coarse.any() and cfg.interpolation == "interblock":  # nearest block: half a level-0 voxel, at most
         spread = lod_atlas.neighbourhood_max(info) if scene.tf2 is None else dual.dilate_bits(info, lod_atlas.neighbourhood_max)
         info = np.where(near_coarse, spread, info).astype(np.float32)
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
@@ -512,7 +511,7 @@ def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, 
     if cfg.adaptive and lod is not None:
         reach *= 2.0 ** max(0, int(lod.levels.max(initial=0)))  # an adaptive segment's front end
     pp = multipass.plan(vol, fr, reach, None if lod is None else lod.levels, cfg.distribution, unsampled, limit,
-                        what)
+                        cfg.interpolation, what)
     if pp is not None and cfg.adaptive_naive:
         raise SceneError("sampling.adaptive_naive: naive adaptive steps run across blocks and cannot be split into "
                          "passes, which this volume needs on this device (LODCAST_DEVICE_BUDGET_MB)")

@@ -1,5 +1,5 @@
-"""Float64 NumPy evaluation of the multiresolution sampling formulas (nearest block through the bricks' aprons, thesis
-eq. 3.5 where a neighbour's level differs; eq. 3.6 in 3D interblock interpolation with the edge weights documented
+"""Float64 NumPy evaluation of the multiresolution sampling formulas (nearest block: thesis eq. 3.5, and through
+the level-0 bricks' aprons across faces between level-0 blocks; eq. 3.6 in 3D interblock interpolation with the edge weights documented
 in renderer/lc_atlas.h), written from the formulas,
 plus a probe that runs the kernel's sampler at given points. Coordinates are level-0 voxel coordinates
 q = (x, y, z), voxel centres at integers; arrays are (z, y, x)."""
@@ -61,11 +61,14 @@ def nb(levels, bricks, B, b, q) -> float:
 
 
 def nb_apron(levels, bricks, B, b, q) -> float:
-    """Nearest block as lodcast samples it: trilinear at block b's brick coordinate, where a stencil sample beyond
-    the brick is the sample of the block there when that block is at b's level, else b's own nearest sample (off
-    the grid along an axis: b's edge along that axis, the volume's clamp)."""
+    """Nearest block as lodcast samples it: eq. 3.5 in a coarse block; in a level-0 block trilinear at its brick
+    coordinate, where a stencil sample beyond the brick is the sample of the block there when that block is at
+    level 0 too, else b's own nearest sample (off the grid along an axis: b's edge along that axis, the volume's
+    clamp)."""
     G = (levels.shape[2], levels.shape[1], levels.shape[0])
     k = int(levels[b[2], b[1], b[0]])
+    if k != 0:
+        return nb(levels, bricks, B, b, q)
     n = B >> k
     l = [min(max((q[a] + 0.5 - b[a] * B) / 2.0**k - 0.5, -1.0), float(n)) for a in range(3)]
     i0 = [int(math.floor(v)) for v in l]
