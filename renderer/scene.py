@@ -169,12 +169,12 @@ Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget]
 class Sampling(_Model):
     """`step` is in voxels of the finest level: multiples of the smallest spacing. `interpolation` chooses how
     the brick atlas is sampled across blocks of different levels (thesis §3.5): "nearest_block" (the default, when
-    left out) samples a position's own block, whose brick carries a one-sample apron of its neighbours' samples:
-    trilinear interpolation across faces between blocks of one level, clamped half a sample inside the faces where
-    the level changes (thin seams where a ray grazes such a face); "interblock" blends the blocks around every
-    block face, continuous everywhere, at about twice the time (measured on the chest CT at 512²: the same mean ΔE
-    at lossless and within 0.1 at 5:1 to 100:1, either way; nearest block renders 5:1 and up about as fast as full
-    resolution or faster, interblock at half its speed). At quality 'full' the field is trilinear interpolation of
+    left out) samples a position's own block, clamped half a sample inside it (eq. 3.5), except across faces
+    between level-0 blocks, whose bricks carry a one-sample apron of their neighbours' samples: trilinear there
+    (thin seams where a ray grazes a face of a coarse block); "interblock" blends the blocks around every block
+    face, continuous everywhere, at about twice the time (measured on the chest CT at 512²: the same mean ΔE at
+    lossless, within 0.1-0.4 from 5:1 on, either way; nearest block renders 10:1 and up faster than full
+    resolution, interblock at half its speed). At quality 'full' the field is trilinear interpolation of
     level 0 whatever it says. `priority_map` belongs to the dual-TF mode (tf2).
     `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image. (With coarse
     levels from a store of format 3 the walk over cells runs anyway: it also leaves out the coarse cells whose
