@@ -36,7 +36,7 @@ from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import voxel_options
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes",
-           "AtlasCells", "atlas_cells", "half_cells", "brick_elements", "neighbourhood_max"]
+           "AtlasCells", "atlas_cells", "half_cells", "brick_elements", "coarse_elements", "neighbourhood_max"]
 
 MISSING = 0
 
@@ -105,11 +105,12 @@ def brick_elements(levels: np.ndarray, block_size: int) -> np.ndarray:
 
 def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
     """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks). The
-    bricks of one level lie together, in C order of the grid within it, lowest level first: the aprons of level 0
-    are filled with whole-array operations (`_fill_aprons`)."""
+    bricks of one level lie together, in C order of the grid within it, the coarsest level first and level 0 last:
+    the aprons of level 0 are filled with whole-array operations (`_fill_aprons`), and the deviations beside the
+    atlas need a buffer as long as the coarse bricks only (`coarse_elements`)."""
     lv = np.asarray(levels).astype(np.int64).ravel()
     sizes = brick_elements(lv, block_size)
-    order = np.lexsort((np.arange(lv.size), lv))  # stable: C order within a level
+    order = np.lexsort((np.arange(lv.size), -lv))  # stable: C order within a level
     offsets = np.zeros(sizes.size, np.int64)
     offsets[order[1:]] = np.cumsum(sizes[order])[:-1]
     return sizes, offsets
@@ -212,11 +213,19 @@ def _index(levels: np.ndarray, offsets: np.ndarray, slices: np.ndarray | None) -
     return pack_index(offsets, np.asarray(levels).astype(np.int64).ravel(), sl.reshape(-1, 3)).reshape(levels.shape)
 
 
+def coarse_elements(levels: np.ndarray, block_size: int) -> int:
+    """Atlas elements of the coarse bricks (level >= 1), which lie before the level-0 ones (`_offsets`): the length
+    of the deviations' buffer beside the atlas (level 0 has none, and the kernel reads them for coarse bricks
+    only)."""
+    lv = np.asarray(levels).astype(np.int64)
+    return int(brick_elements(np.where(lv >= 1, lv, -1), block_size).sum())
+
+
 def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
-    """The standard deviations beside the atlas (uint16 in units of vol.std_unit, same offsets as `pack`): coarse
-    bricks from `std_bricks` ((level, bz, by, bx) -> brick), zeros for level 0 (the kernel never reads those)."""
-    sizes, offsets = _offsets(levels, block_size)
-    out = np.zeros(max(int(sizes.sum()), 1), np.uint16)
+    """The standard deviations beside the atlas (uint16 in units of vol.std_unit, same offsets as `pack`, the
+    coarse bricks' only) from `std_bricks` ((level, bz, by, bx) -> brick)."""
+    _, offsets = _offsets(levels, block_size)
+    out = np.zeros(max(coarse_elements(levels, block_size), 1), np.uint16)
     _place(out, np.asarray(levels).shape, offsets, std_bricks.items())
     return out
 
@@ -307,7 +316,8 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     index = _index(levels, offsets, slices)
     ctx, queue = get_context()
     st = BrickStats()
-    nbytes = max(total, 1) * (dtype.itemsize + (2 if with_std else 0))
+    n_std = max(coarse_elements(levels, int(vol.block_size)), 1)
+    nbytes = max(total, 1) * dtype.itemsize + (2 * n_std if with_std else 0)
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
     with holding(nbytes):
@@ -315,7 +325,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
                           iter_bricks(vol, levels, cache, stats=st))
         d_std = None
         if with_std:
-            d_std = _filled(ctx, queue, max(total, 1), np.uint16, levels, offsets, int(vol.block_size),
+            d_std = _filled(ctx, queue, n_std, np.uint16, levels, offsets, int(vol.block_size),
                             iter_bricks(vol, levels, cache, what="std"), zero=True)
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
@@ -331,7 +341,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
 def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
             items: Any, zero: bool = False) -> cl.Buffer:
     """A device buffer of n elements with every brick of `items` placed at its offset and its apron filled (the
-    rest zero if `zero`: the deviations, which have no level-0 bricks), written through a host mapping."""
+    rest zero if `zero`: the deviations, whose buffer holds the coarse bricks only), written through a host mapping."""
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
     host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
     try:

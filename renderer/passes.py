@@ -162,7 +162,7 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
         single = size * vol.n_voxels
     else:
         lv = np.asarray(levels).astype(np.int64)
-        per = lod_atlas.brick_elements(lv, B) * (size + (2 if with_std else 0))
+        per = lod_atlas.brick_elements(lv, B) * (size + (2 * (lv >= 1) if with_std else 0))  # deviations: coarse only
         total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
 
         def data_box(lo, hi) -> tuple[slice, ...]:
