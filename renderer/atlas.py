@@ -6,8 +6,8 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
   of a level together, each the block's (B >> level)³ samples in C order (z, y, x), a level-0 brick inside a
   one-sample apron of its level-0 neighbours' samples (`_fill_aprons`: nearest block reads one brick and is still
   trilinear across faces between level-0 blocks; PoCL measured trilinear sampling from a plain buffer ~2x faster
-  than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how much it needs
-  and what the device allows;
+  than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how
+  much it needs and what the device allows;
 - the **index map**: one uint64 per block (C order of the grid): 0 for a block that is not loaded, else
   ``(offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1)``, offset = the brick's
   first element in the atlas (element offset, up to 2^48), s_a = the coarsest level among the 3x3 blocks of the
@@ -183,9 +183,10 @@ def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block
         nb = np.full(cnt, -1, np.int64)
         t = pos[moved] + dd[moved]
         nb[moved] = rank[t[:, 0], t[:, 1], t[:, 2]]
-        for code in np.unique(folded[nb >= 0] @ np.array([4, 2, 1])):
+        fold_code = folded @ np.array([4, 2, 1])  # which axes fold, per brick: they take different source slices
+        for code in np.unique(fold_code[nb >= 0]):
             fold = [(int(code) >> (2 - a)) & 1 for a in range(3)]
-            own = np.nonzero((nb >= 0) & ((folded @ np.array([4, 2, 1])) == code))[0]
+            own = np.nonzero((nb >= 0) & (fold_code == code))[0]
             dst = tuple(slice(1, n + 1) if e == 0 else (0 if e < 0 else n + 1) for e in d)
             # along a folded axis the neighbour's edge sample on the own side (it shares the own coordinate)
             src = tuple(slice(1, n + 1) if e == 0 else ((1 if e < 0 else n) if f else (n if e < 0 else 1))
@@ -322,11 +323,11 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
     with holding(nbytes):
         d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, int(vol.block_size),
-                          iter_bricks(vol, levels, cache, stats=st))
+                          iter_bricks(vol, levels, cache, stats=st), aprons=True)
         d_std = None
         if with_std:
             d_std = _filled(ctx, queue, n_std, np.uint16, levels, offsets, int(vol.block_size),
-                            iter_bricks(vol, levels, cache, what="std"), zero=True)
+                            iter_bricks(vol, levels, cache, what="std"), aprons=False)
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
     queue.finish()
@@ -339,16 +340,15 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
 
 
 def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
-            items: Any, zero: bool = False) -> cl.Buffer:
-    """A device buffer of n elements with every brick of `items` placed at its offset and its apron filled (the
-    rest zero if `zero`: the deviations, whose buffer holds the coarse bricks only), written through a host mapping."""
+            items: Any, aprons: bool) -> cl.Buffer:
+    """A device buffer of n elements with every brick of `items` placed at its offset, written through a host
+    mapping; `aprons`: the level-0 bricks' aprons filled too (the values; the deviations' buffer holds the coarse
+    bricks only, every element of it one of theirs)."""
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
     host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
     try:
-        if zero:
-            host.fill(0)
         _place(host, levels.shape, offsets, items)
-        if not zero:  # the deviations have no level-0 bricks, and so no aprons
+        if aprons:
             _fill_aprons(host, levels, offsets, block_size)
     finally:
         host.base.release(queue)

@@ -269,9 +269,9 @@ static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global co
 }
 
 /* A block the ray marches through (raycast.cl sets it up once per block/cell of its DDA): brick coordinates are
- * l = q s + c there; NB clamps l to [0, n - 1] ([-1, n] at level 0: the apron); II takes the brick directly where l lies in [lo, hi] (the
- * interior fast path above: every edge weight saturated, or a level-0 octant's apron) and the interblock sum
- * elsewhere. n = 0: no block (the general sampler). Samples come out as lc_sample_atlas gives them (NB: up to
+ * l = q s + c there; NB clamps l to [0, n - 1] ([-1, n] at level 0: the apron); II takes the brick directly where
+ * l lies in [lo, hi] (the interior fast path above: every edge weight saturated, or a level-0 octant's apron) and
+ * the interblock sum elsewhere. n = 0: no block (the general sampler). Samples come out as lc_sample_atlas gives them (NB: up to
  * which of two blocks a sample within rounding of their common face is assigned to; II in a level-0 octant: up
  * to float rounding, trilinear interpolation computed once from the apron, once as eq. 3.6's weighted sum). */
 typedef struct LcBlk {
@@ -343,9 +343,8 @@ static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g,
     const ulong eX = LC_IMAP(nx, by, bz), eY = LC_IMAP(bx, ny, bz), eZ = LC_IMAP(bx, by, nz);
     const ulong eXY = LC_IMAP(nx, ny, bz), eXZ = LC_IMAP(nx, by, nz), eYZ = LC_IMAP(bx, ny, nz);
     const ulong eXYZ = LC_IMAP(nx, ny, nz);
-    const ulong own = LC_IMAP(bx, by, bz) & 15UL; /* level + 1 */
-    if (own == 1UL && (eX & 15UL) == own && (eY & 15UL) == own && (eZ & 15UL) == own && (eXY & 15UL) == own &&
-        (eXZ & 15UL) == own && (eYZ & 15UL) == own && (eXYZ & 15UL) == own) {
+    if (!b.coarse && (eX & 15UL) == 1UL && (eY & 15UL) == 1UL && (eZ & 15UL) == 1UL && (eXY & 15UL) == 1UL &&
+        (eXZ & 15UL) == 1UL && (eYZ & 15UL) == 1UL && (eXYZ & 15UL) == 1UL) { /* all eight at level 0 */
         if (x & 1) b.hi.x = (float)b.n; else b.lo.x = -1.0f;
         if (y & 1) b.hi.y = (float)b.n; else b.lo.y = -1.0f;
         if (z & 1) b.hi.z = (float)b.n; else b.lo.z = -1.0f;
