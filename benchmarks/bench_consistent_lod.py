@@ -73,13 +73,13 @@ def sweep(store, scene: dict, repeat: int) -> dict:
                "delta_e_vs_full": delta_e_stats(r.rgba, full.rgba)["mean"],
                "predicted": r.report["predicted_delta_e"], "kernel_ms": r.report["kernel_ms"],
                "speed_vs_full": out["full_ms"] / r.report["kernel_ms"], "samples_vs_full": r.report["samples"] / out["full_samples"]}
-        if q != "lossless":  # adaptive sampling's share: the same selection at fixed steps, and interblock;
-            # the selection without the view's weight (visibility.py)
-            fixed = best(store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
+        # adaptive sampling's share: the same selection at fixed steps
+        fixed = best(store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
+        row.update(fixed_ms=fixed.report["kernel_ms"], fixed_delta_e=delta_e_stats(fixed.rgba, ref.rgba)["mean"])
+        if q != "lossless":  # interblock; the selection without the view's weight (visibility.py)
             ii = best(store, {**scene, "quality": q, "sampling": {"interpolation": "interblock"}}, repeat)
             blind = lodcast.render(store, {**scene, "quality": q, "sampling": {"lod_visibility": False}})
-            row.update(fixed_ms=fixed.report["kernel_ms"], fixed_delta_e=delta_e_stats(fixed.rgba, ref.rgba)["mean"],
-                       ii_ms=ii.report["kernel_ms"], ii_delta_e=delta_e_stats(ii.rgba, ref.rgba)["mean"],
+            row.update(ii_ms=ii.report["kernel_ms"], ii_delta_e=delta_e_stats(ii.rgba, ref.rgba)["mean"],
                        blind_delta_e=delta_e_stats(blind.rgba, ref.rgba)["mean"], blind_predicted=blind.report["predicted_delta_e"])
         out["rows"].append(row)
     vis = select_lod(store, [scene["tf"]], "lossless").levels >= 0
@@ -167,8 +167,9 @@ def report(res: dict) -> str:
                   " fixed-step ms · ΔE | interblock ms · ΔE | no view weight: ΔE · predicted |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in c["rows"]:
-            extra = (f"{r['fixed_ms']:.0f} · {r['fixed_delta_e']:.2f} | {r['ii_ms']:.0f} · {r['ii_delta_e']:.2f} | "
-                     f"{r['blind_delta_e']:.2f} · {r['blind_predicted']:.2f}" if "fixed_ms" in r else "– | – | –")
+            extra = f"{r['fixed_ms']:.0f} · {r['fixed_delta_e']:.2f} | " + (
+                f"{r['ii_ms']:.0f} · {r['ii_delta_e']:.2f} | {r['blind_delta_e']:.2f} · {r['blind_predicted']:.2f}"
+                if "ii_ms" in r else "– | –")
             lines.append(f"| {r['quality']} | {r['reduction']:.1f} | {r['delta_e']:.2f} | {r['p95']:.1f} | "
                          f"{r['delta_e_vs_full']:.2f} | {r['predicted']:.2f} | {r['kernel_ms']:.0f} | {r['speed_vs_full']:.2f} | "
                          f"{r['samples_vs_full']:.2f} | {extra} |")

@@ -35,7 +35,7 @@ from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import voxel_options
 
-__all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "device_atlas", "max_alloc_bytes",
+__all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0", "device_atlas", "max_alloc_bytes",
            "AtlasCells", "atlas_cells", "half_cells", "brick_elements", "coarse_elements", "neighbourhood_max"]
 
 MISSING = 0
@@ -232,14 +232,16 @@ def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarra
 
 
 def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = None) -> np.ndarray:
-    """Adaptive sampling's step level per cell (C order, int8; -1: skip the cell): the kernel steps step * 2^s in
-    a cell of step level s, and restarts its steps at every cell boundary (limited: a coarse step never runs into
-    a finer block). The cells are the half-block cells (grid 2G, cell h in block h >> 1) for both interpolations:
-    nearest block's step level is constant over a block, but the walk also leaves out the coarse half-cells that
-    level 0 leaves empty (render._cell_info), which on whole blocks it could do only where all eight are (32
-    images, benchmarks/bench_lod_sweep.py, nearest block: samples 0.67 -> 0.48 of full resolution's, summed mean
-    ΔE 151.8 -> 145.7). A cell takes its own block's level k; cells of skipped blocks (`skip`, and every level -1
-    block) are -1.
+    """Adaptive sampling's step level per cell (C order, int8): the kernel steps step * 2^s in a cell of step level
+    s, and restarts its steps at the faces of coarse cells (limited: a coarse step never runs into a finer block),
+    while runs of level-0 cells keep full resolution's lattice (raycast.cl). A coarse cell with a level-0 cell
+    across a face holds s | NEAR_LEVEL0. A skipped cell holds -(code + 1) (`skipped`): the march passes it as it
+    would pass it sampled, without its samples, so that what it skips changes no other sample. The cells are the half-block cells (grid 2G, cell h in block h >> 1) for both
+    interpolations: nearest block's step level is constant over a block, but the walk also leaves out the coarse
+    half-cells that level 0 leaves empty (render._cell_info), which on whole blocks it could do only where all
+    eight are (32 images, benchmarks/bench_lod_sweep.py, nearest block: samples 0.67 -> 0.48 of full resolution's,
+    summed mean ΔE 151.8 -> 145.7). A cell takes its own block's level k; cells of skipped blocks (`skip`) and of
+    unloaded ones (level -1, stepped as level 0) are skipped.
 
     s = k at level 0, s = k + 1 at coarse levels (capped at log2 B, the longest step the kernel has a table for;
     a step never runs past its cell anyway): the base step over-samples level 0 (default 1/2 voxel: a sharp TF
@@ -258,11 +260,29 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
     ΔE (145.8 against 145.5 over 32 images)."""
     lv = np.asarray(levels).astype(np.int64)
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
-    out = lv.copy()
-    out[off] = -1
+    out = np.maximum(lv, 0)
     np.add(out, 1, out=out, where=out >= 1)
     np.minimum(out, int(block_size).bit_length() - 1, out=out)
-    return np.ascontiguousarray(half_cells(out).astype(np.int8))
+    s = half_cells(out)
+    # NEAR_LEVEL0: a coarse cell with a level-0 cell across a face, where the kernel looks at the cell the ray
+    # enters next (its last step ends on full resolution's lattice there); elsewhere it need not read it
+    fine = np.pad(s == 0, 1)
+    near = np.zeros(s.shape, bool)
+    for ax in range(3):
+        for d in (0, 2):
+            near |= fine[tuple(slice(d, d + n) if a == ax else slice(1, 1 + n) for a, n in enumerate(s.shape))]
+    s = np.where((s > 0) & near, s | NEAR_LEVEL0, s)
+    return skipped(s, half_cells(off))
+
+
+#: step_levels' flag of a coarse cell next to a level-0 one (the step level is the code's low three bits)
+NEAR_LEVEL0 = 8
+
+
+def skipped(steps: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """Step levels (`step_levels`) with the cells `where` marks skipped: -(s + 1) (cells skipped already stay)."""
+    st = np.asarray(steps).astype(np.int64)
+    return np.ascontiguousarray(np.where(np.asarray(where, bool) & (st >= 0), -st - 1, st).astype(np.int8))
 
 
 def half_cells(a: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ class KernelConfig:
     interpolation: str = "trilinear"  # atlas only: "nearest_block" | "interblock"
     adaptive: bool = False  # atlas only: adaptive object-space sampling, limited at block boundaries
     adaptive_naive: bool = False  # with adaptive: the naive variant (benchmarks only)
+    lattice: bool = False  # with adaptive: level 0 after a coarse cell on full resolution's lattice too ("lossless")
     distribution: bool = False  # atlas, composite: classify coarse samples by their distribution (LC_DIST)
     mode: str = "composite"  # "composite" | "mip" | "minip" | "average" | "iso"
     orthographic: bool = False
@@ -61,6 +62,8 @@ class KernelConfig:
             raise ValueError("pre-integration needs composite mode")
         if self.tf2 and self.mode != "composite":
             raise ValueError("a second transfer function (tf2) needs composite mode")
+        if self.lattice and not self.adaptive:
+            raise ValueError("the lattice option belongs to adaptive object-space sampling")
         if self.passes and self.adaptive_naive:
             raise ValueError("naive adaptive sampling cannot be split into passes (its steps run across blocks)")
         if self.voxel not in VOXEL_TYPES:
@@ -76,6 +79,8 @@ class KernelConfig:
                 opts.append("-DLC_ADAPTIVE")
             if self.adaptive_naive:
                 opts.append("-DLC_ADAPTIVE_NAIVE")
+            if self.lattice and self.adaptive:
+                opts.append("-DLC_LATTICE")
             if self.distribution:
                 opts.append("-DLC_DIST")
         opts += {"mip": ["-DLC_MODE_MIP"], "minip": ["-DLC_MODE_MIP", "-DLC_MINIP"], "average": ["-DLC_MODE_AVG"],

@@ -28,6 +28,8 @@ typedef LC_VOXEL lc_voxel;
 
 /* v clamped to [0, hi] */
 static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
+/* ceil(x) for x > -1 (conversion truncates towards zero), without PoCL's out-of-line ceil() */
+static inline int lc_ceil_i(const float x) { const int i = (int)x; return x > (float)i ? i + 1 : i; }
 
 /* 1 - e^-x for an optical depth x >= 0, to float32's precision (relative error below 4e-7, tested against
  * float64), without a library call: PoCL calls exp and native_exp out of line, and the call makes every live value

@@ -205,9 +205,8 @@ def pass_levels(levels: np.ndarray, region: Region) -> np.ndarray:
 
 
 def pass_steps(steps: np.ndarray, own: np.ndarray) -> np.ndarray:
-    """Adaptive sampling's step levels (half-block cells) with every cell outside the pass's blocks skipped (-1)."""
-    own = lod_atlas.half_cells(own)
-    return np.ascontiguousarray(np.where(own > 0, steps, -1).astype(np.int8))
+    """Adaptive sampling's step levels (half-block cells) with every cell outside the pass's blocks skipped."""
+    return lod_atlas.skipped(steps, lod_atlas.half_cells(own) == 0)
 
 
 @dataclass

@@ -4,12 +4,16 @@
  *   LC_SAMPLER_FULL   sample the full-resolution volume from a plain buffer of lc_voxel (LC_VOXEL: lc_common.h)
  *   LC_SAMPLER_ATLAS  sample the multiresolution field from the brick atlas through the block index map
  *                     (lc_atlas.h), with LC_INTERP_NB (nearest block, eq. 3.5) or LC_INTERP_II (interblock, eq. 3.6)
- *   LC_ADAPTIVE       (atlas) adaptive object-space sampling (thesis §3.6.1): march cells (NB: the blocks; II:
- *                     half blocks); in a cell whose step level is s (step_level, renderer/atlas.py: from the
- *                     cell's block's level, one more at coarse levels; -1 = skip) the step is step * 2^s, and the
- *                     steps restart at every cell boundary (limited: a long step never runs into a finer block);
+ *   LC_ADAPTIVE       (atlas) adaptive object-space sampling (thesis §3.6.1): march half-block cells; in a
+ *                     cell whose step level is s (step_level, renderer/atlas.py: from the cell's block's level,
+ *                     one more at coarse levels, | 8 next to a level-0 cell; a skipped cell holds -(that + 1)) the
+ *                     step is step * 2^s; the steps restart at every face of a coarse cell (limited: a long step
+ *                     never runs into a finer block) and run on between level-0 cells (level 0 is sampled on full
+ *                     resolution's lattice);
  *                     each segment's opacity is corrected for its length (whole steps from a per-level alpha
  *                     table, the cut one from the extinction): constant regions stay exact
+ *   LC_LATTICE        with LC_ADAPTIVE: level 0 on full resolution's lattice after coarse cells too (the coarse
+ *                     cell's last step ends where the lattice's first step into the level-0 cell begins)
  *   LC_ADAPTIVE_NAIVE with LC_ADAPTIVE: for comparison/benchmarks only: the step is chosen by the cell where it
  *                     starts and is not cut at cell boundaries (it may run deep into a finer block)
  *   LC_DIST           (atlas, composite) classification by distribution: coarse samples carry the standard
@@ -251,7 +255,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         const int hx = cpb * P->grid.x, hy = cpb * P->grid.y, hz = cpb * P->grid.z;
         LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
-        float t = t0;
+        float t = t0;  /* where the next step starts */
+        float tc = t0; /* where the ray enters the cell */
         /* iterations: at most one per sample plus one per cell crossed (a safety bound, never reached) */
         uint budget = (uint)P->max_samples * 2u + 4u * (uint)(hx + hy + hz) + 64u;
 #ifdef LC_PRECISE
@@ -263,17 +268,19 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         const int lut_row2 = P->tf2_lut_n + 1;
 #endif
 #endif
-        while (t < t1 && !done && budget) {
+        while (t < t1 && tc < t1 && !done && budget) {
             --budget;
 #ifdef LC_PASSES
             if (t > t_pass_end) break; /* past the region: nothing more of this pass's */
 #endif
             float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves the cell */
             tb = tb < t1 ? tb : t1;
-            const int lvl = step_level[((ulong)lc_clampi(bz, hz - 1) * (ulong)hy + (ulong)lc_clampi(by, hy - 1)) *
-                                           (ulong)hx + (ulong)lc_clampi(bx, hx - 1)];
+            const int code = step_level[((ulong)lc_clampi(bz, hz - 1) * (ulong)hy + (ulong)lc_clampi(by, hy - 1)) *
+                                            (ulong)hx + (ulong)lc_clampi(bx, hx - 1)];
+            /* a skipped cell holds -(v + 1); v: the step level, | 8 for a coarse cell next to a level-0 one */
+            const int skip = code < 0, v_ = skip ? -code - 1 : code, lvl = v_ & 7;
 #ifdef LC_ADAPTIVE_NAIVE
-            if (lvl >= 0) { /* one step of the starting cell's length, wherever it ends */
+            if (!skip) { /* one step of the starting cell's length, wherever it ends */
                 const float h = dt * (float)(1 << lvl);
                 const float len = t1 - t < h ? t1 - t : h;
                 const float3 qs = q0 + (t + u * len) * dq;
@@ -291,39 +298,106 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                 else { bz += sz; tnz += tdz; }
                 tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz);
             }
+            tc = t;
 #else
-            if (lvl >= 0 && tb > t) { /* limited: segments of step * 2^lvl from t, the last one cut at tb */
-                const float h = dt * (float)(1 << lvl);
-                blk = lc_blk_cell(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1), cpb);
-                const float span = tb - t;
-                int m = (int)ceil(span / h); /* segments; all whole but the last */
-                m = m < 1 ? 1 : m;
-                const float3 qa = q0 + (t + u * h) * dq, dqh = h * dq;
-#ifdef LC_PRECISE
-                const float r_whole = (float)(1 << lvl);
-#else
-                const float r_whole = -1.0f - (float)lvl;
-#endif
-                int s = 0;
-                for (; s < m - 1 && !done; ++s) { /* whole steps: alpha from the level's table */
-                    const float3 qs = qa + (float)s * dqh;
-                    const float2 vs = LC_SAMPLE_B(qs);
-                    LC_SAMPLE_BODY(vs.x, vs.y, r_whole, qs)
+            /* Level 0 is sampled on full resolution's lattice: from a level-0 cell into another the steps run
+             * on (those whose sample lies in the cell are all whole; the last may end past tb, inside the next
+             * cell, which goes on from its end), so a run of level-0 cells takes the samples of full resolution's
+             * walk. In a coarse cell the steps start at the cell's entry and the last one is cut at tb (limited:
+             * a coarse step never runs into a finer block; running on there as well saved 8-20% of the samples
+             * from 30:1 on but added up to 1.05 mean ΔE, chest CT, ct-bone, 256²). A skipped cell leaves t
+             * where sampling it would for the cells after it: a level-0 one on the lattice (the next level-0 cell
+             * finds its first step there, a coarse one starts at its entry anyway), a coarse one at its exit; so
+             * skipping it changes no other sample. */
+            /* a coarse cell's last step ends at its exit, or with LC_LATTICE ("lossless") before a level-0 cell
+             * where the lattice's first step whose sample lies in that cell begins (within a base step of the
+             * face), so that level 0 takes full resolution's samples there too */
+            float t_exit = tb;
+#ifdef LC_LATTICE
+            if ((v_ & 8) && tb < t1) {
+                const int ax = tnx <= tny && tnx <= tnz ? 0 : (tny <= tnz ? 1 : 2);
+                const int c_next = step_level[((ulong)lc_clampi(bz + (ax == 2 ? sz : 0), hz - 1) * (ulong)hy +
+                                               (ulong)lc_clampi(by + (ax == 1 ? sy : 0), hy - 1)) * (ulong)hx +
+                                              (ulong)lc_clampi(bx + (ax == 0 ? sx : 0), hx - 1)];
+                if (c_next == 0 || c_next == -1) {
+                    t_exit = t0 + (float)lc_ceil_i((tb - t0) * inv_dt - u) * dt;
+                    t_exit = t_exit < t1 ? t_exit : t1;
                 }
-                taken += (uint)s;
-                if (!done) { /* the last segment, cut at the cell boundary */
-                    const float a = t + (float)(m - 1) * h;
-                    float len = tb - a;
-                    len = len < h ? len : h;
-                    if (len > 0.0f) {
-                        const float3 qs = q0 + (a + u * len) * dq;
+            }
+#endif
+            if (skip) {
+                if (lvl > 0) t = t > t_exit ? t : t_exit;
+            } else {
+                if (lvl == 0) { /* the lattice's first step whose sample lies in the cell (after skipped cells) */
+                    const int kk = lc_ceil_i((tc - t) * inv_dt - u);
+                    t = kk > 0 ? t + (float)kk * dt : t;
+                } else { /* a coarse cell's steps start at its entry */
+                    t = t > tc ? t : tc;
+                }
+                if (tb > t) {
+                    const float h = dt * (float)(1 << lvl);
+                    blk = lc_blk_cell(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1),
+                                      cpb);
+                    int whole = 0, run_on = 0;
+                    float tcut = t_exit > t ? t_exit : tb;
+                    if (lvl == 0 && tb < t1) {
+                        whole = lc_ceil_i((tb - t) * inv_dt - u); /* the steps whose sample lies before tb */
+                        const float end = t + (float)whole * dt;
+                        if (end > t1) {
+                            tcut = t1; /* cut where the ray leaves the box, as full resolution's last step */
+                        } else {
+                            /* the next cell, and the cell of the last step's end if that lies past the next one
+                             * (a ray through a cell's corner), at level 0 */
+                            const int ax = tnx <= tny && tnx <= tnz ? 0 : (tny <= tnz ? 1 : 2);
+                            const float nnx = ax == 0 ? tnx + tdx : tnx, nny = ax == 1 ? tny + tdy : tny;
+                            const float nnz = ax == 2 ? tnz + tdz : tnz;
+                            const float tb_next = nnx < nny ? (nnx < nnz ? nnx : nnz) : (nny < nnz ? nny : nnz);
+                            const float3 pe = end > tb_next ? (q0 + end * dq + 0.5f) * (1.0f / Hc)
+                                                            : (float3)((float)(bx + (ax == 0 ? sx : 0)) + 0.5f,
+                                                                       (float)(by + (ax == 1 ? sy : 0)) + 0.5f,
+                                                                       (float)(bz + (ax == 2 ? sz : 0)) + 0.5f);
+                            const int c_end = step_level[((ulong)lc_clampi((int)pe.z, hz - 1) * (ulong)hy +
+                                                          (ulong)lc_clampi((int)pe.y, hy - 1)) * (ulong)hx +
+                                                         (ulong)lc_clampi((int)pe.x, hx - 1)];
+                            run_on = c_end == 0 || c_end == -1;
+                        }
+                    }
+                    if (!run_on) { /* all whole but the last one, cut at tcut */
+                        whole = lc_ceil_i((tcut - t) * inv_dt * lc_exp2_neg(lvl)) - 1;
+                        whole = whole < 0 ? 0 : whole;
+                    }
+                    const float3 qa = q0 + (t + u * h) * dq, dqh = h * dq;
+#ifdef LC_PRECISE
+                    const float r_whole = (float)(1 << lvl);
+#else
+                    const float r_whole = -1.0f - (float)lvl;
+#endif
+                    int s = 0;
+                    for (; s < whole && !done; ++s) { /* alpha from the level's table */
+                        const float3 qs = qa + (float)s * dqh;
                         const float2 vs = LC_SAMPLE_B(qs);
-                        ++taken;
-                        LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len), qs)
+                        LC_SAMPLE_BODY(vs.x, vs.y, r_whole, qs)
+                    }
+                    taken += (uint)s;
+                    if (run_on) {
+                        t += (float)whole * h;
+                    } else {
+                        if (!done) {
+                            const float a = t + (float)whole * h;
+                            float len = tcut - a;
+                            len = len < h ? len : h;
+                            if (len > 0.0f) {
+                                const float3 qs = q0 + (a + u * len) * dq;
+                                const float2 vs = LC_SAMPLE_B(qs);
+                                ++taken;
+                                LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len), qs)
+                            }
+                        }
+                        t = tcut;
                     }
                 }
             }
-            t = tb;
+            tc = tb;
             if (tnx <= tny && tnx <= tnz) { bx += sx; tnx += tdx; }
             else if (tny <= tnz) { by += sy; tny += tdy; }
             else { bz += sz; tnz += tdz; }

@@ -184,10 +184,10 @@ class Sampling(_Model):
     by the TF at its mean value; at level 0 both are the same.
     `adaptive_object`: adaptive object-space sampling at LOD qualities (thesis §3.6.1: the step grows with the
     block's level, limited at block boundaries: `step` in level-0 blocks, step·2^(k+1) — about one sample per
-    coarse voxel — in level-k blocks, up to step·B); left out (null), it is on at the budgeted qualities
-    (`{"reduction": r}`, `{"budget_mb": m}`) — a coarse level holds no detail a finer step could find, and without
-    it a reduction saves memory but no time — and off at 'lossless' (which promises the full-resolution image)
-    and at 'full', where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
+    coarse voxel — in level-k blocks, up to step·B; the steps in a run of level-0 cells lie on full
+    resolution's lattice); left out (null), it is on at every level-of-detail quality — a coarse level holds no
+    detail a finer step could find, and without it a reduction saves memory but no time — and off at 'full' and
+    wherever every block is at level 0, where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
     steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks).
     `lod_visibility`: at the budgeted qualities the level-of-detail selection weighs each block's significance by
     how much of it the camera sees (a low-resolution cast of the view through a coarse level,
