@@ -35,8 +35,9 @@ from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import voxel_options
 
-__all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0", "device_atlas", "max_alloc_bytes",
-           "AtlasCells", "atlas_cells", "half_cells", "brick_elements", "coarse_elements", "neighbourhood_max"]
+__all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
+           "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells", "brick_elements",
+           "coarse_elements", "neighbourhood_max"]
 
 MISSING = 0
 
@@ -236,11 +237,12 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
     s, and restarts its steps at the faces of coarse cells (limited: a coarse step never runs into a finer block),
     while runs of level-0 cells keep full resolution's lattice (raycast.cl). A coarse cell with a level-0 cell
     across a face holds s | NEAR_LEVEL0. A skipped cell holds -(code + 1) (`skipped`): the march passes it as it
-    would pass it sampled, without its samples, so that what it skips changes no other sample. The cells are the half-block cells (grid 2G, cell h in block h >> 1) for both
-    interpolations: nearest block's step level is constant over a block, but the walk also leaves out the coarse
-    half-cells that level 0 leaves empty (render._cell_info), which on whole blocks it could do only where all
-    eight are (32 images, benchmarks/bench_lod_sweep.py, nearest block: samples 0.67 -> 0.48 of full resolution's,
-    summed mean ΔE 151.8 -> 145.7). A cell takes its own block's level k; cells of skipped blocks (`skip`) and of
+    would pass it sampled, without its samples, so that what it skips changes no other sample. The cells are the
+    half-block cells (grid 2G, cell h in block h >> 1) for both interpolations: nearest block's step level is
+    constant over a block, but the walk also leaves out the coarse half-cells that level 0 leaves empty
+    (render._cell_info), which on whole blocks it could do only where all eight are (32 images,
+    benchmarks/bench_lod_sweep.py, nearest block: samples 0.67 -> 0.48 of full resolution's, summed mean ΔE
+    151.8 -> 145.7). A cell takes its own block's level k; cells of skipped blocks (`skip`) and of
     unloaded ones (level -1, stepped as level 0) are skipped.
 
     s = k at level 0, s = k + 1 at coarse levels (capped at log2 B, the longest step the kernel has a table for;

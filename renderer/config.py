@@ -79,7 +79,7 @@ class KernelConfig:
                 opts.append("-DLC_ADAPTIVE")
             if self.adaptive_naive:
                 opts.append("-DLC_ADAPTIVE_NAIVE")
-            if self.lattice and self.adaptive:
+            if self.lattice:
                 opts.append("-DLC_LATTICE")
             if self.distribution:
                 opts.append("-DLC_DIST")

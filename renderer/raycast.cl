@@ -255,6 +255,13 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         const int hx = cpb * P->grid.x, hy = cpb * P->grid.y, hz = cpb * P->grid.z;
         LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
+/* the step code of cell (x, y, z), clamped into the grid (past it the ray has left the box) */
+#define LC_STEP_CODE(x, y, z)                                                                                  \
+    ((int)step_level[((ulong)lc_clampi((z), hz - 1) * (ulong)hy + (ulong)lc_clampi((y), hy - 1)) * (ulong)hx + \
+                     (ulong)lc_clampi((x), hx - 1)])
+/* a level-0 cell's code, sampled or skipped */
+#define LC_LEVEL0(c) ((c) == 0 || (c) == -1)
+#define LC_NEAR_LEVEL0 8 /* renderer/atlas.py: NEAR_LEVEL0 */
         float t = t0;  /* where the next step starts */
         float tc = t0; /* where the ray enters the cell */
         /* iterations: at most one per sample plus one per cell crossed (a safety bound, never reached) */
@@ -275,10 +282,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
             float tb = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz); /* leaves the cell */
             tb = tb < t1 ? tb : t1;
-            const int code = step_level[((ulong)lc_clampi(bz, hz - 1) * (ulong)hy + (ulong)lc_clampi(by, hy - 1)) *
-                                            (ulong)hx + (ulong)lc_clampi(bx, hx - 1)];
-            /* a skipped cell holds -(v + 1); v: the step level, | 8 for a coarse cell next to a level-0 one */
-            const int skip = code < 0, v_ = skip ? -code - 1 : code, lvl = v_ & 7;
+            const int code = LC_STEP_CODE(bx, by, bz);
+            /* a skipped cell holds -(v + 1); v: the step level, | LC_NEAR_LEVEL0 for a coarse cell next to a
+             * level-0 one */
+            const int skip = code < 0, v_ = skip ? -code - 1 : code, lvl = v_ & (LC_NEAR_LEVEL0 - 1);
 #ifdef LC_ADAPTIVE_NAIVE
             if (!skip) { /* one step of the starting cell's length, wherever it ends */
                 const float h = dt * (float)(1 << lvl);
@@ -312,17 +319,13 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
             /* a coarse cell's last step ends at its exit, or with LC_LATTICE ("lossless") before a level-0 cell
              * where the lattice's first step whose sample lies in that cell begins (within a base step of the
              * face), so that level 0 takes full resolution's samples there too */
+            const int ax = tnx <= tny && tnx <= tnz ? 0 : (tny <= tnz ? 1 : 2); /* the face the ray leaves by */
             float t_exit = tb;
 #ifdef LC_LATTICE
-            if ((v_ & 8) && tb < t1) {
-                const int ax = tnx <= tny && tnx <= tnz ? 0 : (tny <= tnz ? 1 : 2);
-                const int c_next = step_level[((ulong)lc_clampi(bz + (ax == 2 ? sz : 0), hz - 1) * (ulong)hy +
-                                               (ulong)lc_clampi(by + (ax == 1 ? sy : 0), hy - 1)) * (ulong)hx +
-                                              (ulong)lc_clampi(bx + (ax == 0 ? sx : 0), hx - 1)];
-                if (c_next == 0 || c_next == -1) {
-                    t_exit = t0 + (float)lc_ceil_i((tb - t0) * inv_dt - u) * dt;
-                    t_exit = t_exit < t1 ? t_exit : t1;
-                }
+            if ((v_ & LC_NEAR_LEVEL0) && tb < t1 &&
+                LC_LEVEL0(LC_STEP_CODE(bx + (ax == 0 ? sx : 0), by + (ax == 1 ? sy : 0), bz + (ax == 2 ? sz : 0)))) {
+                t_exit = t0 + (float)lc_ceil_i((tb - t0) * inv_dt - u) * dt;
+                t_exit = t_exit < t1 ? t_exit : t1;
             }
 #endif
             if (skip) {
@@ -348,18 +351,16 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                         } else {
                             /* the next cell, and the cell of the last step's end if that lies past the next one
                              * (a ray through a cell's corner), at level 0 */
-                            const int ax = tnx <= tny && tnx <= tnz ? 0 : (tny <= tnz ? 1 : 2);
                             const float nnx = ax == 0 ? tnx + tdx : tnx, nny = ax == 1 ? tny + tdy : tny;
                             const float nnz = ax == 2 ? tnz + tdz : tnz;
                             const float tb_next = nnx < nny ? (nnx < nnz ? nnx : nnz) : (nny < nnz ? nny : nnz);
-                            const float3 pe = end > tb_next ? (q0 + end * dq + 0.5f) * (1.0f / Hc)
-                                                            : (float3)((float)(bx + (ax == 0 ? sx : 0)) + 0.5f,
-                                                                       (float)(by + (ax == 1 ? sy : 0)) + 0.5f,
-                                                                       (float)(bz + (ax == 2 ? sz : 0)) + 0.5f);
-                            const int c_end = step_level[((ulong)lc_clampi((int)pe.z, hz - 1) * (ulong)hy +
-                                                          (ulong)lc_clampi((int)pe.y, hy - 1)) * (ulong)hx +
-                                                         (ulong)lc_clampi((int)pe.x, hx - 1)];
-                            run_on = c_end == 0 || c_end == -1;
+                            if (end > tb_next) {
+                                const float3 pe = (q0 + end * dq + 0.5f) * (1.0f / Hc);
+                                run_on = LC_LEVEL0(LC_STEP_CODE((int)pe.x, (int)pe.y, (int)pe.z));
+                            } else {
+                                run_on = LC_LEVEL0(LC_STEP_CODE(bx + (ax == 0 ? sx : 0), by + (ax == 1 ? sy : 0),
+                                                                bz + (ax == 2 ? sz : 0)));
+                            }
                         }
                     }
                     if (!run_on) { /* all whole but the last one, cut at tcut */
@@ -404,6 +405,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
         }
 #undef LC_R
+#undef LC_STEP_CODE
+#undef LC_LEVEL0
+#undef LC_NEAR_LEVEL0
 #else
         int k = 0;
 #if defined(LC_ESS) || defined(LC_PASSES)

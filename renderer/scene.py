@@ -187,8 +187,8 @@ class Sampling(_Model):
     coarse voxel — in level-k blocks, up to step·B; the steps in a run of level-0 cells lie on full
     resolution's lattice); left out (null), it is on at every level-of-detail quality — a coarse level holds no
     detail a finer step could find, and without it a reduction saves memory but no time — and off at 'full' and
-    wherever every block is at level 0, where it would change nothing. `adaptive_naive` (for benchmarking only): the naive variant whose
-    steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks).
+    wherever every block is at level 0, where it would change nothing. `adaptive_naive` (for benchmarking only):
+    the naive variant whose steps are not limited at block boundaries (implies adaptive sampling; it undersamples finer blocks).
     `lod_visibility`: at the budgeted qualities the level-of-detail selection weighs each block's significance by
     how much of it the camera sees (a low-resolution cast of the view through a coarse level,
     renderer/visibility.py), so that what lies behind opaque material stays coarse and the budget goes to what the
