@@ -135,8 +135,10 @@ class DistTable:
         flat = grid.reshape((-1,) + grid.shape[2:])
         r0, r1 = j * n, j1 * n
         g00, g01 = np.take(flat, r0 + i, axis=0), np.take(flat, r0 + i1, axis=0)
-        g10, g11 = np.take(flat, r1 + i, axis=0), np.take(flat, r1 + i1, axis=0)
         a = g00 + (g01 - g00) * wi
+        if wj.size == 1 and not wj.any():  # the point classification's row (σ = 0): no second row to blend
+            return a
+        g10, g11 = np.take(flat, r1 + i, axis=0), np.take(flat, r1 + i1, axis=0)
         b = g10 + (g11 - g10) * wi
         return a + (b - a) * wj
 

@@ -15,6 +15,7 @@ chunk); anything else makes
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import threading
 from collections import OrderedDict
@@ -24,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zarr
 from numcodecs import blosc
 
 from lodcast.errors import StoreCorrupt
@@ -34,7 +34,7 @@ try:  # numcodecs >= 0.16 exposes the (google_crc32c / crc32c) checksum it uses 
 except ImportError:  # older numcodecs: the index checksum is skipped (offsets are still bounds-checked)
     _crc32c = None
 
-__all__ = ["ShardedReader", "fast_reader"]
+__all__ = ["ShardedReader", "ChunkReader", "fast_reader"]
 
 _EMPTY = np.uint64(2**64 - 1)
 _INDEX_CACHE: OrderedDict[tuple[str, int, Any], np.ndarray] = OrderedDict()
@@ -117,77 +117,135 @@ class _RemoteFiles:
         return self.fs.cat_file(path, start=-n)
 
 
-def fast_reader(array: Any, complete: bool = False, url: str | None = None) -> ShardedReader | None:
-    """A ShardedReader for `array`, or None when its store or codecs are not handled (use zarr-python then).
-    `complete`: ingest wrote every chunk, so a missing shard file or chunk is damage (StoreCorrupt), not empty.
-    `url`: the group's fsspec URL, for an array in an fsspec store (read through a synchronous filesystem)."""
-    try:
-        store, meta = array.store, array.metadata.to_dict()
-    except AttributeError:
-        return None
-    if meta.get("zarr_format") != 3 or meta.get("storage_transformers"):
-        return None
-    if isinstance(store, zarr.storage.LocalStore):
-        files: Any = _LocalFiles(Path(store.root) / array.path)
-    elif url is not None and type(store).__name__ == "FsspecStore":
-        import fsspec
+def fast_reader(source: Any, complete: bool = False, url: str | None = None) -> ShardedReader | ChunkReader | None:
+    """A reader for `source`, or None when its store or codecs are not handled (use zarr-python then). `source`:
+    a zarr Array, or the folder of an array on the local filesystem, whose zarr.json is all that is read to open
+    it (zarr-python is not imported until a read with steps needs it: importing it took 0.2-0.4 s of a first
+    render). A sharded array gets a ShardedReader; an unsharded local one (the per-block metadata arrays) a
+    ChunkReader. `complete`: ingest wrote every chunk, so a missing shard file or chunk is damage (StoreCorrupt),
+    not empty. `url`: the group's fsspec URL, for an array in an fsspec store (read through a synchronous
+    filesystem)."""
+    if isinstance(source, (str, os.PathLike)):
+        folder = Path(source)
+        try:
+            meta = json.loads((folder / "zarr.json").read_bytes())
+        except (OSError, ValueError):
+            return None
+        files: Any = _LocalFiles(folder)
 
-        fs, root = fsspec.core.url_to_fs(url)
-        files = _RemoteFiles(fs, f"{root.rstrip('/')}/{array.path}")
+        def array() -> Any:
+            import zarr
+
+            return zarr.open_array(folder, mode="r")
+    else:
+        try:
+            store, meta = source.store, source.metadata.to_dict()
+        except AttributeError:
+            return None
+        import zarr
+
+        if isinstance(store, zarr.storage.LocalStore):
+            files = _LocalFiles(Path(store.root) / source.path)
+        elif url is not None and type(store).__name__ == "FsspecStore":
+            import fsspec
+
+            fs, root = fsspec.core.url_to_fs(url)
+            files = _RemoteFiles(fs, f"{root.rstrip('/')}/{source.path}")
+        else:
+            return None
+
+        def array() -> Any:
+            return source
+    geom = _geometry(meta)
+    if geom is None:
+        return None
+    shape, dtype, fill, key = geom
+    codecs = meta["codecs"]
+    if codecs and codecs[0]["name"] == "sharding_indexed":
+        if len(codecs) != 1:
+            return None
+        cfg = codecs[0]["configuration"]
+        inner, index_codecs = cfg["codecs"], cfg["index_codecs"]
+        if not inner or inner[0]["name"] != "bytes" or [c["name"] for c in inner[1:]] not in ([], ["blosc"]):
+            return None
+        if not index_codecs or index_codecs[0]["name"] != "bytes" or [c["name"] for c in index_codecs[1:]] not in ([], ["crc32c"]):
+            return None
+        chunk, shard_shape = tuple(cfg["chunk_shape"]), tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
+        if len(chunk) != len(shard_shape) or any(s % c for s, c in zip(shard_shape, chunk)):
+            return None
+        return ShardedReader(
+            shape, dtype, fill, key, array, files, chunk, shard_shape,
+            chunk_dtype=dtype.newbyteorder(_endian(inner[0])) if dtype.itemsize > 1 else dtype,
+            compressed=len(inner) > 1, index_dtype=np.dtype(_endian(index_codecs[0]) + "u8"),
+            index_crc=len(index_codecs) > 1, index_at_end=cfg.get("index_location", "end") == "end", complete=complete,
+        )
+    # unsharded: local files only (on object storage zarr-python's concurrent requests beat one request at a time)
+    if files.remote or not codecs or codecs[0]["name"] != "bytes" or [c["name"] for c in codecs[1:]] not in (
+            [], ["blosc"], ["zstd"]):
+        return None
+    chunk_dtype = dtype.newbyteorder(_endian(codecs[0])) if dtype.itemsize > 1 else dtype
+    return ChunkReader(shape, dtype, fill, key, array, files, tuple(meta["chunk_grid"]["configuration"]["chunk_shape"]),
+                       chunk_dtype=chunk_dtype, codec=codecs[1]["name"] if len(codecs) > 1 else None)
+
+
+def _geometry(meta: dict) -> tuple[tuple[int, ...], np.dtype, Any, Any] | None:
+    """(shape, dtype, fill value, chunk key function) of a zarr v3 array's metadata (its zarr.json), or None for
+    what the readers leave to zarr-python: other formats, storage transformers, irregular grids, non-numeric or
+    extension types, fill values other than numbers and the IEEE names."""
+    if meta.get("zarr_format") != 3 or meta.get("node_type", "array") != "array" or meta.get("storage_transformers"):
+        return None
+    if meta.get("chunk_grid", {}).get("name") != "regular":
+        return None
+    try:
+        dtype = np.dtype(meta["data_type"])
+    except (TypeError, ValueError, KeyError):
+        return None
+    if dtype.kind not in "biufc":
+        return None
+    fill = meta.get("fill_value")
+    if isinstance(fill, str):
+        fill = {"NaN": np.nan, "Infinity": np.inf, "-Infinity": -np.inf}.get(fill)
+        if fill is None:
+            return None
+    elif not isinstance(fill, (int, float, bool)) or fill is None:
+        return None
+    enc = meta.get("chunk_key_encoding", {"name": "default"})
+    sep = (enc.get("configuration") or {}).get("separator")
+    if enc.get("name") == "default":
+        sep = sep or "/"
+
+        def key(coords: tuple[int, ...]) -> str:
+            return sep.join(["c", *map(str, coords)])
+    elif enc.get("name") == "v2":
+        sep = sep or "."
+
+        def key(coords: tuple[int, ...]) -> str:
+            return sep.join(map(str, coords)) or "0"
     else:
         return None
-    dtype = np.dtype(array.dtype)
-    if dtype.kind not in "biufc" or meta["chunk_grid"].get("name") != "regular" or len(meta["codecs"]) != 1:
-        return None
-    shard = meta["codecs"][0]
-    if shard["name"] != "sharding_indexed":
-        return None
-    cfg = shard["configuration"]
-    inner, index_codecs = cfg["codecs"], cfg["index_codecs"]
-    if not inner or inner[0]["name"] != "bytes" or [c["name"] for c in inner[1:]] not in ([], ["blosc"]):
-        return None
-    if not index_codecs or index_codecs[0]["name"] != "bytes" or [c["name"] for c in index_codecs[1:]] not in ([], ["crc32c"]):
-        return None
-    chunk, shard_shape = tuple(cfg["chunk_shape"]), tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
-    if len(chunk) != len(shard_shape) or any(s % c for s, c in zip(shard_shape, chunk)):
-        return None
-    return ShardedReader(
-        array, files, chunk, shard_shape,
-        chunk_dtype=dtype.newbyteorder(_endian(inner[0])) if dtype.itemsize > 1 else dtype,
-        compressed=len(inner) > 1, index_dtype=np.dtype(_endian(index_codecs[0]) + "u8"),
-        index_crc=len(index_codecs) > 1, index_at_end=cfg.get("index_location", "end") == "end", complete=complete,
-    )
+    return tuple(int(n) for n in meta["shape"]), dtype, fill, key
 
 
-class ShardedReader:
-    """Reads regions of one sharded zarr v3 array, local or through fsspec; see the module docstring.
+class _Reader:
+    """What both readers share: a region's bounds and output; reads with steps go through zarr-python."""
 
-    The array's metadata is taken once: resizing the array afterwards needs a new reader (rewritten shards are
-    picked up, since cached indexes are keyed by file mtime and size)."""
+    def __init__(self, shape: tuple[int, ...], dtype: np.dtype, fill_value: Any, chunk_key: Any, array: Any,
+                 files: Any, chunk: tuple[int, ...]) -> None:
+        self.shape, self.dtype, self.fill_value, self.chunk = shape, np.dtype(dtype), fill_value, chunk
+        self._key, self._array, self._files = chunk_key, array, files
 
-    def __init__(self, array: Any, files: Any, chunk: tuple[int, ...], shard: tuple[int, ...], *,
-                 chunk_dtype: np.dtype, compressed: bool, index_dtype: np.dtype, index_crc: bool, index_at_end: bool,
-                 complete: bool = False) -> None:
-        self._array, self._files, self.complete = array, files, complete
-        self.shape: tuple[int, ...] = tuple(array.shape)
-        self.dtype, self.chunk, self.shard = np.dtype(array.dtype), chunk, shard
-        self.fill_value = array.metadata.fill_value
-        self._chunk_dtype, self._compressed = chunk_dtype, compressed
-        self._per_shard = tuple(s // c for s, c in zip(shard, chunk))
-        self._n_index = prod(self._per_shard)
-        self._index_dtype, self._index_crc, self._index_at_end = index_dtype, index_crc, index_at_end
-        self._index_bytes = 16 * self._n_index + 4 * index_crc
-
-    def read_region(self, region: tuple[slice, ...], dtype: Any = None, out: np.ndarray | None = None) -> np.ndarray:
-        """The same array as `np.asarray(array[region])` for a tuple of slices (non-unit steps go through zarr),
-        in `dtype` when given: each worker casts its chunks as it places them, so a conversion costs no pass of
-        its own (level 0 of the chest CT as float32: 0.74 s of a 1.9 s first render). `out`: an array of the
-        region's shape (and `dtype`) to read into, e.g. a mapped device buffer, instead of a new one."""
+    def read_region(self, region: Any, dtype: Any = None, out: np.ndarray | None = None) -> np.ndarray:
+        """The same array as `np.asarray(array[region])` for a tuple of slices or ... (non-unit steps go through
+        zarr), in `dtype` when given: each worker casts its chunks as it places them, so a conversion costs no
+        pass of its own (level 0 of the chest CT as float32: 0.74 s of a 1.9 s first render). `out`: an array of
+        the region's shape (and `dtype`) to read into, e.g. a mapped device buffer, instead of a new one."""
+        if region is ...:
+            region = (slice(None),) * len(self.shape)
         if len(region) != len(self.shape) or not all(isinstance(s, slice) for s in region):
             raise TypeError(f"expected {len(self.shape)} slices, got {region!r}")
         bounds = [s.indices(n) for s, n in zip(region, self.shape)]
         if any(step != 1 for _, _, step in bounds):
-            a = np.asarray(self._array[region], dtype=dtype)
+            a = np.asarray(self._array()[region], dtype=dtype)
             if out is None:
                 return a
             out[...] = a
@@ -198,15 +256,84 @@ class ShardedReader:
         if out is None:
             out = np.empty(shape, self.dtype if dtype is None else dtype)
         assert out.shape == shape and (dtype is None or out.dtype == np.dtype(dtype)), (out.shape, shape, out.dtype)
-        if out.size == 0:
-            return out
+        if out.size:
+            self._fill(out, lo, hi)
+        return out
+
+    def _fill(self, out: np.ndarray, lo: tuple[int, ...], hi: tuple[int, ...]) -> None:
+        raise NotImplementedError
+
+
+class ChunkReader(_Reader):
+    """Reads regions of one unsharded zarr v3 array on the local filesystem: each chunk file read whole and
+    decoded (blosc or zstd, or raw). The per-block metadata arrays are a few dozen such chunks, which zarr-python's
+    asynchronous pipeline took 0.1-0.3 s to read for a first render."""
+
+    def __init__(self, shape: tuple[int, ...], dtype: np.dtype, fill_value: Any, chunk_key: Any, array: Any,
+                 files: Any, chunk: tuple[int, ...], *, chunk_dtype: np.dtype, codec: str | None) -> None:
+        super().__init__(shape, dtype, fill_value, chunk_key, array, files, chunk)
+        self._chunk_dtype, self._codec = chunk_dtype, codec
+
+    def _decoded(self, coords: tuple[int, ...]) -> np.ndarray | None:
+        key = self._key(coords)
+        try:
+            with open(self._files.name(key), "rb") as f:
+                raw = f.read()
+        except FileNotFoundError:
+            return None
+        n = prod(self.chunk) * self._chunk_dtype.itemsize
+        try:
+            if self._codec == "blosc":
+                data = blosc.decompress(raw)
+            elif self._codec == "zstd":
+                from numcodecs import zstd
+
+                data = zstd.decompress(raw)
+            else:
+                data = raw
+        except (ValueError, RuntimeError) as exc:
+            raise StoreCorrupt(f"{self._files.name(key)}: damaged chunk ({' '.join(str(exc).split())}): re-ingest "
+                               f"the store") from None
+        if len(data) != n:
+            raise StoreCorrupt(f"{self._files.name(key)}: chunk of {len(data)} bytes, expected {n}: re-ingest the "
+                               f"store")
+        return np.frombuffer(data, self._chunk_dtype).reshape(self.chunk)
+
+    def _fill(self, out: np.ndarray, lo: tuple[int, ...], hi: tuple[int, ...]) -> None:
+        ranges = [range(a // c, -(-b // c)) for a, b, c in zip(lo, hi, self.chunk)]
+        for coords in itertools.product(*ranges):
+            start = [i * c for i, c in zip(coords, self.chunk)]
+            src = tuple(slice(max(a, s) - s, min(b, s + c) - s) for a, b, s, c in zip(lo, hi, start, self.chunk))
+            dst = tuple(slice(max(a, s) - a, min(b, s + c) - a) for a, b, s, c in zip(lo, hi, start, self.chunk))
+            a = self._decoded(coords)
+            out[dst] = self.fill_value if a is None else a[src]
+
+
+class ShardedReader(_Reader):
+    """Reads regions of one sharded zarr v3 array, local or through fsspec; see the module docstring.
+
+    The array's metadata is taken once: resizing the array afterwards needs a new reader (rewritten shards are
+    picked up, since cached indexes are keyed by file mtime and size)."""
+
+    def __init__(self, shape: tuple[int, ...], dtype: np.dtype, fill_value: Any, chunk_key: Any, array: Any,
+                 files: Any, chunk: tuple[int, ...], shard: tuple[int, ...], *, chunk_dtype: np.dtype,
+                 compressed: bool, index_dtype: np.dtype, index_crc: bool, index_at_end: bool,
+                 complete: bool = False) -> None:
+        super().__init__(shape, dtype, fill_value, chunk_key, array, files, chunk)
+        self.complete, self.shard = complete, shard
+        self._chunk_dtype, self._compressed = chunk_dtype, compressed
+        self._per_shard = tuple(s // c for s, c in zip(shard, chunk))
+        self._n_index = prod(self._per_shard)
+        self._index_dtype, self._index_crc, self._index_at_end = index_dtype, index_crc, index_at_end
+        self._index_bytes = 16 * self._n_index + 4 * index_crc
+
+    def _fill(self, out: np.ndarray, lo: tuple[int, ...], hi: tuple[int, ...]) -> None:
         units = self._units(lo, hi)
         if len(units) == 1:
             self._read_unit(out, lo, hi, *units[0])
         else:
             for f in [_pool().submit(self._read_unit, out, lo, hi, *u) for u in units]:
                 f.result()
-        return out
 
     # --- work units: a box of chunks inside one shard ----------------------------------------------------------
     def _units(self, lo: tuple[int, ...], hi: tuple[int, ...]) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
@@ -243,7 +370,7 @@ class ShardedReader:
     def _read_box(self, shard: tuple[int, ...], coords: np.ndarray) -> np.ndarray:
         """Chunks `coords` (n, ndim) of shard `shard`, decoded into an (n, *chunk) buffer."""
         box = np.empty((len(coords), *self.chunk), self._chunk_dtype)
-        key = self._array.metadata.encode_chunk_key(shard)
+        key = self._key(shard)
         name = self._files.name(key)
         try:
             fd = self._files.open(key)

@@ -19,6 +19,7 @@ list a group's members take for the image.
 """
 from __future__ import annotations
 
+import json
 import os
 import re
 import socket
@@ -26,14 +27,16 @@ import uuid
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import zarr
 
 from lodcast.errors import StoreCorrupt, StoreInvalid, StoreNotFound
 from lodcast.store.histogram import Bins
 from lodcast.store.layout import Layout
+
+if TYPE_CHECKING:  # pragma: no cover
+    import zarr
 
 __all__ = ["Store", "BlockStats", "open_store", "data_manifest", "FORMAT_VERSION"]
 
@@ -59,12 +62,15 @@ class BlockStats:
 
 
 class Store:
-    """An opened lodcast store. Cheap to create; arrays are read on demand."""
+    """An opened lodcast store. Cheap to create; arrays are read on demand. A local store opens from its
+    zarr.json files alone (store/shardio.py reads the arrays): zarr-python is imported only when `group` or
+    `level` is asked for, or for a read the readers leave to it."""
 
-    def __init__(self, group: zarr.Group, location: str):
-        self.group = group
+    def __init__(self, location: str, attrs: dict, group: zarr.Group | None = None):
         self.location = location
-        a = dict(group.attrs)
+        if group is not None:
+            self.__dict__["group"] = group
+        a = dict(attrs)
         try:
             marker = a["lodcast"]
             self.format_version = marker.get("format_version")
@@ -88,6 +94,13 @@ class Store:
         self.layout = Layout(self.shape, self.block_size)
         self._readers: dict[str, Any] = {}  # array path -> ShardedReader, or False: zarr-python reads it
         self._arrays: dict[str, Any] = {}  # array path -> zarr.Array, opened once
+
+    @cached_property
+    def group(self) -> zarr.Group:
+        """The store's root group (zarr-python)."""
+        import zarr
+
+        return zarr.open_group(self.location, mode="r")
 
     # --- geometry -------------------------------------------------------------------------------------------
     @property
@@ -133,8 +146,11 @@ class Store:
             from lodcast.store.shardio import fast_reader
 
             complete = self.manifest is not None and not path.startswith("blocks")  # levels and std: every chunk
-            url = self.location if "://" in self.location else None
-            reader = self._readers[path] = fast_reader(self._array(path), complete, url) or False
+            if "://" in self.location:
+                reader = fast_reader(self._array(path), complete, self.location)
+            else:
+                reader = fast_reader(Path(self.location) / path, complete)
+            reader = self._readers[path] = reader or False
         return reader
 
     def _read(self, path: str, region: tuple, dtype: Any = None, out: np.ndarray | None = None) -> np.ndarray:
@@ -143,7 +159,9 @@ class Store:
         instead of one per chunk), else through zarr-python."""
         reader = self._reader(path)
         if reader is not False:
-            return reader.read_region(tuple(slice(None) for _ in range(3)) if region is ... else region, dtype, out)
+            return reader.read_region(region, dtype, out)
+        import zarr
+
         # zarr decodes one inner chunk at a time unless batched: for a whole level of the chest CT at 16³ blocks
         # (9,400 chunks) batching 256 measured 4.1 -> 2.7 s, at 8³ blocks (143,000 chunks) 30 -> 20 s
         with zarr.config.set({"codec_pipeline.batch_size": 256}):
@@ -178,12 +196,12 @@ class Store:
     @cached_property
     def generation(self) -> str | None:
         """A new id per ingest (None for stores written before it was recorded)."""
-        return (self.group.attrs["lodcast"] or {}).get("generation")
+        return (self.attrs["lodcast"] or {}).get("generation")
 
     @cached_property
     def manifest(self) -> dict | None:
         """What ingest wrote (data_manifest), or None for stores written before it was recorded."""
-        return (self.group.attrs["lodcast"] or {}).get("manifest")
+        return (self.attrs["lodcast"] or {}).get("manifest")
 
     @property
     def has_distribution(self) -> bool:
@@ -197,7 +215,7 @@ class Store:
         store of format < 3."""
         if self.format_version < 3:
             return None
-        return np.asarray(self.group["blocks/cell_min"][...]), np.asarray(self.group["blocks/cell_max"][...])
+        return self._read("blocks/cell_min", ...), self._read("blocks/cell_max", ...)
 
     @property
     def std_max(self) -> float:
@@ -225,19 +243,19 @@ class Store:
 
     @cached_property
     def stats(self) -> BlockStats:
-        return BlockStats(**{f: np.asarray(self.group[f"blocks/{f}"][...])
+        return BlockStats(**{f: self._read(f"blocks/{f}", ...)
                              for f in ("min", "max", "mean", "count", "min_border", "max_border")})
 
     @cached_property
     def level_std(self) -> np.ndarray | None:
         """Per block and level, grid + (levels,): the RMS over the block's coarse voxels of their standard
         deviation (level 0: 0). None for a format-1 store."""
-        return np.asarray(self.group["blocks/level_std"][...]) if self.has_distribution else None
+        return self._read("blocks/level_std", ...) if self.has_distribution else None
 
     @cached_property
     def hist(self) -> np.ndarray:
         """Border-inclusive histograms, shape grid + (bins,), uint32."""
-        return np.asarray(self.group["blocks/hist"][...])
+        return self._read("blocks/hist", ...)
 
     @property
     def hist_edges(self) -> np.ndarray:
@@ -246,7 +264,7 @@ class Store:
     @cached_property
     def hist_simplified(self) -> tuple[np.ndarray, np.ndarray]:
         """(starts, heights): grid + (segments + 1,) bin indices and grid + (segments,) mean counts per bin."""
-        return np.asarray(self.group["blocks/hist_starts"][...]), np.asarray(self.group["blocks/hist_heights"][...])
+        return self._read("blocks/hist_starts", ...), self._read("blocks/hist_heights", ...)
 
     # --- reporting ------------------------------------------------------------------------------------------
     def bytes_on_disk(self) -> int | None:
@@ -389,15 +407,30 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
             raise StoreInvalid(f"{location} is a temporary folder of an unfinished ingest, not a store")
         if not (p / "zarr.json").is_file():
             raise StoreInvalid(f"{location} is not a lodcast store (no zarr.json: not a zarr v3 group)")
-    try:
-        group = zarr.open_group(location, mode="r")
-    except FileNotFoundError:
-        raise StoreNotFound(f"no store at {location}") from None
-    except Exception as exc:  # zarr raises several types for foreign or corrupt metadata
-        raise StoreInvalid(f"{location} is not a readable zarr v3 group: {exc}") from None
-    if "lodcast" not in group.attrs:
+    if is_url:
+        import zarr
+
+        try:
+            group = zarr.open_group(location, mode="r")
+        except FileNotFoundError:
+            raise StoreNotFound(f"no store at {location}") from None
+        except Exception as exc:  # zarr raises several types for foreign or corrupt metadata
+            raise StoreInvalid(f"{location} is not a readable zarr v3 group: {exc}") from None
+        attrs = dict(group.attrs)
+    else:  # the root's zarr.json alone: what zarr-python's open_group checks of it
+        group = None
+        try:
+            meta = json.loads((Path(location) / "zarr.json").read_bytes())
+            if not isinstance(meta, dict) or meta.get("zarr_format") != 3 or meta.get("node_type") != "group":
+                raise ValueError("its zarr.json does not describe a zarr v3 group")
+            attrs = meta.get("attributes") or {}
+            if not isinstance(attrs, dict):
+                raise ValueError("its attributes are not an object")
+        except (OSError, ValueError) as exc:
+            raise StoreInvalid(f"{location} is not a readable zarr v3 group: {exc}") from None
+    if "lodcast" not in attrs:
         raise StoreInvalid(f"{location} is a zarr group but not a lodcast store (no 'lodcast' attribute)")
-    manifest = (group.attrs["lodcast"] or {}).get("manifest")
+    manifest = (attrs["lodcast"] or {}).get("manifest")
     if manifest is not None and not is_url:
         _check_manifest(location, manifest)
-    return Store(group, location)
+    return Store(location, attrs, group)

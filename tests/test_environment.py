@@ -23,7 +23,7 @@ def test_defaults_and_units(monkeypatch):
     assert env.device_budget_bytes is None and env.max_voxels is None
     assert env.max_samples == 2_000_000_000 and env.read_threads is None and env.lossless_zeta == 0.5
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    assert read_threads_for(remote=False) == cores and read_threads_for(remote=True) == 8
+    assert read_threads_for(remote=False) == max(1, cores - 1) and read_threads_for(remote=True) == 8
     assert env.significance_numpy is False and env.tmp is None
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # DESIGN.md, Limits: MB = 10⁶ bytes
     monkeypatch.setenv("LODCAST_MAX_SAMPLES", "2e7")
