@@ -107,7 +107,11 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
     start = np.array(blocks, np.int64).reshape(-1, 3) * e  # the bricks' first samples in the level
     stop = np.minimum(start + e, np.array(lay.level_shape(level)))
     where = start // c
-    need, which = np.unique(where, axis=0, return_inverse=True)
+    # chunks by their flat index in the level's chunk grid (np.unique along an axis sorts rows as records: at 8³
+    # blocks, 0.18 s of a first render's 1.2 s of reading)
+    flat = np.ravel_multi_index(tuple(where.T), tuple(-(-np.array(lay.level_shape(level)) // c)))
+    first, which = np.unique(flat, return_index=True, return_inverse=True)[1:]
+    need = where[first]
     chunks = vol.read_chunks(level, need, std=what != "mean")
     lo, hi = start - where * c, stop - where * c  # within the chunk
     if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers

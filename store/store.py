@@ -182,16 +182,18 @@ class Store:
         coords = np.asarray(chunks, np.int64).reshape(-1, 3)
         c = np.array(self.layout.chunk_shape(k))
         shape = np.array(self.layout.level_shape(k))
-        cut = [tuple(slice(0, int(n)) for n in np.minimum(c, shape - co * c)) for co in coords]
+        ext = np.minimum(c, shape - coords * c)  # each chunk's extent inside the level
+        whole = (ext == c).all(axis=1).tolist()
+        cut = [None if w else tuple(slice(0, int(n)) for n in e) for w, e in zip(whole, ext)]
         if std and (k == 0 or not self.has_distribution):
-            return [np.zeros(tuple(s.stop for s in sl), np.float32) for sl in cut]
+            return [np.zeros(tuple(int(n) for n in e), np.float32) for e in ext]
         path = f"std/{k}" if std else str(k)
         reader = self._reader(path)
         if reader is not False:
             box = reader.read_chunks(coords).astype(reader.dtype, copy=False)  # the array's (native) type
-            return [box[i][sl] for i, sl in enumerate(cut)]
-        return [self._read(path, tuple(slice(int(a), int(a) + s.stop) for a, s in zip(co * c, sl)))
-                for co, sl in zip(coords, cut)]
+            return [box[i] if sl is None else box[i][sl] for i, sl in enumerate(cut)]
+        return [self._read(path, tuple(slice(int(a), int(a) + int(n)) for a, n in zip(co * c, e)))
+                for co, e in zip(coords, ext)]
 
     @cached_property
     def generation(self) -> str | None:
