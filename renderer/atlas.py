@@ -37,7 +37,7 @@ from lodcast.renderer.volume import voxel_options
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
            "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells", "brick_elements",
-           "coarse_elements", "neighbourhood_max"]
+           "coarse_elements", "deviation_bytes", "neighbourhood_max"]
 
 MISSING = 0
 
@@ -123,14 +123,19 @@ def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None,
     exceed `max_bytes` (default: the device's max allocation)."""
     sizes, offsets = _offsets(levels, block_size)
     total = int(sizes.sum())
+    _check_alloc(total * itemsize, max_bytes, "brick atlas")
+    return offsets, total
+
+
+def _check_alloc(nbytes: int, max_bytes: int | None, what: str) -> None:
+    """DeviceError when a buffer of `nbytes` would exceed `max_bytes` (default: the device's max allocation)."""
     limit = max_alloc_bytes() if max_bytes is None else int(max_bytes)
-    if total * itemsize > limit:
+    if nbytes > limit:
         raise DeviceError(
-            f"the level-of-detail selection needs a {total * itemsize / 2**20:.1f} MiB brick atlas, more than the device's "
+            f"the level-of-detail selection needs a {nbytes / 2**20:.1f} MiB {what}, more than the device's "
             f"largest allocation ({limit / 2**20:.1f} MiB, CL_DEVICE_MAX_MEM_ALLOC_SIZE); choose a smaller "
             "budget_mb or a larger reduction"
         )
-    return offsets, total
 
 
 def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> None:
@@ -221,6 +226,12 @@ def coarse_elements(levels: np.ndarray, block_size: int) -> int:
     only)."""
     lv = np.asarray(levels).astype(np.int64)
     return int(brick_elements(np.where(lv >= 1, lv, -1), block_size).sum())
+
+
+def deviation_bytes(voxel_dtype: Any) -> int:
+    """Bytes per element of the deviations' buffer beside an atlas of `voxel_dtype` (lc_common.h: lc_sig): 4 for
+    integer voxels (the coarse values' bits packed below the deviation), 2 beside float32."""
+    return 4 if np.dtype(voxel_dtype).kind in "iu" else 2
 
 
 def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
@@ -336,20 +347,35 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     cache = brick_cache() if cache is None else cache
     dtype = vol.voxel_dtype
     offsets, total = _checked_offsets(levels, int(vol.block_size), max_bytes, dtype.itemsize)
+    n_coarse = coarse_elements(levels, int(vol.block_size))
+    sig_type = np.dtype(f"u{deviation_bytes(dtype)}")  # lc_common.h: lc_sig
+    packed = with_std and sig_type.itemsize == 4
+    if packed:  # the coarse bricks live in the deviations' buffer alone; level 0's offsets start the atlas
+        offsets = np.where(levels.ravel() == 0, offsets - n_coarse, offsets)
+        total -= n_coarse
+        _check_alloc(n_coarse * sig_type.itemsize, max_bytes, "coarse bricks' buffer")
     index = _index(levels, offsets, slices)
     ctx, queue = get_context()
     st = BrickStats()
-    n_std = max(coarse_elements(levels, int(vol.block_size)), 1)
-    nbytes = max(total, 1) * dtype.itemsize + (2 * n_std if with_std else 0)
+    n_std = max(n_coarse, 1)
+    nbytes = max(total, 1) * dtype.itemsize + (sig_type.itemsize * n_std if with_std else 0)
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
     with holding(nbytes):
-        d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, int(vol.block_size),
-                          iter_bricks(vol, levels, cache, stats=st), aprons=True)
-        d_std = None
-        if with_std:
-            d_std = _filled(ctx, queue, n_std, np.uint16, levels, offsets, int(vol.block_size),
-                            iter_bricks(vol, levels, cache, what="std"), aprons=False)
+        d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
+        try:
+            items = iter_bricks(vol, levels, cache, stats=st)
+            deviations = sig
+            if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
+                assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
+                halves = sig.view(np.uint16)
+                items, deviations = _coarse_bits(items, halves[0::2], levels.shape, offsets), halves[1::2]
+            d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, int(vol.block_size), items)
+            if with_std:
+                _place(deviations, levels.shape, offsets, iter_bricks(vol, levels, cache, what="std"))
+        finally:
+            if sig is not None:
+                sig.base.release(queue)
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
     queue.finish()
@@ -361,20 +387,35 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     return da
 
 
-def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
-            items: Any, aprons: bool) -> cl.Buffer:
-    """A device buffer of n elements with every brick of `items` placed at its offset, written through a host
-    mapping; `aprons`: the level-0 bricks' aprons filled too (the values; the deviations' buffer holds the coarse
-    bricks only, every element of it one of theirs)."""
+def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.ndarray]:
+    """A device buffer of n elements and its host mapping for writing (the caller releases it)."""
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
     host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
+    return buf, host
+
+
+def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+            items: Any) -> cl.Buffer:
+    """A device buffer of n elements with every brick of `items` placed at its offset and the level-0 bricks'
+    aprons filled, written through a host mapping."""
+    buf, host = _mapped(ctx, queue, n, dtype)
     try:
         _place(host, levels.shape, offsets, items)
-        if aprons:
-            _fill_aprons(host, levels, offsets, block_size)
+        _fill_aprons(host, levels, offsets, block_size)
     finally:
         host.base.release(queue)
     return buf
+
+
+def _coarse_bits(items: Any, low: np.ndarray, grid: tuple, offsets: np.ndarray) -> Any:
+    """The level-0 bricks of `items`; each coarse brick's values go, as their 16 bits, into `low` (the low halves
+    of the deviations' buffer, lc_sig) instead: two's complement for signed types, 8-bit types widened as the
+    kernel narrows them back (lc_common.h: LC_SIG_VALUE)."""
+    for key, a in items:
+        if key[0] >= 1:
+            _place(low, grid, offsets, [(key, (a if a.dtype.itemsize == 2 else a.astype(np.int16)).view(np.uint16))])
+        else:
+            yield key, a
 
 
 @dataclass(frozen=True)

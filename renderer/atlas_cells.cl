@@ -30,7 +30,7 @@ static inline int2 lc_reach(const float a, const float b, const float lo_face, c
     return (int2)(i0, i1);
 }
 
-__kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
+__kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
                              const int4 grid, const int4 lo, const int4 hi, __global float* out_min,
                              __global float* out_max, __global float* out_sd) {
     /* the cells [lo, hi) of the grid (x, y, z), written in C order over that box */
@@ -71,11 +71,15 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const usho
                         for (int j = ry.x; j <= ry.y; ++j) {
                             const ulong row = off + ((ulong)k * (ulong)m + (ulong)j) * (ulong)m;
                             for (int i = rx.x; i <= rx.y; ++i) {
+#if defined(LC_DIST) && defined(LC_SIG_PACKED) /* coarse bricks live in the deviations' buffer alone */
+                                const float v = lvl > 0 ? LC_SIG_VALUE(sig[row + (ulong)i]) : (float)atlas[row + (ulong)i];
+#else
                                 const float v = atlas[row + (ulong)i];
+#endif
                                 if (v == v) { mn = v < mn ? v : mn; mx = v > mx ? v : mx; }
 #ifdef LC_DIST
                                 if (lvl > 0) {
-                                    const float d = (float)sig[row + (ulong)i];
+                                    const float d = LC_SIG_DEV(sig[row + (ulong)i]);
                                     sd = d > sd ? d : sd;
                                 }
 #endif

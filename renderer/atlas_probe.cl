@@ -4,7 +4,7 @@
 #include "lc_common.h"
 #include "lc_atlas.h"
 
-__kernel void lc_probe_atlas(__global const lc_voxel* vol, __global const ushort* sig, __global const ulong* imap,
+__kernel void lc_probe_atlas(__global const lc_voxel* vol, __global const lc_sig* sig, __global const ulong* imap,
                              const int4 grid, __global const float4* pts, __global float2* out, const int n) {
     const int i = get_global_id(0);
     if (i >= n) return;

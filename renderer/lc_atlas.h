@@ -64,7 +64,7 @@ static inline float lc_tri8(const float v000, const float v001, const float v010
  * brick coordinates l, already in [0, n - 1], or [-1, n] at level 0: (value, standard deviation). The deviations
  * (LC_DIST: distribution classification) live in `sig` (uint16, in units of the volume's std_unit) at the same
  * offsets as the values; only coarse bricks (level >= 1) read them, level 0 has none. */
-static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ushort* sig, const ulong off, const int n,
+static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const lc_sig* sig, const ulong off, const int n,
                               const int coarse, const float lx, const float ly, const float lz) {
     const float pad = coarse ? 0.0f : 1.0f;
     const float px = lx + pad, py = ly + pad, pz = lz + pad; /* in the (padded) brick, >= 0 */
@@ -75,13 +75,24 @@ static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ush
     const ulong dy = fy > 0.0f ? m : 0UL;
     const ulong dz = fz > 0.0f ? m * m : 0UL;
     const ulong b = off + ((ulong)z0 * m + (ulong)y0) * m + (ulong)x0, c = b + dz;
+#if defined(LC_DIST) && defined(LC_SIG_PACKED)
+    if (coarse) { /* value and deviation from one uint per corner */
+        const uint u0 = sig[b], u1 = sig[b + dx], u2 = sig[b + dy], u3 = sig[b + dy + dx];
+        const uint u4 = sig[c], u5 = sig[c + dx], u6 = sig[c + dy], u7 = sig[c + dy + dx];
+        return (float2)(lc_tri8(LC_SIG_VALUE(u0), LC_SIG_VALUE(u1), LC_SIG_VALUE(u2), LC_SIG_VALUE(u3), LC_SIG_VALUE(u4),
+                                LC_SIG_VALUE(u5), LC_SIG_VALUE(u6), LC_SIG_VALUE(u7), fx, fy, fz),
+                        lc_tri8(LC_SIG_DEV(u0), LC_SIG_DEV(u1), LC_SIG_DEV(u2), LC_SIG_DEV(u3), LC_SIG_DEV(u4),
+                                LC_SIG_DEV(u5), LC_SIG_DEV(u6), LC_SIG_DEV(u7), fx, fy, fz));
+    }
+#endif
     float2 out = (float2)(lc_tri8((float)atlas[b], (float)atlas[b + dx], (float)atlas[b + dy], (float)atlas[b + dy + dx],
                                   (float)atlas[c], (float)atlas[c + dx], (float)atlas[c + dy], (float)atlas[c + dy + dx],
                                   fx, fy, fz), 0.0f);
-#ifdef LC_DIST
+#if defined(LC_DIST) && !defined(LC_SIG_PACKED)
     if (coarse)
-        out.y = lc_tri8((float)sig[b], (float)sig[b + dx], (float)sig[b + dy], (float)sig[b + dy + dx], (float)sig[c],
-                        (float)sig[c + dx], (float)sig[c + dy], (float)sig[c + dy + dx], fx, fy, fz);
+        out.y = lc_tri8(LC_SIG_DEV(sig[b]), LC_SIG_DEV(sig[b + dx]), LC_SIG_DEV(sig[b + dy]), LC_SIG_DEV(sig[b + dy + dx]),
+                        LC_SIG_DEV(sig[c]), LC_SIG_DEV(sig[c + dx]), LC_SIG_DEV(sig[c + dy]),
+                        LC_SIG_DEV(sig[c + dy + dx]), fx, fy, fz);
 #endif
     return out;
 }
@@ -89,7 +100,7 @@ static LC_HOT float2 lc_brick(__global const lc_voxel* atlas, __global const ush
 /* A sample of a loaded block (entry != 0) at level-0 voxel coordinates q, brick coordinates clamped to [-a, n - 1
  * + a]: a = 0 is eq. 3.5 (interblock's phi_b), a = 1 nearest block through a level-0 brick's apron (`apron`: use
  * it where there is one). */
-static LC_HOT float2 lc_nb_in(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry,
+static LC_HOT float2 lc_nb_in(__global const lc_voxel* atlas, __global const lc_sig* sig, const ulong entry,
                               const int bx, const int by, const int bz, const LcAtlasGeom g, const float3 q,
                               const int apron) {
     const int lvl = (int)(entry & 15UL) - 1;
@@ -107,7 +118,7 @@ static LC_HOT float2 lc_nb_in(__global const lc_voxel* atlas, __global const ush
 }
 
 /* eq. 3.5 */
-static inline float2 lc_nb(__global const lc_voxel* atlas, __global const ushort* sig, const ulong entry, const int bx,
+static inline float2 lc_nb(__global const lc_voxel* atlas, __global const lc_sig* sig, const ulong entry, const int bx,
                            const int by, const int bz, const LcAtlasGeom g, const float3 q) {
     return lc_nb_in(atlas, sig, entry, bx, by, bz, g, q, 0);
 }
@@ -170,7 +181,7 @@ static inline void lc_hood(LcHood* hd, __global const ulong* imap, const LcAtlas
 }
 
 /* eq. 3.6 at q, a point of the neighbourhood's cell */
-static inline float2 lc_hood_sample(__global const lc_voxel* atlas, __global const ushort* sig, const LcAtlasGeom g,
+static inline float2 lc_hood_sample(__global const lc_voxel* atlas, __global const lc_sig* sig, const LcAtlasGeom g,
                                     const LcHood* hd, const float3 q) {
     /* interblock coordinate in level-0 voxels: distance from the cell's centre (the blocks' common corner) */
     const float xs = q.x + 0.5f - (float)hd->cx * g.B, ys = q.y + 0.5f - (float)hd->cy * g.B;
@@ -205,7 +216,7 @@ static inline float2 lc_hood_sample(__global const lc_voxel* atlas, __global con
  * the own one and its neighbour across that face has weight 0 (the fast path's argument, below), and these two take
  * (1 - e, e) of the face's edge weight (the other axes' factors saturate to 1 for both): two NB samples instead of
  * the cell's eight. */
-static inline float2 lc_face_blend(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
+static inline float2 lc_face_blend(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const float2 a, const float ho, const int bx, const int by,
                                    const int bz, const int in_x, const int in_y, const float o, const float3 q) {
     const int up = o > 0.5f * g.B; /* the face above the own block along that axis */
@@ -224,7 +235,7 @@ static inline float2 lc_face_blend(__global const lc_voxel* atlas, __global cons
 
 /* The multiresolution field at q. hd: the last interblock neighbourhood this ray set up (cx = -1: none), reused
  * while the ray's samples stay in it */
-static inline float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global const ushort* sig,
+static inline float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global const lc_sig* sig,
                                        __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q) {
     /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
      * PoCL's out-of-line floor() */
@@ -261,7 +272,7 @@ static inline float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global 
 #endif
 }
 
-static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global const ushort* sig,
+static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global const lc_sig* sig,
                                      __global const ulong* imap, const LcAtlasGeom g, const float3 q) {
     LcHood hd;
     hd.cx = -1;
@@ -361,7 +372,7 @@ static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g,
     return b;
 }
 
-static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global const ushort* sig, __global const ulong* imap,
+static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const LcBlk b, LcHood* hd, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II

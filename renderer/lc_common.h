@@ -10,8 +10,25 @@
  * the device differ: half (or a quarter) of float32's. */
 #ifndef LC_VOXEL
 #define LC_VOXEL float
+#define LC_VOXEL_FLOAT
 #endif
 typedef LC_VOXEL lc_voxel;
+
+/* The deviations beside the atlas (LC_DIST: distribution classification), one per sample of a coarse brick, at the
+ * atlas's offsets, in units of the volume's std_unit. With integer voxels (-DLC_VOXEL) each is a uint that holds
+ * the sample's value as well, its 16 bits below the deviation's, and the coarse bricks live there alone (the atlas
+ * holds level 0 alone, offsets from its own start): a coarse sample gathers one buffer per corner instead of
+ * two, in the same bytes; with float voxels a ushort beside the float atlas, which holds every brick
+ * (renderer/atlas.py: device_atlas). */
+#ifndef LC_VOXEL_FLOAT
+typedef uint lc_sig;
+#define LC_SIG_PACKED
+#define LC_SIG_VALUE(u) ((float)(lc_voxel)as_short((ushort)((u) & 0xFFFFu)))
+#define LC_SIG_DEV(u) ((float)((u) >> 16))
+#else
+typedef ushort lc_sig;
+#define LC_SIG_DEV(u) ((float)(u))
+#endif
 
 /* Linear voxel offset: ulong so that volumes beyond 2^31 voxels address correctly
  * (mirrored by lodcast.renderer.sampler.voxel_offset). */

@@ -162,7 +162,9 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
         single = size * vol.n_voxels
     else:
         lv = np.asarray(levels).astype(np.int64)
-        per = lod_atlas.brick_elements(lv, B) * (size + (2 * (lv >= 1) if with_std else 0))  # deviations: coarse only
+        sig = lod_atlas.deviation_bytes(vol.voxel_dtype) if with_std else 0  # deviations: coarse bricks only
+        coarse = sig if sig == 4 else size + sig  # 4: the coarse values live beside their deviations alone
+        per = lod_atlas.brick_elements(lv, B) * np.where(lv >= 1, coarse, size)
         total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
 
         def data_box(lo, hi) -> tuple[slice, ...]:

@@ -88,7 +88,7 @@
 __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* vol, __global const float4* lut,
                         __global const float* lut_ext, __global const float* block_info, __global float4* out,
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
-                        __global const ushort* sig, __global const float4* dtab, __global const float4* ptab,
+                        __global const lc_sig* sig, __global const float4* dtab, __global const float4* ptab,
                         __global const uchar* prio, __global const float2* spos, __global const uchar* own,
                         __global float* state) {
     const int j = get_global_id(0), i = get_global_id(1);

@@ -214,3 +214,49 @@ def test_quality_goes_through_the_selection(store, quality):
 def test_lod_quality_on_an_array_is_refused():
     with pytest.raises(lodcast.renderer.scene.SceneError, match="^quality: .*lodcast store"):
         render(np.zeros((8, 8, 8), np.float32), {"tf": TF, "width": 4, "height": 4, "quality": "lossless"})
+
+
+@pytest.mark.parametrize("dtype", ["int16", "uint16", "uint8", "int8"])
+def test_integer_voxels_pack_the_coarse_bricks_with_their_deviations(tmp_path, monkeypatch, dtype):
+    """With integer voxels the coarse bricks' values share one uint per sample with their deviations (lc_common.h:
+    lc_sig; the atlas holds level 0 alone): the images and the samples taken (the half-block cells that
+    empty-space skipping walks come from both buffers) are those of the same bricks in a float atlas beside 16-bit
+    deviations (the layout before, kept for float voxels), at random levels with both interpolations."""
+    from lodcast.renderer.volume import VolumeView
+
+    info = np.iinfo(dtype)
+    f = _field((35, 40, 29))
+    vol = np.clip(np.rint((f - f.min()) / np.ptp(f) * 0.9 * (int(info.max) - int(info.min)) + int(info.min)),
+                  info.min, info.max).astype(dtype)
+    st = lodcast.ingest(vol, tmp_path / "i.zarr", block_size=8, progress=False)
+    lo, hi = float(vol.min()), float(vol.max())
+    tf = {"points": [{"value": lo + 0.3 * (hi - lo), "color": [1, 0.5, 0.2], "opacity": 0.0},
+                     {"value": lo + 0.6 * (hi - lo), "color": [0.2, 0.6, 1], "opacity": 0.2},
+                     {"value": hi, "color": [1, 1, 1], "opacity": 0.6}]}
+    rng = np.random.default_rng(abs(hash(dtype)) % 2**32)
+    levels = rng.integers(-1, st.n_levels, st.grid).astype(np.int8)
+    levels[0, 0, 0] = 0
+    levels[-1, -1, -1] = st.n_levels - 1
+    images = {}
+    for layout in ("packed", "float"):
+        if layout == "float":
+            monkeypatch.setattr(VolumeView, "voxel_dtype", property(lambda self: np.dtype(np.float32)))
+        device_cache().clear()
+        for interp in ("nearest_block", "interblock"):
+            r = render(st, {"tf": tf, "width": 40, "height": 36, "format": "npy", "quality": {"reduction": 2},
+                            "camera": {"azimuth": 35, "elevation": 25}, "sampling": {"interpolation": interp}},
+                       levels=levels)
+            assert ("-DLC_VOXEL" in " ".join(r.report["build_options"])) == (layout == "packed")
+            assert "-DLC_DIST" in r.report["build_options"] and r.report["bricks_skipped"] > 0
+            images[layout, interp] = (r.rgba, r.report["samples"])
+        if layout == "packed":  # the coarse bricks in the uint deviations' buffer alone, level 0 in the atlas
+            from lodcast.renderer.volume import as_volume
+
+            da = lod_atlas.device_atlas(as_volume(st), levels, with_std=True)
+            n0 = int(lod_atlas.brick_elements(np.where(levels == 0, 0, -1), 8).sum())
+            assert da.std.size == 4 * lod_atlas.coarse_elements(levels, 8)
+            assert da.atlas.size == np.dtype(dtype).itemsize * n0
+    for interp in ("nearest_block", "interblock"):
+        (a, na), (b, nb) = images["packed", interp], images["float", interp]
+        assert a[..., 3].max() > 0.2 and na == nb, interp
+        np.testing.assert_allclose(a, b, rtol=0, atol=2e-6, err_msg=interp)
