@@ -9,8 +9,9 @@ then copied into the region. Only what ingest writes is handled: a regular chunk
 codec holding `bytes` (+ optional `blosc`), index codecs `bytes` (+ optional `crc32c`), in a LocalStore or an
 fsspec store (object storage: the same reads as byte-range requests — per shard one suffix request for the index,
 then one per span of needed chunks, one work unit per shard — where zarr-python issues one request per inner
-chunk); anything else makes
-`fast_reader` return None so the caller keeps using zarr-python.
+chunk); and, on the local filesystem, unsharded arrays of `bytes` (+ optional `blosc` or `zstd`), the per-block
+metadata (ChunkReader). A local array opens from its zarr.json alone, without importing zarr-python. Anything else
+makes `fast_reader` return None so the caller keeps using zarr-python.
 """
 from __future__ import annotations
 
@@ -207,7 +208,7 @@ def _geometry(meta: dict) -> tuple[tuple[int, ...], np.dtype, Any, Any] | None:
         fill = {"NaN": np.nan, "Infinity": np.inf, "-Infinity": -np.inf}.get(fill)
         if fill is None:
             return None
-    elif not isinstance(fill, (int, float, bool)) or fill is None:
+    elif not isinstance(fill, (int, float, bool)):
         return None
     enc = meta.get("chunk_key_encoding", {"name": "default"})
     sep = (enc.get("configuration") or {}).get("separator")
