@@ -34,7 +34,7 @@ from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import bricks
 from lodcast.renderer.camera import Frame
 from lodcast.opencl import DeviceError, get_context
-from lodcast.renderer.sampler import device_cache, ess_cell, level0_cells, upload_level0
+from lodcast.renderer.sampler import device_cache, ess_cell, level0_buffer, level0_cells, upload_level0
 
 __all__ = ["Region", "PassPlan", "device_budget", "volume_limit", "ghost_voxels", "ring_blocks", "split_grid",
            "visibility_order", "plan", "own_mask", "pass_levels", "pass_steps", "PassStats", "PassData", "volume_data",
@@ -270,7 +270,6 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
     stats.planned = len(regions)
     slices = lod_atlas.slice_max(lod.levels) if lod is not None else None
-    _, queue = get_context()
     for reg in regions:
         own = own_mask(vol.grid, reg)
         t = time.perf_counter()
@@ -281,7 +280,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
                 # a CPU device's buffer is host memory: the brick cache gives way to it while the pass lasts
                 held.enter_context(bricks.holding(nbytes))
                 bricks.brick_cache().trim()
-                data = _level0_pass(vol, reg, shape, nbytes, own, steps, placeholder)
+                data = _level0_pass(vol, reg, shape, own, steps, placeholder)
                 stats.read += int(own.sum())
                 stats.upload_ms += (time.perf_counter() - t) * 1e3
             else:
@@ -301,18 +300,11 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
         release_free_memory()  # the pass's bricks or voxels, freed by many threads, leave the process
 
 
-def _level0_pass(vol, reg: Region, shape: tuple[int, ...], nbytes: int, own: np.ndarray, steps: np.ndarray,
+def _level0_pass(vol, reg: Region, shape: tuple[int, ...], own: np.ndarray, steps: np.ndarray,
                  placeholder: cl.Buffer) -> PassData:
     """A full-resolution pass's data: its voxels read straight into a mapped device buffer (no host copy beside
     it), and the value ranges of its cells for empty-space skipping."""
-    ctx, queue = get_context()
-    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=max(4, nbytes))
-    host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, vol.voxel_dtype)
-    try:
-        vol.read_level0_region(reg.data, host)
-    finally:
-        host.base.release(queue)
-    queue.finish()
+    buf = level0_buffer(vol, reg.data)
     cmin, cmax = level0_cells(buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
     return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.block_size))
 
