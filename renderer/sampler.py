@@ -108,7 +108,7 @@ def level0_buffer(vol: VolumeView, region: tuple[slice, slice, slice]) -> cl.Buf
 def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
     """(device volume, whether it came from the cache). Raises DeviceError when level 0 exceeds the device's
     largest allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)."""
-    ctx, queue = get_context()
+    ctx, _ = get_context()
     dtype = vol.voxel_dtype
     nbytes = vol.n_voxels * dtype.itemsize
     limit = int(ctx.devices[0].max_mem_alloc_size)

@@ -382,10 +382,7 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
     (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
     if meta.level_std is None or meta.n_levels < 2:
         return 0.0
-    z, opac, visible = np.zeros(meta.n), np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
-    for t in tfs:  # ζ_step does not depend on the classification: the default's tables serve
-        _, z_t, o_t, vis_t = _tf_tables(meta, t, "distribution")
-        z, opac, visible = np.maximum(z, z_t), np.maximum(opac, o_t), visible | vis_t
+    _, z, opac, visible = _max_tables(meta, tfs, "distribution")  # ζ_step: the same under either classification
     loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
     w = np.nan_to_num(meta.count[loaded].astype(np.float64))
     if not loaded.any() or w.sum() <= 0:
@@ -421,8 +418,8 @@ def select_from_meta(
     per_level = meta.level_std is not None and method == "tf"
     opac = None
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
-        zeta_tab, opac, visible = _level_tables(meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs,
-                                                classification)
+        zeta_tab, _, opac, visible = _max_tables(
+            meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs, classification)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
@@ -522,14 +519,16 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str) -> tuple[np.ndarra
     return out
 
 
-def _level_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ζ(k) per block and level (N, L) float32, opacity moments (N, 2), TF-visible blocks (N,)): the elementwise
-    maxima over the TFs of their tables (zeros where no TF gives more)."""
-    zeta, opac, visible = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
+def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> tuple[np.ndarray, ...]:
+    """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,)): the elementwise maxima
+    over the TFs of their tables (zeros where no TF gives more)."""
+    zeta, step = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros(meta.n)
+    opac, visible = np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
     for t in tfs:
-        z_t, _, o_t, vis_t = _tf_tables(meta, t, classification)
-        zeta, opac, visible = np.maximum(zeta, z_t), np.maximum(opac, o_t), visible | vis_t
-    return zeta, opac, visible
+        z_t, s_t, o_t, vis_t = _tf_tables(meta, t, classification)
+        zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
+        opac, visible = np.maximum(opac, o_t), visible | vis_t
+    return zeta, step, opac, visible
 
 
 def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numcodecs import blosc
+from numcodecs import blosc, zstd
 
 from lodcast.errors import StoreCorrupt
 
@@ -287,8 +287,6 @@ class ChunkReader(_Reader):
             if self._codec == "blosc":
                 data = blosc.decompress(raw)
             elif self._codec == "zstd":
-                from numcodecs import zstd
-
                 data = zstd.decompress(raw)
             else:
                 data = raw
