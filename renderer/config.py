@@ -71,6 +71,12 @@ class KernelConfig:
         if self.ess and self.mode in ("average", "iso"):
             raise ValueError(f"mode {self.mode!r} reads every sample: no empty-space skipping")
 
+    @property
+    def leap(self) -> bool:
+        """Space leaping over empty cells (LC_LEAP): the walk's info holds the leap radii (renderer/leap.py).
+        Where the walk's skip depends on the ray (MIP, a second TF) or on a pass's blocks it walks cell by cell."""
+        return self.ess and self.mode == "composite" and not self.tf2 and not self.passes and not self.adaptive_naive
+
     def build_options(self) -> tuple[str, ...]:
         opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]
         if self.sampler == "atlas":
@@ -88,6 +94,7 @@ class KernelConfig:
         for flag, name in (
             (self.orthographic, "LC_ORTHO"),
             (self.ess, "LC_ESS"),
+            (self.leap, "LC_LEAP"),
             (self.jitter, "LC_JITTER"),
             (self.precise and self.mode == "composite", "LC_PRECISE"),
             (self.background, "LC_BACKGROUND"),

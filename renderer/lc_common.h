@@ -164,4 +164,25 @@ static inline float lc_sample(__global const lc_voxel* vol, const int4 dims, con
     const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;                                                    \
     const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
 
+/* Space leaping (renderer/leap.py) in the DDA of LC_DDA_BEGIN: every cell within r - 1 (r >= 2) of the DDA's cell
+ * is one the walk would pass alike, so the ray leaves that cube of cells in one step: te is when it crosses the
+ * cube's face, (bx, by, bz) becomes the cell it enters there and (tnx, tny, tnz) its next crossings. The crossing
+ * times are summed step by step, as the DDA's own steps sum them, so that the leap ends in the state the DDA would
+ * reach cell by cell (bit for bit, but for crossings at the very same time as the cube's exit). The exit axis
+ * crosses r faces, the others those they cross before te; ties go to the axis the DDA's own step would take. */
+#define LC_DDA_LEAP(r, te)                                                                                     \
+    {                                                                                                          \
+        float ex_ = tnx, ey_ = tny, ez_ = tnz;                                                                 \
+        for (int i_ = 1; i_ < (r); ++i_) {                                                                     \
+            ex_ += tdx;                                                                                        \
+            ey_ += tdy;                                                                                        \
+            ez_ += tdz;                                                                                        \
+        }                                                                                                      \
+        const int ax_ = ex_ <= ey_ && ex_ <= ez_ ? 0 : (ey_ <= ez_ ? 1 : 2);                                   \
+        te = ax_ == 0 ? ex_ : (ax_ == 1 ? ey_ : ez_);                                                          \
+        if (ax_ == 0) { bx += sx * (r); tnx = ex_ + tdx; } else { while (tnx < te) { bx += sx; tnx += tdx; } } \
+        if (ax_ == 1) { by += sy * (r); tny = ey_ + tdy; } else { while (tny < te) { by += sy; tny += tdy; } } \
+        if (ax_ == 2) { bz += sz * (r); tnz = ez_ + tdz; } else { while (tnz < te) { bz += sz; tnz += tdz; } } \
+    }
+
 #endif

@@ -10,8 +10,10 @@
  *                     step is step * 2^s; the steps restart at every face of a coarse cell (limited: a long step
  *                     never runs into a finer block) and run on between level-0 cells (level 0 is sampled on full
  *                     resolution's lattice);
+ *                     a coarse cell's part of the ray takes the nearest whole number of steps (the last one h/2
+ *                     to 3h/2 long), a level-0 cell's its whole steps and a cut one;
  *                     each segment's opacity is corrected for its length (whole steps from a per-level alpha
- *                     table, the cut one from the extinction): constant regions stay exact
+ *                     table, the last one from the extinction): constant regions stay exact
  *   LC_LATTICE        with LC_ADAPTIVE: level 0 on full resolution's lattice after coarse cells too (the coarse
  *                     cell's last step ends where the lattice's first step into the level-0 cell begins)
  *   LC_ADAPTIVE_NAIVE with LC_ADAPTIVE: for comparison/benchmarks only: the step is chosen by the cell where it
@@ -28,6 +30,11 @@
  *   LC_ESS            empty-space skipping: march cell by cell (3D DDA over P->ess_grid: at full resolution cells
  *                     finer than the blocks, on the atlas half-block cells) and skip cells whose block_info says
  *                     nothing there can contribute, without sampling them
+ *   LC_LEAP           with LC_ESS (composite, one TF, one pass): space leaping (renderer/leap.py). An empty cell's
+ *                     block_info holds -r, r its Chebyshev distance in cells to the nearest cell that is not
+ *                     (capped): the ray leaves the cube of (2r - 1)^3 cells around it in one step instead of a DDA
+ *                     step per cell. With LC_ADAPTIVE block_info holds r >= 2 in the cubes of skipped level-0 cells
+ *                     of the half-block cells (0 elsewhere)
  *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)
  *   LC_PRECISE        compensated (Kahan) sums of optical depth and colour, for rays of very many samples
  *   LC_BACKGROUND     composite the background under the integral
@@ -319,6 +326,19 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
             /* a coarse cell's last step ends at its exit, or with LC_LATTICE ("lossless") before a level-0 cell
              * where the lattice's first step whose sample lies in that cell begins (within a base step of the
              * face), so that level 0 takes full resolution's samples there too */
+#ifdef LC_LEAP
+            /* in a cube of skipped level-0 cells (renderer/leap.py: step_leaps; block_info holds its radius r >= 2)
+             * leave the cube at once: such cells leave t where it is, so the walk goes on as it would cell by cell */
+            if (code == -1 && bx >= 0 && bx < hx && by >= 0 && by < hy && bz >= 0 && bz < hz) {
+                const float lf = block_info[((ulong)bz * (ulong)hy + (ulong)by) * (ulong)hx + (ulong)bx];
+                if (lf >= 2.0f) {
+                    float te;
+                    LC_DDA_LEAP((int)lf, te)
+                    tc = te < t1 ? te : t1;
+                    continue;
+                }
+            }
+#endif
             const int ax = tnx <= tny && tnx <= tnz ? 0 : (tny <= tnz ? 1 : 2); /* the face the ray leaves by */
             float t_exit = tb;
 #ifdef LC_LATTICE
@@ -363,8 +383,17 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                             }
                         }
                     }
-                    if (!run_on) { /* all whole but the last one, cut at tcut */
-                        whole = lc_ceil_i((tcut - t) * inv_dt * lc_exp2_neg(lvl)) - 1;
+                    if (!run_on) { /* all whole but the last one, which ends at tcut */
+                        if (lvl == 0) { /* the last one cut: level 0 keeps full resolution's lattice */
+                            whole = lc_ceil_i((tcut - t) * inv_dt) - 1;
+                        } else {
+                            /* the nearest whole number of steps (at least one): the last one h/2 to 3h/2 long. A
+                             * cut step took one more sample per coarse cell, often for a sliver of it: rounding
+                             * took 3-18% fewer samples from 5:1 to 100:1 on the chest and engine CTs (five TFs,
+                             * 256²), summed mean ΔE 42.66 against 43.53 over nine chest images and 36.20 against
+                             * 35.97 over eight engine ones; rounding down (steps up to 2h) added 0.9 on the chest */
+                            whole = (int)((tcut - t) * inv_dt * lc_exp2_neg(lvl) + 0.5f) - 1;
+                        }
                         whole = whole < 0 ? 0 : whole;
                     }
                     const float3 qa = q0 + (t + u * h) * dq, dqh = h * dq;
@@ -386,7 +415,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                         if (!done) {
                             const float a = t + (float)whole * h;
                             float len = tcut - a;
-                            len = len < h ? len : h;
+                            len = lvl == 0 ? (len < h ? len : h) : len;
                             if (len > 0.0f) {
                                 const float3 qs = q0 + (a + u * len) * dq;
                                 const float2 vs = LC_SAMPLE_B(qs);
@@ -444,7 +473,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #elif defined(LC_TF2)
                 skip = ((int)info & ((sat ? 0 : 1) | (sat2 ? 0 : 2))) == 0; /* no running integral sees it */
 #else
-                skip = info == 0.0f; /* TF opacity zero over the block's border-inclusive value range */
+                skip = info <= 0.0f; /* TF opacity zero over the block's border-inclusive value range */
 #endif
 #ifdef LC_PASSES
                 owned = own[((bz / cpb) * bgy + by / cpb) * bgx + bx / cpb];
@@ -458,6 +487,16 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                      * samples the run covers lie before t_skip <= tb */
                     if (tb < t1) LC_FIRST_AT(tb, k, k_end)
                 }
+#ifdef LC_LEAP
+                if (info <= -2.0f) { /* every cell within r - 1 of this one is empty: leave that cube at once */
+                    float te;
+                    LC_DDA_LEAP((int)(-info), te)
+                    if (te >= t1) break; /* the ray leaves the box in the cube: nothing after it */
+                    inside = bx >= 0 && bx < gx && by >= 0 && by < gy && bz >= 0 && bz < gz;
+                    t_skip = te;
+                    continue;
+                }
+#endif
                 if (tnx <= tny && tnx <= tnz) {
                     bx += sx; tnx += tdx; inside = bx >= 0 && bx < gx;
                 } else if (tny <= tnz) {

@@ -45,6 +45,7 @@ from lodcast.renderer import screen as screen_space
 from lodcast.renderer import visibility
 from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
+from lodcast.renderer.leap import step_leaps, with_leaps
 from lodcast.renderer.preintegration import PreintTable, preintegrate
 from lodcast.opencl import device_info, get_context, get_program
 from lodcast.renderer.scene import OrbitCamera, Scene, SceneError
@@ -156,6 +157,13 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
     empty-space skipping (data.cell voxels, sampler.ess_cell), with the clip region's cells outside empty; on the
     atlas over its half-block cells (data.cells): the selection's block info where the cell's field can show
     something (`atlas_cell_info`), else the block info."""
+    info, grid = _walk_cells(pr, data)
+    if pr.config.leap and not pr.config.adaptive:
+        info = with_leaps(info)
+    return info, grid
+
+
+def _walk_cells(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, tuple[int, int, int, int]]:
     vol = pr.volume
     B = int(vol.block_size)
     if data.cells is not None:
@@ -666,14 +674,16 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         multipass.fill_pass(p, data.region, pr, k == 0)
         walk, p[0]["ess_grid"] = _walk_info(pr, data)
         if k == 0:  # the program, once the walk's cells are known
-            if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and walk.all():
+            if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and (walk > 0).all():
                 cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
             options = cfg.build_options()
             built = get_program("raycast.cl", options)
             kern = cl.Kernel(built.program, "lc_render")
+        steps = walk_steps(pr, data.steps, walk) if cfg.adaptive and data.cells is not None else data.steps
+        if cfg.adaptive and cfg.leap:  # the adaptive walk reads its cells' skips in the steps, its leaps here
+            walk = step_leaps(steps)
         d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
         d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-        steps = walk_steps(pr, data.steps, walk) if cfg.adaptive and data.cells is not None else data.steps
         d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)
         d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
         kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,

@@ -55,7 +55,10 @@ def test_report_has_the_contract_keys(blob):
 
 
 def test_build_options_follow_the_scene():
-    assert KernelConfig().build_options() == ("-DLC_SAMPLER_FULL", "-DLC_ESS")
+    assert KernelConfig().build_options() == ("-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_LEAP")
+    # leaping needs a skip that only the cells decide: not MIP's, a second TF's or a pass's
+    for kw in ({"mode": "mip"}, {"tf2": True}, {"passes": True}, {"ess": False}):
+        assert "-DLC_LEAP" not in KernelConfig(**kw).build_options(), kw
     opts = KernelConfig(mode="mip", orthographic=True, ess=False, jitter=True, precise=True, background=True).build_options()
     assert set(opts) == {"-DLC_SAMPLER_FULL", "-DLC_MODE_MIP", "-DLC_ORTHO", "-DLC_JITTER", "-DLC_BACKGROUND"}
     assert "-DLC_PRECISE" in KernelConfig(precise=True).build_options()
@@ -67,13 +70,13 @@ def test_render_reports_the_options_it_built_with():
     vol = np.zeros((4, 4, 40), np.float32)
     vol[..., :20] = 1.0  # two 32³ blocks along x; the second one is empty under TF_SPARSE
     cases = [
-        ({}, {"-DLC_SAMPLER_FULL", "-DLC_ESS"}),
+        ({}, {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_LEAP"}),
         ({"mode": "mip"}, {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_MODE_MIP"}),
         ({"camera": {"eye": [-9, 1.5, 1.5], "target": [0, 1.5, 1.5], "projection": "orthographic", "view_height": 3}},
-         {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_ORTHO"}),
+         {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_LEAP", "-DLC_ORTHO"}),
         ({"sampling": {"jitter": True, "empty_space_skipping": False}}, {"-DLC_SAMPLER_FULL", "-DLC_JITTER"}),
-        ({"background": [0, 0, 0, 1]}, {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_BACKGROUND"}),
-        ({"sampling": {"step": 0.001}}, {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_PRECISE"}),
+        ({"background": [0, 0, 0, 1]}, {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_LEAP", "-DLC_BACKGROUND"}),
+        ({"sampling": {"step": 0.001}}, {"-DLC_SAMPLER_FULL", "-DLC_ESS", "-DLC_LEAP", "-DLC_PRECISE"}),
     ]
     for kw, want in cases:
         r = render(vol, scene(width=4, height=4, **kw))
