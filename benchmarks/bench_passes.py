@@ -9,8 +9,8 @@ data on the device at once, kernel / upload / wall ms (the fastest of `repeat` a
 keeps nothing on the device, so every repeat reads its regions again) and the largest difference from the
 uncapped image (0: bit for bit) with its mean ΔE.
 
-Cells: the same scenes at full resolution with the walk over the store's 16³ blocks and over 8³ cells
-(sampler.ess_cell): samples taken and kernel ms, the fastest of `repeat`, ratios from this run. The machine is
+Cells: the same scenes at full resolution with the walk over the store's 16³ blocks and over its
+cells (sampler.ess_cell: 4³ or 8³): samples taken and kernel ms, the fastest of `repeat`, ratios from this run. The machine is
 shared: compare ratios within one run. Prints markdown tables and writes JSON.
 """
 from __future__ import annotations
@@ -72,7 +72,7 @@ def main() -> None:
                     print(passes[-1], flush=True)
             _budget(None)
             row = {"volume": label, "tf": tf or "engine"}
-            for cell, key in ((lambda B: B, "blocks"), (sampler.ess_cell, "cells8")):
+            for cell, key in ((lambda shape, B: B, "blocks"), (sampler.ess_cell, "cells")):
                 orig = sampler.ess_cell
                 sampler.ess_cell = cell
                 sampler.device_cache().clear()
@@ -81,8 +81,8 @@ def main() -> None:
                 finally:
                     sampler.ess_cell = orig
                 row[f"{key}_samples"], row[f"{key}_kernel_ms"] = r.report["samples"], r.report["kernel_ms"]
-            row["sample_ratio"] = row["cells8_samples"] / row["blocks_samples"]
-            row["kernel_speedup"] = row["blocks_kernel_ms"] / row["cells8_kernel_ms"]
+            row["sample_ratio"] = row["cells_samples"] / row["blocks_samples"]
+            row["kernel_speedup"] = row["blocks_kernel_ms"] / row["cells_kernel_ms"]
             cells.append(row)
             print(row, flush=True)
     sampler.device_cache().clear()
@@ -92,11 +92,11 @@ def main() -> None:
         lines.append(f"| {r['volume']} | {r['tf']} | {r['quality']} | {r['budget_mb'] or '—'} | {r['passes']} | "
                      f"{r['device_mb']:.1f} | {r['kernel_ms']:.0f} | {r['upload_ms']:.0f} | {r['wall_ms']:.0f} | "
                      f"{r['max_abs_diff']:.3g} | {r['delta_e_mean']:.3g} |")
-    lines += ["", "| volume | TF | samples 16³ blocks → 8³ cells | kernel ms 16³ → 8³ | kernel speed-up |",
+    lines += ["", "| volume | TF | samples 16³ blocks → cells | kernel ms 16³ blocks → cells | kernel speed-up |",
               "|" + "---|" * 5]
     for r in cells:
-        lines.append(f"| {r['volume']} | {r['tf']} | {r['blocks_samples'] / 1e6:.1f} M → {r['cells8_samples'] / 1e6:.1f} M "
-                     f"({r['sample_ratio']:.2f}) | {r['blocks_kernel_ms']:.0f} → {r['cells8_kernel_ms']:.0f} | "
+        lines.append(f"| {r['volume']} | {r['tf']} | {r['blocks_samples'] / 1e6:.1f} M → {r['cells_samples'] / 1e6:.1f} M "
+                     f"({r['sample_ratio']:.2f}) | {r['blocks_kernel_ms']:.0f} → {r['cells_kernel_ms']:.0f} | "
                      f"{r['kernel_speedup']:.2f}× |")
     table = "\n".join(lines)
     print(f"\n{a.size}², {device}\n\n{table}")

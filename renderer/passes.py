@@ -306,7 +306,7 @@ def _level0_pass(vol, reg: Region, shape: tuple[int, ...], own: np.ndarray, step
     it), and the value ranges of its cells for empty-space skipping."""
     buf = level0_buffer(vol, reg.data)
     cmin, cmax = level0_cells(buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
-    return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.block_size))
+    return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size))
 
 
 def _cells(pr, da: "lod_atlas.DeviceAtlas",

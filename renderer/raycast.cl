@@ -456,6 +456,17 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
          * run ends (t_skip: the time it ends at; -inf: none), with the same result as cell by cell (the first
          * index >= k whose position is >= the time, and positions are monotone in k). */
         float t_skip = -INFINITY;
+/* the walk's step into the next cell */
+#define LC_WALK_STEP                                                                                           \
+    {                                                                                                          \
+        if (tnx <= tny && tnx <= tnz) {                                                                        \
+            bx += sx; tnx += tdx; inside = bx >= 0 && bx < gx;                                                 \
+        } else if (tny <= tnz) {                                                                               \
+            by += sy; tny += tdy; inside = by >= 0 && by < gy;                                                 \
+        } else {                                                                                               \
+            bz += sz; tnz += tdz; inside = bz >= 0 && bz < gz;                                                 \
+        }                                                                                                      \
+    }
         while (k < n && !done) {
 #ifdef LC_PASSES
             if (LC_POS(k) > t_pass_end) break; /* past the region: nothing more of this pass's */
@@ -483,9 +494,21 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #if defined(LC_SAMPLER_ATLAS) && defined(LC_ESS) /* (without LC_ESS the walk only splits samples among passes) */
                     blk = lc_blk_cell(imap, geom, bx, by, bz, cpb);
 #endif
+#if defined(LC_LEAP) && defined(LC_SAMPLER_FULL)
+                    /* the run of cells to sample that this one begins, sampled in one loop: each further cell
+                     * costs its DDA step alone (the samples are the same: only a skip cuts the loop) */
+                    float t_run = tb;
+                    for (;;) {
+                        LC_WALK_STEP
+                        if (!inside || t_run >= t1 || block_info[(bz * gy + by) * gx + bx] <= 0.0f) break;
+                        t_run = tnx < tny ? (tnx < tnz ? tnx : tnz) : (tny < tnz ? tny : tnz);
+                    }
+                    if (t_run < t1) LC_FIRST_AT(t_run, k, k_end)
+#else
                     /* from k before a pending run of skipped cells is resolved below: the same index, since the
                      * samples the run covers lie before t_skip <= tb */
                     if (tb < t1) LC_FIRST_AT(tb, k, k_end)
+#endif
                 }
 #ifdef LC_LEAP
                 if (info <= -2.0f) { /* every cell within r - 1 of this one is empty: leave that cube at once */
@@ -497,13 +520,11 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                     continue;
                 }
 #endif
-                if (tnx <= tny && tnx <= tnz) {
-                    bx += sx; tnx += tdx; inside = bx >= 0 && bx < gx;
-                } else if (tny <= tnz) {
-                    by += sy; tny += tdy; inside = by >= 0 && by < gy;
-                } else {
-                    bz += sz; tnz += tdz; inside = bz >= 0 && bz < gz;
-                }
+#if defined(LC_LEAP) && defined(LC_SAMPLER_FULL)
+                if (skip) LC_WALK_STEP /* (a run to sample has stepped past itself) */
+#else
+                LC_WALK_STEP
+#endif
                 if (skip) {
                     if (tb >= t1) break; /* the ray leaves the box in this cell: nothing after it */
 #ifdef LC_PASSES
@@ -562,6 +583,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif /* LC_ADAPTIVE */
 #undef LC_POS
 #undef LC_FIRST_AT
+#undef LC_WALK_STEP
     }
 
 #ifdef LC_PASSES

@@ -60,6 +60,7 @@ LOCAL_SIZE = (8, 8)
 _SELECTIONS = ByteLru(4)  # the last 4 level-of-detail selections (store, TFs, quality, classification, crop)
 _STEP_ERRORS = ByteLru(8)  # the last 8 predicted step errors (store, TFs, step, crop)
 _STEPS = ByteLru(64 << 20)  # adaptive sampling's step levels of recent selections
+_WALKS = ByteLru(64 << 20)  # full resolution's walk info (cell visibility and leaps) of recent volumes, TFs and clips
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
 MAX_SAMPLES_PER_RAY = 2**30
 
@@ -157,10 +158,29 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
     empty-space skipping (data.cell voxels, sampler.ess_cell), with the clip region's cells outside empty; on the
     atlas over its half-block cells (data.cells): the selection's block info where the cell's field can show
     something (`atlas_cell_info`), else the block info."""
+    key = _walk_key(pr, data)
+    if key is not None:
+        hit = _WALKS.get(key)
+        if hit is not None and hit[0] is data.cell_min:  # (the reference held keeps the id from being reused)
+            return hit[1], hit[2]
     info, grid = _walk_cells(pr, data)
     if pr.config.leap and not pr.config.adaptive:
         info = with_leaps(info)
+    if key is not None:
+        _WALKS.put(key, (data.cell_min, info, grid), info.nbytes)
     return info, grid
+
+
+def _walk_key(pr: "Prepared", data: "multipass.PassData") -> tuple | None:
+    """What full resolution's walk info depends on, besides the cells' ranges (data.cell_min, by identity: the
+    device cache keeps them per volume): the TFs' opacities (only where they are zero matters, but the tables are
+    small), the mode, the clip planes and the leaps. Passes and the atlas: None (computed per render)."""
+    if data.cells is not None or data.cell_min is None or data.region is not None or not pr.config.ess:
+        return None
+    luts = [pr.lut] + ([] if pr.second is None else [pr.second.lut])
+    tfs = tuple((t.lo, t.scale, t.n, hashlib.blake2b((t.opacity > 0).tobytes(), digest_size=16).digest()) for t in luts)
+    clip = None if pr.scene.clip is None else pr.scene.clip.model_dump_json()
+    return id(data.cell_min), data.cell, pr.scene.mode, tfs, clip, pr.config.leap and not pr.config.adaptive
 
 
 def _walk_cells(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, tuple[int, int, int, int]]:

@@ -7,6 +7,7 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
+import lodcast
 from lodcast.renderer import sampler
 from lodcast.opencl import get_context
 from lodcast.renderer.render import render
@@ -27,7 +28,8 @@ def test_cell_ranges_match_numpy(shape):
     a = rng.normal(size=shape).astype(np.float32)
     a[a > 1.8] = np.nan
     vol = as_volume(a)
-    ref_min, ref_max = block_minmax_border(a, 8)  # float64, NaN-ignoring, one-voxel border
+    C = sampler.ess_cell(a.shape, 16)
+    ref_min, ref_max = block_minmax_border(a, C)  # float64, NaN-ignoring, one-voxel border
     mn, mx = sampler.level0_cells(_buf(a), a.shape, (0, 0, 0), tuple(slice(0, g) for g in vol.grid), vol)
     assert np.array_equal(mn, ref_min, equal_nan=True) and np.array_equal(mx, ref_max, equal_nan=True)
     G = vol.grid
@@ -37,7 +39,8 @@ def test_cell_ranges_match_numpy(shape):
         hi = tuple(min(s, (g - 1) * 16 + 3) for s, g in zip(shape, G))
         sub = a[tuple(slice(l, h) for l, h in zip(lo, hi))]
         pmn, pmx = sampler.level0_cells(_buf(sub), sub.shape, lo, blocks, vol)
-        own = tuple(slice(2, 2 * (g - 1)) for g in G)
+        k = 16 // C  # cells per block edge
+        own = tuple(slice(k, k * (g - 1)) for g in G)
         assert np.array_equal(pmn[own], ref_min[own], equal_nan=True)
         assert np.array_equal(pmx[own], ref_max[own], equal_nan=True)
         rest = np.ones(pmn.shape, bool)
@@ -63,7 +66,7 @@ def test_finer_cells_take_fewer_samples_and_change_nothing(monkeypatch, extra):
     scene = {"tf": BONE, "width": 64, "height": 64, "camera": {"azimuth": 30, "elevation": 20}, **extra}
     off = render(a, {**scene, "sampling": {**scene.get("sampling", {}), "empty_space_skipping": False}})
     fine = render(a, scene)
-    monkeypatch.setattr(sampler, "ess_cell", lambda B: B)  # the walk over the store's blocks, as before
+    monkeypatch.setattr(sampler, "ess_cell", lambda shape, B: B)  # the walk over the store's blocks, as before
     blocks = render(a, scene)
     assert np.array_equal(fine.rgba, off.rgba), float(np.abs(fine.rgba - off.rgba).max())
     assert np.array_equal(blocks.rgba, off.rgba)
@@ -71,3 +74,45 @@ def test_finer_cells_take_fewer_samples_and_change_nothing(monkeypatch, extra):
     assert n_fine <= n_blocks <= n_off
     if "mode" not in extra:  # composite: the thin shells leave most 8³ cells of their 16³ blocks empty
         assert n_fine < 0.85 * n_blocks, (n_fine, n_blocks)
+
+
+def test_cell_edge_follows_the_grid_size():
+    """4³ cells while their grid stays within FINE_CELLS, else the store's 8³ (or the block, below 8)."""
+    assert sampler.ess_cell((128, 256, 256), 16) == 4  # the engine CT: 131,072 cells of 4³
+    assert sampler.ess_cell((275, 512, 512), 16) == 8  # the chest CT: 1.1 million
+    assert sampler.ess_cell((275, 512, 512), 32) == 8
+    assert sampler.ess_cell((64, 64, 64), 8) == 4
+    assert sampler.ess_cell((64, 64, 64), 4) == 4 and sampler.ess_cell((64, 64, 64), 2) == 2
+    n = int(sampler.FINE_CELLS ** (1 / 3)) * 4
+    assert sampler.ess_cell((n, n, n), 16) == 4 and sampler.ess_cell((n, n, n + 8), 16) == 8
+
+
+def test_walk_info_is_kept_per_volume_visibility_and_clip(monkeypatch, tmp_path):
+    """Full resolution's walk info (cell visibility and leaps) is computed once per volume, TF zero pattern, mode
+    and clip: a TF that only changes colours and non-zero opacities reuses it, any other change recomputes it, and
+    every image equals one rendered with nothing kept."""
+    from lodcast.renderer import render as R
+
+    calls = []
+    orig = R.range_info
+    monkeypatch.setattr(R, "range_info", lambda *a, **k: calls.append(1) or orig(*a, **k))
+    a = _ribs()
+    st = lodcast.ingest(a, tmp_path / "ribs.zarr", progress=False)
+    base = {"width": 48, "height": 40, "camera": {"azimuth": 30, "elevation": 20}}
+    recolour = {"points": [{"value": 300, "color": [0.2, 0.9, 0.8], "opacity": 0.0},
+                           {"value": 900, "color": [1, 0.5, 1], "opacity": 0.3}]}
+    wider = {"points": [{"value": 20, "color": [1, 0.9, 0.8], "opacity": 0.0},
+                        {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}
+    clip = {"planes": [{"normal": [1, 0, 0], "point": [30, 0, 0]}]}
+    scenes = [{**base, "tf": BONE}, {**base, "tf": BONE}, {**base, "tf": recolour}, {**base, "tf": wider},
+              {**base, "tf": BONE, "clip": clip}, {**base, "tf": BONE}, {**base, "tf": BONE, "mode": "mip"}]
+    counts, images = [], []
+    for sc in scenes:
+        n0 = len(calls)
+        images.append(render(st, sc).rgba)
+        counts.append(len(calls) - n0)
+    # per render one call for the blocks' info; a second one where the cells' walk info is computed afresh
+    assert counts == [2, 1, 1, 2, 2, 1, 2], counts
+    R._WALKS.clear()
+    for sc, img in zip(scenes, images):
+        assert np.array_equal(render(st, sc).rgba, img)

@@ -99,6 +99,14 @@ def stores(tmp_path_factory):
     return [lodcast.ingest(_volume(s), d / f"v{s}.zarr", block_size=8, progress=False) for s in range(2)]
 
 
+@pytest.fixture(autouse=True)
+def fresh_walks():
+    """Full resolution keeps its walk info per volume and TF (render._WALKS): each test computes its own."""
+    R._WALKS.clear()
+    yield
+    R._WALKS.clear()
+
+
 def _no_leaps(monkeypatch):
     monkeypatch.setattr(R, "with_leaps", lambda info: info)
     monkeypatch.setattr(R, "step_leaps", lambda steps: np.zeros(steps.shape, np.float32))
@@ -125,6 +133,7 @@ def test_leaps_change_no_image(stores, variant, seed, monkeypatch):
     on = lodcast.render(st, scene)
     assert len(used) == 1 and (np.abs(used[0]) >= 2).any()
     _no_leaps(monkeypatch)
+    R._WALKS.clear()
     off = lodcast.render(st, scene)
     assert on.rgba[..., 3].max() > 0.3
     assert np.abs(on.rgba - off.rgba).max() <= 1e-6
@@ -140,6 +149,7 @@ def test_the_kernel_follows_the_map(stores, variant, monkeypatch):
     scene = {"tf": TF, "width": 32, "height": 32, "format": "npy", "camera": {"azimuth": 30, "elevation": 20},
              **VARIANTS[variant]}
     right = lodcast.render(stores[0], scene)
+    R._WALKS.clear()
     monkeypatch.setattr(R, "with_leaps", lambda info: np.where(info <= 0, -float(LEAP_MAX), info).astype(np.float32))
     monkeypatch.setattr(R, "step_leaps", lambda steps: np.where(steps == -1, float(LEAP_MAX), 0.0).astype(np.float32))
     wrong = lodcast.render(stores[0], scene)

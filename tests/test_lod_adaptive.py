@@ -9,7 +9,9 @@ import pytest
 
 import lodcast
 from lodcast.renderer.render import render
-from lodcast.renderer import passes
+from lodcast.renderer import passes, sampler
+from lodcast.renderer.sampler import device_cache
+from lodcast.store.layout import cell_edge
 
 B = 16
 A = 0.1  # TF opacity of value 1 per unit distance (1 voxel)
@@ -220,7 +222,11 @@ def test_level_zero_steps_lie_on_full_resolutions_lattice(tmp_path, monkeypatch,
         cam = {"azimuth": float(rng.uniform(0, 360)), "elevation": float(rng.uniform(-60, 60))}
         scene = {"tf": tf, "width": 24, "height": 24, "camera": cam, "format": "npy",
                  "sampling": {"step": float(rng.uniform(0.3, 0.9)), "early_termination": 1.0}}
-        full = render(st, scene)
+        with monkeypatch.context() as m:  # full resolution's walk over the atlas's cells (this volume's own: 4³)
+            m.setattr(sampler, "ess_cell", lambda shape, b: cell_edge(b))
+            device_cache().clear()
+            full = render(st, scene)
+            device_cache().clear()
         lod = render(st, {**scene, "quality": "lossless",
                           "sampling": {**scene["sampling"], "adaptive_object": True}},
                      levels=np.zeros(st.layout.grid, np.int8))

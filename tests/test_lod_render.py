@@ -11,7 +11,9 @@ import lod_reference as ref
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import bricks
 from lodcast.renderer.render import render
+from lodcast.renderer import sampler
 from lodcast.renderer.sampler import device_cache
+from lodcast.store.layout import cell_edge
 
 B = 16
 TF = {"points": [{"value": -1.0, "color": [1, 0, 0], "opacity": 0.0}, {"value": 1.0, "color": [0, 1, 0], "opacity": 0.08},
@@ -44,8 +46,14 @@ def _scene(cam, interp="interblock", **sampling):
 
 
 @pytest.mark.parametrize("cam", CAMERAS)
-def test_interblock_all_level0_equals_full_resolution(store, cam):
+def test_interblock_all_level0_equals_full_resolution(store, cam, monkeypatch):
+    """Every block at level 0 through the atlas gives full resolution's image and, with full resolution's walk
+    over the same 8³ cells as the atlas's half blocks (this small volume's own walk is over 4³ cells), its
+    samples."""
+    monkeypatch.setattr(sampler, "ess_cell", lambda shape, b: cell_edge(b))
+    sampler.device_cache().clear()  # (a level 0 uploaded with the finer cells)
     full = render(store, _scene(cam))
+    sampler.device_cache().clear()
     lod = render(store, _scene(cam), levels=np.zeros(store.grid, np.int8))
     assert np.abs(lod.rgba - full.rgba).max() <= 1e-4
     assert full.rgba[..., 3].max() > 0.3
