@@ -174,8 +174,10 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
 def _walk_key(pr: "Prepared", data: "multipass.PassData") -> tuple | None:
     """What full resolution's walk info depends on, besides the cells' ranges (data.cell_min, by identity: the
     device cache keeps them per volume): the TFs' opacities (only where they are zero matters, but the tables are
-    small), the mode, the clip planes and the leaps. Passes and the atlas: None (computed per render)."""
-    if data.cells is not None or data.cell_min is None or data.region is not None or not pr.config.ess:
+    small), the mode, the clip planes and the leaps. Passes, the atlas and volumes the device cache does not keep
+    (arrays without a key): None (computed per render)."""
+    if (data.cells is not None or data.cell_min is None or data.region is not None or not pr.config.ess
+            or pr.volume.key is None):
         return None
     luts = [pr.lut] + ([] if pr.second is None else [pr.second.lut])
     tfs = tuple((t.lo, t.scale, t.n, hashlib.blake2b((t.opacity > 0).tobytes(), digest_size=16).digest()) for t in luts)
