@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LEAP_MAX", "leap_radii", "step_leaps", "with_leaps"]
+__all__ = ["LEAP_MAX", "child_leaps", "children", "coarsen_ranges", "leap_radii", "step_leaps", "with_leaps"]
 
 #: the largest radius stored: leaps of at least 15 cells (120 voxels at full resolution's 8³ cells) are long
 #: enough that the DDA steps left over are few, and the map's passes stay cheap on large grids
@@ -70,3 +70,41 @@ def step_leaps(steps: np.ndarray) -> np.ndarray:
     2 in 9 chest and engine CT selections from 10:1 to 100:1, against 8,600-93,000 level-0 cells that leap.)"""
     r = leap_radii(np.asarray(steps) == -1)
     return np.ascontiguousarray(np.where(r >= 2, r, 0).astype(np.float32))
+
+
+def coarsen_ranges(cmin: np.ndarray, cmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The border-inclusive value ranges of cells of twice the edge from those of a grid of cells (z, y, x; NaN: no
+    value): each the union of its up to eight children's, exact, since the children's border-inclusive voxels
+    together are the parent's."""
+    def reduce(a: np.ndarray, f) -> np.ndarray:
+        for ax in range(3):  # pairs along one axis at a time (a reduction over a 6-D view took 10x as long)
+            if a.shape[ax] % 2:
+                pad = [(0, 0)] * 3
+                pad[ax] = (0, 1)
+                a = np.pad(a, pad, constant_values=np.nan)
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[ax], hi[ax] = slice(0, None, 2), slice(1, None, 2)
+            a = f(a[tuple(lo)], a[tuple(hi)])
+        return a
+    return reduce(np.asarray(cmin, np.float32), np.fmin), reduce(np.asarray(cmax, np.float32), np.fmax)
+
+
+def children(parent: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """A per-cell array of a grid of cells of twice the edge over the finer grid of `shape` (each child takes its
+    parent's value)."""
+    out = np.asarray(parent)
+    for ax in range(3):
+        out = np.repeat(out, 2, axis=ax)
+    return out[: shape[0], : shape[1], : shape[2]]
+
+
+def child_leaps(parent: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """The leaps of a grid of cells (`info`, 0: empty) from those of its parents of twice the edge (`parent`, from
+    with_leaps: -R in an empty parent): every parent within R - 1 of an empty parent is empty, so every child
+    within 2R - 2 of its child is, and an empty child holds -(2R - 1) under an empty parent, -1 (a plain skip)
+    under one that is not. Each such radius is at most the child's own distance to a non-empty child
+    (tests/test_leap.py), and costs the parents' map alone (an eighth of the cells) instead of the children's."""
+    r = children(np.where(parent < 0.0, -2.0 * parent - 1.0, 1.0), info.shape).astype(np.float32)
+    info = np.asarray(info, np.float32)
+    return np.ascontiguousarray(np.where(info <= 0.0, -r, info), dtype=np.float32)

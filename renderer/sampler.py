@@ -38,7 +38,7 @@ def device_cache() -> ByteLru:
 
 #: full resolution walks cells of 4³ voxels while their grid has at most this many cells, else the store's 8³: the
 #: finer cells leave fewer samples, but the host classifies every cell for each TF (render.range_info, leap.py)
-FINE_CELLS = 1 << 19
+FINE_CELLS = 1 << 22
 
 
 def ess_cell(shape: tuple[int, ...], block_size: int) -> int:

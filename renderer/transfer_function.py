@@ -130,13 +130,20 @@ class Lut:
         """True where the LUT's interpolant has non-zero opacity somewhere on [vmin, vmax] (arrays, any shape).
         Conservative: the index range is widened by one entry each side. Non-finite bounds (NaN-only blocks)
         are invisible."""
-        vmin = np.asarray(vmin, dtype=np.float64)
-        vmax = np.asarray(vmax, dtype=np.float64)
+        # float32 when the ranges are (the cells' of full resolution: a million of them per TF) and its rounding
+        # over the table's span moves an entry index by well under the one-entry widening
+        span = max(abs(self.lo), abs(self.lo + (self.n - 1) / self.scale))
+        exact32 = span * self.scale * 2.0**-22 < 0.25
+        f32 = exact32 and np.asarray(vmin).dtype == np.float32 and np.asarray(vmax).dtype == np.float32
+        ft = np.float32 if f32 else np.float64
+        vmin = np.asarray(vmin, dtype=ft)
+        vmax = np.asarray(vmax, dtype=ft)
         ok = np.isfinite(vmin) & np.isfinite(vmax)
-        lo = np.where(ok, vmin, 0.0)
-        hi = np.where(ok, vmax, 0.0)
-        i0 = np.clip(np.floor((lo - self.lo) * self.scale) - 1, 0, self.n - 1).astype(np.int64)
-        i1 = np.clip(np.ceil((hi - self.lo) * self.scale) + 1, 0, self.n - 1).astype(np.int64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            f0 = np.floor((np.where(ok, vmin, 0) - ft(self.lo)) * ft(self.scale)) - 1
+            f1 = np.ceil((np.where(ok, vmax, 0) - ft(self.lo)) * ft(self.scale)) + 1
+        i0 = np.clip(f0, 0, self.n - 1).astype(np.int64)
+        i1 = np.clip(f1, 0, self.n - 1).astype(np.int64)
         nz = np.concatenate([[0], np.cumsum(self.opacity > 0.0)])
         return ok & ((nz[i1 + 1] - nz[i0]) > 0)
 

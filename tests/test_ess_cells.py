@@ -79,8 +79,8 @@ def test_finer_cells_take_fewer_samples_and_change_nothing(monkeypatch, extra):
 def test_cell_edge_follows_the_grid_size():
     """4³ cells while their grid stays within FINE_CELLS, else the store's 8³ (or the block, below 8)."""
     assert sampler.ess_cell((128, 256, 256), 16) == 4  # the engine CT: 131,072 cells of 4³
-    assert sampler.ess_cell((275, 512, 512), 16) == 8  # the chest CT: 1.1 million
-    assert sampler.ess_cell((275, 512, 512), 32) == 8
+    assert sampler.ess_cell((275, 512, 512), 16) == 4  # the chest CT: 1.1 million
+    assert sampler.ess_cell((1024, 1024, 1024), 16) == 8 and sampler.ess_cell((1024, 1024, 1024), 32) == 8
     assert sampler.ess_cell((64, 64, 64), 8) == 4
     assert sampler.ess_cell((64, 64, 64), 4) == 4 and sampler.ess_cell((64, 64, 64), 2) == 2
     n = int(sampler.FINE_CELLS ** (1 / 3)) * 4
@@ -111,8 +111,26 @@ def test_walk_info_is_kept_per_volume_visibility_and_clip(monkeypatch, tmp_path)
         n0 = len(calls)
         images.append(render(st, sc).rgba)
         counts.append(len(calls) - n0)
-    # per render one call for the blocks' info; a second one where the cells' walk info is computed afresh
-    assert counts == [2, 1, 1, 2, 2, 1, 2], counts
+    # per render one call for the blocks' info; where the cells' walk info is computed afresh two more (the 8³
+    # parents, then the 4³ cells under them), MIP one (its cells' maxima)
+    assert counts == [3, 1, 1, 3, 3, 1, 2], counts
     R._WALKS.clear()
     for sc, img in zip(scenes, images):
         assert np.array_equal(render(st, sc).rgba, img)
+
+
+@pytest.mark.parametrize("step", [0.5, 0.9])
+def test_fine_and_coarse_walks_give_the_same_image(monkeypatch, step):
+    """At steps up to FINE_STEP full resolution walks 4³ cells, classified under their 8³ parents; beyond it the
+    parents themselves: the same image either way, the finer walk with fewer samples."""
+    from lodcast.renderer import render as R
+
+    a = _ribs()
+    scene = {"tf": BONE, "width": 48, "height": 48, "camera": {"azimuth": 30, "elevation": 20},
+             "sampling": {"step": step}}
+    fine = render(a, scene)
+    monkeypatch.setattr(R, "FINE_STEP", 0.0)
+    coarse = render(a, scene)
+    off = render(a, {**scene, "sampling": {"step": step, "empty_space_skipping": False}})
+    assert np.abs(fine.rgba - coarse.rgba).max() <= 1e-6 and np.abs(fine.rgba - off.rgba).max() <= 1e-6
+    assert fine.report["samples"] < 0.9 * coarse.report["samples"] < off.report["samples"]

@@ -9,7 +9,7 @@ import pytest
 import lodcast
 from lodcast.renderer import render as R
 from lodcast.renderer.atlas import NEAR_LEVEL0
-from lodcast.renderer.leap import LEAP_MAX, leap_radii, step_leaps, with_leaps
+from lodcast.renderer.leap import LEAP_MAX, child_leaps, coarsen_ranges, leap_radii, step_leaps, with_leaps
 
 
 def _chebyshev(empty: np.ndarray, cap: int) -> np.ndarray:
@@ -158,3 +158,36 @@ def test_the_kernel_follows_the_map(stores, variant, monkeypatch):
     monkeypatch.setattr(R, "step_leaps", lambda steps: np.where(steps == -1, float(LEAP_MAX), 0.0).astype(np.float32))
     wrong = lodcast.render(stores[0], scene)
     assert wrong.rgba[..., 3].sum() < 0.8 * right.rgba[..., 3].sum()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_coarser_ranges_are_the_union_of_the_finer(seed):
+    """8³ cells' border-inclusive ranges from 4³ cells' equal those computed from the voxels (NaN left out)."""
+    from lodcast.renderer.volume import block_minmax_border
+
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=tuple(int(n) for n in rng.integers(3, 40, 3))).astype(np.float32)
+    a[a > 1.5] = np.nan
+    mn4, mx4 = block_minmax_border(a, 4)
+    mn8, mx8 = block_minmax_border(a, 8)
+    got = coarsen_ranges(mn4, mx4)
+    assert np.array_equal(got[0], mn8, equal_nan=True) and np.array_equal(got[1], mx8, equal_nan=True)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_child_leaps_stay_inside_empty_space(seed):
+    """A child's radius from its parent's never claims a cube holding a non-empty child, and under an empty parent
+    it is at least one."""
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in rng.integers(2, 15, 3))
+    info = (rng.random(shape) < rng.choice([0.01, 0.05, 0.2])).astype(np.float32)
+    pshape = tuple(-(-n // 2) for n in shape)
+    parent = np.zeros(pshape, np.float32)
+    np.maximum.at(parent, tuple(np.argwhere(info > 0).T // 2), 1.0)  # a parent sees what any child sees
+    out = child_leaps(with_leaps(parent), info)
+    np.testing.assert_array_equal(out[info > 0], info[info > 0])
+    r = -out[info <= 0]
+    assert (r >= 1).all()
+    exact = _chebyshev(info <= 0, 64)
+    assert (r <= exact[info <= 0]).all()
+    assert (out[info <= 0] < 0).all()

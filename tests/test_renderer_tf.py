@@ -161,3 +161,24 @@ def test_srgb_to_luv_equals_colour_science():
 
         ref = colour.XYZ_to_Luv(colour.sRGB_to_XYZ(rgb), colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"])
     np.testing.assert_allclose(srgb_to_luv(rgb), ref, atol=1e-9, rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_visible_is_conservative_from_float32_ranges(seed):
+    """Cell ranges come as float32 (a million per TF at full resolution) and are tested in float32 where its
+    rounding over the table moves an index by under a quarter entry, else in float64: either way a range on which
+    the table's interpolant is non-zero anywhere is visible (dense float64 check), on tables near zero and far
+    from it (offset 1e9: float64)."""
+    rng = np.random.default_rng(seed)
+    off = float(rng.choice([0.0, -1024.0, 3.0e4, 1.0e9]))
+    xs = np.sort(rng.uniform(0, 100, 5)) + off
+    ops = rng.choice([0.0, 0.0, 0.3, 0.9], 5)
+    t = tf([{"value": float(x), "opacity": float(o)} for x, o in zip(xs, ops)])
+    lut = build_lut(t, (off, off + 100))
+    lo = (rng.uniform(-10, 110, 400) + off).astype(np.float32)
+    hi = (lo + rng.uniform(0, 8, 400)).astype(np.float32)
+    vis = lut.visible(lo, hi)
+    grid = lut.lo + np.arange(lut.n) / lut.scale
+    for a, b, v in zip(lo.astype(np.float64), hi.astype(np.float64), vis):
+        dense = np.interp(np.linspace(a, b, 257), grid, lut.opacity)
+        assert v or not (dense > 0).any(), (a, b)
