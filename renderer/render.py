@@ -214,13 +214,16 @@ def _level0_walk(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tupl
     lut2 = None if pr.second is None else pr.second.lut
     empty = -np.inf if mode in EXTREMUM_MODES else 0.0
     cmin, cmax = data.cell_min, data.cell_max
-    parents = 2 * C <= cell_edge(B) and B % (2 * C) == 0  # cells of twice the edge still lie inside a block
+    coarse_walk = pr.scene.sampling.step > FINE_STEP  # the parents are the walk's cells
+    # cells of twice the edge still lie inside a block, and the walk is over them or classifies under them
+    parents = (2 * C <= cell_edge(B) and B % (2 * C) == 0
+               and (coarse_walk or (data.region is None and mode not in EXTREMUM_MODES)))
     if parents:
         hit = _PARENTS.get(id(cmin))
         if hit is None or hit[0] is not cmin:  # (the reference held keeps the id from being reused)
             hit = (cmin, *coarsen_ranges(cmin, cmax))
             _PARENTS.put(id(cmin), hit, hit[1].nbytes * 2)
-        if pr.scene.sampling.step > FINE_STEP:  # the parents are the walk's cells
+        if coarse_walk:
             cmin, cmax, C, parents = hit[1], hit[2], 2 * C, False
     if data.region is not None:  # a pass: its own blocks' cells hold values, the rest NaN (on the 8 GiB volume, 32
         # passes each over all 8.4 million cells took 37 of the 92 s of a full-resolution render)
