@@ -10,13 +10,15 @@ nearest cell that is not empty, every cell within r - 1 of it is empty, and the 
 (2r - 1)³ cells through one of its faces. Cells outside the grid count as empty: past the grid the ray has left
 the volume's box, where there is nothing to sample.
 
-The map rides in the walk's info (`walk_info`): a cell that must be sampled keeps its positive info, an empty one
+The map rides in the walk's info (render._walk_info): a cell that must be sampled keeps its positive info, an empty one
 holds -r (r >= 1; r = 1 is an ordinary skip). A leap changes no sample: the cells it passes are empty, and the
 first sample after them is found where the leap ends, as after a run of skipped cells (tests/test_leap.py).
 """
 from __future__ import annotations
 
 import numpy as np
+
+from lodcast.renderer.atlas import half_cells
 
 __all__ = ["LEAP_MAX", "child_leaps", "children", "coarsen_ranges", "leap_radii", "step_leaps", "with_leaps"]
 
@@ -38,7 +40,7 @@ def leap_radii(empty: np.ndarray, cap: int = LEAP_MAX) -> np.ndarray:
     for k in range(1, cap):
         if reached.all():
             break
-        grown = reached.copy()
+        grown = reached  # (each axis below grows a copy)
         for ax in range(3):  # the 3 x 3 x 3 neighbourhood, one axis at a time (Chebyshev balls are cubes)
             n = grown.shape[ax]
             if n < 2:
@@ -93,10 +95,7 @@ def coarsen_ranges(cmin: np.ndarray, cmax: np.ndarray) -> tuple[np.ndarray, np.n
 def children(parent: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """A per-cell array of a grid of cells of twice the edge over the finer grid of `shape` (each child takes its
     parent's value)."""
-    out = np.asarray(parent)
-    for ax in range(3):
-        out = np.repeat(out, 2, axis=ax)
-    return out[: shape[0], : shape[1], : shape[2]]
+    return half_cells(np.asarray(parent))[: shape[0], : shape[1], : shape[2]]
 
 
 def child_leaps(parent: np.ndarray, info: np.ndarray) -> np.ndarray:

@@ -34,7 +34,8 @@
  *                     block_info holds -r, r its Chebyshev distance in cells to the nearest cell that is not
  *                     (capped): the ray leaves the cube of (2r - 1)^3 cells around it in one step instead of a DDA
  *                     step per cell. With LC_ADAPTIVE block_info holds r >= 2 in the cubes of skipped level-0 cells
- *                     of the half-block cells (0 elsewhere)
+ *                     of the half-block cells (0 elsewhere). With LC_SAMPLER_FULL (where only the cells decide a
+ *                     skip) a run of cells to sample is found first and sampled in one loop
  *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)
  *   LC_PRECISE        compensated (Kahan) sums of optical depth and colour, for rays of very many samples
  *   LC_BACKGROUND     composite the background under the integral

@@ -160,14 +160,14 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
     skipping (`_level0_walk`), with the clip region's cells outside empty; on the atlas over its half-block cells
     (data.cells): the selection's block info where the cell's field can show something (`atlas_cell_info`), else
     the block info. With leaps (config.leap) empty cells hold -r (renderer/leap.py)."""
-    key = _walk_key(pr, data)
+    leap = pr.config.leap and not pr.config.adaptive  # (the adaptive walk's leaps: step_leaps)
+    key = _walk_key(pr, data, leap)
     if key is not None:
         hit = _WALKS.get(key)
         if hit is not None and hit[0] is data.cell_min:  # (the reference held keeps the id from being reused)
             return hit[1], hit[2]
     vol = pr.volume
     B = int(vol.block_size)
-    leap = pr.config.leap and not pr.config.adaptive
     if data.cells is not None:
         info = atlas_cell_info(pr, data.cells)
         info, C = with_leaps(info) if leap else info, B // 2
@@ -182,7 +182,7 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
     return out
 
 
-def _walk_key(pr: "Prepared", data: "multipass.PassData") -> tuple | None:
+def _walk_key(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple | None:
     """What full resolution's walk info depends on, besides the cells' ranges (data.cell_min, by identity: the
     device cache keeps them per volume): the TFs' opacities (only where they are zero matters, but the tables are
     small), the mode, the clip planes, the leaps and which cells the step walks (FINE_STEP). Passes, the atlas and
@@ -193,8 +193,7 @@ def _walk_key(pr: "Prepared", data: "multipass.PassData") -> tuple | None:
     luts = [pr.lut] + ([] if pr.second is None else [pr.second.lut])
     tfs = tuple((t.lo, t.scale, t.n, hashlib.blake2b((t.opacity > 0).tobytes(), digest_size=16).digest()) for t in luts)
     clip = None if pr.scene.clip is None else pr.scene.clip.model_dump_json()
-    return (id(data.cell_min), data.cell, pr.scene.mode, tfs, clip, pr.config.leap and not pr.config.adaptive,
-            pr.scene.sampling.step > FINE_STEP)
+    return id(data.cell_min), data.cell, pr.scene.mode, tfs, clip, leap, pr.scene.sampling.step > FINE_STEP
 
 
 #: full resolution walks its finest cells (4³: sampler.ess_cell) while the step is at most this many voxels, and cells

@@ -36,8 +36,9 @@ def device_cache() -> ByteLru:
     return ByteLru(_device_cache_bytes, keep_last=True)
 
 
-#: full resolution walks cells of 4³ voxels while their grid has at most this many cells, else the store's 8³: the
-#: finer cells leave fewer samples, but the host classifies every cell for each TF (render.range_info, leap.py)
+#: full resolution keeps the ranges of cells of 4³ voxels while their grid has at most this many cells, else the
+#: store's 8³: the finer cells leave fewer samples, but the host classifies those under a visible 8³ parent for each
+#: new TF (render._level0_walk: 21-31 ms on the chest CT's 1.1 million cells)
 FINE_CELLS = 1 << 22
 
 
@@ -45,9 +46,9 @@ def ess_cell(shape: tuple[int, ...], block_size: int) -> int:
     """The edge (voxels) of the cells of empty-space skipping at full resolution: 4 on volumes whose grid of 4³
     cells stays within FINE_CELLS, else the store's cells (store.layout.cell_edge: 8, or the block when that is not
     a multiple of 8). Runs of cells to sample cost the walk a step per cell (raycast.cl), so finer cells pay where
-    they leave out more samples than that: kernel ms 8³ -> 4³ on the engine CT (256² x 128, 512²) 61.6 -> 52.3
-    under a metal TF, 131.7 -> 125.7 translucent; on the chest CT (512² x 275) 97.3 -> 94.8 and 904 -> 909, where
-    the 1.1 million cells took 65 ms of host time per new TF."""
+    they leave out more samples than that: at steps up to a voxel (render.FINE_STEP; beyond, the walk takes their
+    8³ parents), e.g. kernel ms 8³ -> 4³ at step 1, 512², on the engine CT 61.6 -> 52.3 under a metal TF and
+    131.7 -> 125.7 translucent, at step ½ on the chest CT 170 -> 140 under ct-bone."""
     c = cell_edge(block_size)
     if c % 4 == 0 and c > 4 and int(np.prod([-(-int(n) // 4) for n in shape])) <= FINE_CELLS:
         return 4
