@@ -57,16 +57,19 @@ def best(store, scene: dict, repeat: int, levels=None):
 
 
 def paired(store, full_scene: dict, scene: dict, repeat: int):
-    """(the render of `scene`, its median kernel ms, full resolution's median kernel ms over the same rounds): the
-    two interleaved, round by round, so that the machine's drift (this shared 2-core machine moved the same kernel
-    by 20-30% within minutes) falls on both alike."""
+    """(the render of `scene`, its median kernel ms and full resolution's over the same rounds, the same two of
+    wall ms: the whole `render` call, which on a GPU is mostly the host's): the two interleaved, round by round, so
+    that the machine's drift (this shared 2-core machine moved the same kernel by 20-30% within minutes) falls on
+    both alike."""
     lodcast.render(store, scene)
     t, t_full, runs = [], [], []
     for _ in range(repeat):
-        t_full.append(lodcast.render(store, full_scene).report["kernel_ms"])
+        full = lodcast.render(store, full_scene).report
+        t_full.append((full["kernel_ms"], full["wall_ms"]))
         runs.append(lodcast.render(store, scene))
-        t.append(runs[-1].report["kernel_ms"])
-    return min(runs, key=lambda r: r.report["kernel_ms"]), float(np.median(t)), float(np.median(t_full))
+        t.append((runs[-1].report["kernel_ms"], runs[-1].report["wall_ms"]))
+    q, f = np.median(t, axis=0), np.median(t_full, axis=0)
+    return min(runs, key=lambda r: r.report["kernel_ms"]), float(q[0]), float(f[0]), float(q[1]), float(f[1])
 
 
 def qlabel(q) -> str:
@@ -78,16 +81,17 @@ def sweep(store, scene: dict, repeat: int) -> dict:
     TF selection against L2 and uniform; adaptive sampling on and off."""
     ref = lodcast.render(store, {**scene, "sampling": {"step": 0.25}})
     full = best(store, scene, repeat)
-    out = {"full_ms": full.report["kernel_ms"], "full_samples": full.report["samples"],
+    out = {"full_ms": full.report["kernel_ms"], "full_wall_ms": full.report["wall_ms"], "full_samples": full.report["samples"],
            "full_delta_e": delta_e_stats(full.rgba, ref.rgba)["mean"], "full_predicted": full.report["predicted_delta_e"],
            "rows": [], "uniform": [], "fig34": []}
     for q in QUALITIES:
-        r, q_ms, full_ms = paired(store, scene, {**scene, "quality": q}, repeat)
+        r, q_ms, full_ms, q_wall, full_wall = paired(store, scene, {**scene, "quality": q}, repeat)
         d = delta_e_stats(r.rgba, ref.rgba)
         row = {"quality": qlabel(q), "reduction": r.report["reduction"], "delta_e": d["mean"], "p95": d["p95"],
                "delta_e_vs_full": delta_e_stats(r.rgba, full.rgba)["mean"],
                "predicted": r.report["predicted_delta_e"], "kernel_ms": q_ms,
-               "speed_vs_full": full_ms / q_ms, "samples_vs_full": r.report["samples"] / out["full_samples"]}
+               "speed_vs_full": full_ms / q_ms, "wall_ms": q_wall, "wall_speed_vs_full": full_wall / q_wall,
+               "samples_vs_full": r.report["samples"] / out["full_samples"]}
         # adaptive sampling's share: the same selection at fixed steps
         fixed = best(store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
         row.update(fixed_ms=fixed.report["kernel_ms"], fixed_delta_e=delta_e_stats(fixed.rgba, ref.rgba)["mean"],
@@ -174,22 +178,29 @@ def main() -> None:
     print(f"\nJSON: {a.json}  ({time.perf_counter() - t0:.0f} s)")
 
 
+def _ms(ms: float) -> str:
+    """Milliseconds to three figures (a GPU's kernels take well under one)."""
+    return f"{ms:.0f}" if ms >= 100 else f"{ms:.3g}"
+
+
 def report(res: dict) -> str:
     lines = [f"device: {res['device']}", ""]
     for c in res["cases"]:
-        lines += [f"### {c['volume']}, {c['tf']}, {c['size']}² — full resolution {c['full_ms']:.0f} ms, "
-                  f"mean ΔE {c['full_delta_e']:.2f} (step ½ against step ¼), predicted {c['full_predicted']:.2f}", "",
-                  "| quality | reduction | mean ΔE | p95 | ΔE vs full | predicted | kernel ms | × full speed | samples ÷ full |"
-                  " fixed-step ms · ΔE | fixed-step ÷ adaptive samples (∛reduction) | interblock ms · ΔE |"
-                  " no view weight: ΔE · predicted |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [f"### {c['volume']}, {c['tf']}, {c['size']}² — full resolution {_ms(c['full_ms'])} ms of kernel, "
+                  f"{_ms(c['full_wall_ms'])} ms a render, mean ΔE {c['full_delta_e']:.2f} (step ½ against step ¼), "
+                  f"predicted {c['full_predicted']:.2f}", "",
+                  "| quality | reduction | mean ΔE | p95 | ΔE vs full | predicted | kernel ms | × full speed | wall ms "
+                  "(× full) | samples ÷ full | fixed-step ms · ΔE | fixed-step ÷ adaptive samples (∛reduction) |"
+                  " interblock ms · ΔE | no view weight: ΔE · predicted |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in c["rows"]:
-            extra = (f"{r['fixed_ms']:.0f} · {r['fixed_delta_e']:.2f} | {r['adaptive_gain']:.2f} "
+            extra = (f"{_ms(r['fixed_ms'])} · {r['fixed_delta_e']:.2f} | {r['adaptive_gain']:.2f} "
                      f"({r['reduction'] ** (1 / 3):.2f}) | ") + (
-                f"{r['ii_ms']:.0f} · {r['ii_delta_e']:.2f} | {r['blind_delta_e']:.2f} · {r['blind_predicted']:.2f}"
+                f"{_ms(r['ii_ms'])} · {r['ii_delta_e']:.2f} | {r['blind_delta_e']:.2f} · {r['blind_predicted']:.2f}"
                 if "ii_ms" in r else "– | –")
             lines.append(f"| {r['quality']} | {r['reduction']:.1f} | {r['delta_e']:.2f} | {r['p95']:.1f} | "
-                         f"{r['delta_e_vs_full']:.2f} | {r['predicted']:.2f} | {r['kernel_ms']:.0f} | {r['speed_vs_full']:.2f} | "
+                         f"{r['delta_e_vs_full']:.2f} | {r['predicted']:.2f} | {_ms(r['kernel_ms'])} | "
+                         f"{r['speed_vs_full']:.2f} | {_ms(r['wall_ms'])} ({r['wall_speed_vs_full']:.2f}) | "
                          f"{r['samples_vs_full']:.2f} | {extra} |")
         lines += ["", "| every visible block at | reduction | mean ΔE by mean | by distribution |", "|---|---|---|---|"]
         lines += [f"| level {u['level']} | {u['reduction']:.1f} | {u['mean']:.2f} | {u['distribution']:.2f} |"

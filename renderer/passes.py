@@ -23,7 +23,7 @@ import contextlib
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import pyopencl as cl
@@ -143,11 +143,13 @@ def _box_sum(per_block: np.ndarray):
     return total
 
 
-def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std: bool, unsampled: np.ndarray,
-         limit: int, interpolation: str = "interblock", what: str = "LODCAST_DEVICE_BUDGET_MB") -> PassPlan | None:
+def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std: bool,
+         unsampled: Callable[[], np.ndarray], limit: int, interpolation: str = "interblock",
+         what: str = "LODCAST_DEVICE_BUDGET_MB") -> PassPlan | None:
     """The passes of a render, or None when its data fits `limit` in one. `levels`: the atlas selection (None: level
-    0, full resolution); `unsampled`: the blocks the kernel never samples in this scene (empty-space skipping, or
-    adaptive cells all skipped): regions of only those are left out."""
+    0, full resolution); `unsampled()`: the blocks the kernel never samples in this scene (empty-space skipping, or
+    adaptive cells all skipped): regions of only those are left out (asked only when there are passes: it costs
+    1-2 ms a render)."""
     G, B, shape = vol.grid, int(vol.block_size), vol.shape
     size = vol.voxel_dtype.itemsize  # bytes of a voxel on the device
     if levels is None:
@@ -179,6 +181,7 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
         return None
     extent = tuple(B * float(s) for s in vol.spacing)
     cuts, _ = split_grid(G, nbytes, limit, extent, what)
+    unsampled = unsampled()
     key = visibility_order(cuts, fr, vol).ravel()
     regions = []
     boxes = [(z0, y0, x0, z1, y1, x1) for z0, z1 in zip(cuts[0][:-1], cuts[0][1:])

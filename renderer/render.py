@@ -47,7 +47,7 @@ from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.leap import child_leaps, children, coarsen_ranges, step_leaps, with_leaps
 from lodcast.renderer.preintegration import PreintTable, preintegrate
-from lodcast.opencl import device_info, get_context, get_program
+from lodcast.opencl import device_info, get_context, get_program, kernel
 from lodcast.renderer.scene import OrbitCamera, Scene, SceneError
 from lodcast.renderer.structs import STATE_FLOATS
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
@@ -61,7 +61,8 @@ LOCAL_SIZE = (8, 8)
 _SELECTIONS = ByteLru(4)  # the last 4 level-of-detail selections (store, TFs, quality, classification, crop)
 _STEP_ERRORS = ByteLru(8)  # the last 8 predicted step errors (store, TFs, step, crop)
 _STEPS = ByteLru(64 << 20)  # adaptive sampling's step levels of recent selections
-_WALKS = ByteLru(64 << 20)  # full resolution's walk info (cell visibility and leaps) of recent volumes, TFs and clips
+_WALKS = ByteLru(64 << 20)  # the walk info (cell visibility and leaps) of recent volumes or selections, TFs and clips
+_ADAPTIVE = ByteLru(32 << 20)  # the adaptive walk's steps and leaps of recent selections (_adaptive_walk)
 _PARENTS = ByteLru(64 << 20)  # the value ranges of full resolution's 8³ cells from its 4³ cells', per volume
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
 MAX_SAMPLES_PER_RAY = 2**30
@@ -162,9 +163,10 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
     the block info. With leaps (config.leap) empty cells hold -r (renderer/leap.py)."""
     leap = pr.config.leap and not pr.config.adaptive  # (the adaptive walk's leaps: step_leaps)
     key = _walk_key(pr, data, leap)
+    anchor = data.cell_min if data.cells is None else data.cells
     if key is not None:
         hit = _WALKS.get(key)
-        if hit is not None and hit[0] is data.cell_min:  # (the reference held keeps the id from being reused)
+        if hit is not None and hit[0] is anchor:  # (the reference held keeps the id from being reused)
             return hit[1], hit[2]
     vol = pr.volume
     B = int(vol.block_size)
@@ -178,22 +180,33 @@ def _walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, 
     g = info.shape
     out = np.ascontiguousarray(info, dtype=np.float32), (g[2], g[1], g[0], C)
     if key is not None:
-        _WALKS.put(key, (data.cell_min, *out), out[0].nbytes)
+        _WALKS.put(key, (anchor, *out), out[0].nbytes)
     return out
 
 
 def _walk_key(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple | None:
-    """What full resolution's walk info depends on, besides the cells' ranges (data.cell_min, by identity: the
-    device cache keeps them per volume): the TFs' opacities (only where they are zero matters, but the tables are
-    small), the mode, the clip planes, the leaps and which cells the step walks (FINE_STEP). Passes, the atlas and
-    volumes the device cache does not keep (arrays without a key): None (computed per render)."""
-    if (data.cells is not None or data.cell_min is None or data.region is not None or not pr.config.ess
-            or pr.volume.key is None):
+    """What the walk info depends on, besides the cells' ranges, by identity: full resolution's (data.cell_min,
+    which the device cache keeps per volume) or the atlas's half-block cells (data.cells, kept per selection beside
+    the atlas); then the TFs' opacities (only where they are zero matters, but the tables are small), the mode, the
+    clip planes, the leaps and which cells the step walks (FINE_STEP); on the atlas also the selection's block info,
+    the distribution tables' visible spans and whether the store keeps its level-0 cell ranges (atlas_cell_info
+    took 5-8 ms a render of the chest CT at 30:1).
+    Passes and volumes the device cache does not keep (arrays without a key): None (computed per render)."""
+    if data.region is not None or not pr.config.ess or pr.volume.key is None:
         return None
-    luts = [pr.lut] + ([] if pr.second is None else [pr.second.lut])
-    tfs = tuple((t.lo, t.scale, t.n, hashlib.blake2b((t.opacity > 0).tobytes(), digest_size=16).digest()) for t in luts)
+    if data.cells is None and data.cell_min is None:
+        return None
+    digest = lambda a: hashlib.blake2b(np.ascontiguousarray(a).tobytes(), digest_size=16).digest()  # noqa: E731
+    tfs = tuple((t.lut.lo, t.lut.scale, t.lut.n, digest(t.lut.opacity > 0),
+                 None if t.dist is None else (t.dist.lo, t.dist.scale, t.dist.rows, t.dist.std_max,
+                                              digest(t.dist.kernel_table[-1])))
+                for t in [pr] + ([] if pr.second is None else [pr.second]))
     clip = None if pr.scene.clip is None else pr.scene.clip.model_dump_json()
-    return id(data.cell_min), data.cell, pr.scene.mode, tfs, clip, leap, pr.scene.sampling.step > FINE_STEP
+    common = (pr.scene.mode, tfs, clip, leap, pr.scene.sampling.step > FINE_STEP)
+    if data.cells is not None:
+        return ("atlas", id(data.cells), digest(pr.block_info), pr.scene.sampling.empty_space_skipping,
+                pr.volume.has_cell_ranges, *common)
+    return id(data.cell_min), data.cell, *common
 
 
 #: full resolution walks its finest cells (4³: sampler.ess_cell) while the step is at most this many voxels, and cells
@@ -314,6 +327,25 @@ def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.nda
         vis = dual.visibility_bits(vis, seen(pr.second.lut, pr.second.dist))
         return np.ascontiguousarray(np.bitwise_and(up.astype(np.int64), vis.astype(np.int64)), dtype=np.float32)
     return np.ascontiguousarray(np.where(vis, up, np.float32(0.0)), dtype=np.float32)
+
+
+def _adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData",
+                   walk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the adaptive walk's step levels, the walk info the kernel reads): the adaptive walk reads its cells' skips
+    in the steps and its leaps in the info; without adaptive steps, (data.steps, walk). Kept per (walk info, step
+    levels), both by identity (each comes from a cache of its own when the scene repeats): 3-4 ms a render of the
+    chest CT at 30:1."""
+    if not cfg.adaptive:
+        return data.steps, walk
+    key = None if data.region is not None or pr.volume.key is None else (id(walk), id(data.steps), cfg.leap)
+    hit = _ADAPTIVE.get(key) if key is not None else None
+    if hit is not None and hit[0] is walk and hit[1] is data.steps:
+        return hit[2], hit[3]
+    steps = walk_steps(pr, data.steps, walk) if data.cells is not None else data.steps
+    out = steps, (step_leaps(steps) if cfg.leap else walk)
+    if key is not None:
+        _ADAPTIVE.put(key, (walk, data.steps, *out), out[0].nbytes + out[1].nbytes)
+    return out
 
 
 def walk_steps(pr: "Prepared", steps: np.ndarray, walk: np.ndarray) -> np.ndarray:
@@ -576,14 +608,16 @@ def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, 
     """The passes of a render whose volume data exceeds the device budget or one allocation (renderer/passes.py),
     None for one pass."""
     limit, what = multipass.volume_limit(lod_atlas.max_alloc_bytes())
-    if cfg.adaptive and lod is not None and lod.step_levels is not None:  # cells of level -1 are never sampled
-        st = lod.step_levels
-        unsampled = st.reshape(st.shape[0] // 2, 2, st.shape[1] // 2, 2, st.shape[2] // 2, 2).max(axis=(1, 3, 5)) < 0
-    elif cfg.ess and scene.sampling.empty_space_skipping:  # blocks the walk skips whatever the ray did before
-        # (without skipping the walk may still run, for the coarse cells' mask: it skips no block then)
-        unsampled = info == (-np.inf if scene.mode in EXTREMUM_MODES else 0.0)
-    else:
-        unsampled = np.zeros(vol.grid, bool)
+
+    def unsampled() -> np.ndarray:
+        if cfg.adaptive and lod is not None and lod.step_levels is not None:  # cells of level -1 are never sampled
+            st = lod.step_levels
+            return st.reshape(st.shape[0] // 2, 2, st.shape[1] // 2, 2, st.shape[2] // 2, 2).max(axis=(1, 3, 5)) < 0
+        if cfg.ess and scene.sampling.empty_space_skipping:  # blocks the walk skips whatever the ray did before
+            # (without skipping the walk may still run, for the coarse cells' mask: it skips no block then)
+            return info == (-np.inf if scene.mode in EXTREMUM_MODES else 0.0)
+        return np.zeros(vol.grid, bool)
+
     reach = scene.sampling.step
     if cfg.adaptive and lod is not None:
         reach *= 2.0 ** max(0, int(lod.levels.max(initial=0)))  # an adaptive segment's front end
@@ -741,10 +775,9 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
                 cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
             options = cfg.build_options()
             built = get_program("raycast.cl", options)
-            kern = cl.Kernel(built.program, "lc_render")
-        steps = walk_steps(pr, data.steps, walk) if cfg.adaptive and data.cells is not None else data.steps
-        if cfg.adaptive and cfg.leap:  # the adaptive walk reads its cells' skips in the steps, its leaps here
-            walk = step_leaps(steps)
+            # (a pass's buffers go as it ends: a kept kernel would hold the last one's)
+            kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else kernel(built, "lc_render")
+        steps, walk = _adaptive_walk(pr, cfg, data, walk)
         d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
         d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
         d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)

@@ -141,3 +141,36 @@ def test_half_block_cells_change_nothing_but_the_samples(ribs, monkeypatch, name
         bound = {"nearest block, adaptive": 1.0, "tf2": 0.95}.get(name, 0.9)
         assert fine.report["samples"] < bound * blocks.report["samples"], (fine.report["samples"],
                                                                             blocks.report["samples"])
+
+
+def test_the_atlas_walk_is_kept_per_selection_and_visibility(ribs, monkeypatch):
+    """The atlas's walk info and the adaptive walk's steps and leaps are computed once per selection, TF zero
+    pattern (distribution table included), mode and block info: a TF that only changes colours reuses them, a
+    wider TF, another reduction or MIP computes them afresh, and every image equals one rendered with nothing
+    kept."""
+    from lodcast.renderer import render as R
+
+    cells, leaps = [], []
+    orig_cells, orig_leaps = R.atlas_cell_info, R.step_leaps
+    monkeypatch.setattr(R, "atlas_cell_info", lambda *a, **k: cells.append(1) or orig_cells(*a, **k))
+    monkeypatch.setattr(R, "step_leaps", lambda *a, **k: leaps.append(1) or orig_leaps(*a, **k))
+    base = {"width": 48, "height": 40, "camera": {"azimuth": 30, "elevation": 20}, "quality": {"reduction": 8},
+            "sampling": {"lod_visibility": False}}  # (the selection must not follow the TF's colours either)
+    recolour = {"points": [{"value": 300, "color": [0.2, 0.9, 0.8], "opacity": 0.0},
+                           {"value": 900, "color": [1, 0.5, 1], "opacity": 0.7}]}
+    wider = {"points": [{"value": 20, "color": [1, 0.9, 0.8], "opacity": 0.0},
+                        {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}
+    scenes = [{**base, "tf": BONE}, {**base, "tf": BONE}, {**base, "tf": recolour}, {**base, "tf": wider},
+              {**base, "tf": BONE, "quality": {"reduction": 4}}, {**base, "tf": BONE},
+              {**base, "tf": BONE, "mode": "mip"}]
+    counts, images = [], []
+    for sc in scenes:
+        n0, m0 = len(cells), len(leaps)
+        images.append(render(ribs, sc).rgba)
+        counts.append((len(cells) - n0, len(leaps) - m0))
+    # MIP: its cells' maxima, no adaptive leaps (the adaptive walk leaps in composite renders only)
+    assert counts == [(1, 1), (0, 0), (0, 0), (1, 1), (1, 1), (0, 0), (1, 0)], counts
+    R._WALKS.clear()
+    R._ADAPTIVE.clear()
+    for sc, img in zip(scenes, images):
+        assert np.array_equal(render(ribs, sc).rgba, img)

@@ -53,6 +53,7 @@ def _opened():
 
     remote = lodcast.open_store("s3://lodcast-test/v.zarr")
     render_mod._SELECTIONS.clear()  # so that this render reads the histograms the selection needs
+    render_mod._WALKS.clear()  # and the cell ranges its walk needs (an earlier store object's walk would do)
     lodcast.render(remote, {"tf": TF, "width": 8, "height": 8, "quality": {"reduction": 8}})
     _fresh()
     return remote
