@@ -300,8 +300,13 @@ def skipped(steps: np.ndarray, where: np.ndarray) -> np.ndarray:
 
 def half_cells(a: np.ndarray) -> np.ndarray:
     """A per-block array over the half-block cells (grid 2G): cell h takes block h >> 1's value."""
+    return per_cell(a, 2)
+
+
+def per_cell(a: np.ndarray, k: int) -> np.ndarray:
+    """A per-cell array over the grid of cells k times finer per axis: each takes its parent's value."""
     for ax in range(3):
-        a = np.repeat(a, 2, axis=ax)
+        a = np.repeat(a, k, axis=ax)
     return a
 
 
@@ -429,31 +434,34 @@ class AtlasCells:
     vmax: np.ndarray
     std: np.ndarray
     blocks: tuple[slice, slice, slice] | None = None
+    cpb: int = 2  # cells per block edge: 2, half-block cells; 4, their octants (quarter-block cells)
 
     @property
     def at(self) -> tuple[slice, slice, slice]:
-        """Where these cells lie in the whole grid of half-block cells."""
+        """Where these cells lie in the whole grid of cells."""
         if self.blocks is None:
             return (slice(None),) * 3
-        return tuple(slice(2 * b.start, 2 * b.stop) for b in self.blocks)
+        return tuple(slice(self.cpb * b.start, self.cpb * b.stop) for b in self.blocks)
 
 
 def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
-                std_unit: float = 1.0, blocks: tuple[slice, slice, slice] | None = None) -> AtlasCells:
+                std_unit: float = 1.0, blocks: tuple[slice, slice, slice] | None = None, cpb: int = 2) -> AtlasCells:
     """The half-block cells of atlas `da` (block grid `grid`, z-y-x), or those of `blocks` only, computed on the
     device and kept beside the atlas (host arrays, in a cache of their own keyed by the atlas's device-cache key):
-    empty-space skipping on the atlas walks these cells (renderer/render.py)."""
-    key = None if da.key is None else ("cells", da.key, interpolation, None if blocks is None else str(blocks))
+    empty-space skipping on the atlas walks these cells (renderer/render.py). `cpb` 4: their octants instead, the
+    quarter-block cells (block size a multiple of 4)."""
+    assert cpb in (2, 4) and block_size % cpb == 0, (cpb, block_size)
+    key = None if da.key is None else ("cells", da.key, interpolation, None if blocks is None else str(blocks), cpb)
     hit = _cells_cache().get(key) if key is not None else None
     if hit is not None:
         return hit
     ctx, queue = get_context()
-    lo = (0, 0, 0) if blocks is None else tuple(2 * b.start for b in blocks)
-    hi = tuple(2 * g for g in grid) if blocks is None else tuple(2 * b.stop for b in blocks)
+    lo = (0, 0, 0) if blocks is None else tuple(cpb * b.start for b in blocks)
+    hi = tuple(cpb * g for g in grid) if blocks is None else tuple(cpb * b.stop for b in blocks)
     shape = tuple(h - l for l, h in zip(lo, hi))
     n = int(np.prod(shape))
     d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
-    opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", *da.voxel]
+    opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", f"-DLC_CPB={cpb}", *da.voxel]
     std = da.std
     if std is not None:
         opts.append("-DLC_DIST")
@@ -468,7 +476,7 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
         for h, d in zip(out, d_out):
             cl.enqueue_copy(queue, h, d)
         queue.finish()
-    cells = AtlasCells(out[0], out[1], out[2] * np.float32(std_unit), blocks)
+    cells = AtlasCells(out[0], out[1], out[2] * np.float32(std_unit), blocks, cpb)
     if key is not None:
         _cells_cache().put(key, cells, 3 * 4 * n)
     return cells

@@ -10,10 +10,17 @@
  * (LC_DIST) is at most their largest one (level 0 bricks: none, 0). (II in a level-0 octant reads the apron, whose
  * samples are those of the neighbours that the loop over the neighbourhood reaches.)
  *
- * Work-item (x, y, z) is cell h = (x, y, z): out_min/out_max the extrema of the values (NaN ignored; no finite
+ * Work-item (x, y, z) is cell h = (x, y, z) (of the grid LC_CPB G, below): out_min/out_max the extrema of the values (NaN ignored; no finite
  * value, or the own block not loaded: NaN, nothing to see), out_sd the largest deviation in the sig buffer's units. */
 #include "lc_common.h"
 #include "lc_atlas.h"
+
+/* LC_CPB cells per block edge: 2, the half-block cells above; 4, quarter-block cells (the octants of the half-block
+ * cells, for the adaptive walk's octant masks: renderer/render.py), each inside one half-block cell and so in its
+ * interblock neighbourhood */
+#ifndef LC_CPB
+#define LC_CPB 2
+#endif
 
 /* brick sample index range [i0, i1] that brick coordinates of the voxel interval [a, b] reach, clamped to
  * [-ext, n - 1 + ext] (ext 1: nearest block in a level-0 brick's apron), trilinear; indices in a brick stored
@@ -38,17 +45,21 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const lc_s
     if (x >= hi.x || y >= hi.y || z >= hi.z) return;
     LcAtlasGeom g;
     g.gx = grid.x; g.gy = grid.y; g.gz = grid.z; g.B = (float)grid.w;
-    const float C = 0.5f * g.B, eps = 1e-3f; /* eps: samples assigned to the cell within rounding of its faces */
+#ifndef LC_CELL_EPS
+#define LC_CELL_EPS 1e-3f
+#endif
+    const float C = g.B / (float)LC_CPB, eps = LC_CELL_EPS; /* eps: samples assigned to the cell within rounding of its faces */
     const float3 a = (float3)((float)x * C - 0.5f - eps, (float)y * C - 0.5f - eps, (float)z * C - 0.5f - eps);
     const float3 b = a + (C + 2.0f * eps);
     float mn = INFINITY, mx = -INFINITY, sd = 0.0f;
-    if (LC_IMAP(x >> 1, y >> 1, z >> 1)) {
+    if (LC_IMAP(x / LC_CPB, y / LC_CPB, z / LC_CPB)) {
 #ifdef LC_INTERP_II
-        const int cx = (x + 1) >> 1, cy = (y + 1) >> 1, cz = (z + 1) >> 1;
+        const int hx = x / (LC_CPB / 2), hy = y / (LC_CPB / 2), hz = z / (LC_CPB / 2); /* the half-block cell */
+        const int cx = (hx + 1) >> 1, cy = (hy + 1) >> 1, cz = (hz + 1) >> 1;
         const int x0 = max(cx - 1, 0), x1 = min(cx, g.gx - 1), y0 = max(cy - 1, 0), y1 = min(cy, g.gy - 1);
         const int z0 = max(cz - 1, 0), z1 = min(cz, g.gz - 1);
 #else
-        const int x0 = x >> 1, x1 = x0, y0 = y >> 1, y1 = y0, z0 = z >> 1, z1 = z0;
+        const int x0 = x / LC_CPB, x1 = x0, y0 = y / LC_CPB, y1 = y0, z0 = z / LC_CPB, z1 = z0;
 #endif
         for (int bz = z0; bz <= z1; ++bz)
             for (int by = y0; by <= y1; ++by)

@@ -77,6 +77,13 @@ class KernelConfig:
         Where the walk's skip depends on the ray (MIP, a second TF) or on a pass's blocks it walks cell by cell."""
         return self.ess and self.mode == "composite" and not self.tf2 and not self.passes and not self.adaptive_naive
 
+    @property
+    def octants(self) -> bool:
+        """The adaptive walk's octant masks (LC_OCTANTS): a sampled half-block cell's walk info holds which of its
+        eight octants (quarter-block cells) can show something, and samples in the others are not taken. With
+        pre-integration every sample is a segment's end and stays."""
+        return self.leap and self.adaptive and self.sampler == "atlas" and not self.preint
+
     def build_options(self) -> tuple[str, ...]:
         opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]
         if self.sampler == "atlas":
@@ -95,6 +102,7 @@ class KernelConfig:
             (self.orthographic, "LC_ORTHO"),
             (self.ess, "LC_ESS"),
             (self.leap, "LC_LEAP"),
+            (self.octants, "LC_OCTANTS"),
             (self.jitter, "LC_JITTER"),
             (self.precise and self.mode == "composite", "LC_PRECISE"),
             (self.background, "LC_BACKGROUND"),

@@ -36,6 +36,10 @@
  *                     step per cell. With LC_ADAPTIVE block_info holds r >= 2 in the cubes of skipped level-0 cells
  *                     of the half-block cells (0 elsewhere). With LC_SAMPLER_FULL (where only the cells decide a
  *                     skip) a run of cells to sample is found first and sampled in one loop
+ *   LC_OCTANTS        with LC_LEAP and LC_ADAPTIVE (no pre-integration): a sampled cell's block_info holds the mask of
+ *                     its eight octants (quarter-block cells) where the field can show something (render.py:
+ *                     octant_masks, bit (z & 1) << 2 | (y & 1) << 1 | (x & 1)); a sample in another octant adds
+ *                     nothing and is not taken (no lookup, no blend: the image is the same)
  *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)
  *   LC_PRECISE        compensated (Kahan) sums of optical depth and colour, for rays of very many samples
  *   LC_BACKGROUND     composite the background under the integral
@@ -362,6 +366,25 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                     const float h = dt * (float)(1 << lvl);
                     blk = lc_blk_cell(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1),
                                       cpb);
+#ifdef LC_OCTANTS
+                    const int oct = (int)block_info[((ulong)lc_clampi(bz, hz - 1) * (ulong)hy +
+                                                     (ulong)lc_clampi(by, hy - 1)) * (ulong)hx +
+                                                    (ulong)lc_clampi(bx, hx - 1)];
+                    const float inv_q = 2.0f / Hc; /* octants per voxel */
+                    uint unseen = 0;               /* samples of the loop below not taken */
+/* the octant index of sample position qs (voxel coordinates) along one axis: 0 or 1 inside the cell */
+#define LC_OCT(c, b) ((int)(((c) + 0.5f) * inv_q) - 2 * (b))
+/* whether a whole step's sample qs lies in an octant of the cell that can show something; one within rounding of
+ * a face counts in the octant on the cell's side (whose bounds hold it, atlas_cells.cl) */
+#define LC_SEEN(qs)                                                                                            \
+    (oct == 255 || ((oct >> (lc_clampi(LC_OCT((qs).z, bz), 1) << 2 | lc_clampi(LC_OCT((qs).y, by), 1) << 1 |   \
+                             lc_clampi(LC_OCT((qs).x, bx), 1))) & 1))
+/* the same for the cut last step, whose sample may lie past the cell's face (LC_LATTICE: a coarse cell's last step
+ * ends on the level-0 lattice beyond it), where no octant of this cell bounds it: it is taken there */
+#define LC_SEEN_CUT(qs)                                                                                        \
+    (oct == 255 || (uint)LC_OCT((qs).z, bz) > 1u || (uint)LC_OCT((qs).y, by) > 1u ||                             \
+     (uint)LC_OCT((qs).x, bx) > 1u || LC_SEEN(qs))
+#endif
                     int whole = 0, run_on = 0;
                     float tcut = t_exit > t ? t_exit : tb;
                     if (lvl == 0 && tb < t1) {
@@ -406,9 +429,15 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                     int s = 0;
                     for (; s < whole && !done; ++s) { /* alpha from the level's table */
                         const float3 qs = qa + (float)s * dqh;
+#ifdef LC_OCTANTS
+                        if (!LC_SEEN(qs)) { ++unseen; continue; }
+#endif
                         const float2 vs = LC_SAMPLE_B(qs);
                         LC_SAMPLE_BODY(vs.x, vs.y, r_whole, qs)
                     }
+#ifdef LC_OCTANTS
+                    taken -= unseen;
+#endif
                     taken += (uint)s;
                     if (run_on) {
                         t += (float)whole * h;
@@ -417,8 +446,12 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                             const float a = t + (float)whole * h;
                             float len = tcut - a;
                             len = lvl == 0 ? (len < h ? len : h) : len;
+                            const float3 qs = q0 + (a + u * len) * dq;
+#ifdef LC_OCTANTS
+                            if (len > 0.0f && LC_SEEN_CUT(qs)) {
+#else
                             if (len > 0.0f) {
-                                const float3 qs = q0 + (a + u * len) * dq;
+#endif
                                 const float2 vs = LC_SAMPLE_B(qs);
                                 ++taken;
                                 LC_SAMPLE_BODY(vs.x, vs.y, LC_R(len), qs)
@@ -435,6 +468,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
         }
 #undef LC_R
+#undef LC_SEEN
+#undef LC_SEEN_CUT
+#undef LC_OCT
 #undef LC_STEP_CODE
 #undef LC_LEVEL0
 #undef LC_NEAR_LEVEL0

@@ -337,15 +337,44 @@ def _adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData"
     chest CT at 30:1."""
     if not cfg.adaptive:
         return data.steps, walk
-    key = None if data.region is not None or pr.volume.key is None else (id(walk), id(data.steps), cfg.leap)
+    key = None if data.region is not None or pr.volume.key is None else (id(walk), id(data.steps), cfg.leap, cfg.octants)
     hit = _ADAPTIVE.get(key) if key is not None else None
     if hit is not None and hit[0] is walk and hit[1] is data.steps:
         return hit[2], hit[3]
     steps = walk_steps(pr, data.steps, walk) if data.cells is not None else data.steps
     out = steps, (step_leaps(steps) if cfg.leap else walk)
+    if cfg.octants:
+        out = steps, np.ascontiguousarray(np.where(steps >= 0, octant_masks(pr, data.octants, steps), out[1]),
+                                          dtype=np.float32)
     if key is not None:
         _ADAPTIVE.put(key, (walk, data.steps, *out), out[0].nbytes + out[1].nbytes)
     return out
+
+
+def octant_masks(pr: "Prepared", octants: "lod_atlas.AtlasCells | None", steps: np.ndarray) -> np.ndarray:
+    """The adaptive walk's octant masks (config.octants; float32 over the half-block cells, 0-255): bit
+    (z & 1) << 2 | (y & 1) << 1 | (x & 1) of a sampled cell's octant (quarter-block cell) where the field sampled
+    there can show something under the point or the distribution classification (atlas_cells.cl's bounds), as
+    `_cell_info` tests its cells; the kernel takes no sample in the others, whose samples add nothing. Only the
+    octants of sampled cells are classified (a skipped cell's entry is its leap). Without octants (blocks not a
+    multiple of 4): every bit set. At lossless and 5:1 most of what the rays meet is level 0 in cells of 8³, where
+    full resolution walks cells of 4³: the chest CT under ct-bone took 1.47 and 1.57 times full resolution's
+    samples."""
+    if octants is None:
+        return np.full(steps.shape, 255.0, np.float32)
+    want = lod_atlas.per_cell(steps >= 0, 2).reshape(-1)  # the octants of sampled cells
+    idx = np.flatnonzero(want)
+    vis = np.zeros(want.size, bool)
+    lo, hi, sd = (a.reshape(-1)[idx] for a in (octants.vmin, octants.vmax, octants.std))
+    v = pr.lut.visible(lo, hi)
+    if pr.dist is not None:
+        v |= pr.dist.visible(lo, hi, sd)
+    vis[idx] = v
+    g = steps.shape
+    bits = vis.reshape(g[0], 2, g[1], 2, g[2], 2).astype(np.uint8)
+    mask = sum(bits[:, oz, :, oy, :, ox] << np.uint8(oz << 2 | oy << 1 | ox)
+               for oz in (0, 1) for oy in (0, 1) for ox in (0, 1))
+    return mask.astype(np.float32)
 
 
 def walk_steps(pr: "Prepared", steps: np.ndarray, walk: np.ndarray) -> np.ndarray:

@@ -128,7 +128,7 @@ def test_half_block_cells_change_nothing_but_the_samples(ribs, monkeypatch, name
     # the cells' skipping alone: the level-0 mask of coarse cells changes what a coarse level shows (tested below)
     monkeypatch.setattr(VolumeView, "has_cell_ranges", property(lambda self: False))
     fine = render(ribs, scene)
-    monkeypatch.setattr(passes, "_cells", lambda pr, da: None)  # the walk over whole blocks, as before
+    monkeypatch.setattr(passes, "_cells", lambda pr, da, *a, **k: None)  # the walk over whole blocks, as before
     blocks = render(ribs, scene)
     # interblock: a half-block cell knows its own interblock neighbourhood (lc_blk_cell), so samples that the block
     # walk sends through the blend sum with every other weight 0 take the own block's sample directly: equal up to
@@ -174,3 +174,58 @@ def test_the_atlas_walk_is_kept_per_selection_and_visibility(ribs, monkeypatch):
     R._ADAPTIVE.clear()
     for sc, img in zip(scenes, images):
         assert np.array_equal(render(ribs, sc).rgba, img)
+
+
+OCTANT_SCENES = {
+    "nearest block, distribution": {},
+    "interblock": {"sampling": {"interpolation": "interblock"}},
+    "mean classification": {"sampling": {"classification": "mean"}},
+    "jitter, shading": {"sampling": {"jitter": True}, "shading": {}},
+    "lossless": {"quality": "lossless"},
+}
+
+
+@pytest.mark.parametrize("name", list(OCTANT_SCENES))
+def test_octant_masks_change_nothing_but_the_samples(ribs, monkeypatch, name):
+    """The adaptive walk skips the samples of a sampled half-block cell that fall in octants (quarter-block cells)
+    whose field bounds the TF shows nothing of (config.octants): the same image within float rounding (the
+    kernels differ, and with them the compiler's contractions), fewer samples. A wrong bit order or a missed
+    sample past a cell's face (a coarse cell's last step on the level-0 lattice) changes pixels by up to 1."""
+    from lodcast.renderer import config
+
+    scene = {"tf": BONE, "width": 64, "height": 64, "camera": {"azimuth": 30, "elevation": 20},
+             "quality": {"reduction": 4}, **OCTANT_SCENES[name]}
+    with_octants = render(ribs, scene)
+    assert "-DLC_OCTANTS" in with_octants.report["build_options"]
+    monkeypatch.setattr(config.KernelConfig, "octants", property(lambda self: False))
+    without = render(ribs, scene)
+    assert "-DLC_OCTANTS" not in without.report["build_options"]
+    np.testing.assert_allclose(with_octants.rgba, without.rgba, rtol=0, atol=1e-5)
+    # (interblock's octants near a block face reach into the neighbours' bricks: wider bounds, fewer skipped)
+    bound = 0.97 if name == "interblock" else 0.9
+    assert with_octants.report["samples"] < bound * without.report["samples"], (with_octants.report["samples"],
+                                                                                 without.report["samples"])
+
+
+def test_octants_of_every_half_block_cell_hold_its_bounds(ribs):
+    """atlas_cells at 4 cells per block edge: each half-block cell's bounds are the union of its eight octants'
+    (both from the same brick samples, the octants' reach a subset), and no octant is empty where its cell has
+    values and they are not."""
+    vol = as_volume(ribs)
+    B, G = int(vol.block_size), vol.grid
+    levels = np.random.default_rng(7).integers(-1, 4, size=G).astype(np.int8)
+    da = lod_atlas.device_atlas(vol, levels, with_std=True, keep=False)
+    for interp in ("interblock", "nearest_block"):
+        half = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit)
+        octs = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit, cpb=4)
+        assert octs.vmin.shape == tuple(4 * g for g in G) and octs.cpb == 4
+        parts = [(octs.vmin[z::2, y::2, x::2], octs.vmax[z::2, y::2, x::2], octs.std[z::2, y::2, x::2])
+                 for z in (0, 1) for y in (0, 1) for x in (0, 1)]
+        lo = np.fmin.reduce([p[0] for p in parts])
+        hi = np.fmax.reduce([p[1] for p in parts])
+        sd = np.max([p[2] for p in parts], axis=0)
+        f = np.isfinite(half.vmin)
+        assert np.array_equal(f, np.isfinite(lo))
+        assert np.all(half.vmin[f] <= lo[f]) and np.all(half.vmax[f] >= hi[f]) and np.all(half.std >= sd)
+        tighter = [(p[0][f] > half.vmin[f]) | (p[1][f] < half.vmax[f]) for p in parts]
+        assert np.mean(tighter) > 0.2  # what the octants are for

@@ -25,7 +25,7 @@ W = H = 12
 def block_walk(monkeypatch):
     """These tests count the adaptive march's samples over the block walk; the half-block cells of empty-space
     skipping (tests/test_atlas_cells.py) would also leave out the coarse blocks 1 and 3, whose samples are all 0."""
-    monkeypatch.setattr(passes, "_cells", lambda pr, da: None)
+    monkeypatch.setattr(passes, "_cells", lambda pr, da, *a, **k: None)
 
 
 @pytest.fixture(scope="module")
@@ -208,6 +208,10 @@ def test_level_zero_steps_lie_on_full_resolutions_lattice(tmp_path, monkeypatch,
     4.6% more samples on the chest CT and moved the image off full resolution's by up to 1.2 mean ΔE at
     "lossless".)"""
     monkeypatch.undo()  # the half-block cells skip what full resolution's cells skip
+    from lodcast.renderer.config import KernelConfig
+
+    # (and not the samples of their empty octants, which full resolution's cells of 8³ take)
+    monkeypatch.setattr(KernelConfig, "octants", property(lambda self: False))
     rng = np.random.default_rng(seed)
     v = rng.random((6, 6, 6))
     v = np.kron(v, np.ones((8, 8, 8)))  # 48³
