@@ -34,6 +34,7 @@ class KernelConfig:
     mode: str = "composite"  # "composite" | "mip" | "minip" | "average" | "iso"
     orthographic: bool = False
     ess: bool = True
+    octant_cells: bool = True  # the blocks' half-block cells have octants worth walking (render.kernel_config)
     jitter: bool = False
     precise: bool = False
     background: bool = False
@@ -82,7 +83,7 @@ class KernelConfig:
         """The adaptive walk's octant masks (LC_OCTANTS): a sampled half-block cell's walk info holds which of its
         eight octants (quarter-block cells) can show something, and samples in the others are not taken. With
         pre-integration every sample is a segment's end and stays."""
-        return self.leap and self.adaptive and self.sampler == "atlas" and not self.preint
+        return self.leap and self.adaptive and self.sampler == "atlas" and not self.preint and self.octant_cells
 
     def build_options(self) -> tuple[str, ...]:
         opts = [f"-DLC_SAMPLER_{self.sampler.upper()}"]

@@ -44,3 +44,39 @@ def test_includes_are_inlined_once():
     src = kernel_source("raycast.cl")
     assert "#include" not in src
     assert src.count("typedef struct LcParams") == 1
+
+
+def test_a_changed_kernel_file_is_read_again(tmp_path):
+    """Sources are kept per file and folder while none of their files changes: the same text object until an
+    included file's size or modification time moves, then the new text, and a program built from it."""
+    (tmp_path / "k.cl").write_text('#include "inc.h"\n__kernel void k(__global int* a) { a[0] = LC_V; }\n')
+    (tmp_path / "inc.h").write_text("#define LC_V 1\n")
+    first = kernel_source("k.cl", tmp_path)
+    assert kernel_source("k.cl", tmp_path) is first and "LC_V 1" in first
+    a = get_program("k.cl", (), folder=tmp_path)
+    (tmp_path / "inc.h").write_text("#define LC_V 22\n")  # another size
+    second = kernel_source("k.cl", tmp_path)
+    assert "LC_V 22" in second and "LC_V 1\n" not in second
+    b = get_program("k.cl", (), folder=tmp_path)
+    assert b.key != a.key and b.source != "memory"
+    st = (tmp_path / "inc.h").stat()
+    (tmp_path / "inc.h").write_text("#define LC_V 33\n")  # the same size: the modification time tells
+    os.utime(tmp_path / "inc.h", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    assert "LC_V 33" in kernel_source("k.cl", tmp_path)
+    assert get_program("k.cl", (), folder=tmp_path).key not in (a.key, b.key)
+
+
+def test_kernels_are_kept_per_thread():
+    """A kernel's arguments are its own state: one thread's kernel is kept for it and never handed to another."""
+    import threading
+
+    from lodcast.opencl import kernel
+
+    built = get_program("raycast.cl", ("-DLC_SAMPLER_FULL",))
+    mine = kernel(built, "lc_render")
+    assert kernel(built, "lc_render") is mine
+    other = []
+    t = threading.Thread(target=lambda: other.append(kernel(built, "lc_render")))
+    t.start()
+    t.join()
+    assert other[0] is not mine and other[0].function_name == "lc_render"
