@@ -436,9 +436,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                         LC_SAMPLE_BODY(vs.x, vs.y, r_whole, qs)
                     }
 #ifdef LC_OCTANTS
-                    taken -= unseen;
-#endif
+                    taken += (uint)s - unseen;
+#else
                     taken += (uint)s;
+#endif
                     if (run_on) {
                         t += (float)whole * h;
                     } else {
