@@ -22,6 +22,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -30,6 +31,7 @@ DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "
 RESULTS = HERE / "results"
 
 import lodcast  # noqa: E402
+from lodcast.renderer.config import KernelConfig  # noqa: E402
 from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
 from lodcast.renderer.selection import select_lod  # noqa: E402
 from lodcast.renderer.transfer_function import CT_PRESETS  # noqa: E402
@@ -92,10 +94,14 @@ def sweep(store, scene: dict, repeat: int) -> dict:
                "predicted": r.report["predicted_delta_e"], "kernel_ms": q_ms,
                "speed_vs_full": full_ms / q_ms, "wall_ms": q_wall, "wall_speed_vs_full": full_wall / q_wall,
                "samples_vs_full": r.report["samples"] / out["full_samples"]}
-        # adaptive sampling's share: the same selection at fixed steps
+        # adaptive sampling's share: the same selection at fixed steps; and the adaptive steps alone, without the
+        # octant masks that only the adaptive walk has (config.octants)
         fixed = best(store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
+        with mock.patch.object(KernelConfig, "octants", property(lambda self: False)):
+            steps_alone = lodcast.render(store, {**scene, "quality": q})
         row.update(fixed_ms=fixed.report["kernel_ms"], fixed_delta_e=delta_e_stats(fixed.rgba, ref.rgba)["mean"],
-                   adaptive_gain=fixed.report["samples"] / r.report["samples"])  # issue 9: >= the cube root
+                   adaptive_gain=fixed.report["samples"] / r.report["samples"],  # issue 9: >= the cube root
+                   steps_gain=fixed.report["samples"] / steps_alone.report["samples"])
         if q != "lossless":  # interblock; the selection without the view's weight (visibility.py)
             ii = best(store, {**scene, "quality": q, "sampling": {"interpolation": "interblock"}}, repeat)
             blind = lodcast.render(store, {**scene, "quality": q, "sampling": {"lod_visibility": False}})
@@ -195,7 +201,7 @@ def report(res: dict) -> str:
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in c["rows"]:
             extra = (f"{_ms(r['fixed_ms'])} · {r['fixed_delta_e']:.2f} | {r['adaptive_gain']:.2f} "
-                     f"({r['reduction'] ** (1 / 3):.2f}) | ") + (
+                     f"({r['reduction'] ** (1 / 3):.2f}; steps alone {r['steps_gain']:.2f}) | ") + (
                 f"{_ms(r['ii_ms'])} · {r['ii_delta_e']:.2f} | {r['blind_delta_e']:.2f} · {r['blind_predicted']:.2f}"
                 if "ii_ms" in r else "– | –")
             lines.append(f"| {r['quality']} | {r['reduction']:.1f} | {r['delta_e']:.2f} | {r['p95']:.1f} | "
