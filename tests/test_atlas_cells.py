@@ -229,3 +229,40 @@ def test_octants_of_every_half_block_cell_hold_its_bounds(ribs):
         assert np.all(half.vmin[f] <= lo[f]) and np.all(half.vmax[f] >= hi[f]) and np.all(half.std >= sd)
         tighter = [(p[0][f] > half.vmin[f]) | (p[1][f] < half.vmax[f]) for p in parts]
         assert np.mean(tighter) > 0.2  # what the octants are for
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_octant_masks_change_nothing_on_random_volumes_and_views(tmp_path, monkeypatch, seed):
+    """Property: random blobs and shells, 16³ or 32³ blocks, anisotropic spacing, random views (perspective or
+    orthographic), clip planes and reductions: the image with octant masks is the one without, within float
+    rounding, and never takes more samples."""
+    from lodcast.renderer import config
+
+    rng = np.random.default_rng(100 + seed)
+    shape = tuple(int(n) for n in rng.integers(24, 72, 3))
+    z, y, x = np.mgrid[: shape[0], : shape[1], : shape[2]].astype(np.float64)
+    a = rng.normal(40, 10, shape)
+    for _ in range(4):  # thin shells and small bright blobs
+        c = [rng.uniform(0, n) for n in shape]
+        r = np.sqrt((z - c[0]) ** 2 + (y - c[1]) ** 2 + (x - c[2]) ** 2)
+        a = np.where(np.abs(r - rng.uniform(3, 15)) < rng.uniform(0.6, 2.0), rng.uniform(600, 1000), a)
+    B = int(rng.choice([16, 32]))
+    st = lodcast.ingest(a.astype(np.float32), tmp_path / "v.zarr", block_size=B,
+                        spacing=tuple(float(s) for s in rng.uniform(0.5, 2.0, 3)), progress=False)
+    cam = {"azimuth": float(rng.uniform(0, 360)), "elevation": float(rng.uniform(-70, 70))}
+    if seed % 2:
+        cam.update(projection="orthographic", view_height=float(max(shape)) * 1.5)
+    scene = {"tf": BONE, "width": 48, "height": 40, "camera": cam,
+             "quality": {"reduction": float(rng.choice([2, 4, 8, 16]))},
+             "sampling": {"interpolation": str(rng.choice(["nearest_block", "interblock"])),
+                          "jitter": bool(seed % 2)}}
+    if seed >= 2:
+        scene["clip"] = {"planes": [{"normal": [float(v) for v in rng.normal(size=3)],
+                                     "point": [float(n) * 0.4 for n in shape[::-1]]}]}
+    on = render(st, scene)
+    monkeypatch.setattr(config.KernelConfig, "octants", property(lambda self: False))
+    off = render(st, scene)
+    assert "-DLC_OCTANTS" in on.report["build_options"] and "-DLC_OCTANTS" not in off.report["build_options"]
+    assert on.rgba[..., 3].max() > 0.2  # something shows
+    np.testing.assert_allclose(on.rgba, off.rgba, rtol=0, atol=1e-5)
+    assert on.report["samples"] <= off.report["samples"]
