@@ -267,9 +267,10 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
         else:
             da = lod_atlas.device_atlas(vol, lod.levels, with_std=cfg.distribution)
             stats.read, stats.cached, stats.upload_ms, stats.device_bytes = da.read, da.cached, da.upload_ms, da.nbytes
+            cells = _cells(pr, da)
             yield PassData(None, da.atlas, da.index, da.std if cfg.distribution else placeholder, steps,
-                           np.ones(1, np.uint8), cells=_cells(pr, da),
-                           octants=_cells(pr, da, cpb=4) if cfg.octants else None)
+                           np.ones(1, np.uint8), cells=cells,
+                           octants=_cells_and_octants(pr, da)[1] if cfg.octants and cells is not None else None)
         return
     device_cache().clear()  # a render beyond the budget has the device to itself
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
@@ -314,15 +315,24 @@ def _level0_pass(vol, reg: Region, shape: tuple[int, ...], own: np.ndarray, step
     return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size))
 
 
-def _cells(pr, da: "lod_atlas.DeviceAtlas", blocks: tuple[slice, slice, slice] | None = None,
-           cpb: int = 2) -> "lod_atlas.AtlasCells | None":
-    """The atlas's half-block cells (`cpb` 4: their octants), where the walk can skip on them
-    (renderer/render.py: _walk_info); a pass needs those of the blocks it owns (`blocks`) only."""
+def _cells(pr, da: "lod_atlas.DeviceAtlas",
+           blocks: tuple[slice, slice, slice] | None = None) -> "lod_atlas.AtlasCells | None":
+    """The atlas's half-block cells, where the walk can skip on them (renderer/render.py: _walk_info); a pass needs
+    those of the blocks it owns (`blocks`) only."""
     cfg = pr.config
-    if not cfg.ess or pr.volume.block_size % cpb:  # (average and iso have no walk: cfg.ess is off for them)
+    if not cfg.ess or pr.volume.block_size % 2:  # (average and iso have no walk: cfg.ess is off for them)
         return None
+    if cfg.octants and blocks is None:  # reduced from the octants the walk needs as well
+        return _cells_and_octants(pr, da)[0]
     return lod_atlas.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
-                                 pr.volume.std_unit if cfg.distribution else 1.0, blocks, cpb)
+                                 pr.volume.std_unit if cfg.distribution else 1.0, blocks)
+
+
+def _cells_and_octants(pr, da: "lod_atlas.DeviceAtlas") -> tuple["lod_atlas.AtlasCells", "lod_atlas.AtlasCells"]:
+    """The whole atlas's half-block cells and their octants (config.octants), kept beside the atlas."""
+    cfg = pr.config
+    return lod_atlas.cells_and_octants(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
+                                       pr.volume.std_unit if cfg.distribution else 1.0)
 
 
 def fill_pass(p: np.ndarray, region: Region | None, pr, first: bool) -> None:

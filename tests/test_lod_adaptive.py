@@ -25,7 +25,7 @@ W = H = 12
 def block_walk(monkeypatch):
     """These tests count the adaptive march's samples over the block walk; the half-block cells of empty-space
     skipping (tests/test_atlas_cells.py) would also leave out the coarse blocks 1 and 3, whose samples are all 0."""
-    monkeypatch.setattr(passes, "_cells", lambda pr, da, *a, **k: None)
+    monkeypatch.setattr(passes, "_cells", lambda pr, da, *a: None)
 
 
 @pytest.fixture(scope="module")
