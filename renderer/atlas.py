@@ -251,7 +251,7 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
     would pass it sampled, without its samples, so that what it skips changes no other sample. The cells are the
     half-block cells (grid 2G, cell h in block h >> 1) for both interpolations: nearest block's step level is
     constant over a block, but the walk also leaves out the coarse half-cells that level 0 leaves empty
-    (render._cell_info), which on whole blocks it could do only where all eight are (32 images,
+    (walk._cell_info), which on whole blocks it could do only where all eight are (32 images,
     benchmarks/bench_lod_sweep.py, nearest block: samples 0.67 -> 0.48 of full resolution's, summed mean ΔE
     151.8 -> 145.7). A cell takes its own block's level k; cells of skipped blocks (`skip`) and of
     unloaded ones (level -1, stepped as level 0) are skipped.

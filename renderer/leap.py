@@ -10,7 +10,7 @@ nearest cell that is not empty, every cell within r - 1 of it is empty, and the 
 (2r - 1)³ cells through one of its faces. Cells outside the grid count as empty: past the grid the ray has left
 the volume's box, where there is nothing to sample.
 
-The map rides in the walk's info (render._walk_info): a cell that must be sampled keeps its positive info, an empty one
+The map rides in the walk's info (renderer/walk.py: walk_info): a cell that must be sampled keeps its positive info, an empty one
 holds -r (r >= 1; r = 1 is an ordinary skip). A leap changes no sample: the cells it passes are empty, and the
 first sample after them is found where the leap ends, as after a run of skipped cells (tests/test_leap.py).
 """

@@ -317,7 +317,7 @@ def _level0_pass(vol, reg: Region, shape: tuple[int, ...], own: np.ndarray, step
 
 def _cells(pr, da: "lod_atlas.DeviceAtlas",
            blocks: tuple[slice, slice, slice] | None = None) -> "lod_atlas.AtlasCells | None":
-    """The atlas's half-block cells, where the walk can skip on them (renderer/render.py: _walk_info); a pass needs
+    """The atlas's half-block cells, where the walk can skip on them (renderer/walk.py); a pass needs
     those of the blocks it owns (`blocks`) only."""
     cfg = pr.config
     if not cfg.ess or pr.volume.block_size % 2:  # (average and iso have no walk: cfg.ess is off for them)

@@ -37,7 +37,7 @@
  *                     of the half-block cells (0 elsewhere). With LC_SAMPLER_FULL (where only the cells decide a
  *                     skip) a run of cells to sample is found first and sampled in one loop
  *   LC_OCTANTS        with LC_LEAP and LC_ADAPTIVE (no pre-integration): a sampled cell's block_info holds the mask of
- *                     its eight octants (quarter-block cells) where the field can show something (render.py:
+ *                     its eight octants (quarter-block cells) where the field can show something (walk.py:
  *                     octant_masks, bit (z & 1) << 2 | (y & 1) << 1 | (x & 1)); a sample in another octant adds
  *                     nothing and is not taken (no lookup, no blend: the image is the same)
  *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)

@@ -38,7 +38,7 @@ def device_cache() -> ByteLru:
 
 #: full resolution keeps the ranges of cells of 4³ voxels while their grid has at most this many cells, else the
 #: store's 8³: the finer cells leave fewer samples, but the host classifies those under a visible 8³ parent for each
-#: new TF (render._level0_walk: 21-31 ms on the chest CT's 1.1 million cells)
+#: new TF (walk._level0_walk: 21-31 ms on the chest CT's 1.1 million cells)
 FINE_CELLS = 1 << 22
 
 
@@ -46,7 +46,7 @@ def ess_cell(shape: tuple[int, ...], block_size: int) -> int:
     """The edge (voxels) of the cells of empty-space skipping at full resolution: 4 on volumes whose grid of 4³
     cells stays within FINE_CELLS, else the store's cells (store.layout.cell_edge: 8, or the block when that is not
     a multiple of 8). Runs of cells to sample cost the walk a step per cell (raycast.cl), so finer cells pay where
-    they leave out more samples than that: at steps up to a voxel (render.FINE_STEP; beyond, the walk takes their
+    they leave out more samples than that: at steps up to a voxel (walk.FINE_STEP; beyond, the walk takes their
     8³ parents), e.g. kernel ms 8³ -> 4³ at step 1, 512², on the engine CT 61.6 -> 52.3 under a metal TF and
     131.7 -> 125.7 translucent, at step ½ on the chest CT 170 -> 140 under ct-bone."""
     c = cell_edge(block_size)

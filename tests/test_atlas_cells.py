@@ -148,7 +148,7 @@ def test_the_atlas_walk_is_kept_per_selection_and_visibility(ribs, monkeypatch):
     pattern (distribution table included), mode and block info: a TF that only changes colours reuses them, a
     wider TF, another reduction or MIP computes them afresh, and every image equals one rendered with nothing
     kept."""
-    from lodcast.renderer import render as R
+    from lodcast.renderer import walk as R
 
     cells, leaps = [], []
     orig_cells, orig_leaps = R.atlas_cell_info, R.step_leaps

@@ -91,7 +91,7 @@ def test_walk_info_is_kept_per_volume_visibility_and_clip(monkeypatch, tmp_path)
     """Full resolution's walk info (cell visibility and leaps) is computed once per volume, TF zero pattern, mode
     and clip: a TF that only changes colours and non-zero opacities reuses it, any other change recomputes it, and
     every image equals one rendered with nothing kept."""
-    from lodcast.renderer import render as R
+    from lodcast.renderer import walk as R
 
     calls = []
     orig = R.range_info
@@ -123,7 +123,7 @@ def test_walk_info_is_kept_per_volume_visibility_and_clip(monkeypatch, tmp_path)
 def test_fine_and_coarse_walks_give_the_same_image(monkeypatch, step):
     """At steps up to FINE_STEP full resolution walks 4³ cells, classified under their 8³ parents; beyond it the
     parents themselves: the same image either way, the finer walk with fewer samples."""
-    from lodcast.renderer import render as R
+    from lodcast.renderer import walk as R
 
     a = _ribs()
     scene = {"tf": BONE, "width": 48, "height": 48, "camera": {"azimuth": 30, "elevation": 20},

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer import render as R
+from lodcast.renderer import walk as R
 from lodcast.renderer.atlas import NEAR_LEVEL0
 from lodcast.renderer.leap import LEAP_MAX, child_leaps, coarsen_ranges, leap_radii, step_leaps, with_leaps
 
@@ -105,7 +105,7 @@ def stores(tmp_path_factory):
 
 @pytest.fixture(autouse=True)
 def fresh_walks():
-    """Full resolution keeps its walk info per volume and TF (render._WALKS): each test computes its own."""
+    """Full resolution keeps its walk info per volume and TF (walk._WALKS): each test computes its own."""
     R._WALKS.clear()
     yield
     R._WALKS.clear()

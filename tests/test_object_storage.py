@@ -50,10 +50,11 @@ def _opened():
     """The store on S3, opened, its per-block statistics and histograms read (what every first render of a store
     reads once, through zarr-python), and no bricks cached."""
     from lodcast.renderer import render as render_mod
+    from lodcast.renderer import walk
 
     remote = lodcast.open_store("s3://lodcast-test/v.zarr")
     render_mod._SELECTIONS.clear()  # so that this render reads the histograms the selection needs
-    render_mod._WALKS.clear()  # and the cell ranges its walk needs (an earlier store object's walk would do)
+    walk._WALKS.clear()  # and the cell ranges its walk needs (an earlier store object's walk would do)
     lodcast.render(remote, {"tf": TF, "width": 8, "height": 8, "quality": {"reduction": 8}})
     _fresh()
     return remote
