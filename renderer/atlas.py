@@ -440,7 +440,8 @@ def _coarse_bits(items: Any, low: np.ndarray, grid: tuple, offsets: np.ndarray) 
 
 @dataclass(frozen=True)
 class AtlasCells:
-    """What the field sampled from an atlas can take in each half-block cell (grid 2G, C order; atlas_cells.cl):
+    """What the field sampled from an atlas can take in each half-block cell (grid 2G; `cpb` 4: in each of their
+    octants, grid 4G; C order; atlas_cells.cl):
     the extrema of its values (NaN: nothing to see) and the largest standard deviation behind them (0 at level 0
     and without distributions), in the data's units; over the cells of the blocks `blocks` (z, y, x slices of the
     block grid; None: all), which a pass of a render in several needs alone."""
@@ -463,7 +464,7 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
                 std_unit: float = 1.0, blocks: tuple[slice, slice, slice] | None = None, cpb: int = 2) -> AtlasCells:
     """The half-block cells of atlas `da` (block grid `grid`, z-y-x), or those of `blocks` only, computed on the
     device and kept beside the atlas (host arrays, in a cache of their own keyed by the atlas's device-cache key):
-    empty-space skipping on the atlas walks these cells (renderer/render.py). `cpb` 4: their octants instead, the
+    empty-space skipping on the atlas walks these cells (renderer/walk.py). `cpb` 4: their octants instead, the
     quarter-block cells (block size a multiple of 4)."""
     assert cpb in (2, 4) and block_size % cpb == 0, (cpb, block_size)
     key = None if da.key is None else ("cells", da.key, interpolation, None if blocks is None else str(blocks), cpb)

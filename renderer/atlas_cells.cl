@@ -10,13 +10,14 @@
  * (LC_DIST) is at most their largest one (level 0 bricks: none, 0). (II in a level-0 octant reads the apron, whose
  * samples are those of the neighbours that the loop over the neighbourhood reaches.)
  *
- * Work-item (x, y, z) is cell h = (x, y, z) (of the grid LC_CPB G, below): out_min/out_max the extrema of the values (NaN ignored; no finite
- * value, or the own block not loaded: NaN, nothing to see), out_sd the largest deviation in the sig buffer's units. */
+ * Work-item (x, y, z) is cell h = (x, y, z) of the grid LC_CPB G (below): out_min/out_max the extrema of the values
+ * (NaN ignored; no finite value, or the own block not loaded: NaN, nothing to see), out_sd the largest deviation in
+ * the sig buffer's units. */
 #include "lc_common.h"
 #include "lc_atlas.h"
 
 /* LC_CPB cells per block edge: 2, the half-block cells above; 4, quarter-block cells (the octants of the half-block
- * cells, for the adaptive walk's octant masks: renderer/render.py), each inside one half-block cell and so in its
+ * cells, for the adaptive walk's octant masks: renderer/walk.py), each inside one half-block cell and so in its
  * interblock neighbourhood */
 #ifndef LC_CPB
 #define LC_CPB 2
@@ -45,10 +46,8 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const lc_s
     if (x >= hi.x || y >= hi.y || z >= hi.z) return;
     LcAtlasGeom g;
     g.gx = grid.x; g.gy = grid.y; g.gz = grid.z; g.B = (float)grid.w;
-#ifndef LC_CELL_EPS
-#define LC_CELL_EPS 1e-3f
-#endif
-    const float C = g.B / (float)LC_CPB, eps = LC_CELL_EPS; /* eps: samples assigned to the cell within rounding of its faces */
+    /* eps: samples assigned to the cell within rounding of its faces */
+    const float C = g.B / (float)LC_CPB, eps = 1e-3f;
     const float3 a = (float3)((float)x * C - 0.5f - eps, (float)y * C - 0.5f - eps, (float)z * C - 0.5f - eps);
     const float3 b = a + (C + 2.0f * eps);
     float mn = INFINITY, mx = -INFINITY, sd = 0.0f;

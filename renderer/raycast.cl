@@ -268,9 +268,11 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
 /* the step code of cell (x, y, z), clamped into the grid (past it the ray has left the box) */
-#define LC_STEP_CODE(x, y, z)                                                                                  \
-    ((int)step_level[((ulong)lc_clampi((z), hz - 1) * (ulong)hy + (ulong)lc_clampi((y), hy - 1)) * (ulong)hx + \
-                     (ulong)lc_clampi((x), hx - 1)])
+/* the index of cell (x, y, z) in the cells' arrays (step_level, block_info), clamped into the grid */
+#define LC_CELL(x, y, z)                                                                                       \
+    (((ulong)lc_clampi((z), hz - 1) * (ulong)hy + (ulong)lc_clampi((y), hy - 1)) * (ulong)hx +                  \
+     (ulong)lc_clampi((x), hx - 1))
+#define LC_STEP_CODE(x, y, z) ((int)step_level[LC_CELL(x, y, z)])
 /* a level-0 cell's code, sampled or skipped */
 #define LC_LEVEL0(c) ((c) == 0 || (c) == -1)
 #define LC_NEAR_LEVEL0 8 /* renderer/atlas.py: NEAR_LEVEL0 */
@@ -335,7 +337,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
             /* in a cube of skipped level-0 cells (renderer/leap.py: step_leaps; block_info holds its radius r >= 2)
              * leave the cube at once: such cells leave t where it is, so the walk goes on as it would cell by cell */
             if (code == -1 && bx >= 0 && bx < hx && by >= 0 && by < hy && bz >= 0 && bz < hz) {
-                const float lf = block_info[((ulong)bz * (ulong)hy + (ulong)by) * (ulong)hx + (ulong)bx];
+                const float lf = block_info[LC_CELL(bx, by, bz)];
                 if (lf >= 2.0f) {
                     float te;
                     LC_DDA_LEAP((int)lf, te)
@@ -367,9 +369,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                     blk = lc_blk_cell(imap, geom, lc_clampi(bx, hx - 1), lc_clampi(by, hy - 1), lc_clampi(bz, hz - 1),
                                       cpb);
 #ifdef LC_OCTANTS
-                    const int oct = (int)block_info[((ulong)lc_clampi(bz, hz - 1) * (ulong)hy +
-                                                     (ulong)lc_clampi(by, hy - 1)) * (ulong)hx +
-                                                    (ulong)lc_clampi(bx, hx - 1)];
+                    const int oct = (int)block_info[LC_CELL(bx, by, bz)];
                     const float inv_q = 2.0f / Hc; /* octants per voxel */
                     uint unseen = 0;               /* samples of the loop below not taken */
 /* the octant index of sample position qs (voxel coordinates) along one axis: 0 or 1 inside the cell */
@@ -473,6 +473,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #undef LC_SEEN_CUT
 #undef LC_OCT
 #undef LC_STEP_CODE
+#undef LC_CELL
 #undef LC_LEVEL0
 #undef LC_NEAR_LEVEL0
 #else

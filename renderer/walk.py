@@ -218,9 +218,7 @@ def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.nda
         flat, lo, hi, sd = (a.reshape(-1) for a in (out, cells.vmin, cells.vmax, cells.std))
         for i in range(0, flat.size, _CELL_CHUNK):
             part = slice(i, i + _CELL_CHUNK)
-            flat[part] = lut.visible(lo[part], hi[part]) if skip_empty else True
-            if dist is not None and skip_empty:
-                flat[part] |= dist.visible(lo[part], hi[part], sd[part])
+            flat[part] = _shows(lut, dist, lo[part], hi[part], sd[part]) if skip_empty else True
             if level0 is not None:  # only where a coarse cell is still visible (8M cells of the 8 GiB volume)
                 sub = flat[part]
                 idx = np.flatnonzero(sub & coarse.reshape(-1)[part])
@@ -232,6 +230,15 @@ def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.nda
         vis = dual.visibility_bits(vis, seen(pr.second.lut, pr.second.dist))
         return np.ascontiguousarray(np.bitwise_and(up.astype(np.int64), vis.astype(np.int64)), dtype=np.float32)
     return np.ascontiguousarray(np.where(vis, up, np.float32(0.0)), dtype=np.float32)
+
+
+def _shows(lut: Lut, dist: DistTable | None, lo: np.ndarray, hi: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Where a field whose values lie in [lo, hi] and deviations in [0, sd] can show something: under the point
+    classification, or under the distribution table's."""
+    vis = lut.visible(lo, hi)
+    if dist is not None:
+        vis |= dist.visible(lo, hi, sd)
+    return vis
 
 
 def adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData",
@@ -271,11 +278,7 @@ def octant_masks(pr: "Prepared", octants: "lod_atlas.AtlasCells | None", steps: 
     want = lod_atlas.per_cell(steps >= 0, 2).reshape(-1)  # the octants of sampled cells
     idx = np.flatnonzero(want)
     vis = np.zeros(want.size, bool)
-    lo, hi, sd = (a.reshape(-1)[idx] for a in (octants.vmin, octants.vmax, octants.std))
-    v = pr.lut.visible(lo, hi)
-    if pr.dist is not None:
-        v |= pr.dist.visible(lo, hi, sd)
-    vis[idx] = v
+    vis[idx] = _shows(pr.lut, pr.dist, *(a.reshape(-1)[idx] for a in (octants.vmin, octants.vmax, octants.std)))
     g = steps.shape
     bits = vis.reshape(g[0], 2, g[1], 2, g[2], 2).astype(np.uint8)
     mask = sum(bits[:, oz, :, oy, :, ox] << np.uint8(oz << 2 | oy << 1 | ox)
