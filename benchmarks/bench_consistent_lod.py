@@ -128,6 +128,46 @@ def sweep(store, scene: dict, repeat: int) -> dict:
     return out
 
 
+def new_views(store, scene: dict, step: float, frames: int = 8, quality=None) -> dict:
+    """Wall ms per frame of `frames` new views `step` degrees apart (azimuth from 40°, where the sweep above has not
+    been) at 30:1 with the selection weighed by each view (the default), its atlas built from the last one
+    (renderer/atlas_reuse.py) and, on the same views, packed from nothing; and full resolution's. Bricks are
+    warmed by one pass first; the selections, atlases and cells are dropped before each timed pass, whose first
+    frame (nothing to build from) is left out of the medians."""
+    from lodcast.renderer import atlas, atlas_reuse
+    from lodcast.renderer import render as rr
+    from lodcast.renderer.sampler import device_cache
+
+    quality = {"reduction": 30} if quality is None else quality
+    views = [{**scene, "quality": quality, "camera": {**scene["camera"], "azimuth": 40 + i * step}}
+             for i in range(frames)]
+
+    def forget():
+        device_cache().clear()
+        atlas._cells_cache().clear()
+        rr._SELECTIONS.clear()
+        atlas_reuse._last()[0].clear()
+
+    def timed(scenes):
+        forget()
+        out = []
+        for s in scenes:
+            t = time.perf_counter()
+            r = lodcast.render(store, s)
+            out.append(((time.perf_counter() - t) * 1e3, r.report["kernel_ms"]))
+        return np.median(out[1:], axis=0)
+
+    for s in views:
+        lodcast.render(store, s)
+    with mock.patch.object(atlas_reuse, "last_atlas", lambda family: None):
+        fresh = timed(views)
+    reused = timed(views)
+    full = timed([{**s, "quality": "full"} for s in views])
+    return {"step": step, "frames": frames, "wall_ms": float(reused[0]), "kernel_ms": float(reused[1]),
+            "fresh_wall_ms": float(fresh[0]), "fresh_kernel_ms": float(fresh[1]),
+            "full_wall_ms": float(full[0]), "full_kernel_ms": float(full[1])}
+
+
 def first_render(path: Path, scene: dict, runs: int = 3) -> float:
     """Wall ms of the first lossless render of a store in a fresh process (empty brick cache, lodcast's modules
     imported by the call; kernels from the disk cache after a warm-up in another process): the median of `runs`
@@ -162,7 +202,7 @@ def main() -> None:
         for vol, store, tfname, tf in cases:
             scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": size, "height": size, "tf": tf, "format": "npy"}
             res = sweep(store, scene, a.repeat)
-            res.update(volume=vol, tf=tfname, size=size)
+            res.update(volume=vol, tf=tfname, size=size, new_views=[new_views(store, scene, d) for d in (2, 10)])
             result["cases"].append(res)
             print(f"{vol} {tfname} {size}²: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
     result["device"] = lodcast.render(chest, {"tf": CT_PRESETS["ct-bone"], "width": 8, "height": 8}).report["device"]
@@ -211,6 +251,11 @@ def report(res: dict) -> str:
         lines += ["", "| every visible block at | reduction | mean ΔE by mean | by distribution |", "|---|---|---|---|"]
         lines += [f"| level {u['level']} | {u['reduction']:.1f} | {u['mean']:.2f} | {u['distribution']:.2f} |"
                   for u in c["uniform"]]
+        lines += ["", "| 30:1, new views | wall ms/frame (kernel) | atlas packed from nothing | full resolution |",
+                  "|---|---|---|---|"]
+        lines += [f"| {v['frames']} views {v['step']:g}° apart | {_ms(v['wall_ms'])} ({_ms(v['kernel_ms'])}) | "
+                  f"{_ms(v['fresh_wall_ms'])} ({_ms(v['fresh_kernel_ms'])}) | {_ms(v['full_wall_ms'])} "
+                  f"({_ms(v['full_kernel_ms'])}) |" for v in c.get("new_views", [])]
         lines += ["", "| reduction | TF selection (default: weighed by the view) | TF alone | L2 | uniform |",
                   "|---|---|---|---|---|"]
         lines += [f"| {f['reduction']}:1 | {f['tf_view']:.2f} | {f['tf']:.2f} | {f['l2']:.2f} | {f['uniform']:.2f} "

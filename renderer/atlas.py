@@ -20,9 +20,11 @@ cache (`sampler.device_cache`: same store and levels, nothing is packed or uploa
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -30,6 +32,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.opencl import DeviceError, get_context, get_program
+from lodcast.renderer import atlas_reuse
 from lodcast.renderer.bricks import BrickCache, BrickStats, brick_cache, holding, iter_bricks
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.sampler import device_cache
@@ -346,6 +349,10 @@ class DeviceAtlas:
     reused: bool  # the device buffers of a recent render with the same store and levels were reused
     key: tuple | None = None  # its device-cache key (None: not kept)
     voxel: tuple[str, ...] = ()  # the -D option of its voxel type (volume.voxel_options)
+    levels: np.ndarray | None = None  # the selection (flat int64), with a kept atlas
+    offsets: np.ndarray | None = None  # every brick's first element in its buffer (flat int64, the index's)
+    base_key: tuple | None = None  # the device-cache key of the atlas this one was built from (atlas_reuse)
+    base_levels: np.ndarray | None = None  # that atlas's selection (flat int64)
 
 
 def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
@@ -361,13 +368,16 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
            if vol.key is not None and keep else None)
     n_sel = int(np.count_nonzero(levels >= 0))
     hit = device_cache().get(key) if key is not None else None
+    family = None if key is None else (vol.key, levels.shape, with_std, str(vol.voxel_dtype))
     if hit is not None:
+        atlas_reuse.remember(family, hit)  # the next selection starts from the latest one shown
         return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
     t_read = time.perf_counter()
     cache = brick_cache() if cache is None else cache
     dtype = vol.voxel_dtype
-    offsets, total = _checked_offsets(levels, int(vol.block_size), max_bytes, dtype.itemsize)
-    n_coarse = coarse_elements(levels, int(vol.block_size))
+    B = int(vol.block_size)
+    offsets, total = _checked_offsets(levels, B, max_bytes, dtype.itemsize)
+    n_coarse = coarse_elements(levels, B)
     sig_type = np.dtype(f"u{deviation_bytes(dtype)}")  # lc_common.h: lc_sig
     packed = with_std and sig_type.itemsize == 4
     if packed:  # the coarse bricks live in the deviations' buffer alone; level 0's offsets start the atlas
@@ -375,36 +385,72 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
         total -= n_coarse
         _check_alloc(n_coarse * sig_type.itemsize, max_bytes, "coarse bricks' buffer")
     index = _index(levels, offsets, slices)
+    base = None if family is None else atlas_reuse.last_atlas(family)
+    flat = levels.ravel().astype(np.int64)
+    kept = None if base is None else (base.levels == flat) & (flat >= 0)
     ctx, queue = get_context()
     st = BrickStats()
     n_std = max(n_coarse, 1)
     nbytes = max(total, 1) * dtype.itemsize + (sig_type.itemsize * n_std if with_std else 0)
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
-    # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already)
-    with holding(nbytes):
+    # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already); a brick of the
+    # last atlas of this store at the same level is copied from there (atlas_reuse)
+    todo = levels if kept is None else np.where(kept.reshape(levels.shape), -1, levels).astype(np.int8)
+    L = int(flat.max(initial=0)) + 1
+    with holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
         d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
         try:
-            items = iter_bricks(vol, levels, cache, stats=st)
+            if old is not None and with_std:  # (packed: the coarse values ride along with their deviations)
+                atlas_reuse.copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
+            items = iter_bricks(vol, todo, cache, stats=st)
             deviations = sig
             if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
                 assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
                 halves = sig.view(np.uint16)
                 items, deviations = _coarse_bits(items, halves[0::2], levels.shape, offsets), halves[1::2]
-            d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, int(vol.block_size), items)
+            reuse = None if old is None else (
+                lambda host: atlas_reuse.copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
+                                                   range(0, 1 if packed else L), B))
+            d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse)
             if with_std:
-                _place(deviations, levels.shape, offsets, iter_bricks(vol, levels, cache, what="std"))
+                _place(deviations, levels.shape, offsets, iter_bricks(vol, todo, cache, what="std"))
         finally:
             if sig is not None:
                 sig.base.release(queue)
+    if kept is not None:
+        st.cached += int(kept.sum())
+        st.skipped = int(np.count_nonzero(levels < 0))
     t = time.perf_counter()
     d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
     queue.finish()
     da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, st.read, st.cached, st.skipped,
-                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype))
+                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype),
+                     flat if family is not None else None, offsets.ravel() if family is not None else None,
+                     None if base is None else base.key, None if base is None else base.levels)
     if key is not None:
         device_cache().put(key, da, nbytes + index.nbytes)
+        atlas_reuse.remember(family, da)
     cache.trim()  # its bound may follow the device cache's bytes
     return da
+
+
+@contextlib.contextmanager
+def _reading(queue: Any, da: "DeviceAtlas | None", dtype: Any,
+             sig_type: Any) -> Iterator[tuple[np.ndarray, np.ndarray | None] | None]:
+    """Host mappings (atlas of `dtype`, deviations' buffer of `sig_type`) of atlas `da` for reading, while in this
+    context (None: no atlas)."""
+    if da is None:
+        yield None
+        return
+    maps = [cl.enqueue_map_buffer(queue, b, cl.map_flags.READ, 0, (b.size // np.dtype(t).itemsize,), t)[0]
+            if b is not None else None
+            for b, t in ((da.atlas, dtype), (da.std, sig_type))]
+    try:
+        yield maps[0], maps[1]
+    finally:
+        for m in maps:
+            if m is not None:
+                m.base.release(queue)
 
 
 def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.ndarray]:
@@ -415,11 +461,13 @@ def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.nda
 
 
 def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
-            items: Any) -> cl.Buffer:
-    """A device buffer of n elements with every brick of `items` placed at its offset and the level-0 bricks'
-    aprons filled, written through a host mapping."""
+            items: Any, reuse: Any = None) -> cl.Buffer:
+    """A device buffer of n elements with every brick of `items` (and those `reuse` copies into the host
+    mapping) placed at its offset and the level-0 bricks' aprons filled, written through a host mapping."""
     buf, host = _mapped(ctx, queue, n, dtype)
     try:
+        if reuse is not None:
+            reuse(host)
         _place(host, levels.shape, offsets, items)
         _fill_aprons(host, levels, offsets, block_size)
     finally:
@@ -471,31 +519,79 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
     hit = _cells_cache().get(key) if key is not None else None
     if hit is not None:
         return hit
-    ctx, queue = get_context()
-    lo = (0, 0, 0) if blocks is None else tuple(cpb * b.start for b in blocks)
-    hi = tuple(cpb * g for g in grid) if blocks is None else tuple(cpb * b.stop for b in blocks)
-    shape = tuple(h - l for l, h in zip(lo, hi))
-    n = int(np.prod(shape))
-    d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
+    base = None
+    if blocks is None and da.base_key is not None:  # the atlas was built from another: only changed blocks
+        base = _cells_cache().get(("cells", da.base_key, interpolation, None, cpb))
+    if base is not None:
+        cells = _updated_cells(da, base, grid, block_size, interpolation, std_unit, cpb)
+    else:
+        cells = _device_cells(da, grid, block_size, interpolation, std_unit, blocks, cpb)
+    if key is not None:
+        _cells_cache().put(key, cells, 3 * cells.vmin.nbytes)
+    return cells
+
+
+def _cells_program(da: DeviceAtlas, interpolation: str, cpb: int) -> tuple[Any, cl.Buffer]:
+    """(atlas_cells.cl built for `da`, the deviations' buffer or a stand-in)."""
+    ctx, _ = get_context()
     opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", f"-DLC_CPB={cpb}", *da.voxel]
     std = da.std
     if std is not None:
         opts.append("-DLC_DIST")
     else:
         std = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=8)
+    return get_program("atlas_cells.cl", opts).program, std
+
+
+def _device_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
+                  std_unit: float, blocks: tuple[slice, slice, slice] | None, cpb: int) -> AtlasCells:
+    """atlas_cells computed on the device over the box of cells of `blocks` (None: all)."""
+    ctx, queue = get_context()
+    lo = (0, 0, 0) if blocks is None else tuple(cpb * b.start for b in blocks)
+    hi = tuple(cpb * g for g in grid) if blocks is None else tuple(cpb * b.stop for b in blocks)
+    shape = tuple(h - l for l, h in zip(lo, hi))
+    n = int(np.prod(shape))
+    d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
     out = [np.empty(shape, np.float32) for _ in range(3)]
     if n:
-        kern = cl.Kernel(get_program("atlas_cells.cl", opts).program, "lc_atlas_cells")
+        program, std = _cells_program(da, interpolation, cpb)
         g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
         lo4, hi4 = (np.array([c[2], c[1], c[0], 0], np.int32) for c in (lo, hi))
-        kern(queue, (shape[2], shape[1], shape[0]), None, da.atlas, std, da.index, g4, lo4, hi4, *d_out)
+        cl.Kernel(program, "lc_atlas_cells")(queue, (shape[2], shape[1], shape[0]), None, da.atlas, std, da.index,
+                                             g4, lo4, hi4, *d_out)
         for h, d in zip(out, d_out):
             cl.enqueue_copy(queue, h, d)
         queue.finish()
-    cells = AtlasCells(out[0], out[1], out[2] * np.float32(std_unit), blocks, cpb)
-    if key is not None:
-        _cells_cache().put(key, cells, 3 * 4 * n)
-    return cells
+    return AtlasCells(out[0], out[1], out[2] * np.float32(std_unit), blocks, cpb)
+
+
+def _updated_cells(da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int], block_size: int,
+                   interpolation: str, std_unit: float, cpb: int) -> AtlasCells:
+    """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from: those of the blocks the
+    change of levels can reach (atlas_reuse.dirty_blocks) computed on the device, the others copied."""
+    dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation)
+    out = [a.copy() for a in (base.vmin, base.vmax, base.std)]
+    zyx = np.argwhere(dirty)
+    if len(zyx):
+        ctx, queue = get_context()
+        m = len(zyx) * cpb**3
+        d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=4 * m) for _ in range(3)]
+        lst = np.zeros((len(zyx), 4), np.int32)
+        lst[:, :3] = zyx[:, ::-1]
+        d_list = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=lst)
+        program, std = _cells_program(da, interpolation, cpb)
+        g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
+        cl.Kernel(program, "lc_atlas_cells_of")(queue, (cpb, cpb, cpb * len(zyx)), None, da.atlas, std, da.index,
+                                                g4, d_list, *d_out)
+        got = [np.empty((len(zyx), cpb, cpb, cpb), np.float32) for _ in range(3)]
+        for h, d in zip(got, d_out):
+            cl.enqueue_copy(queue, h, d)
+        queue.finish()
+        got[2] *= np.float32(std_unit)
+        for a, g in zip(out, got):  # (gz, c, gy, c, gx, c) -> (gz, gy, gx, c, c, c): a view, written through
+            per_block = a.reshape(grid[0], cpb, grid[1], cpb, grid[2], cpb).transpose(0, 2, 4, 1, 3, 5)
+            per_block[zyx[:, 0], zyx[:, 1], zyx[:, 2]] = g
+    return AtlasCells(out[0], out[1], out[2], None, cpb)
 
 
 def cells_and_octants(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,

@@ -10,9 +10,9 @@
  * (LC_DIST) is at most their largest one (level 0 bricks: none, 0). (II in a level-0 octant reads the apron, whose
  * samples are those of the neighbours that the loop over the neighbourhood reaches.)
  *
- * Work-item (x, y, z) is cell h = (x, y, z) of the grid LC_CPB G (below): out_min/out_max the extrema of the values
- * (NaN ignored; no finite value, or the own block not loaded: NaN, nothing to see), out_sd the largest deviation in
- * the sig buffer's units. */
+ * Per cell of the grid LC_CPB G (below): out_min/out_max the extrema of the values (NaN ignored; no finite value, or
+ * the own block not loaded: NaN, nothing to see), out_sd the largest deviation in the sig buffer's units; over a box
+ * of cells (lc_atlas_cells) or over the cells of a list of blocks (lc_atlas_cells_of). */
 #include "lc_common.h"
 #include "lc_atlas.h"
 
@@ -38,12 +38,9 @@ static inline int2 lc_reach(const float a, const float b, const float lo_face, c
     return (int2)(i0, i1);
 }
 
-__kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
-                             const int4 grid, const int4 lo, const int4 hi, __global float* out_min,
-                             __global float* out_max, __global float* out_sd) {
-    /* the cells [lo, hi) of the grid (x, y, z), written in C order over that box */
-    const int x = lo.x + get_global_id(0), y = lo.y + get_global_id(1), z = lo.z + get_global_id(2);
-    if (x >= hi.x || y >= hi.y || z >= hi.z) return;
+/* the bounds of cell (x, y, z) of the grid LC_CPB G: (min, max, largest deviation) */
+static float3 lc_cell_bounds(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
+                             const int4 grid, const int x, const int y, const int z) {
     LcAtlasGeom g;
     g.gx = grid.x; g.gy = grid.y; g.gz = grid.z; g.B = (float)grid.w;
     /* eps: samples assigned to the cell within rounding of its faces */
@@ -97,8 +94,33 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const lc_s
                         }
                 }
     }
+    return (float3)(mn <= mx ? mn : NAN, mn <= mx ? mx : NAN, sd);
+}
+
+/* the cells [lo, hi) of the grid (x, y, z), written in C order over that box */
+__kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
+                             const int4 grid, const int4 lo, const int4 hi, __global float* out_min,
+                             __global float* out_max, __global float* out_sd) {
+    const int x = lo.x + get_global_id(0), y = lo.y + get_global_id(1), z = lo.z + get_global_id(2);
+    if (x >= hi.x || y >= hi.y || z >= hi.z) return;
+    const float3 r = lc_cell_bounds(atlas, sig, imap, grid, x, y, z);
     const uint o = ((uint)(z - lo.z) * (uint)(hi.y - lo.y) + (uint)(y - lo.y)) * (uint)(hi.x - lo.x) + (uint)(x - lo.x);
-    out_min[o] = mn <= mx ? mn : NAN;
-    out_max[o] = mn <= mx ? mx : NAN;
-    out_sd[o] = sd;
+    out_min[o] = r.x;
+    out_max[o] = r.y;
+    out_sd[o] = r.z;
+}
+
+/* the LC_CPB³ cells of each block of `blocks` (x, y, z): work-item (i, j, b LC_CPB + k) is cell (i, j, k) of block b,
+ * written at ((b LC_CPB + k) LC_CPB + j) LC_CPB + i (renderer/atlas_reuse.py: the blocks a new selection changed) */
+__kernel void lc_atlas_cells_of(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
+                                const int4 grid, __global const int4* blocks, __global float* out_min,
+                                __global float* out_max, __global float* out_sd) {
+    const int i = get_global_id(0), j = get_global_id(1), bk = get_global_id(2);
+    const int4 b = blocks[bk / LC_CPB];
+    const float3 r = lc_cell_bounds(atlas, sig, imap, grid, b.x * LC_CPB + i, b.y * LC_CPB + j,
+                                    b.z * LC_CPB + bk % LC_CPB);
+    const uint o = ((uint)bk * LC_CPB + (uint)j) * LC_CPB + (uint)i;
+    out_min[o] = r.x;
+    out_max[o] = r.y;
+    out_sd[o] = r.z;
 }

@@ -8,8 +8,8 @@ __all__ = ["REPORT_FIELDS"]
 REPORT_FIELDS: dict[str, str] = {
     "wall_ms": "the whole render, milliseconds: selection, brick reads, uploads, kernel, read-back",
     "kernel_ms": "the ray-casting kernel alone (OpenCL profiling), milliseconds",
-    "bricks_read": "bricks read from the store for this render (the rest came from the brick cache)",
-    "bricks_cached": "bricks found in the brick cache",
+    "bricks_read": "bricks read from the store for this render (the rest were on the device or in the brick cache)",
+    "bricks_cached": "bricks not read: the device had them (the same selection, or the same block at the same level in the last atlas of this store) or the brick cache did",
     "bricks_skipped": "blocks the selection left out: invisible under the transfer function",
     "reduction": "data reduction of the level-of-detail selection: level-0 bytes of the visible blocks / bytes used",
     "predicted_delta_e": "the predicted mean image error, ΔE (CIE76 in CIELUV), against the reference (full "

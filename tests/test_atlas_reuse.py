@@ -1,0 +1,156 @@
+"""A new selection's atlas is built from the last one of the same store (renderer/atlas_reuse.py): the bricks of
+blocks at the same level are copied across, only the others are read, and the octants' bounds are computed for
+the blocks the change can reach. Everything must equal an atlas packed from nothing, element for element, over
+random changes of levels (blocks loaded and dropped, level 0 against coarse, the aprons between them), for float
+and integer voxels (the latter with the coarse values packed beside their deviations), and renders with the
+view-weighted selection must not change by a bit."""
+from __future__ import annotations
+
+import gc
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+import lodcast
+from lodcast.opencl import get_context
+from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer import atlas_reuse
+from lodcast.renderer.bricks import BrickCache
+from lodcast.renderer.render import render
+from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.volume import as_volume
+
+BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
+                   {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}
+
+
+def _shells(shape=(40, 48, 56)) -> np.ndarray:
+    z, y, x = np.mgrid[: shape[0], : shape[1], : shape[2]].astype(np.float64)
+    r = np.sqrt((z - 20) ** 2 + (y - 24) ** 2 + (x - 28) ** 2)
+    a = 50 + np.random.default_rng(4).normal(0, 20, shape)
+    for r0 in (7.0, 15.0):
+        a = np.where(np.abs(r - r0) < 1.0, 1000.0, a)
+    return a
+
+
+@pytest.fixture(scope="module", params=["float32", "int16"])
+def store(request, tmp_path_factory):
+    a = _shells()
+    a = a.astype(np.float32) if request.param == "float32" else np.rint(a).astype(np.int16)
+    if request.param == "float32":
+        a[1:4, 1:4, 1:4] = np.nan
+    return lodcast.ingest(a, tmp_path_factory.mktemp("reuse") / f"{request.param}.zarr", block_size=8)
+
+
+def _forget() -> None:
+    device_cache().clear()
+    lod_atlas._cells_cache().clear()
+    atlas_reuse._last()[0].clear()
+
+
+def _changed(levels: np.ndarray, rng, frac: float, top: int) -> np.ndarray:
+    out = levels.copy()
+    m = rng.random(levels.shape) < frac
+    out[m] = rng.integers(-1, top + 1, size=int(m.sum()))
+    return out
+
+
+def _read(buf, dtype) -> np.ndarray:
+    _, queue = get_context()
+    out = np.empty(buf.size // np.dtype(dtype).itemsize, dtype)
+    cl.enqueue_copy(queue, out, buf)
+    queue.finish()
+    return out
+
+
+def _same_atlas(a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtlas, vol) -> None:
+    np.testing.assert_array_equal(a.index_host, b.index_host)
+    np.testing.assert_array_equal(_read(a.atlas, np.uint8), _read(b.atlas, np.uint8))  # bits: NaN included
+    assert (a.std is None) == (b.std is None)
+    if a.std is not None:
+        np.testing.assert_array_equal(_read(a.std, np.uint8), _read(b.std, np.uint8))
+
+
+@pytest.mark.parametrize("with_std", [True, False])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_atlas_built_from_the_last_one_is_the_atlas_packed_from_nothing(store, with_std, seed):
+    vol = as_volume(store)
+    rng = np.random.default_rng(seed)
+    top = store.n_levels - 1
+    first = rng.integers(-1 if seed else 0, top + 1, size=vol.grid).astype(np.int8)
+    first[rng.random(vol.grid) < 0.4] = 0  # runs of level-0 blocks: aprons between them
+    _forget()
+    old = lod_atlas.device_atlas(vol, first, with_std=with_std)
+    for frac in (0.05, 0.3, 1.0):
+        new_levels = _changed(first, rng, frac, top)
+        new = lod_atlas.device_atlas(vol, new_levels, with_std=with_std)
+        assert new.base_key == old.key and new.cached >= int(((new_levels == first) & (first >= 0)).sum())
+        _forget()
+        fresh = lod_atlas.device_atlas(vol, new_levels, with_std=with_std)
+        assert fresh.base_key is None
+        _same_atlas(new, fresh, vol)
+        _forget()
+        old = lod_atlas.device_atlas(vol, first, with_std=with_std)
+
+
+@pytest.mark.parametrize("interp", ["nearest_block", "interblock"])
+@pytest.mark.parametrize("cpb", [2, 4])
+def test_cells_of_an_atlas_built_from_the_last_one_are_computed_where_they_changed(store, interp, cpb):
+    vol = as_volume(store)
+    B, G = int(vol.block_size), vol.grid
+    rng = np.random.default_rng(7)
+    first = rng.integers(-1, store.n_levels, size=G).astype(np.int8)
+    first[rng.random(G) < 0.5] = 0
+    _forget()
+    lod_atlas.atlas_cells(lod_atlas.device_atlas(vol, first, with_std=True), G, B, interp, vol.std_unit, cpb=cpb)
+    for frac in (0.02, 0.2, 0.6):
+        levels = _changed(first, rng, frac, store.n_levels - 1)
+        da = lod_atlas.device_atlas(vol, levels, with_std=True)
+        assert da.base_key is not None
+        dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(G), levels, interp)
+        assert dirty.sum() < dirty.size or frac > 0.5  # some blocks are copied, not computed
+        got = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit, cpb=cpb)
+        ref = lod_atlas._device_cells(da, G, B, interp, vol.std_unit, None, cpb)
+        for g, r in ((got.vmin, ref.vmin), (got.vmax, ref.vmax), (got.std, ref.std)):
+            np.testing.assert_array_equal(g, r)
+        first = levels
+
+
+def test_only_the_bricks_of_blocks_whose_level_changed_are_read(store):
+    vol = as_volume(store)
+    rng = np.random.default_rng(11)
+    first = rng.integers(-1, store.n_levels, size=vol.grid).astype(np.int8)
+    levels = _changed(first, rng, 0.25, store.n_levels - 1)
+    _forget()
+    lod_atlas.device_atlas(vol, first, with_std=True, cache=BrickCache(1 << 30))
+    da = lod_atlas.device_atlas(vol, levels, with_std=True, cache=BrickCache(1 << 30))  # nothing cached there
+    new = int(((levels != first) & (levels >= 0)).sum())
+    assert 0 < new < int((levels >= 0).sum())
+    assert (da.read, da.cached) == (new, int((levels >= 0).sum()) - new)
+
+
+def test_the_last_atlas_is_held_weakly(store):
+    """Reuse never keeps an atlas's device memory alive: once the device cache lets it go, it is gone."""
+    vol = as_volume(store)
+    _forget()
+    da = lod_atlas.device_atlas(vol, np.zeros(vol.grid, np.int8))
+    family = (vol.key, vol.grid, False, str(vol.voxel_dtype))
+    assert atlas_reuse.last_atlas(family) is da
+    del da
+    device_cache().clear()
+    gc.collect()
+    assert atlas_reuse.last_atlas(family) is None
+
+
+def test_a_turntable_with_the_view_weighted_selection_renders_as_without_reuse(store):
+    scenes = [{"tf": BONE, "quality": {"reduction": 20}, "width": 64, "height": 64,
+               "camera": {"azimuth": az, "elevation": 10}, "sampling": {"lod_visibility": True}}
+              for az in (0, 4, 30, 31, 90)]
+    _forget()
+    reused = [render(store, s) for s in scenes]
+    assert sum(r.report["bricks_cached"] for r in reused[1:]) > 0
+    for s, r in zip(scenes, reused):
+        _forget()
+        fresh = render(store, s)
+        np.testing.assert_array_equal(r.rgba, fresh.rgba)
