@@ -65,11 +65,18 @@ def _read(buf, dtype) -> np.ndarray:
 
 
 def _same_atlas(a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtlas, vol) -> None:
+    """Index and buffers equal, bit for bit (NaN included); a buffer with nothing in it holds one element that
+    nothing reads or writes."""
     np.testing.assert_array_equal(a.index_host, b.index_host)
-    np.testing.assert_array_equal(_read(a.atlas, np.uint8), _read(b.atlas, np.uint8))  # bits: NaN included
-    assert (a.std is None) == (b.std is None)
-    if a.std is not None:
-        np.testing.assert_array_equal(_read(a.std, np.uint8), _read(b.std, np.uint8))
+    B = int(vol.block_size)
+    levels = a.levels
+    coarse = lod_atlas.coarse_elements(levels, B)
+    packed = a.std is not None and lod_atlas.deviation_bytes(vol.voxel_dtype) == 4  # coarse values beside deviations
+    held = int(lod_atlas.brick_elements(levels, B).sum()) - (coarse if packed else 0)
+    for x, y, used in ((a.atlas, b.atlas, held), (a.std, b.std, coarse)):
+        assert (x is None) == (y is None)
+        if x is not None and used:
+            np.testing.assert_array_equal(_read(x, np.uint8), _read(y, np.uint8))
 
 
 @pytest.mark.parametrize("with_std", [True, False])
@@ -154,3 +161,22 @@ def test_a_turntable_with_the_view_weighted_selection_renders_as_without_reuse(s
         _forget()
         fresh = render(store, s)
         np.testing.assert_array_equal(r.rgba, fresh.rgba)
+
+
+@pytest.mark.parametrize("first, then", [("empty", "random"), ("random", "empty"), ("zero", "coarse"),
+                                         ("coarse", "zero"), ("zero", "random")])
+def test_edge_selections_build_from_each_other(store, first, then):
+    """Nothing loaded, everything at level 0 (no coarse brick: a deviations' buffer of one element), everything
+    coarse: each built from the other equals the atlas packed from nothing."""
+    vol = as_volume(store)
+    rng = np.random.default_rng(13)
+    make = {"empty": lambda: np.full(vol.grid, -1, np.int8), "zero": lambda: np.zeros(vol.grid, np.int8),
+            "coarse": lambda: rng.integers(1, store.n_levels, size=vol.grid).astype(np.int8),
+            "random": lambda: rng.integers(-1, store.n_levels, size=vol.grid).astype(np.int8)}
+    a, b = make[first](), make[then]()
+    _forget()
+    lod_atlas.device_atlas(vol, a, with_std=True)
+    new = lod_atlas.device_atlas(vol, b, with_std=True)
+    assert new.base_key is not None
+    _forget()
+    _same_atlas(new, lod_atlas.device_atlas(vol, b, with_std=True), vol)
