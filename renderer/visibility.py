@@ -13,7 +13,8 @@ VIS_VOXELS voxels: level 1 of a 512²×275 CT, level 3 of a 1024×2048² body), 
 its value, and records per block the largest transmittance with which any ray of the cast enters it
 (visibility.cl). Classifying coarse means thins small opaque structures rather than thickening them, so the
 estimate errs towards calling a block visible. Blocks no ray reaches (outside the picture, or behind what the
-cast saw as opaque) get 0.
+cast saw as opaque) get 0. Where a block and its neighbours hold nothing the TF shows (`quiet_blocks`) the cast
+takes no sample, only the block's entry: the same result in 1.2-1.6x less time on the chest and engine CTs.
 
 Measured on the chest and engine CTs (four TFs, two views each, 10:1 to 100:1, 256², the selection's mean ΔE
 against the step-¼ reference): the selection weighted by this estimate from level 1 summed 145 against 168
@@ -33,7 +34,8 @@ from lodcast.renderer.scene import Scene
 from lodcast.renderer.transfer_function import Lut
 from lodcast.renderer.volume import VolumeView
 
-__all__ = ["AUTO_VOXELS", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "scene_visibility", "visibility_level"]
+__all__ = ["AUTO_VOXELS", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "quiet_blocks", "scene_visibility",
+           "visibility_level"]
 
 VIS_RAYS = 96  # rays along the longer side of the image
 #: sampling.lod_visibility left out is on for volumes of at most this many voxels: beyond, a new view's selection
@@ -80,6 +82,7 @@ def block_visibility(vol: VolumeView, scene: Scene, fr: cam.Frame, kbox: tuple, 
     p = fill_params(vol, scene, fr, kbox, lut, step_world, unit, 0, None, None)
     p[0]["width"], p[0]["height"] = w, h
     alpha = np.ascontiguousarray(lut.kernel_table("alpha", step_world / unit)[:, 3], dtype=np.float32)
+    quiet = quiet_blocks(vol, lut, k)
     opts = ["-DLC_ORTHO"] if fr.orthographic else []
     if scene.clip is not None and scene.clip.planes:
         opts.append("-DLC_CLIP")
@@ -88,13 +91,28 @@ def block_visibility(vol: VolumeView, scene: Scene, fr: cam.Frame, kbox: tuple, 
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
     d_a = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=alpha)
+    d_q = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=quiet)
     vis = np.zeros(vol.grid, np.uint32)
     d_v = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=vis)
     kern = cl.Kernel(get_program("visibility.cl", opts).program, "lc_visibility")
-    kern(queue, (w, h), None, d_p, buf, np.array([*kdims, 0], np.int32), np.int32(k), d_a, d_v)
+    kern(queue, (w, h), None, d_p, buf, np.array([*kdims, 0], np.int32), np.int32(k), d_a, d_q, d_v)
     cl.enqueue_copy(queue, vis, d_v)
     queue.finish()
     return (vis.astype(np.float64) / _ONE).astype(np.float32)
+
+
+def quiet_blocks(vol: VolumeView, lut: Lut, k: int) -> np.ndarray:
+    """Per block (uint8, C order): 1 where the cast through level k need not sample, since the TF's interpolant is
+    zero on every value there: a level-k sample interpolates level-k voxels within 2^k level-0 voxels of it, each
+    the mean of level-0 values there, so where 2^k is at most the block size its values lie in the border-inclusive
+    ranges of the block and its 26 neighbours, and `lut.visible` (conservative by an entry) says none of them can
+    be seen. Beyond that reach (a level coarser than the block): no block is quiet."""
+    shows = lut.visible(vol.min_border, vol.max_border)
+    if (1 << k) > int(vol.block_size):
+        return np.zeros(shows.size, np.uint8)
+    from lodcast.renderer.atlas import neighbourhood_max  # (atlas imports the device cache this module uses)
+
+    return np.ascontiguousarray(neighbourhood_max(shows.astype(np.int8)).ravel() == 0, dtype=np.uint8)
 
 
 def scene_visibility(store, scene) -> np.ndarray:

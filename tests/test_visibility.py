@@ -107,6 +107,35 @@ def test_visibility_matches_a_float64_host_cast(tmp_path, seed):
     assert np.mean(np.abs(got - ref) < 1e-4) > 0.9
 
 
+@pytest.mark.parametrize("f", [(1, 0.4, 0.3), (-1, 0.2, -0.5)])
+def test_quiet_blocks_change_nothing(tmp_path, monkeypatch, f):
+    """Blocks whose neighbourhood the TF shows nothing of are passed without sampling (visibility.quiet_blocks): the
+    cast's result is the one that samples every step, bit for bit. The wall starts two voxels inside its block
+    column, so the block before it holds nothing visible, one-voxel border included, while the level-2 cast's
+    samples near their shared face reach the wall's values: only its neighbours' ranges say so (oblique rays: along
+    an axis the lattice of coarse steps may miss the face's few voxels). Through a level
+    coarser than the block no block may be quiet."""
+    v = (0.3 * np.random.default_rng(2).random((2 * B, 2 * B, 6 * B))).astype(np.float32)
+    v[:, :, 3 * B + 1:3 * B + 6] = 1.0
+    st = lodcast.ingest(v, tmp_path / "q.zarr", block_size=B, progress=False)
+    veil = {"points": [{"value": 0.4, "color": [1, 1, 1], "opacity": 0.0},
+                       {"value": 0.6, "color": [1, 1, 1], "opacity": 0.1}]}  # the blocks behind it stay seen
+    scene = {"tf": veil, "width": 64, "height": 48, "camera": _ortho(st.shape, f)}
+    vol = as_volume(st)
+    monkeypatch.setattr(visibility, "VIS_VOXELS", int(np.prod(vol.level_shape(2))))  # a level 4 voxels wide
+    assert visibility.visibility_level(vol) == 2
+    from lodcast.renderer.transfer_function import build_lut
+
+    lut = build_lut(resolved(Scene.parse(scene), vol).tf, vol.value_range)
+    quiet = visibility.quiet_blocks(vol, lut, 2).reshape(vol.grid)
+    assert quiet[..., :2].all() and not quiet[..., 2:5].any() and quiet[..., 5:].all()
+    assert not visibility.quiet_blocks(vol, lut, 5).any()  # 2^5 > B: none
+    got = visibility.scene_visibility(st, scene)
+    assert ((got > 0.0) & (got < 1.0)).any()  # attenuated but seen: a missed sample would show
+    monkeypatch.setattr(visibility, "quiet_blocks", lambda vol, lut, k: np.zeros(vol.n_blocks, np.uint8))
+    np.testing.assert_array_equal(got, visibility.scene_visibility(st, scene))
+
+
 def test_clip_planes_open_the_view(wall):
     """A plane that keeps only x >= 4B removes the wall: the blocks behind it are seen."""
     scene = {"tf": WALL, "width": 48, "height": 48, "camera": _ortho(wall.shape, (1, 0, 0)),
