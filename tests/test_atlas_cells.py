@@ -207,6 +207,20 @@ def test_octant_masks_change_nothing_but_the_samples(ribs, monkeypatch, name):
                                                                                  without.report["samples"])
 
 
+def test_no_octant_masks_beyond_fine_cells_octants(ribs, monkeypatch):
+    """The octants' bounds are kept for the whole grid (12 bytes each, on the host and the device): on a grid of
+    more than sampler.FINE_CELLS octants (the 8 GiB volume's 64 million: 12.5 s a turntable frame, 5.3 GB of peak
+    RSS) the walk takes every sample of its half-block cells, as full resolution walks 8³ cells there."""
+    from lodcast.renderer import render as rendering
+
+    scene = {"tf": BONE, "width": 48, "height": 40, "camera": {"azimuth": 30, "elevation": 20},
+             "quality": {"reduction": 4}}
+    vol = as_volume(ribs)
+    assert "-DLC_OCTANTS" in render(ribs, scene).report["build_options"]
+    monkeypatch.setattr(rendering, "FINE_CELLS", 64 * vol.n_blocks - 1)
+    assert "-DLC_OCTANTS" not in render(ribs, scene).report["build_options"]
+
+
 def test_octants_of_every_half_block_cell_hold_its_bounds(ribs):
     """atlas_cells at 4 cells per block edge: each half-block cell's bounds are the union of its eight octants'
     (both from the same brick samples, the octants' reach a subset), bit for bit, so that cells_and_octants
