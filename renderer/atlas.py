@@ -40,7 +40,7 @@ from lodcast.renderer.volume import voxel_options
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
            "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells", "brick_elements",
-           "coarse_elements", "deviation_bytes", "neighbourhood_max"]
+           "coarse_elements", "deviation_bytes", "neighbourhood_max", "clear_cells"]
 
 MISSING = 0
 
@@ -610,6 +610,11 @@ def cells_and_octants(da: DeviceAtlas, grid: tuple[int, int, int], block_size: i
         if key is not None:
             _cells_cache().put(key, cells, 3 * lo.nbytes)
     return cells, octants
+
+
+def clear_cells() -> None:
+    """Drop the cells kept beside recent atlases (when the device cache drops the atlases: a render in passes)."""
+    _cells_cache().clear()
 
 
 @functools.cache

@@ -26,12 +26,18 @@ if TYPE_CHECKING:  # pragma: no cover
     from lodcast.renderer import passes as multipass
     from lodcast.renderer.render import Prepared
 
-__all__ = ["FINE_STEP", "adaptive_walk", "atlas_cell_info", "block_info", "octant_masks", "range_info", "walk_info",
-           "walk_steps"]
+__all__ = ["FINE_STEP", "adaptive_walk", "atlas_cell_info", "block_info", "clear_walks", "octant_masks", "range_info",
+           "walk_info", "walk_steps"]
 
 _WALKS = ByteLru(64 << 20)  # the walk info (cell visibility and leaps) of recent volumes or selections, TFs and clips
 _ADAPTIVE = ByteLru(32 << 20)  # the adaptive walk's steps, leaps and octant masks of recent selections
 _PARENTS = ByteLru(64 << 20)  # the value ranges of full resolution's 8³ cells from its 4³ cells', per volume
+
+
+def clear_walks() -> None:
+    """Drop the walk info and adaptive walks kept for recent selections (with their atlases: a render in passes)."""
+    _WALKS.clear()
+    _ADAPTIVE.clear()
 
 
 def block_info(vol: VolumeView, lut: Lut, mode: str, lut2: Lut | None = None) -> tuple[np.ndarray, int]:
