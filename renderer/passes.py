@@ -278,6 +278,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     device_cache().clear()
     lod_atlas.clear_cells()
     walk.clear_walks()
+    release_free_memory()  # (freed, they would stay resident under the first pass's data)
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
     stats.planned = len(regions)
     slices = lod_atlas.slice_max(lod.levels) if lod is not None else None
