@@ -238,3 +238,20 @@ def test_level_zero_steps_lie_on_full_resolutions_lattice(tmp_path, monkeypatch,
         assert full.rgba[..., 3].max() > 0.5
         np.testing.assert_allclose(lod.rgba, full.rgba, rtol=0, atol=1e-4)
         assert abs(lod.report["samples"] - full.report["samples"]) <= 2
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_skipped_codes_over_random_steps(seed):
+    """atlas.skipped in int8 (no int64 temporaries over a large grid's cells) against the rule in int64: a cell that
+    `where` marks and that is sampled (code s >= 0, NEAR_LEVEL0 included) becomes -(s + 1), skipped ones stay."""
+    from lodcast.renderer.atlas import NEAR_LEVEL0, skipped
+
+    rng = np.random.default_rng(seed)
+    st = rng.integers(-(NEAR_LEVEL0 + 8), NEAR_LEVEL0 + 8, size=(5, 6, 7)).astype(np.int8)
+    where = rng.random(st.shape) < 0.5
+    s64 = st.astype(np.int64)
+    ref = np.where(where & (s64 >= 0), -s64 - 1, s64)
+    got = skipped(st, where)
+    assert got.dtype == np.int8 and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, ref)
+    np.testing.assert_array_equal(st, skipped(st, np.zeros(st.shape, bool)))  # nothing marked: unchanged
