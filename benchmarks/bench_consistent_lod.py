@@ -134,7 +134,7 @@ def new_views(store, scene: dict, step: float, frames: int = 8, quality=None) ->
     (renderer/atlas_reuse.py) and, on the same views, packed from nothing; and full resolution's. Bricks are
     warmed by one pass first; the selections, atlases and cells are dropped before each timed pass, whose first
     frame (nothing to build from) is left out of the medians."""
-    from lodcast.renderer import atlas, atlas_reuse
+    from lodcast.renderer import atlas_cells, atlas_reuse
     from lodcast.renderer import render as rr
     from lodcast.renderer.sampler import device_cache
 
@@ -144,7 +144,7 @@ def new_views(store, scene: dict, step: float, frames: int = 8, quality=None) ->
 
     def forget():
         device_cache().clear()
-        atlas._cells_cache().clear()
+        atlas_cells._cells_cache().clear()
         rr._SELECTIONS.clear()
         atlas_reuse._last()[0].clear()
 

@@ -21,7 +21,6 @@ cache (`sampler.device_cache`: same store and levels, nothing is packed or uploa
 from __future__ import annotations
 
 import contextlib
-import functools
 import hashlib
 import time
 from collections.abc import Iterator
@@ -31,16 +30,15 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
-from lodcast.opencl import DeviceError, get_context, get_program
+from lodcast.opencl import DeviceError, get_context
 from lodcast.renderer import atlas_reuse
 from lodcast.renderer.bricks import BrickCache, BrickStats, brick_cache, holding, iter_bricks
-from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.volume import voxel_options
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
-           "device_atlas", "max_alloc_bytes", "AtlasCells", "atlas_cells", "half_cells", "brick_elements",
-           "coarse_elements", "deviation_bytes", "neighbourhood_max", "clear_cells"]
+           "device_atlas", "max_alloc_bytes", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
+           "neighbourhood_max", "pair_reduce", "per_cell"]
 
 MISSING = 0
 
@@ -487,139 +485,3 @@ def _coarse_bits(items: Any, low: np.ndarray, grid: tuple, offsets: np.ndarray) 
             _place(low, grid, offsets, [(key, (a if a.dtype.itemsize == 2 else a.astype(np.int16)).view(np.uint16))])
         else:
             yield key, a
-
-
-@dataclass(frozen=True)
-class AtlasCells:
-    """What the field sampled from an atlas can take in each half-block cell (grid 2G; `cpb` 4: in each of their
-    octants, grid 4G; C order; atlas_cells.cl):
-    the extrema of its values (NaN: nothing to see) and the largest standard deviation behind them (0 at level 0
-    and without distributions), in the data's units; over the cells of the blocks `blocks` (z, y, x slices of the
-    block grid; None: all), which a pass of a render in several needs alone."""
-
-    vmin: np.ndarray
-    vmax: np.ndarray
-    std: np.ndarray
-    blocks: tuple[slice, slice, slice] | None = None
-    cpb: int = 2  # cells per block edge: 2, half-block cells; 4, their octants (quarter-block cells)
-
-    @property
-    def at(self) -> tuple[slice, slice, slice]:
-        """Where these cells lie in the whole grid of cells."""
-        if self.blocks is None:
-            return (slice(None),) * 3
-        return tuple(slice(self.cpb * b.start, self.cpb * b.stop) for b in self.blocks)
-
-
-def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
-                std_unit: float = 1.0, blocks: tuple[slice, slice, slice] | None = None, cpb: int = 2) -> AtlasCells:
-    """The half-block cells of atlas `da` (block grid `grid`, z-y-x), or those of `blocks` only, computed on the
-    device and kept beside the atlas (host arrays, in a cache of their own keyed by the atlas's device-cache key):
-    empty-space skipping on the atlas walks these cells (renderer/walk.py). `cpb` 4: their octants instead, the
-    quarter-block cells (block size a multiple of 4)."""
-    assert cpb in (2, 4) and block_size % cpb == 0, (cpb, block_size)
-    key = None if da.key is None else ("cells", da.key, interpolation, None if blocks is None else str(blocks), cpb)
-    hit = _cells_cache().get(key) if key is not None else None
-    if hit is not None:
-        return hit
-    base = None
-    if blocks is None and da.base_key is not None:  # the atlas was built from another: only changed blocks
-        base = _cells_cache().get(("cells", da.base_key, interpolation, None, cpb))
-    if base is not None:
-        cells = _updated_cells(da, base, grid, block_size, interpolation, std_unit, cpb)
-    else:
-        cells = _device_cells(da, grid, block_size, interpolation, std_unit, blocks, cpb)
-    if key is not None:
-        _cells_cache().put(key, cells, 3 * cells.vmin.nbytes)
-    return cells
-
-
-def _cells_program(da: DeviceAtlas, interpolation: str, cpb: int) -> tuple[Any, cl.Buffer]:
-    """(atlas_cells.cl built for `da`, the deviations' buffer or a stand-in)."""
-    ctx, _ = get_context()
-    opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", f"-DLC_CPB={cpb}", *da.voxel]
-    std = da.std
-    if std is not None:
-        opts.append("-DLC_DIST")
-    else:
-        std = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=8)
-    return get_program("atlas_cells.cl", opts).program, std
-
-
-def _device_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
-                  std_unit: float, blocks: tuple[slice, slice, slice] | None, cpb: int) -> AtlasCells:
-    """atlas_cells computed on the device over the box of cells of `blocks` (None: all)."""
-    ctx, queue = get_context()
-    lo = (0, 0, 0) if blocks is None else tuple(cpb * b.start for b in blocks)
-    hi = tuple(cpb * g for g in grid) if blocks is None else tuple(cpb * b.stop for b in blocks)
-    shape = tuple(h - l for l, h in zip(lo, hi))
-    n = int(np.prod(shape))
-    d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
-    out = [np.empty(shape, np.float32) for _ in range(3)]
-    if n:
-        program, std = _cells_program(da, interpolation, cpb)
-        g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
-        lo4, hi4 = (np.array([c[2], c[1], c[0], 0], np.int32) for c in (lo, hi))
-        cl.Kernel(program, "lc_atlas_cells")(queue, (shape[2], shape[1], shape[0]), None, da.atlas, std, da.index,
-                                             g4, lo4, hi4, *d_out)
-        for h, d in zip(out, d_out):
-            cl.enqueue_copy(queue, h, d)
-        queue.finish()
-    return AtlasCells(out[0], out[1], out[2] * np.float32(std_unit), blocks, cpb)
-
-
-def _updated_cells(da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int], block_size: int,
-                   interpolation: str, std_unit: float, cpb: int) -> AtlasCells:
-    """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from: those of the blocks the
-    change of levels can reach (atlas_reuse.dirty_blocks) computed on the device, the others copied."""
-    dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation)
-    out = [a.copy() for a in (base.vmin, base.vmax, base.std)]
-    zyx = np.argwhere(dirty)
-    if len(zyx):
-        ctx, queue = get_context()
-        m = len(zyx) * cpb**3
-        d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=4 * m) for _ in range(3)]
-        lst = np.zeros((len(zyx), 4), np.int32)
-        lst[:, :3] = zyx[:, ::-1]
-        d_list = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=lst)
-        program, std = _cells_program(da, interpolation, cpb)
-        g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
-        cl.Kernel(program, "lc_atlas_cells_of")(queue, (cpb, cpb, cpb * len(zyx)), None, da.atlas, std, da.index,
-                                                g4, d_list, *d_out)
-        got = [np.empty((len(zyx), cpb, cpb, cpb), np.float32) for _ in range(3)]
-        for h, d in zip(got, d_out):
-            cl.enqueue_copy(queue, h, d)
-        queue.finish()
-        got[2] *= np.float32(std_unit)
-        for a, g in zip(out, got):  # (gz, c, gy, c, gx, c) -> (gz, gy, gx, c, c, c): a view, written through
-            per_block = a.reshape(grid[0], cpb, grid[1], cpb, grid[2], cpb).transpose(0, 2, 4, 1, 3, 5)
-            per_block[zyx[:, 0], zyx[:, 1], zyx[:, 2]] = g
-    return AtlasCells(out[0], out[1], out[2], None, cpb)
-
-
-def cells_and_octants(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
-                      std_unit: float = 1.0) -> tuple[AtlasCells, AtlasCells]:
-    """(the half-block cells, their octants) of the whole atlas `da`: the octants from the device, the half-block
-    cells reduced from them, each the union of its eight octants' bounds, which is what `atlas_cells` gives for
-    them (the same brick samples reached: tests/test_atlas_cells.py) without a second kernel (on the chest CT's
-    30:1 and lossless atlases 12-29 ms of kernel against 7 ms of reduction), kept as `atlas_cells` keeps its."""
-    octants = atlas_cells(da, grid, block_size, interpolation, std_unit, cpb=4)
-    key = None if da.key is None else ("cells", da.key, interpolation, None, 2)
-    cells = _cells_cache().get(key) if key is not None else None
-    if cells is None:
-        lo, hi, sd = (pair_reduce(a, f) for a, f in ((octants.vmin, np.fmin), (octants.vmax, np.fmax),
-                                                       (octants.std, np.maximum)))
-        cells = AtlasCells(lo, hi, sd)
-        if key is not None:
-            _cells_cache().put(key, cells, 3 * lo.nbytes)
-    return cells, octants
-
-
-def clear_cells() -> None:
-    """Drop the cells kept beside recent atlases (when the device cache drops the atlases: a render in passes)."""
-    _cells_cache().clear()
-
-
-@functools.cache
-def _cells_cache() -> ByteLru:
-    return ByteLru(256 << 20)

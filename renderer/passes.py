@@ -31,6 +31,7 @@ import pyopencl as cl
 from lodcast.environment import environment
 from lodcast.malloc import release_free_memory
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer import atlas_cells
 from lodcast.renderer import bricks
 from lodcast.renderer import walk
 from lodcast.renderer.camera import Frame
@@ -238,8 +239,8 @@ class PassData:
     cell_min: np.ndarray | None = None  # full resolution: the border-inclusive extrema of the cells of
     cell_max: np.ndarray | None = None  # empty-space skipping (of the pass's own blocks; NaN elsewhere)
     cell: int = 0  # their edge in voxels
-    cells: "lod_atlas.AtlasCells | None" = None  # the atlas: its half-block cells (with empty-space skipping)
-    octants: "lod_atlas.AtlasCells | None" = None  # and their octants (the adaptive walk's masks: config.octants)
+    cells: "atlas_cells.AtlasCells | None" = None  # the atlas: its half-block cells (with empty-space skipping)
+    octants: "atlas_cells.AtlasCells | None" = None  # and their octants (the adaptive walk's masks: config.octants)
 
 
 def _empty_region(levels: np.ndarray | None) -> Region:
@@ -276,7 +277,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     # a render beyond the budget has the device to itself, and the host what was kept beside the atlases it drops
     # (their cells and walks: 135 MB of the 8 GiB volume's 30:1 selection, over a quarter of the volume at lossless)
     device_cache().clear()
-    lod_atlas.clear_cells()
+    atlas_cells.clear_cells()
     walk.clear_walks()
     release_free_memory()  # (freed, they would stay resident under the first pass's data)
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
@@ -322,7 +323,7 @@ def _level0_pass(vol, reg: Region, shape: tuple[int, ...], own: np.ndarray, step
 
 
 def _cells(pr, da: "lod_atlas.DeviceAtlas",
-           blocks: tuple[slice, slice, slice] | None = None) -> "lod_atlas.AtlasCells | None":
+           blocks: tuple[slice, slice, slice] | None = None) -> "atlas_cells.AtlasCells | None":
     """The atlas's half-block cells, where the walk can skip on them (renderer/walk.py); a pass needs
     those of the blocks it owns (`blocks`) only."""
     cfg = pr.config
@@ -330,14 +331,14 @@ def _cells(pr, da: "lod_atlas.DeviceAtlas",
         return None
     if cfg.octants and blocks is None:  # reduced from the octants the walk needs as well
         return _cells_and_octants(pr, da)[0]
-    return lod_atlas.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
+    return atlas_cells.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
                                  pr.volume.std_unit if cfg.distribution else 1.0, blocks)
 
 
-def _cells_and_octants(pr, da: "lod_atlas.DeviceAtlas") -> tuple["lod_atlas.AtlasCells", "lod_atlas.AtlasCells"]:
+def _cells_and_octants(pr, da: "lod_atlas.DeviceAtlas") -> tuple["atlas_cells.AtlasCells", "atlas_cells.AtlasCells"]:
     """The whole atlas's half-block cells and their octants (config.octants), kept beside the atlas."""
     cfg = pr.config
-    return lod_atlas.cells_and_octants(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
+    return atlas_cells.cells_and_octants(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
                                        pr.volume.std_unit if cfg.distribution else 1.0)
 
 

@@ -23,6 +23,7 @@ from lodcast.renderer.volume import VolumeView
 from lodcast.store.layout import cell_edge
 
 if TYPE_CHECKING:  # pragma: no cover
+    from lodcast.renderer import atlas_cells
     from lodcast.renderer import passes as multipass
     from lodcast.renderer.render import Prepared
 
@@ -177,7 +178,7 @@ def _clipped(pr: "Prepared", info: np.ndarray, C: int) -> np.ndarray:
     return np.where(keep, info, -np.inf if pr.scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
 
 
-def atlas_cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells") -> np.ndarray:
+def atlas_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells") -> np.ndarray:
     """The walk's info over the atlas's half-block cells: the selection's block info (pr.block_info) where the
     field sampled in the cell can be visible, empty (0; MIP: its largest value, MinIP: minus its smallest) where
     it cannot: every value there is invisible under the point classification and, with distribution
@@ -194,7 +195,7 @@ def atlas_cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells") -> np.ndarray
     return out
 
 
-def _cell_info(pr: "Prepared", cells: "lod_atlas.AtlasCells", block_info: np.ndarray) -> np.ndarray:
+def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.ndarray) -> np.ndarray:
     up = lod_atlas.half_cells(block_info)
     mode = pr.scene.mode
     if mode in EXTREMUM_MODES:
@@ -270,7 +271,7 @@ def adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData",
     return out
 
 
-def octant_masks(pr: "Prepared", octants: "lod_atlas.AtlasCells | None", steps: np.ndarray) -> np.ndarray:
+def octant_masks(pr: "Prepared", octants: "atlas_cells.AtlasCells | None", steps: np.ndarray) -> np.ndarray:
     """The adaptive walk's octant masks (config.octants; float32 over the half-block cells, 0-255): bit
     (z & 1) << 2 | (y & 1) << 1 | (x & 1) of a sampled cell's octant (quarter-block cell) where the field sampled
     there can show something under the point or the distribution classification (atlas_cells.cl's bounds), as

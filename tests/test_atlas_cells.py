@@ -11,6 +11,7 @@ import pytest
 import lodcast
 from lodcast.opencl import get_context, get_program
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer import atlas_cells
 from lodcast.renderer import passes
 from lodcast.renderer.render import render
 from lodcast.renderer.volume import VolumeView, as_volume
@@ -61,11 +62,11 @@ def test_the_cells_of_some_blocks_are_those_cells_of_the_whole_grid(ribs, interp
     rng = np.random.default_rng(5)
     levels = rng.integers(-1, 5, size=G).astype(np.int8)
     da = lod_atlas.device_atlas(vol, levels, with_std=True, keep=False)
-    whole = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit)
+    whole = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit)
     for _ in range(6):
         a = [int(rng.integers(0, g)) for g in G]
         blocks = tuple(slice(s, int(rng.integers(s + 1, g + 1))) for s, g in zip(a, G))
-        part = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit, blocks)
+        part = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit, blocks)
         assert part.vmin.shape == tuple(2 * (b.stop - b.start) for b in blocks)
         for got, ref in ((part.vmin, whole.vmin), (part.vmax, whole.vmax), (part.std, whole.std)):
             np.testing.assert_array_equal(got, ref[part.at])
@@ -79,7 +80,7 @@ def test_cell_bounds_hold_every_sample_of_the_field(ribs, interp, seed):
     rng = np.random.default_rng(seed)
     levels = rng.integers(-1 if seed else 0, 5, size=G).astype(np.int8)  # seed 0: every block loaded
     da = lod_atlas.device_atlas(vol, levels, with_std=True, keep=False)
-    cells = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit)
+    cells = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit)
     assert cells.vmin.shape == tuple(2 * g for g in G)
     # random points, many of them within rounding of a cell face (where the walk may assign a sample either way)
     n = 200_000
@@ -230,8 +231,8 @@ def test_octants_of_every_half_block_cell_hold_its_bounds(ribs):
     levels = np.random.default_rng(7).integers(-1, 4, size=G).astype(np.int8)
     da = lod_atlas.device_atlas(vol, levels, with_std=True, keep=False)
     for interp in ("interblock", "nearest_block"):
-        half = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit)
-        octs = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit, cpb=4)
+        half = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit)
+        octs = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit, cpb=4)
         assert octs.vmin.shape == tuple(4 * g for g in G) and octs.cpb == 4
         parts = [(octs.vmin[z::2, y::2, x::2], octs.vmax[z::2, y::2, x::2], octs.std[z::2, y::2, x::2])
                  for z in (0, 1) for y in (0, 1) for x in (0, 1)]
@@ -243,7 +244,7 @@ def test_octants_of_every_half_block_cell_hold_its_bounds(ribs):
         assert np.all(half.vmin[f] <= lo[f]) and np.all(half.vmax[f] >= hi[f]) and np.all(half.std >= sd)
         tighter = [(p[0][f] > half.vmin[f]) | (p[1][f] < half.vmax[f]) for p in parts]
         assert np.mean(tighter) > 0.2  # what the octants are for
-        derived, _ = lod_atlas.cells_and_octants(da, G, B, interp, vol.std_unit)
+        derived, _ = atlas_cells.cells_and_octants(da, G, B, interp, vol.std_unit)
         for got, ref in ((derived.vmin, half.vmin), (derived.vmax, half.vmax), (derived.std, half.std)):
             np.testing.assert_array_equal(got, ref)
 

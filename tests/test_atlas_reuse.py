@@ -15,7 +15,7 @@ import pytest
 import lodcast
 from lodcast.opencl import get_context
 from lodcast.renderer import atlas as lod_atlas
-from lodcast.renderer import atlas_reuse
+from lodcast.renderer import atlas_cells, atlas_reuse
 from lodcast.renderer.bricks import BrickCache
 from lodcast.renderer.render import render
 from lodcast.renderer.sampler import device_cache
@@ -45,7 +45,7 @@ def store(request, tmp_path_factory):
 
 def _forget() -> None:
     device_cache().clear()
-    lod_atlas._cells_cache().clear()
+    atlas_cells._cells_cache().clear()
     atlas_reuse._last()[0].clear()
 
 
@@ -110,15 +110,15 @@ def test_cells_of_an_atlas_built_from_the_last_one_are_computed_where_they_chang
     first = rng.integers(-1, store.n_levels, size=G).astype(np.int8)
     first[rng.random(G) < 0.5] = 0
     _forget()
-    lod_atlas.atlas_cells(lod_atlas.device_atlas(vol, first, with_std=True), G, B, interp, vol.std_unit, cpb=cpb)
+    atlas_cells.atlas_cells(lod_atlas.device_atlas(vol, first, with_std=True), G, B, interp, vol.std_unit, cpb=cpb)
     for frac in (0.02, 0.2, 0.6):
         levels = _changed(first, rng, frac, store.n_levels - 1)
         da = lod_atlas.device_atlas(vol, levels, with_std=True)
         assert da.base_key is not None
         dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(G), levels, interp)
         assert dirty.sum() < dirty.size or frac > 0.5  # some blocks are copied, not computed
-        got = lod_atlas.atlas_cells(da, G, B, interp, vol.std_unit, cpb=cpb)
-        ref = lod_atlas._device_cells(da, G, B, interp, vol.std_unit, None, cpb)
+        got = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit, cpb=cpb)
+        ref = atlas_cells._device_cells(da, G, B, interp, vol.std_unit, None, cpb)
         for g, r in ((got.vmin, ref.vmin), (got.vmax, ref.vmax), (got.std, ref.std)):
             np.testing.assert_array_equal(g, r)
         first = levels
