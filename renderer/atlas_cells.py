@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import pyopencl as cl
@@ -65,38 +64,41 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
     return cells
 
 
-def _cells_program(da: DeviceAtlas, interpolation: str, cpb: int) -> tuple[Any, cl.Buffer]:
-    """(atlas_cells.cl built for `da`, the deviations' buffer or a stand-in)."""
-    ctx, _ = get_context()
-    opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", f"-DLC_CPB={cpb}", *da.voxel]
-    std = da.std
-    if std is not None:
-        opts.append("-DLC_DIST")
-    else:
-        std = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=8)
-    return get_program("atlas_cells.cl", opts).program, std
+def _bounds(da: DeviceAtlas, interpolation: str, cpb: int, entry: str, size: tuple[int, int, int],
+            grid: tuple[int, int, int], block_size: int, where: tuple, shape: tuple[int, ...],
+            std_unit: float) -> list[np.ndarray]:
+    """(min, max, largest deviation in the data's units) of the cells that atlas_cells.cl's `entry` bounds over the
+    global size `size`, given `where` it works (its box or its list of blocks), as arrays of `shape`."""
+    ctx, queue = get_context()
+    n = int(np.prod(shape))
+    d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
+    out = [np.empty(shape, np.float32) for _ in range(3)]
+    if n:
+        opts = ["-DLC_INTERP_II" if interpolation == "interblock" else "-DLC_INTERP_NB", f"-DLC_CPB={cpb}", *da.voxel]
+        std = da.std
+        if std is not None:
+            opts.append("-DLC_DIST")
+        else:
+            std = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=8)
+        g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
+        cl.Kernel(get_program("atlas_cells.cl", opts).program, entry)(queue, size, None, da.atlas, std, da.index, g4,
+                                                                      *where, *d_out)
+        for h, d in zip(out, d_out):
+            cl.enqueue_copy(queue, h, d)
+        queue.finish()
+    out[2] *= np.float32(std_unit)
+    return out
 
 
 def _device_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,
                   std_unit: float, blocks: tuple[slice, slice, slice] | None, cpb: int) -> AtlasCells:
     """atlas_cells computed on the device over the box of cells of `blocks` (None: all)."""
-    ctx, queue = get_context()
     lo = (0, 0, 0) if blocks is None else tuple(cpb * b.start for b in blocks)
     hi = tuple(cpb * g for g in grid) if blocks is None else tuple(cpb * b.stop for b in blocks)
     shape = tuple(h - l for l, h in zip(lo, hi))
-    n = int(np.prod(shape))
-    d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
-    out = [np.empty(shape, np.float32) for _ in range(3)]
-    if n:
-        program, std = _cells_program(da, interpolation, cpb)
-        g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
-        lo4, hi4 = (np.array([c[2], c[1], c[0], 0], np.int32) for c in (lo, hi))
-        cl.Kernel(program, "lc_atlas_cells")(queue, (shape[2], shape[1], shape[0]), None, da.atlas, std, da.index,
-                                             g4, lo4, hi4, *d_out)
-        for h, d in zip(out, d_out):
-            cl.enqueue_copy(queue, h, d)
-        queue.finish()
-    return AtlasCells(out[0], out[1], out[2] * np.float32(std_unit), blocks, cpb)
+    box = tuple(np.array([c[2], c[1], c[0], 0], np.int32) for c in (lo, hi))
+    out = _bounds(da, interpolation, cpb, "lc_atlas_cells", shape[::-1], grid, block_size, box, shape, std_unit)
+    return AtlasCells(*out, blocks, cpb)
 
 
 def _updated_cells(da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int], block_size: int,
@@ -107,21 +109,12 @@ def _updated_cells(da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int]
     out = [a.copy() for a in (base.vmin, base.vmax, base.std)]
     zyx = np.argwhere(dirty)
     if len(zyx):
-        ctx, queue = get_context()
-        m = len(zyx) * cpb**3
-        d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=4 * m) for _ in range(3)]
         lst = np.zeros((len(zyx), 4), np.int32)
         lst[:, :3] = zyx[:, ::-1]
+        ctx, _ = get_context()
         d_list = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=lst)
-        program, std = _cells_program(da, interpolation, cpb)
-        g4 = np.array([grid[2], grid[1], grid[0], block_size], np.int32)
-        cl.Kernel(program, "lc_atlas_cells_of")(queue, (cpb, cpb, cpb * len(zyx)), None, da.atlas, std, da.index,
-                                                g4, d_list, *d_out)
-        got = [np.empty((len(zyx), cpb, cpb, cpb), np.float32) for _ in range(3)]
-        for h, d in zip(got, d_out):
-            cl.enqueue_copy(queue, h, d)
-        queue.finish()
-        got[2] *= np.float32(std_unit)
+        got = _bounds(da, interpolation, cpb, "lc_atlas_cells_of", (cpb, cpb, cpb * len(zyx)), grid, block_size,
+                      (d_list,), (len(zyx), cpb, cpb, cpb), std_unit)
         for a, g in zip(out, got):  # (gz, c, gy, c, gx, c) -> (gz, gy, gx, c, c, c): a view, written through
             per_block = a.reshape(grid[0], cpb, grid[1], cpb, grid[2], cpb).transpose(0, 2, 4, 1, 3, 5)
             per_block[zyx[:, 0], zyx[:, 1], zyx[:, 2]] = g

@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from lodcast.renderer import atlas as lod_atlas  # (which imports this module: its names are looked up at call time)
+
 __all__ = ["copy_kept", "dirty_blocks", "last_atlas", "remember"]
 
 
@@ -46,12 +48,6 @@ def last_atlas(family: tuple) -> Any:
     return None if ref is None else ref()
 
 
-def _brick_size(level: int, block_size: int) -> int:
-    """Elements of a level's brick in the atlas: level 0 inside its one-sample apron (atlas.brick_elements)."""
-    n = block_size >> level
-    return (n + 2) ** 3 if level == 0 else n**3
-
-
 def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.ndarray, old_levels: np.ndarray,
               old_offsets: np.ndarray, kept: np.ndarray, which: range, block_size: int) -> int:
     """Copy into buffer `dst` (the new atlas's elements at `offsets`) from `src` (the old one's at `old_offsets`)
@@ -63,7 +59,7 @@ def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.
         sel = kept & (levels == k)
         if not sel.any():
             continue
-        size = _brick_size(k, block_size)
+        size = int(lod_atlas.brick_elements(np.int64(k), block_size))
         new_at, old_at = offsets[levels == k], old_offsets[old_levels == k]
         n0, o0 = int(new_at.min()), int(old_at.min())
         dv = dst[n0:n0 + new_at.size * size].reshape(new_at.size, size)
@@ -79,11 +75,9 @@ def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str)
     the neighbours' samples where they are at level 0 too: a block whose level changed, or a level-0 block next
     to (26-neighbourhood) one that became or stopped being level 0. Interblock reads the neighbourhood's bricks:
     every block next to one whose level changed."""
-    from lodcast.renderer.atlas import neighbourhood_max
-
     old_levels, levels = np.asarray(old_levels), np.asarray(levels)
     changed = old_levels != levels
     if interpolation == "interblock":
-        return neighbourhood_max(changed.astype(np.int8)) > 0
+        return lod_atlas.neighbourhood_max(changed.astype(np.int8)) > 0
     zero_changed = (old_levels == 0) != (levels == 0)
-    return changed | ((levels == 0) & (neighbourhood_max(zero_changed.astype(np.int8)) > 0))
+    return changed | ((levels == 0) & (lod_atlas.neighbourhood_max(zero_changed.astype(np.int8)) > 0))

@@ -332,14 +332,14 @@ def _cells(pr, da: "lod_atlas.DeviceAtlas",
     if cfg.octants and blocks is None:  # reduced from the octants the walk needs as well
         return _cells_and_octants(pr, da)[0]
     return atlas_cells.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
-                                 pr.volume.std_unit if cfg.distribution else 1.0, blocks)
+                                   pr.volume.std_unit if cfg.distribution else 1.0, blocks)
 
 
 def _cells_and_octants(pr, da: "lod_atlas.DeviceAtlas") -> tuple["atlas_cells.AtlasCells", "atlas_cells.AtlasCells"]:
     """The whole atlas's half-block cells and their octants (config.octants), kept beside the atlas."""
     cfg = pr.config
     return atlas_cells.cells_and_octants(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
-                                       pr.volume.std_unit if cfg.distribution else 1.0)
+                                         pr.volume.std_unit if cfg.distribution else 1.0)
 
 
 def fill_pass(p: np.ndarray, region: Region | None, pr, first: bool) -> None:

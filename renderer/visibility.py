@@ -28,6 +28,7 @@ import pyopencl as cl
 
 from lodcast.opencl import get_context, get_program
 from lodcast.renderer import camera as cam
+from lodcast.renderer.atlas import neighbourhood_max
 from lodcast.renderer.params import fill_params
 from lodcast.renderer.sampler import device_cache
 from lodcast.renderer.scene import Scene
@@ -111,8 +112,6 @@ def quiet_blocks(vol: VolumeView, lut: Lut, k: int) -> np.ndarray:
     shows = lut.visible(vol.min_border, vol.max_border)
     if (1 << k) > int(vol.block_size):
         return np.zeros(shows.size, np.uint8)
-    from lodcast.renderer.atlas import neighbourhood_max  # (atlas imports the device cache this module uses)
-
     return np.ascontiguousarray(neighbourhood_max(shows.astype(np.int8)).ravel() == 0, dtype=np.uint8)
 
 
