@@ -14,8 +14,8 @@ import numpy as np
 
 from lodcast.renderer.scene import LookAtCamera, OrbitCamera, SceneError
 
-__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays", "ray_box", "rays_at",
-           "resolve_view"]
+__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays", "ray_box", "ray_octants",
+           "rays_at", "resolve_view"]
 
 
 def box_world(shape_zyx, spacing_zyx, origin_zyx) -> tuple[np.ndarray, np.ndarray]:
@@ -122,6 +122,21 @@ def rays_at(fr: Frame, x, y, width: int, height: int) -> tuple[np.ndarray, np.nd
     d = fr.f + px * fr.r + py * fr.u
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
     return np.broadcast_to(fr.eye, d.shape).copy(), d
+
+
+def ray_octants(fr: Frame) -> tuple[int, ...]:
+    """The octants of direction (o = (x > 0) | (y > 0) << 1 | (z > 0) << 2, world axes, which are the voxel axes)
+    the rays through any image position can go in: the kernel's DDA reads the space-leaping plane of its ray's
+    octant (renderer/leap.py). A ray's direction f + px r + py u is linear in the image position, so each
+    component's sign over the image is bounded by its values at the four corners; a component that may be zero
+    or change sign there (within rounding of float32) gives both octants along that axis."""
+    if fr.orthographic:
+        d = fr.f[None, :]
+    else:
+        d = np.array([fr.f + sx * fr.half_w * fr.r + sy * fr.half_h * fr.u for sx in (-1, 1) for sy in (-1, 1)])
+    tol = 1e-5 * float(np.abs(d).max())
+    signs = [[s for s, ok in ((0, (d[:, a] <= tol).any()), (1, (d[:, a] >= -tol).any())) if ok] for a in range(3)]
+    return tuple(sorted(x | y << 1 | z << 2 for x in signs[0] for y in signs[1] for z in signs[2]))
 
 
 def pixel_rays(fr: Frame, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:

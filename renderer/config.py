@@ -74,7 +74,7 @@ class KernelConfig:
 
     @property
     def leap(self) -> bool:
-        """Space leaping over empty cells (LC_LEAP): the walk's info holds the leap radii (renderer/leap.py).
+        """Space leaping over empty cells (LC_LEAP): the kernel reads the walk's octant distances (renderer/leap.py).
         Where the walk's skip depends on the ray (MIP, a second TF) or on a pass's blocks it walks cell by cell."""
         return self.ess and self.mode == "composite" and not self.tf2 and not self.passes and not self.adaptive_naive
 

@@ -164,9 +164,15 @@ static inline float lc_sample(__global const lc_voxel* vol, const int4 dims, con
     const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;                                                    \
     const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
 
-/* Space leaping (renderer/leap.py) in the DDA of LC_DDA_BEGIN: every cell within r - 1 (r >= 2) of the DDA's cell
- * is one the walk would pass alike, so the ray leaves that cube of cells in one step: te is when it crosses the
- * cube's face, (bx, by, bz) becomes the cell it enters there and (tnx, tny, tnz) its next crossings. The crossing
+/* The first element of the ray's plane of the leaps (renderer/leap.py: octant_radii) over a walk of nx x ny x nz
+ * cells: the plane of the octant of directions the DDA's steps (sx, sy, sz) go in. */
+#define LC_LEAP_PLANE(nx, ny, nz) \
+    ((ulong)((sx > 0) | (sy > 0) << 1 | (sz > 0) << 2) * ((ulong)(nx) * (ulong)(ny) * (ulong)(nz)))
+
+/* Space leaping (renderer/leap.py) in the DDA of LC_DDA_BEGIN: every cell of the cube of r cells (r >= 2) that
+ * starts at the DDA's cell and runs forward along the ray's step directions is one the walk would pass alike, so
+ * the ray leaves that cube in one step: te is when it crosses the cube's far face, r - 1 cells ahead along the axis
+ * it leaves by, (bx, by, bz) becomes the cell it enters there and (tnx, tny, tnz) its next crossings. The crossing
  * times are summed step by step, as the DDA's own steps sum them, so that the leap ends in the state the DDA would
  * reach cell by cell (bit for bit, but for crossings at the very same time as the cube's exit). The exit axis
  * crosses r faces, the others those they cross before te; ties go to the axis the DDA's own step would take. */

@@ -30,12 +30,13 @@
  *   LC_ESS            empty-space skipping: march cell by cell (3D DDA over P->ess_grid: at full resolution cells
  *                     finer than the blocks, on the atlas half-block cells) and skip cells whose block_info says
  *                     nothing there can contribute, without sampling them
- *   LC_LEAP           with LC_ESS (composite, one TF, one pass): space leaping (renderer/leap.py). An empty cell's
- *                     block_info holds -r, r its Chebyshev distance in cells to the nearest cell that is not
- *                     (capped): the ray leaves the cube of (2r - 1)^3 cells around it in one step instead of a DDA
- *                     step per cell. With LC_ADAPTIVE block_info holds r >= 2 in the cubes of skipped level-0 cells
- *                     of the half-block cells (0 elsewhere). With LC_SAMPLER_FULL (where only the cells decide a
- *                     skip) a run of cells to sample is found first and sampled in one loop
+ *   LC_LEAP           with LC_ESS (composite, one TF, one pass): space leaping (renderer/leap.py). `leaps` holds
+ *                     eight planes over the walk's cells, one per octant of ray directions (plane (sx > 0) |
+ *                     (sy > 0) << 1 | (sz > 0) << 2): in an empty cell (with LC_ADAPTIVE: a skipped level-0 cell)
+ *                     the edge r of the cube of empty cells that starts there and runs forward in that octant's
+ *                     directions; r >= 2: the ray leaves that cube in one step instead of a DDA step per cell.
+ *                     With LC_SAMPLER_FULL (where only the cells decide a skip) a run of cells to sample is found
+ *                     first and sampled in one loop
  *   LC_OCTANTS        with LC_LEAP and LC_ADAPTIVE (no pre-integration): a sampled cell's block_info holds the mask of
  *                     its eight octants (quarter-block cells) where the field can show something (walk.py:
  *                     octant_masks, bit (z & 1) << 2 | (y & 1) << 1 | (x & 1)); a sample in another octant adds
@@ -102,7 +103,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                         __global uint* nsamples, __global const ulong* imap, __global const char* step_level,
                         __global const lc_sig* sig, __global const float4* dtab, __global const float4* ptab,
                         __global const uchar* prio, __global const float2* spos, __global const uchar* own,
-                        __global float* state) {
+                        __global float* state, __global const uchar* leaps) {
     const int j = get_global_id(0), i = get_global_id(1);
 #ifdef LC_SCREEN /* the rays are laid out in rows of P->width, as many rows as they need */
     if (j >= P->width) return;
@@ -267,6 +268,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         const int hx = cpb * P->grid.x, hy = cpb * P->grid.y, hz = cpb * P->grid.z;
         LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
+#ifdef LC_LEAP
+        const ulong leap_plane = LC_LEAP_PLANE(hx, hy, hz);
+#endif
 /* the step code of cell (x, y, z), clamped into the grid (past it the ray has left the box) */
 /* the index of cell (x, y, z) in the cells' arrays (step_level, block_info), clamped into the grid */
 #define LC_CELL(x, y, z)                                                                                       \
@@ -337,10 +341,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
             /* in a cube of skipped level-0 cells (renderer/leap.py: step_leaps; block_info holds its radius r >= 2)
              * leave the cube at once: such cells leave t where it is, so the walk goes on as it would cell by cell */
             if (code == -1 && bx >= 0 && bx < hx && by >= 0 && by < hy && bz >= 0 && bz < hz) {
-                const float lf = block_info[LC_CELL(bx, by, bz)];
-                if (lf >= 2.0f) {
+                const int lf = leaps[leap_plane + LC_CELL(bx, by, bz)];
+                if (lf >= 2) {
                     float te;
-                    LC_DDA_LEAP((int)lf, te)
+                    LC_DDA_LEAP(lf, te)
                     tc = te < t1 ? te : t1;
                     continue;
                 }
@@ -484,6 +488,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         const int gx = P->ess_grid.x, gy = P->ess_grid.y, gz = P->ess_grid.z;
         LC_DDA_BEGIN(B, gx, gy, gz)
         int inside = 1;
+#ifdef LC_LEAP
+        const ulong leap_plane = LC_LEAP_PLANE(gx, gy, gz);
+#endif
 #if defined(LC_PASSES) || defined(LC_SAMPLER_ATLAS)
         const int cpb = P->grid.w / P->ess_grid.w; /* walk cells per block edge */
 #endif
@@ -550,9 +557,10 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
                 }
 #ifdef LC_LEAP
-                if (info <= -2.0f) { /* every cell within r - 1 of this one is empty: leave that cube at once */
+                const int lr = skip ? leaps[leap_plane + (ulong)((bz * gy + by) * gx + bx)] : 0;
+                if (lr >= 2) { /* the cube of lr cells ahead of this one is empty: leave it at once */
                     float te;
-                    LC_DDA_LEAP((int)(-info), te)
+                    LC_DDA_LEAP(lr, te)
                     if (te >= t1) break; /* the ray leaves the box in the cube: nothing after it */
                     inside = bx >= 0 && bx < gx && by >= 0 && by < gy && bz >= 0 && bz < gz;
                     t_skip = te;

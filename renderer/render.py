@@ -156,6 +156,7 @@ class Prepared:
     screen: "screen_space.ScreenPlan | None" = None  # sampling.adaptive_screen only
     passes: "multipass.PassPlan | None" = None  # volume data beyond the device budget only (LC_PASSES)
     step_delta_e: float = 0.0  # the step's predicted error (selection.step_delta_e), composite renders of a store
+    octants: tuple[int, ...] = tuple(range(8))  # the octants of direction the rays go in (camera.ray_octants)
 
 
 @dataclass(frozen=True)
@@ -376,7 +377,7 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     if pp is not None:
         cfg = replace(cfg, passes=True)
     pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio,
-                  plan, pp, _step_error(vol, scene, keep))
+                  plan, pp, _step_error(vol, scene, keep), cam.ray_octants(fr))
     if second is not None:
         fill_tf2(params, pr)
     return pr
@@ -548,7 +549,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
             stop()  # between passes as between bands
         p = pr.params.copy()
         multipass.fill_pass(p, data.region, pr, k == 0)
-        walk, p[0]["ess_grid"] = walk_info(pr, data)
+        walk, p[0]["ess_grid"], leaps = walk_info(pr, data)
         if k == 0:  # the program, once the walk's cells are known
             if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and (walk > 0).all():
                 cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
@@ -556,13 +557,16 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
             built = get_program("raycast.cl", options)
             # (a pass's buffers go as it ends: a kept kernel would hold the last one's)
             kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else kernel(built, "lc_render")
-        steps, walk = adaptive_walk(pr, cfg, data, walk)
+        steps, walk, leaps = adaptive_walk(pr, cfg, data, walk, leaps)
         d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
+        d_leaps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                            hostbuf=np.zeros(1, np.uint8) if leaps is None or not cfg.leap
+                            else leaps.for_octants(pr.octants))
         d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
         d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)
         d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
         kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,
-                      d_ptab, d_prio, d_spos, d_own, d_state)
+                      d_ptab, d_prio, d_spos, d_own, d_state, d_leaps)
         evs += launch(kern, W, rows, estimated_samples=pr.estimated_samples // stats.planned, stop=stop)
         if pr.passes is not None:
             evs[-1].wait()  # this pass's data may go before the next is uploaded

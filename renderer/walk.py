@@ -17,7 +17,7 @@ from lodcast.renderer import dual
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.classification import DistTable
 from lodcast.renderer.config import EXTREMUM_MODES, KernelConfig
-from lodcast.renderer.leap import child_leaps, children, coarsen_ranges, step_leaps, with_leaps
+from lodcast.renderer.leap import Leaps, cell_leaps, children, coarsen_ranges, step_leaps
 from lodcast.renderer.transfer_function import Lut
 from lodcast.renderer.volume import VolumeView
 from lodcast.store.layout import cell_edge
@@ -68,31 +68,33 @@ def range_info(vmin: np.ndarray, vmax: np.ndarray, lut: Lut, mode: str,
 _CELL_CHUNK = 1 << 20
 
 
-def walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, tuple[int, int, int, int]]:
-    """(the block walk's info, its grid (x, y, z, cell edge)): at full resolution over the cells of empty-space
-    skipping (`_level0_walk`), with the clip region's cells outside empty; on the atlas over its half-block cells
-    (data.cells): the selection's block info where the cell's field can show something (`atlas_cell_info`), else
-    the block info. With leaps (config.leap) empty cells hold -r (renderer/leap.py)."""
+def walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, tuple[int, int, int, int],
+                                                                   Leaps | None]:
+    """(the block walk's info, its grid (x, y, z, cell edge), its leaps): at full resolution over the cells of
+    empty-space skipping (`_level0_walk`), with the clip region's cells outside empty; on the atlas over its
+    half-block cells (data.cells): the selection's block info where the cell's field can show something
+    (`atlas_cell_info`), else the block info. With leaps (config.leap) the empty cells' leaps (renderer/leap.py:
+    cell_leaps, their planes computed as views need them), else None."""
     leap = pr.config.leap and not pr.config.adaptive  # (the adaptive walk's leaps: step_leaps)
     key = _walk_key(pr, data, leap)
     anchor = data.cell_min if data.cells is None else data.cells
     if key is not None:
         hit = _WALKS.get(key)
         if hit is not None and hit[0] is anchor:  # (the reference held keeps the id from being reused)
-            return hit[1], hit[2]
+            return hit[1], hit[2], hit[3]
     vol = pr.volume
     B = int(vol.block_size)
     if data.cells is not None:
-        info = atlas_cell_info(pr, data.cells)
-        info, C = with_leaps(info) if leap else info, B // 2
+        info, C = atlas_cell_info(pr, data.cells), B // 2
     elif data.cell_min is None or not pr.config.ess:
         info, C = pr.block_info, B
     else:
-        info, C = _level0_walk(pr, data, leap)
+        info, C = _level0_walk(pr, data)
     g = info.shape
-    out = np.ascontiguousarray(info, dtype=np.float32), (g[2], g[1], g[0], C)
+    info = np.ascontiguousarray(info, dtype=np.float32)
+    out = info, (g[2], g[1], g[0], C), (cell_leaps(info) if leap else None)
     if key is not None:
-        _WALKS.put(key, (anchor, *out), out[0].nbytes)
+        _WALKS.put(key, (anchor, *out), info.nbytes + (0 if out[2] is None else out[2].nbytes))
     return out
 
 
@@ -128,11 +130,10 @@ def _walk_key(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple |
 FINE_STEP = 1.0
 
 
-def _level0_walk(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple[np.ndarray, int]:
+def _level0_walk(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, int]:
     """Full resolution's walk info over its cells (data.cell voxels, or twice that for steps beyond FINE_STEP) and
-    their edge. Fine cells are classified where their parent cell of twice the edge can show something (a child's
-    range lies inside its parent's), and their leaps come from the parents' (renderer/leap.py: child_leaps): the
-    1.1 million 4³ cells of the chest CT took 65 ms a TF classified and leapt one by one, 21-31 ms so."""
+    their edge. Fine cells are classified only where their parent cell of twice the edge can show something (a
+    child's range lies inside its parent's)."""
     vol, mode = pr.volume, pr.scene.mode
     B, C = int(vol.block_size), data.cell
     lut2 = None if pr.second is None else pr.second.lut
@@ -158,15 +159,13 @@ def _level0_walk(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tupl
         return _clipped(pr, info, C), C
     if not parents or mode in EXTREMUM_MODES:
         info, _ = range_info(cmin, cmax, pr.lut, mode, lut2)
-        info = _clipped(pr, info, C)
-        return (with_leaps(info) if leap else info), C
+        return _clipped(pr, info, C), C
     parent, _ = range_info(hit[1], hit[2], pr.lut, mode, lut2)
     parent = _clipped(pr, parent, 2 * C)
     info = np.zeros(cmin.shape, np.float32)  # composite: a child can show something only where its parent can
     seen = children(parent != 0.0, cmin.shape)
     info[seen], _ = range_info(cmin[seen], cmax[seen], pr.lut, mode, lut2)
-    info = _clipped(pr, info, C)
-    return (child_leaps(with_leaps(parent), info) if leap else info), C
+    return _clipped(pr, info, C), C
 
 
 def _clipped(pr: "Prepared", info: np.ndarray, C: int) -> np.ndarray:
@@ -248,26 +247,25 @@ def _shows(lut: Lut, dist: DistTable | None, lo: np.ndarray, hi: np.ndarray, sd:
     return vis
 
 
-def adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData",
-                   walk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(the adaptive walk's step levels, the walk info the kernel reads): the adaptive walk reads its cells' skips
-    in the steps and its leaps in the info; without adaptive steps, (data.steps, walk). Kept per (walk info, step
-    levels), both by identity (each comes from a cache of its own when the scene repeats): 3-4 ms a render of the
-    chest CT at 30:1."""
+def adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData", walk: np.ndarray,
+                  leaps: Leaps | None) -> tuple[np.ndarray, np.ndarray, Leaps | None]:
+    """(the adaptive walk's step levels, the walk info the kernel reads, the leaps): the adaptive walk reads its
+    cells' skips in the steps, the octant masks of its sampled cells in the info (config.octants) and the leaps
+    over its skipped level-0 cells (renderer/leap.py: step_leaps); without adaptive steps, (data.steps, walk,
+    leaps). Kept per (walk info, step levels), both by identity (each comes from a cache of its own when the scene
+    repeats): 3-4 ms a render of the chest CT at 30:1."""
     if not cfg.adaptive:
-        return data.steps, walk
+        return data.steps, walk, leaps
     key = (None if data.region is not None or pr.volume.key is None
            else (id(walk), id(data.steps), cfg.leap, cfg.octants))
     hit = _ADAPTIVE.get(key) if key is not None else None
     if hit is not None and hit[0] is walk and hit[1] is data.steps:
-        return hit[2], hit[3]
+        return hit[2], hit[3], hit[4]
     steps = walk_steps(pr, data.steps, walk) if data.cells is not None else data.steps
-    out = steps, (step_leaps(steps) if cfg.leap else walk)
-    if cfg.octants:
-        out = steps, np.ascontiguousarray(np.where(steps >= 0, octant_masks(pr, data.octants, steps), out[1]),
-                                          dtype=np.float32)
+    info = octant_masks(pr, data.octants, steps) if cfg.octants else walk
+    out = steps, np.ascontiguousarray(info, dtype=np.float32), (step_leaps(steps) if cfg.leap else None)
     if key is not None:
-        _ADAPTIVE.put(key, (walk, data.steps, *out), out[0].nbytes + out[1].nbytes)
+        _ADAPTIVE.put(key, (walk, data.steps, *out), sum(a.nbytes for a in out if a is not None))
     return out
 
 
@@ -276,7 +274,7 @@ def octant_masks(pr: "Prepared", octants: "atlas_cells.AtlasCells | None", steps
     (z & 1) << 2 | (y & 1) << 1 | (x & 1) of a sampled cell's octant (quarter-block cell) where the field sampled
     there can show something under the point or the distribution classification (atlas_cells.cl's bounds), as
     `_cell_info` tests its cells; the kernel takes no sample in the others, whose samples add nothing. Only the
-    octants of sampled cells are classified (a skipped cell's entry is its leap). Without octants (no half-block
+    octants of sampled cells are classified (a skipped cell's entry is 0). Without octants (no half-block
     cells to walk): every bit set. At lossless and 5:1 most of what the rays meet is level 0 in cells of 8³, where
     full resolution walks cells of 4³: the chest CT under ct-bone took 1.47 and 1.57 times full resolution's
     samples."""

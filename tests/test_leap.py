@@ -1,7 +1,9 @@
-"""Space leaping (renderer/leap.py, LC_LEAP): the walk's distance map against a brute-force Chebyshev distance, and
-images with leaps against the same images walked cell by cell, at full resolution, on the block walk of the atlas
-and on the adaptive walk, over random volumes, views and steps."""
+"""Space leaping (renderer/leap.py, LC_LEAP): the walk's octant distance maps against a brute-force search of the
+forward cubes, and images with leaps against the same images walked cell by cell, at full resolution, on the block
+walk of the atlas and on the adaptive walk, over random volumes, views and steps."""
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 import pytest
@@ -9,61 +11,92 @@ import pytest
 import lodcast
 from lodcast.renderer import walk as R
 from lodcast.renderer.atlas import NEAR_LEVEL0
-from lodcast.renderer.leap import LEAP_MAX, child_leaps, coarsen_ranges, leap_radii, step_leaps, with_leaps
+from lodcast.renderer.leap import LEAP_MAX, OCTANTS, Leaps, cell_leaps, coarsen_ranges, octant_radii, step_leaps
 
 
-def _chebyshev(empty: np.ndarray, cap: int) -> np.ndarray:
-    """Brute force: per empty cell the largest axis offset to the nearest non-empty cell, capped; 0 elsewhere."""
-    full = np.argwhere(~empty)
-    cells = np.argwhere(np.ones(empty.shape, bool))
-    if len(full) == 0:
-        d = np.full(len(cells), cap)
-    else:
-        d = np.array([np.abs(full - c).max(axis=1).min() for c in cells])
-    return np.where(empty.ravel(), np.minimum(d, cap), 0).reshape(empty.shape)
+def _forward_cube(empty: np.ndarray, c, o: int, cap: int) -> int:
+    """Brute force: the largest r <= cap whose cube of r cells from c forward in octant o's directions holds no
+    non-empty cell of the grid (cells past it count as empty); 0 if c is not empty."""
+    sign = [1 if o >> bit & 1 else -1 for bit in (2, 1, 0)]  # (z, y, x)
+    r = 0
+    while r < cap:
+        for d in itertools.product(range(r + 1), repeat=3):
+            if max(d) < r:
+                continue  # (the cube of edge r was checked before)
+            p = tuple(int(c[i]) + sign[i] * d[i] for i in range(3))
+            if all(0 <= p[i] < empty.shape[i] for i in range(3)) and not empty[p]:
+                return r
+        r += 1
+    return r
 
 
 @pytest.mark.parametrize("seed", range(8))
-def test_radii_are_capped_chebyshev_distances_to_the_nearest_full_cell(seed):
+def test_octant_radii_are_the_largest_empty_forward_cubes(seed):
     rng = np.random.default_rng(seed)
-    shape = tuple(int(n) for n in rng.integers(1, 13, 3))
+    shape = tuple(int(n) for n in rng.integers(1, 11, 3))
     empty = rng.random(shape) > rng.choice([0.01, 0.05, 0.3, 0.8])
     cap = int(rng.choice([1, 2, 3, LEAP_MAX]))
-    got = leap_radii(empty, cap)
-    assert got.dtype == np.uint8
-    np.testing.assert_array_equal(got, _chebyshev(empty, cap))
+    got = octant_radii(empty, cap)
+    assert got.dtype == np.uint8 and got.shape == (OCTANTS, *shape)
+    for o in range(OCTANTS):
+        cells = np.argwhere(np.ones(shape, bool))
+        want = np.array([_forward_cube(empty, c, o, cap) for c in cells]).reshape(shape)
+        np.testing.assert_array_equal(got[o], want, err_msg=f"octant {o}")
+
+
+def test_octant_radii_look_only_ahead():
+    """A wall behind the ray does not hold it back: beside a full plane every octant facing away from it leaps as
+    far as the cap allows, those facing it only up to the wall."""
+    empty = np.ones((20, 3, 3), bool)
+    empty[4] = False
+    r = octant_radii(empty)
+    away, towards = r[4:].reshape(2, 2, *r.shape[1:])[1], r[:4].reshape(2, 2, *r.shape[1:])[1]  # z forward / back
+    assert (away[:, 5] == LEAP_MAX).all() and (towards[:, 5] == 1).all()
+    assert (r[:4, 9] == 5).all()  # z backward from cell 9: cells 9..5 are empty, 4 is not
+    assert (r[:, 4] == 0).all()
 
 
 def test_radii_of_grids_all_empty_and_all_full():
-    np.testing.assert_array_equal(leap_radii(np.ones((3, 4, 5), bool)), np.full((3, 4, 5), LEAP_MAX))
-    np.testing.assert_array_equal(leap_radii(np.zeros((3, 4, 5), bool)), np.zeros((3, 4, 5)))
+    np.testing.assert_array_equal(octant_radii(np.ones((3, 4, 5), bool)), np.full((8, 3, 4, 5), LEAP_MAX))
+    np.testing.assert_array_equal(octant_radii(np.zeros((3, 4, 5), bool)), np.zeros((8, 3, 4, 5)))
     with pytest.raises(ValueError, match="3-D grid"):
-        leap_radii(np.ones((4, 4), bool))
+        octant_radii(np.ones((4, 4), bool))
     with pytest.raises(ValueError, match="cap"):
-        leap_radii(np.ones((2, 2, 2), bool), 0)
+        octant_radii(np.ones((2, 2, 2), bool), 0)
 
 
-def test_with_leaps_keeps_full_cells_and_marks_empty_ones():
+def test_cell_leaps_are_the_radii_of_the_empty_cells_computed_per_octant_on_demand():
     info = np.zeros((5, 6, 7), np.float32)
     info[2, 3, 3] = 1.0
-    out = with_leaps(info)
-    assert out[2, 3, 3] == 1.0 and out.dtype == np.float32
-    np.testing.assert_array_equal(-out[info == 0], _chebyshev(info == 0, LEAP_MAX)[info == 0])
+    info[0, 0, 0] = -np.inf  # (MIP's empty)
+    lp = cell_leaps(info)
+    want = octant_radii(info <= 0)
+    assert not lp.planes.any()
+    got = lp.for_octants((3, 6))
+    for o in range(OCTANTS):
+        np.testing.assert_array_equal(got[o], want[o] if o in (3, 6) else 0)
+    np.testing.assert_array_equal(lp.for_octants(range(OCTANTS)), want)
+    assert (want[:, 2, 3, 3] == 0).all() and (want[:, 0, 0, 0] > 0).all()
+    assert lp.nbytes == info.size * (OCTANTS + 1)
+    with pytest.raises(ValueError, match="3-D grid"):
+        Leaps.of(np.ones((4, 4), bool))
 
 
 @pytest.mark.parametrize("seed", range(4))
 def test_step_leaps_cover_cubes_of_skipped_level_0_cells(seed):
-    """r >= 2: every cell within r - 1 is a skipped level-0 cell (code -1); nothing else leaps."""
+    """Every cell of the forward cube a leap vouches for is a skipped level-0 cell (code -1); nothing else leaps."""
     rng = np.random.default_rng(seed)
     codes = rng.choice(np.array([-1, -2, -3, -(NEAR_LEVEL0 | 1) - 1, 0, 2], np.int8), size=(9, 10, 11),
                        p=[0.45, 0.3, 0.1, 0.05, 0.05, 0.05])
     codes[:4, :5, :6] = -1
-    out = step_leaps(codes)
-    assert out.dtype == np.float32 and (out >= 2).any() and set(np.unique(out)) <= set(range(LEAP_MAX + 1))
-    for c in np.argwhere(out > 0):
-        k = int(out[tuple(c)]) - 1
-        assert k >= 1 and (codes[tuple(slice(max(0, a - k), a + k + 1) for a in c)] == -1).all(), (c, k)
-    np.testing.assert_array_equal(out >= 2, _chebyshev(codes == -1, LEAP_MAX) >= 2)
+    out = step_leaps(codes).for_octants(range(OCTANTS))
+    assert out.dtype == np.uint8 and (out >= 2).any()
+    assert (out[:, codes != -1] == 0).all()
+    for o, *c in np.argwhere(out >= 2)[::7]:
+        k = int(out[(o, *c)])
+        sign = [1 if o >> bit & 1 else -1 for bit in (2, 1, 0)]
+        box = tuple(slice(a, a + k) if s > 0 else slice(max(0, a - k + 1), a + 1) for a, s in zip(c, sign))
+        assert (codes[box] == -1).all(), (o, c, k)
 
 
 # ------------------------------------------------------------------------------------------------ images
@@ -111,9 +144,17 @@ def fresh_walks():
     R._WALKS.clear()
 
 
+def _fixed(empty: np.ndarray, r: int) -> Leaps:
+    """Leaps of r cells from every cell of `empty` in every octant (0: none), whatever lies ahead."""
+    lp = Leaps.of(empty)
+    lp.planes[:] = np.where(empty, r, 0).astype(np.uint8)[None]
+    lp.done[:] = [True] * OCTANTS
+    return lp
+
+
 def _no_leaps(monkeypatch):
-    monkeypatch.setattr(R, "with_leaps", lambda info: info)
-    monkeypatch.setattr(R, "step_leaps", lambda steps: np.zeros(steps.shape, np.float32))
+    monkeypatch.setattr(R, "cell_leaps", lambda info: _fixed(info <= 0, 0))
+    monkeypatch.setattr(R, "step_leaps", lambda steps: _fixed(steps == -1, 0))
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -131,11 +172,11 @@ def test_leaps_change_no_image(stores, variant, seed, monkeypatch):
              **VARIANTS[variant]}
     scene["sampling"] = {**scene.get("sampling", {}), "step": float(rng.uniform(0.3, 1.3))}
     used = []
-    wl, sl = R.with_leaps, R.step_leaps
-    monkeypatch.setattr(R, "with_leaps", lambda info: used.append(wl(info)) or used[-1])
+    wl, sl = R.cell_leaps, R.step_leaps
+    monkeypatch.setattr(R, "cell_leaps", lambda info: used.append(wl(info)) or used[-1])
     monkeypatch.setattr(R, "step_leaps", lambda steps: used.append(sl(steps)) or used[-1])
     on = lodcast.render(st, scene)
-    assert len(used) == 1 and (np.abs(used[0]) >= 2).any()
+    assert len(used) == 1 and (used[0].planes >= 2).any() and 1 <= sum(used[0].done) <= 4
     _no_leaps(monkeypatch)
     R._WALKS.clear()
     off = lodcast.render(st, scene)
@@ -154,8 +195,8 @@ def test_the_kernel_follows_the_map(stores, variant, monkeypatch):
              **VARIANTS[variant]}
     right = lodcast.render(stores[0], scene)
     R._WALKS.clear()
-    monkeypatch.setattr(R, "with_leaps", lambda info: np.where(info <= 0, -float(LEAP_MAX), info).astype(np.float32))
-    monkeypatch.setattr(R, "step_leaps", lambda steps: np.where(steps == -1, float(LEAP_MAX), 0.0).astype(np.float32))
+    monkeypatch.setattr(R, "cell_leaps", lambda info: _fixed(np.ones(info.shape, bool), LEAP_MAX))
+    monkeypatch.setattr(R, "step_leaps", lambda steps: _fixed(steps == -1, LEAP_MAX))
     wrong = lodcast.render(stores[0], scene)
     assert wrong.rgba[..., 3].sum() < 0.8 * right.rgba[..., 3].sum()
 
@@ -174,20 +215,26 @@ def test_coarser_ranges_are_the_union_of_the_finer(seed):
     assert np.array_equal(got[0], mn8, equal_nan=True) and np.array_equal(got[1], mx8, equal_nan=True)
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_child_leaps_stay_inside_empty_space(seed):
-    """A child's radius from its parent's never claims a cube holding a non-empty child, and under an empty parent
-    it is at least one."""
+@pytest.mark.parametrize("seed", range(12))
+def test_ray_octants_hold_every_ray_of_the_image(seed):
+    """camera.ray_octants: the octant of every pixel's ray (and of rays through the image's corners) is among them,
+    and a view of a field of view up to 90° needs at most four of the eight planes."""
+    from lodcast.renderer import camera as cam
+    from lodcast.renderer.scene import Scene
+
     rng = np.random.default_rng(seed)
-    shape = tuple(int(n) for n in rng.integers(2, 15, 3))
-    info = (rng.random(shape) < rng.choice([0.01, 0.05, 0.2])).astype(np.float32)
-    pshape = tuple(-(-n // 2) for n in shape)
-    parent = np.zeros(pshape, np.float32)
-    np.maximum.at(parent, tuple(np.argwhere(info > 0).T // 2), 1.0)  # a parent sees what any child sees
-    out = child_leaps(with_leaps(parent), info)
-    np.testing.assert_array_equal(out[info > 0], info[info > 0])
-    r = -out[info <= 0]
-    assert (r >= 1).all()
-    exact = _chebyshev(info <= 0, 64)
-    assert (r <= exact[info <= 0]).all()
-    assert (out[info <= 0] < 0).all()
+    W, H = int(rng.integers(8, 64)), int(rng.integers(8, 64))
+    c = {"azimuth": float(rng.choice([0, 90, 180, rng.uniform(0, 360)])),
+         "elevation": float(rng.choice([0, 45, rng.uniform(-89, 89)])), "fov": float(rng.uniform(5, 90)),
+         "projection": str(rng.choice(["perspective", "orthographic"]))}
+    if c["projection"] == "orthographic":
+        c["view_height"] = 40.0
+    scene = Scene.parse({"camera": c, "width": W, "height": H, "tf": TF})
+    fr = cam.frame(scene.camera, W, H, np.zeros(3), np.array([30.0, 20.0, 10.0]))
+    octs = cam.ray_octants(fr)
+    y, x = np.mgrid[0:H + 1:0.5, 0:W + 1:0.5]
+    _, d = cam.rays_at(fr, x, y, W, H)
+    d = d.astype(np.float32)
+    got = set(((d[..., 0] > 0) | (d[..., 1] > 0) << 1 | (d[..., 2] > 0) << 2).ravel().tolist())
+    assert got <= set(octs), (c, got, octs)
+    assert 1 <= len(octs) <= 4
