@@ -217,7 +217,8 @@
 #define LC_LEVEL_ALPHA(r, S)
 #endif
 /* r < 0: a uniform segment (alpha from the table); else the last segment's length in TF units (alpha from the
- * extinction table: 1 - (1 - a)^r = -expm1(-r sigma), exact even where the step's alpha rounds to 1 in float32) */
+ * extinction table: 1 - (1 - a)^r = 1 - e^(-r sigma), exact even where the step's alpha rounds to 1 in float32;
+ * lc_alpha_of_depth, not expm1: a library call anywhere in the march makes its ray state live in memory) */
 #define LC_CLASSIFY(v, sd, r, q, S)                                              \
     LC_DIST_BODY(v, sd, r, q, S)                                                 \
     if (lc_visible(v, S)) {                                                      \
@@ -225,7 +226,7 @@
         float alpha = e.w;                                                       \
         if ((r) >= 0.0f) {                                                       \
             const float sg_ = lut_ext##S[i_] + (lut_ext##S[i_ + 1] - lut_ext##S[i_]) * w_; \
-            alpha = -expm1(-(r) * sg_);                                          \
+            alpha = lc_alpha_of_depth((r) * sg_);                                \
         }                                                                        \
         LC_LEVEL_ALPHA(r, S)                                                     \
         LC_BLEND(T##S * alpha, LC_SHADE_COL(e.xyz, q), S)                        \

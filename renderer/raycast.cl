@@ -70,8 +70,8 @@
  * fourth channel that depends on the mode (lodcast.renderer.transfer_function.Lut.kernel_table):
  *   composite: alpha_step = 1 - (1 - a)^(step / unit), exact in float64 on the host, so the uniform segments
  *              need no transcendental function; the last, shorter segment of length l takes
- *              -expm1(-(l / unit) sigma) from lut_ext, the extinction sigma = -log1p(-a) per entry (a = 1 maps
- *              to a huge finite sigma, so alpha = 1);
+ *              1 - e^(-(l / unit) sigma) (lc_alpha_of_depth: no library call) from lut_ext, the extinction
+ *              sigma = -log1p(-a) per entry (a = 1 maps to a huge finite sigma, so alpha = 1);
  *   LC_PRECISE: the segment's optical depth (step / unit) * (-log1p(-a)), alpha = -expm1(-depth);
  *   MIP:       the TF opacity a as given.
  * A later per-block step (adaptive sampling) takes alpha from lut_ext the same way (or a table per step).
