@@ -118,7 +118,7 @@ static LC_HOT float2 lc_nb_in(__global const lc_voxel* atlas, __global const lc_
 }
 
 /* eq. 3.5 */
-static inline float2 lc_nb(__global const lc_voxel* atlas, __global const lc_sig* sig, const ulong entry, const int bx,
+static LC_HOT float2 lc_nb(__global const lc_voxel* atlas, __global const lc_sig* sig, const ulong entry, const int bx,
                            const int by, const int bz, const LcAtlasGeom g, const float3 q) {
     return lc_nb_in(atlas, sig, entry, bx, by, bz, g, q, 0);
 }
@@ -216,7 +216,7 @@ static inline float2 lc_hood_sample(__global const lc_voxel* atlas, __global con
  * the own one and its neighbour across that face has weight 0 (the fast path's argument, below), and these two take
  * (1 - e, e) of the face's edge weight (the other axes' factors saturate to 1 for both): two NB samples instead of
  * the cell's eight. */
-static inline float2 lc_face_blend(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
+static LC_HOT float2 lc_face_blend(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const float2 a, const float ho, const int bx, const int by,
                                    const int bz, const int in_x, const int in_y, const float o, const float3 q) {
     const int up = o > 0.5f * g.B; /* the face above the own block along that axis */
@@ -235,7 +235,7 @@ static inline float2 lc_face_blend(__global const lc_voxel* atlas, __global cons
 
 /* The multiresolution field at q. hd: the last interblock neighbourhood this ray set up (cx = -1: none), reused
  * while the ray's samples stay in it */
-static inline float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global const lc_sig* sig,
+static LC_HOT float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global const lc_sig* sig,
                                        __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q) {
     /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
      * PoCL's out-of-line floor() */

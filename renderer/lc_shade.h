@@ -24,7 +24,7 @@ static inline float3 lc_lit(const float3 col, const float3 g, const float3 l, co
     const float3 n = g / gm;
     const float ndl = fabs(n.x * l.x + n.y * l.y + n.z * l.z);
     const float ndh = fabs(n.x * h.x + n.y * h.y + n.z * h.z);
-    const float3 lit = col * (k.x + k.y * ndl) + (ndh > 0.0f ? k.z * pow(ndh, k.w) : 0.0f);
+    const float3 lit = col * (k.x + k.y * ndl) + (ndh > 0.0f ? k.z * lc_pow01(ndh < 1.0f ? ndh : 1.0f, k.w) : 0.0f);
     if (gref <= 0.0f || gm >= gref) return lit;
     return unlit + (lit - unlit) * (gm / gref); /* weighted by gradient magnitude: noise in flat tissue stays unlit */
 }

@@ -1,5 +1,6 @@
 """The kernels' own elementary functions against float64: lc_alpha_of_depth (1 - e^-x without a library call,
-lc_common.h), which the distribution classification composites with."""
+lc_common.h), which every composite march takes its opacities from, and lc_pow01 (x^e on (0, 1], the highlight of
+the shading)."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,16 +13,20 @@ __kernel void alpha_of_depth(__global const float* x, __global float* out) {
     const int i = get_global_id(0);
     out[i] = lc_alpha_of_depth(x[i]);
 }
+__kernel void pow01(__global const float* x, __global const float* e, __global float* out) {
+    const int i = get_global_id(0);
+    out[i] = lc_pow01(x[i], e[i]);
+}
 """
 
 
-def _run(x: np.ndarray) -> np.ndarray:
+def _run(x: np.ndarray, *more: np.ndarray, name: str = "alpha_of_depth") -> np.ndarray:
     ctx, queue = get_context()
     prg = cl.Program(ctx, kernel_source("lc_common.h") + KERNEL).build()
     mf = cl.mem_flags
-    d_x = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=x)
+    bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (x, *more)]
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, x.nbytes)
-    prg.alpha_of_depth(queue, (x.size,), None, d_x, d_out)
+    getattr(prg, name)(queue, (x.size,), None, *bufs, d_out)
     out = np.empty_like(x)
     cl.enqueue_copy(queue, out, d_out)
     return out
@@ -44,3 +49,19 @@ def test_alpha_of_depth_matches_float64_over_every_scale():
     # monotone, as an opacity of a longer segment must be (up to one float32 ulp of wobble)
     order = np.argsort(x, kind="stable")
     assert np.all(np.diff(got[order]) >= -np.spacing(got[order][1:]))
+
+
+def test_pow01_matches_float64_on_the_unit_interval():
+    rng = np.random.default_rng(8)
+    x = np.concatenate([np.array([1.0, np.nextafter(np.float32(1), np.float32(0)), 0.5, 0.70710677, 0.7071068, 1e-3,
+                                  1e-20, 1.1754944e-38, 1e-40, 0.0]),
+                        10.0 ** rng.uniform(-8, 0, 100_000), rng.uniform(0.9, 1.0, 50_000)]).astype(np.float32)
+    e = np.concatenate([np.array([20.0, 20.0, 1.0, 64.0, 64.0, 0.5, 1.0, 2.0, 2.0, 3.0]),
+                        rng.choice([0.0, 0.5, 1.0, 8.0, 20.0, 128.0], 150_000)]).astype(np.float32)
+    got = _run(x, e, name="pow01").astype(np.float64)
+    with np.errstate(divide="ignore"):
+        want = np.power(x.astype(np.float64), e.astype(np.float64))
+    assert np.all((got >= 0) & (got <= 1))
+    err = np.abs(got - want)
+    assert err.max() < 1e-6, (x[np.argmax(err)], e[np.argmax(err)], err.max())
+    assert got[e == 0].min() == 1.0 and got[x == 1].min() == 1.0
