@@ -32,7 +32,7 @@
 /* compensated (Kahan) sums of colour and optical depth for a segment of optical depth `depth` and colour `col` */
 #define LC_KAHAN_COMPOSITE(depth, col, S)                                        \
     {                                                                            \
-        const float alpha = -expm1(-(depth));                                    \
+        const float alpha = lc_alpha_of_depth(depth);                           \
         const float3 col_ = (col);                                               \
         const float3 y3 = (T##S * alpha) * col_ - C_c##S;                        \
         const float3 s3 = C##S + y3;                                             \
@@ -42,7 +42,7 @@
         const float s = tau##S + y;                                              \
         tau_c##S = (s - tau##S) - y;                                             \
         tau##S = s;                                                              \
-        T##S = exp(-tau##S);                                                     \
+        T##S = lc_exp_neg(tau##S);                                               \
         if (T##S <= t_stop) { /* finish the ray: what is left shows this colour */ \
             C##S += T##S * col_;                                                 \
             tau##S = INFINITY;                                                   \

@@ -50,27 +50,40 @@ static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v >
 /* ceil(x) for x > -1 (conversion truncates towards zero), without PoCL's out-of-line ceil() */
 static inline int lc_ceil_i(const float x) { const int i = (int)x; return x > (float)i ? i + 1 : i; }
 
+static inline float lc_exp_neg_big(const float x) { /* e^-x for 0.25 <= x <= 87 */
+    /* e^-x = 2^-k e^-g, g = x - k ln 2 in [0, ln 2) up to rounding, taken in two parts (Cody and Waite: ln2_hi
+     * has 15 significant bits, so k ln2_hi is exact for these k < 2^7) so that g keeps float32's precision where x
+     * is large */
+    const int k = (int)(x * 1.44269504089f); /* x > 0: truncation is floor */
+    const float g = (x - (float)k * 0.693145751953125f) - (float)k * 1.428606765330187e-6f;
+    const float p = 1.0f - g * (1.0f - g * (0.5f - g * (1.0f / 6.0f - g * (1.0f / 24.0f - g * (1.0f / 120.0f -
+                    g * (1.0f / 720.0f - g * (1.0f / 5040.0f - g * (1.0f / 40320.0f))))))));
+    return p * as_float((uint)(127 - k) << 23);
+}
+
 /* 1 - e^-x for an optical depth x >= 0, to float32's precision (relative error below 4e-7, tested against
  * float64), without a library call: PoCL calls exp and native_exp out of line, and the call makes every live value
  * of the march spill (measured: 30-40% of a nearest-block LOD render's kernel time). A series where 1 - e^-x would
- * cancel; else e^-x = 2^-k 2^-f from the exponent bits and a series in f ln 2 <= 0.694 (truncation < 1e-7). */
+ * cancel; else e^-x = 2^-k e^-g from the exponent bits and a series in g <= 0.694 (truncation < 1e-7). */
 static inline float lc_alpha_of_depth(const float x) {
     if (x < 0.25f)
         return x * (1.0f - x * (0.5f - x * (1.0f / 6.0f - x * (1.0f / 24.0f - x * (1.0f / 120.0f - x * (1.0f / 720.0f))))));
     if (x > 87.0f)
         return 1.0f;
-    const float y = x * 1.44269504089f; /* e^-x = 2^-y */
-    const int k = (int)y;               /* y > 0: truncation is floor */
-    const float g = (y - (float)k) * 0.69314718056f;
-    const float p = 1.0f - g * (1.0f - g * (0.5f - g * (1.0f / 6.0f - g * (1.0f / 24.0f - g * (1.0f / 120.0f -
-                    g * (1.0f / 720.0f - g * (1.0f / 5040.0f - g * (1.0f / 40320.0f))))))));
-    return 1.0f - p * as_float((uint)(127 - k) << 23);
+    return 1.0f - lc_exp_neg_big(x);
+}
+
+/* e^-x for x >= 0 (a transmittance from an optical depth; +inf gives 0), relative error below 4e-7 up to x = 87
+ * (float32's smallest normal number lies near e^-87.3; beyond, 0), no library call (lc_alpha_of_depth). */
+static inline float lc_exp_neg(const float x) {
+    if (x < 0.25f) return 1.0f - lc_alpha_of_depth(x);
+    return x > 87.0f ? 0.0f : lc_exp_neg_big(x);
 }
 
 /* x^e for x in (0, 1] and e >= 0 (Blinn-Phong's highlight), without a library call (PoCL calls pow out of line:
  * see lc_alpha_of_depth), to an absolute error below 1e-6: e^(-e (-ln x)), ln x from the exponent bits and the
  * series 2 atanh(s) in s = (m - 1)/(m + 1), |s| <= 0.172 for the mantissa m in [sqrt(1/2), sqrt(2)) (truncation
- * below 1e-9); e^-y as in lc_alpha_of_depth. Subnormal x counts as 0 (x^e <= 1e-19 there for e >= 1/2). */
+ * below 1e-9); e^-y from lc_exp_neg. Subnormal x counts as 0 (x^e <= 1e-19 there for e >= 1/2). */
 static inline float lc_pow01(const float x, const float e) {
     if (e == 0.0f) return 1.0f;
     if (!(x >= 1.1754944e-38f)) return 0.0f;
@@ -83,7 +96,7 @@ static inline float lc_pow01(const float x, const float e) {
     const float ln = 2.0f * t * (1.0f + t2 * (1.0f / 3.0f + t2 * (1.0f / 5.0f + t2 * (1.0f / 7.0f + t2 * (1.0f / 9.0f))))) +
                      (float)k * 0.69314718056f;
     const float y = -e * ln; /* >= 0 (ln <= 0 for x <= 1, up to rounding) */
-    return y <= 0.0f ? 1.0f : 1.0f - lc_alpha_of_depth(y);
+    return y <= 0.0f ? 1.0f : lc_exp_neg(y);
 }
 
 static inline uint lc_hash(uint x) {

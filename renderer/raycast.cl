@@ -72,7 +72,7 @@
  *              need no transcendental function; the last, shorter segment of length l takes
  *              1 - e^(-(l / unit) sigma) (lc_alpha_of_depth: no library call) from lut_ext, the extinction
  *              sigma = -log1p(-a) per entry (a = 1 maps to a huge finite sigma, so alpha = 1);
- *   LC_PRECISE: the segment's optical depth (step / unit) * (-log1p(-a)), alpha = -expm1(-depth);
+ *   LC_PRECISE: the segment's optical depth (step / unit) * (-log1p(-a)), alpha = 1 - e^-depth (lc_common.h);
  *   MIP:       the TF opacity a as given.
  * A later per-block step (adaptive sampling) takes alpha from lut_ext the same way (or a table per step).
  * Loops avoid OpenCL builtins such as clamp/fmin (PoCL calls them out of line) and read parameters from private
@@ -668,11 +668,11 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         res = (float4)(0.0f);
     }
 #elif defined(LC_TF2) && defined(LC_PRECISE) /* the second integral over the first */
-    res = (float4)(C2 + T2 * C, -expm1(-(tau + tau2)));
+    res = (float4)(C2 + T2 * C, lc_alpha_of_depth(tau + tau2));
 #elif defined(LC_TF2)
     res = (float4)(C2 + T2 * C, 1.0f - T2 * T);
 #elif defined(LC_PRECISE)
-    res = (float4)(C, -expm1(-tau));
+    res = (float4)(C, lc_alpha_of_depth(tau));
 #else
     res = (float4)(C, 1.0f - T);
 #endif

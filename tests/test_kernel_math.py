@@ -1,5 +1,6 @@
 """The kernels' own elementary functions against float64: lc_alpha_of_depth (1 - e^-x without a library call,
-lc_common.h), which every composite march takes its opacities from, and lc_pow01 (x^e on (0, 1], the highlight of
+lc_common.h), which every composite march takes its opacities from, lc_exp_neg (e^-x: the compensated march's
+transmittance) and lc_pow01 (x^e on (0, 1], the highlight of
 the shading)."""
 from __future__ import annotations
 
@@ -12,6 +13,10 @@ KERNEL = """
 __kernel void alpha_of_depth(__global const float* x, __global float* out) {
     const int i = get_global_id(0);
     out[i] = lc_alpha_of_depth(x[i]);
+}
+__kernel void exp_neg(__global const float* x, __global float* out) {
+    const int i = get_global_id(0);
+    out[i] = lc_exp_neg(x[i]);
 }
 __kernel void pow01(__global const float* x, __global const float* e, __global float* out) {
     const int i = get_global_id(0);
@@ -65,3 +70,17 @@ def test_pow01_matches_float64_on_the_unit_interval():
     err = np.abs(got - want)
     assert err.max() < 1e-6, (x[np.argmax(err)], e[np.argmax(err)], err.max())
     assert got[e == 0].min() == 1.0 and got[x == 1].min() == 1.0
+
+
+def test_exp_neg_matches_float64_up_to_the_smallest_normal_number():
+    rng = np.random.default_rng(9)
+    x = np.concatenate([np.array([0.0, 1e-30, 1e-8, 0.25, np.nextafter(np.float32(0.25), np.float32(0)), 1.0, 86.9,
+                                  87.0, 87.5, 1e30, np.inf]),
+                        10.0 ** rng.uniform(-9, 1.94, 200_000), rng.uniform(0.2, 0.3, 20_000)]).astype(np.float32)
+    got = _run(x, name="exp_neg").astype(np.float64)
+    want = np.exp(-x.astype(np.float64))
+    normal = x <= 87.0
+    assert (np.abs(got - want) / want)[normal].max() < 4e-7
+    assert (got[~normal] == 0).all() and got[x == 0].tolist() == [1.0]
+    order = np.argsort(x, kind="stable")  # monotone: a longer path lets less through
+    assert np.all(np.diff(got[order]) <= np.spacing(got[order][:-1]))
