@@ -44,11 +44,12 @@ static inline float4 lc_preint_at(__global const float4* ptab, const float ff, c
 }
 
 #ifdef LC_PRECISE
-#define LC_PREINT_COMPOSITE(a0, ratio, col, S) LC_KAHAN_COMPOSITE(-log1p(-(a0)) * (ratio), col, S)
+#define LC_PREINT_COMPOSITE(a0, ratio, col, S) LC_KAHAN_COMPOSITE(lc_depth_of_alpha(a0) * (ratio), col, S)
 #else
+/* alpha' = 1 - (1 - a0)^ratio, in line (lc_common.h: a library call in the march puts its state in memory) */
 #define LC_PREINT_COMPOSITE(a0, ratio, col, S)                                   \
     {                                                                            \
-        const float al_ = (ratio) == 1.0f ? (a0) : -expm1((ratio) * log1p(-(a0))); \
+        const float al_ = (ratio) == 1.0f ? (a0) : lc_alpha_of_depth((ratio) * lc_depth_of_alpha(a0)); \
         LC_BLEND(T##S * al_, col, S)                                             \
     }
 #endif

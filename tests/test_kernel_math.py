@@ -1,6 +1,6 @@
 """The kernels' own elementary functions against float64: lc_alpha_of_depth (1 - e^-x without a library call,
 lc_common.h), which every composite march takes its opacities from, lc_exp_neg (e^-x: the compensated march's
-transmittance) and lc_pow01 (x^e on (0, 1], the highlight of
+transmittance), lc_depth_of_alpha (-ln(1 - a): pre-integration's segments of other lengths) and lc_pow01 (x^e on (0, 1], the highlight of
 the shading)."""
 from __future__ import annotations
 
@@ -17,6 +17,10 @@ __kernel void alpha_of_depth(__global const float* x, __global float* out) {
 __kernel void exp_neg(__global const float* x, __global float* out) {
     const int i = get_global_id(0);
     out[i] = lc_exp_neg(x[i]);
+}
+__kernel void depth_of_alpha(__global const float* x, __global float* out) {
+    const int i = get_global_id(0);
+    out[i] = lc_depth_of_alpha(x[i]);
 }
 __kernel void pow01(__global const float* x, __global const float* e, __global float* out) {
     const int i = get_global_id(0);
@@ -80,7 +84,21 @@ def test_exp_neg_matches_float64_up_to_the_smallest_normal_number():
     got = _run(x, name="exp_neg").astype(np.float64)
     want = np.exp(-x.astype(np.float64))
     normal = x <= 87.0
-    assert (np.abs(got - want) / want)[normal].max() < 4e-7
+    assert (np.abs(got - want)[normal] / want[normal]).max() < 4e-7
     assert (got[~normal] == 0).all() and got[x == 0].tolist() == [1.0]
     order = np.argsort(x, kind="stable")  # monotone: a longer path lets less through
     assert np.all(np.diff(got[order]) <= np.spacing(got[order][:-1]))
+
+
+def test_depth_of_alpha_matches_float64_over_the_unit_interval():
+    rng = np.random.default_rng(10)
+    a = np.concatenate([np.array([0.0, 1e-30, 1e-8, 0.25, np.nextafter(np.float32(0.25), np.float32(0)), 0.5, 0.999999,
+                                  np.nextafter(np.float32(1), np.float32(0)), 1.0]),
+                        10.0 ** rng.uniform(-9, 0, 200_000), 1 - 10.0 ** rng.uniform(-7, -0.5, 50_000)]).astype(np.float32)
+    a = np.clip(a, 0, 1)
+    got = _run(a, name="depth_of_alpha").astype(np.float64)
+    with np.errstate(divide="ignore"):
+        want = -np.log1p(-a.astype(np.float64))
+    inner = (a > 0) & (a < 1)
+    assert (np.abs(got - want)[inner] / want[inner]).max() < 4e-7
+    assert got[a == 0].tolist() == [0.0] and np.isinf(got[a == 1]).all()
