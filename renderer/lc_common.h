@@ -212,10 +212,9 @@ static inline float lc_sample(__global const lc_voxel* vol, const int4 dims, con
     const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;                                                    \
     const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
 
-/* The first element of the ray's plane of the leaps (renderer/leap.py: octant_radii) over a walk of nx x ny x nz
- * cells: the plane of the octant of directions the DDA's steps (sx, sy, sz) go in. */
-#define LC_LEAP_PLANE(nx, ny, nz) \
-    ((ulong)((sx > 0) | (sy > 0) << 1 | (sz > 0) << 2) * ((ulong)(nx) * (ulong)(ny) * (ulong)(nz)))
+/* The index in `leaps` (renderer/leap.py: Leaps.for_octants) of the plane of the octant of directions the DDA's
+ * steps (sx, sy, sz) go in (15: none), from the per-octant code `planes` (LcParams.leap_planes) */
+#define LC_LEAP_PLANE(planes) ((int)(((planes) >> (4 * ((sx > 0) | (sy > 0) << 1 | (sz > 0) << 2))) & 15u))
 
 /* Space leaping (renderer/leap.py) in the DDA of LC_DDA_BEGIN: every cell of the cube of r cells (r >= 2) that
  * starts at the DDA's cell and runs forward along the ray's step directions is one the walk would pass alike, so

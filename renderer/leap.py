@@ -18,9 +18,10 @@ leaping from their 8³ parents' distances), 3.9 million with each 4³ cell's own
 Cells outside the grid count as empty: past the grid the ray has left the volume's box, where there is nothing to
 sample.
 
-The map rides beside the walk's info (renderer/walk.py: walk_info, adaptive_walk) as eight planes of uint8 over its
-cells (Leaps), plane (x forward) | (y forward) << 1 | (z forward) << 2, 0 in a cell that is not empty; r = 1 is an
-ordinary skip. Only the planes of the octants a view's rays go in are computed (camera.ray_octants: one to four).
+The map rides beside the walk's info (renderer/walk.py: walk_info, adaptive_walk) as planes of uint8 over its
+cells (Leaps), one per octant o = (x forward) | (y forward) << 1 | (z forward) << 2, 0 in a cell that is not empty;
+r = 1 is an ordinary skip. Only the planes of the octants a view's rays go in are computed and handed to the kernel
+(camera.ray_octants: one to four; LcParams.leap_planes says which plane is whose).
 A leap changes no sample: the cells it passes are empty, and the first sample after them is found where the leap
 ends, as after a run of skipped cells (tests/test_leap.py).
 """
@@ -32,7 +33,7 @@ import numpy as np
 
 from lodcast.renderer.atlas import half_cells, pair_reduce
 
-__all__ = ["LEAP_MAX", "OCTANTS", "Leaps", "cell_leaps", "children", "coarsen_ranges", "octant_radii", "step_leaps"]
+__all__ = ["LEAP_MAX", "NO_PLANE", "OCTANTS", "Leaps", "cell_leaps", "children", "coarsen_ranges", "octant_radii", "step_leaps"]
 
 #: the largest cube edge stored: leaps of 15 cells (60 voxels at full resolution's 4³ cells) are long enough that
 #: the DDA steps left over are few, and the map's passes (one per cell of edge) stay cheap on large grids
@@ -83,35 +84,44 @@ def _forward_radii(empty: np.ndarray, cap: int) -> np.ndarray:
     return r
 
 
+#: LcParams.leap_planes' code of an octant with no plane: its rays walk cell by cell
+NO_PLANE = 15
+
+
 @dataclass(eq=False)
 class Leaps:
     """A walk's leaps, its empty cells' octant_radii, computed one octant at a time as views need them: a view's
     rays go in one to four octants (camera.ray_octants), and each octant costs a pass over the grid (the chest CT's
-    1.1 million 4³ cells: 32 ms for all eight). `planes` (8, z, y, x) uint8 is the kernel's buffer; a plane not
-    computed is zero (no ray leaps there: the walk goes cell by cell, the same samples)."""
+    1.1 million 4³ cells: 32 ms for all eight) and a byte per cell."""
 
     empty: np.ndarray
-    planes: np.ndarray
-    done: list[bool]
+    planes: dict[int, np.ndarray]
 
     @classmethod
     def of(cls, empty: np.ndarray) -> "Leaps":
         empty = np.ascontiguousarray(empty, dtype=bool)
         if empty.ndim != 3:
             raise ValueError(f"empty must be a 3-D grid of cells, got shape {empty.shape}")
-        return cls(empty, np.zeros((OCTANTS, *empty.shape), np.uint8), [False] * OCTANTS)
+        return cls(empty, {})
 
     @property
     def nbytes(self) -> int:
-        return self.empty.nbytes + self.planes.nbytes
+        """What it holds with the planes of a view or two (a cache's account, taken when it is kept)."""
+        return self.empty.nbytes * (1 + max(2, len(self.planes)))
 
-    def for_octants(self, octants) -> np.ndarray:
-        """The planes, with those of `octants` computed."""
+    def for_octants(self, octants) -> tuple[np.ndarray, int]:
+        """(the kernel's buffer: the planes of `octants` one after another, (k, z, y, x) uint8; LcParams.leap_planes:
+        4 bits per octant o at bit 4 o, the index of its plane in the buffer, NO_PLANE for the others)."""
+        octants = sorted(set(int(o) for o in octants))
+        assert octants and all(0 <= o < OCTANTS for o in octants), octants
         for o in octants:
-            if not self.done[o]:
+            if o not in self.planes:
                 self.planes[o] = _octant(self.empty, o, LEAP_MAX)
-                self.done[o] = True
-        return self.planes
+        code = 0
+        for o in range(OCTANTS):
+            code |= (octants.index(o) if o in octants else NO_PLANE) << (4 * o)
+        buf = self.planes[octants[0]][None] if len(octants) == 1 else np.stack([self.planes[o] for o in octants])
+        return buf, code
 
 
 def cell_leaps(info: np.ndarray) -> Leaps:

@@ -559,9 +559,9 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
             kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else kernel(built, "lc_render")
         steps, walk, leaps = adaptive_walk(pr, cfg, data, walk, leaps)
         d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
-        d_leaps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                            hostbuf=np.zeros(1, np.uint8) if leaps is None or not cfg.leap
-                            else leaps.for_octants(pr.octants))
+        planes, p[0]["leap_planes"] = ((np.zeros(1, np.uint8), 0xFFFFFFFF) if leaps is None or not cfg.leap
+                                       else leaps.for_octants(pr.octants))
+        d_leaps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=planes)
         d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
         d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)
         d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)

@@ -78,7 +78,7 @@ PARAMS_DTYPE = np.dtype(
         ("pass_off", _V4I),
         ("pass_dims", _V4I),
         ("pass_first", np.int32),
-        ("pad6", np.int32),
+        ("leap_planes", np.uint32),
         ("pad7", np.int32),
         ("pad8", np.int32),
         ("ess_grid", _V4I),

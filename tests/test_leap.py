@@ -11,7 +11,8 @@ import pytest
 import lodcast
 from lodcast.renderer import walk as R
 from lodcast.renderer.atlas import NEAR_LEVEL0
-from lodcast.renderer.leap import LEAP_MAX, OCTANTS, Leaps, cell_leaps, coarsen_ranges, octant_radii, step_leaps
+from lodcast.renderer.leap import (LEAP_MAX, NO_PLANE, OCTANTS, Leaps, cell_leaps, coarsen_ranges, octant_radii,
+                                   step_leaps)
 
 
 def _forward_cube(empty: np.ndarray, c, o: int, cap: int) -> int:
@@ -71,13 +72,18 @@ def test_cell_leaps_are_the_radii_of_the_empty_cells_computed_per_octant_on_dema
     info[0, 0, 0] = -np.inf  # (MIP's empty)
     lp = cell_leaps(info)
     want = octant_radii(info <= 0)
-    assert not lp.planes.any()
-    got = lp.for_octants((3, 6))
-    for o in range(OCTANTS):
-        np.testing.assert_array_equal(got[o], want[o] if o in (3, 6) else 0)
-    np.testing.assert_array_equal(lp.for_octants(range(OCTANTS)), want)
+    assert not lp.planes
+    buf, code = lp.for_octants((6, 3))
+    assert buf.shape == (2, *info.shape) and sorted(lp.planes) == [3, 6]
+    np.testing.assert_array_equal(buf, want[[3, 6]])
+    assert [code >> (4 * o) & 15 for o in range(OCTANTS)] == [NO_PLANE] * 3 + [0] + [NO_PLANE] * 2 + [1, NO_PLANE]
+    buf, code = lp.for_octants([5])
+    np.testing.assert_array_equal(buf[0], want[5])
+    assert code >> 20 & 15 == 0 and all(code >> (4 * o) & 15 == NO_PLANE for o in range(OCTANTS) if o != 5)
+    buf, code = lp.for_octants(range(OCTANTS))
+    np.testing.assert_array_equal(buf, want)
+    assert code == 0x76543210
     assert (want[:, 2, 3, 3] == 0).all() and (want[:, 0, 0, 0] > 0).all()
-    assert lp.nbytes == info.size * (OCTANTS + 1)
     with pytest.raises(ValueError, match="3-D grid"):
         Leaps.of(np.ones((4, 4), bool))
 
@@ -89,7 +95,7 @@ def test_step_leaps_cover_cubes_of_skipped_level_0_cells(seed):
     codes = rng.choice(np.array([-1, -2, -3, -(NEAR_LEVEL0 | 1) - 1, 0, 2], np.int8), size=(9, 10, 11),
                        p=[0.45, 0.3, 0.1, 0.05, 0.05, 0.05])
     codes[:4, :5, :6] = -1
-    out = step_leaps(codes).for_octants(range(OCTANTS))
+    out, _ = step_leaps(codes).for_octants(range(OCTANTS))
     assert out.dtype == np.uint8 and (out >= 2).any()
     assert (out[:, codes != -1] == 0).all()
     for o, *c in np.argwhere(out >= 2)[::7]:
@@ -146,10 +152,8 @@ def fresh_walks():
 
 def _fixed(empty: np.ndarray, r: int) -> Leaps:
     """Leaps of r cells from every cell of `empty` in every octant (0: none), whatever lies ahead."""
-    lp = Leaps.of(empty)
-    lp.planes[:] = np.where(empty, r, 0).astype(np.uint8)[None]
-    lp.done[:] = [True] * OCTANTS
-    return lp
+    plane = np.where(empty, r, 0).astype(np.uint8)
+    return Leaps(np.asarray(empty, bool), {o: plane for o in range(OCTANTS)})
 
 
 def _no_leaps(monkeypatch):
@@ -176,7 +180,8 @@ def test_leaps_change_no_image(stores, variant, seed, monkeypatch):
     monkeypatch.setattr(R, "cell_leaps", lambda info: used.append(wl(info)) or used[-1])
     monkeypatch.setattr(R, "step_leaps", lambda steps: used.append(sl(steps)) or used[-1])
     on = lodcast.render(st, scene)
-    assert len(used) == 1 and (used[0].planes >= 2).any() and 1 <= sum(used[0].done) <= 4
+    assert len(used) == 1 and 1 <= len(used[0].planes) <= 4
+    assert any((plane >= 2).any() for plane in used[0].planes.values())
     _no_leaps(monkeypatch)
     R._WALKS.clear()
     off = lodcast.render(st, scene)
