@@ -16,7 +16,7 @@
 #ifdef LC_SHADE
 
 /* Blinn-Phong of colour col for gradient g (world units), unit light l and half vector h; k = (ka, kd, ks, n) */
-static inline float3 lc_lit(const float3 col, const float3 g, const float3 l, const float3 h, const float4 k,
+static LC_HOT float3 lc_lit(const float3 col, const float3 g, const float3 l, const float3 h, const float4 k,
                             const float gmin, const float gref) {
     const float gm = sqrt(g.x * g.x + g.y * g.y + g.z * g.z);
     const float3 unlit = col * (k.x + k.y);
