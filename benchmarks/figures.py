@@ -46,6 +46,10 @@ def error_vs_time(rows: list[dict], path: Path) -> Path:
         for r in lod:
             ax.annotate(r["quality"], (r["ms"], r["delta_e"]), fontsize=7, xytext=(3, -9), textcoords="offset points")
         ax.set_xscale("log")
+        # plain numbers, minor ticks labelled at 2 and 5 only (matplotlib's default crowds 3×10², 4×10², ...)
+        ax.xaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(plt.FuncFormatter(
+            lambda v, _: f"{v:g}" if v > 0 and round(v / 10 ** np.floor(np.log10(v))) in (2, 5) else ""))
         ax.set_xlabel("ms per image (median)")
         ax.set_ylabel("mean ΔE against the float64 reference")
         ax.set_title(f"{key[0]}, {key[1]}", fontsize=10)
