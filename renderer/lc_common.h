@@ -80,26 +80,27 @@ static inline float lc_exp_neg(const float x) {
     return x > 87.0f ? 0.0f : lc_exp_neg_big(x);
 }
 
+/* ln((1 + t) / (1 - t)) = 2 atanh(t) for |t| <= 0.172, by its series to t^9 (truncation below 1e-9) */
+static inline float lc_atanh2(const float t) {
+    const float t2 = t * t;
+    return 2.0f * t * (1.0f + t2 * (1.0f / 3.0f + t2 * (1.0f / 5.0f + t2 * (1.0f / 7.0f + t2 * (1.0f / 9.0f)))));
+}
+
 /* ln x for a positive normal float x, without a library call (see lc_alpha_of_depth), to float32's precision: the
- * exponent from the bits and the series 2 atanh(s) in s = (m - 1)/(m + 1), |s| <= 0.172 for the mantissa m in
- * [sqrt(1/2), sqrt(2)) (truncation below 1e-9) */
+ * exponent from the bits and lc_atanh2 of s = (m - 1)/(m + 1), |s| <= 0.172 for the mantissa m in
+ * [sqrt(1/2), sqrt(2)) */
 static inline float lc_log(const float x) {
     uint b = as_uint(x);
     int k = (int)(b >> 23) - 127;
     float m = as_float((b & 0x007fffffU) | 0x3f800000U); /* in [1, 2) */
     if (m > 1.41421356f) { m *= 0.5f; ++k; }
-    const float t = (m - 1.0f) / (m + 1.0f), t2 = t * t;
-    return 2.0f * t * (1.0f + t2 * (1.0f / 3.0f + t2 * (1.0f / 5.0f + t2 * (1.0f / 7.0f + t2 * (1.0f / 9.0f))))) +
-           (float)k * 0.69314718056f;
+    return lc_atanh2((m - 1.0f) / (m + 1.0f)) + (float)k * 0.69314718056f;
 }
 
-/* -ln(1 - a), the optical depth of opacity a in [0, 1] (+inf at 1): the series 2 atanh(a / (2 - a)) where 1 - a
+/* -ln(1 - a), the optical depth of opacity a in [0, 1] (+inf at 1): lc_atanh2(a / (2 - a)) (<= 1/7) where 1 - a
  * would lose a's digits, lc_log(1 - a) from a = 1/4 on (relative error below 4e-7 against float64, tested) */
 static inline float lc_depth_of_alpha(const float a) {
-    if (a < 0.25f) {
-        const float t = a / (2.0f - a), t2 = t * t; /* t <= 1/7 */
-        return 2.0f * t * (1.0f + t2 * (1.0f / 3.0f + t2 * (1.0f / 5.0f + t2 * (1.0f / 7.0f + t2 * (1.0f / 9.0f)))));
-    }
+    if (a < 0.25f) return lc_atanh2(a / (2.0f - a));
     return a >= 1.0f ? INFINITY : -lc_log(1.0f - a);
 }
 
@@ -212,9 +213,14 @@ static inline float lc_sample(__global const lc_voxel* vol, const int4 dims, con
     const float tdy = sy ? fabs(1.0f / dg.y) : INFINITY;                                                    \
     const float tdz = sz ? fabs(1.0f / dg.z) : INFINITY;
 
-/* The index in `leaps` (renderer/leap.py: Leaps.for_octants) of the plane of the octant of directions the DDA's
- * steps (sx, sy, sz) go in (15: none), from the per-octant code `planes` (LcParams.leap_planes) */
-#define LC_LEAP_PLANE(planes) ((int)(((planes) >> (4 * ((sx > 0) | (sy > 0) << 1 | (sz > 0) << 2))) & 15u))
+/* After LC_DDA_BEGIN over nx x ny x nz cells, with LC_LEAP: leap_on, whether `leaps` (renderer/leap.py:
+ * Leaps.for_octants) holds a plane for the octant of directions the DDA's steps (sx, sy, sz) go in, and leap_plane,
+ * that plane; LcParams.leap_planes names it, 4 bits per octant o at bit 4 o, LC_NO_PLANE for none. */
+#define LC_NO_PLANE 15
+#define LC_LEAP_BEGIN(nx, ny, nz)                                                                              \
+    const int leap_idx_ = (int)((P->leap_planes >> (4 * ((sx > 0) | (sy > 0) << 1 | (sz > 0) << 2))) & 15u);  \
+    const int leap_on = leap_idx_ != LC_NO_PLANE;                                                              \
+    __global const uchar* leap_plane = leaps + (ulong)(leap_on ? leap_idx_ : 0) * ((ulong)(nx) * (ny) * (nz));
 
 /* Space leaping (renderer/leap.py) in the DDA of LC_DDA_BEGIN: every cell of the cube of r cells (r >= 2) that
  * starts at the DDA's cell and runs forward along the ray's step directions is one the walk would pass alike, so

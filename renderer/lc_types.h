@@ -78,8 +78,8 @@ typedef struct LcParams {
     int4 pass_off;      /* full sampler: the voxel (x, y, z) of level 0 at which the pass's sub-volume starts, */
     int4 pass_dims;     /* and its extent */
     int pass_first;     /* 1: the first pass (the ray state starts fresh instead of being loaded) */
-    uint leap_planes;   /* LC_LEAP: per octant o of ray directions (lc_common.h: LC_LEAP_PLANE) the index of its plane
-                         * in `leaps`, 4 bits at bit 4 o; 15: none (its rays walk cell by cell) */
+    uint leap_planes;   /* LC_LEAP: per octant o of ray directions (lc_common.h: LC_LEAP_BEGIN) the index of its plane
+                         * in `leaps`, 4 bits at bit 4 o; 15 (LC_NO_PLANE): none (its rays walk cell by cell) */
     int pad7;
     int pad8;
     int4 ess_grid;      /* LC_ESS: the block walk's cells (x, y, z; w: edge in voxels, dividing grid.w): full

@@ -32,9 +32,10 @@
  *                     nothing there can contribute, without sampling them
  *   LC_LEAP           with LC_ESS (composite, one TF, one pass): space leaping (renderer/leap.py). `leaps` holds
  *                     planes over the walk's cells, one per octant of ray directions the view's rays go in (octant
- *                     (sx > 0) | (sy > 0) << 1 | (sz > 0) << 2, its plane named by P->leap_planes): in an empty cell (with LC_ADAPTIVE: a skipped level-0 cell)
- *                     the edge r of the cube of empty cells that starts there and runs forward in that octant's
- *                     directions; r >= 2: the ray leaves that cube in one step instead of a DDA step per cell.
+ *                     (sx > 0) | (sy > 0) << 1 | (sz > 0) << 2, its plane named by P->leap_planes: LC_LEAP_BEGIN):
+ *                     in an empty cell (with LC_ADAPTIVE: a skipped level-0 cell) the edge r of the cube of empty
+ *                     cells that starts there and runs forward in that octant's directions; r >= 2: the ray
+ *                     leaves that cube in one step instead of a DDA step per cell.
  *                     With LC_SAMPLER_FULL (where only the cells decide a skip) a run of cells to sample is found
  *                     first and sampled in one loop
  *   LC_OCTANTS        with LC_LEAP and LC_ADAPTIVE (no pre-integration): a sampled cell's block_info holds the mask of
@@ -269,8 +270,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         LC_DDA_BEGIN(Hc, hx, hy, hz)
         const float inv_unit = P->inv_unit;
 #ifdef LC_LEAP
-        const int leap_idx = LC_LEAP_PLANE(P->leap_planes);
-        __global const uchar* leap_plane = leaps + (ulong)(leap_idx == 15 ? 0 : leap_idx) * ((ulong)hx * hy * hz);
+        LC_LEAP_BEGIN(hx, hy, hz)
 #endif
 /* the step code of cell (x, y, z), clamped into the grid (past it the ray has left the box) */
 /* the index of cell (x, y, z) in the cells' arrays (step_level, block_info), clamped into the grid */
@@ -339,9 +339,9 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
              * where the lattice's first step whose sample lies in that cell begins (within a base step of the
              * face), so that level 0 takes full resolution's samples there too */
 #ifdef LC_LEAP
-            /* in a cube of skipped level-0 cells (renderer/leap.py: step_leaps; block_info holds its radius r >= 2)
+            /* in a cube of skipped level-0 cells (renderer/leap.py: step_leaps; its edge r >= 2 in the ray's plane)
              * leave the cube at once: such cells leave t where it is, so the walk goes on as it would cell by cell */
-            if (code == -1 && leap_idx != 15 && bx >= 0 && bx < hx && by >= 0 && by < hy && bz >= 0 && bz < hz) {
+            if (code == -1 && leap_on && bx >= 0 && bx < hx && by >= 0 && by < hy && bz >= 0 && bz < hz) {
                 const int lf = leap_plane[LC_CELL(bx, by, bz)];
                 if (lf >= 2) {
                     float te;
@@ -490,8 +490,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
         LC_DDA_BEGIN(B, gx, gy, gz)
         int inside = 1;
 #ifdef LC_LEAP
-        const int leap_idx = LC_LEAP_PLANE(P->leap_planes);
-        __global const uchar* leap_plane = leaps + (ulong)(leap_idx == 15 ? 0 : leap_idx) * ((ulong)gx * gy * gz);
+        LC_LEAP_BEGIN(gx, gy, gz)
 #endif
 #if defined(LC_PASSES) || defined(LC_SAMPLER_ATLAS)
         const int cpb = P->grid.w / P->ess_grid.w; /* walk cells per block edge */
@@ -559,7 +558,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
 #endif
                 }
 #ifdef LC_LEAP
-                const int lr = skip && leap_idx != 15 ? leap_plane[(bz * gy + by) * gx + bx] : 0;
+                const int lr = skip && leap_on ? leap_plane[(bz * gy + by) * gx + bx] : 0;
                 if (lr >= 2) { /* the cube of lr cells ahead of this one is empty: leave it at once */
                     float te;
                     LC_DDA_LEAP(lr, te)

@@ -76,6 +76,7 @@ def test_cell_leaps_are_the_radii_of_the_empty_cells_computed_per_octant_on_dema
     buf, code = lp.for_octants((6, 3))
     assert buf.shape == (2, *info.shape) and sorted(lp.planes) == [3, 6]
     np.testing.assert_array_equal(buf, want[[3, 6]])
+    assert lp.for_octants([3, 6])[0] is buf  # the same view's buffer again, not a new copy
     assert [code >> (4 * o) & 15 for o in range(OCTANTS)] == [NO_PLANE] * 3 + [0] + [NO_PLANE] * 2 + [1, NO_PLANE]
     buf, code = lp.for_octants([5])
     np.testing.assert_array_equal(buf[0], want[5])
