@@ -229,6 +229,21 @@ def _ms(ms: float) -> str:
     return f"{ms:.0f}" if ms >= 100 else f"{ms:.3g}"
 
 
+def budget_split(uniform: list[dict], reduction: float) -> str:
+    """What a reduction leaves of the visible blocks, from the reduction of every visible block at level 1 (R1,
+    so R1 / 8 at level 0): the share of their voxels it can keep at level 0 with the rest at level 1
+    (g + (1 - g) / 8 = R1 / 8 / reduction), or, below R1, the share it must put at level 2 with the rest at level 1
+    ((1 - h) / 8 + h / 64 = R1 / 8 / reduction). The greedy may mix more levels; this is the budget's arithmetic."""
+    u1 = next(u for u in uniform if u["level"] == 1)
+    x = u1["reduction"] / 8 / reduction  # the budget as a share of every visible block at level 0
+    if x >= 1 / 8:
+        split = f"at most {100 * (x - 1 / 8) / (7 / 8):.1f}% of the visible voxels at level 0, the rest at level 1"
+    else:
+        split = f"at least {100 * (1 / 8 - x) / (1 / 8 - 1 / 64):.0f}% of the visible voxels at level 2, the rest at level 1"
+    return (f"{reduction:g}:1 holds {u1['reduction'] / reduction:.2f}× the samples of every visible block at level 1 "
+            f"(mean ΔE {u1['distribution']:.2f} by distribution): {split}")
+
+
 def report(res: dict) -> str:
     lines = [f"device: {res['device']}", ""]
     for c in res["cases"]:
@@ -251,6 +266,7 @@ def report(res: dict) -> str:
         lines += ["", "| every visible block at | reduction | mean ΔE by mean | by distribution |", "|---|---|---|---|"]
         lines += [f"| level {u['level']} | {u['reduction']:.1f} | {u['mean']:.2f} | {u['distribution']:.2f} |"
                   for u in c["uniform"]]
+        lines += ["", budget_split(c["uniform"], 30)]
         lines += ["", "| 30:1, new views | wall ms/frame (kernel) | atlas packed from nothing | full resolution |",
                   "|---|---|---|---|"]
         lines += [f"| {v['frames']} views {v['step']:g}° apart | {_ms(v['wall_ms'])} ({_ms(v['kernel_ms'])}) | "
