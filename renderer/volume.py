@@ -247,10 +247,10 @@ def as_volume(obj: Any, *, spacing=None, origin=None) -> VolumeView:
         return obj
     if isinstance(obj, np.ndarray):
         return _from_array(obj, spacing, origin)
-    if isinstance(obj, (str, Path)):
-        import lodcast
+    if isinstance(obj, (str, Path)):  # kept opened: a series of renders reads the store's metadata once
+        from lodcast.store.opened import opened
 
-        return _from_store(lodcast.open_store(obj))
+        return _from_store(opened(obj))
     if hasattr(obj, "read_level") and hasattr(obj, "stats"):
         return _from_store(obj)
     raise TypeError(f"cannot render a {type(obj).__name__}: pass a lodcast store, a store path or a 3D array")

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import io
 import threading
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -82,58 +81,24 @@ def check_tf(data: Any, loc: tuple) -> dict | str:
     return data
 
 
-def _stamp(path: Path | str) -> tuple | None:
-    """What changes when the store at `path` is replaced: its root zarr.json's inode and mtime (a new folder
-    renamed into place), or on object storage that object's ETag and modification time (published anew)."""
-    if isinstance(path, str):
-        import fsspec
-
-        try:
-            fs, p = fsspec.core.url_to_fs(path)
-            info = fs.info(f"{p.rstrip('/')}/zarr.json", refresh=True)
-        except (OSError, ValueError):  # FileNotFoundError included: the open that follows says what is wrong
-            return None
-        return info.get("ETag"), str(info.get("LastModified") or info.get("mtime") or ""), info.get("size")
-    try:
-        st = (path / "zarr.json").stat()
-    except OSError:
-        return None
-    return st.st_ino, st.st_mtime_ns
-
-
 class RenderEngine:
-    """Per-process rendering: opened stores are kept (LRU) and every render goes through lodcast.render, whose
-    renderer keeps its brick cache and compiled programs at module level, shared by all requests of the process."""
+    """Per-process rendering: opened stores are kept (store/opened.py: LRU, reopened when replaced) and every render
+    goes through lodcast.render, whose renderer keeps its brick cache and compiled programs at module level, shared
+    by all requests of the process."""
 
     def __init__(self, max_open: int = 32) -> None:
-        self._stores: OrderedDict[Path | str, tuple[Any, Any]] = OrderedDict()  # path or URL -> (stamp, store)
-        self._lock = threading.Lock()
-        self._max_open = max_open
+        from lodcast.store.opened import OpenStores
+
+        self._stores = OpenStores(max_open)
 
     def store(self, path: Path | str) -> Any:
         """The opened store at `path` (a folder, or a URL: a str), reopened when it was replaced since (another
         process ingested it again with --overwrite: a new folder renamed into place, so its root zarr.json has a
         new inode; on object storage a new root zarr.json)."""
-        from lodcast.store.store import open_store
-
-        path = path if isinstance(path, str) else Path(path)
-        stamp = _stamp(path)
-        with self._lock:
-            hit = self._stores.get(path)
-            if hit is not None and hit[0] == stamp:
-                self._stores.move_to_end(path)
-                return hit[1]
-        st = open_store(path)
-        with self._lock:
-            self._stores[path] = (stamp, st)
-            self._stores.move_to_end(path)
-            while len(self._stores) > self._max_open:
-                self._stores.popitem(last=False)
-        return st
+        return self._stores.get(path)
 
     def forget(self, path: Path | str) -> None:
-        with self._lock:
-            self._stores.pop(path if isinstance(path, str) else Path(path), None)
+        self._stores.forget(path)
 
     def render(self, path: Path, scene: Any, sample_limit: int | None = None, stop: Any = None) -> Any:
         from lodcast.renderer.render import render

@@ -1,0 +1,95 @@
+"""Opened stores kept per process. Opening a store reads its zarr.json files and block statistics and checks the
+data manifest (a walk over every shard file: 25 ms for the chest CT's store); a render that names its store by
+path or URL opens it once, not per call, so that a series of renders (views, TFs) also keeps the renderer's caches
+that hang on the opened store, such as the selection's per-TF tables. A store replaced at the same place (ingest
+with --overwrite renames a new folder into place; on object storage a new root zarr.json is published) is opened
+anew. `lodcast.open_store` itself always opens afresh."""
+from __future__ import annotations
+
+import os
+import threading
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+__all__ = ["OpenStores", "opened", "stamp"]
+
+
+def _key(location: str | os.PathLike[str]) -> Path | str:
+    """A URL as given, a local path made absolute (so that "ct.zarr" and "./ct.zarr" are one store)."""
+    if isinstance(location, str) and "://" in location:
+        return location
+    return Path(os.path.abspath(os.fspath(location)))
+
+
+def stamp(location: Path | str) -> tuple | None:
+    """What changes when the store at `location` is replaced: its root zarr.json's inode and modification time,
+    or on object storage that object's ETag, modification time and size. None where there is none to read (the
+    open that follows says what is wrong)."""
+    if isinstance(location, str):
+        import fsspec
+
+        try:
+            fs, p = fsspec.core.url_to_fs(location)
+            info = fs.info(f"{p.rstrip('/')}/zarr.json", refresh=True)
+        except (OSError, ValueError):  # FileNotFoundError included
+            return None
+        return info.get("ETag"), str(info.get("LastModified") or info.get("mtime") or ""), info.get("size")
+    try:
+        st = (location / "zarr.json").stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
+class OpenStores:
+    """Up to `max_open` opened stores by path or URL, least recently used dropped first."""
+
+    def __init__(self, max_open: int = 32) -> None:
+        if max_open < 1:
+            raise ValueError(f"max_open must be at least 1, got {max_open}")
+        self._stores: OrderedDict[Path | str, tuple[tuple, Any]] = OrderedDict()  # key -> (stamp, store)
+        self._lock = threading.Lock()
+        self._max_open = max_open
+
+    def get(self, location: str | os.PathLike[str]) -> Any:
+        """The opened store at `location`, opened now if it is not kept or was replaced since."""
+        from lodcast.store.store import open_store
+
+        key = _key(location)
+        st = stamp(key)
+        with self._lock:
+            hit = self._stores.get(key)
+            if hit is not None and st is not None and hit[0] == st:
+                self._stores.move_to_end(key)
+                return hit[1]
+        store = open_store(key)
+        if st is not None:
+            with self._lock:
+                self._stores[key] = (st, store)
+                self._stores.move_to_end(key)
+                while len(self._stores) > self._max_open:
+                    self._stores.popitem(last=False)
+        return store
+
+    def forget(self, location: str | os.PathLike[str]) -> None:
+        """Drop the store at `location` (deleted, or about to be replaced)."""
+        with self._lock:
+            self._stores.pop(_key(location), None)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._stores.clear()
+
+
+_SHARED: OpenStores | None = None
+_SHARED_LOCK = threading.Lock()
+
+
+def opened(location: str | os.PathLike[str]) -> Any:
+    """The store at `location` from the process's shared OpenStores (eight stores; created on first use)."""
+    global _SHARED
+    with _SHARED_LOCK:
+        if _SHARED is None:
+            _SHARED = OpenStores(8)
+    return _SHARED.get(location)
