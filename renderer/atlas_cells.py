@@ -6,7 +6,6 @@ masks their octants (renderer/walk.py)."""
 from __future__ import annotations
 
 import functools
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,7 +54,7 @@ def atlas_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, in
         return hit
     base = None
     if blocks is None and da.base_key is not None:  # the atlas was built from another: only changed blocks
-        base = _cells_cache().pop(("cells", da.base_key, interpolation, None, cpb))
+        base = _cells_cache().get(("cells", da.base_key, interpolation, None, cpb))
     if base is not None:
         cells = _updated_cells(da, base, grid, block_size, interpolation, std_unit, cpb)
     else:
@@ -102,25 +101,12 @@ def _device_cells(da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, 
     return AtlasCells(*out, blocks, cpb)
 
 
-#: references to a base AtlasCells nothing else holds, in _updated_cells: its caller's name, the parameter and
-#: getrefcount's argument
-_BASE_REFS = 3
-
-
 def _updated_cells(da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int], block_size: int,
                    interpolation: str, std_unit: float, cpb: int) -> AtlasCells:
-    """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from (taken out of the cache):
-    those of the blocks the change of levels can reach (atlas_reuse.dirty_blocks) computed on the device, the
-    others kept. `base`'s arrays are handed on and written in place where nothing else holds them (an orbit's
-    atlases each follow the last: the chest CT's octants are three arrays of 4.7 MB, whose copies into fresh
-    memory took 12 ms of a 75 ms new view at 30:1), else copied (another render still using them)."""
+    """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from: those of the blocks the
+    change of levels can reach (atlas_reuse.dirty_blocks) computed on the device, the others copied."""
     dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation)
-    # CPython's reference counts: each array is held by `base` alone, plus getrefcount's argument; any other holder
-    # (a render in another thread, a view of an array) adds one, and with the entry out of the cache none can
-    # appear meanwhile
-    owned = (sys.getrefcount(base) <= _BASE_REFS and sys.getrefcount(base.vmin) == 2
-             and sys.getrefcount(base.vmax) == 2 and sys.getrefcount(base.std) == 2)
-    out = [base.vmin, base.vmax, base.std] if owned else [a.copy() for a in (base.vmin, base.vmax, base.std)]
+    out = [a.copy() for a in (base.vmin, base.vmax, base.std)]
     zyx = np.argwhere(dirty)
     if len(zyx):
         lst = np.zeros((len(zyx), 4), np.int32)

@@ -40,15 +40,6 @@ class ByteLru:
             self._d.move_to_end(key)
             return hit[0]
 
-    def pop(self, key: Any) -> Any:
-        """Remove the entry of `key` and return its value (None: there was none)."""
-        with self._lock:
-            hit = self._d.pop(key, None)
-            if hit is None:
-                return None
-            self._bytes -= hit[1]
-            return hit[0]
-
     def put(self, key: Any, value: Any, nbytes: int) -> None:
         with self._lock:
             old = self._d.pop(key, None)

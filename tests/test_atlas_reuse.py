@@ -124,34 +124,6 @@ def test_cells_of_an_atlas_built_from_the_last_one_are_computed_where_they_chang
         first = levels
 
 
-@pytest.mark.parametrize("held", [False, True])
-def test_cells_are_handed_on_to_the_next_atlas_unless_still_held(store, held):
-    """An orbit's atlases each follow the last: the last one's cells are taken out of the cache and written in
-    place (no copy) when nothing else holds them; held elsewhere (a render still using them), they are copied and
-    stay as they were."""
-    vol = as_volume(store)
-    B, G = int(vol.block_size), vol.grid
-    rng = np.random.default_rng(5)
-    first = rng.integers(-1, store.n_levels, size=G).astype(np.int8)
-    _forget()
-    old = atlas_cells.atlas_cells(lod_atlas.device_atlas(vol, first, with_std=True), G, B, "nearest_block",
-                                  vol.std_unit, cpb=4)
-    ids, before = [id(a) for a in (old.vmin, old.vmax, old.std)], [a.copy() for a in (old.vmin, old.vmax, old.std)]
-    if not held:
-        del old
-    levels = _changed(first, rng, 0.2, store.n_levels - 1)
-    da = lod_atlas.device_atlas(vol, levels, with_std=True)
-    got = atlas_cells.atlas_cells(da, G, B, "nearest_block", vol.std_unit, cpb=4)
-    ref = atlas_cells._device_cells(da, G, B, "nearest_block", vol.std_unit, None, 4)
-    for g, r in ((got.vmin, ref.vmin), (got.vmax, ref.vmax), (got.std, ref.std)):
-        np.testing.assert_array_equal(g, r)
-    assert [id(a) == i for a, i in zip((got.vmin, got.vmax, got.std), ids)] == [not held] * 3
-    if held:
-        for a, b in zip((old.vmin, old.vmax, old.std), before):
-            np.testing.assert_array_equal(a, b)
-        assert not np.array_equal(got.vmax, before[1], equal_nan=True)  # (the levels did change the bounds)
-
-
 def test_only_the_bricks_of_blocks_whose_level_changed_are_read(store):
     vol = as_volume(store)
     rng = np.random.default_rng(11)
