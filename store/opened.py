@@ -77,10 +77,6 @@ class OpenStores:
         with self._lock:
             self._stores.pop(_key(location), None)
 
-    def clear(self) -> None:
-        with self._lock:
-            self._stores.clear()
-
 
 _SHARED: OpenStores | None = None
 _SHARED_LOCK = threading.Lock()

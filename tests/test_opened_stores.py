@@ -2,6 +2,8 @@
 store's metadata and walks its data manifest once, and a store replaced or removed at that path is seen."""
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -56,8 +58,6 @@ def test_a_store_replaced_or_removed_at_its_path_is_seen(tmp_path, counted_manif
     assert opened(dest) is not held
     # the TF's opacity rises from 0 at value 0 to 0.5 at 4: the replaced volume is the more opaque
     assert bright[..., 3].max() > dim[..., 3].max() + 0.1
-    import shutil
-
     shutil.rmtree(dest)
     with pytest.raises(StoreNotFound):
         lodcast.render(dest, SCENE)
