@@ -112,10 +112,11 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--units", help="unit of the spacing (mm, um, nm, cm, m; overrides the file's)")
     p.add_argument("--index", type=int, help="which volume of a 4D series (time point or channel) to ingest")
     # store.readers.reorient.ORIENTS, spelled out so that `lodcast --help` does not import the readers
-    p.add_argument("--orient", choices=("source", "LPS"), default="source",
-                   help="source: keep the file's array axes (default); LPS: turn DICOM, NIfTI or NRRD data so that "
-                        "x, y, z point to the patient's left, posterior, superior (axes swapped and reversed, no "
-                        "resampling): every format then shows the face at azimuth 0")
+    p.add_argument("--orient", choices=("LPS", "source"), default="LPS",
+                   help="LPS (default): turn DICOM, NIfTI or NRRD data with patient geometry so that x, y, z point to "
+                        "the patient's left, posterior, superior (axes swapped and reversed, no resampling): every "
+                        "format then shows the face at azimuth 0; source: keep the file's array axes. A source "
+                        "without patient geometry keeps its axes either way")
     p.add_argument("--block-size", type=int, default=16, help="block edge B in voxels, a power of two (default 16)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: when stderr is a terminal)")
     p.add_argument("--json", action="store_true", help="print the store's attributes as JSON (what `lodcast info` prints) "
@@ -152,7 +153,10 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
     turned = (info.get("source") or {}).get("reoriented")
     if turned:
         print(f"  the file's axes point {', '.join(turned['source_axes'])}: turned to {', '.join(info['orientation'] or [])} "
-              f"(x, y, z) by reversing and swapping axes, no resampling")
+              f"(x, y, z) by reversing and swapping axes, no resampling (--orient source keeps them)")
+    kept = (info.get("source") or {}).get("orientation_kept")
+    if kept:
+        print(f"  {kept}")
     for warning in (info.get("source") or {}).get("warnings", []):
         print(f"  notice: {warning}")
     return 0

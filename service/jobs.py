@@ -87,7 +87,7 @@ class IngestJob(_Job):
     overwrite: bool = False
     options: dict[str, Any] = Field(default_factory=dict, description=(
         "ingest options, as `lodcast ingest` takes them: format, shape, dtype, byte_order, header_bytes, spacing, "
-        "origin, units, index, block_size, orient (`source` or `LPS`)"))
+        "origin, units, index, block_size, orient (`LPS`, the default, or `source`)"))
 
 
 Job = Annotated[Union[TurntableJob, ScenesJob, TfSweepJob, VolumesJob, IngestJob], Field(discriminator="kind")]
@@ -124,7 +124,7 @@ def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
                 raise RequestInvalid.one(("body", "options", key), f"unknown ingest option (known: {', '.join(sorted(INGEST_OPTIONS))})")
         from lodcast.store.readers.reorient import ORIENTS
 
-        if job.options.get("orient", "source") not in ORIENTS:
+        if job.options.get("orient", "LPS") not in ORIENTS:
             raise RequestInvalid.one(("body", "options", "orient"), f"{job.options['orient']!r} is not one of "
                                      f"{', '.join(ORIENTS)}")
         if not job.overwrite and volume_exists(settings.root, job.name, "name"):

@@ -8,11 +8,12 @@ the store's `orientation` (`space`, `axes`: the patient direction of world +x, +
 the origin as the patient frame rotated onto the array's axes (origin = direction · p0), so that world positions
 are rigid: patient position = directionᵀ · (origin + index × spacing).
 
-By default (`orient="source"`) the array keeps the file's axes: level 0 is the file's array, and a NIfTI in RAS
-has +x pointing right. `orient="LPS"` turns the array at ingest (store/readers/reorient.py), by permutations and
-flips only (no resampling, no value changes), so that each world axis is the LPS axis closest to it; a DICOM CT and
-a NIfTI MR then both show the face at azimuth 0. Named views (`"view": "anterior"`) put the eye on the same side of
-the patient either way. What a permutation cannot remove, the tilt of an oblique acquisition, stays in `direction`.
+By default (`orient="LPS"`) ingest turns the array (store/readers/reorient.py), by permutations and flips only (no
+resampling, no value changes), so that each world axis is the LPS axis closest to it; a DICOM CT and a NIfTI MR
+then both show the face at azimuth 0. `orient="source"` keeps the file's axes: level 0 is the file's array, and a
+NIfTI in RAS has +x pointing right. A source without patient geometry is never turned. Named views
+(`"view": "anterior"`) put the eye on the same side of the patient either way. What a permutation cannot remove,
+the tilt of an oblique acquisition, stays in `direction`.
 """
 from __future__ import annotations
 

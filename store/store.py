@@ -288,7 +288,7 @@ class Store:
     @cached_property
     def orientation(self) -> list[str] | None:
         """The patient direction of world +x, +y, +z, e.g. ["L", "P", "S"] for an axial DICOM CT or any store
-        ingested with orient="LPS", ["R", "A", "S"] for a NIfTI kept in its own axes (store/orientation.py); None
+        ingested with the default orient="LPS", ["R", "A", "S"] for a NIfTI kept in its own axes (orient="source") (store/orientation.py); None
         when the source gave no patient geometry."""
         from lodcast.store.orientation import legacy_axis_codes
 

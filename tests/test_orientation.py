@@ -68,7 +68,7 @@ def test_random_orientations_turn_as_nibabel_does(tmp_path, seed):
     nib.save(nib.Nifti1Image(data, RAS_TO_LPS @ lps), str(tmp_path / "v.nii.gz"))
     nrrd.write(str(tmp_path / "v.nrrd"), data, {"space": "left-posterior-superior",
                                                 "space directions": lps[:3, :3].T, "space origin": lps[:3, 3]})
-    with open_source(tmp_path / "v.nii") as src:  # by default the file's axes, the geometry rigid around them
+    with open_source(tmp_path / "v.nii", orient="source") as src:  # the file's axes, the geometry rigid around them
         np.testing.assert_array_equal(src.read(0, src.info.shape[0]), data.transpose(2, 1, 0))
         index = rng.integers(0, data.shape, size=(5, 3))  # (x, y, z)
         world = np.asarray(src.info.origin[::-1]) + index * src.info.spacing[::-1]
@@ -77,7 +77,7 @@ def test_random_orientations_turn_as_nibabel_does(tmp_path, seed):
         assert src.info.provenance.get("reoriented") is None
     before = set(glob.glob(os.path.join(tempfile.gettempdir(), "lodcast-reorient-*")))
     for name in ("v.nii", "v.nii.gz", "v.nrrd"):
-        with open_source(tmp_path / name, orient="LPS") as src:
+        with open_source(tmp_path / name) as src:  # turned to LPS by default
             assert_like(src, expected, affine)
             np.testing.assert_array_equal(src.read(1, 2), expected[1:2])  # a slab again, out of order
     assert set(glob.glob(os.path.join(tempfile.gettempdir(), "lodcast-reorient-*"))) == before  # copies removed
@@ -103,7 +103,7 @@ def test_sagittal_dicom_series_is_stored_in_lps(tmp_path, capsys):
         assert_like(src, expected.astype(np.uint16), affine)
         assert src.info.provenance["reoriented"] == {"source_axes": ["P", "I", "R"], "order": [2, 0, 1],
                                                      "flipped": [True, False, True]}
-    store = lodcast.ingest(tmp_path / "sag", tmp_path / "sag.zarr", orient="LPS")
+    store = lodcast.ingest(tmp_path / "sag", tmp_path / "sag.zarr")  # LPS by default
     assert store.orientation == ["L", "P", "S"] and store.summary()["orientation"] == ["L", "P", "S"]
     np.testing.assert_array_equal(store.level(0)[...], expected)
     np.testing.assert_allclose(store.origin, affine[:3, 3][::-1])  # no tilt: the origin is the patient position
@@ -111,8 +111,14 @@ def test_sagittal_dicom_series_is_stored_in_lps(tmp_path, capsys):
     np.testing.assert_allclose(store.summary()["direction"], np.eye(3), atol=1e-12)
     from lodcast.service.cli import main
 
-    assert main(["ingest", str(tmp_path / "sag"), str(tmp_path / "again.zarr"), "--orient", "LPS"]) == 0
+    assert main(["ingest", str(tmp_path / "sag"), str(tmp_path / "again.zarr")]) == 0
     assert "the file's axes point P, I, R: turned to L, P, S (x, y, z)" in capsys.readouterr().out
+    np.testing.assert_array_equal(lodcast.open_store(tmp_path / "again.zarr").level(0)[...], expected)
+    assert main(["ingest", str(tmp_path / "sag"), str(tmp_path / "kept.zarr"), "--orient", "source"]) == 0
+    assert "turned" not in capsys.readouterr().out
+    kept = lodcast.open_store(tmp_path / "kept.zarr")
+    assert kept.orientation == ["P", "I", "R"]
+    np.testing.assert_array_equal(kept.level(0)[...], stored)  # slices in order along their normal, as read
 
 
 def test_axis_codes_and_stores_written_before_reorientation(tmp_path):
@@ -129,7 +135,7 @@ def test_axis_codes_and_stores_written_before_reorientation(tmp_path):
     # a store of an older lodcast has no `orientation` attribute: its codes come from the provenance
     vol = np.random.default_rng(1).integers(0, 200, (6, 7, 8)).astype(np.uint8)
     nib.save(nib.Nifti1Image(vol.transpose(2, 1, 0), np.diag([-1.0, 1.0, 1.0, 1.0])), str(tmp_path / "mr.nii"))
-    store = lodcast.ingest(tmp_path / "mr.nii", tmp_path / "mr.zarr")
+    store = lodcast.ingest(tmp_path / "mr.nii", tmp_path / "mr.zarr", orient="source")
     assert store.orientation == ["L", "A", "S"] and store.attrs["orientation"]["space"] == "LPS"
     np.testing.assert_allclose(store.direction, np.diag([1.0, -1.0, 1.0]))
     import zarr
@@ -137,17 +143,19 @@ def test_axis_codes_and_stores_written_before_reorientation(tmp_path):
     zarr.open_group(tmp_path / "mr.zarr", mode="r+").attrs.pop("orientation")
     old = lodcast.open_store(tmp_path / "mr.zarr")
     assert old.orientation == ["L", "A", "S"] and old.direction is None
-    with pytest.raises(SourceError, match="orient 'RAS': expected one of source, LPS"):
+    with pytest.raises(SourceError, match="orient 'RAS': expected one of LPS, source"):
         open_source(tmp_path / "mr.nii", orient="RAS")
     nib.save(nib.Nifti1Image(vol.transpose(2, 1, 0), None), str(tmp_path / "uncoded.nii"))
     with open_source(tmp_path / "uncoded.nii") as src:  # no coded affine: no patient frame, nothing turned
         assert src.info.direction is None and src.info.origin == (0.0, 0.0, 0.0)
         np.testing.assert_array_equal(src.read(0, 6), vol)
-    with pytest.raises(SourceError, match="orient LPS needs the patient geometry .* this nifti source has none"):
-        open_source(tmp_path / "uncoded.nii", orient="LPS")
-    nrrd.write(str(tmp_path / "scanner.nrrd"), vol, {"space": "scanner-xyz", "space directions": np.eye(3)})
-    with pytest.raises(SourceError, match="orient LPS: the source's space 'scanner-xyz' is not a patient frame"):
-        open_source(tmp_path / "scanner.nrrd", orient="LPS")
+        assert "this nifti source has no patient geometry" in src.info.provenance["orientation_kept"]
+    nrrd.write(str(tmp_path / "scanner.nrrd"), vol[:, ::-1], {"space": "scanner-xyz",
+                                                               "space directions": np.diag([1.0, -1.0, 1.0])})
+    with open_source(tmp_path / "scanner.nrrd") as src:  # not a patient frame: kept, though y runs backwards
+        assert src.info.provenance.get("reoriented") is None
+        assert "'scanner-xyz' is not a patient frame" in src.info.provenance["orientation_kept"]
+        np.testing.assert_array_equal(src.read(0, 8), vol[:, ::-1].transpose(2, 1, 0))
 
 
 @pytest.mark.parametrize("codes, view, azimuth, elevation", [
@@ -165,9 +173,10 @@ def test_named_views_put_the_eye_on_that_side(codes, view, azimuth, elevation):
 
 def test_a_dicom_ct_and_a_nifti_of_the_same_anatomy(tmp_path):
     """The same anatomy written as a DICOM series (LPS rows and columns) and as a NIfTI (RAS: x and y the other
-    way). By default each store keeps its file's axes (the NIfTI's level 0 is its array) and "anterior" resolves
-    to azimuth 0 and 180; with orient LPS both are one array, spacing and origin and show the face at azimuth 0
-    (the eye at −y, anterior). A named view renders as its azimuth does; a source without orientation is refused."""
+    way). By default both are turned to one array, spacing and origin and show the face at azimuth 0
+    (the eye at −y, anterior); with orient "source" the NIfTI keeps its file's axes (its level 0 is its array) and
+    "anterior" resolves to azimuth 180. A named view renders as its azimuth does; a source without orientation is
+    refused."""
     from test_readers import dicom_slice
 
     anatomy = np.random.default_rng(1).integers(0, 4096, (6, 16, 12)).astype(np.uint16)  # (S, P, L) indices
@@ -177,11 +186,11 @@ def test_a_dicom_ct_and_a_nifti_of_the_same_anatomy(tmp_path):
     ras = np.diag([0.25, 0.5, 2.0, 1.0])
     ras[:3, 3] = [10.0 - 11 * 0.25, 20.0 - 15 * 0.5, 40.0]  # voxel (0, 0, 0) is the right, anterior corner
     nib.save(nib.Nifti1Image(anatomy.transpose(2, 1, 0)[::-1, ::-1, :], ras), str(tmp_path / "mr.nii.gz"))
-    kept = lodcast.ingest(tmp_path / "mr.nii.gz", tmp_path / "kept.zarr")
+    kept = lodcast.ingest(tmp_path / "mr.nii.gz", tmp_path / "kept.zarr", orient="source")
     assert kept.orientation == ["R", "A", "S"]
     np.testing.assert_array_equal(kept.level(0)[...], anatomy[:, ::-1, ::-1])
     dicom = lodcast.ingest(tmp_path / "ct", tmp_path / "ct.zarr")
-    nifti = lodcast.ingest(tmp_path / "mr.nii.gz", tmp_path / "mr.zarr", orient="LPS")
+    nifti = lodcast.ingest(tmp_path / "mr.nii.gz", tmp_path / "mr.zarr")
     assert dicom.orientation == nifti.orientation == ["L", "P", "S"]
     np.testing.assert_array_equal(dicom.level(0)[...], anatomy)
     np.testing.assert_array_equal(nifti.level(0)[...], anatomy)

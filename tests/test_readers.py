@@ -197,13 +197,13 @@ def test_nrrd_detached_spacings_oblique_and_4d(tmp_path: Path) -> None:
     a = volume((5, 4, 3), "float32")
     nrrd.write(str(tmp_path / "d.nhdr"), a.transpose(2, 1, 0), {"encoding": "raw", "spacings": [0.1, 0.2, 0.3]},
                detached_header=True)
-    with open_source(tmp_path / "d.nhdr") as src:
+    with open_source(tmp_path / "d.nhdr", orient="source") as src:
         assert src.info.spacing == pytest.approx((0.3, 0.2, 0.1))
         check(src, a)
     oblique = np.array([[0.0, 2.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
     nrrd.write(str(tmp_path / "o.nrrd"), a.transpose(2, 1, 0),
                {"space": "RAS", "space directions": oblique, "space origin": np.array([1.0, 2.0, 3.0])})
-    with open_source(tmp_path / "o.nrrd") as src:
+    with open_source(tmp_path / "o.nrrd", orient="source") as src:
         # the file's axes kept; the origin is the space origin (1, 2, 3) seen along them (rows (0, 1, 0), (-1, 0, 0)…)
         assert src.info.spacing == (3.0, 1.0, 2.0) and src.info.origin == (3.0, -1.0, 2.0)
         assert src.info.provenance["space_directions"] == oblique.tolist()
@@ -216,7 +216,7 @@ def test_nrrd_detached_spacings_oblique_and_4d(tmp_path: Path) -> None:
     series = volume((3, 5, 4, 6), "uint8")  # (t, z, y, x)
     nrrd.write(str(tmp_path / "t.nrrd"), series.transpose(3, 2, 1, 0),
                {"kinds": ["domain", "domain", "domain", "time"], "encoding": "gzip"})
-    with open_source(tmp_path / "t.nrrd", index=1) as src:
+    with open_source(tmp_path / "t.nrrd", index=1, orient="source") as src:
         check(src, series[1])
     refused(r"4D .* 3 volumes .* index=0\.\.2", tmp_path / "t.nrrd")
     rgb = volume((3, 4, 5, 6), "uint8")
@@ -225,7 +225,7 @@ def test_nrrd_detached_spacings_oblique_and_4d(tmp_path: Path) -> None:
     gradients = volume((2, 5, 4, 6), "int16")  # a list axis last: volumes one after another (diffusion MR)
     nrrd.write(str(tmp_path / "dwi.nrrd"), gradients.transpose(3, 2, 1, 0),
                {"kinds": ["space", "space", "space", "list"], "encoding": "raw"})
-    with open_source(tmp_path / "dwi.nrrd", index=1) as src:
+    with open_source(tmp_path / "dwi.nrrd", index=1, orient="source") as src:
         check(src, gradients[1])
 
 
@@ -245,7 +245,7 @@ def test_nifti_axes_spacing_origin(tmp_path: Path, name: str) -> None:
     affine = np.diag([0.5, 0.75, 2.0, 1.0])
     affine[:3, 3] = [-10, 20, 30]
     nib.save(nib.Nifti1Image(data, affine), tmp_path / name)
-    with open_source(tmp_path / name) as src:
+    with open_source(tmp_path / name, orient="source") as src:
         assert src.info.spacing == (2.0, 0.75, 0.5)
         assert src.info.origin == (30.0, 20.0, -10.0)
         check(src, data.transpose(2, 1, 0))
@@ -258,7 +258,7 @@ def test_nifti_scaled_is_float32_of_nibabels_values(tmp_path: Path) -> None:
     nib.save(img, tmp_path / "s.nii.gz")
     expected = np.asanyarray(nib.load(tmp_path / "s.nii.gz").dataobj).transpose(2, 1, 0).astype(np.float32)
     np.testing.assert_array_equal(expected, (data.transpose(2, 1, 0) * 2.5 - 10).astype(np.float32))
-    with open_source(tmp_path / "s.nii.gz") as src:
+    with open_source(tmp_path / "s.nii.gz", orient="source") as src:
         assert src.info.provenance["scaling"] == {"slope": 2.5, "intercept": -10.0}
         assert src.info.provenance["dtype"] == "uint8"
         check(src, expected)
@@ -268,22 +268,22 @@ def test_nifti_oblique_4d_and_refusals(tmp_path: Path) -> None:
     data = volume((4, 5, 6), "float32")
     rotated = np.array([[0, -1, 0, 5], [1, 0, 0, 6], [0, 0, 1, 7], [0, 0, 0, 1]], float)
     nib.save(nib.Nifti1Image(data, rotated), tmp_path / "o.nii")
-    with open_source(tmp_path / "o.nii") as src:
+    with open_source(tmp_path / "o.nii", orient="source") as src:
         assert src.info.origin == (7.0, -5.0, 6.0)  # (5, 6, 7) seen along i = (0, 1, 0), j = (-1, 0, 0), k
         assert src.info.provenance["affine"] == rotated.tolist()
         check(src, data.transpose(2, 1, 0))
     series = volume((4, 5, 6, 3), "uint16")
     nib.save(nib.Nifti1Image(series, np.eye(4)), tmp_path / "t.nii.gz")
-    with open_source(tmp_path / "t.nii.gz", index=2) as src:
+    with open_source(tmp_path / "t.nii.gz", index=2, orient="source") as src:
         check(src, series[..., 2].transpose(2, 1, 0))
     refused(r"4D .* 3 volumes .* index=0\.\.2", tmp_path / "t.nii.gz")
     refused(r"index 5 is out of range", tmp_path / "t.nii.gz", index=5)
     nib.save(nib.Nifti1Image(series[..., :1], np.eye(4)), tmp_path / "one.nii")  # 4th axis of length 1
-    with open_source(tmp_path / "one.nii") as src:
+    with open_source(tmp_path / "one.nii", orient="source") as src:
         check(src, series[..., 0].transpose(2, 1, 0))
     flat = volume((6, 5), "int16")
     nib.save(nib.Nifti1Image(flat, np.eye(4)), tmp_path / "flat.nii")
-    with open_source(tmp_path / "flat.nii") as src:
+    with open_source(tmp_path / "flat.nii", orient="source") as src:
         check(src, flat.T[None])
     displacement = nib.Nifti1Image(volume((4, 5, 6, 3), "float32"), np.eye(4))
     displacement.header.set_intent("vector")
@@ -779,15 +779,21 @@ def test_streaming_memory_does_not_grow_with_depth(tmp_path: Path, kind: str, su
 @pytest.mark.shared_data
 def test_real_engine_nifti_is_the_transposed_data(shared_data: Path) -> None:
     p = shared_data / "engine.nii.gz"
-    with open_source(p) as src:
+    with open_source(p, orient="source") as src:
         assert src.info.shape == (128, 256, 256) and src.info.dtype == np.uint8
         np.testing.assert_array_equal(read_all(src), np.transpose(np.asanyarray(nib.load(p).dataobj), (2, 1, 0)))
+    img = nib.load(p)  # by default turned to LPS, as nibabel turns it
+    ornt = nib.orientations.ornt_transform(nib.orientations.io_orientation(img.affine),
+                                           nib.orientations.axcodes2ornt(("L", "P", "S")))
+    with open_source(p) as src:
+        np.testing.assert_array_equal(read_all(src), np.transpose(
+            nib.orientations.apply_orientation(np.asanyarray(img.dataobj), ornt), (2, 1, 0)))
 
 
 @pytest.mark.shared_data
 def test_real_mr_head_nifti_is_scaled_float(shared_data: Path) -> None:
     p = shared_data / "mr_head.nii.gz"
-    with open_source(p) as src:
+    with open_source(p, orient="source") as src:
         assert src.info.shape == (160, 232, 160) and src.info.dtype == np.float32
         assert src.info.spacing == pytest.approx((0.898437, 0.898437, 1.0), rel=1e-5)
         assert src.info.provenance["scaling"]["slope"] == pytest.approx(2.007843, rel=1e-6)
@@ -799,7 +805,7 @@ def test_real_mr_head_nifti_is_scaled_float(shared_data: Path) -> None:
 def test_real_flair_nrrd_oblique(shared_data: Path) -> None:
     p = shared_data / "flair.nrrd"
     data, header = nrrd.read(str(p))
-    with open_source(p) as src:
+    with open_source(p, orient="source") as src:
         assert src.info.shape == (140, 160, 124) and src.info.dtype == np.uint8
         assert src.info.spacing == (1.0, 1.0, 1.0)  # norms of the direction vectors, rounding noise removed
         unit = header["space directions"] / np.linalg.norm(header["space directions"], axis=1)[:, None]

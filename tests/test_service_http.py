@@ -194,26 +194,28 @@ def test_ingest_from_import_root_then_delete(env):
     assert client.get("/volumes/blob").status_code == 404 and not (root / "blob").exists()
 
 
-def test_an_ingest_job_turns_a_nifti_to_lps_on_request(env):
-    """The job option `orient`: by default a RAS NIfTI keeps its axes (+x right); with "LPS" the volume's summary
-    says L, P, S and level 0 is the array reversed along x and y; a value that is not an orientation is refused at
+def test_an_ingest_job_turns_a_nifti_to_lps_by_default(env):
+    """The job option `orient`: by default a RAS NIfTI is turned (the volume's summary says L, P, S and level 0 is
+    the array reversed along x and y), as with an explicit "LPS"; with "source" it keeps its axes (+x right); a value that is not an orientation is refused at
     submission, naming the option."""
     import nibabel as nib
 
     client, root, imports, _ = env
     vol = np.arange(4 * 6 * 8, dtype=np.uint16).reshape(4, 6, 8)  # (z, y, x)
     nib.save(nib.Nifti1Image(vol.transpose(2, 1, 0), np.eye(4)), str(imports / "ras.nii"))
-    for name, options, axes in (("kept", {}, ["R", "A", "S"]), ("turned", {"orient": "LPS"}, ["L", "P", "S"])):
+    for name, options, axes in (("kept", {"orient": "source"}, ["R", "A", "S"]), ("turned", {}, ["L", "P", "S"]),
+                                ("asked", {"orient": "LPS"}, ["L", "P", "S"])):
         r = client.post("/volumes", json={"name": name, "source": "ras.nii", "options": options}, headers=AUTH)
         assert r.status_code == 202, r.text
         assert wait_job(client, r.json()["id"])["state"] == "done"
         info = client.get(f"/volumes/{name}").json()
         assert info["orientation"] == axes and info["direction"] is not None
     np.testing.assert_array_equal(lodcast.open_store(root / "turned").level(0)[...], vol[:, ::-1, ::-1])
+    np.testing.assert_array_equal(lodcast.open_store(root / "asked").level(0)[...], vol[:, ::-1, ::-1])
     np.testing.assert_array_equal(lodcast.open_store(root / "kept").level(0)[...], vol)
     r = client.post("/volumes", json={"name": "bad", "source": "ras.nii", "options": {"orient": "RAS"}}, headers=AUTH)
-    assert r.status_code == 422 and names_field(r, "orient") and "not one of source, LPS" in r.text, r.text
-    for name in ("kept", "turned"):
+    assert r.status_code == 422 and names_field(r, "orient") and "not one of LPS, source" in r.text, r.text
+    for name in ("kept", "turned", "asked"):
         assert client.delete(f"/volumes/{name}", headers=AUTH).status_code == 200
 
 

@@ -36,12 +36,13 @@ def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[
                 dtype: Any = None, byte_order: str = "little", header_bytes: int = 0,
                 spacing: Sequence[float] | None = None, origin: Sequence[float] | None = None,
                 index: int | None = None, detached: bool = True, units: str | None = None,
-                orient: str = "source") -> VolumeSource:
+                orient: str = "LPS") -> VolumeSource:
     """Open a volume for ingest. `format` is guessed from the extension or folder content when None; `shape`
     (z, y, x), `dtype`, `byte_order` ('little' or 'big') and `header_bytes` describe raw files; `spacing` and
-    `origin` (z, y, x) and `units` (e.g. "mm", "µm") override the file's, in the store's axes; `orient` "source"
-    keeps the file's array axes, "LPS" turns a source with patient geometry so that x, y, z point left, posterior,
-    superior (store/orientation.py); `index` picks one volume of a 4D series (time or channel axis);
+    `origin` (z, y, x) and `units` (e.g. "mm", "µm") override the file's, in the store's axes; `orient` "LPS"
+    (the default) turns a source with patient geometry so that x, y, z point left, posterior, superior, by axis
+    permutations and flips only, and "source" keeps the file's array axes (store/orientation.py); a source without
+    patient geometry is never turned; `index` picks one volume of a 4D series (time or channel axis);
     `detached=False` refuses sources that name other files (a detached NRRD header), for uploads. Every reader reads
     only the source itself or files beside it in its own folder (symlinks resolved).
     Raises SourceNotFound for a missing path and SourceError for anything that cannot be ingested."""

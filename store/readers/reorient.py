@@ -1,5 +1,6 @@
-"""A source's geometry in the store's world (store/orientation.py): the array as the file has it, or (`orient`
-"LPS") turned by permutations and flips so that world +x, +y, +z are L, P, S."""
+"""A source's geometry in the store's world (store/orientation.py): by default (`orient` "LPS") a source with
+patient geometry is turned by permutations and flips so that world +x, +y, +z are L, P, S; `orient` "source"
+keeps the array as the file has it. A source without patient geometry is never turned."""
 from __future__ import annotations
 
 import dataclasses
@@ -16,20 +17,25 @@ from lodcast.store.source import SourceInfo, VolumeSource
 __all__ = ["reorient", "ORIENTS"]
 
 
-ORIENTS = ("source", "LPS")
+ORIENTS = ("LPS", "source")
+#: formats that can carry a patient frame
+PATIENT_FORMATS = ("dicom", "nifti", "nrrd")
 
 
-def reorient(reader: VolumeSource, orient: str = "source") -> VolumeSource:
-    """The source in the store's world (module docstring). `orient` "source" keeps the array's axes and writes the
-    geometry as a rotation of the patient frame onto them; "LPS" first turns the array so that its axes are the
-    patient's closest ones. `reader` itself when nothing is turned."""
+def reorient(reader: VolumeSource, orient: str = "LPS") -> VolumeSource:
+    """The source in the store's world (module docstring). "LPS" turns the array so that its axes are the patient's
+    closest ones; "source" keeps the array's axes and writes the geometry as a rotation of the patient frame onto
+    them. A source without patient geometry (no direction, or a space that is not a patient frame, such as NRRD's
+    scanner-xyz) keeps its axes under either, and its provenance says why (`orientation_kept`). `reader` itself
+    when nothing is turned."""
     if orient not in ORIENTS:
         raise SourceError(f"orient {orient!r}: expected one of {', '.join(ORIENTS)}")
     info = reader.info
     if info.direction is None:
-        if orient == "LPS":
-            raise SourceError(f"orient LPS needs the patient geometry that DICOM, NIfTI (with a coded affine) and NRRD "
-                              f"(with space directions) carry; this {info.format or 'array'} source has none")
+        if orient == "LPS" and info.format in PATIENT_FORMATS:  # others never carry a patient frame: no news
+            reader.info = dataclasses.replace(info, provenance={**info.provenance, "orientation_kept": (
+                f"this {info.format or 'array'} source has no patient geometry (DICOM, NIfTI with a coded affine and "
+                "NRRD with space directions have one): its axes are kept")})
         return reader
     space = space_name(info.space)
     d = np.asarray(info.direction, dtype=np.float64)
@@ -37,15 +43,17 @@ def reorient(reader: VolumeSource, orient: str = "source") -> VolumeSource:
     if space in FRAMES:
         d, origin_xyz = to_lps(space, d), to_lps(space, origin_xyz[None])[0]
         space = PATIENT_SPACE
-    elif orient == "LPS":
-        raise SourceError(f"orient LPS: the source's space {info.space!r} is not a patient frame (LPS, RAS or LAS)")
-    turn = turn_of(d) if orient == "LPS" else Turn((0, 1, 2), (False, False, False))
+    patient = space == PATIENT_SPACE
+    turn = turn_of(d) if orient == "LPS" and patient else Turn((0, 1, 2), (False, False, False))
     shape_xyz, spacing_xyz = info.shape[::-1], info.spacing[::-1]
     # the source voxel that becomes index 0: the far end of every reversed axis
     first = [shape_xyz[turn.order[j]] - 1 if turn.flip[j] else 0 for j in range(3)]
     corner = origin_xyz + sum(first[j] * spacing_xyz[turn.order[j]] * d[turn.order[j]] for j in range(3))
     direction = np.array([d[turn.order[j]] * (-1.0 if turn.flip[j] else 1.0) for j in range(3)])
     prov = dict(info.provenance)
+    if orient == "LPS" and not patient:
+        prov["orientation_kept"] = (f"the source's space {info.space!r} is not a patient frame (LPS, RAS or LAS): "
+                                    "its axes are kept")
     if not turn.identity:
         codes = {turn.order[j]: OPPOSITE[FRAMES[space][j]] if turn.flip[j] else FRAMES[space][j] for j in range(3)}
         prov["reoriented"] = {"source_axes": [codes[i] for i in range(3)], "order": list(turn.order),
