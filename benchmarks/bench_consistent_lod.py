@@ -52,23 +52,23 @@ def store_of(name: str, source: Path, block: int = 16):
     return lodcast.ingest(source, dest, block_size=block, overwrite=True)
 
 
-def best(store, scene: dict, repeat: int, levels=None):
-    lodcast.render(store, scene, levels=levels)
-    runs = [lodcast.render(store, scene, levels=levels) for _ in range(repeat)]
+def best(eng, store, scene: dict, repeat: int, levels=None):
+    eng.render(store, scene, levels=levels)
+    runs = [eng.render(store, scene, levels=levels) for _ in range(repeat)]
     return min(runs, key=lambda r: r.report["kernel_ms"])
 
 
-def paired(store, full_scene: dict, scene: dict, repeat: int):
+def paired(eng, store, full_scene: dict, scene: dict, repeat: int):
     """(the render of `scene`, its median kernel ms and full resolution's over the same rounds, the same two of
     wall ms: the whole `render` call, which on a GPU is mostly the host's): the two interleaved, round by round, so
     that the machine's drift (this shared 2-core machine moved the same kernel by 20-30% within minutes) falls on
     both alike."""
-    lodcast.render(store, scene)
+    eng.render(store, scene)
     t, t_full, runs = [], [], []
     for _ in range(repeat):
-        full = lodcast.render(store, full_scene).report
+        full = eng.render(store, full_scene).report
         t_full.append((full["kernel_ms"], full["wall_ms"]))
-        runs.append(lodcast.render(store, scene))
+        runs.append(eng.render(store, scene))
         t.append((runs[-1].report["kernel_ms"], runs[-1].report["wall_ms"]))
     q, f = np.median(t, axis=0), np.median(t_full, axis=0)
     return min(runs, key=lambda r: r.report["kernel_ms"]), float(q[0]), float(f[0]), float(q[1]), float(f[1])
@@ -78,16 +78,16 @@ def qlabel(q) -> str:
     return q if isinstance(q, str) else f"{q['reduction']:g}:1"
 
 
-def sweep(store, scene: dict, repeat: int) -> dict:
+def sweep(eng, store, scene: dict, repeat: int) -> dict:
     """Default settings at every quality against full resolution; uniform levels by mean and by distribution;
     TF selection against L2 and uniform; adaptive sampling on and off."""
-    ref = lodcast.render(store, {**scene, "sampling": {"step": 0.25}})
-    full = best(store, scene, repeat)
+    ref = eng.render(store, {**scene, "sampling": {"step": 0.25}})
+    full = best(eng, store, scene, repeat)
     out = {"full_ms": full.report["kernel_ms"], "full_wall_ms": full.report["wall_ms"], "full_samples": full.report["samples"],
            "full_delta_e": delta_e_stats(full.rgba, ref.rgba)["mean"], "full_predicted": full.report["predicted_delta_e"],
            "rows": [], "uniform": [], "fig34": []}
     for q in QUALITIES:
-        r, q_ms, full_ms, q_wall, full_wall = paired(store, scene, {**scene, "quality": q}, repeat)
+        r, q_ms, full_ms, q_wall, full_wall = paired(eng, store, scene, {**scene, "quality": q}, repeat)
         d = delta_e_stats(r.rgba, ref.rgba)
         row = {"quality": qlabel(q), "reduction": r.report["reduction"], "delta_e": d["mean"], "p95": d["p95"],
                "delta_e_vs_full": delta_e_stats(r.rgba, full.rgba)["mean"],
@@ -96,70 +96,68 @@ def sweep(store, scene: dict, repeat: int) -> dict:
                "samples_vs_full": r.report["samples"] / out["full_samples"]}
         # adaptive sampling's share: the same selection at fixed steps; and the adaptive steps alone, without the
         # octant masks that only the adaptive walk has (config.octants)
-        fixed = best(store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
+        fixed = best(eng, store, {**scene, "quality": q, "sampling": {"adaptive_object": False}}, repeat)
         with mock.patch.object(KernelConfig, "octants", property(lambda self: False)):
-            steps_alone = lodcast.render(store, {**scene, "quality": q})
+            steps_alone = eng.render(store, {**scene, "quality": q})
         row.update(fixed_ms=fixed.report["kernel_ms"], fixed_delta_e=delta_e_stats(fixed.rgba, ref.rgba)["mean"],
                    adaptive_gain=fixed.report["samples"] / r.report["samples"],  # issue 9: >= the cube root
                    steps_gain=fixed.report["samples"] / steps_alone.report["samples"])
         if q != "lossless":  # interblock; the selection without the view's weight (visibility.py)
-            ii = best(store, {**scene, "quality": q, "sampling": {"interpolation": "interblock"}}, repeat)
-            blind = lodcast.render(store, {**scene, "quality": q, "sampling": {"lod_visibility": False}})
+            ii = best(eng, store, {**scene, "quality": q, "sampling": {"interpolation": "interblock"}}, repeat)
+            blind = eng.render(store, {**scene, "quality": q, "sampling": {"lod_visibility": False}})
             row.update(ii_ms=ii.report["kernel_ms"], ii_delta_e=delta_e_stats(ii.rgba, ref.rgba)["mean"],
                        blind_delta_e=delta_e_stats(blind.rgba, ref.rgba)["mean"], blind_predicted=blind.report["predicted_delta_e"])
         out["rows"].append(row)
-    vis = select_lod(store, [scene["tf"]], "lossless").levels >= 0
+    # the engine's lossless ζ and tables, as its renders select
+    vis = select_lod(store, [scene["tf"]], "lossless", lossless_zeta=eng.settings.lossless_zeta,
+                     tables=eng.tables).levels >= 0
     for k in (1, 2):  # every visible block at one level: the data bound of each classification
         lv = np.where(vis, k, -1).astype(np.int8)
         red = float(np.prod(store.shape)) / (int(vis.sum()) * (store.block_size >> k) ** 3)
-        e = {cls: delta_e_stats(lodcast.render(store, {**scene, "quality": {"reduction": 2},
-                                                       "sampling": {"classification": cls, "adaptive_object": False}},
-                                               levels=lv).rgba, ref.rgba)["mean"] for cls in ("mean", "distribution")}
+        e = {cls: delta_e_stats(eng.render(store, {**scene, "quality": {"reduction": 2},
+                                                   "sampling": {"classification": cls, "adaptive_object": False}},
+                                           levels=lv).rgba, ref.rgba)["mean"] for cls in ("mean", "distribution")}
         out["uniform"].append({"level": k, "reduction": red, **e})
     for red in (10, 30, 64):  # thesis fig. 3.4 and issue 9: TF selection (with the view's weight, the default, and
         # without) against L2 and uniform
-        view = lodcast.render(store, {**scene, "quality": {"reduction": red}})
+        view = eng.render(store, {**scene, "quality": {"reduction": red}})
         e = {"tf_view": delta_e_stats(view.rgba, ref.rgba)["mean"], "tf_view_reduction": view.report["reduction"]}
         for method in ("tf", "l2", "uniform"):
-            sel = select_lod(store, [scene["tf"]], {"reduction": red}, method=method)
-            img = lodcast.render(store, {**scene, "quality": {"reduction": red}}, levels=sel.levels)
+            sel = select_lod(store, [scene["tf"]], {"reduction": red}, method=method, tables=eng.tables)
+            img = eng.render(store, {**scene, "quality": {"reduction": red}}, levels=sel.levels)
             e[method], e[f"{method}_reduction"] = delta_e_stats(img.rgba, ref.rgba)["mean"], sel.reduction
         out["fig34"].append({"reduction": red, **e})
     return out
 
 
-def new_views(store, scene: dict, step: float, frames: int = 8, quality=None) -> dict:
+def new_views(eng, store, scene: dict, step: float, frames: int = 8, quality=None) -> dict:
     """Wall ms per frame of `frames` new views `step` degrees apart (azimuth from 40°, where the sweep above has not
     been) at 30:1 with the selection weighed by each view (the default), its atlas built from the last one
     (renderer/atlas_reuse.py) and, on the same views, packed from nothing; and full resolution's. Bricks are
-    warmed by one pass first; the selections, atlases and cells are dropped before each timed pass, whose first
+    warmed by one pass first; `eng`'s selections, atlases and cells are dropped before each timed pass, whose first
     frame (nothing to build from) is left out of the medians."""
-    from lodcast.renderer import atlas_cells, atlas_reuse
-    from lodcast.renderer import render as rr
-    from lodcast.renderer.sampler import device_cache
-
     quality = {"reduction": 30} if quality is None else quality
     views = [{**scene, "quality": quality, "camera": {**scene["camera"], "azimuth": 40 + i * step}}
              for i in range(frames)]
 
     def forget():
-        device_cache().clear()
-        atlas_cells._cells_cache().clear()
-        rr._SELECTIONS.clear()
-        atlas_reuse._last()[0].clear()
+        eng.device_cache.clear()
+        eng.cells.clear()
+        eng.selections.clear()
+        eng.forget_atlases()
 
     def timed(scenes):
         forget()
         out = []
         for s in scenes:
             t = time.perf_counter()
-            r = lodcast.render(store, s)
+            r = eng.render(store, s)
             out.append(((time.perf_counter() - t) * 1e3, r.report["kernel_ms"]))
         return np.median(out[1:], axis=0)
 
     for s in views:
-        lodcast.render(store, s)
-    with mock.patch.object(atlas_reuse, "last_atlas", lambda family: None):
+        eng.render(store, s)
+    with mock.patch.object(eng, "last_atlas", lambda family: None):
         fresh = timed(views)
     reused = timed(views)
     full = timed([{**s, "quality": "full"} for s in views])
@@ -197,15 +195,16 @@ def main() -> None:
     engine = store_of("engine", DATA / "engine.nii.gz")
     cases = [("chest CT", chest, name, CT_PRESETS[name]) for name in ("ct-bone", "ct-skin", "ct-skin-bone")]
     cases.append(("engine CT", engine, "engine-metal", ENGINE_TF))
+    eng = lodcast.Renderer()  # every in-process render; first_render's fresh processes use their own default
     result = {"device": None, "cases": []}
     for size in a.sizes:
         for vol, store, tfname, tf in cases:
             scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": size, "height": size, "tf": tf, "format": "npy"}
-            res = sweep(store, scene, a.repeat)
-            res.update(volume=vol, tf=tfname, size=size, new_views=[new_views(store, scene, d) for d in (2, 10)])
+            res = sweep(eng, store, scene, a.repeat)
+            res.update(volume=vol, tf=tfname, size=size, new_views=[new_views(eng, store, scene, d) for d in (2, 10)])
             result["cases"].append(res)
             print(f"{vol} {tfname} {size}²: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-    result["device"] = lodcast.render(chest, {"tf": CT_PRESETS["ct-bone"], "width": 8, "height": 8}).report["device"]
+    result["device"] = eng.render(chest, {"tf": CT_PRESETS["ct-bone"], "width": 8, "height": 8}).report["device"]
     scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": 256, "height": 256, "tf": CT_PRESETS["ct-bone"]}
     result["first_render_ms"] = {f"{b}^3": first_render(store_of("ct_chest", DATA / "ct_chest_dicom", b).location, scene)
                                  for b in (16, 8)}

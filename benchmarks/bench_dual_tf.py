@@ -19,6 +19,7 @@ from pathlib import Path
 
 from bench_consistent_lod import DATA, RESULTS, best, store_of  # the 16³ stores every CT benchmark shares
 from lodcast.renderer.image_error import delta_e_stats
+from lodcast.renderer.render import Renderer
 
 ENGINE_BLOCK = {"points": [{"value": 90, "color": [0.75, 0.8, 0.85], "opacity": 0.0},
                            {"value": 130, "color": [0.8, 0.85, 0.9], "opacity": 0.6}]}
@@ -35,6 +36,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=RESULTS / "dual_tf.json")
     a = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
+    eng = Renderer()
     rows, device = [], None
     for label, name, src, tf, tf2 in CASES:
         store = store_of(name, DATA / src)
@@ -44,9 +46,9 @@ def main() -> None:
                     scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": size, "height": size, "tf": tf,
                              "tf2": tf2, "quality": quality, "format": "npy"}
                     samp = {"empty_space_skipping": ess}
-                    on = best(store, {**scene, "sampling": samp}, a.repeat)
-                    off = best(store, {**scene, "sampling": {**samp, "priority_map": False}}, a.repeat)
-                    single = best(store, {**scene, "tf2": None, "sampling": samp}, a.repeat)
+                    on = best(eng, store, {**scene, "sampling": samp}, a.repeat)
+                    off = best(eng, store, {**scene, "sampling": {**samp, "priority_map": False}}, a.repeat)
+                    single = best(eng, store, {**scene, "tf2": None, "sampling": samp}, a.repeat)
                     device = on.report["device"]
                     rows.append({
                         "volume": label, "size": size, "quality": quality, "ess": ess,

@@ -35,22 +35,23 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     dest = RESULTS / "ct_chest_b16.zarr"
     store = lodcast.open_store(dest) if dest.exists() else lodcast.ingest(DATA / "ct_chest_dicom", dest)
+    eng = lodcast.Renderer()
     out: dict = {"size": a.size, "preintegration": [], "features": []}
     lines = []
     for tf in ("ct-skin", "ct-bone"):
         scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": a.size, "height": a.size, "tf": tf, "format": "npy"}
-        ref = lodcast.render(store, {**scene, "sampling": {"step": 0.125, "early_termination": 1.0}})
+        ref = eng.render(store, {**scene, "sampling": {"step": 0.125, "early_termination": 1.0}})
         for step in (2.0, 1.0, 0.5, 0.25):
             row = {"tf": tf, "step": step}
             for pre in (False, True):
-                r = best(store, {**scene, "sampling": {"step": step, "preintegration": pre}}, a.repeat)
+                r = best(eng, store, {**scene, "sampling": {"step": step, "preintegration": pre}}, a.repeat)
                 key = "pre" if pre else "point"
                 row[f"{key}_ms"], row[f"{key}_delta_e"] = r.report["kernel_ms"], delta_e_stats(r.rgba, ref.rgba)["mean"]
                 if pre:
                     row["table_ms"] = r.report["preintegration_ms"]
             out["preintegration"].append(row)
-        base = best(store, scene, a.repeat)
-        et_off = lodcast.render(store, {**scene, "sampling": {"early_termination": 1.0}})
+        base = best(eng, store, scene, a.repeat)
+        et_off = eng.render(store, {**scene, "sampling": {"early_termination": 1.0}})
         yc = float(store.origin[1] + store.spacing[1] * (store.shape[1] - 1) / 2)  # world y of the volume's centre
         variants = {  # the plane and the box each keep the half y >= centre and y <= centre
             "shading": {**scene, "shading": SHADING},
@@ -61,7 +62,7 @@ def main() -> None:
         feat = {"tf": tf, "base_ms": base.report["kernel_ms"],
                 "early_termination_delta_e": delta_e_stats(base.rgba, et_off.rgba)["mean"]}
         for name, sc in variants.items():
-            feat[f"{name}_ms"] = best(store, sc, a.repeat).report["kernel_ms"]
+            feat[f"{name}_ms"] = best(eng, store, sc, a.repeat).report["kernel_ms"]
         out["features"].append(feat)
     lines.append("| TF | step | point ΔE | point ms | pre-int ΔE | pre-int ms | table ms |\n|---|---|---|---|---|---|---|")
     for r in out["preintegration"]:

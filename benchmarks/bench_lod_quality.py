@@ -32,6 +32,7 @@ RESULTS = HERE / "results"
 import lodcast  # noqa: E402
 from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
 from lodcast.renderer.quality_report import Variant, reference_scene, run_report  # noqa: E402
+from lodcast.renderer.render import Renderer  # noqa: E402
 from lodcast.renderer.selection import select_lod  # noqa: E402
 from lodcast.renderer.transfer_function import CT_PRESETS  # noqa: E402
 
@@ -57,15 +58,15 @@ def chest_store(block: int):
     return lodcast.ingest(DATA / "ct_chest_dicom", dest, block_size=block, overwrite=True)
 
 
-def fig_3_4(store, scene: dict, reference, picture: Path) -> dict[str, float]:
+def fig_3_4(eng, store, scene: dict, reference, picture: Path) -> dict[str, float]:
     """Mean ΔE at 64:1 for TF-based, L2 and uniform selection (nearest-block sampling, as the thesis' figure),
     and the four images side by side in `picture`."""
     out, images = {}, {"reference": reference.rgba}
     for method in ("tf", "l2", "uniform"):
-        sel = select_lod(store, [scene["tf"]], {"reduction": 64}, method=method)
-        img = lodcast.render(store, {**scene, "quality": {"reduction": 64},
-                                     "sampling": {**scene["sampling"], "interpolation": "nearest_block"}},
-                             levels=sel.levels)
+        sel = select_lod(store, [scene["tf"]], {"reduction": 64}, method=method, tables=eng.tables)
+        img = eng.render(store, {**scene, "quality": {"reduction": 64},
+                                 "sampling": {**scene["sampling"], "interpolation": "nearest_block"}},
+                         levels=sel.levels)
         out[method] = delta_e_stats(img.rgba, reference.rgba)["mean"]
         out[f"{method}_reduction"] = sel.reduction
         images[f"{method}, {sel.reduction:.0f}:1, mean ΔE {out[method]:.1f}"] = img.rgba
@@ -147,6 +148,7 @@ def main() -> None:
     if not (DATA / "ct_chest_dicom").is_dir():
         sys.exit(f"no chest CT at {DATA / 'ct_chest_dicom'} (set LODCAST_SHARED_DATA)")
     RESULTS.mkdir(exist_ok=True)
+    eng = Renderer()
     results, t0 = [], time.perf_counter()
     for block in args.blocks:
         store = chest_store(block)
@@ -154,9 +156,9 @@ def main() -> None:
             scene = {"width": args.size, "height": args.size, "tf": tf, "format": "npy",
                      "camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "sampling": {"step": 0.5}}
             print(f"== block {block}, {name}", file=sys.stderr, flush=True)
-            reference = lodcast.render(store, reference_scene(scene, store))
-            report = run_report(store, scene, VARIANTS, repeat=args.repeat, reference=reference)
-            fig = fig_3_4(store, scene, reference, RESULTS / f"fig_3_4_b{block}_{name}.png")
+            reference = eng.render(store, reference_scene(scene, store))
+            report = run_report(store, scene, VARIANTS, repeat=args.repeat, reference=reference, renderer=eng)
+            fig = fig_3_4(eng, store, scene, reference, RESULTS / f"fig_3_4_b{block}_{name}.png")
             results.append({"block": block, "tf": name, "rows": report["rows"], "device": report["device"],
                             "summary": summarise(report["rows"], fig)})
     print_summary(results)

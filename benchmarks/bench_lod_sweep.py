@@ -38,12 +38,12 @@ def cases():
         (engine, "engine", "engine-metal", ENGINE_TF)]
 
 
-def reference(store, key: str, scene: dict) -> np.ndarray:
+def reference(eng, store, key: str, scene: dict) -> np.ndarray:
     path = RESULTS / "lod_sweep_refs" / f"{key}.npy"
     if path.exists():
         return np.load(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    ref = lodcast.render(store, {**scene, "sampling": {"step": 0.25}}).rgba
+    ref = eng.render(store, {**scene, "sampling": {"step": 0.25}}).rgba
     np.save(path, ref)
     return ref
 
@@ -54,14 +54,15 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=RESULTS / "lod_sweep.json")
     args = ap.parse_args()
     t0 = time.perf_counter()
+    eng = lodcast.Renderer()
     rows = []
     for store, vname, tname, tf in cases():
         for vi, cam in enumerate(VIEWS):
             scene = {"tf": tf, "camera": cam, "width": args.size, "height": args.size}
-            ref = reference(store, f"{vname}_{tname}_{vi}_{args.size}", scene)
-            full = best(store, scene, 1)
+            ref = reference(eng, store, f"{vname}_{tname}_{vi}_{args.size}", scene)
+            full = best(eng, store, scene, 1)
             for red in REDUCTIONS:
-                r = best(store, {**scene, "quality": {"reduction": red}}, 1)
+                r = best(eng, store, {**scene, "quality": {"reduction": red}}, 1)
                 rows.append({"volume": vname, "tf": tname, "view": vi, "reduction": red,
                              "delta_e": delta_e_stats(r.rgba, ref)["mean"],
                              "samples_vs_full": r.report["samples"] / full.report["samples"],

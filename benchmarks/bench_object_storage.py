@@ -25,14 +25,13 @@ import numpy as np
 
 import lodcast
 from bench_consistent_lod import DATA, RESULTS, store_of
-from lodcast.renderer.bricks import brick_cache
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.render import Renderer
 from lodcast.service.testing import s3_server
 
 
-def _fresh() -> None:
-    brick_cache().clear()
-    device_cache().clear()
+def _fresh(eng: Renderer) -> None:
+    eng.bricks.clear()
+    eng.device_cache.clear()
 
 
 def main() -> None:
@@ -49,6 +48,7 @@ def main() -> None:
     local = lodcast.open_store(a.store) if a.store else store_of("ct_chest", DATA / "ct_chest_dicom")
     qualities = [q if q in ("lossless", "full") else {"reduction": float(q)} for q in a.qualities]
     name = Path(local.location).name
+    eng = Renderer()
     rows = []
     with s3_server() as srv:
         fs = fsspec.filesystem("s3", skip_instance_cache=True)
@@ -60,20 +60,20 @@ def main() -> None:
         print(f"{on_s3 / 1e6:.0f} MB uploaded in {upload_s:.0f} s", flush=True)
         for reader in a.readers:
             for quality in qualities:
-                _fresh()
+                _fresh(eng)
                 st = lodcast.open_store(f"s3://bench/{name}")
                 if reader == "zarr-python":
                     n = st.layout.n_levels
                     st._readers.update({k: False for k in [str(i) for i in range(n)] + [f"std/{i}" for i in range(1, n)]})
                 # the store's per-block statistics and histograms, with a few bricks (cleared next)
-                lodcast.render(st, {"tf": "ct-bone", "width": 8, "height": 8, "quality": {"reduction": 1000}})
-                _fresh()
+                eng.render(st, {"tf": "ct-bone", "width": 8, "height": 8, "quality": {"reduction": 1000}})
+                _fresh(eng)
                 frames = []
                 for i in range(a.frames):
                     srv.reset()
                     t = time.perf_counter()
-                    r = lodcast.render(st, {"tf": "ct-bone", "width": a.size, "height": a.size, "quality": quality,
-                                            "camera": {"azimuth": 360.0 * i / a.frames, "elevation": 15}})
+                    r = eng.render(st, {"tf": "ct-bone", "width": a.size, "height": a.size, "quality": quality,
+                                        "camera": {"azimuth": 360.0 * i / a.frames, "elevation": 15}})
                     n, nbytes = srv.counts()
                     frames.append({"ms": (time.perf_counter() - t) * 1e3, "requests": n, "bytes": nbytes,
                                    "bricks_read": r.report["bricks_read"]})

@@ -4,7 +4,7 @@ full resolution (issue 13 item 1).
     .venv/bin/python benchmarks/bench_passes.py [--size 512] [--repeat 3] [--json benchmarks/results/passes.json]
 
 Passes: the chest CT and the engine CT (16³ stores under benchmarks/results/) at quality "full" and "lossless",
-uncapped and under LODCAST_DEVICE_BUDGET_MB budgets below their volume data; per row the passes, the most volume
+uncapped and under device budgets below their volume data (a Renderer per budget, device_budget_mb); per row the passes, the most volume
 data on the device at once, kernel / upload / wall ms (the fastest of `repeat` after a warm-up: a render in passes
 keeps nothing on the device, so every repeat reads its regions again) and the largest difference from the
 uncapped image (0: bit for bit) with its mean ΔE.
@@ -25,19 +25,13 @@ import numpy as np
 from bench_consistent_lod import DATA, RESULTS, best, store_of
 from lodcast.renderer import sampler
 from lodcast.renderer.image_error import delta_e_stats
+from lodcast.renderer.render import Renderer
 
 CASES = [("chest CT", "ct_chest", "ct_chest_dicom", ["ct-bone", "ct-skin", "ct-body"]),
          ("engine CT", "engine", "engine.nii.gz", [None])]
 ENGINE_TF = {"points": [{"value": 60, "color": [0.9, 0.7, 0.5], "opacity": 0.0},
                         {"value": 140, "color": [0.9, 0.7, 0.5], "opacity": 0.4},
                         {"value": 255, "color": [1, 1, 1], "opacity": 0.9}]}
-
-
-def _budget(mb: float | None):
-    if mb is None:
-        os.environ.pop("LODCAST_DEVICE_BUDGET_MB", None)
-    else:
-        os.environ["LODCAST_DEVICE_BUDGET_MB"] = str(mb)
 
 
 def main() -> None:
@@ -47,6 +41,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=RESULTS / "passes.json")
     a = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
+    os.environ.pop("LODCAST_DEVICE_BUDGET_MB", None)  # uncapped: the engines read it when they are made
+    eng = Renderer()
     passes, cells, device = [], [], None
     for label, name, src, tfs in CASES:
         store = store_of(name, DATA / src)
@@ -55,13 +51,11 @@ def main() -> None:
                      "height": a.size, "format": "npy"}
             for quality in ("full", "lossless"):
                 sc = {**scene, "quality": quality}
-                _budget(None)
-                ref = best(store, sc, a.repeat)
+                ref = best(eng, store, sc, a.repeat)
                 device = ref.report["device"]
                 data_mb = ref.report["device_bytes"] / 1e6
                 for mb in (None, round(data_mb / 4.5, 1), round(data_mb / 18, 1)):
-                    _budget(mb)
-                    r = ref if mb is None else best(store, sc, a.repeat)
+                    r = ref if mb is None else best(Renderer(device_budget_mb=mb), store, sc, a.repeat)
                     passes.append({
                         "volume": label, "tf": tf or "engine", "quality": quality, "budget_mb": mb,
                         "passes": r.report["passes"], "device_mb": r.report["device_bytes"] / 1e6,
@@ -70,14 +64,13 @@ def main() -> None:
                         "delta_e_mean": delta_e_stats(r.rgba, ref.rgba)["mean"],
                     })
                     print(passes[-1], flush=True)
-            _budget(None)
             row = {"volume": label, "tf": tf or "engine"}
             for cell, key in ((lambda shape, B: B, "blocks"), (sampler.ess_cell, "cells")):
                 orig = sampler.ess_cell
                 sampler.ess_cell = cell
-                sampler.device_cache().clear()
+                eng.device_cache.clear()
                 try:
-                    r = best(store, scene, a.repeat)
+                    r = best(eng, store, scene, a.repeat)
                 finally:
                     sampler.ess_cell = orig
                 row[f"{key}_samples"], row[f"{key}_kernel_ms"] = r.report["samples"], r.report["kernel_ms"]
@@ -85,7 +78,7 @@ def main() -> None:
             row["kernel_speedup"] = row["blocks_kernel_ms"] / row["cells_kernel_ms"]
             cells.append(row)
             print(row, flush=True)
-    sampler.device_cache().clear()
+    eng.device_cache.clear()
     lines = ["| volume | TF | quality | budget MB | passes | device MB | kernel ms | upload ms | wall ms | "
              "max diff vs uncapped | ΔE mean |", "|" + "---|" * 11]
     for r in passes:

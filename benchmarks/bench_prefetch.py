@@ -18,11 +18,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import lodcast
 from bench_consistent_lod import DATA, RESULTS, store_of
-from lodcast.renderer.bricks import brick_cache
-from lodcast.renderer.render import prefetch
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.render import Renderer
 
 
 def _tf(shift: float) -> dict:
@@ -31,16 +28,16 @@ def _tf(shift: float) -> dict:
                        {"value": 1500 + shift, "color": [1, 1, 1], "opacity": 0.9}]}
 
 
-def sweep(store, scenes: list[dict], ahead: bool) -> list[float]:
-    brick_cache().clear()
-    device_cache().clear()
+def sweep(eng: Renderer, store, scenes: list[dict], ahead: bool) -> list[float]:
+    eng.bricks.clear()
+    eng.device_cache.clear()
     pool = ThreadPoolExecutor(max_workers=1)
     ms = []
     for i, sc in enumerate(scenes):
         if ahead and i + 1 < len(scenes):
-            pool.submit(prefetch, store, scenes[i + 1])
+            pool.submit(eng.prefetch, store, scenes[i + 1])
         t = time.perf_counter()
-        lodcast.render(store, sc)
+        eng.render(store, sc)
         ms.append((time.perf_counter() - t) * 1e3)
     pool.shutdown(wait=True)
     return ms
@@ -57,8 +54,9 @@ def main() -> None:
     store = store_of("ct_chest", DATA / "ct_chest_dicom")
     scenes = [{"tf": _tf(40.0 * i), "width": a.size, "height": a.size, "quality": {"reduction": 30},
                "camera": {"azimuth": 30, "elevation": 15}, "format": "npy"} for i in range(a.tfs)]
-    lodcast.render(store, scenes[0])  # build the programs
-    runs = {k: min((sweep(store, scenes, k == "prefetch") for _ in range(a.repeat)), key=sum)
+    eng = Renderer()
+    eng.render(store, scenes[0])  # build the programs
+    runs = {k: min((sweep(eng, store, scenes, k == "prefetch") for _ in range(a.repeat)), key=sum)
             for k in ("plain", "prefetch", "plain again")}
     table = "\n".join([f"TF sweep, chest CT, 30:1, {a.tfs} TFs, {a.size}², cold caches", "",
                        "| run | total ms | first frame ms | later frames ms (mean) |", "|---|---|---|---|"] + [

@@ -55,35 +55,32 @@ def ensure_store() -> Path:
     return dest
 
 
-def run_render(store, scene: dict) -> dict:
-    from lodcast.renderer.render import render
-
-    r = render(store, scene)
+def run_render(eng, store, scene: dict) -> dict:
+    r = eng.render(store, scene)
     return {"kernel_ms": r.report["kernel_ms"], "wall_ms": r.report["wall_ms"], "samples": r.report["samples"],
             "bricks_skipped": r.report["bricks_skipped"], "blocks": r.report["blocks"],
             "build_options": r.report["build_options"], "alpha_mean": float(r.rgba[..., 3].mean())}
 
 
-def run_bare(store, scene: dict) -> dict:
-    """The bare march on the same rays (same Prepared parameters, same volume buffer)."""
-    from lodcast.opencl import get_context, get_program
-    from lodcast.renderer.render import launch, prepare
+def run_bare(eng, store, scene: dict) -> dict:
+    """The bare march on the same rays (same Prepared parameters, same volume buffer: `eng`'s device cache)."""
+    from lodcast.renderer.render import launch
     from lodcast.renderer.sampler import upload_level0
     from lodcast.renderer.volume import voxel_options
 
-    ctx, queue = get_context()
-    pr = prepare(store, scene)
+    ctx, queue = eng.device.context, eng.device.queue
+    pr = eng.prepare(store, scene)
     W, H = pr.scene.width, pr.scene.height
     opts = ("-DLC_SAMPLER_FULL",) + (("-DLC_ORTHO",) if pr.config.orthographic else ()) + voxel_options(pr.volume.voxel_dtype)
-    prg = get_program("march_bare.cl", opts).program
-    dvol, _ = upload_level0(pr.volume)
+    prg = eng.device.program("march_bare.cl", opts).program
+    dvol, _ = upload_level0(eng, pr.volume)
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pr.params)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, W * H * 4)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, W * H * 4)
     kern = cl.Kernel(prg, "lc_march_bare")
     kern.set_args(d_p, dvol.buffer, d_out, d_n)
-    (ev,) = launch(kern, W, H)
+    (ev,) = launch(queue, kern, W, H)
     n = np.empty(W * H, np.uint32)
     cl.enqueue_copy(queue, n, d_n, wait_for=[ev])
     queue.finish()
@@ -100,7 +97,7 @@ CASES = [
 ]
 
 
-def measure(store, size: int, step: float, repeat: int) -> list[dict]:
+def measure(eng, store, size: int, step: float, repeat: int) -> list[dict]:
     """Every case `repeat` times, interleaved (round robin), so that load from other processes on a shared
     machine hits all cases alike; the best (minimum) kernel time of each case is its figure, the median beside."""
     runs: dict[str, list[dict]] = {name: [] for name, *_ in CASES}
@@ -108,7 +105,7 @@ def measure(store, size: int, step: float, repeat: int) -> list[dict]:
         for name, kind, tf, sampling in CASES:
             scene = {"camera": CAMERA, "width": size, "height": size, "format": "npy", "tf": tf,
                      "sampling": {"step": step, **sampling}}
-            runs[name].append((run_bare if kind == "bare" else run_render)(store, scene))
+            runs[name].append((run_bare if kind == "bare" else run_render)(eng, store, scene))
     rows = []
     for name, kind, *_ in CASES:
         rs = runs[name]
@@ -132,19 +129,19 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import lodcast
-    from lodcast.opencl import device_info
 
+    eng = lodcast.Renderer()  # one engine for every case: the warm-up's programs and volume buffer are its own
     store = lodcast.open_store(ensure_store())
-    dev = device_info()
+    dev = eng.device.info()
     print(f"device: {dev['name']} ({dev['platform']}); volume {store.shape} {store.dtype}, step {args.step} voxel")
     out = {"device": dev, "host": platform.node(), "volume": {"shape": list(store.shape), "dtype": str(store.dtype)},
            "camera": CAMERA, "step": args.step, "rows": [], "speedups": []}
     for name, kind, tf, sampling in CASES:  # warm-up: build every program variant, upload the volume
         scene = {"camera": CAMERA, "width": 64, "height": 64, "tf": tf, "sampling": {"step": args.step, **sampling}}
-        (run_bare if kind == "bare" else run_render)(store, scene)
+        (run_bare if kind == "bare" else run_render)(eng, store, scene)
     rows = []
     for size in args.sizes:
-        rows += measure(store, size, args.step, args.repeat)
+        rows += measure(eng, store, size, args.step, args.repeat)
         by = {r["case"]: r for r in rows if r["size"] == size}
         on = by["render, sparse TF (ESS+ET on)"]["kernel_ms"]
         out["speedups"].append({

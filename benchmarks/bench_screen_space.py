@@ -31,17 +31,18 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=RESULTS / "screen_space.json")
     a = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
+    eng = lodcast.Renderer()
     rows, device = [], None
     for label, name, src, tfs in CASES:
         store = store_of(name, DATA / src)
         for size in a.sizes:
             scene = {"camera": {"azimuth": 30, "elevation": 15}, "width": size, "height": size, "format": "npy", **tfs}
-            full = lodcast.render(store, scene)
+            full = eng.render(store, scene)
             lod = {**scene, "quality": {"reduction": 30}}
-            plain = best(store, lod, a.repeat)
+            plain = best(eng, store, lod, a.repeat)
             device = plain.report["device"]
             for stat in ("max", "average", "rms"):
-                r = best(store, {**lod, "sampling": {"adaptive_screen": True, "screen_statistic": stat}}, a.repeat)
+                r = best(eng, store, {**lod, "sampling": {"adaptive_screen": True, "screen_statistic": stat}}, a.repeat)
                 rep = r.report["adaptive_screen"]
                 rows.append({
                     "volume": label, "size": size, "statistic": stat, "rays": rep["rays"],

@@ -32,12 +32,13 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    eng = lodcast.Renderer()
     fig, axes = plt.subplots(1, len(VOLUMES), figsize=(3.2 * len(VOLUMES), 3.7))
     for ax, (name, source, azimuth) in zip(axes, VOLUMES):
         store = store_of(name, DATA / source)
-        bg, tissue = volume_peaks(as_volume(store))
-        r = lodcast.render(store, {"tf": "auto", "shading": SHADING, "width": 320, "height": 320,
-                                   "camera": {"azimuth": azimuth, "elevation": 15}, "background": [0, 0, 0, 1]})
+        bg, tissue = volume_peaks(as_volume(store), eng.tables.peaks)  # kept for the render's "auto"
+        r = eng.render(store, {"tf": "auto", "shading": SHADING, "width": 320, "height": 320,
+                               "camera": {"azimuth": azimuth, "elevation": 15}, "background": [0, 0, 0, 1]})
         ax.imshow(r.rgba[..., :3].clip(0, 1))
         ax.set_title(f"{name}\npeaks {bg:.4g} / {tissue:.4g}", fontsize=9)
         ax.set_axis_off()

@@ -17,7 +17,6 @@ import numpy as np
 import lodcast
 from lodcast.renderer import camera as cam
 from lodcast.renderer.demo import SHADING
-from lodcast.renderer.render import prepare
 
 HERE = Path(__file__).resolve().parent
 
@@ -41,20 +40,21 @@ def main() -> None:
     panels = [("chest CT: ct-body", chest, {"tf": "ct-body"}),
               ("tf2 = ct-dense over it", chest, {"tf": "ct-body", "tf2": "ct-dense"}),
               ("engine CT: steel over aluminium", engine, {"tf": ENGINE_BLOCK, "tf2": ENGINE_STEEL})]
+    eng = lodcast.Renderer()
     fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4.8))
     for ax, (title, store, extra) in zip(axes, panels):
         # the chest's whole box in the picture (its top slice is cut by the default orbit of 2.5 radii); the
         # engine's box has empty corners, and 2.5 shows all of the engine
         dist = 2.5 if store is engine else cam.fit_distance(*cam.box_world(store.shape, store.spacing, store.origin), 30, 15)
         scene = {**base, "camera": {"azimuth": 30, "elevation": 15, "distance": dist}, **extra}
-        lodcast.render(store, scene)  # warm the program and brick caches
-        r = lodcast.render(store, scene)
+        eng.render(store, scene)  # warm the program and brick caches
+        r = eng.render(store, scene)
         img = r.rgba[..., :3].clip(0, 1).copy()
         note = f"{r.report['kernel_ms']:.0f} ms kernel"
         if "tf2" in extra:
-            plain = lodcast.render(store, {**scene, "sampling": {"priority_map": False}})
+            plain = eng.render(store, {**scene, "sampling": {"priority_map": False}})
             note += f" ({plain.report['kernel_ms']:.0f} ms without the priority map)"
-            pm = prepare(store, scene).priority.pixels(a.size, a.size).astype(np.float32)
+            pm = eng.prepare(store, scene).priority.pixels(a.size, a.size).astype(np.float32)
             k = 4  # the insert: the map at a quarter of the size, framed
             ins = pm[::k, ::k]
             h, w = ins.shape

@@ -35,7 +35,7 @@ FIGURES = {
 }
 
 
-def figure(store, tf: str, panels: list, out: Path) -> None:
+def figure(eng, store, tf: str, panels: list, out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -43,10 +43,10 @@ def figure(store, tf: str, panels: list, out: Path) -> None:
 
     base = {"camera": {"azimuth": 30, "elevation": 10}, "width": 320, "height": 320, "tf": CT_PRESETS[tf],
             "format": "npy"}
-    ref = lodcast.render(store, {**base, "sampling": {"step": 0.25}})
+    ref = eng.render(store, {**base, "sampling": {"step": 0.25}})
     fig, axs = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.7), dpi=100, facecolor="black")
     for ax, (title, extra) in zip(axs, panels):
-        r = lodcast.render(store, {**base, **extra})
+        r = eng.render(store, {**base, **extra})
         ax.imshow(np.clip(r.rgba[..., :3], 0, 1))
         ax.set_axis_off()
         ax.set_title(f"{title}\nmean ΔE {delta_e_stats(r.rgba, ref.rgba)['mean']:.1f}", fontsize=9, color="white")
@@ -64,8 +64,9 @@ def main() -> None:
     from bench_consistent_lod import DATA, store_of
 
     st = store_of("ct_chest", DATA / "ct_chest_dicom")
+    eng = lodcast.Renderer()
     for name, (tf, panels) in FIGURES.items():
-        figure(st, tf, panels, a.out / name)
+        figure(eng, st, tf, panels, a.out / name)
 
 
 if __name__ == "__main__":

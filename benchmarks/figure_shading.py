@@ -35,9 +35,10 @@ def main() -> None:
               ("shading, 30:1", {"tf": "ct-bone", "shading": SHADING, "quality": {"reduction": 30}}),
               ("ct-skin-bone, front clipped", {"tf": "ct-skin-bone", "shading": SHADING,
                                                "clip": {"planes": [{"point": c, "normal": [0, 1, 0]}]}})]
+    eng = lodcast.Renderer()
     fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 4.8))
     for ax, (title, extra) in zip(axes, panels):
-        r = lodcast.render(store, {**base, **extra})
+        r = eng.render(store, {**base, **extra})
         ax.imshow(r.rgba[..., :3].clip(0, 1))
         ax.set_title(f"{title}\n{r.report['kernel_ms']:.0f} ms kernel", fontsize=10)
         ax.axis("off")

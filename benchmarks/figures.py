@@ -84,10 +84,10 @@ def gallery(rows_by_volume: dict[str, list[dict]], path: Path) -> Path:
     return path
 
 
-def demo_row(size: int, camera: dict, out: Path, log) -> list[dict] | None:
+def demo_row(eng, size: int, camera: dict, out: Path, log) -> list[dict] | None:
     """The demo MR head (`lodcast demo`'s volume) with the demo's translucent TF at full resolution (step ½),
-    lossless, 30:1 and 100:1, against the float64 reference; None (and a line saying why) where it cannot be
-    fetched."""
+    lossless, 30:1 and 100:1, against the float64 reference, rendered on `eng` (run.py's Renderer); None (and a
+    line saying why) where it cannot be fetched."""
     import lodcast
     from lodcast.errors import LodcastError
     from lodcast.renderer.demo import demo_tfs
@@ -110,23 +110,23 @@ def demo_row(size: int, camera: dict, out: Path, log) -> list[dict] | None:
     rows = []
     for quality, extra in (("full", {"sampling": {"step": 0.5}}), ("lossless", {"quality": "lossless"}),
                            ("30:1", {"quality": {"reduction": 30}}), ("100:1", {"quality": {"reduction": 100}})):
-        lodcast.render(store, {**scene, **extra})
+        eng.render(store, {**scene, **extra})
         ms = []
         for _ in range(3):
             t = time.perf_counter()
-            r = lodcast.render(store, {**scene, **extra})
+            r = eng.render(store, {**scene, **extra})
             ms.append(1e3 * (time.perf_counter() - t))
         rows.append({"quality": quality, "image": r.rgba, "ms": statistics.median(ms),
                      "delta_e": delta_e_stats(r.rgba, ref)["mean"]})
     return rows
 
 
-def report_plot(store: Any, size: int, camera: dict, out: Path) -> Path:
+def report_plot(eng: Any, store: Any, size: int, camera: dict, out: Path) -> Path:
     """`lodcast report`'s sweep and plot for the chest CT with the bone preset (its own step-¼ reference)."""
     from lodcast.renderer.quality_report import run_report, write_report
 
     scene = {"camera": camera, "width": min(size, 256), "height": min(size, 256), "tf": "ct-bone"}
-    result = run_report(store, scene, repeat=1, log=lambda msg: None)
+    result = run_report(store, scene, repeat=1, log=lambda msg: None, renderer=eng)
     return write_report(result, out / "report")["plot"]
 
 

@@ -54,13 +54,13 @@ import sys
 import numpy
 import pyopencl as cl
 
-from lodcast.opencl import device_info
+from lodcast.opencl import Device
 
 for p in cl.get_platforms():
     for d in p.get_devices():
         print(f"{p.name} ({p.version}): {d.name.strip()}, driver {d.driver_version}, {d.max_compute_units} compute "
               f"units, {d.global_mem_size >> 20} MiB, largest allocation {d.max_mem_alloc_size >> 20} MiB")
-print("lodcast renders on:", device_info(), "| Python", sys.version.split()[0], "| NumPy", numpy.__version__)
+print("lodcast renders on:", Device().info(), "| Python", sys.version.split()[0], "| NumPy", numpy.__version__)
 PY
 tests=(adaptive_tf atlas_cells blend_modes distribution dual_tf ess_cells illumination_clip kernel_math
        kernel_numerics leap level_error lod_adaptive lod_cache lod_interblock lod_mask lod_render

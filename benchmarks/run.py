@@ -101,11 +101,9 @@ def store_of(vol: Volume, out: Path):
     return lodcast.ingest(vol.source, dest)
 
 
-def machine() -> dict[str, Any]:
+def machine(eng) -> dict[str, Any]:
     import pyopencl
     import zarr
-
-    from lodcast.opencl import device_info
 
     cpu = platform.processor() or ""
     try:
@@ -123,7 +121,7 @@ def machine() -> dict[str, Any]:
         pass
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {"cpu": cpu, "cores": cores, "host": platform.node(), "system": platform.platform(),
-            "opencl": device_info(), "versions": versions}
+            "opencl": eng.device.info(), "versions": versions}
 
 
 def copy_bandwidth(mib: int = 256, repeat: int = 5) -> float:
@@ -140,7 +138,7 @@ def _timed(fn) -> float:
     return time.perf_counter() - t
 
 
-def measure(store, vol: Volume, tf_name: str, size: int, steps: list[float], repeat: int,
+def measure(eng, store, vol: Volume, tf_name: str, size: int, steps: list[float], repeat: int,
             vtk: dict, ref: np.ndarray) -> list[dict]:
     """`vtk`: the peers by their row name (peers.py)."""
     tf = vol.tfs[tf_name]
@@ -158,7 +156,7 @@ def measure(store, vol: Volume, tf_name: str, size: int, steps: list[float], rep
             if case.quality != "full":
                 scene["quality"] = LOD[case.quality]
             t = time.perf_counter()
-            r = lodcast.render(store, scene)
+            r = eng.render(store, scene)
             case.seconds.append(time.perf_counter() - t)
             case.kernel_ms.append(float(r.report["kernel_ms"]))
             case.image, case.samples = r.rgba, int(r.report["samples"])
@@ -218,16 +216,16 @@ def ratios(rows: list[dict]) -> list[dict]:
     return out
 
 
-def bare_march(store, size: int, repeat: int) -> dict:
+def bare_march(eng, store, size: int, repeat: int) -> dict:
     """The dense scene at step ½: lodcast's full render against the bare march, samples per second (kernel time)."""
     scene = {"camera": CAMERA, "width": size, "height": size, "tf": TF_DENSE, "sampling": {"step": 0.5}}
-    run_bare(store, scene)
-    lodcast.render(store, scene)
+    run_bare(eng, store, scene)
+    eng.render(store, scene)
     bare, full = [], []
     for _ in range(repeat):
-        b = run_bare(store, scene)
+        b = run_bare(eng, store, scene)
         bare.append(b["samples"] / (b["kernel_ms"] * 1e-3))
-        r = lodcast.render(store, scene)
+        r = eng.render(store, scene)
         full.append(r.report["samples"] / (r.report["kernel_ms"] * 1e-3))
     b, f = statistics.median(bare), statistics.median(full)
     itemsize = np.dtype(store.dtype).itemsize
@@ -312,7 +310,8 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
 
-    info = machine()
+    eng = lodcast.Renderer()  # every lodcast render and the bare march: one device, its caches warmed per case
+    info = machine(eng)
     vtk_reason = "left out (--no-vtk)" if args.no_vtk else peers.available()
     info["opengl"] = None if vtk_reason else peers.renderer_name()
     gpu_name = None if vtk_reason else f"{peers.GpuRayCast.name} ({info['opengl'].split(' (')[0]})"
@@ -332,7 +331,7 @@ def main(argv=None) -> int:
             ref = reference_image(level0, scene, store.spacing, store.origin, volume_id=f"{vol.source.name}:"
                                   f"{store.generation}", cache=args.out / "reference", log=log)
             log(f"{vol.name}, {tf_name}: {repeat} round(s) of every case")
-            got = measure(store, vol, tf_name, size, steps, repeat, vtk, ref)
+            got = measure(eng, store, vol, tf_name, size, steps, repeat, vtk, ref)
             rows += got
             if i == 0 and tf_name == next(iter(vol.tfs)):  # the first volume's first TF in the gallery
                 gallery[vol.name] = [r for r in got if r["renderer"] == "lodcast" and
@@ -340,7 +339,7 @@ def main(argv=None) -> int:
         for peer in vtk.values():
             peer.close()
         if vol.name == "chest CT" or args.quick:
-            limits["bare"] = bare_march(store, size, repeat)
+            limits["bare"] = bare_march(eng, store, size, repeat)
     ratio_rows = ratios(rows) if not vtk_reason else []
     result = {"machine": info, "vtk": vtk_reason or [peers.FixedPoint.name, gpu_name], "size": size, "repeat": repeat, "steps": steps,
               "camera": CAMERA, "limits": limits, "rows": [{k: v for k, v in r.items() if k != "image"} for r in rows],
@@ -353,11 +352,11 @@ def main(argv=None) -> int:
 
     paths = [figures.error_vs_time(rows, args.out / "error_vs_time.png")]
     if not args.quick:
-        demo = figures.demo_row(size, CAMERA, args.out, log)
+        demo = figures.demo_row(eng, size, CAMERA, args.out, log)
         if demo is not None:
             gallery["demo MR head"] = demo
         paths.append(figures.gallery(gallery, args.out / "gallery.png"))
-        paths.append(figures.report_plot(store_of(volumes(False)[0], args.out), size, CAMERA, args.out))
+        paths.append(figures.report_plot(eng, store_of(volumes(False)[0], args.out), size, CAMERA, args.out))
     result["figures"] = [str(p) for p in paths]
     if args.docs:
         result["docs"] = [str(p) for p in figures.publish(paths, HERE.parent / "docs" / "images")]

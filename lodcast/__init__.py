@@ -11,6 +11,7 @@ from lodcast.errors import (
     LodcastError,
     SourceError,
     SourceNotFound,
+    StoreCorrupt,
     StoreExists,
     StoreInvalid,
     StoreNotFound,
@@ -23,6 +24,7 @@ __all__ = [
     "ingest",
     "open_store",
     "render",
+    "Renderer",
     "Client",
     "AsyncClient",
     "JobStatus",
@@ -35,12 +37,26 @@ __all__ = [
     "StoreExists",
     "StoreInvalid",
     "StoreNotFound",
+    "StoreCorrupt",
+    "SceneError",
+    "CostError",
+    "ImageError",
+    "DeviceError",
+    "EnvironmentInvalid",
+    "ServiceError",
 ]
 
 _LAZY = {
     "ingest": ("lodcast.store.ingest", "ingest"),
     "open_store": ("lodcast.store.store", "open_store"),
     "render": ("lodcast.renderer.render", "render"),
+    "Renderer": ("lodcast.renderer.render", "Renderer"),
+    "SceneError": ("lodcast.renderer.scene", "SceneError"),
+    "CostError": ("lodcast.renderer.cost", "CostError"),
+    "ImageError": ("lodcast.renderer.image", "ImageError"),
+    "DeviceError": ("lodcast.opencl", "DeviceError"),
+    "EnvironmentInvalid": ("lodcast.environment", "EnvironmentInvalid"),
+    "ServiceError": ("lodcast.service.client", "ServiceError"),
     "RenderResult": ("lodcast.renderer.render", "RenderResult"),
     "Scene": ("lodcast.renderer.scene", "Scene"),
     "Client": ("lodcast.service.client", "Client"),
@@ -50,9 +66,13 @@ _LAZY = {
 }
 
 if TYPE_CHECKING:  # pragma: no cover
-    from lodcast.renderer.render import RenderResult, render
-    from lodcast.renderer.scene import Scene
-    from lodcast.service.client import AsyncClient, Client
+    from lodcast.environment import EnvironmentInvalid
+    from lodcast.opencl import DeviceError
+    from lodcast.renderer.cost import CostError
+    from lodcast.renderer.image import ImageError
+    from lodcast.renderer.render import Renderer, RenderResult, render
+    from lodcast.renderer.scene import Scene, SceneError
+    from lodcast.service.client import AsyncClient, Client, ServiceError
     from lodcast.service.models import JobStatus, VolumeSummary
     from lodcast.store.ingest import ingest
     from lodcast.store.store import open_store

@@ -1,7 +1,7 @@
 """The store's and the renderer's environment variables, in one place (the service's own are `service.Settings`).
 
-``environment()`` reads them when called, never at import time, so that a process (or a test) that sets one
-sees it at the next render; a malformed value is an `EnvironmentInvalid` naming the variable and what it
+``environment()`` reads them when called, never at import time; a renderer (lodcast.Renderer) reads them once,
+when it is made, and its keywords override them; a malformed value is an `EnvironmentInvalid` naming the variable and what it
 expects, never a silent default. Every variable here is in the README's table (a test keeps the two together).
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from lodcast.errors import LodcastError
 
-__all__ = ["Environment", "EnvironmentInvalid", "environment", "read_threads_for", "VARIABLES"]
+__all__ = ["Environment", "EnvironmentInvalid", "environment", "VARIABLES"]
 
 
 class EnvironmentInvalid(LodcastError, ValueError):
@@ -27,7 +27,7 @@ class Environment:
     brick_cache_bytes: int  # LODCAST_BRICK_CACHE_MB (MiB)
     device_cache_bytes: int  # LODCAST_DEVICE_CACHE_MB (MiB)
     device_budget_bytes: int | None  # LODCAST_DEVICE_BUDGET_MB (MB = 10⁶ bytes, DESIGN.md Limits)
-    read_threads: int | None  # LODCAST_READ_THREADS; None: read_threads_for() decides
+    read_threads: int | None  # LODCAST_READ_THREADS; None: the engine decides (renderer/engine.py: read_threads)
     max_samples: int  # LODCAST_MAX_SAMPLES
     max_voxels: int | None  # LODCAST_MAX_VOXELS
     max_ingest_bytes: int | None  # LODCAST_MAX_INGEST_MEMORY_MB (MB = 10⁶ bytes)
@@ -88,20 +88,6 @@ def _cache_dir() -> Path:
     import platformdirs
 
     return Path(platformdirs.user_cache_dir("lodcast"))
-
-
-def read_threads_for(remote: bool) -> int:
-    """Threads reading shards: LODCAST_READ_THREADS, else one less than the CPU count for local files (at least
-    one: the caller's thread places what they read; a first lossless render of the chest CT on 2 cores, medians of
-    five processes: 2,986 ms with one thread against 3,504 with two at 8³ blocks, 1,252 against 1,269 at 16³) and
-    8 for object storage."""
-    n = environment().read_threads
-    if n is not None:
-        return n
-    if remote:
-        return 8
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cpus - 1)
 
 
 def environment() -> Environment:

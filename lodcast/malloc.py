@@ -3,13 +3,12 @@ gigabytes of arrays through many threads needs from it. Elsewhere both functions
 from __future__ import annotations
 
 import ctypes
-import functools
 
 __all__ = ["tame_malloc", "release_free_memory"]
 
 
-@functools.cache
 def _libc() -> "ctypes.CDLL | None":
+    """glibc, where there is one (dlopen hands out the same loaded library each time)."""
     try:
         libc = ctypes.CDLL("libc.so.6")
     except OSError:

@@ -108,31 +108,31 @@ def tissue_peaks(hist: np.ndarray, centres: np.ndarray) -> tuple[float, float]:
     return float(centres[bg]), float(centres[tissue])
 
 
-_PEAKS = ByteLru(64)  # by store identity (one unit each): a turntable or a TF sweep finds them once
-
-
-def volume_peaks(vol: Any) -> tuple[float, float]:
-    """`tissue_peaks` of a VolumeView, kept per store."""
-    peaks = _PEAKS.get(vol.key) if vol.key is not None else None
+def volume_peaks(vol: Any, kept: ByteLru | None = None) -> tuple[float, float]:
+    """`tissue_peaks` of a VolumeView; `kept`: per store, those found before (an engine's `tables.peaks`: a
+    turntable or a TF sweep finds them once)."""
+    peaks = kept.get(vol.key) if kept is not None and vol.key is not None else None
     if peaks is None:
         peaks = tissue_peaks(*_histograms(vol))
-        if vol.key is not None:
-            _PEAKS.put(vol.key, peaks, 1)
-    return peaks
+        if kept is not None and vol.key is not None:
+            kept.put(vol.key, peaks, 1)
+    return peaks  # type: ignore[no-any-return]
 
 
-def resolve_tfs(scene: Any, vol: Any) -> dict[str, Any]:
-    """The scene fields to replace for `vol`: each adaptive TF (AdaptiveTF) by the control points it takes on it."""
+def resolve_tfs(scene: Any, vol: Any, kept: ByteLru | None = None) -> dict[str, Any]:
+    """The scene fields to replace for `vol`: each adaptive TF (AdaptiveTF) by the control points it takes on it
+    (`kept`: see volume_peaks)."""
     from lodcast.renderer.scene import AdaptiveTF, TransferFunction
 
-    return {key: TransferFunction.model_validate(adaptive_tf(tf.template, vol, tf.unit_distance))
+    return {key: TransferFunction.model_validate(adaptive_tf(tf.template, vol, tf.unit_distance, kept))
             for key in ("tf", "tf2") if isinstance(tf := getattr(scene, key), AdaptiveTF)}
 
 
-def adaptive_tf(name: str, vol: Any, unit_distance: float | None = None) -> dict[str, Any]:
-    """The TF JSON of template `name` placed on `vol`'s α-histogram peaks."""
+def adaptive_tf(name: str, vol: Any, unit_distance: float | None = None,
+                kept: ByteLru | None = None) -> dict[str, Any]:
+    """The TF JSON of template `name` placed on `vol`'s α-histogram peaks (`kept`: see volume_peaks)."""
     template = ADAPTIVE[name]
-    bg, tissue = volume_peaks(vol)
+    bg, tissue = volume_peaks(vol, kept)
     lo, hi = (float(v) for v in vol.value_range)
     span = tissue - bg if tissue != bg else (hi - lo) or 1.0
     points, last = [], -np.inf

@@ -16,7 +16,7 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
 - the **step-level grid** for adaptive object-space sampling (half-block cells, see raycast.cl).
 
 Bricks come from the brick cache (renderer/bricks.py). The device buffers of the selections stay in the device
-cache (`sampler.device_cache`: same store and levels, nothing is packed or uploaded again).
+cache (the engine's `device_cache`: same store and levels, nothing is packed or uploaded again).
 """
 from __future__ import annotations
 
@@ -30,14 +30,14 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
-from lodcast.opencl import DeviceError, get_context
+from lodcast.opencl import DeviceError
 from lodcast.renderer import atlas_reuse
-from lodcast.renderer.bricks import BrickCache, BrickStats, brick_cache, holding, iter_bricks
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.bricks import BrickStats, iter_bricks
+from lodcast.renderer.engine import BrickCache, Engine
 from lodcast.renderer.volume import voxel_options
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
-           "device_atlas", "max_alloc_bytes", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
+           "device_atlas", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
            "neighbourhood_max", "pair_reduce", "per_cell"]
 
 MISSING = 0
@@ -121,7 +121,7 @@ def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarra
 def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None,
                      itemsize: int = 4) -> tuple[np.ndarray, int]:
     """(offsets, total elements) of the atlas of `levels` (voxels of `itemsize` bytes); DeviceError when it would
-    exceed `max_bytes` (default: the device's max allocation)."""
+    exceed `max_bytes` (None: no limit)."""
     sizes, offsets = _offsets(levels, block_size)
     total = int(sizes.sum())
     _check_alloc(total * itemsize, max_bytes, "brick atlas")
@@ -129,8 +129,10 @@ def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None,
 
 
 def _check_alloc(nbytes: int, max_bytes: int | None, what: str) -> None:
-    """DeviceError when a buffer of `nbytes` would exceed `max_bytes` (default: the device's max allocation)."""
-    limit = max_alloc_bytes() if max_bytes is None else int(max_bytes)
+    """DeviceError when a buffer of `nbytes` would exceed `max_bytes` (None: no limit)."""
+    if max_bytes is None:
+        return
+    limit = int(max_bytes)
     if nbytes > limit:
         raise DeviceError(
             f"the level-of-detail selection needs a {nbytes / 2**20:.1f} MiB {what}, more than the device's "
@@ -205,7 +207,7 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
          slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(atlas float32 1D, index map uint64 grid-shaped), on the host (tests, references; renders use
     device_atlas). Bricks are packed in C order of the grid. Raises
-    DeviceError when the atlas would exceed `max_bytes` (default: the device's max allocation). `slices`: the
+    DeviceError when the atlas would exceed `max_bytes` (None: no limit). `slices`: the
     index map's slice maxima (default slice_max(levels); a pass of a render in several packs part of a selection
     with the whole selection's)."""
     levels = np.asarray(levels)
@@ -329,11 +331,6 @@ def per_cell(a: np.ndarray, k: int) -> np.ndarray:
     return a
 
 
-def max_alloc_bytes() -> int:
-    ctx, _ = get_context()
-    return int(ctx.devices[0].max_mem_alloc_size)
-
-
 @dataclass(frozen=True)
 class DeviceAtlas:
     atlas: cl.Buffer
@@ -356,10 +353,10 @@ class DeviceAtlas:
     base_levels: np.ndarray | None = None  # that atlas's selection (flat int64)
 
 
-def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
+def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
                  cache: BrickCache | None = None, slices: np.ndarray | None = None,
                  keep: bool = True) -> DeviceAtlas:
-    """The atlas and index map of `levels` on the device (kept in the device cache: reused when a recent render
+    """The atlas and index map of `levels` on `eng`'s device (kept in its device cache: reused when a recent render
     had the same store and levels, else loaded through the brick cache, packed and uploaded); `with_std`: also the
     standard deviations of the coarse bricks, for distribution classification. A pass of a render in several
     gives its part of the selection with the whole one's `slices` (see `pack`) and `keep=False` (its atlas is
@@ -368,15 +365,16 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     key = (("atlas", vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest(), with_std)
            if vol.key is not None and keep else None)
     n_sel = int(np.count_nonzero(levels >= 0))
-    hit = device_cache().get(key) if key is not None else None
+    hit = eng.device_cache.get(key) if key is not None else None
     family = None if key is None else (vol.key, levels.shape, with_std, str(vol.voxel_dtype))
     if hit is not None:
-        atlas_reuse.remember(family, hit)  # the next selection starts from the latest one shown
+        eng.remember_atlas(family, hit)  # the next selection starts from the latest one shown
         return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
     t_read = time.perf_counter()
-    cache = brick_cache() if cache is None else cache
+    cache = eng.bricks if cache is None else cache
     dtype = vol.voxel_dtype
     B = int(vol.block_size)
+    max_bytes = eng.device.max_alloc_bytes if max_bytes is None else max_bytes
     offsets, total = _checked_offsets(levels, B, max_bytes, dtype.itemsize)
     n_coarse = coarse_elements(levels, B)
     sig_type = np.dtype(f"u{deviation_bytes(dtype)}")  # lc_common.h: lc_sig
@@ -386,10 +384,10 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
         total -= n_coarse
         _check_alloc(n_coarse * sig_type.itemsize, max_bytes, "coarse bricks' buffer")
     index = _index(levels, offsets, slices)
-    base = None if family is None else atlas_reuse.last_atlas(family)
+    base = None if family is None else eng.last_atlas(family)
     flat = levels.ravel().astype(np.int64)
     kept = None if base is None else (base.levels == flat) & (flat >= 0)
-    ctx, queue = get_context()
+    ctx, queue = eng.device.context, eng.device.queue
     st = BrickStats()
     n_std = max(n_coarse, 1)
     nbytes = max(total, 1) * dtype.itemsize + (sig_type.itemsize * n_std if with_std else 0)
@@ -398,12 +396,12 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
     # last atlas of this store at the same level is copied from there (atlas_reuse)
     todo = levels if kept is None else np.where(kept.reshape(levels.shape), -1, levels).astype(np.int8)
     L = int(flat.max(initial=0)) + 1
-    with holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
+    with eng.holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
         d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
         try:
             if old is not None and with_std:  # (packed: the coarse values ride along with their deviations)
                 atlas_reuse.copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
-            items = iter_bricks(vol, todo, cache, stats=st)
+            items = iter_bricks(eng, vol, todo, cache, stats=st)
             deviations = sig
             if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
                 assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
@@ -414,7 +412,7 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
                                                    range(0, 1 if packed else L), B))
             d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse)
             if with_std:
-                _place(deviations, levels.shape, offsets, iter_bricks(vol, todo, cache, what="std"))
+                _place(deviations, levels.shape, offsets, iter_bricks(eng, vol, todo, cache, what="std"))
         finally:
             if sig is not None:
                 sig.base.release(queue)
@@ -429,8 +427,8 @@ def device_atlas(vol: Any, levels: np.ndarray, *, with_std: bool = False, max_by
                      flat if family is not None else None, offsets.ravel() if family is not None else None,
                      None if base is None else base.key, None if base is None else base.levels)
     if key is not None:
-        device_cache().put(key, da, nbytes + index.nbytes)
-        atlas_reuse.remember(family, da)
+        eng.device_cache.put(key, da, nbytes + index.nbytes)
+        eng.remember_atlas(family, da)
     cache.trim()  # its bound may follow the device cache's bytes
     return da
 

@@ -5,7 +5,7 @@ The view-weighted selection (renderer/visibility.py) re-selects at every new vie
 changes the level of 5-20% of the loaded blocks (chest CT at 30:1: 400-1,500 of ~8,000). Packing every brick
 again from the brick cache and bounding every octant of the atlas again (atlas_cells.cl) cost 45 + 44 ms of a
 new view's 144 ms of host time on this 2-core machine, while most of it was already on the device. So
-`device_atlas` builds a new atlas from the last one of the same store, TF-independent layout and buffers: a block
+`device_atlas` builds a new atlas from the last one of the same store (the engine's `last_atlas`), TF-independent layout and buffers: a block
 at the same level keeps its brick (one array copy per level: the bricks of a level lie together in C order of
 the grid), only the others are read from the brick cache, and level 0's aprons are filled again as before (a
 neighbour's level may have changed). The octants' bounds (`atlas_cells`) are copied for every block whose bounds
@@ -14,38 +14,13 @@ index map and cells, element for element, as one packed from nothing (tests/test
 """
 from __future__ import annotations
 
-import functools
-import threading
-import weakref
 from typing import Any
 
 import numpy as np
 
 from lodcast.renderer import atlas as lod_atlas  # (which imports this module: its names are looked up at call time)
 
-__all__ = ["copy_kept", "dirty_blocks", "last_atlas", "remember"]
-
-
-@functools.cache
-def _last() -> tuple[dict, threading.Lock]:
-    """Per atlas family (store key, grid, with deviations) a weak reference to the newest atlas: it lives as long
-    as the device cache (or a caller) holds it, so reuse never keeps device memory alive by itself."""
-    return {}, threading.Lock()
-
-
-def remember(family: tuple, da: Any) -> None:
-    """Make `da` the atlas the next selection of `family` starts from."""
-    table, lock = _last()
-    with lock:
-        table[family] = weakref.ref(da)
-
-
-def last_atlas(family: tuple) -> Any:
-    """The newest atlas of `family` still alive, or None."""
-    table, lock = _last()
-    with lock:
-        ref = table.get(family)
-    return None if ref is None else ref()
+__all__ = ["copy_kept", "dirty_blocks"]
 
 
 def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.ndarray, old_levels: np.ndarray,

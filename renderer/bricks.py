@@ -1,6 +1,6 @@
 """Bricks of a level selection, read from the store through a brick cache (thesis §3.4: LOAD).
 
-A **brick cache** is shared by every render of the process (`brick_cache()`, LRU by bytes, size
+A **brick cache** is shared by every render of an engine (`Engine.bricks`, renderer/engine.py: LRU by bytes, size
 ``LODCAST_BRICK_CACHE_MB``, default 1024, less what a CPU device's buffers hold): only missing bricks are read, in
 parallel (a thread pool, one task per shard: the bricks of one shard are read together, from the chunks that hold
 them, since the number of requests dominates I/O), so a camera change reads nothing and a TF change reads only the
@@ -8,84 +8,18 @@ bricks whose level changed. renderer/atlas.py packs them.
 """
 from __future__ import annotations
 
-import contextlib
-import functools
-import threading
 import time
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
-from lodcast.environment import environment, read_threads_for
-from lodcast.opencl import device_memory_is_host
-from lodcast.renderer.cache import ByteLru
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.engine import BrickCache, Engine
 from lodcast.renderer.volume import device_dtype
 from lodcast.store.layout import Layout
 
-__all__ = ["BrickCache", "BRICK_ENTRY_BYTES", "brick_cache", "brick_cache_bound", "holding", "AtlasLoad", "BrickStats",
-           "iter_bricks", "load_bricks"]
-
-
-#: what a cached brick costs beyond its voxels: the array object, its key and the LRU's entry (measured ~440
-#: bytes), so that a million small coarse bricks count for what they hold
-BRICK_ENTRY_BYTES = 448
-
-
-class BrickCache(ByteLru):
-    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations uint16 in units
-    of the volume's std_unit) keyed by (kind, store key, level, bz, by, bx), LRU by bytes (each brick's voxels plus
-    BRICK_ENTRY_BYTES); counts the bricks read."""
-
-    def __init__(self, max_bytes: "int | Callable[[], int]"):
-        super().__init__(max_bytes)
-        self.reads = 0  # bricks of values read from stores since creation (tests count these)
-
-    def put(self, key: tuple, a: np.ndarray) -> None:  # type: ignore[override]
-        super().put(key, a, a.nbytes + BRICK_ENTRY_BYTES)
-
-
-_FILLING = [0]  # bytes of device buffers being filled or used right now outside the device cache
-_FILLING_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def holding(nbytes: int) -> Iterator[None]:
-    """While in this context, `nbytes` of device buffers outside the device cache are alive (an atlas being
-    filled, a pass's volume data): on a CPU device the brick cache gives way to them (`brick_cache_bound`)."""
-    with _FILLING_LOCK:
-        _FILLING[0] += nbytes
-    try:
-        yield
-    finally:
-        with _FILLING_LOCK:
-            _FILLING[0] -= nbytes
-
-
-def brick_cache_bound(cap: int) -> Callable[[], int]:
-    """The brick cache's bound: `cap`, except where device buffers are host memory (a CPU device): there the
-    same bricks would be held twice, in the cache and in the device cache's atlases (and the buffers `holding`
-    counts), so the cache gives way to them, down to an eighth of `cap`."""
-    def bound() -> int:
-        if not device_memory_is_host():
-            return cap
-        return max(cap // 8, cap - device_cache().nbytes - _FILLING[0])
-    return bound
-
-
-@functools.cache
-def brick_cache() -> BrickCache:
-    """The process's brick cache, shared by all renders (``LODCAST_BRICK_CACHE_MB``, default 1024; see
-    `brick_cache_bound`)."""
-    return BrickCache(brick_cache_bound(environment().brick_cache_bytes))
-
-
-@functools.cache
-def _read_pool(threads: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="lodcast-bricks")
+__all__ = ["AtlasLoad", "BrickStats", "iter_bricks", "load_bricks"]
 
 
 @dataclass(frozen=True)
@@ -138,15 +72,15 @@ class BrickStats:
     read_ms: float = 0.0
 
 
-def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean",
+def iter_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean",
                 stats: BrickStats | None = None) -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
-    """((level, bz, by, bx), brick) for every brick `levels` selects, from `cache` (default: the process's) or
+    """((level, bz, by, bx), brick) for every brick `levels` selects, from `cache` (default: `eng`'s) or
     read from the store (missing ones only, grouped by shard, shards read in parallel, a few at a time so that
     bricks stream through rather than pile up: a caller that places each one keeps none); read bricks enter the
     cache. Values keep the store's type up to 16-bit integers, else float32. what="std": the standard deviations
     of the coarse bricks (level >= 1; level 0 has none), uint16 in units of vol.std_unit, instead of the values.
     `stats` is filled in."""
-    cache = brick_cache() if cache is None else cache
+    cache = eng.bricks if cache is None else cache
     stats = BrickStats() if stats is None else stats
     t = time.perf_counter()
     lay = Layout(tuple(vol.shape), int(vol.block_size))
@@ -170,7 +104,7 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
         groups.setdefault((k, z * e // sh[0], y * e // sh[1], x * e // sh[2]), []).append((z, y, x))
     todo = sorted(groups.items())
     stats.shards = len(todo)
-    threads = read_threads_for("://" in str(getattr(vol.source, "location", "")))
+    threads = eng.read_threads("://" in str(getattr(vol.source, "location", "")))
     window = 2 * threads
     futs: deque = deque()
 
@@ -183,7 +117,7 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
             yield key, a
 
     for g, blks in todo:
-        futs.append(_read_pool(threads).submit(_read_group, vol, lay, g[0], blks, what))
+        futs.append(eng.read_pool(threads).submit(_read_group, vol, lay, g[0], blks, what))
         if len(futs) > window:
             yield from take()
     while futs:
@@ -193,8 +127,9 @@ def iter_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, w
     stats.read_ms = (time.perf_counter() - t) * 1e3
 
 
-def load_bricks(vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean") -> AtlasLoad:
+def load_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickCache | None = None,
+                what: str = "mean") -> AtlasLoad:
     """iter_bricks as a dict, with its counts."""
     st = BrickStats()
-    bricks = dict(iter_bricks(vol, levels, cache, what, st))
+    bricks = dict(iter_bricks(eng, vol, levels, cache, what, st))
     return AtlasLoad(bricks, st.read, st.cached, st.skipped, st.shards, st.read_ms)

@@ -29,9 +29,11 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.transfer_function import Lut, build_lut, extinction
 
 __all__ = ["EXT_CAP", "EXT_ZERO", "EXT_ZERO_REL", "DIST_STD_ROWS", "DIST_MAX_ENTRIES", "DistTable", "dist_table", "cached_dist_table",
@@ -224,14 +226,14 @@ def dist_table(lut: Lut, std_max: float, rows: int = DIST_STD_ROWS) -> DistTable
     return DistTable(lut.lo, lut.scale / stride, n, std_max, rows, out[:, 0, :], np.moveaxis(out[:, 1:, :], 1, 2), rgb)
 
 
-@functools.lru_cache(maxsize=32)
-def _cached(tf_json: str, lo: float, hi: float, std_max: float) -> DistTable:
-    from lodcast.renderer.scene import TransferFunction
-
-    return dist_table(build_lut(TransferFunction.model_validate_json(tf_json), (lo, hi)), std_max)
-
-
-def cached_dist_table(tf, value_range: tuple[float, float], std_max: float) -> DistTable:
-    """dist_table of the LUT the renderer builds for `tf` over `value_range`, kept for the process's recent TFs
-    (a turntable or a camera sweep builds it once)."""
-    return _cached(tf.model_dump_json(), float(value_range[0]), float(value_range[1]), float(std_max))
+def cached_dist_table(tf: Any, value_range: tuple[float, float], std_max: float,
+                      kept: "ByteLru | None" = None) -> DistTable:
+    """dist_table of the LUT the renderer builds for `tf` over `value_range`; `kept`: the tables of recent TFs
+    (an engine's `tables.dist`: a turntable or a camera sweep builds each once)."""
+    key = (tf.model_dump_json(), float(value_range[0]), float(value_range[1]), float(std_max))
+    hit = None if kept is None else kept.get(key)
+    if hit is None:
+        hit = dist_table(build_lut(tf, (key[1], key[2])), key[3])
+        if kept is not None:
+            kept.put(key, hit, 1)
+    return hit  # type: ignore[no-any-return]

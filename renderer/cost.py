@@ -8,14 +8,12 @@ image, and costs well under a millisecond.
 """
 from __future__ import annotations
 
-
 import numpy as np
 
-from lodcast.environment import environment
 from lodcast.renderer.camera import Frame, pixel_rays, ray_box
 from lodcast.renderer.scene import SceneError
 
-__all__ = ["CostError", "DEFAULT_MAX_SAMPLES", "estimate_samples", "max_samples_limit", "refuse_over_limit"]
+__all__ = ["CostError", "DEFAULT_MAX_SAMPLES", "estimate_samples", "refuse_over_limit"]
 
 DEFAULT_MAX_SAMPLES = 2_000_000_000  # tens of seconds on two CPU cores
 
@@ -26,11 +24,6 @@ class CostError(SceneError):
     def __init__(self, message: str, field: str, samples: int, limit: int):
         super().__init__(message)
         self.field, self.samples, self.limit = field, samples, limit
-
-
-def max_samples_limit() -> int:
-    """`LODCAST_MAX_SAMPLES` (default 2·10⁹)."""
-    return environment().max_samples
 
 
 def estimate_samples(fr: Frame, box: tuple[np.ndarray, np.ndarray], width: int, height: int, step: float) -> int:

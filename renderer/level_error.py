@@ -26,12 +26,12 @@ distribution table's (mean, √spread) grid, so the per-block work is O(K) table
 """
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import numpy as np
 
 from lodcast.renderer.classification import DistTable, cached_dist_table
+from lodcast.renderer.engine import Tables
 from lodcast.renderer.significance import BlockMeta, as_tf, effective_starts, srgb_to_luv
 
 __all__ = ["block_zetas", "level_zeta", "luv_table", "step_zeta"]
@@ -41,17 +41,22 @@ _WEIGHTS = np.array([5 / 9, 8 / 9, 5 / 9]) / 2.0  # on [−1, 1], normalised to 
 _CHUNK = 8192
 
 
-@functools.lru_cache(maxsize=32)
 def _luv(table: DistTable) -> np.ndarray:
     """CIELUV of the unit-slab colour (rows, n, 3) of a distribution table, float32 (block_zetas says why)."""
     alpha = -np.expm1(-table.ext)
     return srgb_to_luv(alpha[..., None] * table.colour()).astype(np.float32)
 
 
-def luv_table(tf: Any, value_range: tuple[float, float], std_max: float) -> tuple[DistTable, np.ndarray]:
-    """The distribution table of `tf` and its unit-slab colours in CIELUV (cached per TF)."""
-    t = cached_dist_table(as_tf(tf), value_range, std_max)
-    return t, _luv(t)
+def luv_table(tf: Any, value_range: tuple[float, float], std_max: float,
+              tables: Tables | None = None) -> tuple[DistTable, np.ndarray]:
+    """The distribution table of `tf` and its unit-slab colours in CIELUV (kept in `tables` when given)."""
+    t = cached_dist_table(as_tf(tf), value_range, std_max, None if tables is None else tables.dist)
+    luv = None if tables is None else tables.luv.get(id(t))
+    if luv is None or luv[0] is not t:
+        luv = (t, _luv(t))
+        if tables is not None:
+            tables.luv.put(id(t), luv, 1)  # (the table held beside it keeps its id from being reused)
+    return t, luv[1]
 
 
 def _pieces(meta: BlockMeta, starts: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -81,7 +86,8 @@ def _opacity_moments(tf: Any, x: np.ndarray, wq: np.ndarray) -> tuple[np.ndarray
 
 
 def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
-                classification: str = "distribution") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                classification: str = "distribution",
+                tables: Tables | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 2)), float64, 0 for invisible
     and constant blocks (and ζ(0) = 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
     they share with the TF's opacities there and the values' table positions (a first render of the chest CT at 8³
@@ -96,7 +102,7 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
         return out, step, opac
     assert meta.level_std is not None, "block_zetas needs a store with per-level spreads (format >= 2)"
     tf = as_tf(tf)
-    t, luv = luv_table(tf, value_range, std_max)
+    t, luv = luv_table(tf, value_range, std_max, tables)
     row0 = t.std_axis(0.0)
     starts = effective_starts(meta)
     for c0 in range(0, todo.size, _CHUNK):

@@ -28,30 +28,23 @@ from typing import Any, Callable, Iterator
 import numpy as np
 import pyopencl as cl
 
-from lodcast.environment import environment
 from lodcast.malloc import release_free_memory
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import atlas_cells
-from lodcast.renderer import bricks
-from lodcast.renderer import walk
 from lodcast.renderer.camera import Frame
-from lodcast.opencl import DeviceError, get_context
-from lodcast.renderer.sampler import device_cache, ess_cell, level0_buffer, level0_cells, upload_level0
+from lodcast.opencl import Device, DeviceError
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.sampler import ess_cell, level0_buffer, level0_cells, upload_level0
 
-__all__ = ["Region", "PassPlan", "device_budget", "volume_limit", "ghost_voxels", "ring_blocks", "split_grid",
+__all__ = ["Region", "PassPlan", "volume_limit", "ghost_voxels", "ring_blocks", "split_grid",
            "visibility_order", "plan", "own_mask", "pass_levels", "pass_steps", "PassStats", "PassData", "volume_data",
            "fill_pass"]
 
 
-def device_budget() -> int | None:
-    """`LODCAST_DEVICE_BUDGET_MB` in bytes (MB = 10⁶ bytes), None when unset."""
-    return environment().device_budget_bytes
-
-
-def volume_limit(max_alloc: int) -> tuple[int, str]:
-    """(the most bytes of volume data one pass may hold: the device budget, and at most one allocation; what sets
-    it, for errors)."""
-    budget = device_budget()
+def volume_limit(eng: Engine) -> tuple[int, str]:
+    """(the most bytes of volume data one pass may hold: `eng`'s device budget, and at most one allocation; what
+    sets it, for errors)."""
+    budget, max_alloc = eng.settings.device_budget_bytes, eng.device.max_alloc_bytes
     if budget is None or budget > max_alloc:
         return max_alloc, "the device's largest allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)"
     return budget, "LODCAST_DEVICE_BUDGET_MB"
@@ -253,7 +246,8 @@ def _empty_region(levels: np.ndarray | None) -> Region:
 def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     """The volume data of each pass of `pr` (renderer/render.py's Prepared), uploaded when its pass comes and
     dropped after it, counting into `stats`."""
-    ctx, _ = get_context()
+    eng: Engine = pr.engine
+    ctx = eng.device.context
     mf = cl.mem_flags
     cfg, vol, lod = pr.config, pr.volume, pr.lod
     steps = lod.step_levels if lod is not None and lod.step_levels is not None else np.zeros(8, np.int8)
@@ -261,13 +255,13 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
     if pr.passes is None:
         stats.passes = 1
         if lod is None:
-            dv, hit = upload_level0(vol)
+            dv, hit = upload_level0(eng, vol)
             stats.read, stats.cached = (0, vol.n_blocks) if hit else (vol.n_blocks, 0)
             stats.upload_ms, stats.device_bytes = (0.0 if hit else dv.upload_ms), dv.nbytes
             yield PassData(None, dv.buffer, placeholder, placeholder, steps, np.ones(1, np.uint8), dv.cell_min,
                            dv.cell_max, dv.cell)
         else:
-            da = lod_atlas.device_atlas(vol, lod.levels, with_std=cfg.distribution)
+            da = lod_atlas.device_atlas(eng, vol, lod.levels, with_std=cfg.distribution)
             stats.read, stats.cached, stats.upload_ms, stats.device_bytes = da.read, da.cached, da.upload_ms, da.nbytes
             cells = _cells(pr, da)
             yield PassData(None, da.atlas, da.index, da.std if cfg.distribution else placeholder, steps,
@@ -276,9 +270,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
         return
     # a render beyond the budget has the device to itself, and the host what was kept beside the atlases it drops
     # (their cells and walks: 135 MB of the 8 GiB volume's 30:1 selection, over a quarter of the volume at lossless)
-    device_cache().clear()
-    atlas_cells.clear_cells()
-    walk.clear_walks()
+    eng.clear_passes()
     release_free_memory()  # (freed, they would stay resident under the first pass's data)
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)
     stats.planned = len(regions)
@@ -291,13 +283,13 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
                 shape = tuple(r.stop - r.start for r in reg.data)
                 nbytes = math.prod(shape) * vol.voxel_dtype.itemsize
                 # a CPU device's buffer is host memory: the brick cache gives way to it while the pass lasts
-                held.enter_context(bricks.holding(nbytes))
-                bricks.brick_cache().trim()
-                data = _level0_pass(vol, reg, shape, own, steps, placeholder)
+                held.enter_context(eng.holding(nbytes))
+                eng.bricks.trim()
+                data = _level0_pass(eng.device, vol, reg, shape, own, steps, placeholder)
                 stats.read += int(own.sum())
                 stats.upload_ms += (time.perf_counter() - t) * 1e3
             else:
-                da = lod_atlas.device_atlas(vol, pass_levels(lod.levels, reg), with_std=cfg.distribution,
+                da = lod_atlas.device_atlas(eng, vol, pass_levels(lod.levels, reg), with_std=cfg.distribution,
                                             slices=slices, keep=False)
                 stats.read += da.read
                 stats.cached += da.cached
@@ -313,12 +305,12 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
         release_free_memory()  # the pass's bricks or voxels, freed by many threads, leave the process
 
 
-def _level0_pass(vol, reg: Region, shape: tuple[int, ...], own: np.ndarray, steps: np.ndarray,
+def _level0_pass(dev: Device, vol: Any, reg: Region, shape: tuple[int, ...], own: np.ndarray, steps: np.ndarray,
                  placeholder: cl.Buffer) -> PassData:
     """A full-resolution pass's data: its voxels read straight into a mapped device buffer (no host copy beside
     it), and the value ranges of its cells for empty-space skipping."""
-    buf = level0_buffer(vol, reg.data)
-    cmin, cmax = level0_cells(buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
+    buf = level0_buffer(dev, vol, reg.data)
+    cmin, cmax = level0_cells(dev, buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
     return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size))
 
 
@@ -331,15 +323,15 @@ def _cells(pr, da: "lod_atlas.DeviceAtlas",
         return None
     if cfg.octants and blocks is None:  # reduced from the octants the walk needs as well
         return _cells_and_octants(pr, da)[0]
-    return atlas_cells.atlas_cells(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
+    return atlas_cells.atlas_cells(pr.engine, da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
                                    pr.volume.std_unit if cfg.distribution else 1.0, blocks)
 
 
 def _cells_and_octants(pr, da: "lod_atlas.DeviceAtlas") -> tuple["atlas_cells.AtlasCells", "atlas_cells.AtlasCells"]:
     """The whole atlas's half-block cells and their octants (config.octants), kept beside the atlas."""
     cfg = pr.config
-    return atlas_cells.cells_and_octants(da, pr.volume.grid, int(pr.volume.block_size), cfg.interpolation,
-                                         pr.volume.std_unit if cfg.distribution else 1.0)
+    return atlas_cells.cells_and_octants(pr.engine, da, pr.volume.grid, int(pr.volume.block_size),
+                                         cfg.interpolation, pr.volume.std_unit if cfg.distribution else 1.0)
 
 
 def fill_pass(p: np.ndarray, region: Region | None, pr, first: bool) -> None:

@@ -30,12 +30,12 @@ for constant segments, and tested against the float64 reference for linear ones 
 """
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.scene import TransferFunction
 
 __all__ = ["PreintTable", "preintegrate", "segment_integral", "axis", "PREINT_N"]
@@ -164,17 +164,19 @@ def segment_integral(tf: TransferFunction, sf, sb, ratio: float) -> tuple[np.nda
     return np.nan_to_num(C).reshape(*shape, 3), alpha.reshape(shape)
 
 
-@functools.lru_cache(maxsize=16)
-def _cached(tf_json: str, lo: float, hi: float, ratio: float, n: int) -> PreintTable:
+def preintegrate(tf: TransferFunction, lo: float, hi: float, ratio: float, n: int = PREINT_N,
+                 kept: "ByteLru | None" = None) -> PreintTable:
+    """The table over [lo, hi]² for base segments of `ratio` = step/unit. `kept`: recent tables (an engine's
+    `tables.preint`: a camera change rebuilds nothing, a TF or step change only this table)."""
+    key = (tf.model_dump_json(), float(lo), float(hi), float(ratio), int(n))
+    hit = None if kept is None else kept.get(key)
+    if hit is not None:
+        return hit  # type: ignore[no-any-return]
     t = time.perf_counter()
-    tf = TransferFunction.model_validate_json(tf_json)
-    s, warp = axis(tf, lo, hi, n)
-    C, alpha = segment_integral(tf, s[:, None], s[None, :], ratio)
+    s, warp = axis(tf, key[1], key[2], key[4])
+    C, alpha = segment_integral(tf, s[:, None], s[None, :], key[3])
     tab = np.concatenate([C, alpha[..., None]], -1).astype(np.float32)
-    return PreintTable(s, warp, n, np.ascontiguousarray(tab), (time.perf_counter() - t) * 1e3)
-
-
-def preintegrate(tf: TransferFunction, lo: float, hi: float, ratio: float, n: int = PREINT_N) -> PreintTable:
-    """The table over [lo, hi]² for base segments of `ratio` = step/unit (cached: a camera change rebuilds nothing,
-    a TF or step change only this table)."""
-    return _cached(tf.model_dump_json(), float(lo), float(hi), float(ratio), int(n))
+    out = PreintTable(s, warp, key[4], np.ascontiguousarray(tab), (time.perf_counter() - t) * 1e3)
+    if kept is not None:
+        kept.put(key, out, 1)
+    return out

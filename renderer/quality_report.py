@@ -109,10 +109,12 @@ def reference_scene(scene: dict, store: Any) -> dict:
 
 
 def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = None, repeat: int = 2,
-               log=None, reference: Any = None) -> dict[str, Any]:
+               log=None, reference: Any = None, renderer: Any = None) -> dict[str, Any]:
     """Render every variant (and the reference, unless `reference`, the RenderResult of `reference_scene`, is
-    given); return rows of error and time."""
-    from lodcast.renderer.render import render
+    given) on `renderer` (default: lodcast.render's); return rows of error and time."""
+    from lodcast.renderer.render import default_renderer
+
+    render = (renderer or default_renderer()).render
 
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     variants = list(variants if variants is not None else default_variants())

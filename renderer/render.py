@@ -1,4 +1,9 @@
-"""`lodcast.render(store, scene) -> RenderResult`: one frame through the OpenCL ray caster.
+"""`lodcast.Renderer`, the engine, and `lodcast.render(store, scene) -> RenderResult`: one frame through the OpenCL
+ray caster.
+
+A `Renderer` (an `Engine`, renderer/engine.py, with the verbs) owns the OpenCL device, the caches and the settings;
+`lodcast.render` and the other module-level verbs use a default one, made on first use. Every function below the
+verbs takes the engine it works for.
 
 Quality 'full' reads level 0 as one buffer (LC_SAMPLER_FULL): bricks_read counts level-0 blocks uploaded by this
 call, bricks_cached those already on the device, bricks_skipped the blocks empty-space skipping leaves out (TF
@@ -22,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -30,7 +36,6 @@ from typing import Any, Callable
 import numpy as np
 import pyopencl as cl
 
-from lodcast.environment import environment
 from lodcast.renderer.adaptive_tf import resolve_tfs
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import bricks
@@ -38,7 +43,6 @@ from lodcast.renderer import camera as cam
 from lodcast.renderer import clip as clipping
 from lodcast.renderer import cost
 from lodcast.renderer import dual
-from lodcast.renderer.cache import ByteLru
 from lodcast.renderer import passes as multipass
 from lodcast.renderer.params import ext_table, fill_params, fill_tf2, lut_table, tables
 from lodcast.renderer import screen as screen_space
@@ -48,19 +52,16 @@ from lodcast.renderer.classification import DistTable, cached_dist_table
 from lodcast.renderer.sampler import FINE_CELLS
 from lodcast.renderer.config import EXTREMUM_MODES, PRECISE_SAMPLES, KernelConfig
 from lodcast.renderer.preintegration import PreintTable, preintegrate
-from lodcast.opencl import device_info, get_context, get_program, kernel
+from lodcast.renderer.engine import Engine
 from lodcast.renderer.scene import OrbitCamera, Scene, SceneError
 from lodcast.renderer.structs import STATE_FLOATS
 from lodcast.renderer.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.volume import VOXEL_CTYPES, VolumeView, as_volume
 
-__all__ = ["RenderResult", "Prepared", "render", "prepare", "prefetch", "check_cost", "launch", "kernel_config", "LOCAL_SIZE",
-           "MAX_SAMPLES_PER_RAY"]
+__all__ = ["Renderer", "RenderResult", "Prepared", "default_renderer", "render", "prepare", "prefetch", "check_cost",
+           "launch", "kernel_config", "LOCAL_SIZE", "MAX_SAMPLES_PER_RAY"]
 
 LOCAL_SIZE = (8, 8)
-_SELECTIONS = ByteLru(4)  # the last 4 level-of-detail selections (store, TFs, quality, classification, crop)
-_STEP_ERRORS = ByteLru(8)  # the last 8 predicted step errors (store, TFs, step, crop)
-_STEPS = ByteLru(64 << 20)  # adaptive sampling's step levels of recent selections
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
 MAX_SAMPLES_PER_RAY = 2**30
 
@@ -136,8 +137,10 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
 
 @dataclass(frozen=True)
 class Prepared:
-    """Everything a launch needs, computed on the host (also used by the benchmark's bare march)."""
+    """Everything a launch needs, computed on the host (also used by the benchmark's bare march), and the engine
+    that computed it, whose device and caches the launch uses."""
 
+    engine: Engine
     scene: Scene
     volume: VolumeView
     lut: Lut
@@ -177,7 +180,7 @@ def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tupl
                  None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest())
 
 
-def _step_error(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float:
+def _step_error(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float:
     """selection.step_delta_e for the scene's TFs, step and clip region (kept for the last few: a turntable asks
     for the same each frame); 0 where it does not apply (an array, a projection mode)."""
     if scene.mode != "composite" or not vol.has_levels or vol.key is None:
@@ -187,11 +190,11 @@ def _step_error(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float
 
     tfs, base = _tfs_and_key(vol, scene, keep)
     key = (*base, scene.sampling.step)
-    hit = _STEP_ERRORS.get(key)
+    hit = eng.step_errors.get(key)
     if hit is None:
-        hit = step_delta_e(meta_of_store(vol.source), tfs, scene.sampling.step, keep)
-        _STEP_ERRORS.put(key, hit, 1)
-    return hit
+        hit = step_delta_e(meta_of_store(vol.source, eng.tables), tfs, scene.sampling.step, keep, eng.tables)
+        eng.step_errors.put(key, hit, 1)
+    return hit  # type: ignore[no-any-return]
 
 
 def _view_weighted(scene: Scene, vol: VolumeView) -> bool:
@@ -214,7 +217,7 @@ def _view_key(scene: Scene, fr: cam.Frame, kbox: tuple) -> str:
     return hashlib.sha1(np.round(nums, 9).tobytes() + json.dumps(clip, sort_keys=True).encode()).hexdigest()
 
 
-def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None, keep: np.ndarray | None,
+def _select(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | None, keep: np.ndarray | None,
             view: tuple | None = None) -> tuple[np.ndarray, Any]:
     """The level per block: `levels` as given, or the selection for the scene's TFs and quality, weighted by the
     blocks' visibility from the camera when `view` = (frame, ray box, LUT, unit distance) is given."""
@@ -232,24 +235,25 @@ def _select(vol: VolumeView, scene: Scene, levels: np.ndarray | None, keep: np.n
     classification = scene.sampling.classification if scene.mode == "composite" else "mean"
     # without the view's weight the selection does not depend on the view: a turntable selects once
     key = None if vol.key is None else (*base, json.dumps(quality, sort_keys=True), classification,
-                                        environment().lossless_zeta,
+                                        eng.settings.lossless_zeta,
                                         None if view is None else _view_key(scene, view[0], view[1]))
-    sel = _SELECTIONS.get(key) if key is not None else None
+    sel = eng.selections.get(key) if key is not None else None
     if sel is None:
-        seen = None if view is None else visibility.block_visibility(vol, scene, *view)
-        sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification, visibility=seen)
+        seen = None if view is None else visibility.block_visibility(eng, vol, scene, *view)
+        sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification, visibility=seen,
+                         lossless_zeta=eng.settings.lossless_zeta, tables=eng.tables)
         if key is not None:
-            _SELECTIONS.put(key, sel, 1)
+            eng.selections.put(key, sel, 1)
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
 
 
-def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
+def _lod_plan(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
               mode: str, keep: np.ndarray | None,
               view: tuple | None = None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
     """The selection (blocks outside the clip region `keep` not loaded; weighted by what the camera sees when
     `view` is given, see _select), the block info with unloaded blocks marked empty, the number of empty blocks,
     and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0)."""
-    lv, sel = _select(vol, scene, levels, keep, view)
+    lv, sel = _select(eng, vol, scene, levels, keep, view)
     if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
         # the default: every block at level 0 leaves nothing to step over
         cfg = replace(cfg, adaptive=False, lattice=False)
@@ -273,20 +277,20 @@ def _lod_plan(vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np
     steps = None
     if cfg.adaptive:
         skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
-        steps = _step_levels(lv, int(B), skip)
+        steps = _step_levels(eng, lv, int(B), skip)
     return LodPlan(lv, reduction, pred, steps, sel, view is not None), info, n_empty, cfg
 
 
-def _step_levels(lv: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
+def _step_levels(eng: Engine, lv: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
     """atlas.step_levels, kept for the last few (levels, skip) pairs: a turntable asks for the same each frame, and
     on a grid of a million blocks it costs 0.6 s."""
     key = (block_size, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
            None if skip is None else hashlib.sha1(np.packbits(skip).tobytes()).hexdigest())
-    hit = _STEPS.get(key)
+    hit = eng.steps.get(key)
     if hit is None:
         hit = lod_atlas.step_levels(lv, block_size, skip)
-        _STEPS.put(key, hit, hit.nbytes)
-    return hit
+        eng.steps.put(key, hit, hit.nbytes)
+    return hit  # type: ignore[no-any-return]
 
 
 def geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
@@ -300,39 +304,36 @@ def geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, fl
     return box, fr, kbox, scene.sampling.step * float(min(vol.spacing))
 
 
-def _cost(scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float, sample_limit: int | None) -> int:
+def _cost(eng: Engine, scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float,
+          sample_limit: int | None) -> int:
     estimated = cost.estimate_samples(fr, kbox, scene.width, scene.height, step_world)
-    limit = cost.max_samples_limit() if sample_limit is None else sample_limit
+    limit = eng.settings.max_samples if sample_limit is None else sample_limit
     cost.refuse_over_limit(estimated, limit, scene.width, scene.height, scene.sampling.step)
     return estimated
 
 
-def resolved(scene: Scene, vol: VolumeView) -> Scene:
+def resolved(eng: Engine, scene: Scene, vol: VolumeView) -> Scene:
     """`scene` as it renders on `vol`: adaptive TFs as the control points they take on it, an orbit camera's
     named view as its azimuth and elevation."""
-    update = resolve_tfs(scene, vol)
+    update = resolve_tfs(scene, vol, eng.tables.peaks)
     if isinstance(scene.camera, OrbitCamera) and scene.camera.view is not None:
         update["camera"] = cam.resolve_view(scene.camera, getattr(vol.source, "orientation", None))
     return scene.model_copy(update=update) if update else scene
 
 
-def check_cost(store: Any, scene: Any, sample_limit: int | None = None) -> int:
-    """The samples `scene` of `store` would take (renderer/cost.py), before anything is loaded or built; raises
-    CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES or 2·10⁹)."""
-    vol = as_volume(store)
-    scene = resolved(Scene.parse(scene), vol)
+def _check_cost(eng: Engine, store: Any, scene: Any, sample_limit: int | None = None) -> int:
+    vol = as_volume(store, stores=eng.stores)
+    scene = resolved(eng, Scene.parse(scene), vol)
     _, fr, kbox, step_world = geometry(vol, scene)
-    return _cost(scene, fr, kbox, step_world, sample_limit)
+    return _cost(eng, scene, fr, kbox, step_world, sample_limit)
 
 
-def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None,
-            sample_limit: int | None = None) -> Prepared:
-    """Everything a launch needs. `sample_limit`: the most samples the render may take (estimated before it starts:
-    renderer/cost.py), default LODCAST_MAX_SAMPLES or 2·10⁹; above it CostError (a SceneError) names the field."""
-    vol = as_volume(store, spacing=spacing, origin=origin)
-    scene = resolved(Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
+def _prepare(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+             levels: np.ndarray | None = None, sample_limit: int | None = None) -> Prepared:
+    vol = as_volume(store, spacing=spacing, origin=origin, stores=eng.stores)
+    scene = resolved(eng, Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
     box, fr, kbox, step_world = geometry(vol, scene)
-    estimated = _cost(scene, fr, kbox, step_world, sample_limit)
+    estimated = _cost(eng, scene, fr, kbox, step_world, sample_limit)
     unit = unit_distance(scene.tf, vol.spacing)
     diag = float(np.linalg.norm(box[1] - box[0]))
     max_samples = int(math.ceil(diag / step_world)) + 2
@@ -356,16 +357,16 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
                         voxel=VOXEL_CTYPES[vol.voxel_dtype], block_size=int(vol.block_size), n_blocks=vol.n_blocks)
     if use_lod:
         view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene, vol) else None
-        lod, info, n_empty, cfg = _lod_plan(vol, scene, levels, info, cfg, scene.mode, keep, view)
+        lod, info, n_empty, cfg = _lod_plan(eng, vol, scene, levels, info, cfg, scene.mode, keep, view)
         if scene.mode == "composite" and vol.has_cell_ranges and (lod.levels >= 1).any():
             cfg = replace(cfg, ess=True)  # the walk leaves out coarse cells empty at level 0 (walk.py: _cell_info), always
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
-    dist, pre = _classification_tables(scene.tf, lut, unit, cfg, vol, step_world)
+    dist, pre = _classification_tables(eng, scene.tf, lut, unit, cfg, vol, step_world)
     params = fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
     prio = None
     if second is not None:
-        dist2, pre2 = _classification_tables(second.tf, second.lut, second.unit, cfg, vol, step_world)
+        dist2, pre2 = _classification_tables(eng, second.tf, second.lut, second.unit, cfg, vol, step_world)
         second = replace(second, dist=dist2, preint=pre2)
         if scene.sampling.priority_map:
             prio = dual.priority_map(fr, (info.astype(np.int64) & 2) > 0, vol.shape, vol.spacing, vol.origin,
@@ -373,21 +374,21 @@ def prepare(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.nda
     plan = _screen_plan(vol, scene, fr, info, lod) if cfg.screen else None
     if plan is not None:
         params[0]["screen_n"] = plan.rays
-    pp = _pass_plan(vol, scene, fr, cfg, info, lod)
+    pp = _pass_plan(eng, vol, scene, fr, cfg, info, lod)
     if pp is not None:
         cfg = replace(cfg, passes=True)
-    pr = Prepared(scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second, prio,
-                  plan, pp, _step_error(vol, scene, keep), cam.ray_octants(fr))
+    pr = Prepared(eng, scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second,
+                  prio, plan, pp, _step_error(eng, vol, scene, keep), cam.ray_octants(fr))
     if second is not None:
         fill_tf2(params, pr)
     return pr
 
 
-def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, info: np.ndarray,
+def _pass_plan(eng: Engine, vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, info: np.ndarray,
                lod: "LodPlan | None") -> "multipass.PassPlan | None":
     """The passes of a render whose volume data exceeds the device budget or one allocation (renderer/passes.py),
     None for one pass."""
-    limit, what = multipass.volume_limit(lod_atlas.max_alloc_bytes())
+    limit, what = multipass.volume_limit(eng)
 
     def unsampled() -> np.ndarray:
         if cfg.adaptive and lod is not None and lod.step_levels is not None:  # cells of level -1 are never sampled
@@ -409,12 +410,13 @@ def _pass_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, 
     return pp
 
 
-def _classification_tables(tf, lut: Lut, unit: float, cfg: KernelConfig, vol: VolumeView,
+def _classification_tables(eng: Engine, tf: Any, lut: Lut, unit: float, cfg: KernelConfig, vol: VolumeView,
                            step_world: float) -> tuple[DistTable | None, PreintTable | None]:
     """One TF's distribution table (LC_DIST) and pre-integration table (LC_PREINT: over its LUT's value range,
     for segments of the base step), where the kernel uses them."""
-    dist = cached_dist_table(tf, vol.value_range, vol.std_max) if cfg.distribution else None
-    pre = preintegrate(tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit) if cfg.preint else None
+    dist = cached_dist_table(tf, vol.value_range, vol.std_max, eng.tables.dist) if cfg.distribution else None
+    pre = (preintegrate(tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit, kept=eng.tables.preint)
+           if cfg.preint else None)
     return dist, pre
 
 
@@ -476,30 +478,24 @@ def _priority_report(pr: Prepared, nsamp: np.ndarray) -> dict | None:
             "samples_other": int(nsamp[~m].sum(dtype=np.int64))}
 
 
-def prefetch(store: Any, scene: Any) -> int:
-    """Read the bricks a render of `scene` will need (its level-of-detail selection, and the distributions behind
-    coarse bricks) into the brick cache, without touching the device but for the small cast that weighs the
-    selection by the view (visibility.py, on a queue of its own): a job calls it for its next frame while the
-    current one renders. The bricks read from the store (0: all cached already, or a scene at quality "full",
-    whose level 0 goes to the device whole)."""
-    pr = prepare(store, scene)
+def _prefetch(eng: Engine, store: Any, scene: Any) -> int:
+    pr = _prepare(eng, store, scene)
     if pr.lod is None or pr.volume.key is None:
         return 0
     n = 0
     for what in ("mean", "std") if pr.config.distribution else ("mean",):
         st = bricks.BrickStats()
-        for _ in bricks.iter_bricks(pr.volume, pr.lod.levels, what=what, stats=st):
+        for _ in bricks.iter_bricks(eng, pr.volume, pr.lod.levels, what=what, stats=st):
             pass  # into the brick cache only: holding them all here would cost the selection's size
         n += st.read
     return n
 
 
-def launch(kern: cl.Kernel, width: int, height: int, *, estimated_samples: int = 0,
+def launch(queue: cl.CommandQueue, kern: cl.Kernel, width: int, height: int, *, estimated_samples: int = 0,
            stop: Callable[[], None] | None = None) -> list[cl.Event]:
     """Enqueue the image as bands of rows of about BAND_SAMPLES estimated samples each (one band for most renders),
     calling `stop()` after each band but the last: it raises to end the render there (a client gone, a deadline),
     so that no render is beyond reach for longer than one band. The events of the bands launched."""
-    _, queue = get_context()
     lx, ly = LOCAL_SIZE
     gx = int(math.ceil(width / lx) * lx)
     bands = max(1, math.ceil(estimated_samples / BAND_SAMPLES)) if stop is not None else 1
@@ -514,17 +510,14 @@ def launch(kern: cl.Kernel, width: int, height: int, *, estimated_samples: int =
     return events
 
 
-def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndarray | None = None,
-           sample_limit: int | None = None, stop: Callable[[], None] | None = None) -> RenderResult:
-    """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path, or a 3D array with
-    optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad input.
-    `levels` (grid-shaped, store level per block, -1 = not loaded) replaces the LOD selection (tests,
-    experiments): the atlas path renders it whatever the quality. `sample_limit`: see `prepare`. `stop`: called between
-    launch bands (see `launch`); whatever it raises ends the render there."""
+def _render(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+            levels: np.ndarray | None = None, sample_limit: int | None = None,
+            stop: Callable[[], None] | None = None) -> RenderResult:
     t_start = time.perf_counter()
-    pr = prepare(store, scene, spacing=spacing, origin=origin, levels=levels, sample_limit=sample_limit)
+    pr = _prepare(eng, store, scene, spacing=spacing, origin=origin, levels=levels, sample_limit=sample_limit)
     scene, vol, lut, cfg = pr.scene, pr.volume, pr.lut, pr.config
-    ctx, queue = get_context()
+    dev = eng.device
+    ctx, queue = dev.context, dev.queue
     mf = cl.mem_flags
     W, H = scene.width, scene.height
     d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
@@ -554,9 +547,9 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
             if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and (walk > 0).all():
                 cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
             options = cfg.build_options()
-            built = get_program("raycast.cl", options)
+            built = dev.program("raycast.cl", options)
             # (a pass's buffers go as it ends: a kept kernel would hold the last one's)
-            kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else kernel(built, "lc_render")
+            kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else dev.kernel(built, "lc_render")
         steps, walk, leaps = adaptive_walk(pr, cfg, data, walk, leaps)
         d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
         planes, p[0]["leap_planes"] = ((np.zeros(1, np.uint8), 0xFFFFFFFF) if leaps is None or not cfg.leap
@@ -567,7 +560,7 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
         kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,
                       d_ptab, d_prio, d_spos, d_own, d_state, d_leaps)
-        evs += launch(kern, W, rows, estimated_samples=pr.estimated_samples // stats.planned, stop=stop)
+        evs += launch(queue, kern, W, rows, estimated_samples=pr.estimated_samples // stats.planned, stop=stop)
         if pr.passes is not None:
             evs[-1].wait()  # this pass's data may go before the next is uploaded
         del data
@@ -626,6 +619,99 @@ def render(store: Any, scene: Any, *, spacing=None, origin=None, levels: np.ndar
         "passes": stats.passes,
         "width": W,
         "height": H,
-        "device": device_info()["name"],
+        "device": dev.info()["name"],
     }
     return RenderResult(rgba, report, scene.model_dump(mode="json"))
+
+
+class Renderer(Engine):
+    """The rendering engine: an OpenCL device (context and queue), the brick and device caches, the selection, walk,
+    significance and step-error caches, the opened stores, and the settings read from the environment once, when
+    it is made (each keyword overrides its ``LODCAST_*`` variable: `device` LODCAST_DEVICE, `device_budget_mb`
+    LODCAST_DEVICE_BUDGET_MB (10⁶ bytes), `brick_cache_mb` LODCAST_BRICK_CACHE_MB and `device_cache_mb`
+    LODCAST_DEVICE_CACHE_MB (MiB)). Its verbs are thread-safe; two renderers share nothing but the kernel
+    binaries cached on disk. `lodcast.render` and the other module-level verbs use `default_renderer()`."""
+
+    def __init__(self, *, device: str | None = None, device_budget_mb: float | None = None,
+                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> None:
+        super().__init__(device=device, device_budget_mb=device_budget_mb, brick_cache_mb=brick_cache_mb,
+                         device_cache_mb=device_cache_mb)
+
+    def render(self, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+               levels: np.ndarray | None = None, sample_limit: int | None = None,
+               stop: Callable[[], None] | None = None) -> RenderResult:
+        """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path or URL, or a 3D
+        array with optional `spacing`/`origin`, z-y-x). Raises SceneError (a ValueError) naming the field on bad
+        input. `levels` (grid-shaped, store level per block, -1 = not loaded) replaces the LOD selection (tests,
+        experiments): the atlas path renders it whatever the quality. `sample_limit`: see `prepare`. `stop`:
+        called between launch bands (see `launch`); whatever it raises ends the render there."""
+        return _render(self, store, scene, spacing=spacing, origin=origin, levels=levels,
+                       sample_limit=sample_limit, stop=stop)
+
+    def prepare(self, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+                levels: np.ndarray | None = None, sample_limit: int | None = None) -> Prepared:
+        """Everything a launch needs. `sample_limit`: the most samples the render may take (estimated before it
+        starts: renderer/cost.py), default LODCAST_MAX_SAMPLES or 2·10⁹; above it CostError (a SceneError) names
+        the field."""
+        return _prepare(self, store, scene, spacing=spacing, origin=origin, levels=levels,
+                        sample_limit=sample_limit)
+
+    def prefetch(self, store: Any, scene: Any) -> int:
+        """Read the bricks a render of `scene` will need (its level-of-detail selection, and the distributions
+        behind coarse bricks) into the brick cache, without touching the device but for the small cast that weighs
+        the selection by the view (visibility.py, on a queue of its own): a job calls it for its next frame while
+        the current one renders. The bricks read from the store (0: all cached already, or a scene at quality
+        "full", whose level 0 goes to the device whole)."""
+        return _prefetch(self, store, scene)
+
+    def check_cost(self, store: Any, scene: Any, sample_limit: int | None = None) -> int:
+        """The samples `scene` of `store` would take (renderer/cost.py), before anything is loaded or built;
+        raises CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES)."""
+        return _check_cost(self, store, scene, sample_limit)
+
+    def visibility(self, store: Any, scene: Any) -> np.ndarray:
+        """Per block, what the camera of `scene` sees of it (visibility.block_visibility), as a render computes it
+        for its selection: to look at, or to select with outside a render (selection.select_lod's
+        `visibility`)."""
+        vol = as_volume(store, stores=self.stores)
+        sc = resolved(self, Scene.parse(scene), vol)
+        _, fr, kbox, _ = geometry(vol, sc)
+        return visibility.block_visibility(self, vol, sc, fr, kbox, build_lut(sc.tf, vol.value_range),
+                                           unit_distance(sc.tf, vol.spacing))
+
+
+_DEFAULT: list[Renderer] = []  # the default renderer, made on first use (default_renderer)
+_DEFAULT_LOCK = threading.Lock()
+
+
+def default_renderer() -> Renderer:
+    """The renderer `lodcast.render` and the other module-level verbs use, made on first use with the environment
+    as it is then."""
+    with _DEFAULT_LOCK:
+        if not _DEFAULT:
+            _DEFAULT.append(Renderer())
+        return _DEFAULT[0]
+
+
+def render(store: Any, scene: Any, *, spacing: Any = None, origin: Any = None, levels: np.ndarray | None = None,
+           sample_limit: int | None = None, stop: Callable[[], None] | None = None) -> RenderResult:
+    """`Renderer.render` on the default renderer."""
+    return default_renderer().render(store, scene, spacing=spacing, origin=origin, levels=levels,
+                                     sample_limit=sample_limit, stop=stop)
+
+
+def prepare(store: Any, scene: Any, *, spacing: Any = None, origin: Any = None, levels: np.ndarray | None = None,
+            sample_limit: int | None = None) -> Prepared:
+    """`Renderer.prepare` on the default renderer."""
+    return default_renderer().prepare(store, scene, spacing=spacing, origin=origin, levels=levels,
+                                      sample_limit=sample_limit)
+
+
+def prefetch(store: Any, scene: Any) -> int:
+    """`Renderer.prefetch` on the default renderer."""
+    return default_renderer().prefetch(store, scene)
+
+
+def check_cost(store: Any, scene: Any, sample_limit: int | None = None) -> int:
+    """`Renderer.check_cost` on the default renderer."""
+    return default_renderer().check_cost(store, scene, sample_limit)

@@ -1,39 +1,25 @@
 """Device-side voxels kept between renders: level 0 as one buffer for quality "full" (the store's integer type up
 to 16 bits, else float32: volume.device_dtype; on PoCL trilinear
 from a plain buffer measured ~2x faster than from a 3D image), and the device cache that keeps those buffers and
-the LOD atlases (`atlas.device_atlas`) resident, LRU by bytes (``LODCAST_DEVICE_CACHE_MB``, default 1024): a service
+the LOD atlases (`atlas.device_atlas`) resident: the engine's `device_cache` (renderer/engine.py), LRU by bytes
+(``LODCAST_DEVICE_CACHE_MB``, default 1024, and never more than the device budget): a service
 alternating between a few volumes or selections uploads nothing. The newest entry stays even when it alone exceeds
 the budget (the next render of the same volume is the likeliest); a render holds its own reference to the buffers
 it uses, so evicting an entry in use is safe."""
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
 
-from lodcast.environment import environment
-from lodcast.renderer.cache import ByteLru
-from lodcast.opencl import DeviceError, get_context
+from lodcast.opencl import Device, DeviceError
+from lodcast.renderer.engine import Engine
 from lodcast.renderer.volume import VolumeView, voxel_options
 from lodcast.store.layout import cell_edge
 
-__all__ = ["DeviceVolume", "upload_level0", "level0_buffer", "voxel_offset", "device_cache", "ess_cell", "level0_cells"]
-
-
-def _device_cache_bytes() -> int:
-    env = environment()  # a budget bounds what the cache keeps on the device too
-    budget, cap = env.device_budget_bytes, env.device_cache_bytes
-    return cap if budget is None else min(cap, budget)
-
-
-@functools.cache
-def device_cache() -> ByteLru:
-    """The process's device cache (level-0 volumes and LOD atlases), bounded by ``LODCAST_DEVICE_CACHE_MB`` and by
-    ``LODCAST_DEVICE_BUDGET_MB`` when that is set (both read at every insertion)."""
-    return ByteLru(_device_cache_bytes, keep_last=True)
+__all__ = ["DeviceVolume", "upload_level0", "level0_buffer", "voxel_offset", "ess_cell", "level0_cells"]
 
 
 #: full resolution keeps the ranges of cells of 4³ voxels while their grid has at most this many cells, else the
@@ -55,14 +41,12 @@ def ess_cell(shape: tuple[int, ...], block_size: int) -> int:
     return c
 
 
-def level0_cells(buf: cl.Buffer, sub_shape: tuple[int, int, int], start: tuple[int, int, int],
+def level0_cells(dev: Device, buf: cl.Buffer, sub_shape: tuple[int, int, int], start: tuple[int, int, int],
                  blocks: tuple[slice, slice, slice], vol: VolumeView) -> tuple[np.ndarray, np.ndarray]:
     """The border-inclusive (min, max) of the ess_cell cells of `blocks`, from level-0 voxels on the device (`buf`:
     `sub_shape` voxels from voxel `start`, z-y-x, holding those cells and their borders), in float32 arrays over
     the volume's whole cell grid (NaN elsewhere: no value, nothing to see). Computed on the device (cells.cl)."""
-    from lodcast.opencl import get_program
-
-    ctx, queue = get_context()
+    ctx, queue = dev.context, dev.queue
     C, B = ess_cell(vol.shape, vol.block_size), int(vol.block_size)
     k = B // C
     grid = tuple(-(-s // C) for s in vol.shape)
@@ -74,7 +58,7 @@ def level0_cells(buf: cl.Buffer, sub_shape: tuple[int, int, int], start: tuple[i
     parts = [np.empty(n, np.float32) for _ in range(2)]
     d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=p.nbytes) for p in parts]
     xyz = lambda v: np.array([v[2], v[1], v[0], 0], np.int32)  # noqa: E731
-    kern = cl.Kernel(get_program("cells.cl", voxel_options(vol.voxel_dtype)).program, "lc_cell_range")
+    kern = cl.Kernel(dev.program("cells.cl", voxel_options(vol.voxel_dtype)).program, "lc_cell_range")
     kern(queue, (n[2], n[1], n[0]), None, buf, xyz(sub_shape), xyz(start), xyz(vol.shape), np.int32(C),
          xyz([c.start for c in cells]), xyz(n), *d_out)
     for p, d in zip(parts, d_out):
@@ -103,11 +87,11 @@ def voxel_offset(z, y, x, shape_zyx) -> np.ndarray:
     return (z * ny + y) * nx + x
 
 
-def level0_buffer(vol: VolumeView, region: tuple[slice, slice, slice]) -> cl.Buffer:
+def level0_buffer(dev: Device, vol: VolumeView, region: tuple[slice, slice, slice]) -> cl.Buffer:
     """A device buffer of level 0's voxels `region` (z-y-x slices), read straight into its host mapping: no host
     array beside it (reading the chest CT's level 0 into a new array and copying it took 0.25 s more of a first
     full-resolution render, and the array's 144 MB were touched twice)."""
-    ctx, queue = get_context()
+    ctx, queue = dev.context, dev.queue
     shape = tuple(s.stop - s.start for s in region)
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=max(4, int(np.prod(shape)) * vol.voxel_dtype.itemsize))
     host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape, vol.voxel_dtype)
@@ -119,13 +103,12 @@ def level0_buffer(vol: VolumeView, region: tuple[slice, slice, slice]) -> cl.Buf
     return buf
 
 
-def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
-    """(device volume, whether it came from the cache). Raises DeviceError when level 0 exceeds the device's
-    largest allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)."""
-    ctx, _ = get_context()
+def upload_level0(eng: Engine, vol: VolumeView) -> tuple[DeviceVolume, bool]:
+    """(device volume, whether it came from `eng`'s device cache). Raises DeviceError when level 0 exceeds the
+    device's largest allocation (CL_DEVICE_MAX_MEM_ALLOC_SIZE)."""
     dtype = vol.voxel_dtype
     nbytes = vol.n_voxels * dtype.itemsize
-    limit = int(ctx.devices[0].max_mem_alloc_size)
+    limit = eng.device.max_alloc_bytes
     if nbytes > limit:
         raise DeviceError(
             f"level 0 of this volume needs {nbytes / 2**30:.2f} GiB as {dtype.name}, more than the device's largest "
@@ -133,14 +116,14 @@ def upload_level0(vol: VolumeView) -> tuple[DeviceVolume, bool]:
             "on this device"
         )
     key = ("level0", vol.key)
-    hit = device_cache().get(key) if vol.key is not None else None
+    hit = eng.device_cache.get(key) if vol.key is not None else None
     if hit is not None:
         return hit, True
     t = time.perf_counter()
-    buf = level0_buffer(vol, tuple(slice(0, n) for n in vol.shape))
-    cmin, cmax = level0_cells(buf, vol.shape, (0, 0, 0), tuple(slice(0, g) for g in vol.grid), vol)
+    buf = level0_buffer(eng.device, vol, tuple(slice(0, n) for n in vol.shape))
+    cmin, cmax = level0_cells(eng.device, buf, vol.shape, (0, 0, 0), tuple(slice(0, g) for g in vol.grid), vol)
     dv = DeviceVolume(buf, (vol.shape[2], vol.shape[1], vol.shape[0]), nbytes, (time.perf_counter() - t) * 1e3,
                       cmin, cmax, ess_cell(vol.shape, vol.block_size))
     if vol.key is not None:
-        device_cache().put(key, dv, dv.nbytes)
+        eng.device_cache.put(key, dv, dv.nbytes)
     return dv, False

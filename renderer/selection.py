@@ -76,11 +76,10 @@ with IMAGE_GAIN the budgeted rows were predicted 1.5× high on average and up to
 
 TF-empty blocks are excluded from the prediction (they show nothing either way), as are blocks outside the crop.
 "lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at most LODCAST_LOSSLESS_ZETA
-(`environment().lossless_zeta`, 0.5 unless set).
+(an engine's setting; LOSSLESS_ZETA, 0.5, unless set).
 """
 from __future__ import annotations
 
-import functools
 import json
 import weakref
 from dataclasses import dataclass
@@ -88,20 +87,21 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from lodcast.environment import environment
 from lodcast.renderer.clip import block_bounds
 from lodcast.renderer.level_error import block_zetas
-from lodcast.renderer.cache import ByteLru
+from lodcast.renderer.engine import Tables
 from lodcast.renderer.significance import (BlockMeta, as_tf, block_significance, level_profile, meta_of_store,
                                            tf_visible)
 
-__all__ = ["LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "step_delta_e",
+__all__ = ["LOSSLESS_ZETA", "LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "step_delta_e",
            "BYTES_PER_SAMPLE", "MB"]
 
 BYTES_PER_SAMPLE = 4
 MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
 
 METHODS = ("tf", "tf_full_hist", "l2", "uniform")
+#: the ΔE per block that "lossless" allows by default (LODCAST_LOSSLESS_ZETA overrides it in an engine)
+LOSSLESS_ZETA = 0.5
 #: image-space calibration of the predicted ΔE (see module doc): fitted on the chest CT (ct-bone, ct-skin,
 #: ct-skin-bone, two views, lossless ... 100:1, geometric mean of measured / predicted = 1): mean ΔE ≈
 #: IMAGE_GAIN · RMS(ζ) / ā, ā the opacity-weighted mean opacity of the loaded voxels (translucent structures add
@@ -373,7 +373,8 @@ def _image_gain(opac: np.ndarray, count: np.ndarray, loaded: np.ndarray, gain: f
     return gain / max(m2 / m1 if m1 > 0 else 1.0, MIN_OPACITY)
 
 
-def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.ndarray | None = None) -> float:
+def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.ndarray | None = None,
+                 tables: Tables | None = None) -> float:
     """The predicted mean ΔE that sampling every `step` voxels adds against the reference (step ¼, DESIGN.md):
     STEP_GAIN · step² · RMS / ā. RMS: of ζ_step (level_error.step_zeta: the colour change over one voxel along a
     ray) over the visible blocks in the crop, weighted by their voxels; ā as for the level of detail (ζ_step is a
@@ -382,7 +383,7 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
     (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
     if meta.level_std is None or meta.n_levels < 2:
         return 0.0
-    _, z, opac, visible = _max_tables(meta, tfs, "distribution")  # ζ_step: the same under either classification
+    _, z, opac, visible = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
     loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
     w = np.nan_to_num(meta.count[loaded].astype(np.float64))
     if not loaded.any() or w.sum() <= 0:
@@ -403,6 +404,8 @@ def select_from_meta(
     method: str = "tf",
     classification: str = "distribution",
     visibility: np.ndarray | None = None,
+    lossless_zeta: float = LOSSLESS_ZETA,
+    tables: Tables | None = None,
 ) -> LodSelection:
     """select_lod on flattened block metadata (what the benchmarks and tests drive directly)."""
     if method not in METHODS:
@@ -419,7 +422,7 @@ def select_from_meta(
     opac = None
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
         zeta_tab, _, opac, visible = _max_tables(
-            meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs, classification)
+            meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs, classification, tables)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
@@ -451,10 +454,10 @@ def select_from_meta(
         base_samples = int(loaded.sum()) * int(nsamp[L - 1])
         if kind == "lossless" and per_level:
             # the coarsest level each block shows within ζ of its level-0 colours (ζ · IMAGE_GAIN / ā, the predicted
-            # ΔE, at most environment().lossless_zeta)
+            # ΔE, at most lossless_zeta)
             # (levels finer than a block's max level count as fine: they are not allowed anyway)
             gain = _image_gain(opac, weight, loaded)
-            ok = (zeta_w * gain <= environment().lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
+            ok = (zeta_w * gain <= lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
             first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
             levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
         elif kind == "lossless":
@@ -495,37 +498,33 @@ def select_from_meta(
     )
 
 
-@functools.cache
-def _tables_cache() -> ByteLru:
-    """The tables of recent (store, TF, classification): a turntable asks for the same each frame."""
-    return ByteLru(256 << 20)
-
-
-def _tf_tables(meta: BlockMeta, tf: Any, classification: str) -> tuple[np.ndarray, ...]:
+def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | None) -> tuple[np.ndarray, ...]:
     """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,)) of
     one TF (level_error.block_zetas). They depend on the store and the TF, not on the view or the budget, and cost
-    0.1-0.2 s on the chest CT at 16³ blocks (0.5 s at 8³): kept for the last few (keyed by the metadata object,
-    which the store caches)."""
+    a noticeable part of a first render: kept for the last few in `tables` (keyed by the metadata object, which
+    `tables` keeps per store)."""
     key = (id(meta), json.dumps(as_tf(tf).model_dump(mode="json"), sort_keys=True), classification)
-    hit = _tables_cache().get(key)
+    hit = None if tables is None else tables.tf.get(key)
     if hit is not None and hit[0]() is meta:
-        return hit[1]
+        return hit[1]  # type: ignore[no-any-return]
     visible = tf_visible(tf, meta.min_border, meta.max_border)
-    zeta, step, opac = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification)
+    zeta, step, opac = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables)
     out = (zeta.astype(np.float32), step, opac, visible)
     for a in out:
         a.setflags(write=False)
-    _tables_cache().put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
+    if tables is not None:
+        tables.tf.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
     return out
 
 
-def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str) -> tuple[np.ndarray, ...]:
+def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
+                tables: Tables | None = None) -> tuple[np.ndarray, ...]:
     """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,)): the elementwise maxima
     over the TFs of their tables (zeros where no TF gives more)."""
     zeta, step = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros(meta.n)
     opac, visible = np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
     for t in tfs:
-        z_t, s_t, o_t, vis_t = _tf_tables(meta, t, classification)
+        z_t, s_t, o_t, vis_t = _tf_tables(meta, t, classification, tables)
         zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
         opac, visible = np.maximum(opac, o_t), visible | vis_t
     return zeta, step, opac, visible
@@ -537,8 +536,10 @@ def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
     return zeta0_l2(meta, visible)
 
 
-def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np.ndarray | None = None,
-               classification: str = "distribution", visibility: np.ndarray | None = None) -> LodSelection:
+def select_lod(store: Any, tfs: Any, quality: Any, crop: Any = None, method: str = "tf",
+               max_level: np.ndarray | None = None, classification: str = "distribution",
+               visibility: np.ndarray | None = None, lossless_zeta: float = LOSSLESS_ZETA,
+               tables: Tables | None = None) -> LodSelection:
     """Select a level per block for `tfs` (one TF, or a list: ζ is the max over them) under `quality`
     ("full" | "lossless" | {"budget_mb": x} | {"reduction": r}, or the scene's quality objects).
 
@@ -547,8 +548,10 @@ def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np
     "l2" (data-error significance, same greedy) or "uniform" (one level for every loaded block, the finest that
     fits). `zeta` and `predicted_delta_e` are always the ΔE significance (simplified, or full for tf_full_hist).
     visibility: optional grid-shaped weight per block in [0, 1], what the camera sees of it (visibility.py): the TF
-    methods weigh ζ by it and the prediction counts each block's voxels times it (module doc)."""
-    meta = meta_of_store(store)
+    methods weigh ζ by it and the prediction counts each block's voxels times it (module doc).
+    lossless_zeta: the ΔE per block that "lossless" allows (an engine passes LODCAST_LOSSLESS_ZETA). tables: what
+    was computed for this store and these TFs before (an engine's), kept there; None: computed afresh."""
+    meta = meta_of_store(store, tables)
     in_crop = None
     if isinstance(crop, np.ndarray) and crop.dtype == bool:
         in_crop = crop  # a block mask already (renderer/clip.py: the scene's clip region)
@@ -567,4 +570,6 @@ def select_lod(store, tfs, quality, crop=None, method: str = "tf", max_level: np
         method=method,
         classification=classification,
         visibility=visibility,
+        lossless_zeta=lossless_zeta,
+        tables=tables,
     )

@@ -48,6 +48,7 @@ one-sample level, zero at full resolution.
 """
 from __future__ import annotations
 
+import functools
 import os
 import weakref
 from concurrent.futures import ThreadPoolExecutor
@@ -227,7 +228,7 @@ def tf_visible(tf: TransferFunction, vmin, vmax) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- block data
-@dataclass(frozen=True, eq=False)  # identity hash: cached per object
+@dataclass(frozen=True, eq=False)  # identity hash: tables are kept per object
 class BlockMeta:
     """What significance needs of a store, flattened over blocks (C order of the grid)."""
 
@@ -255,19 +256,21 @@ class BlockMeta:
             raise ValueError("full histograms are not available")
         return np.asarray(h).reshape(self.n, -1)
 
-
-_META_CACHE: "weakref.WeakKeyDictionary[Any, BlockMeta]" = weakref.WeakKeyDictionary()
-_PRE_CACHE: "weakref.WeakKeyDictionary[Any, _Pre]" = weakref.WeakKeyDictionary()
+    @functools.cached_property
+    def pre(self) -> "_Pre":
+        """The TF-independent part of eq. 3.1's O(K) evaluation, computed once per metadata object."""
+        return _precompute(self)
 
 
 def _hist_reader(ref):
     return lambda: ref().hist
 
 
-def meta_of_store(store) -> BlockMeta:
-    """The store's block metadata, flattened (cached per store object)."""
+def meta_of_store(store: Any, tables: Any = None) -> BlockMeta:
+    """The store's block metadata, flattened; kept per store object in `tables` (an engine's Tables) when given."""
+    kept = None if tables is None else tables.meta
     try:
-        return _META_CACHE[store]
+        return kept[store]  # type: ignore[index,no-any-return]
     except (KeyError, TypeError):
         pass
     st = store.stats
@@ -288,10 +291,11 @@ def meta_of_store(store) -> BlockMeta:
         value_range=tuple(float(v) for v in store.value_range),
         std_max=float(getattr(store, "std_max", 0.0)),
     )
-    try:
-        _META_CACHE[store] = meta
-    except TypeError:
-        pass
+    if kept is not None:
+        try:
+            kept[store] = meta
+        except TypeError:
+            pass
     return meta
 
 
@@ -337,10 +341,6 @@ def effective_starts(meta: BlockMeta) -> np.ndarray:
 
 
 def _precompute(meta: BlockMeta) -> _Pre:
-    try:
-        return _PRE_CACHE[meta]
-    except (KeyError, TypeError):
-        pass
     starts = effective_starts(meta)
     h = np.asarray(meta.heights, np.float64)
     n = h.shape[0]
@@ -355,12 +355,7 @@ def _precompute(meta: BlockMeta) -> _Pre:
         # vector for every block: c_K·P(nb) without a gather); only the K − 1 inner starts are gathered
         last = np.ascontiguousarray(coef[:, 0, -1])
         starts, coef = starts[:, 1:-1], coef[:, :, 1:-1]
-    pre = _Pre(np.ascontiguousarray(starts), np.ascontiguousarray(coef), total, last, csr)
-    try:
-        _PRE_CACHE[meta] = pre
-    except TypeError:
-        pass
-    return pre
+    return _Pre(np.ascontiguousarray(starts), np.ascontiguousarray(coef), total, last, csr)
 
 
 def _zeta_from_sums(tbar: np.ndarray, s: np.ndarray, total: np.ndarray) -> np.ndarray:
@@ -386,7 +381,7 @@ _CHUNK = 16384
 def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndarray:
     """ζ(0) per block (N,) float64 from the simplified histograms, O(K) per block (see module doc). Chunks of
     blocks run on a small thread pool (NumPy releases the GIL in the gather and the batched product)."""
-    pre = _precompute(meta)
+    pre = meta.pre
     todo = _blocks_to_eval(meta, visible)
     out = np.zeros(meta.n)
     if not todo.any():
@@ -416,8 +411,10 @@ def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndar
         np.matmul(coef[a:e], g, out=sums[a:e])
 
     starts = range(0, m, _CHUNK)
-    if m > 2 * _CHUNK and _pool() is not None:
-        list(_pool().map(work, starts))
+    threads = min(4, os.cpu_count() or 1)
+    if m > 2 * _CHUNK and threads > 1:
+        with ThreadPoolExecutor(threads, thread_name_prefix="lodcast-significance") as pool:
+            list(pool.map(work, starts))
     else:
         for a in starts:
             work(a)
@@ -430,17 +427,6 @@ def zeta0_simplified(meta: BlockMeta, ts: TStar, visible: np.ndarray) -> np.ndar
         return z
     out[sel] = z
     return out
-
-
-_POOL: list = []
-
-
-def _pool():
-    """A small shared thread pool (None on a single core)."""
-    if not _POOL:
-        n = min(4, os.cpu_count() or 1)
-        _POOL.append(ThreadPoolExecutor(n, thread_name_prefix="lodcast-significance") if n > 1 else None)
-    return _POOL[0]
 
 
 def zeta0_full(meta: BlockMeta, ts: TStar, visible: np.ndarray, hist: np.ndarray | None = None, chunk: int = 8192) -> np.ndarray:

@@ -26,16 +26,16 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from lodcast.opencl import get_context, get_program
+from lodcast.opencl import Device
 from lodcast.renderer import camera as cam
 from lodcast.renderer.atlas import neighbourhood_max
 from lodcast.renderer.params import fill_params
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.engine import Engine
 from lodcast.renderer.scene import Scene
 from lodcast.renderer.transfer_function import Lut
 from lodcast.renderer.volume import VolumeView
 
-__all__ = ["AUTO_VOXELS", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "quiet_blocks", "scene_visibility",
+__all__ = ["AUTO_VOXELS", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "quiet_blocks",
            "visibility_level"]
 
 VIS_RAYS = 96  # rays along the longer side of the image
@@ -55,28 +55,27 @@ def visibility_level(vol: VolumeView) -> int:
     return vol.n_levels - 1
 
 
-def _coarse(vol: VolumeView, k: int) -> tuple[cl.Buffer, tuple[int, int, int]]:
+def _coarse(eng: Engine, vol: VolumeView, k: int) -> tuple[cl.Buffer, tuple[int, int, int]]:
     """Level k of `vol` as float32 on the device (kept in the device cache: a turntable casts every frame)."""
     key = None if vol.key is None else ("visibility", vol.key, k)
-    hit = device_cache().get(key) if key is not None else None
+    hit = eng.device_cache.get(key) if key is not None else None
     if hit is not None:
-        return hit
-    ctx, _ = get_context()
+        return hit  # type: ignore[no-any-return]
     a = np.ascontiguousarray(vol.read_level(k, np.float32))
-    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+    buf = cl.Buffer(eng.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
     out = (buf, (a.shape[2], a.shape[1], a.shape[0]))
     if key is not None:
-        device_cache().put(key, out, a.nbytes)
+        eng.device_cache.put(key, out, a.nbytes)
     return out
 
 
-def block_visibility(vol: VolumeView, scene: Scene, fr: cam.Frame, kbox: tuple, lut: Lut,
+def block_visibility(eng: Engine, vol: VolumeView, scene: Scene, fr: cam.Frame, kbox: tuple, lut: Lut,
                      unit: float) -> np.ndarray:
     """Per block (grid-shaped float32 in [0, 1]) the largest transmittance with which a ray of the scene's view
     enters it, through the scene's TF `lut` (unit distance `unit`) applied to a coarse level of `vol` (see the
     module doc). `kbox`: the box the rays integrate (crop box applied); the scene's clip planes cut the rays."""
     k = visibility_level(vol)
-    buf, kdims = _coarse(vol, k)
+    buf, kdims = _coarse(eng, vol, k)
     n_long = VIS_RAYS
     w, h = (n_long, max(1, round(n_long * scene.height / scene.width))) if scene.width >= scene.height else \
         (max(1, round(n_long * scene.width / scene.height)), n_long)
@@ -88,7 +87,8 @@ def block_visibility(vol: VolumeView, scene: Scene, fr: cam.Frame, kbox: tuple, 
     opts = ["-DLC_ORTHO"] if fr.orthographic else []
     if scene.clip is not None and scene.clip.planes:
         opts.append("-DLC_CLIP")
-    ctx, _ = get_context()
+    dev: Device = eng.device
+    ctx = dev.context
     queue = cl.CommandQueue(ctx)  # its own: a job's prefetch casts the next frame while the current one renders
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
@@ -96,7 +96,7 @@ def block_visibility(vol: VolumeView, scene: Scene, fr: cam.Frame, kbox: tuple, 
     d_q = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=quiet)
     vis = np.zeros(vol.grid, np.uint32)
     d_v = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=vis)
-    kern = cl.Kernel(get_program("visibility.cl", opts).program, "lc_visibility")
+    kern = cl.Kernel(dev.program("visibility.cl", opts).program, "lc_visibility")
     kern(queue, (w, h), None, d_p, buf, np.array([*kdims, 0], np.int32), np.int32(k), d_a, d_q, d_v)
     cl.enqueue_copy(queue, vis, d_v)
     queue.finish()
@@ -114,15 +114,3 @@ def quiet_blocks(vol: VolumeView, lut: Lut, k: int) -> np.ndarray:
         return np.zeros(shows.size, np.uint8)
     return np.ascontiguousarray(neighbourhood_max(shows.astype(np.int8)).ravel() == 0, dtype=np.uint8)
 
-
-def scene_visibility(store, scene) -> np.ndarray:
-    """block_visibility for `scene` (a dict or Scene) of `store`, as a render computes it for its selection: to
-    look at, or to select with outside a render (selection.select_lod's `visibility`)."""
-    from lodcast.renderer import render as rendering  # the render module builds on this one
-    from lodcast.renderer.transfer_function import build_lut, unit_distance
-    from lodcast.renderer.volume import as_volume
-
-    vol = as_volume(store)
-    sc = rendering.resolved(Scene.parse(scene), vol)
-    _, fr, kbox, _ = rendering.geometry(vol, sc)
-    return block_visibility(vol, sc, fr, kbox, build_lut(sc.tf, vol.value_range), unit_distance(sc.tf, vol.spacing))

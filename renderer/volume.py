@@ -2,7 +2,6 @@
 to one, or a NumPy array (tests, quick looks). All store access of the renderer goes through this module."""
 from __future__ import annotations
 
-import functools
 import math
 import warnings
 import weakref
@@ -108,15 +107,17 @@ class VolumeView:
         """Whether the store keeps the level-0 value range of every cell (format >= 3)."""
         return self.has_levels and getattr(self.source, "format_version", 0) >= 3
 
-    def half_cell_ranges(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def half_cell_ranges(self, kept: "weakref.WeakKeyDictionary[Any, Any] | None" = None
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
         """(min, max) of the level-0 values of every half-block cell (grid 2G, C order, the atlas walk's cells),
         from the store's cell ranges (store.layout.cell_edge); NaN where a cell holds no valid voxel. None when the
-        store keeps none (format < 3) or blocks have no halves (B = 1)."""
+        store keeps none (format < 3) or blocks have no halves (B = 1). `kept`: per store, what was computed
+        before (an engine's `tables.half_cells`: a turntable asks each frame)."""
         if not self.has_cell_ranges or self.block_size < 2:
             return None
-        hit = _half_cells_cache().get(self.source)  # per store: a turntable asks each frame (8M cells at 8 GiB)
+        hit = None if kept is None else kept.get(self.source)
         if hit is not None:
-            return hit
+            return hit  # type: ignore[no-any-return]
         ranges = self.source.cell_ranges
         half, c = self.block_size // 2, cell_edge(self.block_size)
         g2 = tuple(2 * g for g in self.grid)
@@ -132,7 +133,8 @@ class VolumeView:
                 a = np.pad(a, [(0, max(0, g - n)) for g, n in zip(g2, a.shape)], constant_values=np.nan)[
                     : g2[0], : g2[1], : g2[2]]
             out.append(np.ascontiguousarray(a, np.float32))
-        _half_cells_cache()[self.source] = (out[0], out[1])
+        if kept is not None:
+            kept[self.source] = (out[0], out[1])
         return out[0], out[1]
 
     @property
@@ -236,21 +238,18 @@ def _stamp(path: Any) -> Any:
         return None
 
 
-@functools.cache
-def _half_cells_cache() -> weakref.WeakKeyDictionary:
-    return weakref.WeakKeyDictionary()
-
-
-def as_volume(obj: Any, *, spacing=None, origin=None) -> VolumeView:
-    """A VolumeView of a store, a store path, a VolumeView or a 3D NumPy array (spacing/origin for arrays)."""
+def as_volume(obj: Any, *, spacing: Any = None, origin: Any = None, stores: Any = None) -> VolumeView:
+    """A VolumeView of a store, a store path, a VolumeView or a 3D NumPy array (spacing/origin for arrays). A path
+    is opened through `stores` (an OpenStores, e.g. an engine's: opened once for a series of renders), else
+    afresh."""
     if isinstance(obj, VolumeView):
         return obj
     if isinstance(obj, np.ndarray):
         return _from_array(obj, spacing, origin)
-    if isinstance(obj, (str, Path)):  # kept opened: a series of renders reads the store's metadata once
-        from lodcast.store.opened import opened
+    if isinstance(obj, (str, Path)):
+        from lodcast.store.store import open_store
 
-        return _from_store(opened(obj))
+        return _from_store(open_store(obj) if stores is None else stores.get(obj))
     if hasattr(obj, "read_level") and hasattr(obj, "stats"):
         return _from_store(obj)
     raise TypeError(f"cannot render a {type(obj).__name__}: pass a lodcast store, a store path or a 3D array")

@@ -14,7 +14,6 @@ import numpy as np
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import clip as clipping
 from lodcast.renderer import dual
-from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.classification import DistTable
 from lodcast.renderer.config import EXTREMUM_MODES, KernelConfig
 from lodcast.renderer.leap import Leaps, cell_leaps, children, coarsen_ranges, step_leaps
@@ -27,19 +26,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from lodcast.renderer import passes as multipass
     from lodcast.renderer.render import Prepared
 
-__all__ = ["FINE_STEP", "adaptive_walk", "atlas_cell_info", "block_info", "clear_walks", "octant_masks", "range_info",
+__all__ = ["FINE_STEP", "adaptive_walk", "atlas_cell_info", "block_info", "octant_masks", "range_info",
            "walk_info", "walk_steps"]
-
-_WALKS = ByteLru(64 << 20)  # the walk info (cell visibility and leaps) of recent volumes or selections, TFs and clips
-_ADAPTIVE = ByteLru(32 << 20)  # the adaptive walk's steps, leaps and octant masks of recent selections
-_PARENTS = ByteLru(64 << 20)  # the value ranges of full resolution's 8³ cells from its 4³ cells', per volume
-
-
-def clear_walks() -> None:
-    """Drop the walk info and adaptive walks kept for recent selections (with their atlases: a render in passes)."""
-    _WALKS.clear()
-    _ADAPTIVE.clear()
-
 
 def block_info(vol: VolumeView, lut: Lut, mode: str, lut2: Lut | None = None) -> tuple[np.ndarray, int]:
     """(per-block float32 array in kernel order (gz, gy, gx), number of empty blocks): `range_info` of the blocks'
@@ -79,7 +67,7 @@ def walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, t
     key = _walk_key(pr, data, leap)
     anchor = data.cell_min if data.cells is None else data.cells
     if key is not None:
-        hit = _WALKS.get(key)
+        hit = pr.engine.walks.get(key)
         if hit is not None and hit[0] is anchor:  # (the reference held keeps the id from being reused)
             return hit[1], hit[2], hit[3]
     vol = pr.volume
@@ -94,7 +82,7 @@ def walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, t
     info = np.ascontiguousarray(info, dtype=np.float32)
     out = info, (g[2], g[1], g[0], C), (cell_leaps(info) if leap else None)
     if key is not None:
-        _WALKS.put(key, (anchor, *out), info.nbytes + (0 if out[2] is None else out[2].nbytes))
+        pr.engine.walks.put(key, (anchor, *out), info.nbytes + (0 if out[2] is None else out[2].nbytes))
     return out
 
 
@@ -144,10 +132,10 @@ def _level0_walk(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray
     parents = (2 * C <= cell_edge(B) and B % (2 * C) == 0
                and (coarse_walk or (data.region is None and mode not in EXTREMUM_MODES)))
     if parents:
-        hit = _PARENTS.get(id(cmin))
+        hit = pr.engine.parents.get(id(cmin))
         if hit is None or hit[0] is not cmin:  # (the reference held keeps the id from being reused)
             hit = (cmin, *coarsen_ranges(cmin, cmax))
-            _PARENTS.put(id(cmin), hit, hit[1].nbytes * 2)
+            pr.engine.parents.put(id(cmin), hit, hit[1].nbytes * 2)
         if coarse_walk:
             cmin, cmax, C, parents = hit[1], hit[2], 2 * C, False
     if data.region is not None:  # a pass: its own blocks' cells hold values, the rest NaN (on the 8 GiB volume, 32
@@ -210,7 +198,7 @@ def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.n
     # resolution's) and lowered the summed mean ΔE (145.5 -> 143.6). Without the border it saved more (0.494,
     # 139.7) but clipped silhouettes that end at a cell's face, which full resolution shows a voxel further.
     # Without empty-space skipping (the walk then runs for this alone, prepare()) every other cell is sampled.
-    level0 = pr.volume.half_cell_ranges() if pr.lod is not None else None
+    level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells) if pr.lod is not None else None
     if level0 is not None:
         coarse = lod_atlas.half_cells(pr.lod.levels >= 1)[cells.at]
         lo0, hi0 = (a[cells.at] for a in level0)
@@ -258,14 +246,14 @@ def adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData",
         return data.steps, walk, leaps
     key = (None if data.region is not None or pr.volume.key is None
            else (id(walk), id(data.steps), cfg.leap, cfg.octants))
-    hit = _ADAPTIVE.get(key) if key is not None else None
+    hit = pr.engine.adaptive_walks.get(key) if key is not None else None
     if hit is not None and hit[0] is walk and hit[1] is data.steps:
         return hit[2], hit[3], hit[4]
     steps = walk_steps(pr, data.steps, walk) if data.cells is not None else data.steps
     info = octant_masks(pr, data.octants, steps) if cfg.octants else walk
     out = steps, np.ascontiguousarray(info, dtype=np.float32), (step_leaps(steps) if cfg.leap else None)
     if key is not None:
-        _ADAPTIVE.put(key, (walk, data.steps, *out), sum(a.nbytes for a in out if a is not None))
+        pr.engine.adaptive_walks.put(key, (walk, data.steps, *out), sum(a.nbytes for a in out if a is not None))
     return out
 
 

@@ -37,7 +37,7 @@ from lodcast.service.jobs import IngestJob, Job, validate_job
 from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeSummary, errors
 from lodcast.service.records import status_json
-from lodcast.service.rendering import RequestInvalid, encode, engine, parse_scene
+from lodcast.service.rendering import RenderEngine, RequestInvalid, encode, parse_scene
 from lodcast.service.settings import Settings
 from lodcast.service.volumes import (
     JOB_ID,
@@ -135,6 +135,7 @@ def _finite(obj: Any) -> Any:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
+    engine = RenderEngine(settings)  # every render of this app and its in-process workers
     state: dict[str, Any] = {"jobs": None, "worker": None, "sem": None}
     lock = threading.Lock()
 
@@ -144,7 +145,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 from lodcast.service.queue import JobQueue
 
                 settings.local_root.mkdir(parents=True, exist_ok=True)
-                state["jobs"] = JobQueue(settings)
+                state["jobs"] = JobQueue(settings, engine=engine)
             return state["jobs"]
 
     @asynccontextmanager
@@ -172,6 +173,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     offline_docs(app)
     app.state.settings = settings
     app.state.jobs = jobs
+    app.state.engine = engine
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
 
     def semaphore(samples: int) -> asyncio.Semaphore:
@@ -284,7 +286,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
               response_model=JobStatus, responses=errors(400, 401, 413, 422, 503))
     def post_volume(req: IngestRequest) -> dict[str, Any]:
         job = IngestJob(kind="ingest", source=req.source, name=req.name, overwrite=req.overwrite, options=req.options)
-        return status_json(jobs().submit(validate_job(job, settings)))
+        return status_json(jobs().submit(validate_job(job, settings, engine)))
 
     @app.post("/volumes/{volume_id}/upload", status_code=202, tags=["volumes"], dependencies=auth,
               summary="Upload one volume file as the request body: an ingest job",
@@ -316,7 +318,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ext = {"nifti": "nii", "tiff": "tif"}.get(format, format)
         dest = uploads / f"{uuid.uuid4().hex}.{ext}"
         job = IngestJob(kind="ingest", source=str(dest), name=volume_id, overwrite=overwrite, options=options)
-        job = validate_job(job, settings, upload=dest)
+        job = validate_job(job, settings, engine, upload=dest)
         declared = request.headers.get("content-length")
         if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
             raise HttpError(413, f"body: upload of {declared} bytes exceeds the limit of {settings.max_upload_bytes}")
@@ -362,7 +364,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 response_model=Deleted, responses=errors(400, 401, 404))
     def del_volume(volume_id: VolumeId) -> dict[str, Any]:
         path = volume_path(settings.root, volume_id)
-        engine().forget(path)
+        engine.forget(path)
         delete_volume(settings.root, volume_id)
         return {"deleted": volume_id}
 
@@ -385,7 +387,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                   examples=[EXAMPLE_SCENE])]) -> Response:
         path = volume_path(settings.root, volume_id)
         sc = parse_scene(scene, settings)
-        eng = engine()
+        eng = engine
         try:  # before waiting for a render slot: a request that may not run is told so at once
             samples = await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
         except CostError as exc:
@@ -435,7 +437,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.post("/jobs", status_code=202, tags=["jobs"], dependencies=auth, summary="Submit a batch job",
               response_model=JobStatus, responses=errors(400, 401, 404, 413, 422, 503))
     def post_job(job: Annotated[Job, Body(discriminator="kind")]) -> dict[str, Any]:
-        return status_json(jobs().submit(validate_job(job, settings)))
+        return status_json(jobs().submit(validate_job(job, settings, engine)))
 
     @app.get("/jobs", tags=["jobs"], dependencies=auth, summary="The newest jobs, optionally in one state",
              response_model=list[JobStatus], responses=errors(401, 422, 503))

@@ -17,6 +17,11 @@ def _settings(args: argparse.Namespace, **extra: Any) -> Any:
     from lodcast.service.settings import Settings
 
     kw: dict[str, Any] = {k: v for k, v in extra.items() if v is not None}
+    mb = getattr(args, "device_budget_mb", None)
+    if mb is not None:  # handed to the renderer through the settings (service/rendering.py: RenderEngine)
+        if not (mb > 0 and mb == mb and mb != float("inf")):
+            raise ValueError(f"--device-budget-mb: must be a positive number of megabytes, got {mb}")
+        kw["device_budget_mb"] = float(mb)
     if getattr(args, "root", None):
         kw["root"] = args.root
     if getattr(args, "queue", None):
@@ -33,16 +38,6 @@ def _device_budget_opt(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device-budget-mb", type=float, default=None,
                    help="most device memory (MB, 10^6 bytes) one render's volume data may use; larger ones render in "
                         "several passes, same image (default LODCAST_DEVICE_BUDGET_MB, else one device allocation)")
-
-
-def _apply_device_budget(args: argparse.Namespace) -> None:
-    """--device-budget-mb: the renderer reads LODCAST_DEVICE_BUDGET_MB at every render, in this process's threads."""
-    mb = getattr(args, "device_budget_mb", None)
-    if mb is None:
-        return
-    if not (mb > 0 and mb == mb and mb != float("inf")):
-        raise ValueError(f"--device-budget-mb: must be a positive number of megabytes, got {mb}")
-    os.environ["LODCAST_DEVICE_BUDGET_MB"] = repr(float(mb))
 
 
 def _url_opts(p: argparse.ArgumentParser) -> None:
@@ -90,7 +85,6 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
 def _cmd_serve(args: argparse.Namespace) -> int:
     from lodcast.malloc import tame_malloc
 
-    _apply_device_budget(args)
     tame_malloc()  # its workers run ingest jobs
     settings = _settings(args, workers=args.workers, render_concurrency=args.render_concurrency,
                          import_roots=args.import_root, token=args.token,
@@ -193,7 +187,6 @@ def _cmd_worker(args: argparse.Namespace) -> int:
         raise ValueError(f"--threads: must be at least 1, got {args.threads}")
     from lodcast.malloc import tame_malloc
 
-    _apply_device_budget(args)
     tame_malloc()  # it runs ingest jobs
     settings = _settings(args)
     jq = JobQueue(settings)
@@ -258,7 +251,7 @@ def _cmd_submit(args: argparse.Namespace) -> int:
 
         # no server: the job runs here and now (a local queue no worker reads would keep it queued forever)
         jq = _local(args, create=True)
-        job = validate_job(parse_job(data), jq.settings)
+        job = validate_job(parse_job(data), jq.settings, jq.engine)
         rec = jq.submit(job)
         worker = Worker(jq, threads=1).start()
         try:

@@ -11,7 +11,7 @@ import threading
 import time
 from typing import Any
 
-from lodcast.service.rendering import encode, engine, parse_scene
+from lodcast.service.rendering import encode, parse_scene
 from lodcast.service.results import JobFiles
 from lodcast.service.volumes import volume_path
 
@@ -25,10 +25,11 @@ class FrameRenderer:
     frame is rendered only by the worker that holds its lease, renewed every heartbeat while it renders, so that
     each frame is rendered once while its worker lives (and again only after that worker died mid-frame)."""
 
-    def __init__(self, settings: Any, records: Any, job_id: str, plan: list, files: JobFiles, names: list[str]) -> None:
+    def __init__(self, settings: Any, records: Any, job_id: str, plan: list, files: JobFiles, names: list[str],
+                 eng: Any) -> None:
         self.settings, self.records = settings, records
         self.job_id, self.plan, self.files, self.names = job_id, plan, files, names
-        self.eng = engine()
+        self.eng = eng
         self.ahead = Prefetch(self.eng, settings)
 
     def render(self, i: int, owner: str, nxt: int | None) -> bool:

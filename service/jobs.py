@@ -104,8 +104,9 @@ def parse_job(data: Any) -> Any:
         raise from_pydantic(exc, ("body",)) from None
 
 
-def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
-    """Check a parsed job against the store root and the caps; raises RequestInvalid / VolumeNotFound naming the field."""
+def validate_job(job: Any, settings: Any, engine: Any, *, upload: Path | None = None) -> Any:
+    """Check a parsed job against the store root and the caps (its frames' cost estimated by `engine`, a
+    service.rendering.RenderEngine); raises RequestInvalid / VolumeNotFound naming the field."""
     def vol(v: str, loc: tuple) -> None:
         try:
             volume_path(settings.root, v, field=".".join(loc))
@@ -134,39 +135,38 @@ def validate_job(job: Any, settings: Any, *, upload: Path | None = None) -> Any:
         vol(job.volume, ("volume",))
         if job.frames > settings.max_frames:
             raise RequestInvalid.one(("body", "frames"), f"{job.frames} exceeds the service's cap of {settings.max_frames}")
-        _affordable(job.volume, parse_scene(job.scene, settings, ("body", "scene")), settings, ("body", "scene"))
+        _affordable(engine, job.volume, parse_scene(job.scene, settings, ("body", "scene")), settings, ("body", "scene"))
     elif isinstance(job, ScenesJob):
         vol(job.volume, ("volume",))
         _cap(len(job.scenes), settings, "scenes")
         for i, s in enumerate(job.scenes):
-            _affordable(job.volume, parse_scene(s, settings, ("body", "scenes", i)), settings, ("body", "scenes", i))
+            _affordable(engine, job.volume, parse_scene(s, settings, ("body", "scenes", i)), settings, ("body", "scenes", i))
     elif isinstance(job, TfSweepJob):
         vol(job.volume, ("volume",))
         _cap(len(job.tfs), settings, "tfs")
         for i, tf in enumerate(job.tfs):
             check_tf(tf, ("body", "tfs", i))
         sc = parse_scene({**job.scene, "tf": job.tfs[0]}, settings, ("body", "scene"))
-        _affordable(job.volume, sc, settings, ("body", "scene"))
+        _affordable(engine, job.volume, sc, settings, ("body", "scene"))
     elif isinstance(job, VolumesJob):
         _cap(len(job.volumes), settings, "volumes")
         for i, v in enumerate(job.volumes):
             vol(v, ("volumes", str(i)))
         sc = parse_scene(job.scene, settings, ("body", "scene"))
         for v in job.volumes:
-            _affordable(v, sc, settings, ("body", "scene"))
+            _affordable(engine, v, sc, settings, ("body", "scene"))
     return job
 
 
-def _affordable(volume: str, scene: Any, settings: Any, loc: tuple) -> None:
+def _affordable(engine: Any, volume: str, scene: Any, settings: Any, loc: tuple) -> None:
     """A job's frame must fit LODCAST_MAX_SAMPLES (estimated on the volume's geometry, renderer/cost.py): refused
     at submission (422 naming the field), not after it has queued. A store that cannot be opened is left to the
     job, which fails with the store's own message."""
     from lodcast.errors import StoreInvalid, StoreNotFound
     from lodcast.renderer.cost import CostError
-    from lodcast.service.rendering import engine
 
     try:
-        engine().check_cost(volume_path(settings.root, volume), scene, settings.max_samples)
+        engine.check_cost(volume_path(settings.root, volume), scene, settings.max_samples)
     except CostError as exc:
         raise RequestInvalid.one((*loc, *exc.field.split(".")), " ".join(str(exc).split(": ", 1)[-1].split())) from None
     except (StoreNotFound, StoreInvalid):

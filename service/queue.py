@@ -26,7 +26,7 @@ from lodcast.service.jobs import IngestJob, TurntableJob, encode_animation, fram
 from lodcast.service.records import ACTIVE, Records, open_records
 from lodcast.service.frames import FrameRenderer
 from lodcast.service.results import JobFiles, drop_upload, frame_name, parked_uploads
-from lodcast.service.rendering import engine
+from lodcast.service.rendering import RenderEngine
 from lodcast.service.volumes import JOB_ID, volume_path
 from lodcast.store.remote import is_url
 
@@ -56,8 +56,9 @@ def _one_line(exc: BaseException) -> str:
 class JobQueue:
     """Submit, inspect, cancel and run jobs. One per process (HTTP app, worker, CLI)."""
 
-    def __init__(self, settings: Any, records: Records | None = None) -> None:
+    def __init__(self, settings: Any, records: Records | None = None, engine: RenderEngine | None = None) -> None:
         self.settings = settings
+        self.engine = engine or RenderEngine(settings)  # the process's: the app hands its own over
         self.records = records or open_records(settings)
         self.huey = make_huey(settings)
         self._task = self.huey.task(name="lodcast_job", retries=0)(self._execute)
@@ -282,7 +283,7 @@ class JobQueue:
         self.records.update(job_id, {"total": len(plan), "done": len(there & set(names))}, expect={"owner": (owner,)})
         for _ in range(min(self.settings.job_helpers, len(plan) - 1)):
             self._help_task(job_id)  # idle workers, here or on other hosts, take frames of this job beside this one
-        frames = FrameRenderer(self.settings, self.records, job_id, plan, files, names)
+        frames = FrameRenderer(self.settings, self.records, job_id, plan, files, names, self.engine)
         todo = [i for i in range(len(plan)) if names[i] not in there]  # frames written before a crash or a release
         while todo:
             took = False
@@ -328,7 +329,7 @@ class JobQueue:
         files = self.files(job_id)
         names = [frame_name(i, frame_ext(s)) for i, (_, s) in enumerate(plan)]
         helper = f"{self.owner_prefix}:{uuid.uuid4().hex[:8]}:helper"
-        frames = FrameRenderer(self.settings, self.records, job_id, plan, files, names)
+        frames = FrameRenderer(self.settings, self.records, job_id, plan, files, names, self.engine)
         try:
             there = files.names()
             for i in range(len(plan)):
@@ -373,7 +374,7 @@ class JobQueue:
                 fetched.unlink(missing_ok=True)
         if upload:
             drop_upload(job.source)
-        engine().forget(dest)
+        self.engine.forget(dest)
         self.records.update(job_id, {"done": 1}, expect={"owner": (owner,)})
         return "done" if self._mine(job_id, owner) else "lost"
 

@@ -1,7 +1,8 @@
-"""Scene validation against the service's caps, one renderer per process, image encoding.
+"""Scene validation against the service's caps, the service's render engine, image encoding.
 
-Shared by the HTTP layer and the job workers, so that a scene is judged the same way wherever it comes from and
-every render in a process goes through the same opened stores and the renderer's own caches.
+Shared by the HTTP layer and the job workers, so that a scene is judged the same way wherever it comes from. A
+`lodcast serve` process makes one RenderEngine and hands it to its job queue, so that every render of the process
+goes through one renderer (one brick pool, one device cache, the same opened stores).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Any
 
 from lodcast.errors import LodcastError
 
-__all__ = ["RequestInvalid", "parse_scene", "from_pydantic", "check_tf", "RenderEngine", "encode", "engine"]
+__all__ = ["RequestInvalid", "parse_scene", "from_pydantic", "check_tf", "RenderEngine", "encode"]
 
 
 class RequestInvalid(LodcastError, ValueError):
@@ -82,53 +83,43 @@ def check_tf(data: Any, loc: tuple) -> dict | str:
 
 
 class RenderEngine:
-    """Per-process rendering: opened stores are kept (store/opened.py: LRU, reopened when replaced) and every render
-    goes through lodcast.render, whose renderer keeps its brick cache and compiled programs at module level, shared
-    by all requests of the process."""
+    """The service's renderer (lodcast.Renderer, made on first use with the settings' device budget), addressed by
+    store path: its opened stores are reopened when a store was replaced since (another process ingested it again
+    with --overwrite: a new folder renamed into place, so its root zarr.json has a new inode; on object storage a
+    new root zarr.json)."""
 
-    def __init__(self, max_open: int = 32) -> None:
-        from lodcast.store.opened import OpenStores
+    def __init__(self, settings: Any = None) -> None:
+        self._budget = None if settings is None else getattr(settings, "device_budget_mb", None)
+        self._renderer: Any = None
+        self._lock = threading.Lock()
 
-        self._stores = OpenStores(max_open)
+    @property
+    def renderer(self) -> Any:
+        with self._lock:
+            if self._renderer is None:
+                from lodcast.renderer.render import Renderer
+
+                self._renderer = Renderer(device_budget_mb=self._budget)
+            return self._renderer
 
     def store(self, path: Path | str) -> Any:
-        """The opened store at `path` (a folder, or a URL: a str), reopened when it was replaced since (another
-        process ingested it again with --overwrite: a new folder renamed into place, so its root zarr.json has a
-        new inode; on object storage a new root zarr.json)."""
-        return self._stores.get(path)
+        """The opened store at `path` (a folder, or a URL: a str)."""
+        return self.renderer.stores.get(path)
 
     def forget(self, path: Path | str) -> None:
-        self._stores.forget(path)
+        if self._renderer is not None:
+            self._renderer.stores.forget(path)
 
     def render(self, path: Path, scene: Any, sample_limit: int | None = None, stop: Any = None) -> Any:
-        from lodcast.renderer.render import render
-
-        return render(self.store(path), scene, sample_limit=sample_limit, stop=stop)
+        return self.renderer.render(self.store(path), scene, sample_limit=sample_limit, stop=stop)
 
     def prefetch(self, path: Path, scene: Any) -> int:
-        """The bricks a render of `scene` will need, read into the brick cache (renderer.render.prefetch)."""
-        from lodcast.renderer.render import prefetch
-
-        return prefetch(self.store(path), scene)
+        """The bricks a render of `scene` will need, read into the brick cache (Renderer.prefetch)."""
+        return int(self.renderer.prefetch(self.store(path), scene))
 
     def check_cost(self, path: Path, scene: Any, sample_limit: int) -> int:
         """The render's estimated samples; CostError (naming the field) above `sample_limit`."""
-        from lodcast.renderer.render import check_cost
-
-        return check_cost(self.store(path), scene, sample_limit)
-
-
-_ENGINE: RenderEngine | None = None
-_ENGINE_LOCK = threading.Lock()
-
-
-def engine() -> RenderEngine:
-    """The process's render engine (created on first use, never at import)."""
-    global _ENGINE
-    with _ENGINE_LOCK:
-        if _ENGINE is None:
-            _ENGINE = RenderEngine()
-        return _ENGINE
+        return int(self.renderer.check_cost(self.store(path), scene, sample_limit))
 
 
 def scene_format(scene: Any) -> str:

@@ -67,6 +67,9 @@ class Settings(BaseSettings):
                                         "(LODCAST_MAX_INGEST_MEMORY_MB)")
     max_samples: int = Field(default=2_000_000_000, ge=1, description="most samples (rays x samples per ray, estimated "
                              "before rendering) one render may take (LODCAST_MAX_SAMPLES)")
+    device_budget_mb: float | None = Field(default=None, gt=0, description="most device memory (10⁶ bytes) one "
+                                           "render's volume data may use; larger ones render in passes "
+                                           "(LODCAST_DEVICE_BUDGET_MB; default: one device allocation)")
 
     # concurrency
     render_concurrency: int = Field(default=2, ge=1, description="renders running at once; others wait in FIFO order")

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -95,43 +96,46 @@ def _runs(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, h[starts[:-1]]
 
 
-def simplify(hists: np.ndarray, segments: int = DEFAULT_SEGMENTS, *, device: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+def simplify(hists: np.ndarray, segments: int = DEFAULT_SEGMENTS, *,
+             device: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """Optimal piecewise-constant approximation of each histogram with at most `segments` pieces.
 
     Returns (starts, heights): starts (N, segments + 1) uint16 bin indices with starts[:, 0] = 0 and
     starts[:, -1] = n_bins (equal neighbours mark unused, empty pieces), heights (N, segments) float32, the mean
     count per bin of each piece. Minimises sum over bins of (h − piece height)².
 
-    Runs on the OpenCL device when one with float64 is available (`device=None`: use it if possible; True:
-    require it; False: NumPy). Both solve the same programme exactly; among segmentations of equal error they
-    may pick different ones.
+    Runs on an OpenCL device with float64 when there is one (`device`: a lodcast.opencl.Device to use, else
+    NumPy; None: a new Device if one can be opened, else NumPy; True: a new Device, required; False: NumPy).
+    Both solve the same programme exactly; among segmentations of equal error they may pick different ones.
     """
     hists = np.asarray(hists)
     if not 1 <= segments <= 64:
         raise ValueError(f"segments must be in 1..64, got {segments}")
     if device is not False and hists.shape[0]:
         try:
-            return _simplify_device(hists, segments)
+            from lodcast.opencl import Device
+
+            return _simplify_device(Device() if device is None or device is True else device, hists, segments)
         except ImportError:
-            if device:
+            if device is True:
                 raise
         except Exception as exc:  # no OpenCL platform, no fp64: the NumPy path gives the same optimum
             from lodcast.opencl import DeviceError
 
-            if device or not isinstance(exc, (DeviceError, RuntimeError)):
+            if device is True or not isinstance(exc, (DeviceError, RuntimeError)):
                 raise
     return _simplify_numpy(hists.astype(np.float64), segments)
 
 
-def _simplify_device(hists: np.ndarray, k: int, batch: int = 512) -> tuple[np.ndarray, np.ndarray]:
+def _simplify_device(dev: Any, hists: np.ndarray, k: int, batch: int = 512) -> tuple[np.ndarray, np.ndarray]:
     import pyopencl as cl
 
-    from lodcast.opencl import DeviceError, get_context, get_program
+    from lodcast.opencl import DeviceError
 
-    ctx, queue = get_context()
+    ctx, queue = dev.context, dev.queue
     if "cl_khr_fp64" not in ctx.devices[0].extensions:
         raise DeviceError("the OpenCL device has no float64")
-    kernel = cl.Kernel(get_program("segment.cl", (), folder=Path(__file__).resolve().parent).program, "segment")
+    kernel = cl.Kernel(dev.program("segment.cl", (), folder=Path(__file__).resolve().parent).program, "segment")
     n, nb = hists.shape
     starts = np.empty((n, k + 1), np.uint16)
     heights = np.empty((n, k), np.float32)

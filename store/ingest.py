@@ -533,8 +533,9 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                                          chunks=(1, gy, gx, seg + 1), fill_value=0)
         heights_arr = blocks.create_array("hist_heights", shape=lay.grid + (seg,), dtype=np.float32,
                                           chunks=(1, gy, gx, seg), fill_value=0)
+        device = _segmentation_device()
         for row in range(gz):
-            starts, heights = simplify(np.asarray(hist_arr[row]).reshape(gy * gx, -1), seg)
+            starts, heights = simplify(np.asarray(hist_arr[row]).reshape(gy * gx, -1), seg, device=device)
             starts_arr[row], heights_arr[row] = starts.reshape(gy, gx, -1), heights.reshape(gy, gx, -1)
             bar.update(1)
     finally:
@@ -547,6 +548,16 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     attrs["ome"]["omero"] = omero(Path(source_label).name or "volume", overall, bins.edges, (lo, hi))
     attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
     group.attrs.update(attrs)
+
+
+def _segmentation_device() -> Any:
+    """An OpenCL device of this ingest's own for the histograms' segmentation (lodcast.opencl, below the store and
+    the renderer), or False for NumPy where OpenCL is not installed."""
+    try:
+        from lodcast.opencl import Device
+    except ImportError:
+        return False
+    return Device()
 
 
 def _write_cells(cells: dict[str, Any], row: int, lo: np.ndarray, hi: np.ndarray) -> None:

@@ -1,6 +1,6 @@
-"""Opened stores kept per process. Opening a store reads its zarr.json files and block statistics and checks the
-data manifest (a walk over every shard file: 25 ms for the chest CT's store); a render that names its store by
-path or URL opens it once, not per call, so that a series of renders (views, TFs) also keeps the renderer's caches
+"""Opened stores, kept by whoever owns an OpenStores (each renderer has one: renderer/engine.py). Opening a store
+reads its zarr.json files and block statistics and checks the data manifest (a walk over every shard file); a
+render that names its store by path or URL opens it once, not per call, so that a series of renders (views, TFs) also keeps the renderer's caches
 that hang on the opened store, such as the selection's per-TF tables. A store replaced at the same place (ingest
 with --overwrite renames a new folder into place; on object storage a new root zarr.json is published) is opened
 anew. `lodcast.open_store` itself always opens afresh."""
@@ -12,7 +12,7 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
-__all__ = ["OpenStores", "opened", "stamp"]
+__all__ = ["OpenStores", "stamp"]
 
 
 def _key(location: str | os.PathLike[str]) -> Path | str:
@@ -77,15 +77,3 @@ class OpenStores:
         with self._lock:
             self._stores.pop(_key(location), None)
 
-
-_SHARED: OpenStores | None = None
-_SHARED_LOCK = threading.Lock()
-
-
-def opened(location: str | os.PathLike[str]) -> Any:
-    """The store at `location` from the process's shared OpenStores (eight stores; created on first use)."""
-    global _SHARED
-    with _SHARED_LOCK:
-        if _SHARED is None:
-            _SHARED = OpenStores(8)
-    return _SHARED.get(location)

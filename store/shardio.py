@@ -38,24 +38,12 @@ except ImportError:  # older numcodecs: the index checksum is skipped (offsets a
 __all__ = ["ShardedReader", "ChunkReader", "fast_reader"]
 
 _EMPTY = np.uint64(2**64 - 1)
-_INDEX_CACHE: OrderedDict[tuple[str, int, Any], np.ndarray] = OrderedDict()
-_INDEX_CACHE_MAX = 2048
-_LOCK = threading.Lock()
-_POOL: ThreadPoolExecutor | None = None
-_READERS = itertools.count()
+#: shard indexes a reader keeps (each keyed by its file's size and modification time or ETag)
+INDEX_CACHE_MAX = 2048
 
 
 def _workers() -> int:
     return min(32, os.cpu_count() or 1)
-
-
-def _pool() -> ThreadPoolExecutor:
-    """The shared decode pool, created on first use."""
-    global _POOL
-    with _LOCK:
-        if _POOL is None:
-            _POOL = ThreadPoolExecutor(max_workers=_workers(), thread_name_prefix="shardio")
-        return _POOL
 
 
 def _endian(codec: dict[str, Any]) -> str:
@@ -97,7 +85,6 @@ class _RemoteFiles:
 
     def __init__(self, fs: Any, root: str):
         self.fs, self.root = fs, root.rstrip("/")
-        self._token = next(_READERS)  # this reader's indexes only (an id() could be reused by the next one)
 
     def name(self, key: str) -> str:
         return f"{self.root}/{key}"
@@ -109,7 +96,7 @@ class _RemoteFiles:
         pass
 
     def stamp(self, path: str) -> tuple[int | None, Any]:
-        return None, self._token
+        return None, None  # (a store replaced on object storage is opened anew, with new readers)
 
     def pread(self, path: str, n: int, off: int) -> bytes:
         return self.fs.cat_file(path, start=off, end=off + n) if n else b""
@@ -325,14 +312,17 @@ class ShardedReader(_Reader):
         self._n_index = prod(self._per_shard)
         self._index_dtype, self._index_crc, self._index_at_end = index_dtype, index_crc, index_at_end
         self._index_bytes = 16 * self._n_index + 4 * index_crc
+        self._indexes: OrderedDict[tuple[str, Any, Any], np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
 
     def _fill(self, out: np.ndarray, lo: tuple[int, ...], hi: tuple[int, ...]) -> None:
         units = self._units(lo, hi)
         if len(units) == 1:
             self._read_unit(out, lo, hi, *units[0])
         else:
-            for f in [_pool().submit(self._read_unit, out, lo, hi, *u) for u in units]:
-                f.result()
+            with ThreadPoolExecutor(min(_workers(), len(units)), thread_name_prefix="shardio") as pool:
+                for f in [pool.submit(self._read_unit, out, lo, hi, *u) for u in units]:
+                    f.result()
 
     # --- work units: a box of chunks inside one shard ----------------------------------------------------------
     def _units(self, lo: tuple[int, ...], hi: tuple[int, ...]) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
@@ -450,14 +440,14 @@ class ShardedReader(_Reader):
                 box[i] = np.frombuffer(raw, self._chunk_dtype).reshape(self.chunk)
 
     def _index(self, fd: Any, path: str) -> np.ndarray:
-        """The shard's (offset, nbytes) table, shape (n, 2) uint64, from the cache keyed by (path, size, mtime or
-        ETag)."""
+        """The shard's (offset, nbytes) table, shape (n, 2) uint64, from this reader's cache keyed by (path, size,
+        mtime or ETag)."""
         size, version = self._files.stamp(fd)
         key = (path, size, version)
-        with _LOCK:
-            if key in _INDEX_CACHE:
-                _INDEX_CACHE.move_to_end(key)
-                return _INDEX_CACHE[key]
+        with self._lock:
+            if key in self._indexes:
+                self._indexes.move_to_end(key)
+                return self._indexes[key]
         n = self._index_bytes
         if size is not None and size < n:
             raise ValueError(f"{path}: shard shorter than its index")
@@ -474,8 +464,8 @@ class ShardedReader(_Reader):
         full = index[:, 0] != _EMPTY
         if size is not None and full.any() and int((index[full, 0] + index[full, 1]).max()) > size:
             raise ValueError(f"{path}: shard index points past the end of the file")
-        with _LOCK:
-            _INDEX_CACHE[key] = index
-            while len(_INDEX_CACHE) > _INDEX_CACHE_MAX:
-                _INDEX_CACHE.popitem(last=False)
+        with self._lock:
+            self._indexes[key] = index
+            while len(self._indexes) > INDEX_CACHE_MAX:
+                self._indexes.popitem(last=False)
         return index

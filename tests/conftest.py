@@ -20,3 +20,23 @@ def shared_data() -> Path:
             pytest.fail(msg)
         pytest.skip(msg)
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    """A renderer of this test module's own (tests that count what its caches hold make one per test instead)."""
+    from lodcast.renderer.render import Renderer
+
+    eng = Renderer()
+    yield eng
+    eng.close()
+
+
+@pytest.fixture
+def eng():
+    """A renderer of the test's own: its caches start empty and no other test sees them."""
+    from lodcast.renderer.render import Renderer
+
+    r = Renderer()
+    yield r
+    r.close()

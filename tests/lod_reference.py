@@ -11,7 +11,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.renderer.atlas import pack, pack_std
-from lodcast.opencl import get_context, get_program
+from lodcast.opencl import Device
 
 
 def pyramid(v0: np.ndarray, n_levels: int) -> list[np.ndarray]:
@@ -141,13 +141,15 @@ def trilinear_level(pyr, k: int, B: int, q) -> float:
 
 
 def probe(levels: np.ndarray, bricks: dict, B: int, pts: np.ndarray, interp: str = "interblock",
-          std_bricks: dict | None = None, std_unit: float = 1.0) -> np.ndarray:
+          std_bricks: dict | None = None, std_unit: float = 1.0, device: Device | None = None) -> np.ndarray:
     """The kernel's sampler (lc_atlas.h through atlas_probe.cl) at pts (N, 3) = (x, y, z): the values, or with
     `std_bricks` (value, standard deviation) pairs (N, 2) as the distribution sampler (LC_DIST) gives them; the
-    deviations travel as the device holds them, whole multiples of `std_unit` in uint16 (volume.std_unit)."""
-    ctx, queue = get_context()
+    deviations travel as the device holds them, whole multiples of `std_unit` in uint16 (volume.std_unit). On
+    `device`, else a Device of this call's own."""
+    dev = device or Device()
+    ctx, queue = dev.context, dev.queue
     opts = ["-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB"] + (["-DLC_DIST"] if std_bricks else [])
-    prg = get_program("atlas_probe.cl", opts).program
+    prg = dev.program("atlas_probe.cl", opts).program
     atlas, idx = pack(levels, {k: np.asarray(v, np.float32) for k, v in bricks.items()}, B, max_bytes=2**31)
     sig = pack_std(levels, {k: np.rint(quantized_std(v, std_unit) / std_unit) for k, v in (std_bricks or {}).items()},
                    B)

@@ -9,11 +9,10 @@ import pyopencl as cl
 import pytest
 
 import lodcast
-from lodcast.opencl import get_context, get_program
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import atlas_cells
 from lodcast.renderer import passes
-from lodcast.renderer.render import render
+from lodcast.renderer.render import Renderer
 from lodcast.renderer.volume import VolumeView, as_volume
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
@@ -32,20 +31,28 @@ def _ribs(shape=(48, 64, 80)) -> np.ndarray:
     return a.astype(np.float32)
 
 
+@pytest.fixture
+def eng():
+    """A renderer of the test's own: nothing kept from other tests."""
+    r = Renderer()
+    yield r
+    r.close()
+
+
 @pytest.fixture(scope="module")
 def ribs(tmp_path_factory):
     return lodcast.ingest(_ribs(), tmp_path_factory.mktemp("cells") / "ribs.zarr")
 
 
-def _probe(da: lod_atlas.DeviceAtlas, grid, B: int, interp: str, pts: np.ndarray) -> np.ndarray:
-    ctx, queue = get_context()
+def _probe(eng: Renderer, da: lod_atlas.DeviceAtlas, grid, B: int, interp: str, pts: np.ndarray) -> np.ndarray:
+    ctx, queue = eng.device.context, eng.device.queue
     opts = ["-DLC_INTERP_II" if interp == "interblock" else "-DLC_INTERP_NB", "-DLC_DIST", *da.voxel]
     p4 = np.zeros((len(pts), 4), np.float32)
     p4[:, :3] = pts
     d_pts = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=p4)
     out = np.zeros((len(pts), 2), np.float32)
     d_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
-    cl.Kernel(get_program("atlas_probe.cl", opts).program, "lc_probe_atlas")(
+    cl.Kernel(eng.device.program("atlas_probe.cl", opts).program, "lc_probe_atlas")(
         queue, (len(pts),), None, da.atlas, da.std, da.index, np.array([grid[2], grid[1], grid[0], B], np.int32),
         d_pts, d_out, np.int32(len(pts)))
     cl.enqueue_copy(queue, out, d_out)
@@ -54,19 +61,19 @@ def _probe(da: lod_atlas.DeviceAtlas, grid, B: int, interp: str, pts: np.ndarray
 
 
 @pytest.mark.parametrize("interp", ["interblock", "nearest_block"])
-def test_the_cells_of_some_blocks_are_those_cells_of_the_whole_grid(ribs, interp):
+def test_the_cells_of_some_blocks_are_those_cells_of_the_whole_grid(eng, ribs, interp):
     """A pass of a render in several computes the cells of its own blocks only (the 8 GiB volume's lossless passes
     each made a whole grid's: 3 x 32 MB on the device and again on the host): the same values, bit for bit."""
     vol = as_volume(ribs)
     B, G = int(vol.block_size), vol.grid
     rng = np.random.default_rng(5)
     levels = rng.integers(-1, 5, size=G).astype(np.int8)
-    da = lod_atlas.device_atlas(vol, levels, with_std=True, keep=False)
-    whole = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit)
+    da = lod_atlas.device_atlas(eng, vol, levels, with_std=True, keep=False)
+    whole = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit)
     for _ in range(6):
         a = [int(rng.integers(0, g)) for g in G]
         blocks = tuple(slice(s, int(rng.integers(s + 1, g + 1))) for s, g in zip(a, G))
-        part = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit, blocks)
+        part = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit, blocks)
         assert part.vmin.shape == tuple(2 * (b.stop - b.start) for b in blocks)
         for got, ref in ((part.vmin, whole.vmin), (part.vmax, whole.vmax), (part.std, whole.std)):
             np.testing.assert_array_equal(got, ref[part.at])
@@ -74,13 +81,13 @@ def test_the_cells_of_some_blocks_are_those_cells_of_the_whole_grid(ribs, interp
 
 @pytest.mark.parametrize("interp", ["interblock", "nearest_block"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_cell_bounds_hold_every_sample_of_the_field(ribs, interp, seed):
+def test_cell_bounds_hold_every_sample_of_the_field(eng, ribs, interp, seed):
     vol = as_volume(ribs)
     B, G = int(vol.block_size), vol.grid
     rng = np.random.default_rng(seed)
     levels = rng.integers(-1 if seed else 0, 5, size=G).astype(np.int8)  # seed 0: every block loaded
-    da = lod_atlas.device_atlas(vol, levels, with_std=True, keep=False)
-    cells = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit)
+    da = lod_atlas.device_atlas(eng, vol, levels, with_std=True, keep=False)
+    cells = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit)
     assert cells.vmin.shape == tuple(2 * g for g in G)
     # random points, many of them within rounding of a cell face (where the walk may assign a sample either way)
     n = 200_000
@@ -92,7 +99,7 @@ def test_cell_bounds_hold_every_sample_of_the_field(ribs, interp, seed):
     pts[on_face, axis[on_face]] = np.round((pts[on_face, axis[on_face]] + 0.5) / C) * C - 0.5 + rng.uniform(
         -1e-4, 1e-4, on_face.sum())
     pts = np.clip(pts, -0.5, hi - 1e-3)
-    got = _probe(da, G, B, interp, pts.astype(np.float32))
+    got = _probe(eng, da, G, B, interp, pts.astype(np.float32))
     h = np.clip(np.floor((pts.astype(np.float32) + 0.5) / C).astype(np.int64), 0, np.array([2 * G[2], 2 * G[1], 2 * G[0]]) - 1)
     cz, cy, cx = h[:, 2], h[:, 1], h[:, 0]
     lo, up, sd = cells.vmin[cz, cy, cx], cells.vmax[cz, cy, cx], cells.std[cz, cy, cx]
@@ -124,13 +131,13 @@ SCENES = {
 
 
 @pytest.mark.parametrize("name", list(SCENES))
-def test_half_block_cells_change_nothing_but_the_samples(ribs, monkeypatch, name):
+def test_half_block_cells_change_nothing_but_the_samples(eng, ribs, monkeypatch, name):
     scene = {"tf": BONE, "width": 64, "height": 64, "camera": {"azimuth": 30, "elevation": 20}, **SCENES[name]}
     # the cells' skipping alone: the level-0 mask of coarse cells changes what a coarse level shows (tested below)
     monkeypatch.setattr(VolumeView, "has_cell_ranges", property(lambda self: False))
-    fine = render(ribs, scene)
+    fine = eng.render(ribs, scene)
     monkeypatch.setattr(passes, "_cells", lambda pr, da, *a: None)  # the walk over whole blocks, as before
-    blocks = render(ribs, scene)
+    blocks = eng.render(ribs, scene)
     # interblock: a half-block cell knows its own interblock neighbourhood (lc_blk_cell), so samples that the block
     # walk sends through the blend sum with every other weight 0 take the own block's sample directly: equal up to
     # the rounding of w·v/w
@@ -144,7 +151,7 @@ def test_half_block_cells_change_nothing_but_the_samples(ribs, monkeypatch, name
                                                                             blocks.report["samples"])
 
 
-def test_the_atlas_walk_is_kept_per_selection_and_visibility(ribs, monkeypatch):
+def test_the_atlas_walk_is_kept_per_selection_and_visibility(eng, ribs, monkeypatch):
     """The atlas's walk info and the adaptive walk's steps and leaps are computed once per selection, TF zero
     pattern (distribution table included), mode and block info: a TF that only changes colours reuses them, a
     wider TF, another reduction or MIP computes them afresh, and every image equals one rendered with nothing
@@ -167,14 +174,14 @@ def test_the_atlas_walk_is_kept_per_selection_and_visibility(ribs, monkeypatch):
     counts, images = [], []
     for sc in scenes:
         n0, m0 = len(cells), len(leaps)
-        images.append(render(ribs, sc).rgba)
+        images.append(eng.render(ribs, sc).rgba)
         counts.append((len(cells) - n0, len(leaps) - m0))
     # MIP: its cells' maxima, no adaptive leaps (the adaptive walk leaps in composite renders only)
     assert counts == [(1, 1), (0, 0), (0, 0), (1, 1), (1, 1), (0, 0), (1, 0)], counts
-    R._WALKS.clear()
-    R._ADAPTIVE.clear()
+    eng.walks.clear()
+    eng.adaptive_walks.clear()
     for sc, img in zip(scenes, images):
-        assert np.array_equal(render(ribs, sc).rgba, img)
+        assert np.array_equal(eng.render(ribs, sc).rgba, img)
 
 
 OCTANT_SCENES = {
@@ -187,7 +194,7 @@ OCTANT_SCENES = {
 
 
 @pytest.mark.parametrize("name", list(OCTANT_SCENES))
-def test_octant_masks_change_nothing_but_the_samples(ribs, monkeypatch, name):
+def test_octant_masks_change_nothing_but_the_samples(eng, ribs, monkeypatch, name):
     """The adaptive walk skips the samples of a sampled half-block cell that fall in octants (quarter-block cells)
     whose field bounds the TF shows nothing of (config.octants): the same image within float rounding (the
     kernels differ, and with them the compiler's contractions), fewer samples. A wrong bit order or a missed
@@ -196,10 +203,10 @@ def test_octant_masks_change_nothing_but_the_samples(ribs, monkeypatch, name):
 
     scene = {"tf": BONE, "width": 64, "height": 64, "camera": {"azimuth": 30, "elevation": 20},
              "quality": {"reduction": 4}, **OCTANT_SCENES[name]}
-    with_octants = render(ribs, scene)
+    with_octants = eng.render(ribs, scene)
     assert "-DLC_OCTANTS" in with_octants.report["build_options"]
     monkeypatch.setattr(config.KernelConfig, "octants", property(lambda self: False))
-    without = render(ribs, scene)
+    without = eng.render(ribs, scene)
     assert "-DLC_OCTANTS" not in without.report["build_options"]
     np.testing.assert_allclose(with_octants.rgba, without.rgba, rtol=0, atol=1e-5)
     # (interblock's octants near a block face reach into the neighbours' bricks: wider bounds, fewer skipped)
@@ -208,7 +215,7 @@ def test_octant_masks_change_nothing_but_the_samples(ribs, monkeypatch, name):
                                                                                  without.report["samples"])
 
 
-def test_no_octant_masks_beyond_fine_cells_octants(ribs, monkeypatch):
+def test_no_octant_masks_beyond_fine_cells_octants(eng, ribs, monkeypatch):
     """The octants' bounds are kept for the whole grid (12 bytes each, on the host and the device): on a grid of
     more than sampler.FINE_CELLS octants (the 8 GiB volume's 64 million: 12.5 s a turntable frame, 5.3 GB of peak
     RSS) the walk takes every sample of its half-block cells, as full resolution walks 8³ cells there."""
@@ -217,22 +224,22 @@ def test_no_octant_masks_beyond_fine_cells_octants(ribs, monkeypatch):
     scene = {"tf": BONE, "width": 48, "height": 40, "camera": {"azimuth": 30, "elevation": 20},
              "quality": {"reduction": 4}}
     vol = as_volume(ribs)
-    assert "-DLC_OCTANTS" in render(ribs, scene).report["build_options"]
+    assert "-DLC_OCTANTS" in eng.render(ribs, scene).report["build_options"]
     monkeypatch.setattr(rendering, "FINE_CELLS", 64 * vol.n_blocks - 1)
-    assert "-DLC_OCTANTS" not in render(ribs, scene).report["build_options"]
+    assert "-DLC_OCTANTS" not in eng.render(ribs, scene).report["build_options"]
 
 
-def test_octants_of_every_half_block_cell_hold_its_bounds(ribs):
+def test_octants_of_every_half_block_cell_hold_its_bounds(eng, ribs):
     """atlas_cells at 4 cells per block edge: each half-block cell's bounds are the union of its eight octants'
     (both from the same brick samples, the octants' reach a subset), bit for bit, so that cells_and_octants
     reduces the half-block cells from the octants instead of running the kernel twice."""
     vol = as_volume(ribs)
     B, G = int(vol.block_size), vol.grid
     levels = np.random.default_rng(7).integers(-1, 4, size=G).astype(np.int8)
-    da = lod_atlas.device_atlas(vol, levels, with_std=True, keep=False)
+    da = lod_atlas.device_atlas(eng, vol, levels, with_std=True, keep=False)
     for interp in ("interblock", "nearest_block"):
-        half = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit)
-        octs = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit, cpb=4)
+        half = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit)
+        octs = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit, cpb=4)
         assert octs.vmin.shape == tuple(4 * g for g in G) and octs.cpb == 4
         parts = [(octs.vmin[z::2, y::2, x::2], octs.vmax[z::2, y::2, x::2], octs.std[z::2, y::2, x::2])
                  for z in (0, 1) for y in (0, 1) for x in (0, 1)]
@@ -244,13 +251,13 @@ def test_octants_of_every_half_block_cell_hold_its_bounds(ribs):
         assert np.all(half.vmin[f] <= lo[f]) and np.all(half.vmax[f] >= hi[f]) and np.all(half.std >= sd)
         tighter = [(p[0][f] > half.vmin[f]) | (p[1][f] < half.vmax[f]) for p in parts]
         assert np.mean(tighter) > 0.2  # what the octants are for
-        derived, _ = atlas_cells.cells_and_octants(da, G, B, interp, vol.std_unit)
+        derived, _ = atlas_cells.cells_and_octants(eng, da, G, B, interp, vol.std_unit)
         for got, ref in ((derived.vmin, half.vmin), (derived.vmax, half.vmax), (derived.std, half.std)):
             np.testing.assert_array_equal(got, ref)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_octant_masks_change_nothing_on_random_volumes_and_views(tmp_path, monkeypatch, seed):
+def test_octant_masks_change_nothing_on_random_volumes_and_views(eng, tmp_path, monkeypatch, seed):
     """Property: random blobs and shells, 16³ or 32³ blocks, anisotropic spacing, random views (perspective or
     orthographic), clip planes and reductions: the image with octant masks is the one without, within float
     rounding, and never takes more samples."""
@@ -277,9 +284,9 @@ def test_octant_masks_change_nothing_on_random_volumes_and_views(tmp_path, monke
     if seed >= 2:
         scene["clip"] = {"planes": [{"normal": [float(v) for v in rng.normal(size=3)],
                                      "point": [float(n) * 0.4 for n in shape[::-1]]}]}
-    on = render(st, scene)
+    on = eng.render(st, scene)
     monkeypatch.setattr(config.KernelConfig, "octants", property(lambda self: False))
-    off = render(st, scene)
+    off = eng.render(st, scene)
     assert "-DLC_OCTANTS" in on.report["build_options"] and "-DLC_OCTANTS" not in off.report["build_options"]
     assert on.rgba[..., 3].max() > 0.2  # something shows
     np.testing.assert_allclose(on.rgba, off.rgba, rtol=0, atol=1e-5)

@@ -13,12 +13,10 @@ import pyopencl as cl
 import pytest
 
 import lodcast
-from lodcast.opencl import get_context
 from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import atlas_cells, atlas_reuse
-from lodcast.renderer.bricks import BrickCache
-from lodcast.renderer.render import render
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.engine import BrickCache
+from lodcast.renderer.render import Renderer
 from lodcast.renderer.volume import as_volume
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
@@ -43,10 +41,16 @@ def store(request, tmp_path_factory):
     return lodcast.ingest(a, tmp_path_factory.mktemp("reuse") / f"{request.param}.zarr", block_size=8)
 
 
-def _forget() -> None:
-    device_cache().clear()
-    atlas_cells._cells_cache().clear()
-    atlas_reuse._last()[0].clear()
+@pytest.fixture(scope="module")
+def eng():
+    r = Renderer()
+    yield r
+    r.close()
+
+
+def _forget(eng: Renderer) -> None:
+    """Nothing kept: no atlas in the device cache, no cells, no last atlas to build from."""
+    eng.close()
 
 
 def _changed(levels: np.ndarray, rng, frac: float, top: int) -> np.ndarray:
@@ -56,15 +60,15 @@ def _changed(levels: np.ndarray, rng, frac: float, top: int) -> np.ndarray:
     return out
 
 
-def _read(buf, dtype) -> np.ndarray:
-    _, queue = get_context()
+def _read(eng: Renderer, buf, dtype) -> np.ndarray:
+    queue = eng.device.queue
     out = np.empty(buf.size // np.dtype(dtype).itemsize, dtype)
     cl.enqueue_copy(queue, out, buf)
     queue.finish()
     return out
 
 
-def _same_atlas(a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtlas, vol) -> None:
+def _same_atlas(eng: Renderer, a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtlas, vol) -> None:
     """Index and buffers equal, bit for bit (NaN included); a buffer with nothing in it holds one element that
     nothing reads or writes."""
     np.testing.assert_array_equal(a.index_host, b.index_host)
@@ -76,96 +80,96 @@ def _same_atlas(a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtlas, vol) -> None
     for x, y, used in ((a.atlas, b.atlas, held), (a.std, b.std, coarse)):
         assert (x is None) == (y is None)
         if x is not None and used:
-            np.testing.assert_array_equal(_read(x, np.uint8), _read(y, np.uint8))
+            np.testing.assert_array_equal(_read(eng, x, np.uint8), _read(eng, y, np.uint8))
 
 
 @pytest.mark.parametrize("with_std", [True, False])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_an_atlas_built_from_the_last_one_is_the_atlas_packed_from_nothing(store, with_std, seed):
+def test_an_atlas_built_from_the_last_one_is_the_atlas_packed_from_nothing(store, eng, with_std, seed):
     vol = as_volume(store)
     rng = np.random.default_rng(seed)
     top = store.n_levels - 1
     first = rng.integers(-1 if seed else 0, top + 1, size=vol.grid).astype(np.int8)
     first[rng.random(vol.grid) < 0.4] = 0  # runs of level-0 blocks: aprons between them
-    _forget()
-    old = lod_atlas.device_atlas(vol, first, with_std=with_std)
+    _forget(eng)
+    old = lod_atlas.device_atlas(eng, vol, first, with_std=with_std)
     for frac in (0.05, 0.3, 1.0):
         new_levels = _changed(first, rng, frac, top)
-        new = lod_atlas.device_atlas(vol, new_levels, with_std=with_std)
+        new = lod_atlas.device_atlas(eng, vol, new_levels, with_std=with_std)
         assert new.base_key == old.key and new.cached >= int(((new_levels == first) & (first >= 0)).sum())
-        _forget()
-        fresh = lod_atlas.device_atlas(vol, new_levels, with_std=with_std)
+        _forget(eng)
+        fresh = lod_atlas.device_atlas(eng, vol, new_levels, with_std=with_std)
         assert fresh.base_key is None
-        _same_atlas(new, fresh, vol)
-        _forget()
-        old = lod_atlas.device_atlas(vol, first, with_std=with_std)
+        _same_atlas(eng, new, fresh, vol)
+        _forget(eng)
+        old = lod_atlas.device_atlas(eng, vol, first, with_std=with_std)
 
 
 @pytest.mark.parametrize("interp", ["nearest_block", "interblock"])
 @pytest.mark.parametrize("cpb", [2, 4])
-def test_cells_of_an_atlas_built_from_the_last_one_are_computed_where_they_changed(store, interp, cpb):
+def test_cells_of_an_atlas_built_from_the_last_one_are_computed_where_they_changed(store, eng, interp, cpb):
     vol = as_volume(store)
     B, G = int(vol.block_size), vol.grid
     rng = np.random.default_rng(7)
     first = rng.integers(-1, store.n_levels, size=G).astype(np.int8)
     first[rng.random(G) < 0.5] = 0
-    _forget()
-    atlas_cells.atlas_cells(lod_atlas.device_atlas(vol, first, with_std=True), G, B, interp, vol.std_unit, cpb=cpb)
+    _forget(eng)
+    atlas_cells.atlas_cells(eng, lod_atlas.device_atlas(eng, vol, first, with_std=True), G, B, interp, vol.std_unit, cpb=cpb)
     for frac in (0.02, 0.2, 0.6):
         levels = _changed(first, rng, frac, store.n_levels - 1)
-        da = lod_atlas.device_atlas(vol, levels, with_std=True)
+        da = lod_atlas.device_atlas(eng, vol, levels, with_std=True)
         assert da.base_key is not None
         dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(G), levels, interp)
         assert dirty.sum() < dirty.size or frac > 0.5  # some blocks are copied, not computed
-        got = atlas_cells.atlas_cells(da, G, B, interp, vol.std_unit, cpb=cpb)
-        ref = atlas_cells._device_cells(da, G, B, interp, vol.std_unit, None, cpb)
+        got = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit, cpb=cpb)
+        ref = atlas_cells._device_cells(eng.device, da, G, B, interp, vol.std_unit, None, cpb)
         for g, r in ((got.vmin, ref.vmin), (got.vmax, ref.vmax), (got.std, ref.std)):
             np.testing.assert_array_equal(g, r)
         first = levels
 
 
-def test_only_the_bricks_of_blocks_whose_level_changed_are_read(store):
+def test_only_the_bricks_of_blocks_whose_level_changed_are_read(store, eng):
     vol = as_volume(store)
     rng = np.random.default_rng(11)
     first = rng.integers(-1, store.n_levels, size=vol.grid).astype(np.int8)
     levels = _changed(first, rng, 0.25, store.n_levels - 1)
-    _forget()
-    lod_atlas.device_atlas(vol, first, with_std=True, cache=BrickCache(1 << 30))
-    da = lod_atlas.device_atlas(vol, levels, with_std=True, cache=BrickCache(1 << 30))  # nothing cached there
+    _forget(eng)
+    lod_atlas.device_atlas(eng, vol, first, with_std=True, cache=BrickCache(1 << 30))
+    da = lod_atlas.device_atlas(eng, vol, levels, with_std=True, cache=BrickCache(1 << 30))  # nothing cached there
     new = int(((levels != first) & (levels >= 0)).sum())
     assert 0 < new < int((levels >= 0).sum())
     assert (da.read, da.cached) == (new, int((levels >= 0).sum()) - new)
 
 
-def test_the_last_atlas_is_held_weakly(store):
+def test_the_last_atlas_is_held_weakly(store, eng):
     """Reuse never keeps an atlas's device memory alive: once the device cache lets it go, it is gone."""
     vol = as_volume(store)
-    _forget()
-    da = lod_atlas.device_atlas(vol, np.zeros(vol.grid, np.int8))
+    _forget(eng)
+    da = lod_atlas.device_atlas(eng, vol, np.zeros(vol.grid, np.int8))
     family = (vol.key, vol.grid, False, str(vol.voxel_dtype))
-    assert atlas_reuse.last_atlas(family) is da
+    assert eng.last_atlas(family) is da
     del da
-    device_cache().clear()
+    eng.device_cache.clear()
     gc.collect()
-    assert atlas_reuse.last_atlas(family) is None
+    assert eng.last_atlas(family) is None
 
 
-def test_a_turntable_with_the_view_weighted_selection_renders_as_without_reuse(store):
+def test_a_turntable_with_the_view_weighted_selection_renders_as_without_reuse(store, eng):
     scenes = [{"tf": BONE, "quality": {"reduction": 20}, "width": 64, "height": 64,
                "camera": {"azimuth": az, "elevation": 10}, "sampling": {"lod_visibility": True}}
               for az in (0, 4, 30, 31, 90)]
-    _forget()
-    reused = [render(store, s) for s in scenes]
+    _forget(eng)
+    reused = [eng.render(store, s) for s in scenes]
     assert sum(r.report["bricks_cached"] for r in reused[1:]) > 0
     for s, r in zip(scenes, reused):
-        _forget()
-        fresh = render(store, s)
+        _forget(eng)
+        fresh = eng.render(store, s)
         np.testing.assert_array_equal(r.rgba, fresh.rgba)
 
 
 @pytest.mark.parametrize("first, then", [("empty", "random"), ("random", "empty"), ("zero", "coarse"),
                                          ("coarse", "zero"), ("zero", "random")])
-def test_edge_selections_build_from_each_other(store, first, then):
+def test_edge_selections_build_from_each_other(store, eng, first, then):
     """Nothing loaded, everything at level 0 (no coarse brick: a deviations' buffer of one element), everything
     coarse: each built from the other equals the atlas packed from nothing."""
     vol = as_volume(store)
@@ -174,9 +178,9 @@ def test_edge_selections_build_from_each_other(store, first, then):
             "coarse": lambda: rng.integers(1, store.n_levels, size=vol.grid).astype(np.int8),
             "random": lambda: rng.integers(-1, store.n_levels, size=vol.grid).astype(np.int8)}
     a, b = make[first](), make[then]()
-    _forget()
-    lod_atlas.device_atlas(vol, a, with_std=True)
-    new = lod_atlas.device_atlas(vol, b, with_std=True)
+    _forget(eng)
+    lod_atlas.device_atlas(eng, vol, a, with_std=True)
+    new = lod_atlas.device_atlas(eng, vol, b, with_std=True)
     assert new.base_key is not None
-    _forget()
-    _same_atlas(new, lod_atlas.device_atlas(vol, b, with_std=True), vol)
+    _forget(eng)
+    _same_atlas(eng, new, lod_atlas.device_atlas(eng, vol, b, with_std=True), vol)

@@ -56,7 +56,7 @@ def test_wait_times_out_with_exit_1(tmp_path):
 
     lodcast.ingest(np.zeros((8, 8, 8), np.float32), tmp_path / "v", block_size=8)
     jq = JobQueue(Settings(root=tmp_path))
-    rec = jq.submit(validate_job(parse_job(JOB), jq.settings))  # queued, no worker
+    rec = jq.submit(validate_job(parse_job(JOB), jq.settings, jq.engine))  # queued, no worker
     p = lc("jobs", "wait", rec["id"], "--timeout", "0.3", cwd=tmp_path)
     assert p.returncode == 1 and "still queued after 0.3 s" in p.stderr
     assert json.loads(p.stdout)["state"] == "queued"

@@ -1,5 +1,6 @@
-"""lodcast.environment: the store's and renderer's variables are read when asked (not at import), malformed
-values are refused naming the variable, and every one of them is in the README's table."""
+"""lodcast.environment: the store's and renderer's variables are read when asked (not at import; a renderer reads
+them once, when it is made), malformed values are refused naming the variable, and every one of them is in the
+README's table."""
 from __future__ import annotations
 
 import os
@@ -10,7 +11,8 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.environment import VARIABLES, EnvironmentInvalid, environment, read_threads_for
+from lodcast.environment import VARIABLES, EnvironmentInvalid, environment
+from lodcast.renderer.render import Renderer
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -23,7 +25,8 @@ def test_defaults_and_units(monkeypatch):
     assert env.device_budget_bytes is None and env.max_voxels is None
     assert env.max_samples == 2_000_000_000 and env.read_threads is None and env.lossless_zeta == 0.5
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    assert read_threads_for(remote=False) == max(1, cores - 1) and read_threads_for(remote=True) == 8
+    eng = Renderer()
+    assert eng.read_threads(remote=False) == max(1, cores - 1) and eng.read_threads(remote=True) == 8
     assert env.significance_numpy is False and env.tmp is None
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # DESIGN.md, Limits: MB = 10⁶ bytes
     monkeypatch.setenv("LODCAST_MAX_SAMPLES", "2e7")
@@ -31,7 +34,10 @@ def test_defaults_and_units(monkeypatch):
     monkeypatch.setenv("LODCAST_READ_THREADS", "3")
     env = environment()
     assert env.device_budget_bytes == 64_000_000 and env.max_samples == 20_000_000 and env.significance_numpy
-    assert read_threads_for(remote=False) == read_threads_for(remote=True) == 3
+    assert eng.read_threads(remote=False) == max(1, cores - 1)  # made before: its settings are its own
+    eng = Renderer()
+    assert eng.read_threads(remote=False) == eng.read_threads(remote=True) == 3
+    assert eng.settings.device_budget_bytes == 64_000_000 and eng.settings.max_samples == 20_000_000
 
 
 @pytest.mark.parametrize("name, value", [("LODCAST_BRICK_CACHE_MB", "lots"), ("LODCAST_DEVICE_CACHE_MB", "-1"),
@@ -46,19 +52,21 @@ def test_malformed_values_are_refused_naming_the_variable(monkeypatch, name, val
     assert isinstance(err.value, ValueError) and repr(value) in str(err.value)
 
 
-def test_read_at_each_call_not_at_import(monkeypatch, tmp_path):
-    """LODCAST_LOSSLESS_ZETA used to be read once at import: a later change did nothing. Now a larger ζ selects
-    coarser levels at the next render of the same store and TF (and the selection cache does not hide it)."""
+def test_read_when_a_renderer_is_made_not_at_import(monkeypatch, tmp_path):
+    """LODCAST_LOSSLESS_ZETA used to be read once at import: a later change did nothing. Now a renderer made after
+    the change selects coarser levels for a larger ζ, on the same store and TF; one made before keeps its own."""
     rng = np.random.default_rng(3)
     vol = rng.normal(500, 200, (64, 64, 64)).astype(np.float32)
     store = lodcast.ingest(vol, tmp_path / "v.zarr")
     scene = {"width": 48, "height": 48, "quality": "lossless",
              "tf": {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0}, {"value": 1000, "color": [1, 0.5, 0.2], "opacity": 0.3}]}}
     monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "0.5")
-    tight = lodcast.render(store, scene).report
+    before = Renderer()
+    tight = before.render(store, scene).report
     monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "50")
-    loose = lodcast.render(store, scene).report
+    loose = Renderer().render(store, scene).report
     assert loose["reduction"] > 2 * tight["reduction"], (tight["reduction"], loose["reduction"])
+    assert before.render(store, scene).report["reduction"] == tight["reduction"]
 
 
 def test_every_variable_is_in_the_readme_table():

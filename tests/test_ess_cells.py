@@ -9,28 +9,25 @@ import pytest
 
 import lodcast
 from lodcast.renderer import sampler
-from lodcast.opencl import get_context
-from lodcast.renderer.render import render
 from lodcast.renderer.volume import as_volume, block_minmax_border
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
                    {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}
 
 
-def _buf(a: np.ndarray) -> cl.Buffer:
-    ctx, _ = get_context()
-    return cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a))
+def _buf(eng, a: np.ndarray) -> cl.Buffer:
+    return cl.Buffer(eng.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a))
 
 
 @pytest.mark.parametrize("shape", [(37, 20, 45), (16, 16, 16), (1, 5, 33), (50, 47, 61)])
-def test_cell_ranges_match_numpy(shape):
+def test_cell_ranges_match_numpy(eng, shape):
     rng = np.random.default_rng(sum(shape))
     a = rng.normal(size=shape).astype(np.float32)
     a[a > 1.8] = np.nan
     vol = as_volume(a)
     C = sampler.ess_cell(a.shape, 16)
     ref_min, ref_max = block_minmax_border(a, C)  # float64, NaN-ignoring, one-voxel border
-    mn, mx = sampler.level0_cells(_buf(a), a.shape, (0, 0, 0), tuple(slice(0, g) for g in vol.grid), vol)
+    mn, mx = sampler.level0_cells(eng.device, _buf(eng, a), a.shape, (0, 0, 0), tuple(slice(0, g) for g in vol.grid), vol)
     assert np.array_equal(mn, ref_min, equal_nan=True) and np.array_equal(mx, ref_max, equal_nan=True)
     G = vol.grid
     if all(g >= 3 for g in G):  # a pass's sub-volume: the middle blocks and a 3-voxel rim
@@ -38,7 +35,7 @@ def test_cell_ranges_match_numpy(shape):
         lo = (13, 13, 13)
         hi = tuple(min(s, (g - 1) * 16 + 3) for s, g in zip(shape, G))
         sub = a[tuple(slice(l, h) for l, h in zip(lo, hi))]
-        pmn, pmx = sampler.level0_cells(_buf(sub), sub.shape, lo, blocks, vol)
+        pmn, pmx = sampler.level0_cells(eng.device, _buf(eng, sub), sub.shape, lo, blocks, vol)
         k = 16 // C  # cells per block edge
         own = tuple(slice(k, k * (g - 1)) for g in G)
         assert np.array_equal(pmn[own], ref_min[own], equal_nan=True)
@@ -61,13 +58,13 @@ def _ribs(shape=(48, 64, 64)) -> np.ndarray:
 @pytest.mark.parametrize("extra", [{}, {"mode": "mip"}, {"shading": {}, "sampling": {"preintegration": True}},
                                    {"tf2": {"points": [{"value": 950, "color": [1, 0.3, 0.2], "opacity": 0.0},
                                                        {"value": 1000, "color": [1, 0.3, 0.2], "opacity": 0.9}]}}])
-def test_finer_cells_take_fewer_samples_and_change_nothing(monkeypatch, extra):
+def test_finer_cells_take_fewer_samples_and_change_nothing(eng, monkeypatch, extra):
     a = _ribs()
     scene = {"tf": BONE, "width": 64, "height": 64, "camera": {"azimuth": 30, "elevation": 20}, **extra}
-    off = render(a, {**scene, "sampling": {**scene.get("sampling", {}), "empty_space_skipping": False}})
-    fine = render(a, scene)
+    off = eng.render(a, {**scene, "sampling": {**scene.get("sampling", {}), "empty_space_skipping": False}})
+    fine = eng.render(a, scene)
     monkeypatch.setattr(sampler, "ess_cell", lambda shape, B: B)  # the walk over the store's blocks, as before
-    blocks = render(a, scene)
+    blocks = eng.render(a, scene)
     assert np.array_equal(fine.rgba, off.rgba), float(np.abs(fine.rgba - off.rgba).max())
     assert np.array_equal(blocks.rgba, off.rgba)
     n_fine, n_blocks, n_off = (r.report["samples"] for r in (fine, blocks, off))
@@ -76,7 +73,7 @@ def test_finer_cells_take_fewer_samples_and_change_nothing(monkeypatch, extra):
         assert n_fine < 0.85 * n_blocks, (n_fine, n_blocks)
 
 
-def test_cell_edge_follows_the_grid_size():
+def test_cell_edge_follows_the_grid_size(eng):
     """4³ cells while their grid stays within FINE_CELLS, else the store's 8³ (or the block, below 8)."""
     assert sampler.ess_cell((128, 256, 256), 16) == 4  # the engine CT: 131,072 cells of 4³
     assert sampler.ess_cell((275, 512, 512), 16) == 4  # the chest CT: 1.1 million
@@ -87,7 +84,7 @@ def test_cell_edge_follows_the_grid_size():
     assert sampler.ess_cell((n, n, n), 16) == 4 and sampler.ess_cell((n, n, n + 8), 16) == 8
 
 
-def test_walk_info_is_kept_per_volume_visibility_and_clip(monkeypatch, tmp_path):
+def test_walk_info_is_kept_per_volume_visibility_and_clip(eng, monkeypatch, tmp_path):
     """Full resolution's walk info (cell visibility and leaps) is computed once per volume, TF zero pattern, mode
     and clip: a TF that only changes colours and non-zero opacities reuses it, any other change recomputes it, and
     every image equals one rendered with nothing kept."""
@@ -109,18 +106,18 @@ def test_walk_info_is_kept_per_volume_visibility_and_clip(monkeypatch, tmp_path)
     counts, images = [], []
     for sc in scenes:
         n0 = len(calls)
-        images.append(render(st, sc).rgba)
+        images.append(eng.render(st, sc).rgba)
         counts.append(len(calls) - n0)
     # per render one call for the blocks' info; where the cells' walk info is computed afresh two more (the 8³
     # parents, then the 4³ cells under them), MIP one (its cells' maxima)
     assert counts == [3, 1, 1, 3, 3, 1, 2], counts
-    R._WALKS.clear()
+    eng.walks.clear()
     for sc, img in zip(scenes, images):
-        assert np.array_equal(render(st, sc).rgba, img)
+        assert np.array_equal(eng.render(st, sc).rgba, img)
 
 
 @pytest.mark.parametrize("step", [0.5, 0.9])
-def test_fine_and_coarse_walks_give_the_same_image(monkeypatch, step):
+def test_fine_and_coarse_walks_give_the_same_image(eng, monkeypatch, step):
     """At steps up to FINE_STEP full resolution walks 4³ cells, classified under their 8³ parents; beyond it the
     parents themselves: the same image either way, the finer walk with fewer samples."""
     from lodcast.renderer import walk as R
@@ -128,9 +125,9 @@ def test_fine_and_coarse_walks_give_the_same_image(monkeypatch, step):
     a = _ribs()
     scene = {"tf": BONE, "width": 48, "height": 48, "camera": {"azimuth": 30, "elevation": 20},
              "sampling": {"step": step}}
-    fine = render(a, scene)
+    fine = eng.render(a, scene)
     monkeypatch.setattr(R, "FINE_STEP", 0.0)
-    coarse = render(a, scene)
-    off = render(a, {**scene, "sampling": {"step": step, "empty_space_skipping": False}})
+    coarse = eng.render(a, scene)
+    off = eng.render(a, {**scene, "sampling": {"step": step, "empty_space_skipping": False}})
     assert np.abs(fine.rgba - coarse.rgba).max() <= 1e-6 and np.abs(fine.rgba - off.rgba).max() <= 1e-6
     assert fine.report["samples"] < 0.9 * coarse.report["samples"] < off.report["samples"]

@@ -64,7 +64,7 @@ def test_each_job_runs_to_its_end(root, name):
     from lodcast.service.settings import Settings
 
     jq = JobQueue(Settings(root=root, poll_s=0.05, token=None))
-    job = validate_job(parse_job(json.loads((EXAMPLES / name).read_text())), jq.settings)
+    job = validate_job(parse_job(json.loads((EXAMPLES / name).read_text())), jq.settings, jq.engine)
     rec = jq.submit(job)
     worker = Worker(jq, threads=1).start()
     try:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from lodcast.opencl import get_context, kernel_source
+from lodcast.opencl import Device, kernel_source
 
 KERNEL = """
 __kernel void alpha_of_depth(__global const float* x, __global float* out) {
@@ -30,7 +30,8 @@ __kernel void pow01(__global const float* x, __global const float* e, __global f
 
 
 def _run(x: np.ndarray, *more: np.ndarray, name: str = "alpha_of_depth") -> np.ndarray:
-    ctx, queue = get_context()
+    dev = Device()
+    ctx, queue = dev.context, dev.queue
     prg = cl.Program(ctx, kernel_source("lc_common.h") + KERNEL).build()
     mf = cl.mem_flags
     bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (x, *more)]

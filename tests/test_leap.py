@@ -32,7 +32,7 @@ def _forward_cube(empty: np.ndarray, c, o: int, cap: int) -> int:
 
 
 @pytest.mark.parametrize("seed", range(8))
-def test_octant_radii_are_the_largest_empty_forward_cubes(seed):
+def test_octant_radii_are_the_largest_empty_forward_cubes(eng, seed):
     rng = np.random.default_rng(seed)
     shape = tuple(int(n) for n in rng.integers(1, 11, 3))
     empty = rng.random(shape) > rng.choice([0.01, 0.05, 0.3, 0.8])
@@ -45,7 +45,7 @@ def test_octant_radii_are_the_largest_empty_forward_cubes(seed):
         np.testing.assert_array_equal(got[o], want, err_msg=f"octant {o}")
 
 
-def test_octant_radii_look_only_ahead():
+def test_octant_radii_look_only_ahead(eng):
     """A wall behind the ray does not hold it back: beside a full plane every octant facing away from it leaps as
     far as the cap allows, those facing it only up to the wall."""
     empty = np.ones((20, 3, 3), bool)
@@ -57,7 +57,7 @@ def test_octant_radii_look_only_ahead():
     assert (r[:, 4] == 0).all()
 
 
-def test_radii_of_grids_all_empty_and_all_full():
+def test_radii_of_grids_all_empty_and_all_full(eng):
     np.testing.assert_array_equal(octant_radii(np.ones((3, 4, 5), bool)), np.full((8, 3, 4, 5), LEAP_MAX))
     np.testing.assert_array_equal(octant_radii(np.zeros((3, 4, 5), bool)), np.zeros((8, 3, 4, 5)))
     with pytest.raises(ValueError, match="3-D grid"):
@@ -66,7 +66,7 @@ def test_radii_of_grids_all_empty_and_all_full():
         octant_radii(np.ones((2, 2, 2), bool), 0)
 
 
-def test_cell_leaps_are_the_radii_of_the_empty_cells_computed_per_octant_on_demand():
+def test_cell_leaps_are_the_radii_of_the_empty_cells_computed_per_octant_on_demand(eng):
     info = np.zeros((5, 6, 7), np.float32)
     info[2, 3, 3] = 1.0
     info[0, 0, 0] = -np.inf  # (MIP's empty)
@@ -90,7 +90,7 @@ def test_cell_leaps_are_the_radii_of_the_empty_cells_computed_per_octant_on_dema
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_step_leaps_cover_cubes_of_skipped_level_0_cells(seed):
+def test_step_leaps_cover_cubes_of_skipped_level_0_cells(eng, seed):
     """Every cell of the forward cube a leap vouches for is a skipped level-0 cell (code -1); nothing else leaps."""
     rng = np.random.default_rng(seed)
     codes = rng.choice(np.array([-1, -2, -3, -(NEAR_LEVEL0 | 1) - 1, 0, 2], np.int8), size=(9, 10, 11),
@@ -143,14 +143,6 @@ def stores(tmp_path_factory):
     return [lodcast.ingest(_volume(s), d / f"v{s}.zarr", block_size=8, progress=False) for s in range(2)]
 
 
-@pytest.fixture(autouse=True)
-def fresh_walks():
-    """Full resolution keeps its walk info per volume and TF (walk._WALKS): each test computes its own."""
-    R._WALKS.clear()
-    yield
-    R._WALKS.clear()
-
-
 def _fixed(empty: np.ndarray, r: int) -> Leaps:
     """Leaps of r cells from every cell of `empty` in every octant (0: none), whatever lies ahead."""
     plane = np.where(empty, r, 0).astype(np.uint8)
@@ -164,7 +156,7 @@ def _no_leaps(monkeypatch):
 
 @pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("seed", range(3))
-def test_leaps_change_no_image(stores, variant, seed, monkeypatch):
+def test_leaps_change_no_image(eng, stores, variant, seed, monkeypatch):
     """With leaps the image is the cell-by-cell walk's, bit for bit up to float noise (1e-6), and so are the
     adaptive walk's sample counts; at full resolution only samples past the grid's last cell that rounding left
     to the march may go (each adds nothing). The maps used do leap (radii >= 2 were handed to the kernel)."""
@@ -180,12 +172,12 @@ def test_leaps_change_no_image(stores, variant, seed, monkeypatch):
     wl, sl = R.cell_leaps, R.step_leaps
     monkeypatch.setattr(R, "cell_leaps", lambda info: used.append(wl(info)) or used[-1])
     monkeypatch.setattr(R, "step_leaps", lambda steps: used.append(sl(steps)) or used[-1])
-    on = lodcast.render(st, scene)
+    on = eng.render(st, scene)
     assert len(used) == 1 and 1 <= len(used[0].planes) <= 4
     assert any((plane >= 2).any() for plane in used[0].planes.values())
     _no_leaps(monkeypatch)
-    R._WALKS.clear()
-    off = lodcast.render(st, scene)
+    eng.walks.clear()
+    off = eng.render(st, scene)
     assert on.rgba[..., 3].max() > 0.3
     assert np.abs(on.rgba - off.rgba).max() <= 1e-6
     if variant.startswith("full"):
@@ -195,20 +187,20 @@ def test_leaps_change_no_image(stores, variant, seed, monkeypatch):
 
 
 @pytest.mark.parametrize("variant", ["full", "10:1 adaptive"])
-def test_the_kernel_follows_the_map(stores, variant, monkeypatch):
+def test_the_kernel_follows_the_map(eng, stores, variant, monkeypatch):
     """A map that claims more empty space than there is makes rays leap over material: the kernel reads it."""
     scene = {"tf": TF, "width": 32, "height": 32, "format": "npy", "camera": {"azimuth": 30, "elevation": 20},
              **VARIANTS[variant]}
-    right = lodcast.render(stores[0], scene)
-    R._WALKS.clear()
+    right = eng.render(stores[0], scene)
+    eng.walks.clear()
     monkeypatch.setattr(R, "cell_leaps", lambda info: _fixed(np.ones(info.shape, bool), LEAP_MAX))
     monkeypatch.setattr(R, "step_leaps", lambda steps: _fixed(steps == -1, LEAP_MAX))
-    wrong = lodcast.render(stores[0], scene)
+    wrong = eng.render(stores[0], scene)
     assert wrong.rgba[..., 3].sum() < 0.8 * right.rgba[..., 3].sum()
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_coarser_ranges_are_the_union_of_the_finer(seed):
+def test_coarser_ranges_are_the_union_of_the_finer(eng, seed):
     """8³ cells' border-inclusive ranges from 4³ cells' equal those computed from the voxels (NaN left out)."""
     from lodcast.renderer.volume import block_minmax_border
 
@@ -222,7 +214,7 @@ def test_coarser_ranges_are_the_union_of_the_finer(seed):
 
 
 @pytest.mark.parametrize("seed", range(12))
-def test_ray_octants_hold_every_ray_of_the_image(seed):
+def test_ray_octants_hold_every_ray_of_the_image(eng, seed):
     """camera.ray_octants: the octant of every pixel's ray (and of rays through the image's corners) is among them,
     and a view of a field of view up to 90° needs at most four of the eight planes."""
     from lodcast.renderer import camera as cam

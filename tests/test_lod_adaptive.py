@@ -8,9 +8,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.render import render
 from lodcast.renderer import passes, sampler
-from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import cell_edge
 
 B = 16
@@ -70,7 +68,7 @@ def _chord_in_fine_block(cam) -> np.ndarray:
 
 
 @pytest.mark.parametrize("f", [(1, 0, 0), (1, 0.35, 0.2), (-1, -0.2, 0.3)])
-def test_limited_adaptive_samples_the_fine_block_over_its_whole_length(store, f):
+def test_limited_adaptive_samples_the_fine_block_over_its_whole_length(eng, store, f):
     """The fine block is sampled at the base step over its whole length: its opacity comes out exact; the naive
     steps, which run into the fine block, miss more than 0.02. At "lossless" (LC_LATTICE) the fine block's steps
     begin on full resolution's lattice (the coarse block's last step ends where the lattice's first step with its
@@ -81,24 +79,24 @@ def test_limited_adaptive_samples_the_fine_block_over_its_whole_length(store, f)
     assert L.min() > 10
     exact = 1 - (1 - A) ** L  # NB field: 1 in the fine block's whole region, 0 elsewhere
     step = 0.7
-    lim = render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
-    naive = render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
+    lim = eng.render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
+    naive = eng.render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
     assert "-DLC_ADAPTIVE" in lim.report["build_options"] and "-DLC_ADAPTIVE_NAIVE" not in lim.report["build_options"]
     assert "-DLC_ADAPTIVE_NAIVE" in naive.report["build_options"]
     np.testing.assert_allclose(lim.rgba[..., 3], exact, atol=2e-5)
     assert np.abs(naive.rgba[..., 3] - exact).max() > 0.02  # the naive step runs into the fine block
-    lat = render(store, {**_scene(cam, adaptive_object=True), "quality": "lossless"}, levels=LEVELS)
+    lat = eng.render(store, {**_scene(cam, adaptive_object=True), "quality": "lossless"}, levels=LEVELS)
     assert "-DLC_LATTICE" in lat.report["build_options"] and "-DLC_LATTICE" not in lim.report["build_options"]
     one_step = -np.log1p(-A) * step * (1 - A) ** (L - step)  # d(opacity)/dL times a step
     assert (np.abs(lat.rgba[..., 3] - exact) <= one_step + 2e-5).all()
-    uniform = render(store, _scene(cam, adaptive_object=False), levels=LEVELS)
+    uniform = eng.render(store, _scene(cam, adaptive_object=False), levels=LEVELS)
     assert lim.report["samples"] < uniform.report["samples"]
     # adaptive sampling is the default at the budgeted qualities (the levels given replace the selection)
-    default = render(store, {**_scene(cam), "quality": {"reduction": 2}}, levels=LEVELS)
+    default = eng.render(store, {**_scene(cam), "quality": {"reduction": 2}}, levels=LEVELS)
     assert default.report["adaptive"] == "limited" and default.report["samples"] == lim.report["samples"]
 
 
-def test_samples_landing_in_the_fine_block_along_x(store):
+def test_samples_landing_in_the_fine_block_along_x(eng, store):
     """The cells are half blocks (8 voxels), each stepped at its own block's level. Along +x every ray crosses
     block 1 (one step of 11.2 voxels, cut at 8, in each half), the fine block (base steps of 0.7 from its face that
     run on from its first half into its second, ceil(16 / 0.7) = 23 over its whole length, the last cut at its far
@@ -106,15 +104,15 @@ def test_samples_landing_in_the_fine_block_along_x(store):
     4 are empty (skipped): exactly 2 + 23 + 2 = 27 samples per ray. With II blocks 0 and 4 are marched too, since
     the interblock interpolation of the coarse blocks 1 and 3 reaches into them: 8 + 23 = 31."""
     cam = _cam((1, 0, 0))
-    lim = render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
+    lim = eng.render(store, _scene(cam, adaptive_object=True), levels=LEVELS)
     assert lim.report["samples"] == 27 * W * H
-    ii = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
+    ii = eng.render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
     assert ii.report["samples"] == 31 * W * H
-    naive = render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
+    naive = eng.render(store, _scene(cam, adaptive_naive=True), levels=LEVELS)
     assert naive.report["samples"] < lim.report["samples"]
 
 
-def test_interblock_limited_adaptive_keeps_the_coarse_step_next_to_a_finer_block(store):
+def test_interblock_limited_adaptive_keeps_the_coarse_step_next_to_a_finer_block(eng, store):
     """With II each half-block cell steps at its own block's level, the half next to the fine block too (atlas.py's
     step_levels: the blend towards a finer block spans half a coarse sample and holds no finer detail along the
     face's normal than the coarse field). Here the extreme case, level 4 (one sample per block) beside level 0,
@@ -122,16 +120,16 @@ def test_interblock_limited_adaptive_keeps_the_coarse_step_next_to_a_finer_block
     a fine reference, bounded below by 1e-2; the naive steps, which run into the fine block, miss 4.8e-2. The fine
     block itself is sampled at the base step over its whole length (its halves are level 0)."""
     cam = _cam((1, 0.3, 0.15))
-    ref = render(store, _scene(cam, "interblock", step=0.02), levels=LEVELS).rgba[..., 3]
-    lim = render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
-    naive = render(store, _scene(cam, "interblock", adaptive_naive=True), levels=LEVELS)
+    ref = eng.render(store, _scene(cam, "interblock", step=0.02), levels=LEVELS).rgba[..., 3]
+    lim = eng.render(store, _scene(cam, "interblock", adaptive_object=True), levels=LEVELS)
+    naive = eng.render(store, _scene(cam, "interblock", adaptive_naive=True), levels=LEVELS)
     e_lim = np.abs(lim.rgba[..., 3] - ref).max()
     e_naive = np.abs(naive.rgba[..., 3] - ref).max()
     assert e_lim < 1e-2 and e_naive > 4 * e_lim
 
 
 @pytest.mark.parametrize("level, step", [(4, 0.5), (2, 0.5), (1, 0.3), (3, 0.7), (1, 0.45), (2, 0.7)])
-def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
+def test_constant_coarse_regions_stay_exact(eng, tmp_path, level, step):
     """Opacity correction: a constant volume at a coarse level k, stepped at h = 2^(k + 1) x the base step (capped
     at 2^4 = B: renderer/atlas.py's step_levels; whole steps take their alpha from the per-level tables, the last
     one from the extinction), gives 1 - (1 - a)^(L / unit). Each half-block cell's 8 voxels take the nearest whole
@@ -139,8 +137,8 @@ def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
     st = lodcast.ingest(np.ones(SHAPE, np.float32), tmp_path / "c.zarr", block_size=B, progress=False)
     for f in ((1, 0, 0), (1, 0.3, -0.2)):
         cam = _cam(f)
-        full = render(st, _scene(cam, "interblock", step=step, early_termination=1.0)).rgba[..., 3]
-        r = render(st, _scene(cam, "interblock", step=step, adaptive_object=True, early_termination=1.0),
+        full = eng.render(st, _scene(cam, "interblock", step=step, early_termination=1.0)).rgba[..., 3]
+        r = eng.render(st, _scene(cam, "interblock", step=step, adaptive_object=True, early_termination=1.0),
                    levels=np.full((1, 1, 5), level, np.int8))
         np.testing.assert_allclose(r.rgba[..., 3], full, atol=2e-5)
         if f[1] == 0:
@@ -149,7 +147,7 @@ def test_constant_coarse_regions_stay_exact(tmp_path, level, step):
             assert r.report["samples"] == n_cells * max(1, int(np.floor(cell / (step * 2 ** min(level + 1, 4)) + 0.5))) * W * H
 
 
-def test_default_interpolation_is_nearest_block(store):
+def test_default_interpolation_is_nearest_block(eng, store):
     """sampling.interpolation left out: nearest block at every quality that samples the atlas; a named
     interpolation is always kept. The default renders exactly what naming it renders."""
     cam = _cam((1, 0.35, 0.2))
@@ -157,27 +155,27 @@ def test_default_interpolation_is_nearest_block(store):
     coarse = np.array([4, 4, 1, 4, 4], np.int8).reshape(1, 1, 5)
     for quality, levels in [({"reduction": 2}, LEVELS), ({"reduction": 2}, coarse), ({"budget_mb": 1}, coarse),
                             ("lossless", coarse)]:
-        r = render(store, {**scene, "quality": quality}, levels=levels)
+        r = eng.render(store, {**scene, "quality": quality}, levels=levels)
         assert r.report["interpolation"] == "nearest_block", quality
-        named = render(store, {**scene, "quality": quality, "sampling": {"interpolation": "nearest_block"}},
+        named = eng.render(store, {**scene, "quality": quality, "sampling": {"interpolation": "nearest_block"}},
                        levels=levels)
         np.testing.assert_array_equal(r.rgba, named.rgba)
-        kept = render(store, {**scene, "quality": quality, "sampling": {"interpolation": "interblock"}}, levels=levels)
+        kept = eng.render(store, {**scene, "quality": quality, "sampling": {"interpolation": "interblock"}}, levels=levels)
         assert kept.report["interpolation"] == "interblock"
 
 
-def test_huge_steps_still_cross_every_cell(store):
+def test_huge_steps_still_cross_every_cell(eng, store):
     """A step longer than the volume: one cut step per half-block cell of a coarse block, one across the whole
     level-0 block (full resolution's lattice lies beyond it, and no step has its sample in the first half: the
     step runs on into the second half, where it is cut at the block's far face), and the march still reaches the
     far side."""
     cam = _cam((1, 0, 0))
-    r = render(store, _scene(cam, step=500.0, adaptive_object=True, early_termination=1.0), levels=LEVELS)
+    r = eng.render(store, _scene(cam, step=500.0, adaptive_object=True, early_termination=1.0), levels=LEVELS)
     assert r.report["samples"] == 5 * W * H  # NB: the halves of blocks 1 and 3, block 2 once
     np.testing.assert_allclose(r.rgba[..., 3], 1 - (1 - A) ** 16, atol=2e-5)
 
 
-def test_step_levels_one_sample_per_coarse_voxel():
+def test_step_levels_one_sample_per_coarse_voxel(eng):
     """Step level per cell: 0 where the cell's block is at level 0 (the base step), k + 1 where it is at level
     k >= 1 (one sample per level-k voxel at the default step 1/2), capped at log2 B, plus NEAR_LEVEL0 (8) in a
     coarse cell with a level-0 cell (or an unloaded one, passed as level 0) across a face; a skipped block's cells
@@ -199,7 +197,7 @@ def test_step_levels_one_sample_per_coarse_voxel():
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_level_zero_steps_lie_on_full_resolutions_lattice(tmp_path, monkeypatch, seed):
+def test_level_zero_steps_lie_on_full_resolutions_lattice(eng, tmp_path, monkeypatch, seed):
     """Every block at level 0 and adaptive steps on: the walk over half-block cells takes full resolution's samples
     (runs of level-0 cells run on, and a skipped cell is passed as if sampled), so with
     the apron's trilinear interpolation the image is full resolution's to float rounding and the sample count is
@@ -228,10 +226,10 @@ def test_level_zero_steps_lie_on_full_resolutions_lattice(tmp_path, monkeypatch,
                  "sampling": {"step": float(rng.uniform(0.3, 0.9)), "early_termination": 1.0}}
         with monkeypatch.context() as m:  # full resolution's walk over the atlas's cells (this volume's own: 4³)
             m.setattr(sampler, "ess_cell", lambda shape, b: cell_edge(b))
-            device_cache().clear()
-            full = render(st, scene)
-            device_cache().clear()
-        lod = render(st, {**scene, "quality": "lossless",
+            eng.device_cache.clear()
+            full = eng.render(st, scene)
+            eng.device_cache.clear()
+        lod = eng.render(st, {**scene, "quality": "lossless",
                           "sampling": {**scene["sampling"], "adaptive_object": True}},
                      levels=np.zeros(st.layout.grid, np.int8))
         assert "-DLC_ADAPTIVE" in lod.report["build_options"]
@@ -241,7 +239,7 @@ def test_level_zero_steps_lie_on_full_resolutions_lattice(tmp_path, monkeypatch,
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_skipped_codes_over_random_steps(seed):
+def test_skipped_codes_over_random_steps(eng, seed):
     """atlas.skipped in int8 (no int64 temporaries over a large grid's cells) against the rule in int64: a cell that
     `where` marks and that is sampled (code s >= 0, NEAR_LEVEL0 included) becomes -(s + 1), skipped ones stay."""
     from lodcast.renderer.atlas import NEAR_LEVEL0, skipped

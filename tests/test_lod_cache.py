@@ -1,5 +1,5 @@
 """The brick cache (renderer/atlas.py): camera changes read nothing, a new selection reads only the bricks it
-changes, reads are grouped by shard, the LRU is bounded by bytes, and one cache serves the whole process."""
+changes, reads are grouped by shard, the LRU is bounded by bytes, and each renderer has caches of its own."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,8 +10,8 @@ from lodcast.renderer import atlas as lod_atlas
 from lodcast.renderer import bricks
 from lodcast.environment import EnvironmentInvalid, environment
 from lodcast.renderer.cache import ByteLru
-from lodcast.renderer.render import render
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.engine import BRICK_ENTRY_BYTES, BrickCache
+from lodcast.renderer.render import Renderer
 from lodcast.renderer.volume import as_volume
 
 B = 8
@@ -25,16 +25,12 @@ def store(tmp_path_factory):
     return lodcast.ingest(v, tmp_path_factory.mktemp("cache") / "v.zarr", block_size=B, progress=False)
 
 
-@pytest.fixture(autouse=True)
-def fresh():
-    from lodcast.renderer import render as render_mod
-
-    bricks.brick_cache().clear()
-    device_cache().clear()
-    render_mod._SELECTIONS.clear()
-    yield
-    bricks.brick_cache().clear()
-    device_cache().clear()
+@pytest.fixture
+def eng():
+    """A renderer of the test's own: its caches start empty."""
+    r = Renderer()
+    yield r
+    r.close()
 
 
 def _scene(az, tf=TF):
@@ -45,40 +41,40 @@ def _pairs(lv):
     return {(int(k), z, y, x) for (z, y, x), k in np.ndenumerate(lv) if k >= 0}
 
 
-def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(store):
+def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(store, eng):
     rng = np.random.default_rng(1)
     lv1 = rng.integers(-1, store.n_levels, store.grid).astype(np.int8)
     n1 = int((lv1 >= 0).sum())
-    r = render(store, _scene(0), levels=lv1).report
+    r = eng.render(store, _scene(0), levels=lv1).report
     assert (r["bricks_read"], r["bricks_cached"], r["bricks_skipped"]) == (n1, 0, lv1.size - n1)
-    reads = bricks.brick_cache().reads
+    reads = eng.bricks.reads
     for az in (40, 170):  # camera only: nothing read, nothing packed again
-        r = render(store, _scene(az), levels=lv1).report
+        r = eng.render(store, _scene(az), levels=lv1).report
         assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
-    device_cache().clear()  # also from the host cache alone (e.g. after the device cache evicted it)
-    r = render(store, _scene(80), levels=lv1).report
+    eng.device_cache.clear()  # also from the host cache alone (e.g. after the device cache evicted it)
+    r = eng.render(store, _scene(80), levels=lv1).report
     assert (r["bricks_read"], r["bricks_cached"]) == (0, n1)
-    assert bricks.brick_cache().reads == reads
+    assert eng.bricks.reads == reads
     # a changed selection (what a TF change does): only the bricks it changes are read
     lv2 = lv1.copy()
     change = rng.random(lv1.shape) < 0.3
     lv2[change] = rng.integers(-1, store.n_levels, int(change.sum()))
     new = _pairs(lv2) - _pairs(lv1)
     assert new
-    r = render(store, _scene(80), levels=lv2).report
+    r = eng.render(store, _scene(80), levels=lv2).report
     assert r["bricks_read"] == len(new) and r["bricks_cached"] == len(_pairs(lv2)) - len(new)
-    assert bricks.brick_cache().reads == reads + len(new)
+    assert eng.bricks.reads == reads + len(new)
 
 
-def test_tf_change_through_the_selection_reads_only_changed_bricks(store):
+def test_tf_change_through_the_selection_reads_only_changed_bricks(store, eng):
     pytest.importorskip("lodcast.renderer.selection")
     tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [0, 0.5, 1], "opacity": 0.6}]}
     # the view-independent selection (visibility.py's weight off): a camera change selects the same bricks
     fixed = {"quality": {"reduction": 8}, "sampling": {"lod_visibility": False}}
-    a = render(store, {**_scene(0), **fixed})
-    b = render(store, {**_scene(90), **fixed})
+    a = eng.render(store, {**_scene(0), **fixed})
+    b = eng.render(store, {**_scene(90), **fixed})
     assert b.report["bricks_read"] == 0 and b.report["bricks_cached"] == a.report["bricks_read"]
-    c = render(store, {**_scene(90, tf2), **fixed})
+    c = eng.render(store, {**_scene(90, tf2), **fixed})
     from lodcast.renderer.selection import select_lod
     from lodcast.renderer.scene import Scene
 
@@ -87,27 +83,27 @@ def test_tf_change_through_the_selection_reads_only_changed_bricks(store):
     assert c.report["bricks_read"] == len(_pairs(l2) - _pairs(l1))
 
 
-def test_reads_are_grouped_by_shard_and_run_in_parallel(store):
+def test_reads_are_grouped_by_shard_and_run_in_parallel(store, eng):
     vol = as_volume(store)
     lay = store.layout
     lv = np.zeros(store.grid, np.int8)
     lv[:, :, 5:] = 2
-    cache = bricks.BrickCache(2**30)
-    ld = bricks.load_bricks(vol, lv, cache)
+    cache = BrickCache(2**30)
+    ld = bricks.load_bricks(eng, vol, lv, cache)
     shards = {(int(k), *(b * lay.block_edge(int(k)) // s for b, s in zip((z, y, x), lay.shard_shape(int(k)))))
               for (z, y, x), k in np.ndenumerate(lv)}
     assert ld.shards == len(shards) < ld.read == lv.size
     for (z, y, x), k in list(np.ndenumerate(lv))[::7]:
         np.testing.assert_array_equal(ld.bricks[(int(k), z, y, x)], store.read_brick(int(k), (z, y, x)))
-    again = bricks.load_bricks(vol, lv, cache)
+    again = bricks.load_bricks(eng, vol, lv, cache)
     assert (again.read, again.cached, again.shards) == (0, lv.size, 0)
 
 
 def test_lru_is_bounded_by_bytes():
-    c = bricks.BrickCache(3 * (4 * 64 + bricks.BRICK_ENTRY_BYTES))  # three 4x4x4 float32 bricks
+    c = BrickCache(3 * (4 * 64 + BRICK_ENTRY_BYTES))  # three 4x4x4 float32 bricks
     for i in range(5):
         c.put(("s", 0, i), np.full((4, 4, 4), i, np.float32))
-    assert len(c) == 3 and c.nbytes == 3 * (256 + bricks.BRICK_ENTRY_BYTES) and c.get(("s", 0, 0)) is None
+    assert len(c) == 3 and c.nbytes == 3 * (256 + BRICK_ENTRY_BYTES) and c.get(("s", 0, 0)) is None
     c.get(("s", 0, 2))  # touched: survives the next insertion
     c.put(("s", 0, 9), np.zeros((4, 4, 4), np.float32))
     assert c.get(("s", 0, 2)) is not None and c.get(("s", 0, 3)) is None
@@ -115,16 +111,36 @@ def test_lru_is_bounded_by_bytes():
     assert c.get(("s", 1, 0)) is None and c.nbytes <= c.max_bytes
 
 
-def test_one_cache_per_process(store, monkeypatch):
-    assert bricks.brick_cache() is bricks.brick_cache() and device_cache() is device_cache()
+def test_each_renderer_has_its_own_caches_sized_once(store, monkeypatch):
+    """A renderer reads its sizes when it is made (its keywords over the variables); two renderers in one process
+    share no cache: what one reads, keeps or clears the other does not see."""
     monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "3")
     assert environment().brick_cache_bytes == 3 * 2**20
+    a, b = Renderer(), Renderer(brick_cache_mb=5, device_cache_mb=7)
+    monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "11")  # read once: later changes reach new renderers only
+    assert a.settings.brick_cache_bytes == 3 * 2**20 and b.settings.brick_cache_bytes == 5 * 2**20
+    assert b.settings.device_cache_bytes == 7 * 2**20 and Renderer().settings.brick_cache_bytes == 11 * 2**20
+    monkeypatch.delenv("LODCAST_BRICK_CACHE_MB")
+    a, b = Renderer(), Renderer()
+    scene = {**_scene(0), "quality": {"reduction": 4}}
+    first = a.render(store, scene).report
+    assert first["bricks_read"] > 0 and a.bricks.reads == first["bricks_read"] and len(a.selections) == 1
+    assert (len(b.bricks), len(b.device_cache), len(b.selections), b.bricks.reads) == (0, 0, 0, 0)
+    other = b.render(store, scene)  # reads everything itself
+    assert other.report["bricks_read"] == first["bricks_read"]
+    a.close()  # drops a's caches, not b's
+    assert len(a.bricks) == len(a.device_cache) == 0 and len(b.device_cache) > 0
+    again = b.render(store, scene).report
+    assert again["bricks_read"] == 0 and again["bricks_cached"] == first["bricks_read"]
+    assert a.render(store, scene).report["bricks_read"] == first["bricks_read"]
+    with pytest.raises(EnvironmentInvalid, match="brick_cache_mb"):
+        Renderer(brick_cache_mb=-1)
     monkeypatch.setenv("LODCAST_BRICK_CACHE_MB", "lots")  # named, never a silent default
     with pytest.raises(EnvironmentInvalid, match="LODCAST_BRICK_CACHE_MB"):
         environment()
 
 
-def test_device_cache_keeps_several_volumes_and_always_the_newest(tmp_path):
+def test_device_cache_keeps_several_volumes_and_always_the_newest(tmp_path, eng):
     """Alternating renders of two stores upload each once (level 0 for "full", the atlas for an LOD selection);
     a budget smaller than one entry still keeps the newest."""
     stores = [lodcast.ingest(np.random.default_rng(i).random((24, 24, 24)).astype(np.float32),
@@ -133,13 +149,13 @@ def test_device_cache_keeps_several_volumes_and_always_the_newest(tmp_path):
     lossless = {**_scene(0), "quality": "lossless"}
     for st in stores:
         for scene in (full, lossless):
-            first = render(st, scene).report
+            first = eng.render(st, scene).report
             assert first["bricks_read"] > 0 and first["bricks_cached"] == 0, first
     for st in stores:  # all four entries still resident: nothing read again
         for scene in (full, lossless):
-            again = render(st, scene).report
+            again = eng.render(st, scene).report
             assert again["bricks_read"] == 0 and again["bricks_cached"] > 0, again
-    assert len(device_cache()) == 4
+    assert len(eng.device_cache) == 4
     tiny = ByteLru(100, keep_last=True)
     tiny.put("a", "A", 60)
     tiny.put("b", "B", 1000)  # over the budget on its own: kept, and "a" evicted
@@ -148,27 +164,26 @@ def test_device_cache_keeps_several_volumes_and_always_the_newest(tmp_path):
     assert tiny.get("c") == "C" and tiny.get("b") is None
 
 
-def test_prefetch_reads_the_next_frames_bricks_so_its_render_reads_none(store):
-    """A job reads frame i + 1's bricks while frame i renders (renderer.render.prefetch): the render after a
+def test_prefetch_reads_the_next_frames_bricks_so_its_render_reads_none(store, eng):
+    """A job reads frame i + 1's bricks while frame i renders (Renderer.prefetch): the render after a
     prefetch reads nothing from the store and gives the image a cold render gives."""
-    from lodcast.renderer.render import prefetch, prepare
-
+    prefetch, prepare = eng.prefetch, eng.prepare
     scene = {**_scene(30), "quality": {"reduction": 4}}
-    cold = render(store, scene)
+    cold = eng.render(store, scene)
     assert cold.report["bricks_read"] > 0
-    bricks.brick_cache().clear()
-    device_cache().clear()
+    eng.bricks.clear()
+    eng.device_cache.clear()
     n = prefetch(store, scene)
     coarse = int((prepare(store, scene).lod.levels >= 1).sum())  # their distributions are read too
     assert coarse > 0 and n == cold.report["bricks_read"] + coarse
     assert prefetch(store, scene) == 0  # all cached now
-    warm = render(store, scene)
+    warm = eng.render(store, scene)
     assert warm.report["bricks_read"] == 0 and warm.report["bricks_cached"] == cold.report["bricks_read"]
     assert np.array_equal(warm.rgba, cold.rgba)
     assert prefetch(store, {**scene, "quality": "full"}) == 0  # level 0 goes to the device whole
 
 
-def test_a_camera_change_selects_nothing_again(store, monkeypatch):
+def test_a_camera_change_selects_nothing_again(store, eng, monkeypatch):
     """Without the view's weight (lod_visibility off) the level-of-detail selection depends on the TF, the quality
     and the clip region, not on the view: a turntable selects once; a TF change selects again. With it (the
     default) every new view selects, and a view seen before takes its kept selection."""
@@ -178,43 +193,42 @@ def test_a_camera_change_selects_nothing_again(store, monkeypatch):
     real = selection.select_lod
     monkeypatch.setattr(selection, "select_lod", lambda *a, **k: calls.append(k.get("visibility")) or real(*a, **k))
     scene = {**_scene(0), "quality": {"reduction": 4}, "sampling": {"lod_visibility": False}}
-    first = render(store, scene)
+    first = eng.render(store, scene)
     for az in (40, 200):
-        r = render(store, {**scene, "camera": {"azimuth": az, "elevation": 15}})
+        r = eng.render(store, {**scene, "camera": {"azimuth": az, "elevation": 15}})
         assert r.report["reduction"] == first.report["reduction"]
     assert calls == [None]
     tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 0, 0], "opacity": 0.5}]}
-    render(store, {**scene, "tf": tf2})
+    eng.render(store, {**scene, "tf": tf2})
     assert calls == [None, None]
     calls.clear()
     seen = {**scene, "sampling": {}}
     for az in (0, 40, 0, 40):
-        render(store, {**seen, "camera": {"azimuth": az, "elevation": 15}})
+        eng.render(store, {**seen, "camera": {"azimuth": az, "elevation": 15}})
     assert len(calls) == 2 and all(c is not None and c.shape == store.grid for c in calls)
 
 
-def test_on_a_cpu_device_the_brick_cache_gives_way_to_the_device_cache(store):
+def test_on_a_cpu_device_the_brick_cache_gives_way_to_the_device_cache(store, monkeypatch):
     """A CPU device's buffers are host memory: an atlas kept in the device cache holds the same bricks as the brick
     cache, so the brick cache's bound shrinks by what the device cache (and an atlas being filled) holds, down to
     an eighth of its cap. Without the shrink every brick of the selection would stay cached twice. A discrete
     GPU's atlas is not host memory: there the cache keeps its whole bound."""
-    from lodcast.opencl import device_memory_is_host
-
     vol = as_volume(store)
     lv = np.zeros(store.grid, np.int8)
-    plain = bricks.BrickCache(2**30)
-    bricks.load_bricks(vol, lv, plain)
+    plain = BrickCache(2**30)
+    bricks.load_bricks(Renderer(), vol, lv, plain)
     cap = plain.nbytes  # every brick of the selection would fit
-    shared = bricks.BrickCache(bricks.brick_cache_bound(cap))
-    da = lod_atlas.device_atlas(vol, lv, cache=shared)
-    held = device_cache().nbytes
+    eng = Renderer(brick_cache_mb=cap / 2**20)
+    shared = eng.bricks
+    da = lod_atlas.device_atlas(eng, vol, lv)
+    held = eng.device_cache.nbytes
     assert held >= da.nbytes > cap // 2
-    if device_memory_is_host():  # PoCL, CI's device
+    if eng.device.memory_is_host:  # PoCL, CI's device
         assert shared.nbytes <= max(cap // 8, cap - held) < plain.nbytes
         assert shared.max_bytes == max(cap // 8, cap - held)
     else:
         assert shared.nbytes == plain.nbytes and shared.max_bytes == cap
-    device_cache().clear()
+    eng.device_cache.clear()
     assert shared.max_bytes == cap
 
 
@@ -223,22 +237,18 @@ def test_a_full_resolution_pass_makes_the_brick_cache_give_way(store, monkeypatc
     lasts, the brick cache shrinks by the pass's buffer (down to an eighth of its cap), so that the bricks of
     earlier renders and the pass's voxels are not both held; afterwards its bound is whole again. Without it the
     cache below would keep every brick through the render. On a discrete GPU it keeps them (device memory)."""
-    from lodcast.opencl import device_memory_is_host
-
     vol = as_volume(store)
     lv = np.zeros(store.grid, np.int8)
-    shared = bricks.BrickCache(2**30)
-    bricks.load_bricks(vol, lv, shared)
-    cap = shared.nbytes  # every level-0 brick fits
-    shared = bricks.BrickCache(bricks.brick_cache_bound(cap))
-    monkeypatch.setattr(bricks, "brick_cache", lambda: shared)
-    monkeypatch.setattr(lod_atlas, "brick_cache", lambda: shared)
-    bricks.load_bricks(vol, lv, shared)
+    probe = BrickCache(2**30)
+    bricks.load_bricks(Renderer(), vol, lv, probe)
+    cap = probe.nbytes  # every level-0 brick fits
+    eng = Renderer(brick_cache_mb=cap / 2**20, device_budget_mb=cap / 4 / 1e6)
+    shared = eng.bricks
+    bricks.load_bricks(eng, vol, lv)
     assert shared.nbytes == cap
-    monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", str(cap / 4 / 1e6))
-    r = render(store, {**_scene(30), "quality": "full"})
+    r = eng.render(store, {**_scene(30), "quality": "full"})
     assert r.report["passes"] >= 4
-    if device_memory_is_host():
+    if eng.device.memory_is_host:
         assert shared.nbytes <= max(cap // 8, cap - r.report["device_bytes"]) < cap
     else:
         assert shared.nbytes == cap

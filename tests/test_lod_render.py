@@ -9,11 +9,21 @@ import pytest
 import lodcast
 import lod_reference as ref
 from lodcast.renderer import atlas as lod_atlas
+from lodcast.opencl import Device
 from lodcast.renderer import bricks
-from lodcast.renderer.render import render
+from lodcast.renderer.engine import BrickCache
+from lodcast.renderer.render import Renderer
 from lodcast.renderer import sampler
-from lodcast.renderer.sampler import device_cache
 from lodcast.store.layout import cell_edge
+
+
+@pytest.fixture
+def eng():
+    """A renderer of the test's own: nothing kept from other tests."""
+    r = Renderer()
+    yield r
+    r.close()
+
 
 B = 16
 TF = {"points": [{"value": -1.0, "color": [1, 0, 0], "opacity": 0.0}, {"value": 1.0, "color": [0, 1, 0], "opacity": 0.08},
@@ -46,15 +56,15 @@ def _scene(cam, interp="interblock", **sampling):
 
 
 @pytest.mark.parametrize("cam", CAMERAS)
-def test_interblock_all_level0_equals_full_resolution(store, cam, monkeypatch):
+def test_interblock_all_level0_equals_full_resolution(eng, store, cam, monkeypatch):
     """Every block at level 0 through the atlas gives full resolution's image and, with full resolution's walk
     over the same 8³ cells as the atlas's half blocks (this small volume's own walk is over 4³ cells), its
     samples."""
     monkeypatch.setattr(sampler, "ess_cell", lambda shape, b: cell_edge(b))
-    sampler.device_cache().clear()  # (a level 0 uploaded with the finer cells)
-    full = render(store, _scene(cam))
-    sampler.device_cache().clear()
-    lod = render(store, _scene(cam), levels=np.zeros(store.grid, np.int8))
+    eng.device_cache.clear()  # (a level 0 uploaded with the finer cells)
+    full = eng.render(store, _scene(cam))
+    eng.device_cache.clear()
+    lod = eng.render(store, _scene(cam), levels=np.zeros(store.grid, np.int8))
     assert np.abs(lod.rgba - full.rgba).max() <= 1e-4
     assert full.rgba[..., 3].max() > 0.3
     r = lod.report
@@ -67,17 +77,17 @@ def test_interblock_all_level0_equals_full_resolution(store, cam, monkeypatch):
 
 
 @pytest.mark.parametrize("cam", CAMERAS)
-def test_nearest_block_all_level0_equals_full_resolution(store, cam):
+def test_nearest_block_all_level0_equals_full_resolution(eng, store, cam):
     """Every block at level 0: the level-0 bricks' aprons hold the neighbours' samples, so nearest block is trilinear
     interpolation across the faces, the full-resolution image (eq. 3.5 alone clamps half a voxel inside every
     face: measured up to 0.1 of opacity here)."""
-    full = render(store, _scene(cam))
-    lod = render(store, _scene(cam, "nearest_block"), levels=np.zeros(store.grid, np.int8))
+    full = eng.render(store, _scene(cam))
+    lod = eng.render(store, _scene(cam, "nearest_block"), levels=np.zeros(store.grid, np.int8))
     assert "-DLC_INTERP_NB" in lod.report["build_options"]
     assert np.abs(lod.rgba - full.rgba).max() <= 1e-4
 
 
-def test_nearest_block_is_eq_3_5_where_the_level_changes():
+def test_nearest_block_is_eq_3_5_where_the_level_changes(eng):
     """Where the neighbour across a face is at another level the apron repeats the brick's edge: in the half-voxel
     slab before that face nearest block is eq. 3.5, the brick coordinate clamped, and not the trilinear
     interpolation it is across faces between blocks of one level."""
@@ -100,29 +110,29 @@ def test_nearest_block_is_eq_3_5_where_the_level_changes():
 
 
 @pytest.mark.parametrize("interp", ["interblock", "nearest_block"])
-def test_unloaded_blocks_are_empty_space_and_skipping_them_changes_nothing(store, interp):
+def test_unloaded_blocks_are_empty_space_and_skipping_them_changes_nothing(eng, store, interp):
     rng = np.random.default_rng(3)
     lv = rng.integers(-1, store.n_levels, store.grid).astype(np.int8)
     lv[lv.shape[0] // 2] = -1  # a whole slab of blocks not loaded
     cam = CAMERAS[0]
-    a = render(store, _scene(cam, interp), levels=lv)
-    b = render(store, _scene(cam, interp, empty_space_skipping=False), levels=lv)
+    a = eng.render(store, _scene(cam, interp), levels=lv)
+    b = eng.render(store, _scene(cam, interp, empty_space_skipping=False), levels=lv)
     assert np.abs(a.rgba - b.rgba).max() <= 1e-5  # NaN samples in unloaded blocks are transparent
     assert a.report["bricks_skipped"] == int((lv < 0).sum())
     assert a.report["samples"] < b.report["samples"]  # and they were skipped, not sampled
     assert np.isfinite(a.rgba).all() and a.rgba[..., 3].max() > 0.05
 
 
-def test_mip_all_level0_equals_full(store):
+def test_mip_all_level0_equals_full(eng, store):
     sc = {**_scene(CAMERAS[1]), "mode": "mip"}
-    full = render(store, sc)
-    lod = render(store, sc, levels=np.zeros(store.grid, np.int8))
+    full = eng.render(store, sc)
+    lod = eng.render(store, sc, levels=np.zeros(store.grid, np.int8))
     assert np.abs(lod.rgba - full.rgba).max() <= 1e-4
 
 
-def test_atlas_layout_and_max_alloc(store):
+def test_atlas_layout_and_max_alloc(eng, store):
     lv = np.random.default_rng(2).integers(-1, store.n_levels, store.grid).astype(np.int8)
-    ld = bricks.load_bricks(lodcast.renderer.volume.as_volume(store), lv, bricks.BrickCache(2**30))
+    ld = bricks.load_bricks(eng, lodcast.renderer.volume.as_volume(store), lv, BrickCache(2**30))
     atlas, index = lod_atlas.pack(lv, ld.bricks, B, max_bytes=2**30)
     sizes = [((B >> int(k)) + 2 * (k == 0)) ** 3 for k in lv.ravel() if k >= 0]  # level 0 inside its apron
     assert atlas.size == sum(sizes) and index.dtype == np.uint64 and index.shape == lv.shape
@@ -167,40 +177,38 @@ def test_atlas_layout_and_max_alloc(store):
     lod_atlas.pack(lv, ld.bricks, B, max_bytes=atlas.nbytes)  # exactly at the limit is fine
 
 
-def test_render_respects_the_device_max_alloc(store, monkeypatch):
+def test_render_respects_the_device_max_alloc(eng, store, monkeypatch):
     """An atlas larger than one allocation renders in passes (tests/test_passes.py), the same image; only an
     allocation smaller than one block and its neighbours is an error."""
-    device_cache().clear()
     lv = np.zeros(store.grid, np.int8)
-    ref = render(store, _scene(CAMERAS[0]), levels=lv)
-    monkeypatch.setattr(lod_atlas, "max_alloc_bytes", lambda: int(ref.report["device_bytes"] * 0.8))
-    got = render(store, _scene(CAMERAS[0]), levels=lv)
+    ref = eng.render(store, _scene(CAMERAS[0]), levels=lv)
+    eng.device_cache.clear()
+    monkeypatch.setattr(Device, "max_alloc_bytes", property(lambda self: int(ref.report["device_bytes"] * 0.8)))
+    got = eng.render(store, _scene(CAMERAS[0]), levels=lv)
     assert got.report["passes"] > 1 and got.report["device_bytes"] <= ref.report["device_bytes"] * 0.8
     assert np.array_equal(got.rgba, ref.rgba)
-    monkeypatch.setattr(lod_atlas, "max_alloc_bytes", lambda: 1024)
+    monkeypatch.setattr(Device, "max_alloc_bytes", property(lambda self: 1024))
     with pytest.raises(lodcast.opencl.DeviceError, match="largest allocation"):
-        render(store, _scene(CAMERAS[0]), levels=lv)
-    assert lod_atlas.max_alloc_bytes() == 1024
+        eng.render(store, _scene(CAMERAS[0]), levels=lv)
+    assert eng.device.max_alloc_bytes == 1024
     monkeypatch.undo()
-    assert lod_atlas.max_alloc_bytes() == int(lodcast.opencl.device_info()["max_mem_alloc_size"])
+    assert eng.device.max_alloc_bytes == int(eng.device.info()["max_mem_alloc_size"])
 
 
 @pytest.mark.parametrize("quality", ["lossless", {"reduction": 4}, {"budget_mb": 0.05}])
-def test_quality_goes_through_the_selection(store, quality):
+def test_quality_goes_through_the_selection(eng, store, quality):
     pytest.importorskip("lodcast.renderer.selection")
     from lodcast.renderer.selection import select_lod
     from lodcast.renderer.scene import Scene
 
     sc = {**_scene(CAMERAS[0]), "quality": quality}
-    r = render(store, sc)
+    r = eng.render(store, sc)
     from lodcast.renderer.selection import step_delta_e
     from lodcast.renderer.significance import meta_of_store
 
     tf = Scene.parse(sc).tf
-    from lodcast.renderer.visibility import scene_visibility
-
     # the budgeted qualities weigh what the camera sees (lod_visibility, on by default); lossless does not
-    sel = select_lod(store, [tf], quality, visibility=None if quality == "lossless" else scene_visibility(store, sc))
+    sel = select_lod(store, [tf], quality, visibility=None if quality == "lossless" else eng.visibility(store, sc))
     assert r.report["lod_visibility"] is (quality != "lossless")
     rep = r.report
     assert rep["reduction"] == pytest.approx(float(sel.reduction))
@@ -213,19 +221,19 @@ def test_quality_goes_through_the_selection(store, quality):
     if quality == "lossless":  # every block at a level predicted within 0.5 ΔE of level 0: virtually the same
         from lodcast.renderer.image_error import delta_e_stats
 
-        full = render(store, _scene(CAMERAS[0]))
+        full = eng.render(store, _scene(CAMERAS[0]))
         # measured 0.84 on this smooth, translucent field (the significance model sees less of a smooth field's
         # curvature than the image does), below the 1 ΔE of a just-noticeable difference
         assert delta_e_stats(r.rgba, full.rgba)["mean"] <= 1.0
 
 
-def test_lod_quality_on_an_array_is_refused():
+def test_lod_quality_on_an_array_is_refused(eng):
     with pytest.raises(lodcast.renderer.scene.SceneError, match="^quality: .*lodcast store"):
-        render(np.zeros((8, 8, 8), np.float32), {"tf": TF, "width": 4, "height": 4, "quality": "lossless"})
+        eng.render(np.zeros((8, 8, 8), np.float32), {"tf": TF, "width": 4, "height": 4, "quality": "lossless"})
 
 
 @pytest.mark.parametrize("dtype", ["int16", "uint16", "uint8", "int8"])
-def test_integer_voxels_pack_the_coarse_bricks_with_their_deviations(tmp_path, monkeypatch, dtype):
+def test_integer_voxels_pack_the_coarse_bricks_with_their_deviations(eng, tmp_path, monkeypatch, dtype):
     """With integer voxels the coarse bricks' values share one uint per sample with their deviations (lc_common.h:
     lc_sig; the atlas holds level 0 alone): the images and the samples taken (the half-block cells that
     empty-space skipping walks come from both buffers) are those of the same bricks in a float atlas beside 16-bit
@@ -249,9 +257,9 @@ def test_integer_voxels_pack_the_coarse_bricks_with_their_deviations(tmp_path, m
     for layout in ("packed", "float"):
         if layout == "float":
             monkeypatch.setattr(VolumeView, "voxel_dtype", property(lambda self: np.dtype(np.float32)))
-        device_cache().clear()
+        eng.device_cache.clear()
         for interp in ("nearest_block", "interblock"):
-            r = render(st, {"tf": tf, "width": 40, "height": 36, "format": "npy", "quality": {"reduction": 2},
+            r = eng.render(st, {"tf": tf, "width": 40, "height": 36, "format": "npy", "quality": {"reduction": 2},
                             "camera": {"azimuth": 35, "elevation": 25}, "sampling": {"interpolation": interp}},
                        levels=levels)
             assert ("-DLC_VOXEL" in " ".join(r.report["build_options"])) == (layout == "packed")
@@ -260,7 +268,7 @@ def test_integer_voxels_pack_the_coarse_bricks_with_their_deviations(tmp_path, m
         if layout == "packed":  # the coarse bricks in the uint deviations' buffer alone, level 0 in the atlas
             from lodcast.renderer.volume import as_volume
 
-            da = lod_atlas.device_atlas(as_volume(st), levels, with_std=True)
+            da = lod_atlas.device_atlas(eng, as_volume(st), levels, with_std=True)
             n0 = int(lod_atlas.brick_elements(np.where(levels == 0, 0, -1), 8).sum())
             assert da.std.size == 4 * lod_atlas.coarse_elements(levels, 8)
             assert da.atlas.size == np.dtype(dtype).itemsize * n0

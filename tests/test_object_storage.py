@@ -15,8 +15,6 @@ pytest.importorskip("moto")
 
 import lodcast  # noqa: E402
 from lodcast.errors import StoreCorrupt, StoreNotFound  # noqa: E402
-from lodcast.renderer.bricks import brick_cache  # noqa: E402
-from lodcast.renderer.sampler import device_cache  # noqa: E402
 from lodcast.service.testing import s3_server  # noqa: E402
 
 TF = {"points": [{"value": -50, "color": [0.2, 0.4, 0.9], "opacity": 0.0},
@@ -41,36 +39,33 @@ def s3(tmp_path_factory):
         yield srv, local, fs
 
 
-def _fresh():
-    brick_cache().clear()
-    device_cache().clear()
+def _fresh(eng):
+    eng.bricks.clear()
+    eng.device_cache.clear()
 
 
-def _opened():
+def _opened(eng):
     """The store on S3, opened, its per-block statistics and histograms read (what every first render of a store
     reads once, through zarr-python), and no bricks cached."""
-    from lodcast.renderer import render as render_mod
-    from lodcast.renderer import walk
-
     remote = lodcast.open_store("s3://lodcast-test/v.zarr")
-    render_mod._SELECTIONS.clear()  # so that this render reads the histograms the selection needs
-    walk._WALKS.clear()  # and the cell ranges its walk needs (an earlier store object's walk would do)
-    lodcast.render(remote, {"tf": TF, "width": 8, "height": 8, "quality": {"reduction": 8}})
-    _fresh()
+    eng.selections.clear()  # so that this render reads the histograms the selection needs
+    eng.walks.clear()  # and the cell ranges its walk needs (an earlier store object's walk would do)
+    eng.render(remote, {"tf": TF, "width": 8, "height": 8, "quality": {"reduction": 8}})
+    _fresh(eng)
     return remote
 
 
 @pytest.mark.parametrize("quality", ["full", "lossless", {"reduction": 8}])
-def test_a_store_on_s3_renders_the_local_image(s3, quality):
+def test_a_store_on_s3_renders_the_local_image(eng, s3, quality):
     srv, local, _ = s3
     # the view-independent selection (lod_visibility off), so that a camera change below selects the same bricks
     scene = {"tf": TF, "width": 64, "height": 56, "quality": quality, "sampling": {"lod_visibility": False}}
-    _fresh()
-    ref = lodcast.render(local, scene)
-    remote = _opened()
+    _fresh(eng)
+    ref = eng.render(local, scene)
+    remote = _opened(eng)
     assert remote.shape == local.shape and remote.block_size == local.block_size
     srv.reset()
-    got = lodcast.render(remote, scene)
+    got = eng.render(remote, scene)
     n, nbytes = srv.counts()
     assert np.array_equal(got.rgba, ref.rgba)
     bricks = got.report["bricks_read"]
@@ -82,36 +77,36 @@ def test_a_store_on_s3_renders_the_local_image(s3, quality):
     on_s3 = sum(f["size"] for f in s3[2].find("lodcast-test/v.zarr", detail=True).values())
     assert nbytes < on_s3  # only what the selection needs (full resolution: level 0, not the other levels)
     srv.reset()
-    again = lodcast.render(remote, {**scene, "camera": {"azimuth": 70}})
+    again = eng.render(remote, {**scene, "camera": {"azimuth": 70}})
     assert srv.counts() == (0, 0) and again.report["bricks_read"] == 0  # a camera change reads nothing
     if not isinstance(quality, str):  # the selection weighed by the view reads its coarse level from S3 as well
         seen = {**scene, "sampling": {}, "camera": {"azimuth": 150}}
-        np.testing.assert_array_equal(lodcast.render(remote, seen).rgba, lodcast.render(local, seen).rgba)
+        np.testing.assert_array_equal(eng.render(remote, seen).rgba, eng.render(local, seen).rgba)
 
 
-def test_lod_reads_whole_shards_in_few_requests(s3):
+def test_lod_reads_whole_shards_in_few_requests(eng, s3):
     srv, local, _ = s3
-    remote = _opened()
+    remote = _opened(eng)
     srv.reset()
-    lodcast.render(remote, {"tf": TF, "width": 32, "height": 32, "quality": {"reduction": 8}})
+    eng.render(remote, {"tf": TF, "width": 32, "height": 32, "quality": {"reduction": 8}})
     ranged = [p for m, p, r, _ in srv.requests if m == "GET" and r]
     assert ranged and max(Counter(ranged).values()) <= 2  # per shard object: its index (once), then one span
 
 
-def test_damaged_and_missing_stores_on_s3_say_so(s3):
+def test_damaged_and_missing_stores_on_s3_say_so(eng, s3):
     srv, local, fs = s3
     with pytest.raises(StoreNotFound):
         lodcast.open_store("s3://lodcast-test/nothing-here.zarr")
     fs.copy("lodcast-test/v.zarr", "lodcast-test/broken.zarr", recursive=True)
     shard = sorted(p for p in fs.find("lodcast-test/broken.zarr/0") if "/c/" in p)[0]
     fs.rm(shard)
-    _fresh()
+    _fresh(eng)
     broken = lodcast.open_store("s3://lodcast-test/broken.zarr")
     with pytest.raises(StoreCorrupt, match="shard file missing"):
-        lodcast.render(broken, {"tf": TF, "width": 16, "height": 16})
+        eng.render(broken, {"tf": TF, "width": 16, "height": 16})
 
 
-def test_the_cli_renders_and_describes_a_store_on_s3(s3, tmp_path):
+def test_the_cli_renders_and_describes_a_store_on_s3(eng, s3, tmp_path):
     import json
     import subprocess
     import sys
@@ -141,7 +136,7 @@ def test_the_cli_renders_and_describes_a_store_on_s3(s3, tmp_path):
     assert again.returncode == 2 and "--overwrite" in again.stderr
 
 
-def test_ingest_publishes_to_s3_with_the_root_metadata_last(s3, monkeypatch):
+def test_ingest_publishes_to_s3_with_the_root_metadata_last(eng, s3, monkeypatch):
     """`lodcast.ingest(..., "s3://...")`: written locally, then uploaded with the root zarr.json last, so a reader
     never finds half a store; a killed upload leaves none, and the next ingest cleans up after it."""
     from lodcast.errors import StoreExists
@@ -153,7 +148,7 @@ def test_ingest_publishes_to_s3_with_the_root_metadata_last(s3, monkeypatch):
     st = lodcast.ingest(a, url, progress=False)
     assert st.location == url and np.array_equal(st.read_level(0), a)
     scene = {"tf": TF, "width": 24, "height": 24, "quality": {"reduction": 4}}
-    lodcast.render(st, scene)  # fills the caches with this version
+    eng.render(st, scene)  # fills the caches with this version
     with pytest.raises(StoreExists):
         lodcast.ingest(a, url, progress=False)
     # a failure after part of the upload (what a kill leaves): there is no store at the URL
@@ -181,4 +176,4 @@ def test_ingest_publishes_to_s3_with_the_root_metadata_last(s3, monkeypatch):
     want = sorted(p.relative_to(ref.location).as_posix() for p in Path(ref.location).rglob("*") if p.is_file())
     assert got == want  # the same objects as the local store, nothing left of the failed upload
     # the rewritten store renders its own data: no cache keeps the old version (keys carry the ingest's id)
-    assert np.array_equal(lodcast.render(lodcast.open_store(url), scene).rgba, lodcast.render(ref, scene).rgba)
+    assert np.array_equal(eng.render(lodcast.open_store(url), scene).rgba, eng.render(ref, scene).rgba)

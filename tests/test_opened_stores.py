@@ -1,4 +1,4 @@
-"""Stores named by path are opened once per process (store/opened.py): a series of renders of a path reads the
+"""Stores named by path are opened once per renderer (store/opened.py, each renderer's OpenStores): a series of renders of a path reads the
 store's metadata and walks its data manifest once, and a store replaced or removed at that path is seen."""
 from __future__ import annotations
 
@@ -9,9 +9,8 @@ import pytest
 
 import lodcast
 from lodcast.errors import StoreNotFound
-from lodcast.store import opened as opened_module
 from lodcast.store import store as store_module
-from lodcast.store.opened import OpenStores, opened
+from lodcast.store.opened import OpenStores
 
 TF = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 4.0, "color": [1, 1, 1], "opacity": 0.5}]}
 SCENE = {"tf": TF, "width": 24, "height": 24, "format": "npy", "camera": {"azimuth": 20, "elevation": 10}}
@@ -29,38 +28,37 @@ def counted_manifests(monkeypatch):
     calls = []
     real = store_module.data_manifest
     monkeypatch.setattr(store_module, "data_manifest", lambda root: calls.append(root) or real(root))
-    monkeypatch.setattr(opened_module, "_SHARED", None)  # a fresh shared set for this test
     return calls
 
 
-def test_renders_of_a_path_open_the_store_once(tmp_path, counted_manifests, monkeypatch):
+def test_renders_of_a_path_open_the_store_once(eng, tmp_path, counted_manifests, monkeypatch):
     dest = tmp_path / "v.zarr"
     lodcast.ingest(_volume(3.0), dest, block_size=8)
     counted_manifests.clear()
-    first = lodcast.render(str(dest), SCENE)
+    first = eng.render(str(dest), SCENE)
     assert len(counted_manifests) == 1
     for cam in (30, 40):  # new views, a relative path and a Path: the same opened store
         monkeypatch.chdir(tmp_path)
-        again = lodcast.render("v.zarr", {**SCENE, "camera": {"azimuth": cam, "elevation": 10}})
+        again = eng.render("v.zarr", {**SCENE, "camera": {"azimuth": cam, "elevation": 10}})
         assert again.rgba[..., 3].max() > 0.1
-    np.testing.assert_array_equal(lodcast.render(dest, SCENE).rgba, first.rgba)
+    np.testing.assert_array_equal(eng.render(dest, SCENE).rgba, first.rgba)
     assert len(counted_manifests) == 1
-    assert opened(dest) is opened(str(dest))
+    assert eng.stores.get(dest) is eng.stores.get(str(dest))
 
 
-def test_a_store_replaced_or_removed_at_its_path_is_seen(tmp_path, counted_manifests):
+def test_a_store_replaced_or_removed_at_its_path_is_seen(eng, tmp_path, counted_manifests):
     dest = tmp_path / "v.zarr"
     lodcast.ingest(_volume(1.0), dest, block_size=8)
-    dim = lodcast.render(dest, SCENE).rgba
-    held = opened(dest)
+    dim = eng.render(dest, SCENE).rgba
+    held = eng.stores.get(dest)
     lodcast.ingest(_volume(4.0), dest, block_size=8, overwrite=True)  # a new folder renamed into place
-    bright = lodcast.render(dest, SCENE).rgba
-    assert opened(dest) is not held
+    bright = eng.render(dest, SCENE).rgba
+    assert eng.stores.get(dest) is not held
     # the TF's opacity rises from 0 at value 0 to 0.5 at 4: the replaced volume is the more opaque
     assert bright[..., 3].max() > dim[..., 3].max() + 0.1
     shutil.rmtree(dest)
     with pytest.raises(StoreNotFound):
-        lodcast.render(dest, SCENE)
+        eng.render(dest, SCENE)
 
 
 def test_open_stores_keeps_the_most_recently_used(tmp_path):

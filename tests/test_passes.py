@@ -9,8 +9,7 @@ import pytest
 import lodcast
 from lodcast.renderer import passes as mp
 from lodcast.renderer.camera import frame, pixel_rays, ray_box, box_world
-from lodcast.renderer.render import prepare, render
-from lodcast.renderer.sampler import device_cache
+from lodcast.renderer.render import Renderer
 from lodcast.renderer.scene import Scene, SceneError
 
 TF = {"points": [{"value": -50, "color": [0.2, 0.4, 0.9], "opacity": 0.0},
@@ -34,12 +33,25 @@ def store(tmp_path_factory):
     return lodcast.ingest(VOL, tmp_path_factory.mktemp("passes") / "v.zarr", progress=False)
 
 
+def render(vol, scene):
+    """A render by a renderer made now: it reads LODCAST_DEVICE_BUDGET_MB as the test has just set it."""
+    return Renderer().render(vol, scene)
+
+
+def prepare(vol, scene):
+    return Renderer().prepare(vol, scene)
+
+
 def _pair(monkeypatch, vol, scene, budget_mb):
+    """The render without a budget and with `budget_mb` (LODCAST_DEVICE_BUDGET_MB), and the latter's renderer."""
     monkeypatch.delenv("LODCAST_DEVICE_BUDGET_MB", raising=False)
-    ref = render(vol, scene)
+    ref = Renderer().render(vol, scene)
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", str(budget_mb))
-    got = render(vol, scene)
-    return ref, got
+    eng = Renderer()
+    got = eng.render(vol, scene)
+    assert eng.settings.device_budget_bytes == int(budget_mb * 1e6)
+    assert Renderer(device_budget_mb=budget_mb).render(vol, scene).report["passes"] == got.report["passes"]
+    return ref, got, eng
 
 
 FULL_SCENES = {
@@ -67,7 +79,7 @@ FULL_SCENES = {
 @pytest.mark.parametrize("name", list(FULL_SCENES))
 def test_full_resolution_beyond_the_budget_is_the_uncapped_image(monkeypatch, name):
     scene = {"tf": TF, "width": 64, "height": 56, **FULL_SCENES[name]}
-    ref, got = _pair(monkeypatch, VOL, scene, 0.3)
+    ref, got, _ = _pair(monkeypatch, VOL, scene, 0.3)
     rep = got.report
     assert ref.report["passes"] == 1 and ref.report["device_bytes"] == VOL.nbytes
     assert rep["passes"] > 1, rep["passes"]
@@ -97,7 +109,7 @@ def test_an_atlas_beyond_the_budget_is_the_uncapped_image(monkeypatch, store, na
     # the same samples compare with that off
     monkeypatch.setattr(KernelConfig, "octants", property(lambda self: False))
     scene = {"tf": TF, "width": 64, "height": 56, **LOD_SCENES[name]}
-    ref, got = _pair(monkeypatch, store, scene, 0.12)
+    ref, got, _ = _pair(monkeypatch, store, scene, 0.12)
     assert ref.report["passes"] == 1 and ref.report["device_bytes"] > 0.12e6
     assert got.report["passes"] > 1 and got.report["device_bytes"] <= 0.12e6
     assert np.array_equal(got.rgba, ref.rgba), float(np.abs(got.rgba - ref.rgba).max())
@@ -108,17 +120,17 @@ def test_an_atlas_beyond_the_budget_is_the_uncapped_image(monkeypatch, store, na
 def test_a_volume_four_times_the_budget_from_a_store(monkeypatch, store):
     """Issue 14's check: quality 'full' of a store 4x the budget gives the uncapped image; the cache is bounded."""
     budget = VOL.nbytes / 4 / 1e6
-    ref, got = _pair(monkeypatch, store, {"tf": TF, "width": 80, "height": 64}, budget)
+    ref, got, eng = _pair(monkeypatch, store, {"tf": TF, "width": 80, "height": 64}, budget)
     assert np.array_equal(got.rgba, ref.rgba)
     assert 4 <= got.report["passes"] and got.report["device_bytes"] <= budget * 1e6
-    assert device_cache().nbytes <= budget * 1e6  # the device cache holds no more than the budget either
+    assert eng.device_cache.nbytes <= budget * 1e6  # the device cache holds no more than the budget either
 
 
 def test_regions_of_empty_space_take_no_pass(monkeypatch):
     a = np.zeros((64, 64, 64), np.float32)
     a[40:60, 5:20, 44:60] = 150.0  # one corner holds something, which TF2 shows; 0 is transparent
     scene = {"tf": TF2, "width": 48, "height": 48}
-    ref, got = _pair(monkeypatch, a, scene, 0.2)
+    ref, got, _ = _pair(monkeypatch, a, scene, 0.2)
     plan = prepare(a, scene).passes
     assert np.array_equal(got.rgba, ref.rgba) and got.rgba[..., 3].max() > 0.5
     assert int(np.prod(plan.split)) >= 8 and got.report["passes"] == len(plan.regions) < 4

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lodcast.renderer.config import KernelConfig
-from lodcast.opencl import DeviceError, get_context, kernel_source
+from lodcast.opencl import DeviceError, kernel_source
 from lodcast.renderer.render import render
 from lodcast.renderer.sampler import upload_level0, voxel_offset
 from lodcast.renderer.transfer_function import evaluate
@@ -199,16 +199,16 @@ def test_nan_voxels_are_transparent(blob):
     assert allnan.report["bricks_skipped"] == 1
 
 
-def test_level0_larger_than_one_device_allocation_is_refused():
+def test_level0_larger_than_one_device_allocation_is_refused(eng):
     """Sized from the device: one z-slab of blocks more than CL_DEVICE_MAX_MEM_ALLOC_SIZE holds in float32 (16 GiB
     was not enough on an H200, whose largest allocation is 35 GiB)."""
-    limit = int(get_context()[0].devices[0].max_mem_alloc_size)
+    limit = eng.device.max_alloc_bytes
     nz = 32 * (limit // (2048 * 2048 * 4 * 32) + 1)
     huge = VolumeView(shape=(nz, 2048, 2048), spacing=(1, 1, 1), origin=(0, 0, 0), block_size=32,
                       value_range=(0, 1), min_border=np.zeros((nz // 32, 64, 64)), max_border=np.ones((nz // 32, 64, 64)),
                       key=None, _read0=lambda: pytest.fail("must not read a volume that cannot fit"))
     with pytest.raises(DeviceError, match="CL_DEVICE_MAX_MEM_ALLOC_SIZE"):
-        upload_level0(huge)
+        upload_level0(eng, huge)
 
 
 def test_voxel_addressing_is_64_bit():

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from lodcast.opencl import get_context, get_program
+from lodcast.opencl import Device
 from lodcast.renderer.structs import PARAMS_DTYPE, new_params
 
 
@@ -16,7 +16,8 @@ def test_params_dtype_size_and_alignment():
 
 
 def test_every_field_reads_back_through_the_kernel():
-    ctx, queue = get_context()
+    dev = Device()
+    ctx, queue = dev.context, dev.queue
     p = new_params()
     vec_f = ["eye", "cam_f", "cam_r", "cam_u", "box_lo", "box_hi", "origin", "inv_spacing", "background"]
     for k, name in enumerate(vec_f):
@@ -52,7 +53,7 @@ def test_every_field_reads_back_through_the_kernel():
     n = np.zeros(46, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
-    prg = get_program("probe.cl").program
+    prg = dev.program("probe.cl").program
     cl.Kernel(prg, "lc_probe")(queue, (1,), None, d_p, d_f, d_n)
     cl.enqueue_copy(queue, f, d_f)
     cl.enqueue_copy(queue, n, d_n)

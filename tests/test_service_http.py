@@ -506,10 +506,7 @@ def test_a_deleted_shard_file_is_a_clear_409(tmp_path):
         assert c.post("/volumes/v/render", json=scene).status_code == 200
         for f in glob.glob(str(tmp_path / "v" / "[0-9]" / "c" / "*" / "*" / "*")):  # every level's shards
             os.remove(f)
-        from lodcast.renderer.bricks import brick_cache
-        from lodcast.renderer.sampler import device_cache
-
-        brick_cache().clear(), device_cache().clear()  # nothing of this volume left in memory: it must be read
+        c.app.state.engine.renderer.close()  # nothing of this volume left in memory: it must be read
         r = c.post("/volumes/v/render", json={**scene, "quality": "lossless"})
         assert r.status_code == 409, r.text
         detail = r.json()["detail"]

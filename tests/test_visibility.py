@@ -30,11 +30,11 @@ def _ortho(shape, f, height=None):
             "view_height": height or 1.5 * max(shape)}
 
 
-def _host_visibility(store, scene):
+def _host_visibility(eng, store, scene):
     """The float64 host mirror of visibility.cl: the same rays (camera.rays_at at the cast's pixel centres), steps
     and coarse level, trilinear by scipy, the TF by transfer_function.evaluate."""
     vol = as_volume(store)
-    sc = resolved(Scene.parse(scene), vol)
+    sc = resolved(eng, Scene.parse(scene), vol)
     box, fr, kbox, _ = geometry(vol, sc)
     k = visibility.visibility_level(vol)
     coarse = store.read_region(k).astype(np.float64)
@@ -73,23 +73,23 @@ def wall(tmp_path_factory):
     return lodcast.ingest(v, tmp_path_factory.mktemp("vis") / "wall.zarr", block_size=B, progress=False)
 
 
-def test_a_transparent_volume_is_seen_whole(tmp_path):
+def test_a_transparent_volume_is_seen_whole(eng, tmp_path):
     st = lodcast.ingest(np.zeros((2 * B, 2 * B, 3 * B), np.float32), tmp_path / "z.zarr", block_size=B, progress=False)
-    vis = visibility.scene_visibility(st, {"tf": WALL, "width": 64, "height": 64, "camera": _ortho(st.shape, (1, 0.3, 0.2))})
+    vis = eng.visibility(st, {"tf": WALL, "width": 64, "height": 64, "camera": _ortho(st.shape, (1, 0.3, 0.2))})
     np.testing.assert_array_equal(vis, 1.0)
 
 
 @pytest.mark.parametrize("f, seen, hidden", [((1, 0, 0), [0, 1, 2, 3], [4, 5, 6]), ((-1, 0, 0), [6, 5, 4, 3], [2, 1, 0])])
-def test_an_opaque_wall_hides_what_lies_behind_it(wall, f, seen, hidden):
+def test_an_opaque_wall_hides_what_lies_behind_it(eng, wall, f, seen, hidden):
     """The wall's own block is seen (its face is what the picture shows), every block behind it is not."""
-    vis = visibility.scene_visibility(wall, {"tf": WALL, "width": 48, "height": 48, "camera": _ortho(wall.shape, f)})
+    vis = eng.visibility(wall, {"tf": WALL, "width": 48, "height": 48, "camera": _ortho(wall.shape, f)})
     assert vis.shape == (1, 1, 7)
     np.testing.assert_array_equal(vis[0, 0, seen], 1.0)
     np.testing.assert_array_equal(vis[0, 0, hidden], 0.0)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_visibility_matches_a_float64_host_cast(tmp_path, seed):
+def test_visibility_matches_a_float64_host_cast(eng, tmp_path, seed):
     """Random smooth volumes, a translucent TF and a perspective view: the device's fixed-point float32 cast against
     the float64 mirror. A sample within rounding of a block face may fall in the other block, which moves that
     block's value by one step's attenuation at most (below 4% here); almost every block agrees to 1e-4."""
@@ -101,14 +101,14 @@ def test_visibility_matches_a_float64_host_cast(tmp_path, seed):
     st = lodcast.ingest(v, tmp_path / "r.zarr", block_size=B, progress=False)
     tf = {"points": [{"value": 0.3, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 1, 1], "opacity": 0.04}]}
     scene = {"tf": tf, "width": 80, "height": 60, "camera": {"azimuth": 40 + 70 * seed, "elevation": 25, "distance": 2.5}}
-    got, ref = visibility.scene_visibility(st, scene), _host_visibility(st, scene)
+    got, ref = eng.visibility(st, scene), _host_visibility(eng, st, scene)
     assert 0.05 < ref[ref > 0].min() < 0.9  # the field attenuates: the test compares more than ones
     assert np.abs(got - ref).max() < 0.04
     assert np.mean(np.abs(got - ref) < 1e-4) > 0.9
 
 
 @pytest.mark.parametrize("f", [(1, 0.4, 0.3), (-1, 0.2, -0.5)])
-def test_quiet_blocks_change_nothing(tmp_path, monkeypatch, f):
+def test_quiet_blocks_change_nothing(eng, tmp_path, monkeypatch, f):
     """Blocks whose neighbourhood the TF shows nothing of are passed without sampling (visibility.quiet_blocks): the
     cast's result is the one that samples every step, bit for bit. The wall starts two voxels inside its block
     column, so the block before it holds nothing visible, one-voxel border included, while the level-2 cast's
@@ -126,25 +126,25 @@ def test_quiet_blocks_change_nothing(tmp_path, monkeypatch, f):
     assert visibility.visibility_level(vol) == 2
     from lodcast.renderer.transfer_function import build_lut
 
-    lut = build_lut(resolved(Scene.parse(scene), vol).tf, vol.value_range)
+    lut = build_lut(resolved(eng, Scene.parse(scene), vol).tf, vol.value_range)
     quiet = visibility.quiet_blocks(vol, lut, 2).reshape(vol.grid)
     assert quiet[..., :2].all() and not quiet[..., 2:5].any() and quiet[..., 5:].all()
     assert not visibility.quiet_blocks(vol, lut, 5).any()  # 2^5 > B: none
-    got = visibility.scene_visibility(st, scene)
+    got = eng.visibility(st, scene)
     assert ((got > 0.0) & (got < 1.0)).any()  # attenuated but seen: a missed sample would show
     monkeypatch.setattr(visibility, "quiet_blocks", lambda vol, lut, k: np.zeros(vol.n_blocks, np.uint8))
-    np.testing.assert_array_equal(got, visibility.scene_visibility(st, scene))
+    np.testing.assert_array_equal(got, eng.visibility(st, scene))
 
 
-def test_clip_planes_open_the_view(wall):
+def test_clip_planes_open_the_view(eng, wall):
     """A plane that keeps only x >= 4B removes the wall: the blocks behind it are seen."""
     scene = {"tf": WALL, "width": 48, "height": 48, "camera": _ortho(wall.shape, (1, 0, 0)),
              "clip": {"planes": [{"point": [4 * B - 0.5, 0, 0], "normal": [1, 0, 0]}]}}
-    vis = visibility.scene_visibility(wall, scene)
+    vis = eng.visibility(wall, scene)
     np.testing.assert_array_equal(vis[0, 0, 4:], 1.0)
 
 
-def test_the_selection_spends_the_budget_on_what_the_camera_sees(tmp_path):
+def test_the_selection_spends_the_budget_on_what_the_camera_sees(eng, tmp_path):
     """Translucent detail in front of an opaque wall and behind it. Weighted by visibility the selection keeps the front at
     finer levels and lets the hidden part go coarse, so the picture is closer to full resolution at the same
     budget; the report says so, and lod_visibility: false gives the view-independent selection."""
@@ -159,11 +159,11 @@ def test_the_selection_spends_the_budget_on_what_the_camera_sees(tmp_path):
                      {"value": 1.5, "color": [1, 1, 1], "opacity": 0.05}, {"value": 2.0, "color": [1, 1, 1], "opacity": 1.0}]}
     scene = {"tf": tf, "width": 96, "height": 48, "format": "npy", "quality": {"reduction": 12},
              "camera": _ortho(st.shape, (1, 0, 0), height=2 * B + 4)}
-    ref = render(st, {**scene, "quality": "full", "sampling": {"step": 0.25}}).rgba
-    on = render(st, scene)
-    off = render(st, {**scene, "sampling": {"lod_visibility": False}})
+    ref = eng.render(st, {**scene, "quality": "full", "sampling": {"step": 0.25}}).rgba
+    on = eng.render(st, scene)
+    off = eng.render(st, {**scene, "sampling": {"lod_visibility": False}})
     assert on.report["lod_visibility"] is True and off.report["lod_visibility"] is False
-    lv_on = select_lod(st, [tf], {"reduction": 12}, visibility=visibility.scene_visibility(st, scene)).levels
+    lv_on = select_lod(st, [tf], {"reduction": 12}, visibility=eng.visibility(st, scene)).levels
     lv_off = select_lod(st, [tf], {"reduction": 12}).levels
     front, behind = (slice(None), slice(None), slice(0, 4)), (slice(None), slice(None), slice(5, 8))
     assert lv_on[behind].min() == st.layout.n_levels - 1  # hidden: the coarsest level
@@ -172,19 +172,19 @@ def test_the_selection_spends_the_budget_on_what_the_camera_sees(tmp_path):
     assert e_on < 0.85 * e_off, (e_on, e_off)  # measured 3.0 against 3.9
 
 
-def test_left_out_it_is_on_for_volumes_up_to_the_auto_size(wall, monkeypatch):
+def test_left_out_it_is_on_for_volumes_up_to_the_auto_size(eng, wall, monkeypatch):
     """sampling.lod_visibility null: on for volumes of at most visibility.AUTO_VOXELS, off above (where a new
     view's selection and atlas cost more than the picture); an explicit value wins; lossless never weighs the view."""
     scene = {"tf": WALL, "width": 32, "height": 32, "format": "npy", "quality": {"reduction": 8},
              "camera": _ortho(wall.shape, (1, 0, 0))}
-    assert render(wall, scene).report["lod_visibility"] is True
-    assert render(wall, {**scene, "quality": "lossless"}).report["lod_visibility"] is False
+    assert eng.render(wall, scene).report["lod_visibility"] is True
+    assert eng.render(wall, {**scene, "quality": "lossless"}).report["lod_visibility"] is False
     monkeypatch.setattr(visibility, "AUTO_VOXELS", int(np.prod(wall.shape)) - 1)
-    assert render(wall, scene).report["lod_visibility"] is False
-    assert render(wall, {**scene, "sampling": {"lod_visibility": True}}).report["lod_visibility"] is True
+    assert eng.render(wall, scene).report["lod_visibility"] is False
+    assert eng.render(wall, {**scene, "sampling": {"lod_visibility": True}}).report["lod_visibility"] is True
 
 
-def test_a_turntable_job_selects_once_unless_its_scene_says_otherwise():
+def test_a_turntable_job_selects_once_unless_its_scene_says_otherwise(eng):
     """Every frame of a turntable job takes the selection by the TF alone (one selection for the animation, no level
     changing between frames), unless the job's scene sets lod_visibility."""
     from lodcast.service.jobs import parse_job, plan_frames

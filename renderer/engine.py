@@ -1,0 +1,222 @@
+"""The engine's state: one object owns the OpenCL device, every cache a render keeps and the settings it reads.
+
+`Engine` is what the stages below the frame take (the public `lodcast.Renderer`, renderer/render.py, is one with
+the verbs added). Nothing a render keeps between calls lives at module level: two engines in one process share no
+buffer, brick, table or opened store, and dropping one frees what it held. The environment (`LODCAST_*`) is read
+once, when the engine is made; its keywords override the variables.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
+
+from lodcast.environment import Environment, EnvironmentInvalid, environment
+from lodcast.opencl import Device
+from lodcast.renderer.cache import ByteLru
+from lodcast.store.opened import OpenStores
+
+__all__ = ["Engine", "Settings", "Tables", "BrickCache", "BRICK_ENTRY_BYTES", "OPEN_STORES"]
+
+#: what a cached brick costs beyond its voxels: the array object, its key and the LRU's entry, so that a million
+#: small coarse bricks count for what they hold
+BRICK_ENTRY_BYTES = 448
+#: stores named by path or URL kept opened per engine
+OPEN_STORES = 32
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What an engine reads of its environment, once (lodcast/environment.py documents each variable)."""
+
+    device: str  # LODCAST_DEVICE: "gpu", "cpu", part of a device name, or "" for the first GPU, else CPU
+    device_budget_bytes: int | None  # LODCAST_DEVICE_BUDGET_MB; None: one allocation
+    brick_cache_bytes: int  # LODCAST_BRICK_CACHE_MB
+    device_cache_bytes: int  # LODCAST_DEVICE_CACHE_MB
+    max_samples: int  # LODCAST_MAX_SAMPLES
+    lossless_zeta: float  # LODCAST_LOSSLESS_ZETA
+    significance_numpy: bool  # LODCAST_SIGNIFICANCE_NUMPY
+    read_threads: int | None  # LODCAST_READ_THREADS; None: by the CPU count (local) or 8 (object storage)
+
+    @classmethod
+    def of(cls, env: Environment, *, device: str | None = None, device_budget_mb: float | None = None,
+           brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> "Settings":
+        """`env` with the keywords that are given in its place (MB = 10⁶ bytes for the budget, MiB for the
+        caches, as the variables)."""
+        return cls(
+            device=env.device if device is None else str(device).strip().lower(),
+            device_budget_bytes=env.device_budget_bytes if device_budget_mb is None
+            else int(_positive("device_budget_mb", device_budget_mb) * 1e6),
+            brick_cache_bytes=env.brick_cache_bytes if brick_cache_mb is None
+            else int(_positive("brick_cache_mb", brick_cache_mb, zero=True) * 2**20),
+            device_cache_bytes=env.device_cache_bytes if device_cache_mb is None
+            else int(_positive("device_cache_mb", device_cache_mb, zero=True) * 2**20),
+            max_samples=env.max_samples,
+            lossless_zeta=env.lossless_zeta,
+            significance_numpy=env.significance_numpy,
+            read_threads=env.read_threads,
+        )
+
+    @property
+    def device_cache_bound(self) -> int:
+        """The device cache's bound: its own size, and never more than the budget."""
+        b = self.device_budget_bytes
+        return self.device_cache_bytes if b is None else min(self.device_cache_bytes, b)
+
+
+def _positive(name: str, value: float, zero: bool = False) -> float:
+    v = float(value)
+    if not (v == v and v != float("inf") and (v >= 0 if zero else v > 0)):
+        raise EnvironmentInvalid(f"{name}: must be a {'non-negative' if zero else 'positive'} number of megabytes, "
+                                 f"got {value!r}")
+    return v
+
+
+class BrickCache(ByteLru):
+    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations uint16 in units
+    of the volume's std_unit) keyed by (kind, store key, level, bz, by, bx), LRU by bytes (each brick's voxels plus
+    BRICK_ENTRY_BYTES); counts the bricks read."""
+
+    def __init__(self, max_bytes: "int | Callable[[], int]"):
+        super().__init__(max_bytes)
+        self.reads = 0  # bricks of values read from stores since creation (tests count these)
+
+    def put(self, key: tuple, a: Any) -> None:  # type: ignore[override]
+        super().put(key, a, a.nbytes + BRICK_ENTRY_BYTES)
+
+
+class Tables:
+    """What is computed from a store and transfer functions alone, not from the view, kept for the recent ones: a
+    turntable or a camera sweep computes each once. Stores are held weakly (an entry goes with its store)."""
+
+    def __init__(self) -> None:
+        self.meta: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()  # store -> BlockMeta
+        self.pre: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()  # BlockMeta -> its TF-free part
+        self.half_cells: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()  # store -> 8³ ranges
+        self.tf = ByteLru(256 << 20)  # (store metadata, TF, classification) -> per-block ζ tables
+        self.dist = ByteLru(32)  # (TF, value range, std_max) -> distribution table, one unit each
+        self.luv = ByteLru(32)  # distribution table -> its unit-slab colours in CIELUV
+        self.preint = ByteLru(16)  # (TF, value range, step ratio, n) -> pre-integration table
+        self.peaks = ByteLru(64)  # store key -> the adaptive TFs' tissue peaks
+
+
+class Engine:
+    """The OpenCL device, the caches and the settings of one renderer (module docstring).
+
+    Caches, each an LRU bounded by bytes or entries:
+    - `bricks`: bricks read from stores (renderer/bricks.py); on a device whose buffers are host memory it gives
+      way to what the device cache and the buffers being filled hold, down to an eighth of its size;
+    - `device_cache`: level-0 volumes, atlases and coarse levels on the device;
+    - `selections`, `step_errors`, `steps`: level-of-detail selections, predicted step errors and adaptive step
+      levels of recent scenes; `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
+      atlas_cells.py); `last_atlas`: per atlas family the newest atlas, held weakly (atlas.py reuses its bricks);
+    - `tables`: what is derived from a store and TFs (`Tables`); `stores`: stores named by path or URL, opened once.
+    """
+
+    def __init__(self, *, device: str | None = None, device_budget_mb: float | None = None,
+                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> None:
+        env = environment()
+        self.settings = Settings.of(env, device=device, device_budget_mb=device_budget_mb,
+                                    brick_cache_mb=brick_cache_mb, device_cache_mb=device_cache_mb)
+        self.device = Device(self.settings.device, env.cache_dir / "kernels")
+        self.device_cache = ByteLru(self.settings.device_cache_bound, keep_last=True)
+        self.bricks = BrickCache(self._brick_bound)
+        self.selections = ByteLru(4)  # one unit each: (store, TFs, quality, classification, crop, view)
+        self.step_errors = ByteLru(8)  # one unit each: (store, TFs, step, crop)
+        self.steps = ByteLru(64 << 20)
+        self.walks = ByteLru(64 << 20)
+        self.adaptive_walks = ByteLru(32 << 20)
+        self.parents = ByteLru(64 << 20)
+        self.cells = ByteLru(256 << 20)
+        self.tables = Tables()
+        self.stores = OpenStores(OPEN_STORES)
+        self._last_atlas: dict[tuple, weakref.ref[Any]] = {}
+        self._lock = threading.Lock()
+        self._filling = 0  # bytes of device buffers being filled or used outside the device cache right now
+        self._pools: dict[int, ThreadPoolExecutor] = {}
+
+    def __repr__(self) -> str:
+        s = self.settings
+        return (f"{type(self).__name__}(device={s.device or 'default'!r}, device_budget_mb="
+                f"{None if s.device_budget_bytes is None else s.device_budget_bytes / 1e6}, "
+                f"brick_cache_mb={s.brick_cache_bytes / 2**20:g}, device_cache_mb={s.device_cache_bytes / 2**20:g})")
+
+    def _brick_bound(self) -> int:
+        cap = self.settings.brick_cache_bytes
+        if not self.device.memory_is_host:
+            return cap
+        return max(cap // 8, cap - self.device_cache.nbytes - self._filling)
+
+    @contextlib.contextmanager
+    def holding(self, nbytes: int) -> Iterator[None]:
+        """While in this context, `nbytes` of device buffers outside the device cache are alive (an atlas being
+        filled, a pass's volume data): on a device whose buffers are host memory the brick cache gives way."""
+        with self._lock:
+            self._filling += nbytes
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._filling -= nbytes
+
+    def read_threads(self, remote: bool) -> int:
+        """Threads reading shards: LODCAST_READ_THREADS, else one less than the CPU count for local files (at
+        least one: the calling thread places what they read) and 8 for object storage (requests wait on the
+        network)."""
+        n = self.settings.read_threads
+        if n is not None:
+            return n
+        if remote:
+            return 8
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return max(1, cpus - 1)
+
+    def read_pool(self, threads: int) -> ThreadPoolExecutor:
+        """The engine's pool of `threads` shard readers (made on first use)."""
+        with self._lock:
+            pool = self._pools.get(threads)
+            if pool is None:
+                pool = self._pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="lodcast-bricks")
+            return pool
+
+    def remember_atlas(self, family: tuple, atlas: Any) -> None:
+        """Make `atlas` the one the next selection of `family` (store key, grid, with deviations, voxel type)
+        starts from. Held weakly: it lives as long as the device cache (or a caller) holds it, so reuse never
+        keeps device memory alive by itself."""
+        with self._lock:
+            self._last_atlas[family] = weakref.ref(atlas)
+
+    def last_atlas(self, family: tuple) -> Any:
+        """The newest atlas of `family` still alive, or None."""
+        with self._lock:
+            ref = self._last_atlas.get(family)
+        return None if ref is None else ref()
+
+    def forget_atlases(self) -> None:
+        """Build the next atlas of every family from nothing (atlas.py reuses the last one's bricks otherwise)."""
+        with self._lock:
+            self._last_atlas.clear()
+
+    def clear_passes(self) -> None:
+        """Drop what a render in passes cannot keep: the device cache's buffers and what was kept beside them
+        (the walks and cells of their selections)."""
+        self.device_cache.clear()
+        self.walks.clear()
+        self.adaptive_walks.clear()
+        self.cells.clear()
+
+    def close(self) -> None:
+        """Let the reader threads go and drop every cache (the engine stays usable: they fill again)."""
+        with self._lock:
+            pools, self._pools = self._pools, {}
+        for pool in pools.values():
+            pool.shutdown(wait=False)
+        for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.steps, self.walks,
+                  self.adaptive_walks, self.parents, self.cells):
+            c.clear()
+        self.tables = Tables()
+        self.forget_atlases()
