@@ -133,7 +133,7 @@ def sweep(eng, store, scene: dict, repeat: int) -> dict:
 def new_views(eng, store, scene: dict, step: float, frames: int = 8, quality=None) -> dict:
     """Wall ms per frame of `frames` new views `step` degrees apart (azimuth from 40°, where the sweep above has not
     been) at 30:1 with the selection weighed by each view (the default), its atlas built from the last one
-    (renderer/atlas_reuse.py) and, on the same views, packed from nothing; and full resolution's. Bricks are
+    (renderer/atlas.py: reuse) and, on the same views, packed from nothing; and full resolution's. Bricks are
     warmed by one pass first; `eng`'s selections, atlases and cells are dropped before each timed pass, whose first
     frame (nothing to build from) is left out of the medians."""
     quality = {"reduction": 30} if quality is None else quality

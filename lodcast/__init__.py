@@ -57,7 +57,7 @@ _LAZY = {
     "DeviceError": ("lodcast.opencl", "DeviceError"),
     "EnvironmentInvalid": ("lodcast.environment", "EnvironmentInvalid"),
     "ServiceError": ("lodcast.service.client", "ServiceError"),
-    "RenderResult": ("lodcast.renderer.render", "RenderResult"),
+    "RenderResult": ("lodcast.renderer.image", "RenderResult"),
     "Scene": ("lodcast.renderer.scene", "Scene"),
     "Client": ("lodcast.service.client", "Client"),
     "AsyncClient": ("lodcast.service.client", "AsyncClient"),
@@ -70,7 +70,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from lodcast.opencl import DeviceError
     from lodcast.renderer.cost import CostError
     from lodcast.renderer.image import ImageError
-    from lodcast.renderer.render import Renderer, RenderResult, render
+    from lodcast.renderer.image import RenderResult
+    from lodcast.renderer.render import Renderer, render
     from lodcast.renderer.scene import Scene, SceneError
     from lodcast.service.client import AsyncClient, Client, ServiceError
     from lodcast.service.models import JobStatus, VolumeSummary

@@ -18,27 +18,13 @@ from typing import Any
 import numpy as np
 
 from lodcast.renderer.cache import ByteLru
+from lodcast.renderer.presets import ADAPTIVE
+from lodcast.renderer.scene import AdaptiveTF, TransferFunction
 
-__all__ = ["ADAPTIVE", "alpha_histogram", "tissue_peaks", "volume_peaks", "adaptive_tf", "resolve_tfs"]
+__all__ = ["alpha_histogram", "tissue_peaks", "volume_peaks", "adaptive_tf", "resolve_tfs"]
 
 ALPHA = 4.0  # the thesis' figures emphasise minor coherent features from α ≈ 2..8; noise grows with α
 BINS = 256
-
-#: template: (u, colour, opacity) control points, u = 0 the background peak and u = 1 the tissue peak; values
-#: beyond the volume's range are clipped to it
-ADAPTIVE: dict[str, dict[str, Any]] = {
-    "auto": {
-        "description": "the object's surface: transparent up to halfway between the background and the tissue "
-                       "peaks of the α-histogram, opaque from the tissue peak up (CT or MR; lit if shading is on)",
-        "points": [(0.5, (0.85, 0.55, 0.45), 0.0), (1.0, (0.95, 0.8, 0.7), 0.6), (2.5, (1.0, 1.0, 0.95), 0.9)],
-    },
-    "mr-soft": {
-        "description": "MR: translucent tissue around the α-histogram's tissue peak, brighter structures (fat, "
-                       "vessels with contrast) more opaque; the head's inside stays visible",
-        "points": [(0.55, (0.8, 0.4, 0.3), 0.0), (1.0, (0.9, 0.6, 0.45), 0.008), (1.6, (1.0, 0.85, 0.7), 0.03),
-                   (3.0, (1.0, 1.0, 0.95), 0.1)],
-    },
-}
 
 
 def _distributions(hist: np.ndarray) -> np.ndarray:
@@ -122,8 +108,6 @@ def volume_peaks(vol: Any, kept: ByteLru | None = None) -> tuple[float, float]:
 def resolve_tfs(scene: Any, vol: Any, kept: ByteLru | None = None) -> dict[str, Any]:
     """The scene fields to replace for `vol`: each adaptive TF (AdaptiveTF) by the control points it takes on it
     (`kept`: see volume_peaks)."""
-    from lodcast.renderer.scene import AdaptiveTF, TransferFunction
-
     return {key: TransferFunction.model_validate(adaptive_tf(tf.template, vol, tf.unit_distance, kept))
             for key in ("tf", "tf2") if isinstance(tf := getattr(scene, key), AdaptiveTF)}
 

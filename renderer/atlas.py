@@ -31,14 +31,13 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.opencl import DeviceError
-from lodcast.renderer import atlas_reuse
 from lodcast.renderer.bricks import BrickStats, iter_bricks
 from lodcast.renderer.engine import BrickCache, Engine
 from lodcast.renderer.volume import voxel_options
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
            "device_atlas", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
-           "neighbourhood_max", "pair_reduce", "per_cell"]
+           "neighbourhood_max", "pair_reduce", "per_cell", "copy_kept", "dirty_blocks"]
 
 MISSING = 0
 
@@ -349,7 +348,7 @@ class DeviceAtlas:
     voxel: tuple[str, ...] = ()  # the -D option of its voxel type (volume.voxel_options)
     levels: np.ndarray | None = None  # the selection (flat int64), with a kept atlas
     offsets: np.ndarray | None = None  # every brick's first element in its buffer (flat int64, the index's)
-    base_key: tuple | None = None  # the device-cache key of the atlas this one was built from (atlas_reuse)
+    base_key: tuple | None = None  # the device-cache key of the atlas this one was built from (reuse, below)
     base_levels: np.ndarray | None = None  # that atlas's selection (flat int64)
 
 
@@ -393,14 +392,14 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
     nbytes = max(total, 1) * dtype.itemsize + (sig_type.itemsize * n_std if with_std else 0)
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already); a brick of the
-    # last atlas of this store at the same level is copied from there (atlas_reuse)
+    # last atlas of this store at the same level is copied from there (reuse, below)
     todo = levels if kept is None else np.where(kept.reshape(levels.shape), -1, levels).astype(np.int8)
     L = int(flat.max(initial=0)) + 1
     with eng.holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
         d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
         try:
             if old is not None and with_std:  # (packed: the coarse values ride along with their deviations)
-                atlas_reuse.copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
+                copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
             items = iter_bricks(eng, vol, todo, cache, stats=st)
             deviations = sig
             if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
@@ -408,7 +407,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
                 halves = sig.view(np.uint16)
                 items, deviations = _coarse_bits(items, halves[0::2], levels.shape, offsets), halves[1::2]
             reuse = None if old is None else (
-                lambda host: atlas_reuse.copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
+                lambda host: copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
                                                    range(0, 1 if packed else L), B))
             d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse)
             if with_std:
@@ -483,3 +482,51 @@ def _coarse_bits(items: Any, low: np.ndarray, grid: tuple, offsets: np.ndarray) 
             _place(low, grid, offsets, [(key, (a if a.dtype.itemsize == 2 else a.astype(np.int16)).view(np.uint16))])
         else:
             yield key, a
+
+
+# --- reuse: a new selection's atlas from the last one ------------------------------------------------------------
+# What a new selection keeps of the last atlas of the same store: bricks copied across, cells recomputed where
+# they can have changed. The view-weighted selection (renderer/visibility.py) selects again at every new view, and
+# a move of a degree or two changes the level of only a small share of the loaded blocks, while packing every
+# brick and bounding every octant again was most of a new view's host time. So `device_atlas` builds a new atlas
+# from the engine's `last_atlas` of the same store, TF-independent layout and buffers: a block at the same level
+# keeps its brick (one array copy per level: the bricks of a level lie together in C order of the grid), only the
+# others are read from the brick cache, and level 0's aprons are filled again (a neighbour's level may have
+# changed). The octants' bounds (atlas_cells.py) are copied for every block whose bounds cannot have changed and
+# computed on the device for the others (`dirty_blocks`). The result is the same atlas, index map and cells,
+# element for element, as one packed from nothing (tests/test_atlas_reuse.py).
+
+
+def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.ndarray, old_levels: np.ndarray,
+              old_offsets: np.ndarray, kept: np.ndarray, which: range, block_size: int) -> int:
+    """Copy into buffer `dst` (the new atlas's elements at `offsets`) from `src` (the old one's at `old_offsets`)
+    the bricks of the blocks `kept` (same level in both) whose level lies in `which` (the levels the buffer
+    holds). Flat per-block arrays; a level's bricks lie together in C order of the grid in both buffers, so each
+    level is one gather of whole bricks. Returns the number of bricks copied."""
+    copied = 0
+    for k in which:
+        sel = kept & (levels == k)
+        if not sel.any():
+            continue
+        size = int(brick_elements(np.int64(k), block_size))
+        new_at, old_at = offsets[levels == k], old_offsets[old_levels == k]
+        n0, o0 = int(new_at.min()), int(old_at.min())
+        dv = dst[n0:n0 + new_at.size * size].reshape(new_at.size, size)
+        sv = src[o0:o0 + old_at.size * size].reshape(old_at.size, size)
+        dv[(offsets[sel] - n0) // size] = sv[(old_offsets[sel] - o0) // size]
+        copied += int(sel.sum())
+    return copied
+
+
+def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str) -> np.ndarray:
+    """The blocks (grid-shaped bool) whose cells' bounds (atlas_cells.cl) a change of levels from `old_levels`
+    to `levels` can change. Nearest block reads a block's own brick, and a level-0 brick's apron, which holds
+    the neighbours' samples where they are at level 0 too: a block whose level changed, or a level-0 block next
+    to (26-neighbourhood) one that became or stopped being level 0. Interblock reads the neighbourhood's bricks:
+    every block next to one whose level changed."""
+    old_levels, levels = np.asarray(old_levels), np.asarray(levels)
+    changed = old_levels != levels
+    if interpolation == "interblock":
+        return neighbourhood_max(changed.astype(np.int8)) > 0
+    zero_changed = (old_levels == 0) != (levels == 0)
+    return changed | ((levels == 0) & (neighbourhood_max(zero_changed.astype(np.int8)) > 0))

@@ -1,6 +1,6 @@
 """What the multiresolution field sampled from an atlas can take in each of its half-block cells, or in their
 octants (quarter-block cells): computed on the device where the atlas is (atlas_cells.cl), kept beside the atlas,
-and, for an atlas built from the last one of its store (renderer/atlas_reuse.py), computed again only for the
+and, for an atlas built from the last one of its store (renderer/atlas.py: reuse), computed again only for the
 blocks the change of levels can reach. Empty-space skipping on the atlas walks these cells and the adaptive walk
 masks their octants (renderer/walk.py)."""
 from __future__ import annotations
@@ -11,8 +11,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.opencl import Device
-from lodcast.renderer import atlas_reuse
-from lodcast.renderer.atlas import DeviceAtlas, pair_reduce
+from lodcast.renderer.atlas import DeviceAtlas, dirty_blocks, pair_reduce
 from lodcast.renderer.engine import Engine
 
 __all__ = ["AtlasCells", "atlas_cells", "cells_and_octants"]
@@ -103,8 +102,8 @@ def _device_cells(dev: Device, da: DeviceAtlas, grid: tuple[int, int, int], bloc
 def _updated_cells(dev: Device, da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int], block_size: int,
                    interpolation: str, std_unit: float, cpb: int) -> AtlasCells:
     """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from: those of the blocks the
-    change of levels can reach (atlas_reuse.dirty_blocks) computed on the device, the others copied."""
-    dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation)
+    change of levels can reach (atlas.dirty_blocks) computed on the device, the others copied."""
+    dirty = dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation)
     out = [a.copy() for a in (base.vmin, base.vmax, base.std)]
     zyx = np.argwhere(dirty)
     if len(zyx):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import io
 import json
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +12,7 @@ import numpy as np
 
 from lodcast.errors import LodcastError
 
-__all__ = ["ImageError", "to_straight_rgba8", "png_bytes", "save_image", "format_for"]
+__all__ = ["RenderResult", "ImageError", "to_straight_rgba8", "png_bytes", "save_image", "format_for"]
 
 
 class ImageError(LodcastError, ValueError):
@@ -70,3 +71,24 @@ def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None,
         tmp.unlink(missing_ok=True)
         raise ImageError(f"output {str(path)!r}: {exc.strerror or exc}") from None
     return path
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """`rgba`: float32 premultiplied RGBA, shape (H, W, 4), row 0 at the top; `report`: JSON-ready dict."""
+
+    rgba: np.ndarray
+    report: dict = field(default_factory=dict)
+    scene: dict | None = None  # the scene as rendered (JSON), stored in the PNG beside the report
+
+    def _text(self) -> dict:
+        return {k: v for k, v in (("scene", self.scene), ("report", self.report)) if v}
+
+    def save(self, path: str | Path, format: str | None = None) -> Path:
+        return save_image(path, self.rgba, format, self._text())
+
+    def png_bytes(self) -> bytes:
+        return png_bytes(self.rgba, self._text())
+
+    def _repr_png_(self) -> bytes:  # notebooks show the picture
+        return self.png_bytes()

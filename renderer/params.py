@@ -17,7 +17,7 @@ from lodcast.renderer.transfer_function import Lut
 from lodcast.renderer.volume import VolumeView
 
 if TYPE_CHECKING:
-    from lodcast.renderer.render import Prepared
+    from lodcast.renderer.plan import Prepared
 
 __all__ = ["fill_params", "fill_tf2", "lut_table", "ext_table", "tables"]
 

@@ -6,8 +6,9 @@ name through `preset()` before validating the TF."""
 from __future__ import annotations
 
 import copy
+from typing import Any
 
-__all__ = ["PRESETS", "preset", "preset_names", "catalogue"]
+__all__ = ["PRESETS", "ADAPTIVE", "preset", "preset_names", "catalogue"]
 
 # Transfer functions for CT in Hounsfield units (`lodcast render --tf ct-bone`): bone, the thin skin band between
 # air and fat, and both; the LOD benchmarks and tests measure with these.
@@ -37,26 +38,39 @@ PRESETS: dict[str, dict] = {
 }
 
 
+# Adaptive presets (renderer/adaptive_tf.py places them on a volume's α-histogram peaks).
+#: template: (u, colour, opacity) control points, u = 0 the background peak and u = 1 the tissue peak; values
+#: beyond the volume's range are clipped to it
+ADAPTIVE: dict[str, dict[str, Any]] = {
+    "auto": {
+        "description": "the object's surface: transparent up to halfway between the background and the tissue "
+                       "peaks of the α-histogram, opaque from the tissue peak up (CT or MR; lit if shading is on)",
+        "points": [(0.5, (0.85, 0.55, 0.45), 0.0), (1.0, (0.95, 0.8, 0.7), 0.6), (2.5, (1.0, 1.0, 0.95), 0.9)],
+    },
+    "mr-soft": {
+        "description": "MR: translucent tissue around the α-histogram's tissue peak, brighter structures (fat, "
+                       "vessels with contrast) more opaque; the head's inside stays visible",
+        "points": [(0.55, (0.8, 0.4, 0.3), 0.0), (1.0, (0.9, 0.6, 0.45), 0.008), (1.6, (1.0, 0.85, 0.7), 0.03),
+                   (3.0, (1.0, 1.0, 0.95), 0.1)],
+    },
+}
+
+
+
 def preset_names() -> list[str]:
     """Fixed presets and the adaptive ones (renderer/adaptive_tf.py: placed on each volume's histogram)."""
-    from lodcast.renderer.adaptive_tf import ADAPTIVE
-
     return sorted([*PRESETS, *ADAPTIVE])
 
 
 def catalogue() -> dict[str, dict]:
     """Every preset as `GET /presets` and `lodcast presets --json` list it: a fixed one as its TF JSON, an adaptive
     one as {"template": name, "description": ...}."""
-    from lodcast.renderer.adaptive_tf import ADAPTIVE
-
     return {**copy.deepcopy(PRESETS),
             **{name: {"template": name, "description": t["description"]} for name, t in ADAPTIVE.items()}}
 
 
 def preset(name: str) -> dict:
     """A copy of the preset's TF JSON (an adaptive preset: its template); KeyError naming the known presets."""
-    from lodcast.renderer.adaptive_tf import ADAPTIVE
-
     if name in ADAPTIVE:
         return {"template": name}
     try:

@@ -23,8 +23,7 @@ from pydantic import (
 )
 
 from lodcast.errors import LodcastError
-from lodcast.renderer.adaptive_tf import ADAPTIVE
-from lodcast.renderer.presets import preset
+from lodcast.renderer.presets import ADAPTIVE, preset
 
 __all__ = [
     "SceneError",

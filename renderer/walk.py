@@ -24,7 +24,7 @@ from lodcast.store.layout import cell_edge
 if TYPE_CHECKING:  # pragma: no cover
     from lodcast.renderer import atlas_cells
     from lodcast.renderer import passes as multipass
-    from lodcast.renderer.render import Prepared
+    from lodcast.renderer.plan import Prepared
 
 __all__ = ["FINE_STEP", "adaptive_walk", "atlas_cell_info", "block_info", "octant_masks", "range_info",
            "walk_info", "walk_steps"]

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.adaptive_tf import ADAPTIVE, alpha_histogram, tissue_peaks, volume_peaks
+from lodcast.renderer.adaptive_tf import alpha_histogram, tissue_peaks, volume_peaks
+from lodcast.renderer.presets import ADAPTIVE
 from lodcast.renderer.volume import as_volume
 
 

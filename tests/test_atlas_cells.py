@@ -219,13 +219,13 @@ def test_no_octant_masks_beyond_fine_cells_octants(eng, ribs, monkeypatch):
     """The octants' bounds are kept for the whole grid (12 bytes each, on the host and the device): on a grid of
     more than sampler.FINE_CELLS octants (the 8 GiB volume's 64 million: 12.5 s a turntable frame, 5.3 GB of peak
     RSS) the walk takes every sample of its half-block cells, as full resolution walks 8³ cells there."""
-    from lodcast.renderer import render as rendering
+    from lodcast.renderer import plan
 
     scene = {"tf": BONE, "width": 48, "height": 40, "camera": {"azimuth": 30, "elevation": 20},
              "quality": {"reduction": 4}}
     vol = as_volume(ribs)
     assert "-DLC_OCTANTS" in eng.render(ribs, scene).report["build_options"]
-    monkeypatch.setattr(rendering, "FINE_CELLS", 64 * vol.n_blocks - 1)
+    monkeypatch.setattr(plan, "FINE_CELLS", 64 * vol.n_blocks - 1)
     assert "-DLC_OCTANTS" not in eng.render(ribs, scene).report["build_options"]
 
 

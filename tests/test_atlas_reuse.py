@@ -1,4 +1,4 @@
-"""A new selection's atlas is built from the last one of the same store (renderer/atlas_reuse.py): the bricks of
+"""A new selection's atlas is built from the last one of the same store (renderer/atlas.py: reuse): the bricks of
 blocks at the same level are copied across, only the others are read, and the octants' bounds are computed for
 the blocks the change can reach. Everything must equal an atlas packed from nothing, element for element, over
 random changes of levels (blocks loaded and dropped, level 0 against coarse, the aprons between them), for float
@@ -14,7 +14,7 @@ import pytest
 
 import lodcast
 from lodcast.renderer import atlas as lod_atlas
-from lodcast.renderer import atlas_cells, atlas_reuse
+from lodcast.renderer import atlas_cells
 from lodcast.renderer.engine import BrickCache
 from lodcast.renderer.render import Renderer
 from lodcast.renderer.volume import as_volume
@@ -119,7 +119,7 @@ def test_cells_of_an_atlas_built_from_the_last_one_are_computed_where_they_chang
         levels = _changed(first, rng, frac, store.n_levels - 1)
         da = lod_atlas.device_atlas(eng, vol, levels, with_std=True)
         assert da.base_key is not None
-        dirty = atlas_reuse.dirty_blocks(da.base_levels.reshape(G), levels, interp)
+        dirty = lod_atlas.dirty_blocks(da.base_levels.reshape(G), levels, interp)
         assert dirty.sum() < dirty.size or frac > 0.5  # some blocks are copied, not computed
         got = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit, cpb=cpb)
         ref = atlas_cells._device_cells(eng.device, da, G, B, interp, vol.std_unit, None, cpb)

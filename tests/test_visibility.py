@@ -11,7 +11,8 @@ import lodcast
 from lodcast.renderer import camera as cam
 from lodcast.renderer import visibility
 from lodcast.renderer.image_error import delta_e_stats
-from lodcast.renderer.render import geometry, render, resolved
+from lodcast.renderer.prepare import geometry, resolved
+from lodcast.renderer.render import render
 from lodcast.renderer.scene import Scene
 from lodcast.renderer.selection import select_lod
 from lodcast.renderer.transfer_function import evaluate, unit_distance
