@@ -31,10 +31,10 @@ DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "
 RESULTS = HERE / "results"
 
 import lodcast  # noqa: E402
-from lodcast.renderer.config import KernelConfig  # noqa: E402
-from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
-from lodcast.renderer.selection import select_lod  # noqa: E402
-from lodcast.renderer.transfer_function import CT_PRESETS  # noqa: E402
+from lodcast.renderer.kernel.config import KernelConfig  # noqa: E402
+from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
+from lodcast.renderer.lod.selection import select_lod  # noqa: E402
+from lodcast.renderer.scene.transfer_function import CT_PRESETS  # noqa: E402
 from lodcast.store.store import FORMAT_VERSION  # noqa: E402
 
 ENGINE_TF = {"points": [{"value": 150, "color": [1.0, 0.8, 0.5], "opacity": 0.0},
@@ -133,7 +133,7 @@ def sweep(eng, store, scene: dict, repeat: int) -> dict:
 def new_views(eng, store, scene: dict, step: float, frames: int = 8, quality=None) -> dict:
     """Wall ms per frame of `frames` new views `step` degrees apart (azimuth from 40°, where the sweep above has not
     been) at 30:1 with the selection weighed by each view (the default), its atlas built from the last one
-    (renderer/atlas.py: reuse) and, on the same views, packed from nothing; and full resolution's. Bricks are
+    (renderer/data/atlas.py: reuse) and, on the same views, packed from nothing; and full resolution's. Bricks are
     warmed by one pass first; `eng`'s selections, atlases and cells are dropped before each timed pass, whose first
     frame (nothing to build from) is left out of the medians."""
     quality = {"reduction": 30} if quality is None else quality

@@ -9,7 +9,7 @@ classified level-0 values behind the voxel (the box filter of the classified fie
 reproduce): expected extinction σ̄ = E[σ_t(v)] and emission ε̄ = E[σ_t(v)·rgb(v)], σ_t = −ln(1 − a) capped as the
 kernel's table caps it. Models, from what the voxel would keep:
 - mean: T at the mean (what a store without distributions shows);
-- gaussian: N(mean, std²), lodcast's table (renderer/classification.py) — what the store keeps today (mean, std);
+- gaussian: N(mean, std²), lodcast's table (renderer/lod/classification.py) — what the store keeps today (mean, std);
 - two-point: lo = mean of the values at or below the mean, hi = mean of those above, f = the share above:
   (1 − f)·T(lo) + f·T(hi) — keeps (mean, lo, hi);
 - mixture: the two-point split with each part a Gaussian of the within-part spread w, w² = std² − (mean − lo)(hi −
@@ -41,10 +41,10 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from bench_consistent_lod import DATA, RESULTS, store_of  # noqa: E402
-from lodcast.renderer.classification import EXT_CAP, cached_dist_table  # noqa: E402
-from lodcast.renderer.image_error import delta_e_stats, srgb_to_luv  # noqa: E402
-from lodcast.renderer.significance import as_tf  # noqa: E402
-from lodcast.renderer.transfer_function import CT_PRESETS, evaluate, extinction  # noqa: E402
+from lodcast.renderer.lod.classification import EXT_CAP, cached_dist_table  # noqa: E402
+from lodcast.renderer.image.delta_e import delta_e_stats, srgb_to_luv  # noqa: E402
+from lodcast.renderer.lod.significance import as_tf  # noqa: E402
+from lodcast.renderer.scene.transfer_function import CT_PRESETS, evaluate, extinction  # noqa: E402
 
 TFS = ("ct-bone", "ct-skin", "ct-skin-bone")
 MODELS = ("mean", "gaussian", "two-point", "mixture")

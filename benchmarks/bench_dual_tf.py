@@ -18,8 +18,8 @@ import json
 from pathlib import Path
 
 from bench_consistent_lod import DATA, RESULTS, best, store_of  # the 16³ stores every CT benchmark shares
-from lodcast.renderer.image_error import delta_e_stats
-from lodcast.renderer.render import Renderer
+from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.frame.render import Renderer
 
 ENGINE_BLOCK = {"points": [{"value": 90, "color": [0.75, 0.8, 0.85], "opacity": 0.0},
                            {"value": 130, "color": [0.8, 0.85, 0.9], "opacity": 0.6}]}

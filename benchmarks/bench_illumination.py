@@ -21,8 +21,8 @@ RESULTS = HERE / "results"
 
 import lodcast  # noqa: E402
 from bench_consistent_lod import best  # noqa: E402
-from lodcast.renderer.demo import SHADING  # noqa: E402
-from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
+from lodcast.renderer.tools.demo import SHADING  # noqa: E402
+from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 
 
 

@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lodcast.renderer.render import Renderer
-from lodcast.renderer.selection import greedy, select_from_meta
-from lodcast.renderer.significance import BlockMeta, block_significance, level_profile
-from lodcast.renderer.transfer_function import CT_PRESETS
+from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.lod.selection import greedy, select_from_meta
+from lodcast.renderer.lod.significance import BlockMeta, block_significance, level_profile
+from lodcast.renderer.scene.transfer_function import CT_PRESETS
 from lodcast.store.histogram import Bins
 
 ALL_VISIBLE = {"points": [{"value": -1000, "color": [0.2, 0.3, 0.9], "opacity": 0.05}, {"value": 3000, "color": [1, 1, 0.8], "opacity": 0.9}]}

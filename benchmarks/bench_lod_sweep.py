@@ -25,7 +25,7 @@ sys.path.insert(0, str(HERE))
 
 import lodcast  # noqa: E402
 from bench_consistent_lod import DATA, ENGINE_TF, RESULTS, best, store_of  # noqa: E402
-from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
+from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 
 VIEWS = [{"azimuth": 30, "elevation": 15}, {"azimuth": 200, "elevation": -20}]
 REDUCTIONS = [5, 10, 30, 100]

@@ -25,7 +25,7 @@ import numpy as np
 
 import lodcast
 from bench_consistent_lod import DATA, RESULTS, store_of
-from lodcast.renderer.render import Renderer
+from lodcast.renderer.frame.render import Renderer
 from lodcast.service.testing import s3_server
 
 

@@ -19,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from bench_consistent_lod import DATA, RESULTS, store_of
-from lodcast.renderer.render import Renderer
+from lodcast.renderer.frame.render import Renderer
 
 
 def _tf(shift: float) -> dict:

@@ -18,7 +18,7 @@ from pathlib import Path
 import lodcast
 from bench_consistent_lod import DATA, RESULTS, best, store_of
 from bench_dual_tf import ENGINE_BLOCK, ENGINE_STEEL
-from lodcast.renderer.image_error import delta_e_stats
+from lodcast.renderer.image.delta_e import delta_e_stats
 
 CASES = [("chest CT", "ct_chest", "ct_chest_dicom", {"tf": "ct-bone"}),
          ("engine CT, dual TF", "engine", "engine.nii.gz", {"tf": ENGINE_BLOCK, "tf2": ENGINE_STEEL})]

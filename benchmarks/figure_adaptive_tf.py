@@ -12,9 +12,9 @@ import argparse
 from pathlib import Path
 
 import lodcast
-from lodcast.renderer.adaptive_tf import volume_peaks
-from lodcast.renderer.demo import SHADING
-from lodcast.renderer.volume import as_volume
+from lodcast.renderer.scene.adaptive_tf import volume_peaks
+from lodcast.renderer.tools.demo import SHADING
+from lodcast.renderer.data.volume import as_volume
 
 HERE = Path(__file__).resolve().parent
 VOLUMES = [("ct_chest", "ct_chest_dicom", 30), ("engine", "engine.nii.gz", 30), ("bonsai", "bonsai.nii.gz", 30),

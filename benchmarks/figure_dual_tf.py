@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 import lodcast
-from lodcast.renderer import camera as cam
-from lodcast.renderer.demo import SHADING
+from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.tools.demo import SHADING
 
 HERE = Path(__file__).resolve().parent
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 import lodcast
-from lodcast.renderer.image_error import delta_e_stats
-from lodcast.renderer.transfer_function import CT_PRESETS
+from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.scene.transfer_function import CT_PRESETS
 
 HERE = Path(__file__).resolve().parent
 THIRTY = {"reduction": 30}

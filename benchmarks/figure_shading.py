@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 import lodcast
-from lodcast.renderer.demo import SHADING
+from lodcast.renderer.tools.demo import SHADING
 
 HERE = Path(__file__).resolve().parent
 

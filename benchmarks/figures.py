@@ -90,8 +90,8 @@ def demo_row(eng, size: int, camera: dict, out: Path, log) -> list[dict] | None:
     line saying why) where it cannot be fetched."""
     import lodcast
     from lodcast.errors import LodcastError
-    from lodcast.renderer.demo import demo_tfs
-    from lodcast.renderer.image_error import delta_e_stats
+    from lodcast.renderer.tools.demo import demo_tfs
+    from lodcast.renderer.image.delta_e import delta_e_stats
     from lodcast.service.demo import fetch_demo_volume
     from reference64 import reference_image
 
@@ -123,7 +123,7 @@ def demo_row(eng, size: int, camera: dict, out: Path, log) -> list[dict] | None:
 
 def report_plot(eng: Any, store: Any, size: int, camera: dict, out: Path) -> Path:
     """`lodcast report`'s sweep and plot for the chest CT with the bone preset (its own step-¼ reference)."""
-    from lodcast.renderer.quality_report import run_report, write_report
+    from lodcast.renderer.tools.quality_report import run_report, write_report
 
     scene = {"camera": camera, "width": min(size, 256), "height": min(size, 256), "tf": "ct-bone"}
     result = run_report(store, scene, repeat=1, log=lambda msg: None, renderer=eng)

@@ -10,7 +10,7 @@ resolution at steps 1, ½ and ¼ (and 2 and 1.5, for the equal-error comparison:
 as accurate as each peer image), lodcast at `quality` "lossless", 30:1 and 100:1 with its default sampling, and VTK
 FixedPoint and VTK's GPU ray caster on whatever OpenGL the machine has (benchmarks/peers.py; Mesa's llvmpipe on a
 machine without a GPU) at the same steps, all on the same voxels, view, image size and TF. Each image's
-mean ΔE (lodcast's: CIE76 in CIELUV over the footprint, renderer/image_error.py) is taken against a float64
+mean ΔE (lodcast's: CIE76 in CIELUV over the footprint, renderer/image/delta_e.py) is taken against a float64
 reference at step ¼
 (benchmarks/reference64.py). Times are wall-clock seconds of a call that returns the image (lodcast: `render`, the
 volume already on the device; VTK: `Render()` and reading its image), medians of `--repeat` runs taken round robin (so that load from
@@ -46,8 +46,8 @@ sys.path.insert(0, str(HERE))
 import lodcast  # noqa: E402
 import peers  # noqa: E402
 from bench_render import TF_DENSE, run_bare  # noqa: E402
-from lodcast.renderer.image_error import delta_e_stats  # noqa: E402
-from lodcast.renderer.presets import preset  # noqa: E402
+from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
+from lodcast.renderer.scene.presets import preset  # noqa: E402
 from reference64 import reference_image  # noqa: E402
 
 CAMERA = {"azimuth": 30, "elevation": 15, "distance": 1.9, "fov": 30}

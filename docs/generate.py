@@ -111,9 +111,9 @@ def reference() -> str:
     import warnings
 
     from lodcast.environment import VARIABLES
-    from lodcast.renderer import scene as sc
-    from lodcast.renderer.presets import catalogue
-    from lodcast.renderer.report_fields import REPORT_FIELDS
+    from lodcast.renderer.scene import scene as sc
+    from lodcast.renderer.scene.presets import catalogue
+    from lodcast.renderer.tools.report_fields import REPORT_FIELDS
     from lodcast.service import jobs, models
     from lodcast.service.app import create_app
     from lodcast.service.settings import Settings

@@ -49,16 +49,16 @@ __all__ = [
 _LAZY = {
     "ingest": ("lodcast.store.ingest", "ingest"),
     "open_store": ("lodcast.store.store", "open_store"),
-    "render": ("lodcast.renderer.render", "render"),
-    "Renderer": ("lodcast.renderer.render", "Renderer"),
-    "SceneError": ("lodcast.renderer.scene", "SceneError"),
-    "CostError": ("lodcast.renderer.cost", "CostError"),
-    "ImageError": ("lodcast.renderer.image", "ImageError"),
+    "render": ("lodcast.renderer.frame.render", "render"),
+    "Renderer": ("lodcast.renderer.frame.render", "Renderer"),
+    "SceneError": ("lodcast.renderer.scene.scene", "SceneError"),
+    "CostError": ("lodcast.renderer.scene.cost", "CostError"),
+    "ImageError": ("lodcast.renderer.image.output", "ImageError"),
     "DeviceError": ("lodcast.opencl", "DeviceError"),
     "EnvironmentInvalid": ("lodcast.environment", "EnvironmentInvalid"),
     "ServiceError": ("lodcast.service.client", "ServiceError"),
-    "RenderResult": ("lodcast.renderer.image", "RenderResult"),
-    "Scene": ("lodcast.renderer.scene", "Scene"),
+    "RenderResult": ("lodcast.renderer.image.output", "RenderResult"),
+    "Scene": ("lodcast.renderer.scene.scene", "Scene"),
     "Client": ("lodcast.service.client", "Client"),
     "AsyncClient": ("lodcast.service.client", "AsyncClient"),
     "JobStatus": ("lodcast.service.models", "JobStatus"),
@@ -68,11 +68,11 @@ _LAZY = {
 if TYPE_CHECKING:  # pragma: no cover
     from lodcast.environment import EnvironmentInvalid
     from lodcast.opencl import DeviceError
-    from lodcast.renderer.cost import CostError
-    from lodcast.renderer.image import ImageError
-    from lodcast.renderer.image import RenderResult
-    from lodcast.renderer.render import Renderer, render
-    from lodcast.renderer.scene import Scene, SceneError
+    from lodcast.renderer.scene.cost import CostError
+    from lodcast.renderer.image.output import ImageError
+    from lodcast.renderer.image.output import RenderResult
+    from lodcast.renderer.frame.render import Renderer, render
+    from lodcast.renderer.scene.scene import Scene, SceneError
     from lodcast.service.client import AsyncClient, Client, ServiceError
     from lodcast.service.models import JobStatus, VolumeSummary
     from lodcast.store.ingest import ingest

@@ -32,7 +32,7 @@ def tame_malloc() -> None:
 def release_free_memory() -> None:
     """Return the free pages inside the allocator's heaps to the OS (malloc_trim). Bricks are small arrays made
     and dropped by many reading threads, each with its heap: freed, they stay resident until trimmed. Called
-    after each pass of a render in several (renderer/passes.py), whose data is the size of the device budget:
+    after each pass of a render in several (renderer/data/passes.py), whose data is the size of the device budget:
     on the 8 GiB volume the process kept 2.0 GB resident after a full-resolution render of 32 passes."""
     libc = _libc()
     if libc is not None:

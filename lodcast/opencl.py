@@ -45,9 +45,10 @@ class Built:
 
 
 def renderer_folder() -> Path:
-    """Where the renderer's `.cl` files are (found without importing the renderer: this module lies below it)."""
-    spec = importlib.util.find_spec("lodcast.renderer")
-    assert spec is not None and spec.submodule_search_locations, "lodcast.renderer is part of the package"
+    """Where the renderer's `.cl` files are (renderer/kernel/, found without importing the renderer: this module
+    lies below it)."""
+    spec = importlib.util.find_spec("lodcast.renderer.kernel")
+    assert spec is not None and spec.submodule_search_locations, "lodcast.renderer.kernel is part of the package"
     return Path(list(spec.submodule_search_locations)[0]).resolve()
 
 

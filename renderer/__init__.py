@@ -1,15 +1,15 @@
-"""lodcast.renderer: the OpenCL ray caster and everything a render needs on the host.
+"""lodcast.renderer: the OpenCL ray caster and everything a render needs on the host, in the order a frame flows.
 
-Public API (re-exported lazily by `lodcast`):
-  render(store, scene) -> RenderResult     render.py   (.rgba float32 premultiplied H×W×4, .report dict)
-  Scene, SceneError, TransferFunction      scene.py    (one pydantic model for CLI, HTTP, jobs and client)
-  save_image / png_bytes                   image.py    (PNG straight alpha 8-bit, .npy float32 premultiplied)
-  render_demo(store, out_dir)              demo.py     (pictures for `lodcast demo`)
+  engine.py, cache.py   the engine's state (device, caches, settings) and the byte-bounded LRU its caches are
+  scene/                what a request asks for: scene model, transfer functions, presets, camera, clip, cost
+  lod/                  level of detail: significance, per-level error, selection, visibility, classification
+  data/                 volume data to the device: volume view, bricks, level 0 and the atlas, cells, passes
+  walk/                 which cells a ray may skip and how far it may leap
+  kernel/               the OpenCL sources and what the host hands them: config, parameters, tables
+  frame/                one frame: plan, preparation, launch and report (Renderer), screen-space tiles
+  image/                the result, its encodings, and ΔE between images
+  tools/                `lodcast render`, `lodcast demo`'s pictures, `lodcast report`
 
-Inside: camera.py (DESIGN.md's camera), transfer_function.py (exact opacity correction, the kernel LUT, block
-visibility for empty-space skipping), volume.py (the only module that touches the store), sampler.py (level 0 on
-the device), atlas.py (LOD: brick cache, atlas and block index map, adaptive step levels; sampled by lc_atlas.h
-with nearest-block or interblock interpolation), config.py (KernelConfig -> -D options), lodcast/opencl.py (device, build and cache: below the store and the renderer), structs.py (NumPy mirror of
-lc_types.h), raycast.cl / march_bare.cl / probe.cl / atlas_probe.cl with lc_types.h and lc_common.h, cli_render.py (`lodcast
-render`). Importing this package imports nothing heavy: pyopencl loads with render.py / lodcast.opencl only.
+The public verbs (`lodcast.Renderer`, `lodcast.render`, `RenderResult`, `Scene`) are re-exported lazily by
+`lodcast`. Importing this package imports nothing heavy: pyopencl loads with the modules that launch kernels.
 """

@@ -1,6 +1,6 @@
 """The engine's state: one object owns the OpenCL device, every cache a render keeps and the settings it reads.
 
-`Engine` is what the stages below the frame take (the public `lodcast.Renderer`, renderer/render.py, is one with
+`Engine` is what the stages below the frame take (the public `lodcast.Renderer`, renderer/frame/render.py, is one with
 the verbs added). Nothing a render keeps between calls lives at module level: two engines in one process share no
 buffer, brick, table or opened store, and dropping one frees what it held. The environment (`LODCAST_*`) is read
 once, when the engine is made; its keywords override the variables.
@@ -108,7 +108,7 @@ class Engine:
     """The OpenCL device, the caches and the settings of one renderer (module docstring).
 
     Caches, each an LRU bounded by bytes or entries:
-    - `bricks`: bricks read from stores (renderer/bricks.py); on a device whose buffers are host memory it gives
+    - `bricks`: bricks read from stores (renderer/data/bricks.py); on a device whose buffers are host memory it gives
       way to what the device cache and the buffers being filled hold, down to an eighth of its size;
     - `device_cache`: level-0 volumes, atlases and coarse levels on the device;
     - `selections`, `step_errors`, `steps`: level-of-detail selections, predicted step errors and adaptive step

@@ -30,8 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 import lodcast
 from lodcast.errors import LodcastError, StoreCorrupt, StoreInvalid, StoreNotFound
-from lodcast.renderer.cost import CostError
-from lodcast.renderer.scene import Scene
+from lodcast.renderer.scene.cost import CostError
+from lodcast.renderer.scene.scene import Scene
 from lodcast.service.asgi import BodyLimit, offline_docs
 from lodcast.service.jobs import IngestJob, Job, validate_job
 from lodcast.service.results import JobFiles, frame_name, park_upload
@@ -266,7 +266,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
              response_model=dict[str, dict[str, Any]], responses=errors(401))
     def get_presets() -> dict[str, Any]:
         """The named transfer functions a scene may give as `"tf": NAME`."""
-        from lodcast.renderer.presets import catalogue
+        from lodcast.renderer.scene.presets import catalogue
 
         return catalogue()
 
@@ -397,7 +397,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         async with semaphore(samples):
             gone, t0 = threading.Event(), time.monotonic()
 
-            def stop() -> None:  # between launch bands (renderer/render.py: launch)
+            def stop() -> None:  # between launch bands (renderer/frame/render.py: launch)
                 if gone.is_set():
                     raise _ClientGone
                 if time.monotonic() - t0 > settings.render_timeout_s:

@@ -217,8 +217,8 @@ def _add_report(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from lodcast.renderer.quality_report import default_variants, run_report, table, write_report
-    from lodcast.renderer.scene import Scene
+    from lodcast.renderer.tools.quality_report import default_variants, run_report, table, write_report
+    from lodcast.renderer.scene.scene import Scene
     from lodcast.store.store import open_store
 
     scene_path = Path(args.scene)
@@ -266,7 +266,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     s = store.summary()
     print(f"store: {dest}  shape {s['shape']} {s['dtype']}, spacing {s['spacing']}, {s['blocks']} blocks of {s['block_size']}^3, "
           f"{len(s['levels'])} levels, {s['shards']} shard files, {s['bytes_on_disk'] / 1e6:.1f} MB on disk, value range {s['value_range']}")
-    from lodcast.renderer.demo import render_demo
+    from lodcast.renderer.tools.demo import render_demo
 
     pictures = render_demo(store, out / "pictures", size=args.size)
     print(f"{len(pictures)} pictures in {out / 'pictures'} (each with its scene as JSON: lodcast render {dest} --scene FILE -o OUT.png)")
@@ -286,7 +286,7 @@ def _add_presets(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_presets(args: argparse.Namespace) -> int:
-    from lodcast.renderer.presets import catalogue
+    from lodcast.renderer.scene.presets import catalogue
 
     presets = catalogue()
     if args.json:
@@ -304,13 +304,13 @@ def _cmd_presets(args: argparse.Namespace) -> int:
 # --- entry point ---------------------------------------------------------------------------------------------
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
-    from lodcast.renderer.cli_render import add_parser
+    from lodcast.renderer.tools.cli_render import add_parser
 
     add_parser(sub, _cmd_render)
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from lodcast.renderer.cli_render import run
+    from lodcast.renderer.tools.cli_render import run
 
     return run(args)
 

@@ -85,7 +85,7 @@ def _report(r: httpx.Response) -> dict[str, Any]:
 def _render_result(r: httpx.Response) -> Any:
     import numpy as np
 
-    from lodcast.renderer.image import RenderResult
+    from lodcast.renderer.image.output import RenderResult
 
     return RenderResult(np.load(io.BytesIO(r.content), allow_pickle=False), _report(r))
 

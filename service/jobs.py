@@ -159,11 +159,11 @@ def validate_job(job: Any, settings: Any, engine: Any, *, upload: Path | None = 
 
 
 def _affordable(engine: Any, volume: str, scene: Any, settings: Any, loc: tuple) -> None:
-    """A job's frame must fit LODCAST_MAX_SAMPLES (estimated on the volume's geometry, renderer/cost.py): refused
+    """A job's frame must fit LODCAST_MAX_SAMPLES (estimated on the volume's geometry, renderer/scene/cost.py): refused
     at submission (422 naming the field), not after it has queued. A store that cannot be opened is left to the
     job, which fails with the store's own message."""
     from lodcast.errors import StoreInvalid, StoreNotFound
-    from lodcast.renderer.cost import CostError
+    from lodcast.renderer.scene.cost import CostError
 
     try:
         engine.check_cost(volume_path(settings.root, volume), scene, settings.max_samples)

@@ -46,7 +46,7 @@ def parse_scene(data: Any, settings: Any, loc: tuple = ("body",)) -> Any:
     """Validate a scene (dict or Scene) with the shared pydantic model, then the service's caps."""
     from pydantic import ValidationError
 
-    from lodcast.renderer.scene import Scene
+    from lodcast.renderer.scene.scene import Scene
 
     if not isinstance(data, (dict, Scene)):
         raise RequestInvalid.one(loc, "a scene must be a JSON object", "type_error")
@@ -71,7 +71,7 @@ def check_tf(data: Any, loc: tuple) -> dict | str:
     lives in the scene module)."""
     from pydantic import ValidationError
 
-    from lodcast.renderer.scene import Scene
+    from lodcast.renderer.scene.scene import Scene
 
     if not isinstance(data, (dict, str)):
         raise RequestInvalid.one(loc, "a transfer function must be a JSON object or a preset's name", "type_error")
@@ -97,7 +97,7 @@ class RenderEngine:
     def renderer(self) -> Any:
         with self._lock:
             if self._renderer is None:
-                from lodcast.renderer.render import Renderer
+                from lodcast.renderer.frame.render import Renderer
 
                 self._renderer = Renderer(device_budget_mb=self._budget)
             return self._renderer

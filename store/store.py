@@ -44,7 +44,7 @@ __all__ = ["Store", "BlockStats", "open_store", "data_manifest", "FORMAT_VERSION
 #: still open and render; they have no distributions, so coarse samples are classified at their mean.
 #: 3: adds the level-0 value range of every cell of Layout.cell_edge³ voxels (`blocks/cell_min`, `cell_max`).
 #: Stores of format 2 still open and render; coarse samples are then taken wherever their own field can show
-#: something, as before (renderer/render.py: `_cell_info`).
+#: something, as before (renderer/frame/render.py: `_cell_info`).
 FORMAT_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
 

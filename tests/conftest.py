@@ -25,7 +25,7 @@ def shared_data() -> Path:
 @pytest.fixture(scope="module")
 def renderer():
     """A renderer of this test module's own (tests that count what its caches hold make one per test instead)."""
-    from lodcast.renderer.render import Renderer
+    from lodcast.renderer.frame.render import Renderer
 
     eng = Renderer()
     yield eng
@@ -35,7 +35,7 @@ def renderer():
 @pytest.fixture
 def eng():
     """A renderer of the test's own: its caches start empty and no other test sees them."""
-    from lodcast.renderer.render import Renderer
+    from lodcast.renderer.frame.render import Renderer
 
     r = Renderer()
     yield r

@@ -1,6 +1,6 @@
 """Float64 NumPy evaluation of the multiresolution sampling formulas (nearest block: thesis eq. 3.5, and through
 the level-0 bricks' aprons across faces between level-0 blocks; eq. 3.6 in 3D interblock interpolation with the edge weights documented
-in renderer/lc_atlas.h), written from the formulas,
+in renderer/kernel/lc_atlas.h), written from the formulas,
 plus a probe that runs the kernel's sampler at given points. Coordinates are level-0 voxel coordinates
 q = (x, y, z), voxel centres at integers; arrays are (z, y, x)."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pyopencl as cl
 
-from lodcast.renderer.atlas import pack, pack_std
+from lodcast.renderer.data.atlas import pack, pack_std
 from lodcast.opencl import Device
 
 

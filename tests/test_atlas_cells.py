@@ -9,11 +9,11 @@ import pyopencl as cl
 import pytest
 
 import lodcast
-from lodcast.renderer import atlas as lod_atlas
-from lodcast.renderer import atlas_cells
-from lodcast.renderer import passes
-from lodcast.renderer.render import Renderer
-from lodcast.renderer.volume import VolumeView, as_volume
+from lodcast.renderer.data import atlas as lod_atlas
+from lodcast.renderer.data import atlas_cells
+from lodcast.renderer.data import passes
+from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.data.volume import VolumeView, as_volume
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
                    {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}
@@ -156,7 +156,7 @@ def test_the_atlas_walk_is_kept_per_selection_and_visibility(eng, ribs, monkeypa
     pattern (distribution table included), mode and block info: a TF that only changes colours reuses them, a
     wider TF, another reduction or MIP computes them afresh, and every image equals one rendered with nothing
     kept."""
-    from lodcast.renderer import walk as R
+    from lodcast.renderer.walk import info as R
 
     cells, leaps = [], []
     orig_cells, orig_leaps = R.atlas_cell_info, R.step_leaps
@@ -199,7 +199,7 @@ def test_octant_masks_change_nothing_but_the_samples(eng, ribs, monkeypatch, nam
     whose field bounds the TF shows nothing of (config.octants): the same image within float rounding (the
     kernels differ, and with them the compiler's contractions), fewer samples. A wrong bit order or a missed
     sample past a cell's face (a coarse cell's last step on the level-0 lattice) changes pixels by up to 1."""
-    from lodcast.renderer import config
+    from lodcast.renderer.kernel import config
 
     scene = {"tf": BONE, "width": 64, "height": 64, "camera": {"azimuth": 30, "elevation": 20},
              "quality": {"reduction": 4}, **OCTANT_SCENES[name]}
@@ -219,7 +219,7 @@ def test_no_octant_masks_beyond_fine_cells_octants(eng, ribs, monkeypatch):
     """The octants' bounds are kept for the whole grid (12 bytes each, on the host and the device): on a grid of
     more than sampler.FINE_CELLS octants (the 8 GiB volume's 64 million: 12.5 s a turntable frame, 5.3 GB of peak
     RSS) the walk takes every sample of its half-block cells, as full resolution walks 8³ cells there."""
-    from lodcast.renderer import plan
+    from lodcast.renderer.frame import plan
 
     scene = {"tf": BONE, "width": 48, "height": 40, "camera": {"azimuth": 30, "elevation": 20},
              "quality": {"reduction": 4}}
@@ -261,7 +261,7 @@ def test_octant_masks_change_nothing_on_random_volumes_and_views(eng, tmp_path, 
     """Property: random blobs and shells, 16³ or 32³ blocks, anisotropic spacing, random views (perspective or
     orthographic), clip planes and reductions: the image with octant masks is the one without, within float
     rounding, and never takes more samples."""
-    from lodcast.renderer import config
+    from lodcast.renderer.kernel import config
 
     rng = np.random.default_rng(100 + seed)
     shape = tuple(int(n) for n in rng.integers(24, 72, 3))

@@ -1,4 +1,4 @@
-"""A new selection's atlas is built from the last one of the same store (renderer/atlas.py: reuse): the bricks of
+"""A new selection's atlas is built from the last one of the same store (renderer/data/atlas.py: reuse): the bricks of
 blocks at the same level are copied across, only the others are read, and the octants' bounds are computed for
 the blocks the change can reach. Everything must equal an atlas packed from nothing, element for element, over
 random changes of levels (blocks loaded and dropped, level 0 against coarse, the aprons between them), for float
@@ -13,11 +13,11 @@ import pyopencl as cl
 import pytest
 
 import lodcast
-from lodcast.renderer import atlas as lod_atlas
-from lodcast.renderer import atlas_cells
+from lodcast.renderer.data import atlas as lod_atlas
+from lodcast.renderer.data import atlas_cells
 from lodcast.renderer.engine import BrickCache
-from lodcast.renderer.render import Renderer
-from lodcast.renderer.volume import as_volume
+from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.data.volume import as_volume
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
                    {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}

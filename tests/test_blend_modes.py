@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.scene import SceneError
+from lodcast.renderer.scene.scene import SceneError
 from reference import box_bounds, camera_rays, reference_render, sample_field
 
 TF = {"points": [{"value": 0.0, "color": [1, 0.2, 0], "opacity": 0.9}, {"value": 1.0, "color": [0, 0.5, 1],

@@ -1,5 +1,5 @@
 """DESIGN.md, Limits: every render's cost is estimated before it starts and refused above LODCAST_MAX_SAMPLES,
-naming the field to change (renderer/cost.py; issue 10, item 2)."""
+naming the field to change (renderer/scene/cost.py; issue 10, item 2)."""
 from __future__ import annotations
 
 import json
@@ -11,8 +11,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 import lodcast
-from lodcast.renderer.cost import CostError
-from lodcast.renderer.render import check_cost
+from lodcast.renderer.scene.cost import CostError
+from lodcast.renderer.frame.render import check_cost
 from lodcast.service.app import create_app
 from lodcast.service.settings import Settings
 from lodcast.service.testing import make_volume
@@ -79,7 +79,7 @@ def test_http_render_413_and_job_422(tmp_path):
 
 
 def test_banded_launch_is_the_same_image_and_stops_between_bands(monkeypatch):
-    import lodcast.renderer.render as R
+    import lodcast.renderer.frame.render as R
 
     vol = np.random.default_rng(1).random((30, 30, 30)).astype(np.float32)
     scene = {"tf": TF, "width": 90, "height": 70, "format": "npy"}
@@ -103,7 +103,7 @@ def test_banded_launch_is_the_same_image_and_stops_between_bands(monkeypatch):
 
 
 def test_http_render_past_its_deadline_is_stopped(tmp_path, monkeypatch):
-    import lodcast.renderer.render as R
+    import lodcast.renderer.frame.render as R
 
     monkeypatch.setattr(R, "BAND_SAMPLES", 1000)
     root = tmp_path / "root"
@@ -156,7 +156,7 @@ def test_http_render_stops_when_its_client_hangs_up(tmp_path, monkeypatch):
     the band after the server notices (it polls every 0.2 s) instead of running to the end."""
     import asyncio
 
-    import lodcast.renderer.render as R
+    import lodcast.renderer.frame.render as R
 
     monkeypatch.setattr(R, "BAND_SAMPLES", 200_000)
     root = tmp_path / "root"
@@ -181,7 +181,7 @@ def test_a_small_render_does_not_wait_behind_a_big_one(tmp_path, monkeypatch):
     one device queue it waits for one band of the big one at most, so it answers long before the big one does."""
     import asyncio
 
-    import lodcast.renderer.render as R
+    import lodcast.renderer.frame.render as R
 
     monkeypatch.setattr(R, "BAND_SAMPLES", 2_000_000)
     root = tmp_path / "root"

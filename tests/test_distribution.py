@@ -1,5 +1,5 @@
 """Classification by distribution (format-2 stores): the per-voxel standard deviations ingest stores against a
-float64 reference, the Gaussian table (renderer/classification.py) against float64 quadrature and its bilinear
+float64 reference, the Gaussian table (renderer/lod/classification.py) against float64 quadrature and its bilinear
 lookup against the exact expectation, the atlas sampler's interpolated std, and renders whose answer is known:
 a constant volume, a volume of uniform (mean, std) at every coarse level, a one-voxel opaque slab whose optical
 depth the distribution keeps and the mean loses, and format-1 stores, which render by mean and say so.
@@ -24,14 +24,14 @@ from scipy.special import ndtr
 
 import lodcast
 import lod_reference as ref
-from lodcast.renderer import classification
-from lodcast.renderer.classification import EXT_CAP, dist_table
-from lodcast.renderer.render import Renderer, render
-from lodcast.renderer.scene import TransferFunction
-from lodcast.renderer.significance import srgb_to_luv
-from lodcast.renderer.transfer_function import CT_PRESETS, Lut, build_lut
+from lodcast.renderer.lod import classification
+from lodcast.renderer.lod.classification import EXT_CAP, dist_table
+from lodcast.renderer.frame.render import Renderer, render
+from lodcast.renderer.scene.scene import TransferFunction
+from lodcast.renderer.lod.significance import srgb_to_luv
+from lodcast.renderer.scene.transfer_function import CT_PRESETS, Lut, build_lut
 from lodcast.store.store import FORMAT_VERSION
-from lodcast.renderer.volume import VolumeView
+from lodcast.renderer.data.volume import VolumeView
 from scenes import axis_camera
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 import lodcast
-from lodcast.renderer.report_fields import REPORT_FIELDS
+from lodcast.renderer.tools.report_fields import REPORT_FIELDS
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer import camera as cam
-from lodcast.renderer.atlas import neighbourhood_max
-from lodcast.renderer.dual import dilate_bits, priority_map, visibility_bits
-from lodcast.renderer.render import prepare
-from lodcast.renderer.scene import Scene, SceneError
+from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.data.atlas import neighbourhood_max
+from lodcast.renderer.lod.dual import dilate_bits, priority_map, visibility_bits
+from lodcast.renderer.frame.render import prepare
+from lodcast.renderer.scene.scene import Scene, SceneError
 from reference import delta_e, reference_render
 
 
@@ -161,7 +161,7 @@ def test_priority_map_changes_nothing_and_ends_rays_where_tf2_is_absent():
     body_only = lodcast.render(vol, _opaque_scene(tf2=None))
     assert delta_e(on.rgba, body_only.rgba)["max"] > 20
     shown = lodcast.render(vol, _opaque_scene(tf=CORE, tf2=None)).rgba[..., 3] > 0
-    assert shown.sum() > 4 and not (shown & ~lodcast.renderer.render.prepare(vol, _opaque_scene()).priority.pixels(64, 64)).any()
+    assert shown.sum() > 4 and not (shown & ~lodcast.renderer.frame.render.prepare(vol, _opaque_scene()).priority.pixels(64, 64)).any()
 
 
 def test_without_empty_space_skipping_the_priority_map_saves_more():
@@ -253,7 +253,7 @@ def test_tf2_is_compiled_out_when_absent_and_validated():
 
 
 def test_lodcast_report_shows_what_the_priority_map_buys(blob_store):
-    from lodcast.renderer.quality_report import Variant, default_variants, run_report
+    from lodcast.renderer.tools.quality_report import Variant, default_variants, run_report
 
     vs = default_variants(adaptive=False, steps=False, dual=True)
     off = [v for v in vs if not v.priority_map]

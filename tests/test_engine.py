@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.render import Renderer, default_renderer
+from lodcast.renderer.frame.render import Renderer, default_renderer
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("lodcast", "renderer", "store", "service")
 #: the one module-level object the package keeps on purpose: lodcast.render's default renderer, made on first use
-ALLOWED = {("renderer/render.py", "_DEFAULT"), ("renderer/render.py", "_DEFAULT_LOCK")}
+ALLOWED = {("renderer/frame/render.py", "_DEFAULT"), ("renderer/frame/render.py", "_DEFAULT_LOCK")}
 #: what makes a module-level value a place where state accumulates
 MUTABLE_CALLS = {"dict", "list", "set", "OrderedDict", "defaultdict", "deque", "ByteLru", "BrickCache",
                  "WeakKeyDictionary", "WeakValueDictionary", "ThreadPoolExecutor", "local", "count", "Lock",

@@ -12,7 +12,7 @@ import pytest
 
 import lodcast
 from lodcast.environment import VARIABLES, EnvironmentInvalid, environment
-from lodcast.renderer.render import Renderer
+from lodcast.renderer.frame.render import Renderer
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

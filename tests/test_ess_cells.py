@@ -8,8 +8,8 @@ import pyopencl as cl
 import pytest
 
 import lodcast
-from lodcast.renderer import sampler
-from lodcast.renderer.volume import as_volume, block_minmax_border
+from lodcast.renderer.data import sampler
+from lodcast.renderer.data.volume import as_volume, block_minmax_border
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
                    {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}
@@ -88,7 +88,7 @@ def test_walk_info_is_kept_per_volume_visibility_and_clip(eng, monkeypatch, tmp_
     """Full resolution's walk info (cell visibility and leaps) is computed once per volume, TF zero pattern, mode
     and clip: a TF that only changes colours and non-zero opacities reuses it, any other change recomputes it, and
     every image equals one rendered with nothing kept."""
-    from lodcast.renderer import walk as R
+    from lodcast.renderer.walk import info as R
 
     calls = []
     orig = R.range_info
@@ -120,7 +120,7 @@ def test_walk_info_is_kept_per_volume_visibility_and_clip(eng, monkeypatch, tmp_
 def test_fine_and_coarse_walks_give_the_same_image(eng, monkeypatch, step):
     """At steps up to FINE_STEP full resolution walks 4³ cells, classified under their 8³ parents; beyond it the
     parents themselves: the same image either way, the finer walk with fewer samples."""
-    from lodcast.renderer import walk as R
+    from lodcast.renderer.walk import info as R
 
     a = _ribs()
     scene = {"tf": BONE, "width": 48, "height": 48, "camera": {"azimuth": 30, "elevation": 20},

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.preintegration import axis, preintegrate, segment_integral
-from lodcast.renderer.scene import Scene, SceneError, TransferFunction
-from lodcast.renderer.selection import select_lod
+from lodcast.renderer.kernel.preintegration import axis, preintegrate, segment_integral
+from lodcast.renderer.scene.scene import Scene, SceneError, TransferFunction
+from lodcast.renderer.lod.selection import select_lod
 from reference import delta_e, reference_render
 
 RED = {"points": [{"value": 0, "color": [1, 0, 0], "opacity": 0.1}, {"value": 2, "color": [1, 0, 0], "opacity": 0.1}],
@@ -84,7 +84,7 @@ def test_crop_box_limits_the_selection_and_skips_blocks(tmp_path):
     r = lodcast.render(st, scene)
     whole = lodcast.render(st, {**scene, "clip": None})
     assert r.report["bricks_skipped"] > whole.report["bricks_skipped"]
-    from lodcast.renderer.clip import block_mask
+    from lodcast.renderer.scene.clip import block_mask
 
     keep = block_mask(st.grid, st.shape, st.spacing, st.origin, st.block_size, Scene.parse(scene).clip)
     assert keep[:, :, :2].all() and not keep[:, :, 2:].any()
@@ -351,7 +351,7 @@ def test_unused_features_are_compiled_out(slab_store):
 
 # -------------------------------------------------------------------------------------------------- presets
 def test_a_preset_name_is_a_tf_in_every_scene():
-    from lodcast.renderer.presets import PRESETS
+    from lodcast.renderer.scene.presets import PRESETS
 
     sc = Scene.parse({"tf": "ct-bone", "tf2": None})
     assert sc.tf == TransferFunction.model_validate(PRESETS["ct-bone"])
@@ -361,15 +361,15 @@ def test_a_preset_name_is_a_tf_in_every_scene():
 
 
 def test_demo_lighting_is_the_shading_default():
-    from lodcast.renderer.demo import SHADING
-    from lodcast.renderer.scene import Shading
+    from lodcast.renderer.tools.demo import SHADING
+    from lodcast.renderer.scene.scene import Shading
 
     assert Shading.model_validate(SHADING) == Shading()
 
 
 @pytest.mark.parametrize("az,el", [(0, 0), (30, 15), (120, 25), (210, -40), (75, 89)])
 def test_fit_distance_puts_every_box_corner_in_the_picture(az, el):
-    from lodcast.renderer.camera import box_world, fit_distance
+    from lodcast.renderer.scene.camera import box_world, fit_distance
     from reference import project_point
 
     shape, spacing = (40, 90, 60), (2.0, 0.7, 1.1)

@@ -454,7 +454,7 @@ def test_empty_space_skipping_changes_nothing(store, step: float) -> None:
 @pytest.mark.parametrize("t", [0.5, 0.9, 0.99])
 def test_early_termination_bound(store, t: float) -> None:
     """With threshold t the ray stops after the first sample at which A_k ≥ t and gives what is left of it,
-    T_k = 1 − A_k ≤ 1 − t, that sample's colour c (renderer/lc_classify.h, LC_BLEND). The exact rest is
+    T_k = 1 − A_k ≤ 1 − t, that sample's colour c (renderer/kernel/lc_classify.h, LC_BLEND). The exact rest is
     T_k·(C_rest, A_rest) with 0 ≤ C_rest ≤ A_rest ≤ 1, so per pixel the terminated alpha is exactly 1,
     0 ≤ A_ET − A_full ≤ 1 − t and |Δrgb| ≤ T_k ≤ 1 − t; pixels whose full alpha stays below t do not change
     at all. Float noise allowance 1e-6. The sample count must drop."""

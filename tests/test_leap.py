@@ -1,4 +1,4 @@
-"""Space leaping (renderer/leap.py, LC_LEAP): the walk's octant distance maps against a brute-force search of the
+"""Space leaping (renderer/walk/leap.py, LC_LEAP): the walk's octant distance maps against a brute-force search of the
 forward cubes, and images with leaps against the same images walked cell by cell, at full resolution, on the block
 walk of the atlas and on the adaptive walk, over random volumes, views and steps."""
 from __future__ import annotations
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer import walk as R
-from lodcast.renderer.atlas import NEAR_LEVEL0
-from lodcast.renderer.leap import (LEAP_MAX, NO_PLANE, OCTANTS, Leaps, cell_leaps, coarsen_ranges, octant_radii,
+from lodcast.renderer.walk import info as R
+from lodcast.renderer.data.atlas import NEAR_LEVEL0
+from lodcast.renderer.walk.leap import (LEAP_MAX, NO_PLANE, OCTANTS, Leaps, cell_leaps, coarsen_ranges, octant_radii,
                                    step_leaps)
 
 
@@ -202,7 +202,7 @@ def test_the_kernel_follows_the_map(eng, stores, variant, monkeypatch):
 @pytest.mark.parametrize("seed", range(4))
 def test_coarser_ranges_are_the_union_of_the_finer(eng, seed):
     """8³ cells' border-inclusive ranges from 4³ cells' equal those computed from the voxels (NaN left out)."""
-    from lodcast.renderer.volume import block_minmax_border
+    from lodcast.renderer.data.volume import block_minmax_border
 
     rng = np.random.default_rng(seed)
     a = rng.normal(size=tuple(int(n) for n in rng.integers(3, 40, 3))).astype(np.float32)
@@ -217,8 +217,8 @@ def test_coarser_ranges_are_the_union_of_the_finer(eng, seed):
 def test_ray_octants_hold_every_ray_of_the_image(eng, seed):
     """camera.ray_octants: the octant of every pixel's ray (and of rays through the image's corners) is among them,
     and a view of a field of view up to 90° needs at most four of the eight planes."""
-    from lodcast.renderer import camera as cam
-    from lodcast.renderer.scene import Scene
+    from lodcast.renderer.scene import camera as cam
+    from lodcast.renderer.scene.scene import Scene
 
     rng = np.random.default_rng(seed)
     W, H = int(rng.integers(8, 64)), int(rng.integers(8, 64))

@@ -1,4 +1,4 @@
-"""Per-level significance under the kernel's classification (renderer/level_error.py) and the predicted ΔE it
+"""Per-level significance under the kernel's classification (renderer/lod/level_error.py) and the predicted ΔE it
 drives: properties on constructed volumes, and the prediction's ranking against measured image error."""
 from __future__ import annotations
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.image_error import delta_e_stats, srgb_to_luv
-from lodcast.renderer.level_error import level_zeta, step_zeta
-from lodcast.renderer.selection import step_delta_e
-from lodcast.renderer.significance import as_tf, meta_of_store, tf_visible
-from lodcast.renderer.transfer_function import evaluate
+from lodcast.renderer.image.delta_e import delta_e_stats, srgb_to_luv
+from lodcast.renderer.lod.level_error import level_zeta, step_zeta
+from lodcast.renderer.lod.selection import step_delta_e
+from lodcast.renderer.lod.significance import as_tf, meta_of_store, tf_visible
+from lodcast.renderer.scene.transfer_function import evaluate
 from test_lod_render import TF, _field
 
 B = 8

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer import passes, sampler
+from lodcast.renderer.data import passes
+from lodcast.renderer.data import sampler
 from lodcast.store.layout import cell_edge
 
 B = 16
@@ -131,7 +132,7 @@ def test_interblock_limited_adaptive_keeps_the_coarse_step_next_to_a_finer_block
 @pytest.mark.parametrize("level, step", [(4, 0.5), (2, 0.5), (1, 0.3), (3, 0.7), (1, 0.45), (2, 0.7)])
 def test_constant_coarse_regions_stay_exact(eng, tmp_path, level, step):
     """Opacity correction: a constant volume at a coarse level k, stepped at h = 2^(k + 1) x the base step (capped
-    at 2^4 = B: renderer/atlas.py's step_levels; whole steps take their alpha from the per-level tables, the last
+    at 2^4 = B: renderer/data/atlas.py's step_levels; whole steps take their alpha from the per-level tables, the last
     one from the extinction), gives 1 - (1 - a)^(L / unit). Each half-block cell's 8 voxels take the nearest whole
     number of steps, at least one (h = 1.8: 4, not ceil's 5; h = 5.6: 1, not 2)."""
     st = lodcast.ingest(np.ones(SHAPE, np.float32), tmp_path / "c.zarr", block_size=B, progress=False)
@@ -180,7 +181,7 @@ def test_step_levels_one_sample_per_coarse_voxel(eng):
     k >= 1 (one sample per level-k voxel at the default step 1/2), capped at log2 B, plus NEAR_LEVEL0 (8) in a
     coarse cell with a level-0 cell (or an unloaded one, passed as level 0) across a face; a skipped block's cells
     hold -(code + 1), an unloaded block's -1; the half-block cells of each block take its level."""
-    from lodcast.renderer.atlas import NEAR_LEVEL0, skipped, step_levels
+    from lodcast.renderer.data.atlas import NEAR_LEVEL0, skipped, step_levels
 
     assert NEAR_LEVEL0 == 8  # raycast.cl's v_ & 8
     lv = np.array([4, 3, 0, 1, 2, -1, 2], np.int8).reshape(1, 1, 7)
@@ -206,7 +207,7 @@ def test_level_zero_steps_lie_on_full_resolutions_lattice(eng, tmp_path, monkeyp
     4.6% more samples on the chest CT and moved the image off full resolution's by up to 1.2 mean ΔE at
     "lossless".)"""
     monkeypatch.undo()  # the half-block cells skip what full resolution's cells skip
-    from lodcast.renderer.config import KernelConfig
+    from lodcast.renderer.kernel.config import KernelConfig
 
     # (and not the samples of their empty octants, which full resolution's cells of 8³ take)
     monkeypatch.setattr(KernelConfig, "octants", property(lambda self: False))
@@ -242,7 +243,7 @@ def test_level_zero_steps_lie_on_full_resolutions_lattice(eng, tmp_path, monkeyp
 def test_skipped_codes_over_random_steps(eng, seed):
     """atlas.skipped in int8 (no int64 temporaries over a large grid's cells) against the rule in int64: a cell that
     `where` marks and that is sampled (code s >= 0, NEAR_LEVEL0 included) becomes -(s + 1), skipped ones stay."""
-    from lodcast.renderer.atlas import NEAR_LEVEL0, skipped
+    from lodcast.renderer.data.atlas import NEAR_LEVEL0, skipped
 
     rng = np.random.default_rng(seed)
     st = rng.integers(-(NEAR_LEVEL0 + 8), NEAR_LEVEL0 + 8, size=(5, 6, 7)).astype(np.int8)

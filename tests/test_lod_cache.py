@@ -1,4 +1,4 @@
-"""The brick cache (renderer/atlas.py): camera changes read nothing, a new selection reads only the bricks it
+"""The brick cache (renderer/data/atlas.py): camera changes read nothing, a new selection reads only the bricks it
 changes, reads are grouped by shard, the LRU is bounded by bytes, and each renderer has caches of its own."""
 from __future__ import annotations
 
@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer import atlas as lod_atlas
-from lodcast.renderer import bricks
+from lodcast.renderer.data import atlas as lod_atlas
+from lodcast.renderer.data import bricks
 from lodcast.environment import EnvironmentInvalid, environment
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.engine import BRICK_ENTRY_BYTES, BrickCache
-from lodcast.renderer.render import Renderer
-from lodcast.renderer.volume import as_volume
+from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.data.volume import as_volume
 
 B = 8
 TF = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 0.5, 0], "opacity": 0.2}]}
@@ -67,7 +67,7 @@ def test_camera_change_reads_nothing_and_a_new_selection_reads_only_its_changes(
 
 
 def test_tf_change_through_the_selection_reads_only_changed_bricks(store, eng):
-    pytest.importorskip("lodcast.renderer.selection")
+    pytest.importorskip("lodcast.renderer.lod.selection")
     tf2 = {"points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [0, 0.5, 1], "opacity": 0.6}]}
     # the view-independent selection (visibility.py's weight off): a camera change selects the same bricks
     fixed = {"quality": {"reduction": 8}, "sampling": {"lod_visibility": False}}
@@ -75,8 +75,8 @@ def test_tf_change_through_the_selection_reads_only_changed_bricks(store, eng):
     b = eng.render(store, {**_scene(90), **fixed})
     assert b.report["bricks_read"] == 0 and b.report["bricks_cached"] == a.report["bricks_read"]
     c = eng.render(store, {**_scene(90, tf2), **fixed})
-    from lodcast.renderer.selection import select_lod
-    from lodcast.renderer.scene import Scene
+    from lodcast.renderer.lod.selection import select_lod
+    from lodcast.renderer.scene.scene import Scene
 
     l1 = select_lod(store, [Scene.parse(_scene(0)).tf], {"reduction": 8}).levels
     l2 = select_lod(store, [Scene.parse(_scene(0, tf2)).tf], {"reduction": 8}).levels
@@ -187,7 +187,7 @@ def test_a_camera_change_selects_nothing_again(store, eng, monkeypatch):
     """Without the view's weight (lod_visibility off) the level-of-detail selection depends on the TF, the quality
     and the clip region, not on the view: a turntable selects once; a TF change selects again. With it (the
     default) every new view selects, and a view seen before takes its kept selection."""
-    import lodcast.renderer.selection as selection
+    import lodcast.renderer.lod.selection as selection
 
     calls = []
     real = selection.select_lod

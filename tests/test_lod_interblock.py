@@ -1,4 +1,4 @@
-"""The multiresolution sampler (renderer/lc_atlas.h) against float64 evaluations of its formulas on random level
+"""The multiresolution sampler (renderer/kernel/lc_atlas.h) against float64 evaluations of its formulas on random level
 assignments: nearest block (eq. 3.5) and interblock interpolation (eq. 3.6 in 3D) with the edge weights
 e(x) = clamp((x + delta_L) / (delta_L + delta_U), 0, 1). The three properties asked of the edge weights:
 trilinear where neighbouring blocks share a level, C0 across arbitrary level differences, 1-sample blocks."""

@@ -1,5 +1,5 @@
 """Level-0 cell ranges (store format 3) and what the renderer does with them: a cell of a coarse block whose level-0
-voxels (with a one-voxel border) the TF shows nothing of is not sampled (renderer/walk.py: _cell_info).
+voxels (with a one-voxel border) the TF shows nothing of is not sampled (renderer/walk/info.py: _cell_info).
 
 The ranges are checked against a float64 reference computed here from the volume (each cell grown by one voxel,
 NaN left out, edge padding never counted, float32 rounded outwards), with block sizes whose slabs hold one, two and
@@ -18,9 +18,9 @@ import pytest
 import zarr
 
 import lodcast
-from lodcast.renderer.image_error import delta_e_stats
-from lodcast.renderer.render import render
-from lodcast.renderer.volume import VolumeView, as_volume
+from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.frame.render import render
+from lodcast.renderer.data.volume import VolumeView, as_volume
 from lodcast.store.layout import cell_edge
 
 

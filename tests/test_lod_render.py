@@ -8,12 +8,12 @@ import pytest
 
 import lodcast
 import lod_reference as ref
-from lodcast.renderer import atlas as lod_atlas
+from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.opencl import Device
-from lodcast.renderer import bricks
+from lodcast.renderer.data import bricks
 from lodcast.renderer.engine import BrickCache
-from lodcast.renderer.render import Renderer
-from lodcast.renderer import sampler
+from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.data import sampler
 from lodcast.store.layout import cell_edge
 
 
@@ -132,7 +132,7 @@ def test_mip_all_level0_equals_full(eng, store):
 
 def test_atlas_layout_and_max_alloc(eng, store):
     lv = np.random.default_rng(2).integers(-1, store.n_levels, store.grid).astype(np.int8)
-    ld = bricks.load_bricks(eng, lodcast.renderer.volume.as_volume(store), lv, BrickCache(2**30))
+    ld = bricks.load_bricks(eng, lodcast.renderer.data.volume.as_volume(store), lv, BrickCache(2**30))
     atlas, index = lod_atlas.pack(lv, ld.bricks, B, max_bytes=2**30)
     sizes = [((B >> int(k)) + 2 * (k == 0)) ** 3 for k in lv.ravel() if k >= 0]  # level 0 inside its apron
     assert atlas.size == sum(sizes) and index.dtype == np.uint64 and index.shape == lv.shape
@@ -197,14 +197,14 @@ def test_render_respects_the_device_max_alloc(eng, store, monkeypatch):
 
 @pytest.mark.parametrize("quality", ["lossless", {"reduction": 4}, {"budget_mb": 0.05}])
 def test_quality_goes_through_the_selection(eng, store, quality):
-    pytest.importorskip("lodcast.renderer.selection")
-    from lodcast.renderer.selection import select_lod
-    from lodcast.renderer.scene import Scene
+    pytest.importorskip("lodcast.renderer.lod.selection")
+    from lodcast.renderer.lod.selection import select_lod
+    from lodcast.renderer.scene.scene import Scene
 
     sc = {**_scene(CAMERAS[0]), "quality": quality}
     r = eng.render(store, sc)
-    from lodcast.renderer.selection import step_delta_e
-    from lodcast.renderer.significance import meta_of_store
+    from lodcast.renderer.lod.selection import step_delta_e
+    from lodcast.renderer.lod.significance import meta_of_store
 
     tf = Scene.parse(sc).tf
     # the budgeted qualities weigh what the camera sees (lod_visibility, on by default); lossless does not
@@ -219,7 +219,7 @@ def test_quality_goes_through_the_selection(eng, store, quality):
     assert rep["quality"] == quality and "-DLC_SAMPLER_ATLAS" in rep["build_options"]
     assert np.isfinite(r.rgba).all() and r.rgba[..., 3].max() > 0.05
     if quality == "lossless":  # every block at a level predicted within 0.5 ΔE of level 0: virtually the same
-        from lodcast.renderer.image_error import delta_e_stats
+        from lodcast.renderer.image.delta_e import delta_e_stats
 
         full = eng.render(store, _scene(CAMERAS[0]))
         # measured 0.84 on this smooth, translucent field (the significance model sees less of a smooth field's
@@ -228,7 +228,7 @@ def test_quality_goes_through_the_selection(eng, store, quality):
 
 
 def test_lod_quality_on_an_array_is_refused(eng):
-    with pytest.raises(lodcast.renderer.scene.SceneError, match="^quality: .*lodcast store"):
+    with pytest.raises(lodcast.renderer.scene.scene.SceneError, match="^quality: .*lodcast store"):
         eng.render(np.zeros((8, 8, 8), np.float32), {"tf": TF, "width": 4, "height": 4, "quality": "lossless"})
 
 
@@ -238,7 +238,7 @@ def test_integer_voxels_pack_the_coarse_bricks_with_their_deviations(eng, tmp_pa
     lc_sig; the atlas holds level 0 alone): the images and the samples taken (the half-block cells that
     empty-space skipping walks come from both buffers) are those of the same bricks in a float atlas beside 16-bit
     deviations (the layout before, kept for float voxels), at random levels with both interpolations."""
-    from lodcast.renderer.volume import VolumeView
+    from lodcast.renderer.data.volume import VolumeView
 
     info = np.iinfo(dtype)
     f = _field((35, 40, 29))
@@ -266,7 +266,7 @@ def test_integer_voxels_pack_the_coarse_bricks_with_their_deviations(eng, tmp_pa
             assert "-DLC_DIST" in r.report["build_options"] and r.report["bricks_skipped"] > 0
             images[layout, interp] = (r.rgba, r.report["samples"])
         if layout == "packed":  # the coarse bricks in the uint deviations' buffer alone, level 0 in the atlas
-            from lodcast.renderer.volume import as_volume
+            from lodcast.renderer.data.volume import as_volume
 
             da = lod_atlas.device_atlas(eng, as_volume(st), levels, with_std=True)
             n0 = int(lod_atlas.brick_elements(np.where(levels == 0, 0, -1), 8).sum())

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 
 import lodcast
-from lodcast.renderer import sampler
-from lodcast.renderer.image_error import delta_e_stats
-from lodcast.renderer.scene import Scene
-from lodcast.renderer.selection import select_lod
-from lodcast.renderer.transfer_function import CT_PRESETS
+from lodcast.renderer.data import sampler
+from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.scene.scene import Scene
+from lodcast.renderer.lod.selection import select_lod
+from lodcast.renderer.scene.transfer_function import CT_PRESETS
 from lodcast.store.layout import cell_edge
 
 # engine.nii.gz (Open SciVis "Engine", industrial CT): an opaque TF on the dense metal parts
@@ -104,7 +104,7 @@ def test_samples_at_30_to_1_fall_with_the_default_adaptive_steps(ct16, eng, monk
     Sampling the coarse cells whose level-0 voxels the TF shows nothing of (a store without cell ranges, format 2)
     took 0.49, 0.33 and 0.31; with the thesis' step rule for interblock interpolation as well (each half-block cell
     at the finest level of the eight blocks around it) they were 0.70, 0.40 and 0.41 (256², same view): the few
-    level-0 blocks the selection keeps forced the base step into every coarse neighbour (renderer/atlas.py's
+    level-0 blocks the selection keeps forced the base step into every coarse neighbour (renderer/data/atlas.py's
     step_levels). Full resolution is counted walking the atlas's cells, 8³ voxels: its own walk is over 4³ cells
     since those pay (sampler.ess_cell), and against that 30:1 takes 0.53 of its samples on ct-bone."""
     monkeypatch.setattr(sampler, "ess_cell", lambda shape, b: cell_edge(b))

@@ -18,8 +18,8 @@ from nibabel.orientations import apply_orientation, inv_ornt_aff, io_orientation
 
 import lodcast
 from lodcast.errors import SourceError
-from lodcast.renderer.camera import resolve_view
-from lodcast.renderer.scene import OrbitCamera, SceneError
+from lodcast.renderer.scene.camera import resolve_view
+from lodcast.renderer.scene.scene import OrbitCamera, SceneError
 from lodcast.store.orientation import axis_codes, legacy_axis_codes, view_direction
 from lodcast.store.readers import open_source
 

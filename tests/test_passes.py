@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer import passes as mp
-from lodcast.renderer.camera import frame, pixel_rays, ray_box, box_world
-from lodcast.renderer.render import Renderer
-from lodcast.renderer.scene import Scene, SceneError
+from lodcast.renderer.data import passes as mp
+from lodcast.renderer.scene.camera import frame, pixel_rays, ray_box, box_world
+from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.scene.scene import Scene, SceneError
 
 TF = {"points": [{"value": -50, "color": [0.2, 0.4, 0.9], "opacity": 0.0},
                  {"value": 60, "color": [0.9, 0.6, 0.3], "opacity": 0.05},
@@ -103,7 +103,7 @@ LOD_SCENES = {
 
 @pytest.mark.parametrize("name", list(LOD_SCENES))
 def test_an_atlas_beyond_the_budget_is_the_uncapped_image(monkeypatch, store, name):
-    from lodcast.renderer.config import KernelConfig
+    from lodcast.renderer.kernel.config import KernelConfig
 
     # a render in one pass also leaves out the samples of empty octants (tests/test_atlas_cells.py), passes do not:
     # the same samples compare with that off
@@ -141,7 +141,7 @@ def test_visibility_order_holds_along_every_ray():
     increasing keys."""
     rng = np.random.default_rng(7)
     shape, B = (48, 40, 56), 8
-    vol = lodcast.renderer.volume.as_volume(np.zeros(shape, np.float32))
+    vol = lodcast.renderer.data.volume.as_volume(np.zeros(shape, np.float32))
     vol = type(vol)(**{**vol.__dict__, "block_size": B, "min_border": np.zeros((6, 5, 7)), "max_border": np.zeros((6, 5, 7))})
     lo, hi = box_world(shape, vol.spacing, vol.origin)
     for trial in range(24):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.image_error import delta_e_stats
-from lodcast.renderer.quality_report import Variant, reference_scene, run_report, write_report
+from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.tools.quality_report import Variant, reference_scene, run_report, write_report
 from reference import delta_e as reference_delta_e
 
 
@@ -59,7 +59,7 @@ def test_report_measures_error_against_the_step_quarter_reference(tmp_path: Path
 def test_report_rows_for_steps_with_and_without_preintegration(tmp_path: Path):
     """default_variants' full-resolution rows: the step's error falls as the step does, the step-¼ row equals the
     reference, and pre-integration's rows say so and reach the table and the plot."""
-    from lodcast.renderer.quality_report import STEPS, default_variants
+    from lodcast.renderer.tools.quality_report import STEPS, default_variants
 
     zz, yy, xx = np.mgrid[:24, :28, :32]
     vol = np.exp(-(((xx - 16) / 7.0) ** 2 + ((yy - 14) / 6.0) ** 2 + ((zz - 12) / 5.0) ** 2)).astype(np.float32)

@@ -465,8 +465,8 @@ def test_delta_e_definition() -> None:
 def test_the_default_orbit_distance_agrees_with_the_reference_bisection() -> None:
     """Without a distance, lodcast's closed form (camera.fit_distance) and the reference's bisection put the eye at
     the same place."""
-    from lodcast.renderer.camera import box_world, frame
-    from lodcast.renderer.scene import OrbitCamera
+    from lodcast.renderer.scene.camera import box_world, frame
+    from lodcast.renderer.scene.scene import OrbitCamera
 
     rng = np.random.default_rng(9)
     for _ in range(20):

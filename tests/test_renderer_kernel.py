@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lodcast.renderer.config import KernelConfig
+from lodcast.renderer.kernel.config import KernelConfig
 from lodcast.opencl import DeviceError, kernel_source
-from lodcast.renderer.render import render
-from lodcast.renderer.sampler import upload_level0, voxel_offset
-from lodcast.renderer.transfer_function import evaluate
-from lodcast.renderer.scene import TransferFunction
-from lodcast.renderer.volume import VolumeView, block_minmax_border
+from lodcast.renderer.frame.render import render
+from lodcast.renderer.data.sampler import upload_level0, voxel_offset
+from lodcast.renderer.scene.transfer_function import evaluate
+from lodcast.renderer.scene.scene import TransferFunction
+from lodcast.renderer.data.volume import VolumeView, block_minmax_border
 
 REPORT_KEYS = {"wall_ms", "kernel_ms", "bricks_read", "bricks_cached", "bricks_skipped", "reduction",
                "predicted_delta_e", "samples", "build_options"}
@@ -113,7 +113,7 @@ def test_block_border_ranges_of_an_array_equal_a_block_by_block_scan(seed):
 
 
 def test_empty_space_skipping_skips_blocks_and_changes_nothing(blob):
-    from lodcast.renderer.volume import _from_array  # 8³ blocks instead of 32³: many of them
+    from lodcast.renderer.data.volume import _from_array  # 8³ blocks instead of 32³: many of them
 
     v = _from_array(blob, block_size=8)
     on = render(v, scene())
@@ -128,7 +128,7 @@ def test_empty_space_skipping_skips_blocks_and_changes_nothing(blob):
 def test_skipping_respects_a_tf_that_is_zero_at_both_ends_of_a_block_range():
     ramp = np.broadcast_to(np.linspace(0, 10, 32, dtype=np.float32)[None, None, :], (16, 16, 32)).copy()
     peak = {"points": [{"value": 4, "opacity": 0}, {"value": 5, "opacity": 0.9}, {"value": 6, "opacity": 0}]}
-    from lodcast.renderer.volume import _from_array
+    from lodcast.renderer.data.volume import _from_array
 
     v = _from_array(ramp, block_size=8)
     on = render(v, scene(tf=peak, width=16, height=16))
@@ -225,7 +225,7 @@ def test_voxel_addressing_is_64_bit():
 
 
 def test_step_too_small_for_the_volume_is_a_scene_error():
-    from lodcast.renderer.scene import SceneError
+    from lodcast.renderer.scene.scene import SceneError
 
     with pytest.raises(SceneError, match=r"^sampling\.step"):
         render(np.zeros((4, 4, 4), np.float32), scene(width=2, height=2, sampling={"step": 1e-9}))

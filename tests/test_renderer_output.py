@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from lodcast.renderer.image import ImageError, save_image, to_straight_rgba8
+from lodcast.renderer.image.output import ImageError, save_image, to_straight_rgba8
 
 TF = {"points": [{"value": 0.1, "color": [1, 0.5, 0], "opacity": 0.0}, {"value": 1, "color": [1, 0.5, 0], "opacity": 0.5}]}
 
@@ -93,7 +93,7 @@ def test_cli_tf_preset_renders_as_its_points(tmp_path):
     """`--tf ct-bone` is the preset's points: the same image as the same TF given as a file, and a volume in
     Hounsfield units shows bone (1000 HU) and hides soft tissue (40 HU)."""
     import lodcast
-    from lodcast.renderer.transfer_function import CT_PRESETS
+    from lodcast.renderer.scene.transfer_function import CT_PRESETS
 
     hu = np.full((12, 16, 16), 40, np.int16)
     hu[4:8, 5:11, 5:11] = 1000
@@ -142,7 +142,7 @@ def test_cli_render_bad_output_and_store(store, tmp_path):
 
 
 def test_demo_pictures_from_a_store(store, tmp_path):
-    from lodcast.renderer.demo import render_demo
+    from lodcast.renderer.tools.demo import render_demo
 
     lines = []
     paths = render_demo(store, tmp_path / "demo", size=24, log=lines.append)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lodcast.errors import LodcastError
-from lodcast.renderer.scene import LookAtCamera, OrbitCamera, Scene, SceneError
+from lodcast.renderer.scene.scene import LookAtCamera, OrbitCamera, Scene, SceneError
 
 TF = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0}, {"value": 1500, "color": [1, 1, 1], "opacity": 0.8}]}
 
@@ -111,8 +111,8 @@ def test_scene_is_frozen_and_roundtrips():
 def test_the_default_orbit_distance_frames_the_whole_box():
     """An orbit camera without `distance` puts every corner of the box inside the picture with 5 % to spare, and
     no further away than that: some corner reaches the margin (random boxes, views and aspect ratios)."""
-    from lodcast.renderer.camera import frame
-    from lodcast.renderer.scene import OrbitCamera
+    from lodcast.renderer.scene.camera import frame
+    from lodcast.renderer.scene.scene import OrbitCamera
 
     rng = np.random.default_rng(5)
     for _ in range(50):

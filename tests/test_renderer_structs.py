@@ -5,7 +5,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.opencl import Device
-from lodcast.renderer.structs import PARAMS_DTYPE, new_params
+from lodcast.renderer.kernel.structs import PARAMS_DTYPE, new_params
 
 
 def test_params_dtype_size_and_alignment():

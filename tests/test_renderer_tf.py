@@ -7,8 +7,8 @@ from decimal import Decimal, getcontext
 import numpy as np
 import pytest
 
-from lodcast.renderer.scene import TransferFunction
-from lodcast.renderer.transfer_function import (
+from lodcast.renderer.scene.scene import TransferFunction
+from lodcast.renderer.scene.transfer_function import (
     LUT_MAX,
     LUT_MIN,
     SIGMA_OPAQUE,
@@ -150,7 +150,7 @@ def test_srgb_to_luv_equals_colour_science():
     primaries, black, white and the dark linear segment of the sRGB curve."""
     import warnings
 
-    from lodcast.renderer.image_error import srgb_to_luv
+    from lodcast.renderer.image.delta_e import srgb_to_luv
 
     rng = np.random.default_rng(11)
     rgb = np.concatenate([rng.random((2000, 3)), rng.random((200, 3)) * 0.04, np.eye(3), np.zeros((1, 3)),

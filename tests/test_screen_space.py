@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer import camera as cam
-from lodcast.renderer.screen import plan, reconstruct, resolutions, tile_priorities
+from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.frame.screen import plan, reconstruct, resolutions, tile_priorities
 from reference import delta_e
 
 

@@ -8,9 +8,9 @@ import itertools
 import numpy as np
 import pytest
 
-from lodcast.renderer.scene import QualityBudget, QualityReduction, SceneError, TransferFunction
-from lodcast.renderer.selection import MB, _take_prefix, crop_mask, greedy, select_from_meta
-from lodcast.renderer.significance import BlockMeta, block_significance, level_profile
+from lodcast.renderer.scene.scene import QualityBudget, QualityReduction, SceneError, TransferFunction
+from lodcast.renderer.lod.selection import MB, _take_prefix, crop_mask, greedy, select_from_meta
+from lodcast.renderer.lod.significance import BlockMeta, block_significance, level_profile
 from lodcast.store.histogram import Bins
 
 from test_significance import SKIN_BONE, synthetic_meta
@@ -244,7 +244,7 @@ def test_crop_and_max_level(meta: BlockMeta) -> None:
 def test_store_select_lod_end_to_end(tmp_path) -> None:
     """select_lod on an ingested store: TF-empty blocks skipped, budget respected, ζ from the store's histograms."""
     import lodcast
-    from lodcast.renderer.selection import select_lod
+    from lodcast.renderer.lod.selection import select_lod
 
     rng = np.random.default_rng(0)
     z, y, x = np.meshgrid(*(np.arange(64),) * 3, indexing="ij")

@@ -516,7 +516,7 @@ def test_a_deleted_shard_file_is_a_clear_409(tmp_path):
 def test_a_volume_replaced_on_disk_is_rendered_from_its_new_data(tmp_path):
     """Another process re-ingests a volume under the same id, with another shape (--overwrite: a new folder renamed
     into place): the next render and summary read the new store, not the one opened before (issue 10, item 5;
-    the caches are keyed by the folder's inode and mtime, renderer/volume.py)."""
+    the caches are keyed by the folder's inode and mtime, renderer/data/volume.py)."""
     v = np.zeros((16, 16, 16), np.float32)
     lodcast.ingest(v, tmp_path / "v", block_size=8)
     scene = {"tf": {"points": [{"value": 0, "color": [1, 0, 0], "opacity": 0.0},

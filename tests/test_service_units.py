@@ -100,8 +100,8 @@ def test_records_compare_and_set(records):
 
 
 def test_turntable_lookat_turns_like_the_orbit_camera():
-    from lodcast.renderer.camera import orbit_eye
-    from lodcast.renderer.scene import OrbitCamera
+    from lodcast.renderer.scene.camera import orbit_eye
+    from lodcast.renderer.scene.scene import OrbitCamera
 
     centre = np.zeros(3)
     eye0, _ = orbit_eye(OrbitCamera(azimuth=0, elevation=0, distance=1), centre, 5.0)

@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import pytest
 
-from lodcast.renderer.significance import (
+from lodcast.renderer.lod.significance import (
     BlockMeta,
     block_significance,
     effective_starts,
@@ -22,8 +22,8 @@ from lodcast.renderer.significance import (
     zeta0_simplified,
     zeta_levels,
 )
-from lodcast.renderer.scene import TransferFunction
-from lodcast.renderer.transfer_function import CT_PRESETS
+from lodcast.renderer.scene.scene import TransferFunction
+from lodcast.renderer.scene.transfer_function import CT_PRESETS
 from lodcast.store.histogram import Bins, expand, simplify
 
 TOL_ABS, TOL_REL = 5e-3, 1e-4
@@ -231,7 +231,7 @@ def test_luv_of_black_white() -> None:
 
 def test_tf_visible_matches_dense_sampling_on_random_tfs() -> None:
     """The interval test against sampling the opacity densely on [lo, hi] (plus the control points inside)."""
-    from lodcast.renderer.transfer_function import evaluate
+    from lodcast.renderer.scene.transfer_function import evaluate
 
     rng = np.random.default_rng(8)
     for _ in range(200):

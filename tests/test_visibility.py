@@ -1,4 +1,4 @@
-"""View-dependent visibility of the blocks (renderer/visibility.py) and the selection it weighs: what the camera
+"""View-dependent visibility of the blocks (renderer/lod/visibility.py) and the selection it weighs: what the camera
 sees through a coarse level, against a float64 host cast and analytic cases; occluded blocks stay coarse and the
 budget goes to what the picture shows."""
 from __future__ import annotations
@@ -8,15 +8,14 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 import lodcast
-from lodcast.renderer import camera as cam
-from lodcast.renderer import visibility
-from lodcast.renderer.image_error import delta_e_stats
-from lodcast.renderer.prepare import geometry, resolved
-from lodcast.renderer.render import render
-from lodcast.renderer.scene import Scene
-from lodcast.renderer.selection import select_lod
-from lodcast.renderer.transfer_function import evaluate, unit_distance
-from lodcast.renderer.volume import as_volume
+from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.lod import visibility
+from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.frame.prepare import geometry, resolved
+from lodcast.renderer.scene.scene import Scene
+from lodcast.renderer.lod.selection import select_lod
+from lodcast.renderer.scene.transfer_function import evaluate, unit_distance
+from lodcast.renderer.data.volume import as_volume
 
 B = 16
 WALL = {"points": [{"value": 0.4, "color": [1, 1, 1], "opacity": 0.0}, {"value": 0.6, "color": [1, 1, 1], "opacity": 1.0}]}
@@ -125,7 +124,7 @@ def test_quiet_blocks_change_nothing(eng, tmp_path, monkeypatch, f):
     vol = as_volume(st)
     monkeypatch.setattr(visibility, "VIS_VOXELS", int(np.prod(vol.level_shape(2))))  # a level 4 voxels wide
     assert visibility.visibility_level(vol) == 2
-    from lodcast.renderer.transfer_function import build_lut
+    from lodcast.renderer.scene.transfer_function import build_lut
 
     lut = build_lut(resolved(eng, Scene.parse(scene), vol).tf, vol.value_range)
     quiet = visibility.quiet_blocks(vol, lut, 2).reshape(vol.grid)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.render import render
+from lodcast.renderer.frame.render import render
 
 SCENE = {"camera": {"azimuth": 35, "elevation": 20}, "width": 40, "height": 36, "format": "npy"}
 

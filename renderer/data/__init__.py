@@ -1,0 +1,1 @@
+"""Volume data on its way to the device: the volume view of a store or array, bricks read through the brick cache, level 0 and the brick atlas on the device (with reuse of the last atlas), the atlas's cells, and passes beyond the device budget."""

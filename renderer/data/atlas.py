@@ -1,0 +1,532 @@
+"""Brick atlas, block index map and brick cache (thesis §3.4: IDX, LOAD, PACK).
+
+A level selection (grid-shaped int8: the store level of every block, -1 = not loaded) becomes:
+
+- the **atlas**: one buffer (of `volume.device_dtype`) holding the selected bricks one after another, the bricks
+  of a level together, each the block's (B >> level)³ samples in C order (z, y, x), a level-0 brick inside a
+  one-sample apron of its level-0 neighbours' samples (`_fill_aprons`: nearest block reads one brick and is still
+  trilinear across faces between level-0 blocks; PoCL measured trilinear sampling from a plain buffer ~2x faster
+  than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how
+  much it needs and what the device allows;
+- the **index map**: one uint64 per block (C order of the grid): 0 for a block that is not loaded, else
+  ``(offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1)``, offset = the brick's
+  first element in the atlas (element offset, up to 2^48), s_a = the coarsest level among the 3x3 blocks of the
+  block's own slice across axis a (unloaded blocks count as 0): interblock sampling's fast path, see
+  lc_atlas.h; read by lc_atlas.h;
+- the **step-level grid** for adaptive object-space sampling (half-block cells, see raycast.cl).
+
+Bricks come from the brick cache (renderer/data/bricks.py). The device buffers of the selections stay in the device
+cache (the engine's `device_cache`: same store and levels, nothing is packed or uploaded again).
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import pyopencl as cl
+
+from lodcast.opencl import DeviceError
+from lodcast.renderer.data.bricks import BrickStats, iter_bricks
+from lodcast.renderer.engine import BrickCache, Engine
+from lodcast.renderer.data.volume import voxel_options
+
+__all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
+           "device_atlas", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
+           "neighbourhood_max", "pair_reduce", "per_cell", "copy_kept", "dirty_blocks"]
+
+MISSING = 0
+
+
+def neighbourhood_max(levels: np.ndarray) -> np.ndarray:
+    """Per block: the largest value over its 3x3x3 neighbourhood (itself included). Levels: unloaded blocks
+    (-1) count as 0; float arrays (block infos) are taken as they are."""
+    levels = np.asarray(levels)
+    lv = np.maximum(levels.astype(np.int64), 0) if levels.dtype.kind in "iu" else levels
+    pad = np.pad(lv, 1, mode="edge")
+    out = lv.copy()
+    G = lv.shape
+    for dz in range(3):
+        for dy in range(3):
+            for dx in range(3):
+                np.maximum(out, pad[dz:dz + G[0], dy:dy + G[1], dx:dx + G[2]], out=out)
+    return out
+
+
+def slice_max(levels: np.ndarray) -> np.ndarray:
+    """(grid + (3,)): per block and axis a (x, y, z), the largest level among the 3x3 blocks of its own slice
+    across a (itself and the 8 neighbours that share its a-coordinate; unloaded blocks count as 0)."""
+    lv = np.maximum(np.asarray(levels).astype(np.int64), 0)
+    pad = np.pad(lv, 1, mode="edge")
+    G = lv.shape
+    out = np.empty(G + (3,), np.int64)
+    for a, ax in enumerate((2, 1, 0)):  # x, y, z: the slice keeps array axis ax fixed
+        m = lv.copy()
+        for d1 in range(3):
+            for d2 in range(3):
+                off = [d1, d2]
+                idx = [slice(1, 1 + G[i]) if i == ax else None for i in range(3)]
+                k = 0
+                for i in range(3):
+                    if i != ax:
+                        idx[i] = slice(off[k], off[k] + G[i])
+                        k += 1
+                np.maximum(m, pad[tuple(idx)], out=m)
+        out[..., a] = m
+    return out
+
+
+def pack_index(offset: np.ndarray, level: np.ndarray, slices: np.ndarray | None = None) -> np.ndarray:
+    """Index map entries: 0 where level < 0, else (offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) |
+    ((sx + 1) << 4) | (level + 1), as uint64; slices (..., 3) = slice_max per axis (default: the level itself)."""
+    level = np.asarray(level, np.int64)
+    sl = np.repeat(level[..., None], 3, axis=-1) if slices is None else np.asarray(slices, np.int64)
+    if max(level.max(initial=-1), sl.max(initial=-1)) > 14:
+        raise ValueError("levels above 14 do not fit the index map's 4-bit level fields")
+    offset = np.asarray(offset, np.uint64)
+    if offset.size and int(offset.max()) >= 2**48:
+        raise ValueError("atlas offsets of 2^48 elements and more do not fit the index map")
+    ent = (offset << np.uint64(16)) | (level + 1).astype(np.uint64)
+    for a in range(3):
+        ent |= (sl[..., a] + 1).astype(np.uint64) << np.uint64(4 + 4 * a)
+    return np.where(level >= 0, ent, np.uint64(MISSING)).astype(np.uint64)
+
+
+def brick_elements(levels: np.ndarray, block_size: int) -> np.ndarray:
+    """Atlas elements of every block's brick (grid-shaped int64, 0 for unloaded blocks): (B >> level) samples per
+    edge, plus the one-sample apron on every face at level 0."""
+    lv = np.asarray(levels).astype(np.int64)
+    n = block_size >> np.maximum(lv, 0)
+    return np.where(lv >= 0, (n + 2 * (lv == 0)) ** 3, 0)
+
+
+def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks). The
+    bricks of one level lie together, in C order of the grid within it, the coarsest level first and level 0 last:
+    the aprons of level 0 are filled with whole-array operations (`_fill_aprons`), and the deviations beside the
+    atlas need a buffer as long as the coarse bricks only (`coarse_elements`)."""
+    lv = np.asarray(levels).astype(np.int64).ravel()
+    sizes = brick_elements(lv, block_size)
+    order = np.lexsort((np.arange(lv.size), -lv))  # stable: C order within a level
+    offsets = np.zeros(sizes.size, np.int64)
+    offsets[order[1:]] = np.cumsum(sizes[order])[:-1]
+    return sizes, offsets
+
+
+def _checked_offsets(levels: np.ndarray, block_size: int, max_bytes: int | None,
+                     itemsize: int = 4) -> tuple[np.ndarray, int]:
+    """(offsets, total elements) of the atlas of `levels` (voxels of `itemsize` bytes); DeviceError when it would
+    exceed `max_bytes` (None: no limit)."""
+    sizes, offsets = _offsets(levels, block_size)
+    total = int(sizes.sum())
+    _check_alloc(total * itemsize, max_bytes, "brick atlas")
+    return offsets, total
+
+
+def _check_alloc(nbytes: int, max_bytes: int | None, what: str) -> None:
+    """DeviceError when a buffer of `nbytes` would exceed `max_bytes` (None: no limit)."""
+    if max_bytes is None:
+        return
+    limit = int(max_bytes)
+    if nbytes > limit:
+        raise DeviceError(
+            f"the level-of-detail selection needs a {nbytes / 2**20:.1f} MiB {what}, more than the device's "
+            f"largest allocation ({limit / 2**20:.1f} MiB, CL_DEVICE_MAX_MEM_ALLOC_SIZE); choose a smaller "
+            "budget_mb or a larger reduction"
+        )
+
+
+def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> None:
+    """Write each ((level, bz, by, bx), brick) of `items` at its block's offset in `out` (cast to out's type): a
+    level-0 brick inside its apron, which `_fill_aprons` fills."""
+    for (k, z, y, x), a in items:
+        o = int(offsets[(z * grid[1] + y) * grid[2] + x])
+        if k == 0:
+            m = a.shape[0] + 2
+            out[o:o + m**3].reshape(m, m, m)[1:-1, 1:-1, 1:-1] = a
+        else:
+            out[o:o + a.size] = a.ravel()
+
+
+def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int) -> None:
+    """The aprons of the level-0 bricks in `out` (placed by `_place`). The apron sample beyond a face, edge or
+    corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves the grid,
+    d is 0 there and the sample repeats the brick's edge (the volume's clamp to edge). It is the sample of block
+    own + d when that block is at level 0 too, else the brick's own nearest sample (clamp to edge). Inside a region
+    of level-0 blocks trilinear interpolation within a padded brick is then trilinear interpolation of level 0
+    across the blocks' faces, clamped at the volume's faces as full resolution is (lc_atlas.h). Coarse bricks have
+    no apron: theirs would take 1.95x (8³ of a 16³ block) to 27x (1³) their samples, and doubled the 30:1 atlas of
+    the 8 GiB volume (the renderer's peak RSS 1,731 -> 2,352 MB after its first image)."""
+    lv = np.asarray(levels).astype(np.int64)
+    G = np.array(lv.shape)
+    flat_off = offsets.reshape(lv.shape)
+    where = lv == 0
+    cnt = int(where.sum())
+    if not cnt:
+        return
+    n = block_size
+    m = n + 2
+    start = int(flat_off[where].min())
+    A = out[start:start + cnt * m**3].reshape(cnt, m, m, m)
+    assert int(flat_off[where].max()) == start + (cnt - 1) * m**3, "bricks of a level lie together"
+    # clamp to edge: x faces, then y (whole rows, x apron included), then z
+    A[:, 1:-1, 1:-1, 0], A[:, 1:-1, 1:-1, -1] = A[:, 1:-1, 1:-1, 1], A[:, 1:-1, 1:-1, -2]
+    A[:, 1:-1, 0, :], A[:, 1:-1, -1, :] = A[:, 1:-1, 1, :], A[:, 1:-1, -2, :]
+    A[:, 0], A[:, -1] = A[:, 1], A[:, -2]
+    rank = np.full(lv.shape, -1, np.int64)  # a brick's place in A; -1: not at level 0
+    rank[where] = np.arange(cnt)
+    pos = np.stack(np.nonzero(where), axis=1)  # (cnt, 3) z, y, x in C order: the ranks 0 ... cnt - 1
+    for d in np.ndindex(3, 3, 3):
+        d = np.array(d) - 1
+        if not d.any():
+            continue
+        to = pos + d
+        folded = (to < 0) | (to >= G)  # (cnt, 3): off the grid along that axis
+        dd = np.where(folded, 0, d)  # the direction that stays on the grid
+        moved = dd.any(axis=1)
+        nb = np.full(cnt, -1, np.int64)
+        t = pos[moved] + dd[moved]
+        nb[moved] = rank[t[:, 0], t[:, 1], t[:, 2]]
+        fold_code = folded @ np.array([4, 2, 1])  # which axes fold, per brick: they take different source slices
+        for code in np.unique(fold_code[nb >= 0]):
+            fold = [(int(code) >> (2 - a)) & 1 for a in range(3)]
+            own = np.nonzero((nb >= 0) & (fold_code == code))[0]
+            dst = tuple(slice(1, n + 1) if e == 0 else (0 if e < 0 else n + 1) for e in d)
+            # along a folded axis the neighbour's edge sample on the own side (it shares the own coordinate)
+            src = tuple(slice(1, n + 1) if e == 0 else ((1 if e < 0 else n) if f else (n if e < 0 else 1))
+                        for e, f in zip(d, fold))
+            A[(own,) + dst] = A[(nb[own],) + src]
+
+
+def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
+         slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(atlas float32 1D, index map uint64 grid-shaped), on the host (tests, references; renders use
+    device_atlas). Bricks are packed in C order of the grid. Raises
+    DeviceError when the atlas would exceed `max_bytes` (None: no limit). `slices`: the
+    index map's slice maxima (default slice_max(levels); a pass of a render in several packs part of a selection
+    with the whole selection's)."""
+    levels = np.asarray(levels)
+    offsets, total = _checked_offsets(levels, block_size, max_bytes)
+    atlas = np.empty(max(total, 1), np.float32)
+    _place(atlas, levels.shape, offsets, bricks.items())
+    _fill_aprons(atlas, levels, offsets, block_size)
+    return atlas, _index(levels, offsets, slices)
+
+
+def _index(levels: np.ndarray, offsets: np.ndarray, slices: np.ndarray | None) -> np.ndarray:
+    sl = slice_max(levels) if slices is None else slices
+    return pack_index(offsets, np.asarray(levels).astype(np.int64).ravel(), sl.reshape(-1, 3)).reshape(levels.shape)
+
+
+def coarse_elements(levels: np.ndarray, block_size: int) -> int:
+    """Atlas elements of the coarse bricks (level >= 1), which lie before the level-0 ones (`_offsets`): the length
+    of the deviations' buffer beside the atlas (level 0 has none, and the kernel reads them for coarse bricks
+    only)."""
+    lv = np.asarray(levels).astype(np.int64)
+    return int(brick_elements(np.where(lv >= 1, lv, -1), block_size).sum())
+
+
+def deviation_bytes(voxel_dtype: Any) -> int:
+    """Bytes per element of the deviations' buffer beside an atlas of `voxel_dtype` (lc_common.h: lc_sig): 4 for
+    integer voxels (the coarse values' bits packed below the deviation), 2 beside float32."""
+    return 4 if np.dtype(voxel_dtype).kind in "iu" else 2
+
+
+def pack_std(levels: np.ndarray, std_bricks: dict, block_size: int) -> np.ndarray:
+    """The standard deviations beside the atlas (uint16 in units of vol.std_unit, same offsets as `pack`, the
+    coarse bricks' only) from `std_bricks` ((level, bz, by, bx) -> brick)."""
+    _, offsets = _offsets(levels, block_size)
+    out = np.zeros(max(coarse_elements(levels, block_size), 1), np.uint16)
+    _place(out, np.asarray(levels).shape, offsets, std_bricks.items())
+    return out
+
+
+def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = None) -> np.ndarray:
+    """Adaptive sampling's step level per cell (C order, int8): the kernel steps step * 2^s in a cell of step level
+    s, and restarts its steps at the faces of coarse cells (limited: a coarse step never runs into a finer block),
+    while runs of level-0 cells keep full resolution's lattice (raycast.cl). A coarse cell with a level-0 cell
+    across a face holds s | NEAR_LEVEL0. A skipped cell holds -(code + 1) (`skipped`): the march passes it as it
+    would pass it sampled, without its samples, so that what it skips changes no other sample. The cells are the
+    half-block cells (grid 2G, cell h in block h >> 1) for both interpolations: nearest block's step level is
+    constant over a block, but the walk also leaves out the coarse half-cells that level 0 leaves empty
+    (walk._cell_info), which on whole blocks it could do only where all eight are (32 images,
+    benchmarks/bench_lod_sweep.py, nearest block: samples 0.67 -> 0.48 of full resolution's, summed mean ΔE
+    151.8 -> 145.7). A cell takes its own block's level k; cells of skipped blocks (`skip`) and of
+    unloaded ones (level -1, stepped as level 0) are skipped.
+
+    s = k at level 0, s = k + 1 at coarse levels (capped at log2 B, the longest step the kernel has a table for;
+    a step never runs past its cell anyway): the base step over-samples level 0 (default 1/2 voxel: a sharp TF
+    edge crossed inside a voxel), while a level-k field is a smooth average, classified by a distribution that
+    blurs the TF by the spread behind it, and needs no more than about one sample per coarse voxel (2^k voxels
+    at the default step). Measured against step * 2^k over the same selections on the chest and engine CTs (3 + 2
+    TFs, 10:1 to 100:1, 256²): 1.1-1.8x fewer samples, mean ΔE within ±0.25.
+
+    With interblock interpolation a coarse half-cell next to a finer block keeps its own step too (thesis §3.6.1
+    limits it by the finest of the eight blocks around): inside the coarse block the blend towards the finer
+    neighbour spans 2^(k-1) voxels and mixes in that neighbour's samples clamped to its face, which are constant
+    along the face's normal: along the normal the field there holds no finer detail than the coarse field (at
+    most twice as steep); what a coarse step can miss is the neighbour's detail across the face, met by oblique
+    rays. On the chest and engine CTs (four TFs, two views, 5:1-100:1, 256²: benchmarks/bench_lod_sweep.py) the
+    finest-of-eight rule took 1.28x the samples (0.76 of full resolution's against 0.59) for the same summed mean
+    ΔE (145.8 against 145.5 over 32 images)."""
+    lv = np.asarray(levels).astype(np.int64)
+    off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
+    out = np.maximum(lv, 0)
+    np.add(out, 1, out=out, where=out >= 1)
+    np.minimum(out, int(block_size).bit_length() - 1, out=out)
+    s = half_cells(out)
+    # NEAR_LEVEL0: a coarse cell with a level-0 cell across a face, where the kernel looks at the cell the ray
+    # enters next (its last step ends on full resolution's lattice there); elsewhere it need not read it
+    fine = np.pad(s == 0, 1)
+    near = np.zeros(s.shape, bool)
+    for ax in range(3):
+        for d in (0, 2):
+            near |= fine[tuple(slice(d, d + n) if a == ax else slice(1, 1 + n) for a, n in enumerate(s.shape))]
+    s = np.where((s > 0) & near, s | NEAR_LEVEL0, s)
+    return skipped(s, half_cells(off))
+
+
+#: step_levels' flag of a coarse cell next to a level-0 one (the step level is the code's low three bits)
+NEAR_LEVEL0 = 8
+
+
+def skipped(steps: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """Step levels (`step_levels`) with the cells `where` marks skipped: -(s + 1) (cells skipped already stay)."""
+    st = np.asarray(steps, np.int8)  # (in int8 throughout: int64 temporaries over the 8 GiB volume's 8 million
+    out = st.copy()  # half-block cells added 190 MB to each lossless pass's peak)
+    m = np.asarray(where, bool) & (st >= 0)
+    out[m] = -st[m] - 1
+    return np.ascontiguousarray(out)
+
+
+def half_cells(a: np.ndarray) -> np.ndarray:
+    """A per-block array over the half-block cells (grid 2G): cell h takes block h >> 1's value."""
+    return per_cell(a, 2)
+
+
+def pair_reduce(a: np.ndarray, f) -> np.ndarray:
+    """A grid of cells (z, y, x) reduced to cells of twice the edge by `f` (np.fmin, np.fmax, np.maximum) over each
+    one's up to eight children; an odd axis is padded with NaN."""
+    for ax in range(3):  # pairs along one axis at a time (a reduction over a 6-D view took 10x as long)
+        if a.shape[ax] % 2:
+            pad = [(0, 0)] * 3
+            pad[ax] = (0, 1)
+            a = np.pad(a, pad, constant_values=np.nan)
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[ax], hi[ax] = slice(0, None, 2), slice(1, None, 2)
+        a = f(a[tuple(lo)], a[tuple(hi)])
+    return a
+
+
+def per_cell(a: np.ndarray, k: int) -> np.ndarray:
+    """A per-cell array over the grid of cells k times finer per axis: each takes its parent's value."""
+    for ax in range(3):
+        a = np.repeat(a, k, axis=ax)
+    return a
+
+
+@dataclass(frozen=True)
+class DeviceAtlas:
+    atlas: cl.Buffer
+    std: cl.Buffer | None  # the deviations beside the atlas (uint16, vol.std_unit), for distribution classification
+    index: cl.Buffer
+    index_host: np.ndarray
+    nbytes: int  # atlas bytes
+    selected: int  # bricks in the atlas
+    read: int
+    cached: int
+    skipped: int
+    read_ms: float
+    upload_ms: float
+    reused: bool  # the device buffers of a recent render with the same store and levels were reused
+    key: tuple | None = None  # its device-cache key (None: not kept)
+    voxel: tuple[str, ...] = ()  # the -D option of its voxel type (volume.voxel_options)
+    levels: np.ndarray | None = None  # the selection (flat int64), with a kept atlas
+    offsets: np.ndarray | None = None  # every brick's first element in its buffer (flat int64, the index's)
+    base_key: tuple | None = None  # the device-cache key of the atlas this one was built from (reuse, below)
+    base_levels: np.ndarray | None = None  # that atlas's selection (flat int64)
+
+
+def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
+                 cache: BrickCache | None = None, slices: np.ndarray | None = None,
+                 keep: bool = True) -> DeviceAtlas:
+    """The atlas and index map of `levels` on `eng`'s device (kept in its device cache: reused when a recent render
+    had the same store and levels, else loaded through the brick cache, packed and uploaded); `with_std`: also the
+    standard deviations of the coarse bricks, for distribution classification. A pass of a render in several
+    gives its part of the selection with the whole one's `slices` (see `pack`) and `keep=False` (its atlas is
+    not kept on the device after the pass)."""
+    levels = np.ascontiguousarray(levels, dtype=np.int8)
+    key = (("atlas", vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest(), with_std)
+           if vol.key is not None and keep else None)
+    n_sel = int(np.count_nonzero(levels >= 0))
+    hit = eng.device_cache.get(key) if key is not None else None
+    family = None if key is None else (vol.key, levels.shape, with_std, str(vol.voxel_dtype))
+    if hit is not None:
+        eng.remember_atlas(family, hit)  # the next selection starts from the latest one shown
+        return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
+    t_read = time.perf_counter()
+    cache = eng.bricks if cache is None else cache
+    dtype = vol.voxel_dtype
+    B = int(vol.block_size)
+    max_bytes = eng.device.max_alloc_bytes if max_bytes is None else max_bytes
+    offsets, total = _checked_offsets(levels, B, max_bytes, dtype.itemsize)
+    n_coarse = coarse_elements(levels, B)
+    sig_type = np.dtype(f"u{deviation_bytes(dtype)}")  # lc_common.h: lc_sig
+    packed = with_std and sig_type.itemsize == 4
+    if packed:  # the coarse bricks live in the deviations' buffer alone; level 0's offsets start the atlas
+        offsets = np.where(levels.ravel() == 0, offsets - n_coarse, offsets)
+        total -= n_coarse
+        _check_alloc(n_coarse * sig_type.itemsize, max_bytes, "coarse bricks' buffer")
+    index = _index(levels, offsets, slices)
+    base = None if family is None else eng.last_atlas(family)
+    flat = levels.ravel().astype(np.int64)
+    kept = None if base is None else (base.levels == flat) & (flat >= 0)
+    ctx, queue = eng.device.context, eng.device.queue
+    st = BrickStats()
+    n_std = max(n_coarse, 1)
+    nbytes = max(total, 1) * dtype.itemsize + (sig_type.itemsize * n_std if with_std else 0)
+    # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
+    # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already); a brick of the
+    # last atlas of this store at the same level is copied from there (reuse, below)
+    todo = levels if kept is None else np.where(kept.reshape(levels.shape), -1, levels).astype(np.int8)
+    L = int(flat.max(initial=0)) + 1
+    with eng.holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
+        d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
+        try:
+            if old is not None and with_std:  # (packed: the coarse values ride along with their deviations)
+                copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
+            items = iter_bricks(eng, vol, todo, cache, stats=st)
+            deviations = sig
+            if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
+                assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
+                halves = sig.view(np.uint16)
+                items, deviations = _coarse_bits(items, halves[0::2], levels.shape, offsets), halves[1::2]
+            reuse = None if old is None else (
+                lambda host: copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
+                                                   range(0, 1 if packed else L), B))
+            d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse)
+            if with_std:
+                _place(deviations, levels.shape, offsets, iter_bricks(eng, vol, todo, cache, what="std"))
+        finally:
+            if sig is not None:
+                sig.base.release(queue)
+    if kept is not None:
+        st.cached += int(kept.sum())
+        st.skipped = int(np.count_nonzero(levels < 0))
+    t = time.perf_counter()
+    d_index = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=index)
+    queue.finish()
+    da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, st.read, st.cached, st.skipped,
+                     (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype),
+                     flat if family is not None else None, offsets.ravel() if family is not None else None,
+                     None if base is None else base.key, None if base is None else base.levels)
+    if key is not None:
+        eng.device_cache.put(key, da, nbytes + index.nbytes)
+        eng.remember_atlas(family, da)
+    cache.trim()  # its bound may follow the device cache's bytes
+    return da
+
+
+@contextlib.contextmanager
+def _reading(queue: Any, da: "DeviceAtlas | None", dtype: Any,
+             sig_type: Any) -> Iterator[tuple[np.ndarray, np.ndarray | None] | None]:
+    """Host mappings (atlas of `dtype`, deviations' buffer of `sig_type`) of atlas `da` for reading, while in this
+    context (None: no atlas)."""
+    if da is None:
+        yield None
+        return
+    maps = [cl.enqueue_map_buffer(queue, b, cl.map_flags.READ, 0, (b.size // np.dtype(t).itemsize,), t)[0]
+            if b is not None else None
+            for b, t in ((da.atlas, dtype), (da.std, sig_type))]
+    try:
+        yield maps[0], maps[1]
+    finally:
+        for m in maps:
+            if m is not None:
+                m.base.release(queue)
+
+
+def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.ndarray]:
+    """A device buffer of n elements and its host mapping for writing (the caller releases it)."""
+    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
+    host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
+    return buf, host
+
+
+def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+            items: Any, reuse: Any = None) -> cl.Buffer:
+    """A device buffer of n elements with every brick of `items` (and those `reuse` copies into the host
+    mapping) placed at its offset and the level-0 bricks' aprons filled, written through a host mapping."""
+    buf, host = _mapped(ctx, queue, n, dtype)
+    try:
+        if reuse is not None:
+            reuse(host)
+        _place(host, levels.shape, offsets, items)
+        _fill_aprons(host, levels, offsets, block_size)
+    finally:
+        host.base.release(queue)
+    return buf
+
+
+def _coarse_bits(items: Any, low: np.ndarray, grid: tuple, offsets: np.ndarray) -> Any:
+    """The level-0 bricks of `items`; each coarse brick's values go, as their 16 bits, into `low` (the low halves
+    of the deviations' buffer, lc_sig) instead: two's complement for signed types, 8-bit types widened as the
+    kernel narrows them back (lc_common.h: LC_SIG_VALUE)."""
+    for key, a in items:
+        if key[0] >= 1:
+            _place(low, grid, offsets, [(key, (a if a.dtype.itemsize == 2 else a.astype(np.int16)).view(np.uint16))])
+        else:
+            yield key, a
+
+
+# --- reuse: a new selection's atlas from the last one ------------------------------------------------------------
+# What a new selection keeps of the last atlas of the same store: bricks copied across, cells recomputed where
+# they can have changed. The view-weighted selection (renderer/lod/visibility.py) selects again at every new view, and
+# a move of a degree or two changes the level of only a small share of the loaded blocks, while packing every
+# brick and bounding every octant again was most of a new view's host time. So `device_atlas` builds a new atlas
+# from the engine's `last_atlas` of the same store, TF-independent layout and buffers: a block at the same level
+# keeps its brick (one array copy per level: the bricks of a level lie together in C order of the grid), only the
+# others are read from the brick cache, and level 0's aprons are filled again (a neighbour's level may have
+# changed). The octants' bounds (atlas_cells.py) are copied for every block whose bounds cannot have changed and
+# computed on the device for the others (`dirty_blocks`). The result is the same atlas, index map and cells,
+# element for element, as one packed from nothing (tests/test_atlas_reuse.py).
+
+
+def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.ndarray, old_levels: np.ndarray,
+              old_offsets: np.ndarray, kept: np.ndarray, which: range, block_size: int) -> int:
+    """Copy into buffer `dst` (the new atlas's elements at `offsets`) from `src` (the old one's at `old_offsets`)
+    the bricks of the blocks `kept` (same level in both) whose level lies in `which` (the levels the buffer
+    holds). Flat per-block arrays; a level's bricks lie together in C order of the grid in both buffers, so each
+    level is one gather of whole bricks. Returns the number of bricks copied."""
+    copied = 0
+    for k in which:
+        sel = kept & (levels == k)
+        if not sel.any():
+            continue
+        size = int(brick_elements(np.int64(k), block_size))
+        new_at, old_at = offsets[levels == k], old_offsets[old_levels == k]
+        n0, o0 = int(new_at.min()), int(old_at.min())
+        dv = dst[n0:n0 + new_at.size * size].reshape(new_at.size, size)
+        sv = src[o0:o0 + old_at.size * size].reshape(old_at.size, size)
+        dv[(offsets[sel] - n0) // size] = sv[(old_offsets[sel] - o0) // size]
+        copied += int(sel.sum())
+    return copied
+
+
+def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str) -> np.ndarray:
+    """The blocks (grid-shaped bool) whose cells' bounds (atlas_cells.cl) a change of levels from `old_levels`
+    to `levels` can change. Nearest block reads a block's own brick, and a level-0 brick's apron, which holds
+    the neighbours' samples where they are at level 0 too: a block whose level changed, or a level-0 block next
+    to (26-neighbourhood) one that became or stopped being level 0. Interblock reads the neighbourhood's bricks:
+    every block next to one whose level changed."""
+    old_levels, levels = np.asarray(old_levels), np.asarray(levels)
+    changed = old_levels != levels
+    if interpolation == "interblock":
+        return neighbourhood_max(changed.astype(np.int8)) > 0
+    zero_changed = (old_levels == 0) != (levels == 0)
+    return changed | ((levels == 0) & (neighbourhood_max(zero_changed.astype(np.int8)) > 0))

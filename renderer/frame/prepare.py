@@ -1,0 +1,312 @@
+"""Preparing a frame on the host (renderer/frame/plan.py says what comes out): the scene resolved on the volume, the
+camera and the box the rays integrate, the cost checked against the limit, the level-of-detail selection
+(weighted by what the camera sees where that applies), the block infos, the classification tables, the passes
+beyond the device budget and the screen-space plan. Everything kept between frames is kept in the engine.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from lodcast.renderer.data import atlas as lod_atlas
+from lodcast.renderer.data import bricks
+from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.scene import clip as clipping
+from lodcast.renderer.scene import cost
+from lodcast.renderer.lod import dual
+from lodcast.renderer.data import passes as multipass
+from lodcast.renderer.frame import screen as screen_space
+from lodcast.renderer.lod import visibility
+from lodcast.renderer.scene.adaptive_tf import resolve_tfs
+from lodcast.renderer.lod.classification import DistTable, cached_dist_table
+from lodcast.renderer.kernel.config import EXTREMUM_MODES, KernelConfig
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.kernel.params import fill_params, fill_tf2
+from lodcast.renderer.frame.plan import MAX_SAMPLES_PER_RAY, LodPlan, Prepared, kernel_config
+from lodcast.renderer.kernel.preintegration import PreintTable, preintegrate
+from lodcast.renderer.scene.scene import OrbitCamera, Scene, SceneError
+from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
+from lodcast.renderer.data.volume import VOXEL_CTYPES, VolumeView, as_volume
+from lodcast.renderer.walk.info import block_info
+
+__all__ = ["prepare", "check_cost", "prefetch", "resolved", "geometry"]
+
+
+def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tuple[list, tuple]:
+    """The scene's TFs (tf, and tf2 when given), and the key of what is computed from them alone, not from the
+    view (the selection, the step's error): the volume, the TFs and the clip region's blocks."""
+    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
+    return tfs, (vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True),
+                 None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest())
+
+
+def _step_error(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> float:
+    """selection.step_delta_e for the scene's TFs, step and clip region (kept for the last few: a turntable asks
+    for the same each frame); 0 where it does not apply (an array, a projection mode)."""
+    if scene.mode != "composite" or not vol.has_levels or vol.key is None:
+        return 0.0
+    from lodcast.renderer.lod.selection import step_delta_e
+    from lodcast.renderer.lod.significance import meta_of_store
+
+    tfs, base = _tfs_and_key(vol, scene, keep)
+    key = (*base, scene.sampling.step)
+    hit = eng.step_errors.get(key)
+    if hit is None:
+        hit = step_delta_e(meta_of_store(vol.source, eng.tables), tfs, scene.sampling.step, keep, eng.tables)
+        eng.step_errors.put(key, hit, 1)
+    return hit  # type: ignore[no-any-return]
+
+
+def _view_weighted(scene: Scene, vol: VolumeView) -> bool:
+    """Whether the selection weighs what the camera sees (visibility.py): sampling.lod_visibility (null: on for
+    volumes of at most visibility.AUTO_VOXELS), at the budgeted qualities ('lossless' promises the full-resolution
+    image from any view, and selects once per TF), for a single TF composited (the projections and a second TF see
+    through what one TF hides)."""
+    on = scene.sampling.lod_visibility
+    if on is None:
+        on = vol.n_voxels <= visibility.AUTO_VOXELS
+    return on and not isinstance(scene.quality, str) and scene.mode == "composite" and scene.tf2 is None
+
+
+def _view_key(scene: Scene, fr: cam.Frame, kbox: tuple) -> str:
+    """What the visibility of the blocks depends on besides the TF: the camera, the image's aspect, the box the rays
+    integrate and the clip planes."""
+    nums = np.concatenate([fr.eye, fr.f, fr.r, fr.u, [fr.half_w, fr.half_h, float(fr.orthographic)],
+                           np.ravel(kbox)]).astype(np.float64)
+    clip = None if scene.clip is None else scene.clip.model_dump(mode="json")
+    return hashlib.sha1(np.round(nums, 9).tobytes() + json.dumps(clip, sort_keys=True).encode()).hexdigest()
+
+
+def _select(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | None, keep: np.ndarray | None,
+            view: tuple | None = None) -> tuple[np.ndarray, Any]:
+    """The level per block: `levels` as given, or the selection for the scene's TFs and quality, weighted by the
+    blocks' visibility from the camera when `view` = (frame, ray box, LUT, unit distance) is given."""
+    if levels is not None:
+        lv = np.ascontiguousarray(levels, dtype=np.int8)
+        if lv.shape != vol.grid:
+            raise SceneError(f"levels: shape {lv.shape} is not the block grid {vol.grid}")
+        return lv, None
+    if not vol.has_levels:
+        raise SceneError(f"quality: {scene.quality!r} needs a lodcast store (an array has only full resolution)")
+    from lodcast.renderer.lod.selection import select_lod
+
+    tfs, base = _tfs_and_key(vol, scene, keep)
+    quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
+    classification = scene.sampling.classification if scene.mode == "composite" else "mean"
+    # without the view's weight the selection does not depend on the view: a turntable selects once
+    key = None if vol.key is None else (*base, json.dumps(quality, sort_keys=True), classification,
+                                        eng.settings.lossless_zeta,
+                                        None if view is None else _view_key(scene, view[0], view[1]))
+    sel = eng.selections.get(key) if key is not None else None
+    if sel is None:
+        seen = None if view is None else visibility.block_visibility(eng, vol, scene, *view)
+        sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification, visibility=seen,
+                         lossless_zeta=eng.settings.lossless_zeta, tables=eng.tables)
+        if key is not None:
+            eng.selections.put(key, sel, 1)
+    return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
+
+
+def _lod_plan(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
+              mode: str, keep: np.ndarray | None,
+              view: tuple | None = None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
+    """The selection (blocks outside the clip region `keep` not loaded; weighted by what the camera sees when
+    `view` is given, see _select), the block info with unloaded blocks marked empty, the number of empty blocks,
+    and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0)."""
+    lv, sel = _select(eng, vol, scene, levels, keep, view)
+    if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
+        # the default: every block at level 0 leaves nothing to step over
+        cfg = replace(cfg, adaptive=False, lattice=False)
+    B = vol.block_size
+    if sel is not None:
+        reduction, pred = (float(sel.reduction) if math.isfinite(sel.reduction) else None), float(sel.predicted_delta_e)  # None: nothing loaded (JSON has no inf)
+    else:
+        chosen = int(np.where(lv >= 0, (B >> np.maximum(lv.astype(np.int64), 0)) ** 3, 0).sum())
+        reduction, pred = (vol.n_blocks * B**3 / chosen if chosen else None), None
+    info = info.copy()
+    missing = lv < 0
+    info[missing] = -np.inf if mode in EXTREMUM_MODES else 0.0
+    # interblock interpolation reaches half a sample of a coarse block (2^(k-1) voxels) past its faces, further
+    # than the one-voxel border of the block ranges: where a coarse block is near, a block may show what its
+    # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
+    near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing
+    if near_coarse.any() and cfg.interpolation == "interblock":  # nearest block: half a level-0 voxel, at most
+        spread = lod_atlas.neighbourhood_max(info) if scene.tf2 is None else dual.dilate_bits(info, lod_atlas.neighbourhood_max)
+        info = np.where(near_coarse, spread, info).astype(np.float32)
+    n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
+    steps = None
+    if cfg.adaptive:
+        skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
+        steps = _step_levels(eng, lv, int(B), skip)
+    return LodPlan(lv, reduction, pred, steps, sel, view is not None), info, n_empty, cfg
+
+
+def _step_levels(eng: Engine, lv: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
+    """atlas.step_levels, kept for the last few (levels, skip) pairs: a turntable asks for the same each frame, and
+    on a grid of a million blocks it costs 0.6 s."""
+    key = (block_size, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
+           None if skip is None else hashlib.sha1(np.packbits(skip).tobytes()).hexdigest())
+    hit = eng.steps.get(key)
+    if hit is None:
+        hit = lod_atlas.step_levels(lv, block_size, skip)
+        eng.steps.put(key, hit, hit.nbytes)
+    return hit  # type: ignore[no-any-return]
+
+
+def geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
+    """(the volume's world box, the camera frame, the box the rays integrate (crop box applied), the step in world
+    units)."""
+    box = cam.box_world(vol.shape, vol.spacing, vol.origin)
+    fr = cam.frame(scene.camera, scene.width, scene.height, *box)  # the camera frames the whole volume
+    kbox = clipping.clipped_box(box, scene.clip)
+    if np.any(kbox[0] >= kbox[1]):  # the crop box misses the volume: a degenerate box no ray enters
+        kbox = (kbox[0], kbox[0].copy())
+    return box, fr, kbox, scene.sampling.step * float(min(vol.spacing))
+
+
+def _cost(eng: Engine, scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float,
+          sample_limit: int | None) -> int:
+    estimated = cost.estimate_samples(fr, kbox, scene.width, scene.height, step_world)
+    limit = eng.settings.max_samples if sample_limit is None else sample_limit
+    cost.refuse_over_limit(estimated, limit, scene.width, scene.height, scene.sampling.step)
+    return estimated
+
+
+def resolved(eng: Engine, scene: Scene, vol: VolumeView) -> Scene:
+    """`scene` as it renders on `vol`: adaptive TFs as the control points they take on it, an orbit camera's
+    named view as its azimuth and elevation."""
+    update = resolve_tfs(scene, vol, eng.tables.peaks)
+    if isinstance(scene.camera, OrbitCamera) and scene.camera.view is not None:
+        update["camera"] = cam.resolve_view(scene.camera, getattr(vol.source, "orientation", None))
+    return scene.model_copy(update=update) if update else scene
+
+
+def check_cost(eng: Engine, store: Any, scene: Any, sample_limit: int | None = None) -> int:
+    """Renderer.check_cost."""
+    vol = as_volume(store, stores=eng.stores)
+    scene = resolved(eng, Scene.parse(scene), vol)
+    _, fr, kbox, step_world = geometry(vol, scene)
+    return _cost(eng, scene, fr, kbox, step_world, sample_limit)
+
+
+def prepare(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+            levels: np.ndarray | None = None, sample_limit: int | None = None) -> Prepared:
+    """Renderer.prepare."""
+    vol = as_volume(store, spacing=spacing, origin=origin, stores=eng.stores)
+    scene = resolved(eng, Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
+    box, fr, kbox, step_world = geometry(vol, scene)
+    estimated = _cost(eng, scene, fr, kbox, step_world, sample_limit)
+    unit = unit_distance(scene.tf, vol.spacing)
+    diag = float(np.linalg.norm(box[1] - box[0]))
+    max_samples = int(math.ceil(diag / step_world)) + 2
+    if max_samples > MAX_SAMPLES_PER_RAY:
+        raise SceneError(
+            f"sampling.step: {scene.sampling.step} voxels is too small for this volume "
+            f"({max_samples} samples per ray, at most {MAX_SAMPLES_PER_RAY})"
+        )
+    lut = build_lut(scene.tf, vol.value_range)
+    second = None
+    if scene.tf2 is not None:
+        second = dual.SecondTf(scene.tf2, build_lut(scene.tf2, vol.value_range), unit_distance(scene.tf2, vol.spacing))
+    info, n_empty = block_info(vol, lut, scene.mode, None if second is None else second.lut)
+    keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
+    if keep is not None:  # blocks outside the clip region are empty space
+        info = np.where(keep, info, -np.inf if scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
+        n_empty = int(np.count_nonzero(info == 0.0)) if scene.mode == "composite" else 0
+    lod = None
+    use_lod = levels is not None or scene.quality != "full"
+    cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution,
+                        voxel=VOXEL_CTYPES[vol.voxel_dtype], block_size=int(vol.block_size), n_blocks=vol.n_blocks)
+    if use_lod:
+        view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene, vol) else None
+        lod, info, n_empty, cfg = _lod_plan(eng, vol, scene, levels, info, cfg, scene.mode, keep, view)
+        if scene.mode == "composite" and vol.has_cell_ranges and (lod.levels >= 1).any():
+            cfg = replace(cfg, ess=True)  # the walk leaves out coarse cells empty at level 0 (walk.py: _cell_info), always
+        if cfg.distribution and not (lod.levels > 0).any():
+            cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
+    dist, pre = _classification_tables(eng, scene.tf, lut, unit, cfg, vol, step_world)
+    params = fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
+    prio = None
+    if second is not None:
+        dist2, pre2 = _classification_tables(eng, second.tf, second.lut, second.unit, cfg, vol, step_world)
+        second = replace(second, dist=dist2, preint=pre2)
+        if scene.sampling.priority_map:
+            prio = dual.priority_map(fr, (info.astype(np.int64) & 2) > 0, vol.shape, vol.spacing, vol.origin,
+                                     vol.block_size, scene.width, scene.height)
+    plan = _screen_plan(vol, scene, fr, info, lod) if cfg.screen else None
+    if plan is not None:
+        params[0]["screen_n"] = plan.rays
+    pp = _pass_plan(eng, vol, scene, fr, cfg, info, lod)
+    if pp is not None:
+        cfg = replace(cfg, passes=True)
+    pr = Prepared(eng, scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second,
+                  prio, plan, pp, _step_error(eng, vol, scene, keep), cam.ray_octants(fr))
+    if second is not None:
+        fill_tf2(params, pr)
+    return pr
+
+
+def _pass_plan(eng: Engine, vol: VolumeView, scene: Scene, fr: cam.Frame, cfg: KernelConfig, info: np.ndarray,
+               lod: "LodPlan | None") -> "multipass.PassPlan | None":
+    """The passes of a render whose volume data exceeds the device budget or one allocation (renderer/data/passes.py),
+    None for one pass."""
+    limit, what = multipass.volume_limit(eng)
+
+    def unsampled() -> np.ndarray:
+        if cfg.adaptive and lod is not None and lod.step_levels is not None:  # cells of level -1 are never sampled
+            st = lod.step_levels
+            return st.reshape(st.shape[0] // 2, 2, st.shape[1] // 2, 2, st.shape[2] // 2, 2).max(axis=(1, 3, 5)) < 0
+        if cfg.ess and scene.sampling.empty_space_skipping:  # blocks the walk skips whatever the ray did before
+            # (without skipping the walk may still run, for the coarse cells' mask: it skips no block then)
+            return info == (-np.inf if scene.mode in EXTREMUM_MODES else 0.0)
+        return np.zeros(vol.grid, bool)
+
+    reach = scene.sampling.step
+    if cfg.adaptive and lod is not None:
+        reach *= 2.0 ** max(0, int(lod.levels.max(initial=0)))  # an adaptive segment's front end
+    pp = multipass.plan(vol, fr, reach, None if lod is None else lod.levels, cfg.distribution, unsampled, limit,
+                        cfg.interpolation, what)
+    if pp is not None and cfg.adaptive_naive:
+        raise SceneError("sampling.adaptive_naive: naive adaptive steps run across blocks and cannot be split into "
+                         "passes, which this volume needs on this device (LODCAST_DEVICE_BUDGET_MB)")
+    return pp
+
+
+def _classification_tables(eng: Engine, tf: Any, lut: Lut, unit: float, cfg: KernelConfig, vol: VolumeView,
+                           step_world: float) -> tuple[DistTable | None, PreintTable | None]:
+    """One TF's distribution table (LC_DIST) and pre-integration table (LC_PREINT: over its LUT's value range,
+    for segments of the base step), where the kernel uses them."""
+    dist = cached_dist_table(tf, vol.value_range, vol.std_max, eng.tables.dist) if cfg.distribution else None
+    pre = (preintegrate(tf, lut.lo, lut.lo + (lut.n - 1) / lut.scale, step_world / unit, kept=eng.tables.preint)
+           if cfg.preint else None)
+    return dist, pre
+
+
+def _screen_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, info: np.ndarray,
+                 lod: "LodPlan | None") -> "screen_space.ScreenPlan":
+    """Adaptive screen-space sampling's pre-pass: each tile's resolution from the block scales along its rays."""
+    s = scene.sampling
+    levels = lod.levels if lod is not None else np.zeros(vol.grid, np.int8)
+    visible = info != 0 if scene.mode == "composite" else np.ones(vol.grid, bool)
+    pri = screen_space.tile_priorities(fr, levels, visible, vol.shape, vol.spacing, vol.origin, vol.block_size,
+                                       scene.width, scene.height, s.screen_tile, s.screen_statistic)
+    return screen_space.plan(screen_space.resolutions(pri, s.screen_tile), scene.width, scene.height, s.screen_tile)
+
+
+def prefetch(eng: Engine, store: Any, scene: Any) -> int:
+    """Renderer.prefetch."""
+    pr = prepare(eng, store, scene)
+    if pr.lod is None or pr.volume.key is None:
+        return 0
+    n = 0
+    for what in ("mean", "std") if pr.config.distribution else ("mean",):
+        st = bricks.BrickStats()
+        for _ in bricks.iter_bricks(eng, pr.volume, pr.lod.levels, what=what, stats=st):
+            pass  # into the brick cache only: holding them all here would cost the selection's size
+        n += st.read
+    return n

@@ -1,0 +1,1 @@
+"""Level of detail: the significance of each block under the transfer functions (thesis eq. 3.1 and per-level errors), the selection (eq. 3.2) and its predicted error, what the camera sees of each block, the classification of coarse samples by distribution, and a second TF's visibility and priority map."""

@@ -1,0 +1,575 @@
+"""Level-of-detail selection under a memory budget (thesis §3.2.2, eq. 3.2) and the fig. 3.4 baselines.
+
+Levels are the store's: level 0 = full resolution (B³ samples per block), level L−1 = one sample per block,
+level −1 = not loaded. n(k) = (B >> k)³ samples; the atlas holds float32, 4 bytes per sample.
+
+The thesis' greedy: every block with non-zero significance starts at the coarsest level; a priority queue holds
+every transition γ → γ* from a block's current level to any finer allowed level, with priority
+
+    χ = (ζ(γ) − ζ(γ*)) / (n_γ* − n_γ)                                                         (eq. 3.2)
+
+the best transition is taken while the budget allows (here: the selection stops at the first best transition
+that does not fit), defunct transitions of that block are removed and its new ones inserted. Blocks of zero
+significance are never inserted. Ties are broken by block index (C order), then by the nearer target.
+
+Fast and exact equivalent (what `greedy` runs): from a block's current level the best transition goes to the
+vertex reached by the steepest chord (the lower convex hull of the block's (n, ζ) points); the chain of such
+steepest chords has non-increasing slopes (if the next chord were steeper, the chord skipping the middle vertex
+would have been steeper than the one taken). So the queue pops, across blocks, chords in the order of their
+slopes, each block's chords in chain order: sorting all chain chords by slope (stable, block-major, chain-minor
+for ties) and taking them until the first that does not fit gives the same levels as the queue. The cut-off is
+found by a sample-guided weighted selection (O(M) over the M chords; only a few thousand around the cut are
+sorted), not a full sort. A float rounding that would make a
+chain slope rise by an ulp is clamped to the previous slope, which is exactly when the queue would take that chord
+next. `tests/test_selection.py` checks this against a literal heapq implementation.
+
+Which blocks are loaded: a block is *TF-empty* (ζ = 0 and nothing visible: see significance.py) → −1, never
+read; a block outside the crop box → −1; a visible block of zero significance (constant value) is loaded at the
+coarsest level, which represents it exactly, and never refined. (The thesis says zero-significance blocks are
+not loaded; read literally that would punch holes where a block is visible but uniform in the TF's colour — a
+constant block, or one whose values all lie where the TF is constant. Such a block costs one sample.)
+
+Quality: "full" = every block in the crop at level 0 (the reference; nothing skipped); "lossless" (virtually
+lossless) = unlimited budget: every block of non-zero significance at its finest allowed level; {"budget_mb": x}
+(MiB, 2^20 bytes) or {"reduction": r} (budget = full-resolution bytes of the whole volume at 4 bytes per voxel
+÷ r). A budget below what every visible block needs at its coarsest level raises SceneError naming `quality`.
+Bytes count whole bricks (B >> k)³, padding included, so "full" on a volume that is not a multiple of B reports a
+reduction slightly below 1. Crop: a block is dropped when its box grown by one voxel misses the crop box;
+`max_level` (grid-shaped) limits the finest level per block (e.g. for blocks cut by the crop).
+
+Significance per level: with a store of format 2 (per-block, per-level spreads) the "tf" method takes ζ(k) from
+level_error.py, what level k shows under the classification the kernel will use, and the greedy runs on those
+tables (any shape, not the thesis' linear profile); format-1 stores keep eq. 3.1 spread linearly over the levels.
+
+Predicted ΔE of a selection: the count-weighted RMS over loaded blocks of ζ at the chosen level,
+sqrt(Σ_i n_i ζ_i(γ_i)² / Σ_i n_i), n_i the block's valid voxels, is the RMS per-voxel error in unit-slab colours.
+An image shows a colour made of ~1/ā unit slabs along a ray (ā the opacity-weighted mean TF opacity of the loaded
+voxels: about one slab for an opaque surface, several for a translucent layer), so the selection's predicted ΔE is
+IMAGE_GAIN · RMS / ā, with IMAGE_GAIN fitted once on the chest CT (ct-bone, ct-skin, ct-skin-bone, two views,
+lossless … 100:1). It is the level of detail's own error, against full resolution at the same step. A render's
+report adds the step's own error (step_delta_e: against the step-¼ reference, STEP_GAIN · h² · RMS(ζ_step) / ā,
+fitted on two CTs and seven TFs), so that it predicts what DESIGN.md measures; at 5:1 and below that is most of
+it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fit's rows (2.2: ct-skin-bone at
+5:1 measures 3.2 from one view and 0.8 from the other, which no view-independent figure can both meet within 2).
+Both are estimates of DESIGN.md's measured ΔE, not bounds.
+
+What the camera sees (`visibility`, renderer/lod/visibility.py; a render passes it at the budgeted qualities where
+`sampling.lod_visibility` says so, by default for volumes of up to 2^27 voxels): per block the largest
+transmittance with which a ray of a low-resolution cast of the view enters it. It multiplies ζ where the greedy
+weighs it, and the prediction counts each block's voxels times it (an occluded block's error does not reach the
+picture, and ā is that of what is seen), so a block behind opaque material stays coarse and the budget goes to
+what the image shows. 'lossless' does not take it (it promises the full-resolution image from any view); the "l2"
+and "uniform" baselines ignore it.
+
+What the greedy weighs: per block and level √(ζ(k) · s_k) (times the view's weight), s_k the store's per-block,
+per-level spread (the RMS over the block's level-k voxels of the standard deviation of the level-0 values behind
+each), where ζ alone would be the thesis' choice. ζ models what each value loses through the level's blur of the
+TF, not where the level moves structure: a block whose colours survive the blur but whose voxels spread widely
+loses its shapes (a translucent skin's folds, trabecular bone), which s_k measures and ζ does not; the geometric
+mean ranks first the blocks where both are large, and a block of either zero stays coarse. Measured on the chest
+and engine CTs (four TFs, two views, 5:1 to 100:1, 256², summed mean ΔE against the step-¼ reference): 155 → 146
+with the view's weight, 181 → 172 without; every TF gained, ct-skin most (62.7 → 56.0); the worst single image
+moved 0.03 (the engine CT at 5:1, 0.64 → 0.67). ζ stays the prediction's and 'lossless''s measure (a ΔE); the
+product only orders the greedy. What such a greedy leaves coarse loses less in the picture than its ζ says, so
+its prediction takes its own gain, BUDGET_GAIN (0.44, fitted as IMAGE_GAIN was, on the chest CT's 5:1 to 100:1;
+with IMAGE_GAIN the budgeted rows were predicted 1.5× high on average and up to 2.3×).
+
+TF-empty blocks are excluded from the prediction (they show nothing either way), as are blocks outside the crop.
+"lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at most LODCAST_LOSSLESS_ZETA
+(an engine's setting; LOSSLESS_ZETA, 0.5, unless set).
+"""
+from __future__ import annotations
+
+import json
+import weakref
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from lodcast.renderer.scene.clip import block_bounds
+from lodcast.renderer.lod.level_error import block_zetas
+from lodcast.renderer.engine import Tables
+from lodcast.renderer.lod.significance import (BlockMeta, as_tf, block_significance, level_profile, meta_of_store,
+                                           tf_visible)
+
+__all__ = ["LOSSLESS_ZETA", "LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "step_delta_e",
+           "BYTES_PER_SAMPLE", "MB"]
+
+BYTES_PER_SAMPLE = 4
+MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
+
+METHODS = ("tf", "tf_full_hist", "l2", "uniform")
+#: the ΔE per block that "lossless" allows by default (LODCAST_LOSSLESS_ZETA overrides it in an engine)
+LOSSLESS_ZETA = 0.5
+#: image-space calibration of the predicted ΔE (see module doc): fitted on the chest CT (ct-bone, ct-skin,
+#: ct-skin-bone, two views, lossless ... 100:1, geometric mean of measured / predicted = 1): mean ΔE ≈
+#: IMAGE_GAIN · RMS(ζ) / ā, ā the opacity-weighted mean opacity of the loaded voxels (translucent structures add
+#: colour errors up over ~1/ā unit slabs along a ray; opaque ones show about one)
+IMAGE_GAIN = 0.72
+#: the same for the budgeted qualities, whose greedy orders by √(ζ · s_k) and the view's weight (module doc: what
+#: it leaves coarse loses less in the picture than ζ says): geometric mean of measured / predicted = 1 over
+#: bench_consistent_lod.py's chest CT rows at 5:1 to 100:1 (ct-bone, ct-skin, ct-skin-bone; 256² and 512²); the
+#: engine CT held out (worst factor 1.9 there)
+BUDGET_GAIN = 0.44
+#: the step's own error (step_delta_e): mean ΔE against the step-¼ reference ≈ STEP_GAIN · h² · RMS(ζ_step) / ā,
+#: fitted on the chest CT (ct-bone, ct-skin, ct-skin-bone, ct-body and a two-band lung/vessel TF) and the engine CT
+#: (two TFs), two views each, steps ½ and 1: geometric mean of measured / predicted = 1 over all of them but one
+#: outlying view of the lung/vessel TF (measured 3.1-5.8x the prediction there; the others within 0.5-2.3x)
+STEP_GAIN = 0.052
+MIN_OPACITY = 0.05
+
+
+@dataclass(frozen=True)
+class LodSelection:
+    levels: np.ndarray  # grid-shaped int8: store level per block (0 = full), -1 = not loaded
+    zeta: np.ndarray  # grid + (n_levels,) float32: ΔE significance per block per level (0 at level 0)
+    predicted_delta_e: float
+    bytes: int  # atlas bytes of the selection (4 bytes per sample)
+    reduction: float  # full-resolution bytes / selection bytes (inf when nothing is loaded)
+    blocks_skipped: int  # blocks not loaded (zero significance or outside the crop)
+
+
+# --------------------------------------------------------------------------------------------- quality
+def parse_quality(quality: Any, full_bytes: int) -> tuple[str, float | None]:
+    """("full" | "lossless" | "budget", budget in bytes or None). Accepts the scene's strings, dicts and
+    pydantic quality objects."""
+    if hasattr(quality, "model_dump"):
+        quality = quality.model_dump()
+    if isinstance(quality, str):
+        if quality in ("full", "lossless"):
+            return quality, None
+        raise ValueError(f"quality: unknown quality {quality!r} (full, lossless, budget_mb or reduction)")
+    if isinstance(quality, dict):
+        if "budget_mb" in quality:
+            mb = float(quality["budget_mb"])
+            if not mb > 0:
+                raise ValueError("quality.budget_mb must be > 0")
+            return "budget", mb * MB
+        if "reduction" in quality:
+            r = float(quality["reduction"])
+            if not r >= 1.0:
+                raise ValueError("quality.reduction must be >= 1")
+            return "budget", full_bytes / r
+    raise ValueError(f"quality: cannot read {quality!r} (full, lossless, {{budget_mb: x}} or {{reduction: r}})")
+
+
+# --------------------------------------------------------------------------------------------- crop
+def crop_mask(grid, shape, spacing, origin, block_size: int, crop) -> np.ndarray:
+    """Grid-shaped bool: True where a block meets the crop box. `crop` = (lower, upper) in world (z, y, x) or
+    {"lower": …, "upper": …}. A block's box is its voxels' box (half a voxel beyond the outer centres) grown by one
+    voxel each side, so that every interpolation stencil of a sample inside the crop box is loaded."""
+    if isinstance(crop, dict):
+        lo, hi = crop.get("lower", crop.get("min")), crop.get("upper", crop.get("max"))
+    else:
+        lo, hi = crop
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    b_lo, b_hi = block_bounds(grid, shape, spacing, origin, block_size)
+    inside = [(b_hi[ax] > lo[ax]) & (b_lo[ax] < hi[ax]) for ax in range(3)]
+    return inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+
+
+# --------------------------------------------------------------------------------------------- greedy
+def _mark(taken: np.ndarray, cand: np.ndarray | None, mask: np.ndarray) -> None:
+    if cand is None:
+        taken |= mask
+    else:
+        taken[cand[mask]] = True
+
+
+def _take_prefix(keys: np.ndarray, costs: np.ndarray, budget: int) -> np.ndarray:
+    """Boolean mask of the longest prefix, in the order (keys descending, index ascending), whose costs fit in
+    `budget` (stops at the first item that does not fit).
+
+    A weighted selection in O(M): each round estimates the cut from a strided sample and splits the candidates
+    into keys above a band around it (taken whole if they fit), the band, and keys below; it then continues in
+    the one part that holds the cut. Only the last few thousand candidates are sorted (stably)."""
+    m = keys.size
+    kc = np.asarray(keys, np.float64)
+    cc = np.asarray(costs, np.int64)
+    remaining = int(budget)
+    taken = np.zeros(m, bool)
+    cand = None  # None: every item (masks on the full arrays, no index arrays), else ascending indices
+    while kc.size > 4096:
+        step = kc.size // 8192 + 1
+        sample_k = kc[::step]
+        so = np.argsort(-sample_k, kind="stable")
+        sk = sample_k[so]
+        scum = np.cumsum(cc[::step][so]) * step
+        pos = int(np.searchsorted(scum, remaining, side="right"))
+        w = 32 + int(4 * np.sqrt(sk.size))
+        p_hi = sk[max(pos - w, 0)]
+        p_lo = sk[min(pos + w, sk.size - 1)]
+        hi = kc > p_hi
+        c_hi = int(np.dot(hi.view(np.uint8).astype(np.int64), cc))
+        if c_hi > remaining:
+            part = hi
+        else:
+            band = (kc >= p_lo) & ~hi
+            c_band = int(np.dot(band.view(np.uint8).astype(np.int64), cc))
+            if c_band > remaining - c_hi:
+                if c_hi == 0 and c_band == int(cc.sum()):  # no progress (everything in the band): sort it
+                    break
+                _mark(taken, cand, hi)
+                remaining -= c_hi
+                part = band
+            else:
+                sel = hi | band
+                _mark(taken, cand, sel)
+                remaining -= c_hi + c_band
+                part = ~sel
+        idx = np.flatnonzero(part)
+        cand = idx if cand is None else cand[idx]
+        kc, cc = kc[idx], cc[idx]
+    if cand is None:
+        cand = np.arange(m)
+    order = np.argsort(-kc, kind="stable")
+    cs = np.cumsum(cc[order])
+    k = int(np.searchsorted(cs, remaining, side="right"))
+    taken[cand[order[:k]]] = True
+    return taken
+
+
+def _chains_general(z: np.ndarray, maxlev: np.ndarray, nsamp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Steepest-chord chains for arbitrary ζ tables: (slopes (N, L−1) with −inf past the chain end, targets)."""
+    n, L = z.shape
+    rows = np.arange(n)
+    cur = np.full(n, L - 1, np.int64)
+    slopes = np.full((n, L - 1), -np.inf)
+    targets = np.full((n, L - 1), -1, np.int64)
+    for step in range(L - 1):
+        zc = z[rows, cur]
+        nc = nsamp[cur]
+        best = np.full(n, -np.inf)
+        best_to = cur.copy()
+        for d in range(1, L):
+            to = cur - d
+            ok = to >= maxlev
+            if not ok.any():
+                break
+            toc = np.maximum(to, 0)
+            with np.errstate(invalid="ignore"):
+                chi = (zc - z[rows, toc]) / (nsamp[toc] - nc)
+            better = ok & ((chi > best) | ((best == -np.inf) & (best_to == cur)))
+            best = np.where(better, chi, best)
+            best_to = np.where(better, to, best_to)
+        moved = best_to < cur
+        slopes[:, step] = np.where(moved, best, -np.inf)
+        targets[:, step] = np.where(moved, best_to, -1)
+        cur = best_to
+        if not moved.any():
+            break
+    return slopes, targets
+
+
+def _profile_chain(w: np.ndarray, nsamp: np.ndarray, m: int) -> list[int] | None:
+    """Steepest-chord chain of a shared profile w (ζ = ζ0·w) down to level m, if it is unambiguous (every
+    choice wins by a relative margin, so that any ζ0 > 0 gives the same chain in floating point); else None."""
+    L = w.size
+    cur, chain = L - 1, []
+    while cur > m:
+        chis = [((w[cur] - w[t]) / (nsamp[t] - nsamp[cur]), t) for t in range(cur - 1, m - 1, -1)]
+        best = max(c for c, _ in chis)
+        if not best > 0:
+            return None
+        close = [t for c, t in chis if c >= best * (1 - 1e-9)]
+        if len(close) != 1:
+            return None
+        cur = close[0]
+        chain.append(cur)
+    return chain
+
+
+def greedy(
+    zeta: np.ndarray,
+    maxlev: np.ndarray,
+    nsamp: np.ndarray,
+    budget_samples: float,
+    profile: np.ndarray | None = None,
+) -> np.ndarray:
+    """Levels (N,) int64 of the eq. 3.2 greedy for blocks that all start at the coarsest level L−1.
+
+    zeta (N, L): significance per level (store numbering); maxlev (N,): finest level each block may take;
+    nsamp (L,): samples per block per level; budget_samples: samples that may be added beyond the start.
+    profile: if every row is ζ0·profile, the chains are computed once per max level (faster)."""
+    z = np.asarray(zeta, np.float64)
+    n, L = z.shape
+    maxlev = np.asarray(maxlev, np.int64)
+    nsamp = np.asarray(nsamp, np.int64)
+    levels = np.full(n, L - 1, np.int64)
+    if n == 0 or L == 1:
+        return levels
+    slopes = targets = costs = None
+    if profile is not None:
+        classes = np.flatnonzero(np.bincount(np.clip(maxlev, 0, L - 1), minlength=L))
+        chains = {int(m): _profile_chain(np.asarray(profile, np.float64), nsamp, int(m)) for m in classes}
+        if all(c is not None for c in chains.values()):
+            zt = np.ascontiguousarray(z.T)  # (L, N): contiguous columns
+            slopes = np.full((n, L - 1), -np.inf)
+            targets = np.full((n, L - 1), -1, np.int64)
+            costs = np.zeros((n, L - 1), np.int64)
+            for m, chain in chains.items():
+                rows = np.flatnonzero(maxlev == m) if len(chains) > 1 else slice(None)
+                prev = L - 1
+                for step, to in enumerate(chain):
+                    dn = int(nsamp[to] - nsamp[prev])
+                    if len(chains) > 1:
+                        slopes[rows, step] = (zt[prev, rows] - zt[to, rows]) / float(dn)
+                    else:
+                        np.divide(zt[prev] - zt[to], float(dn), out=slopes[:, step])
+                    targets[rows, step] = to
+                    costs[rows, step] = dn
+                    prev = to
+    if slopes is None:
+        slopes, targets = _chains_general(z, maxlev, nsamp)
+    for j in range(1, L - 1):  # clamp an ulp's rise (see module doc); column-wise, -inf past a chain's end stays
+        np.minimum(slopes[:, j], slopes[:, j - 1], out=slopes[:, j])
+    valid = targets >= 0
+    if costs is None:
+        costs = np.zeros((n, L - 1), np.int64)
+        prev = np.full(n, L - 1, np.int64)
+        for j in range(L - 1):
+            tj = targets[:, j]
+            vj = tj >= 0
+            costs[:, j] = np.where(vj, nsamp[np.maximum(tj, 0)] - nsamp[prev], 0)
+            prev = np.where(vj, tj, prev)
+    total = int(costs.sum())
+    if budget_samples >= total:
+        cnt = valid.sum(axis=1)
+    else:
+        # invalid items (past a chain's end) have key -inf: they sort after every valid item, and the cut falls
+        # before them because the valid items alone exceed the budget
+        t = _take_prefix(slopes.ravel(), np.maximum(costs, 1).ravel(), int(max(budget_samples, 0))).reshape(n, L - 1)
+        cnt = np.zeros(n, np.int64)
+        for j in range(L - 1):
+            cnt += t[:, j]
+    pick = np.maximum(cnt - 1, 0)
+    return np.where(cnt > 0, np.take_along_axis(targets, pick[:, None], axis=1)[:, 0], L - 1)
+
+
+# --------------------------------------------------------------------------------------------- entry
+def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray, opac: np.ndarray | None = None,
+               gain: float = IMAGE_GAIN) -> float:
+    """The selection's predicted image ΔE (see module doc): the count-weighted RMS of ζ at the chosen levels;
+    with the blocks' opacity moments (N, 2) known, times gain / ā, ā the opacity-weighted mean opacity of every
+    loaded voxel."""
+    loaded = levels >= 0
+    if not loaded.any():
+        return 0.0
+    z = zeta_tab[np.flatnonzero(loaded), levels[loaded]].astype(np.float64)
+    w = np.nan_to_num(count[loaded].astype(np.float64))
+    if w.sum() <= 0:
+        return 0.0
+    rms = float(np.sqrt((w * z * z).sum() / w.sum()))
+    return rms if opac is None else rms * _image_gain(opac, count, loaded, gain)
+
+
+def _image_gain(opac: np.ndarray, count: np.ndarray, loaded: np.ndarray, gain: float = IMAGE_GAIN) -> float:
+    """gain / ā, ā the opacity-weighted mean TF opacity over the voxels of the `loaded` blocks (from the
+    blocks' opacity moments (N, 2))."""
+    w = np.nan_to_num(count[loaded].astype(np.float64))
+    m1, m2 = (w[:, None] * opac[loaded]).sum(axis=0)
+    return gain / max(m2 / m1 if m1 > 0 else 1.0, MIN_OPACITY)
+
+
+def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.ndarray | None = None,
+                 tables: Tables | None = None) -> float:
+    """The predicted mean ΔE that sampling every `step` voxels adds against the reference (step ¼, DESIGN.md):
+    STEP_GAIN · step² · RMS / ā. RMS: of ζ_step (level_error.step_zeta: the colour change over one voxel along a
+    ray) over the visible blocks in the crop, weighted by their voxels; ā as for the level of detail (ζ_step is a
+    unit slab's; a ray shows ~1/ā of them). A ray marcher's error at step h against a finer one grows as h²
+    (measured: 3.5–4.5× from h = ½ to 1 on every scene of the fit). 0 for a store without per-level spreads
+    (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
+    if meta.level_std is None or meta.n_levels < 2:
+        return 0.0
+    _, z, opac, visible = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
+    loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
+    w = np.nan_to_num(meta.count[loaded].astype(np.float64))
+    if not loaded.any() or w.sum() <= 0:
+        return 0.0
+    rms = float(np.sqrt((w * z[loaded] ** 2).sum() / w.sum()))
+    return rms * float(step) ** 2 * _image_gain(opac, meta.count, loaded, STEP_GAIN)
+
+
+def select_from_meta(
+    meta: BlockMeta,
+    tfs: Sequence[Any] | Any,
+    quality: Any,
+    *,
+    n_voxels: int,
+    block_size: int,
+    in_crop: np.ndarray | None = None,
+    max_level: np.ndarray | None = None,
+    method: str = "tf",
+    classification: str = "distribution",
+    visibility: np.ndarray | None = None,
+    lossless_zeta: float = LOSSLESS_ZETA,
+    tables: Tables | None = None,
+) -> LodSelection:
+    """select_lod on flattened block metadata (what the benchmarks and tests drive directly)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown LOD method {method!r} (one of {', '.join(METHODS)})")
+    L = meta.n_levels
+    n = meta.n
+    nsamp = np.array([(block_size >> k) ** 3 for k in range(L)], np.int64)
+    full_bytes = int(n_voxels) * BYTES_PER_SAMPLE
+    kind, budget = parse_quality(quality, full_bytes)
+    crop = np.ones(n, bool) if in_crop is None else np.asarray(in_crop, bool).ravel()
+    maxlev = np.zeros(n, np.int64) if max_level is None else np.clip(np.asarray(max_level, np.int64).ravel(), 0, L - 1)
+    prof = level_profile(L)
+    per_level = meta.level_std is not None and method == "tf"
+    opac = None
+    if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
+        zeta_tab, _, opac, visible = _max_tables(
+            meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs, classification, tables)
+    else:
+        z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
+        zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
+    # what the selection weighs: ζ, times what the camera sees of the block (visibility.py) when that is given;
+    # the greedy takes it with the level's spread (module doc: "What the greedy weighs")
+    seen = None if visibility is None or method not in ("tf", "tf_full_hist") else \
+        np.clip(np.asarray(visibility, np.float64).ravel(), 0.0, 1.0)
+    weight = meta.count if seen is None else meta.count * seen
+    zeta_w = zeta_tab if seen is None else (zeta_tab * seen[:, None]).astype(np.float32)
+    if per_level:
+        spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
+        spread[:, 0] = 0.0
+        drive_tab = np.sqrt(zeta_tab * spread)
+        if seen is not None:
+            drive_tab *= seen[:, None]
+        z0 = drive_tab.max(axis=1)  # drives the refinement: a block is refined if some level loses anything
+    elif seen is not None:
+        z0 = z0 * seen
+    if kind == "full":
+        levels = np.where(crop, maxlev, -1)
+    else:
+        loaded = visible & crop
+        levels = np.where(loaded, L - 1, -1).astype(np.int64)
+        if method == "l2":
+            drive = zeta0_l2_cached(meta, visible)
+        else:
+            drive = z0
+        refine = loaded & (drive > 0) & (maxlev < L - 1)
+        base_samples = int(loaded.sum()) * int(nsamp[L - 1])
+        if kind == "lossless" and per_level:
+            # the coarsest level each block shows within ζ of its level-0 colours (ζ · IMAGE_GAIN / ā, the predicted
+            # ΔE, at most lossless_zeta)
+            # (levels finer than a block's max level count as fine: they are not allowed anyway)
+            gain = _image_gain(opac, weight, loaded)
+            ok = (zeta_w * gain <= lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
+            first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
+            levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
+        elif kind == "lossless":
+            levels[refine] = maxlev[refine]
+        else:
+            budget_samples = int(budget // BYTES_PER_SAMPLE)
+            if budget_samples < base_samples:
+                from lodcast.renderer.scene.scene import SceneError
+
+                raise SceneError(
+                    f"quality: the budget ({budget / MB:.4g} MB) is below the {base_samples * BYTES_PER_SAMPLE / MB:.4g} MB "
+                    "that every visible block at its coarsest level needs"
+                )
+            if method == "uniform":
+                for k in range(L):
+                    lv = np.maximum(k, maxlev[loaded])
+                    if int(nsamp[lv].sum()) <= budget_samples:
+                        levels[loaded] = lv
+                        break
+            elif per_level:
+                rows = np.flatnonzero(refine)
+                levels[rows] = greedy(drive_tab[rows].astype(np.float64), maxlev[rows], nsamp, budget_samples - base_samples)
+            else:
+                rows = np.flatnonzero(refine)
+                ztab = drive[rows, None] * prof[None, :]
+                levels[rows] = greedy(ztab, maxlev[rows], nsamp, budget_samples - base_samples, profile=prof)
+    loaded = levels >= 0
+    samples = int(nsamp[levels[loaded]].sum())
+    nbytes = samples * BYTES_PER_SAMPLE
+    return LodSelection(
+        levels=levels.astype(np.int8).reshape(meta.grid),
+        zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
+        predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, weight, opac,
+                                                                IMAGE_GAIN if kind == "lossless" else BUDGET_GAIN),
+        bytes=nbytes,
+        reduction=(full_bytes / nbytes) if nbytes else float("inf"),
+        blocks_skipped=int((~loaded).sum()),
+    )
+
+
+def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | None) -> tuple[np.ndarray, ...]:
+    """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,)) of
+    one TF (level_error.block_zetas). They depend on the store and the TF, not on the view or the budget, and cost
+    a noticeable part of a first render: kept for the last few in `tables` (keyed by the metadata object, which
+    `tables` keeps per store)."""
+    key = (id(meta), json.dumps(as_tf(tf).model_dump(mode="json"), sort_keys=True), classification)
+    hit = None if tables is None else tables.tf.get(key)
+    if hit is not None and hit[0]() is meta:
+        return hit[1]  # type: ignore[no-any-return]
+    visible = tf_visible(tf, meta.min_border, meta.max_border)
+    zeta, step, opac = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables)
+    out = (zeta.astype(np.float32), step, opac, visible)
+    for a in out:
+        a.setflags(write=False)
+    if tables is not None:
+        tables.tf.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
+    return out
+
+
+def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
+                tables: Tables | None = None) -> tuple[np.ndarray, ...]:
+    """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,)): the elementwise maxima
+    over the TFs of their tables (zeros where no TF gives more)."""
+    zeta, step = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros(meta.n)
+    opac, visible = np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
+    for t in tfs:
+        z_t, s_t, o_t, vis_t = _tf_tables(meta, t, classification, tables)
+        zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
+        opac, visible = np.maximum(opac, o_t), visible | vis_t
+    return zeta, step, opac, visible
+
+
+def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
+    from lodcast.renderer.lod.significance import zeta0_l2
+
+    return zeta0_l2(meta, visible)
+
+
+def select_lod(store: Any, tfs: Any, quality: Any, crop: Any = None, method: str = "tf",
+               max_level: np.ndarray | None = None, classification: str = "distribution",
+               visibility: np.ndarray | None = None, lossless_zeta: float = LOSSLESS_ZETA,
+               tables: Tables | None = None) -> LodSelection:
+    """Select a level per block for `tfs` (one TF, or a list: ζ is the max over them) under `quality`
+    ("full" | "lossless" | {"budget_mb": x} | {"reduction": r}, or the scene's quality objects).
+
+    crop: world box (lower, upper) in (z, y, x), or a grid-shaped bool mask; blocks outside it are not loaded. max_level: optional grid-shaped
+    finest level per block (0 = full allowed). method: "tf" (eq. 3.1 on simplified histograms), "tf_full_hist",
+    "l2" (data-error significance, same greedy) or "uniform" (one level for every loaded block, the finest that
+    fits). `zeta` and `predicted_delta_e` are always the ΔE significance (simplified, or full for tf_full_hist).
+    visibility: optional grid-shaped weight per block in [0, 1], what the camera sees of it (visibility.py): the TF
+    methods weigh ζ by it and the prediction counts each block's voxels times it (module doc).
+    lossless_zeta: the ΔE per block that "lossless" allows (an engine passes LODCAST_LOSSLESS_ZETA). tables: what
+    was computed for this store and these TFs before (an engine's), kept there; None: computed afresh."""
+    meta = meta_of_store(store, tables)
+    in_crop = None
+    if isinstance(crop, np.ndarray) and crop.dtype == bool:
+        in_crop = crop  # a block mask already (renderer/scene/clip.py: the scene's clip region)
+    elif crop is not None:
+        in_crop = crop_mask(store.grid, store.shape, store.spacing, store.origin, store.block_size, crop)
+    if isinstance(tfs, dict) or hasattr(tfs, "points"):
+        tfs = [tfs]
+    return select_from_meta(
+        meta,
+        tfs,
+        quality,
+        n_voxels=int(np.prod(store.shape, dtype=np.int64)),
+        block_size=store.block_size,
+        in_crop=in_crop,
+        max_level=max_level,
+        method=method,
+        classification=classification,
+        visibility=visibility,
+        lossless_zeta=lossless_zeta,
+        tables=tables,
+    )

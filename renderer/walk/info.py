@@ -1,0 +1,286 @@
+"""The walks: which cells a ray may skip, and how far it may leap (Open VKL's interval iterator, where
+renderer/data/sampler.py and renderer/data/atlas.py are its sampler). Full resolution walks cells of 4³ or 8³ voxels over
+their border-inclusive value ranges; the atlas walks half-block cells over the bounds of the field sampled in them
+(atlas_cells.cl), and the adaptive walk reads the same cells' step levels, leaps and octant masks. What a walk
+needs of a scene is computed on the host per volume or selection, TF and clip, and kept (renders that repeat a
+scene, or change only what the walk does not depend on, reuse it)."""
+from __future__ import annotations
+
+import hashlib
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from lodcast.renderer.data import atlas as lod_atlas
+from lodcast.renderer.scene import clip as clipping
+from lodcast.renderer.lod import dual
+from lodcast.renderer.lod.classification import DistTable
+from lodcast.renderer.kernel.config import EXTREMUM_MODES, KernelConfig
+from lodcast.renderer.walk.leap import Leaps, cell_leaps, children, coarsen_ranges, step_leaps
+from lodcast.renderer.scene.transfer_function import Lut
+from lodcast.renderer.data.volume import VolumeView
+from lodcast.store.layout import cell_edge
+
+if TYPE_CHECKING:  # pragma: no cover
+    from lodcast.renderer.data import atlas_cells
+    from lodcast.renderer.data import passes as multipass
+    from lodcast.renderer.frame.plan import Prepared
+
+__all__ = ["FINE_STEP", "adaptive_walk", "atlas_cell_info", "block_info", "octant_masks", "range_info",
+           "walk_info", "walk_steps"]
+
+def block_info(vol: VolumeView, lut: Lut, mode: str, lut2: Lut | None = None) -> tuple[np.ndarray, int]:
+    """(per-block float32 array in kernel order (gz, gy, gx), number of empty blocks): `range_info` of the blocks'
+    border-inclusive ranges."""
+    return range_info(vol.min_border, vol.max_border, lut, mode, lut2)
+
+
+def range_info(vmin: np.ndarray, vmax: np.ndarray, lut: Lut, mode: str,
+               lut2: Lut | None = None) -> tuple[np.ndarray, int]:
+    """What the block walk needs of cells with border-inclusive value ranges [vmin, vmax] (NaN: no value), and the
+    number of empty cells. Composite: 1 where the TF is non-zero somewhere on the range (with a second TF's
+    `lut2`: bit 1 for tf, bit 2 for tf2, renderer/lod/dual.py); MIP: the maximum; MinIP: minus the minimum (the kernel
+    tracks the maximum of -v); average and iso (no block walk): zeros."""
+    if mode in EXTREMUM_MODES:
+        ext = vmax if mode == "mip" else -np.asarray(vmin, np.float64)
+        mx = np.where(np.isfinite(ext), ext, -np.inf)
+        return np.ascontiguousarray(mx, dtype=np.float32), 0
+    if mode != "composite":
+        return np.zeros(np.shape(vmin), np.float32), 0
+    vis = lut.visible(vmin, vmax)
+    if lut2 is not None:
+        vis = dual.visibility_bits(vis, lut2.visible(vmin, vmax))
+    return np.ascontiguousarray(vis, dtype=np.float32), int(vis.size - np.count_nonzero(vis))
+
+
+_CELL_CHUNK = 1 << 20
+
+
+def walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, tuple[int, int, int, int],
+                                                                   Leaps | None]:
+    """(the block walk's info, its grid (x, y, z, cell edge), its leaps): at full resolution over the cells of
+    empty-space skipping (`_level0_walk`), with the clip region's cells outside empty; on the atlas over its
+    half-block cells (data.cells): the selection's block info where the cell's field can show something
+    (`atlas_cell_info`), else the block info. With leaps (config.leap) the empty cells' leaps (renderer/walk/leap.py:
+    cell_leaps, their planes computed as views need them), else None."""
+    leap = pr.config.leap and not pr.config.adaptive  # (the adaptive walk's leaps: step_leaps)
+    key = _walk_key(pr, data, leap)
+    anchor = data.cell_min if data.cells is None else data.cells
+    if key is not None:
+        hit = pr.engine.walks.get(key)
+        if hit is not None and hit[0] is anchor:  # (the reference held keeps the id from being reused)
+            return hit[1], hit[2], hit[3]
+    vol = pr.volume
+    B = int(vol.block_size)
+    if data.cells is not None:
+        info, C = atlas_cell_info(pr, data.cells), B // 2
+    elif data.cell_min is None or not pr.config.ess:
+        info, C = pr.block_info, B
+    else:
+        info, C = _level0_walk(pr, data)
+    g = info.shape
+    info = np.ascontiguousarray(info, dtype=np.float32)
+    out = info, (g[2], g[1], g[0], C), (cell_leaps(info) if leap else None)
+    if key is not None:
+        pr.engine.walks.put(key, (anchor, *out), info.nbytes + (0 if out[2] is None else out[2].nbytes))
+    return out
+
+
+def _walk_key(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple | None:
+    """What the walk info depends on, besides the cells' ranges, by identity: full resolution's (data.cell_min,
+    which the device cache keeps per volume) or the atlas's half-block cells (data.cells, kept per selection beside
+    the atlas); then the TFs' opacities (only where they are zero matters, but the tables are small), the mode, the
+    clip planes, the leaps and which cells the step walks (FINE_STEP); on the atlas also the selection's block info,
+    the distribution tables' visible spans and whether the store keeps its level-0 cell ranges (atlas_cell_info
+    took 5-8 ms a render of the chest CT at 30:1).
+    Passes and volumes the device cache does not keep (arrays without a key): None (computed per render)."""
+    if data.region is not None or not pr.config.ess or pr.volume.key is None:
+        return None
+    if data.cells is None and data.cell_min is None:
+        return None
+    digest = lambda a: hashlib.blake2b(np.ascontiguousarray(a).tobytes(), digest_size=16).digest()  # noqa: E731
+    tfs = tuple((t.lut.lo, t.lut.scale, t.lut.n, digest(t.lut.opacity > 0),
+                 None if t.dist is None else (t.dist.lo, t.dist.scale, t.dist.rows, t.dist.std_max,
+                                              digest(t.dist.kernel_table[-1])))
+                for t in [pr] + ([] if pr.second is None else [pr.second]))
+    clip = None if pr.scene.clip is None else pr.scene.clip.model_dump_json()
+    common = (pr.scene.mode, tfs, clip, leap, pr.scene.sampling.step > FINE_STEP)
+    if data.cells is not None:
+        return ("atlas", id(data.cells), digest(pr.block_info), pr.scene.sampling.empty_space_skipping,
+                pr.volume.has_cell_ranges, *common)
+    return id(data.cell_min), data.cell, *common
+
+
+#: full resolution walks its finest cells (4³: sampler.ess_cell) while the step is at most this many voxels, and cells
+#: of 8³ (their ranges from the finer ones') beyond: a long step takes few samples per fine cell, and each costs its
+#: walk step (kernel ms 4³ / 8³, 512²: at step ½ chest bone 140 / 170, engine metal 85 / 110; at step 1 engine metal
+#: 52 / 62, chest bone 95 / 97; at step 1.5 about even; at step 2 engine translucent 99 / 88, metal 54 / 48)
+FINE_STEP = 1.0
+
+
+def _level0_walk(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, int]:
+    """Full resolution's walk info over its cells (data.cell voxels, or twice that for steps beyond FINE_STEP) and
+    their edge. Fine cells are classified only where their parent cell of twice the edge can show something (a
+    child's range lies inside its parent's)."""
+    vol, mode = pr.volume, pr.scene.mode
+    B, C = int(vol.block_size), data.cell
+    lut2 = None if pr.second is None else pr.second.lut
+    empty = -np.inf if mode in EXTREMUM_MODES else 0.0
+    cmin, cmax = data.cell_min, data.cell_max
+    coarse_walk = pr.scene.sampling.step > FINE_STEP  # the parents are the walk's cells
+    # cells of twice the edge still lie inside a block, and the walk is over them or classifies under them
+    parents = (2 * C <= cell_edge(B) and B % (2 * C) == 0
+               and (coarse_walk or (data.region is None and mode not in EXTREMUM_MODES)))
+    if parents:
+        hit = pr.engine.parents.get(id(cmin))
+        if hit is None or hit[0] is not cmin:  # (the reference held keeps the id from being reused)
+            hit = (cmin, *coarsen_ranges(cmin, cmax))
+            pr.engine.parents.put(id(cmin), hit, hit[1].nbytes * 2)
+        if coarse_walk:
+            cmin, cmax, C, parents = hit[1], hit[2], 2 * C, False
+    if data.region is not None:  # a pass: its own blocks' cells hold values, the rest NaN (on the 8 GiB volume, 32
+        # passes each over all 8.4 million cells took 37 of the 92 s of a full-resolution render)
+        k = B // C
+        box = tuple(slice(b.start * k, min(n, b.stop * k)) for b, n in zip(data.region.blocks, cmin.shape))
+        info = np.full(cmin.shape, empty, np.float32)
+        info[box], _ = range_info(cmin[box], cmax[box], pr.lut, mode, lut2)
+        return _clipped(pr, info, C), C
+    if not parents or mode in EXTREMUM_MODES:
+        info, _ = range_info(cmin, cmax, pr.lut, mode, lut2)
+        return _clipped(pr, info, C), C
+    parent, _ = range_info(hit[1], hit[2], pr.lut, mode, lut2)
+    parent = _clipped(pr, parent, 2 * C)
+    info = np.zeros(cmin.shape, np.float32)  # composite: a child can show something only where its parent can
+    seen = children(parent != 0.0, cmin.shape)
+    info[seen], _ = range_info(cmin[seen], cmax[seen], pr.lut, mode, lut2)
+    return _clipped(pr, info, C), C
+
+
+def _clipped(pr: "Prepared", info: np.ndarray, C: int) -> np.ndarray:
+    """The walk info with the cells (edge C) that lie outside the clip region empty."""
+    vol = pr.volume
+    keep = clipping.block_mask(info.shape, vol.shape, vol.spacing, vol.origin, C, pr.scene.clip)
+    if keep is None:
+        return info
+    return np.where(keep, info, -np.inf if pr.scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
+
+
+def atlas_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells") -> np.ndarray:
+    """The walk's info over the atlas's half-block cells: the selection's block info (pr.block_info) where the
+    field sampled in the cell can be visible, empty (0; MIP: its largest value, MinIP: minus its smallest) where
+    it cannot: every value there is invisible under the point classification and, with distribution
+    classification, under the TF's distribution table for deviations up to the cell's largest. Where the block
+    info already says empty it stays so, so the image is the block walk's: only samples that add nothing are
+    left out (tests/test_atlas_cells.py). Cells of a pass's blocks only (cells.blocks): the rest are empty, the
+    pass samples nothing there."""
+    mode = pr.scene.mode
+    part = _cell_info(pr, cells, pr.block_info if cells.blocks is None else pr.block_info[cells.blocks])
+    if cells.blocks is None:
+        return part
+    out = np.full(tuple(2 * g for g in pr.block_info.shape), -np.inf if mode in EXTREMUM_MODES else 0.0, np.float32)
+    out[cells.at] = part
+    return out
+
+
+def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.ndarray) -> np.ndarray:
+    up = lod_atlas.half_cells(block_info)
+    mode = pr.scene.mode
+    if mode in EXTREMUM_MODES:
+        ext = cells.vmax if mode == "mip" else -cells.vmin.astype(np.float64)
+        ext = np.where(np.isfinite(ext), ext, -np.inf)
+        return np.ascontiguousarray(np.minimum(up, ext), dtype=np.float32)
+
+    # A coarse cell (its block at level >= 1) whose level-0 voxels, one-voxel border included, the TF shows nothing
+    # of is not sampled (the store's cell ranges), however its coarse field classifies: full resolution skips that
+    # cell too, and what the coarse field shows there is its blur of the neighbouring cells or a Gaussian's tail
+    # (the haze that bimodal voxels, air against skin, give a bone TF). On the chest and engine CTs (32 images,
+    # benchmarks/bench_lod_sweep.py) it left out a tenth of the LOD's samples (0.589 -> 0.524 of full
+    # resolution's) and lowered the summed mean ΔE (145.5 -> 143.6). Without the border it saved more (0.494,
+    # 139.7) but clipped silhouettes that end at a cell's face, which full resolution shows a voxel further.
+    # Without empty-space skipping (the walk then runs for this alone, prepare()) every other cell is sampled.
+    level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells) if pr.lod is not None else None
+    if level0 is not None:
+        coarse = lod_atlas.half_cells(pr.lod.levels >= 1)[cells.at]
+        lo0, hi0 = (a[cells.at] for a in level0)
+    skip_empty = pr.scene.sampling.empty_space_skipping
+    if not skip_empty:
+        up = np.full(up.shape, 1.0 if pr.second is None else 3.0, np.float32)  # (tf2: both TFs' bits)
+
+    def seen(lut: Lut, dist: DistTable | None) -> np.ndarray:
+        # in pieces: the tests make float64 temporaries, ~60 bytes per cell (8M cells of a 1024 x 2048² volume)
+        out = np.empty(cells.vmin.shape, bool)
+        flat, lo, hi, sd = (a.reshape(-1) for a in (out, cells.vmin, cells.vmax, cells.std))
+        for i in range(0, flat.size, _CELL_CHUNK):
+            part = slice(i, i + _CELL_CHUNK)
+            flat[part] = _shows(lut, dist, lo[part], hi[part], sd[part]) if skip_empty else True
+            if level0 is not None:  # only where a coarse cell is still visible (8M cells of the 8 GiB volume)
+                sub = flat[part]
+                idx = np.flatnonzero(sub & coarse.reshape(-1)[part])
+                sub[idx] = lut.visible(lo0.reshape(-1)[part][idx], hi0.reshape(-1)[part][idx])
+        return out
+
+    vis = seen(pr.lut, pr.dist)
+    if pr.second is not None:
+        vis = dual.visibility_bits(vis, seen(pr.second.lut, pr.second.dist))
+        return np.ascontiguousarray(np.bitwise_and(up.astype(np.int64), vis.astype(np.int64)), dtype=np.float32)
+    return np.ascontiguousarray(np.where(vis, up, np.float32(0.0)), dtype=np.float32)
+
+
+def _shows(lut: Lut, dist: DistTable | None, lo: np.ndarray, hi: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Where a field whose values lie in [lo, hi] and deviations in [0, sd] can show something: under the point
+    classification, or under the distribution table's."""
+    vis = lut.visible(lo, hi)
+    if dist is not None:
+        vis |= dist.visible(lo, hi, sd)
+    return vis
+
+
+def adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData", walk: np.ndarray,
+                  leaps: Leaps | None) -> tuple[np.ndarray, np.ndarray, Leaps | None]:
+    """(the adaptive walk's step levels, the walk info the kernel reads, the leaps): the adaptive walk reads its
+    cells' skips in the steps, the octant masks of its sampled cells in the info (config.octants) and the leaps
+    over its skipped level-0 cells (renderer/walk/leap.py: step_leaps); without adaptive steps, (data.steps, walk,
+    leaps). Kept per (walk info, step levels), both by identity (each comes from a cache of its own when the scene
+    repeats): 3-4 ms a render of the chest CT at 30:1."""
+    if not cfg.adaptive:
+        return data.steps, walk, leaps
+    key = (None if data.region is not None or pr.volume.key is None
+           else (id(walk), id(data.steps), cfg.leap, cfg.octants))
+    hit = pr.engine.adaptive_walks.get(key) if key is not None else None
+    if hit is not None and hit[0] is walk and hit[1] is data.steps:
+        return hit[2], hit[3], hit[4]
+    steps = walk_steps(pr, data.steps, walk) if data.cells is not None else data.steps
+    info = octant_masks(pr, data.octants, steps) if cfg.octants else walk
+    out = steps, np.ascontiguousarray(info, dtype=np.float32), (step_leaps(steps) if cfg.leap else None)
+    if key is not None:
+        pr.engine.adaptive_walks.put(key, (walk, data.steps, *out), sum(a.nbytes for a in out if a is not None))
+    return out
+
+
+def octant_masks(pr: "Prepared", octants: "atlas_cells.AtlasCells | None", steps: np.ndarray) -> np.ndarray:
+    """The adaptive walk's octant masks (config.octants; float32 over the half-block cells, 0-255): bit
+    (z & 1) << 2 | (y & 1) << 1 | (x & 1) of a sampled cell's octant (quarter-block cell) where the field sampled
+    there can show something under the point or the distribution classification (atlas_cells.cl's bounds), as
+    `_cell_info` tests its cells; the kernel takes no sample in the others, whose samples add nothing. Only the
+    octants of sampled cells are classified (a skipped cell's entry is 0). Without octants (no half-block
+    cells to walk): every bit set. At lossless and 5:1 most of what the rays meet is level 0 in cells of 8³, where
+    full resolution walks cells of 4³: the chest CT under ct-bone took 1.47 and 1.57 times full resolution's
+    samples."""
+    if octants is None:
+        return np.full(steps.shape, 255.0, np.float32)
+    want = lod_atlas.per_cell(steps >= 0, 2).reshape(-1)  # the octants of sampled cells
+    idx = np.flatnonzero(want)
+    vis = np.zeros(want.size, bool)
+    vis[idx] = _shows(pr.lut, pr.dist, *(a.reshape(-1)[idx] for a in (octants.vmin, octants.vmax, octants.std)))
+    g = steps.shape
+    bits = vis.reshape(g[0], 2, g[1], 2, g[2], 2).astype(np.uint8)
+    mask = sum(bits[:, oz, :, oy, :, ox] << np.uint8(oz << 2 | oy << 1 | ox)
+               for oz in (0, 1) for oy in (0, 1) for ox in (0, 1))
+    return mask.astype(np.float32)
+
+
+def walk_steps(pr: "Prepared", steps: np.ndarray, walk: np.ndarray) -> np.ndarray:
+    """Adaptive sampling's step levels with the half-block cells the walk's info marks empty skipped."""
+    if pr.scene.mode != "composite":
+        return steps
+    return lod_atlas.skipped(steps, walk == 0.0)
