@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The test suite: a virtual environment in .venv with lodcast and its test extras, then pytest on 2 processes.
+# The test suite: a virtual environment in .venv with lodcast and its test extras, ruff and mypy over the code, then
+# pytest on 2 processes.
 # Tests that need the real volumes in ../shared/data or a redis-server binary skip with the reason when they are
 # missing (and fail instead under CI=true, where both must be present).
 set -euo pipefail
@@ -13,4 +14,7 @@ echo "installing lodcast with its test dependencies (pytest, schemathesis, moto,
 PYTHONWARNINGS="ignore:Editable installation" .venv/bin/python -m pip install -q -e ".[test]"
 # then the other readers of a store (napari, ome-zarr): in one resolution with the rest pip backtracks for minutes
 PYTHONWARNINGS="ignore:Editable installation" .venv/bin/python -m pip install -q -e ".[interop]"
+# lint and types first (seconds): [tool.ruff] and [tool.mypy] in pyproject.toml
+.venv/bin/ruff check --quiet .
+.venv/bin/python .ci/typecheck
 exec .venv/bin/python -m pytest -n 2 "$@"

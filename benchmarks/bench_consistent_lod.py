@@ -7,7 +7,7 @@ predicted ΔE, LOD that pays for itself, first-render times).
 Volumes: the chest CT (../shared/data/ct_chest_dicom, 275x512x512 HU, presets ct-bone, ct-skin, ct-skin-bone) and
 the engine CT (engine.nii.gz, 128x256x256, an opaque metal TF), ingested with the default 16³ blocks (and 8³ for
 the first-render times) under benchmarks/results/. Every image is compared with its reference (full resolution,
-step ¼, DESIGN.md's ΔE over the footprint) and with full resolution at the same step (what the predicted ΔE
+step ¼, docs/design.md's ΔE over the footprint) and with full resolution at the same step (what the predicted ΔE
 predicts: the level of detail's own error). A quality's kernel ms and its speed relative to full resolution are
 medians of `repeat` rounds after a warm-up, each round rendering full resolution and that quality one after the
 other (the fixed-step and interblock columns: the fastest of `repeat`), on the first OpenCL device; the machine is
@@ -31,8 +31,8 @@ DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "
 RESULTS = HERE / "results"
 
 import lodcast  # noqa: E402
-from lodcast.renderer.kernel.config import KernelConfig  # noqa: E402
 from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
+from lodcast.renderer.kernel.config import KernelConfig  # noqa: E402
 from lodcast.renderer.lod.selection import select_lod  # noqa: E402
 from lodcast.renderer.scene.transfer_function import CT_PRESETS  # noqa: E402
 from lodcast.store.store import FORMAT_VERSION  # noqa: E402

@@ -15,7 +15,7 @@ kernel's table caps it. Models, from what the voxel would keep:
 - mixture: the two-point split with each part a Gaussian of the within-part spread w, w² = std² − (mean − lo)(hi −
   mean) (the law of total variance, one w for both parts): (1 − f)·G(lo, w) + f·G(hi, w) — keeps (mean, std, lo, hi).
 Each voxel's colour is its own slab along one edge (2^k level-0 voxels, the unit distance being one voxel):
-α = 1 − e^(−σ̄·2^k), premultiplied colour α·ε̄/σ̄; the figures are ΔE (CIELUV, as DESIGN.md's image ΔE) over the
+α = 1 − e^(−σ̄·2^k), premultiplied colour α·ε̄/σ̄; the figures are ΔE (CIELUV, as docs/design.md's image ΔE) over the
 voxels either side shows (α ≥ 1/255), the share of voxels a model shows that the exact classification does not
 ("haze") and of those it loses.
 
@@ -41,8 +41,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from bench_consistent_lod import DATA, RESULTS, store_of  # noqa: E402
-from lodcast.renderer.lod.classification import EXT_CAP, cached_dist_table  # noqa: E402
+
 from lodcast.renderer.image.delta_e import delta_e_stats, srgb_to_luv  # noqa: E402
+from lodcast.renderer.lod.classification import EXT_CAP, cached_dist_table  # noqa: E402
 from lodcast.renderer.lod.significance import as_tf  # noqa: E402
 from lodcast.renderer.scene.transfer_function import CT_PRESETS, evaluate, extinction  # noqa: E402
 

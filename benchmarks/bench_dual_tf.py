@@ -8,7 +8,7 @@ an opaque aluminium block as tf and its steel parts as tf2; both ingested with 1
 benchmarks/results/. Each case renders at quality "full" and at {"reduction": 30}, with the priority map on and
 off, and with empty-space skipping on (default) and off (the thesis' situation: without the block walk, a ray
 without priority runs to its end). Kernel times are the fastest of `repeat` after a warm-up; the machine is
-shared, so compare ratios within one run. ΔE (DESIGN.md) is between the priority-map image and the plain dual-TF
+shared, so compare ratios within one run. ΔE (docs/design.md) is between the priority-map image and the plain dual-TF
 image of the same settings. Prints a markdown table and writes JSON.
 """
 from __future__ import annotations
@@ -18,8 +18,9 @@ import json
 from pathlib import Path
 
 from bench_consistent_lod import DATA, RESULTS, best, store_of  # the 16³ stores every CT benchmark shares
-from lodcast.renderer.image.delta_e import delta_e_stats
+
 from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.image.delta_e import delta_e_stats
 
 ENGINE_BLOCK = {"points": [{"value": 90, "color": [0.75, 0.8, 0.85], "opacity": 0.0},
                            {"value": 130, "color": [0.8, 0.85, 0.9], "opacity": 0.6}]}

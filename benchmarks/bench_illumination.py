@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_illumination.py [--size 256] [--repeat 3] [--json benchmarks/results/illumination.json]
 
 Volume: the chest CT (../shared/data/ct_chest_dicom, 16³ store under benchmarks/results/), full resolution. TFs:
-ct-skin (a thin band: high frequency) and ct-bone. Error: DESIGN.md's mean ΔE against the point-sampled render
+ct-skin (a thin band: high frequency) and ct-bone. Error: docs/design.md's mean ΔE against the point-sampled render
 at step 1/8 (early termination off). Kernel times are the fastest of `repeat` after a warm-up; the machine is
 shared, so compare ratios within one run. Prints a markdown table and writes JSON.
 """
@@ -19,11 +19,11 @@ HERE = Path(__file__).resolve().parent
 DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "data"))
 RESULTS = HERE / "results"
 
-import lodcast  # noqa: E402
 from bench_consistent_lod import best  # noqa: E402
-from lodcast.renderer.tools.demo import SHADING  # noqa: E402
-from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 
+import lodcast  # noqa: E402
+from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
+from lodcast.renderer.tools.demo import SHADING  # noqa: E402
 
 
 def main() -> None:

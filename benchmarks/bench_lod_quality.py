@@ -6,7 +6,7 @@
 The chest CT (../shared/data/ct_chest_dicom, 275x512x512 HU) is ingested once per block size (8³; 16³ as in the
 thesis and lodcast's default; 32³) under benchmarks/results/. For each CT preset TF (ct-bone, ct-skin, ct-skin-bone) the scene
 (size², azimuth 30°, elevation 15°, step ½ voxel) is rendered by `lodcast.renderer.tools.quality_report` against its
-reference (full resolution, step ¼, DESIGN.md's ΔE over the footprint), and at 64:1 the TF-based selection is
+reference (full resolution, step ¼, docs/design.md's ΔE over the footprint), and at 64:1 the TF-based selection is
 compared with data-error (L2) selection and uniform level reduction (thesis fig. 3.4; the four images side by
 side in benchmarks/results/fig_3_4_b{B}_{tf}.png). Targets (issue 5):
 virtually lossless ≥ 5:1 at mean ΔE ≤ 0.5; 30:1 at mean ΔE ≤ 2.5; TF beats L2 and uniform at 64:1; adaptive
@@ -30,11 +30,11 @@ DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "
 RESULTS = HERE / "results"
 
 import lodcast  # noqa: E402
-from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
-from lodcast.renderer.tools.quality_report import Variant, reference_scene, run_report  # noqa: E402
 from lodcast.renderer.frame.render import Renderer  # noqa: E402
+from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 from lodcast.renderer.lod.selection import select_lod  # noqa: E402
 from lodcast.renderer.scene.transfer_function import CT_PRESETS  # noqa: E402
+from lodcast.renderer.tools.quality_report import Variant, reference_scene, run_report  # noqa: E402
 
 VARIANTS = [
     Variant("full"),

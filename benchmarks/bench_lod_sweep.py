@@ -5,7 +5,7 @@ selection or the adaptive steps (one number to compare before and after, and eve
 
 The chest CT (ct-bone, ct-skin, ct-skin-bone) and the engine CT (an opaque metal TF), two views each (azimuth
 30°/elevation 15° and 200°/−20°), at 5:1, 10:1, 30:1 and 100:1 with default settings. Per image: mean ΔE against
-the full-resolution reference at step ¼ (DESIGN.md's ΔE over the footprint) and the samples taken as a fraction of
+the full-resolution reference at step ¼ (docs/design.md's ΔE over the footprint) and the samples taken as a fraction of
 full resolution's at the default step. Prints a markdown table and the sums; references are cached beside the
 stores (benchmarks/results/), keyed by volume, TF, view and size. Image errors and sample counts are deterministic;
 the kernel times it also prints are not (the machine is shared).
@@ -23,8 +23,9 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-import lodcast  # noqa: E402
 from bench_consistent_lod import DATA, ENGINE_TF, RESULTS, best, store_of  # noqa: E402
+
+import lodcast  # noqa: E402
 from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 
 VIEWS = [{"azimuth": 30, "elevation": 15}, {"azimuth": 200, "elevation": -20}]

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import fsspec
 import numpy as np
+from bench_consistent_lod import DATA, RESULTS, store_of
 
 import lodcast
-from bench_consistent_lod import DATA, RESULTS, store_of
 from lodcast.renderer.frame.render import Renderer
 from lodcast.service.testing import s3_server
 

@@ -21,11 +21,11 @@ import os
 from pathlib import Path
 
 import numpy as np
-
 from bench_consistent_lod import DATA, RESULTS, best, store_of
+
 from lodcast.renderer.data import sampler
-from lodcast.renderer.image.delta_e import delta_e_stats
 from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.image.delta_e import delta_e_stats
 
 CASES = [("chest CT", "ct_chest", "ct_chest_dicom", ["ct-bone", "ct-skin", "ct-body"]),
          ("engine CT", "engine", "engine.nii.gz", [None])]

@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from bench_consistent_lod import DATA, RESULTS, store_of
+
 from lodcast.renderer.frame.render import Renderer
 
 

@@ -64,9 +64,9 @@ def run_render(eng, store, scene: dict) -> dict:
 
 def run_bare(eng, store, scene: dict) -> dict:
     """The bare march on the same rays (same Prepared parameters, same volume buffer: `eng`'s device cache)."""
-    from lodcast.renderer.frame.render import launch
     from lodcast.renderer.data.sampler import upload_level0
     from lodcast.renderer.data.volume import voxel_options
+    from lodcast.renderer.frame.render import launch
 
     ctx, queue = eng.device.context, eng.device.queue
     pr = eng.prepare(store, scene)

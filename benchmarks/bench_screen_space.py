@@ -15,9 +15,10 @@ import argparse
 import json
 from pathlib import Path
 
-import lodcast
 from bench_consistent_lod import DATA, RESULTS, best, store_of
 from bench_dual_tf import ENGINE_BLOCK, ENGINE_STEEL
+
+import lodcast
 from lodcast.renderer.image.delta_e import delta_e_stats
 
 CASES = [("chest CT", "ct_chest", "ct_chest_dicom", {"tf": "ct-bone"}),

@@ -1,4 +1,4 @@
-"""The README's picture of `"tf": "auto"`: one scene, no transfer function written for any volume, on six real
+"""The picture in docs/rendering.md of `"tf": "auto"`: one scene, no transfer function written for any volume, on six real
 volumes of different modalities and scales (CT in Hounsfield units, industrial and micro-CT, three MR heads); each
 panel says the α-histogram's background and tissue peaks the template was placed on.
 
@@ -12,9 +12,9 @@ import argparse
 from pathlib import Path
 
 import lodcast
+from lodcast.renderer.data.volume import as_volume
 from lodcast.renderer.scene.adaptive_tf import volume_peaks
 from lodcast.renderer.tools.demo import SHADING
-from lodcast.renderer.data.volume import as_volume
 
 HERE = Path(__file__).resolve().parent
 VOLUMES = [("ct_chest", "ct_chest_dicom", 30), ("engine", "engine.nii.gz", 30), ("bonsai", "bonsai.nii.gz", 30),
@@ -25,9 +25,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=HERE.parent / "docs" / "images" / "adaptive_tf.png")
     a = ap.parse_args()
-    from bench_consistent_lod import DATA, store_of
-
     import matplotlib
+    from bench_consistent_lod import DATA, store_of
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

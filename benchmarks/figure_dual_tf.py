@@ -1,4 +1,4 @@
-"""The README's picture of dual-TF compositing ("X-ray vision", thesis §3.6.2 and fig. 3.16): the chest CT as an
+"""The picture in docs/rendering.md of dual-TF compositing ("X-ray vision", thesis §3.6.2 and fig. 3.16): the chest CT as an
 opaque body (ct-body), the same with the densest bone, calcifications and contrast (ct-dense) composited over it as
 tf2, and the engine CT's steel parts inside its aluminium block; the priority map of each dual image is the insert
 in its lower left corner (white: pixels whose rays may meet tf2's blocks), the kernel times are with and without it.
@@ -26,10 +26,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE.parent / "docs" / "images" / "dual_tf.png")
     ap.add_argument("--size", type=int, default=320)
     a = ap.parse_args()
+    import matplotlib
     from bench_consistent_lod import DATA, store_of
     from bench_dual_tf import ENGINE_BLOCK, ENGINE_STEEL
-
-    import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -1,4 +1,4 @@
-"""The README's pictures of the level of detail on the chest CT, each panel with its mean ΔE against the step-¼
+"""The pictures in docs/lod.md of the level of detail on the chest CT, each panel with its mean ΔE against the step-¼
 reference:
 
 - docs/images/lod_classification.png: ct-bone at full resolution and at 30:1, coarse data classified by the mean

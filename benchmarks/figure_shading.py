@@ -1,4 +1,4 @@
-"""The README's picture of shading and clipping: the chest CT with ct-bone unlit, lit by a headlight, lit at 30:1,
+"""The picture in docs/rendering.md of shading and clipping: the chest CT with ct-bone unlit, lit by a headlight, lit at 30:1,
 and ct-skin-bone lit with its front half clipped away, each with its kernel time.
 
     .venv/bin/python benchmarks/figure_shading.py [--out docs/images/shading.png]
@@ -20,9 +20,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=HERE.parent / "docs" / "images" / "shading.png")
     a = ap.parse_args()
-    from bench_consistent_lod import DATA, store_of
-
     import matplotlib
+    from bench_consistent_lod import DATA, store_of
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

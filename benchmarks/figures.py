@@ -1,5 +1,5 @@
 """The pictures of `run.py`: error against time of every renderer, a gallery of LOD qualities with ΔE and ms under
-each image, and `lodcast report`'s own plot; `publish` copies them to docs/images/ for the README."""
+each image, and `lodcast report`'s own plot; `publish` copies them to docs/images/ for the README and docs/benchmarks.md."""
 from __future__ import annotations
 
 import shutil
@@ -88,12 +88,13 @@ def demo_row(eng, size: int, camera: dict, out: Path, log) -> list[dict] | None:
     """The demo MR head (`lodcast demo`'s volume) with the demo's translucent TF at full resolution (step ½),
     lossless, 30:1 and 100:1, against the float64 reference, rendered on `eng` (run.py's Renderer); None (and a
     line saying why) where it cannot be fetched."""
+    from reference64 import reference_image
+
     import lodcast
     from lodcast.errors import LodcastError
-    from lodcast.renderer.tools.demo import demo_tfs
     from lodcast.renderer.image.delta_e import delta_e_stats
+    from lodcast.renderer.tools.demo import demo_tfs
     from lodcast.service.demo import fetch_demo_volume
-    from reference64 import reference_image
 
     try:
         demo = fetch_demo_volume()

@@ -43,12 +43,13 @@ HERE = Path(__file__).resolve().parent
 DATA = Path(os.environ.get("LODCAST_SHARED_DATA", HERE.parents[1] / "shared" / "data"))
 sys.path.insert(0, str(HERE))
 
-import lodcast  # noqa: E402
 import peers  # noqa: E402
 from bench_render import TF_DENSE, run_bare  # noqa: E402
+from reference64 import reference_image  # noqa: E402
+
+import lodcast  # noqa: E402
 from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 from lodcast.renderer.scene.presets import preset  # noqa: E402
-from reference64 import reference_image  # noqa: E402
 
 CAMERA = {"azimuth": 30, "elevation": 15, "distance": 1.9, "fov": 30}
 ENGINE_METAL = {"points": [{"value": 150, "color": [1.0, 0.8, 0.5], "opacity": 0.0},

@@ -68,10 +68,9 @@ _LAZY = {
 if TYPE_CHECKING:  # pragma: no cover
     from lodcast.environment import EnvironmentInvalid
     from lodcast.opencl import DeviceError
-    from lodcast.renderer.scene.cost import CostError
-    from lodcast.renderer.image.output import ImageError
-    from lodcast.renderer.image.output import RenderResult
     from lodcast.renderer.frame.render import Renderer, render
+    from lodcast.renderer.image.output import ImageError, RenderResult
+    from lodcast.renderer.scene.cost import CostError
     from lodcast.renderer.scene.scene import Scene, SceneError
     from lodcast.service.client import AsyncClient, Client, ServiceError
     from lodcast.service.models import JobStatus, VolumeSummary

@@ -26,7 +26,7 @@ class Environment:
 
     brick_cache_bytes: int  # LODCAST_BRICK_CACHE_MB (MiB)
     device_cache_bytes: int  # LODCAST_DEVICE_CACHE_MB (MiB)
-    device_budget_bytes: int | None  # LODCAST_DEVICE_BUDGET_MB (MB = 10⁶ bytes, DESIGN.md Limits)
+    device_budget_bytes: int | None  # LODCAST_DEVICE_BUDGET_MB (MB = 10⁶ bytes, docs/design.md Limits)
     read_threads: int | None  # LODCAST_READ_THREADS; None: the engine decides (renderer/engine.py: read_threads)
     max_samples: int  # LODCAST_MAX_SAMPLES
     max_voxels: int | None  # LODCAST_MAX_VOXELS

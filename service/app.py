@@ -1,6 +1,6 @@
 """The HTTP API (FastAPI). ``create_app(settings)`` builds everything; nothing is created at import time.
 
-Routes (DESIGN.md "Interfaces"): ``GET /healthz``; ``GET/POST /volumes``, ``GET/DELETE /volumes/{id}``,
+Routes (docs/design.md "Interfaces"): ``GET /healthz``; ``GET/POST /volumes``, ``GET/DELETE /volumes/{id}``,
 ``POST /volumes/{id}/upload``; ``POST /volumes/{id}/render``; ``GET/POST /jobs``, ``GET/DELETE /jobs/{id}``,
 ``GET /jobs/{id}/results/{n}``, ``GET /jobs/{id}/animation``; OpenAPI at ``/docs``.
 Every bad request is a 4xx whose JSON ``detail`` names the field (FastAPI's 422 list shape for bodies).
@@ -18,10 +18,10 @@ import time
 import uuid
 from contextlib import asynccontextmanager
 from pathlib import Path
-
 from typing import Annotated, Any, Literal
 
-from fastapi import Body, Depends, FastAPI, Path as PathParam, Query, Request
+from fastapi import Body, Depends, FastAPI, Query, Request
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
@@ -34,10 +34,10 @@ from lodcast.renderer.scene.cost import CostError
 from lodcast.renderer.scene.scene import Scene
 from lodcast.service.asgi import BodyLimit, offline_docs
 from lodcast.service.jobs import IngestJob, Job, validate_job
-from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeSummary, errors
 from lodcast.service.records import status_json
 from lodcast.service.rendering import RenderEngine, RequestInvalid, encode, parse_scene
+from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.settings import Settings
 from lodcast.service.volumes import (
     JOB_ID,
@@ -194,7 +194,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if not secrets.compare_digest(given.encode(), settings.token.encode()):
             raise HttpError(401, "Authorization: missing or wrong bearer token", {"WWW-Authenticate": "Bearer"})
 
-    # DESIGN.md, Limits: with LODCAST_TOKEN set every route but /healthz (and the docs) needs the token, reads too
+    # docs/design.md, Limits: with LODCAST_TOKEN set every route but /healthz (and the docs) needs the token, reads too
     auth = [Depends(require_token)]
 
     # --- errors -------------------------------------------------------------------------------------------------

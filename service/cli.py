@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -67,6 +68,10 @@ EXAMPLES = {
 }
 
 
+#: one or more numbers separated by commas (or x), the first negative
+_NUMBERS = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?([,x][-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)*$")
+
+
 class _Parser(argparse.ArgumentParser):
     """Malformed arguments exit 2 with one line (argparse's own error prints the whole usage first); every
     (sub)command takes ``--log-level``, so that it may stand before or after the command's name."""
@@ -74,6 +79,9 @@ class _Parser(argparse.ArgumentParser):
     def __init__(self, *args: object, **kwargs: object) -> None:
         kwargs.setdefault("formatter_class", _Help)
         super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        # a value such as "-680.05,-59.2,-201.2" (an origin) is a value, not an option: argparse takes only a
+        # lone negative number for one, and no option of ours starts with a digit
+        self._negative_number_matcher = _NUMBERS
         self.add_argument("--log-level", choices=LOG_LEVELS, default=argparse.SUPPRESS,
                           help="what the log on stderr shows (default warning)")
 
@@ -217,8 +225,8 @@ def _add_report(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from lodcast.renderer.tools.quality_report import default_variants, run_report, table, write_report
     from lodcast.renderer.scene.scene import Scene
+    from lodcast.renderer.tools.quality_report import default_variants, run_report, table, write_report
     from lodcast.store.store import open_store
 
     scene_path = Path(args.scene)

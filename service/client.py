@@ -13,9 +13,9 @@ import json
 import os
 import sys
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import httpx
 
@@ -111,6 +111,8 @@ def _frame_file(dest: str | os.PathLike[str], n: int, r: httpx.Response) -> Path
 
 class _Bar:
     """A job's progress bar on a terminal (``show=None``) or when asked."""
+
+    bar: Any  # a tqdm bar once shown
 
     def __init__(self, job_id: str, show: bool | None) -> None:
         self.job_id, self.show, self.bar = job_id, sys.stderr.isatty() if show is None else show, None
@@ -323,7 +325,7 @@ class AsyncClient(_Api):
     async def __aexit__(self, *exc: object) -> None:
         await self.aclose()
 
-    async def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any],  # type: ignore[override]
+    async def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any],
                     idempotent: bool | None = None, **kw: Any) -> Any:
         again = method in _IDEMPOTENT if idempotent is None else idempotent
         for attempt in range(self.retries + 1):
@@ -340,7 +342,7 @@ class AsyncClient(_Api):
             await asyncio.sleep(delay)
         raise AssertionError("unreachable: the last attempt returns or raises")
 
-    async def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False,  # type: ignore[override]
+    async def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False,
                      upload: bool = False, wait: bool = False, timeout: float | None = None,
                      **options: Any) -> JobStatus:
         url, kw = self._ingest_request(source, name, overwrite, upload, options)
@@ -351,12 +353,13 @@ class AsyncClient(_Api):
             st = await self._call("POST", url, read=_model(JobStatus), **kw, **_t(timeout))
         return await self.wait(st.id, progress=False, timeout=timeout) if wait else st
 
-    async def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,  # type: ignore[override]
+    async def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,
                    progress: bool | None = None) -> JobStatus:
         bar, end = _Bar(job_id, progress), None if timeout is None else time.monotonic() + timeout
         try:
             while True:
-                st = await self.job(job_id)
+                # the verbs of _Api are typed as Client's; here `_call` makes each a coroutine
+                st = await cast("Awaitable[JobStatus]", self.job(job_id))
                 bar.update(st)
                 if st.state in FINAL:
                     return st
@@ -366,8 +369,8 @@ class AsyncClient(_Api):
         finally:
             bar.close()
 
-    async def results(self, job_id: str, dest: str | os.PathLike[str] | None = None) -> list[bytes] | list[Path]:  # type: ignore[override]
-        st = await self.job(job_id)
+    async def results(self, job_id: str, dest: str | os.PathLike[str] | None = None) -> list[bytes] | list[Path]:
+        st = await cast("Awaitable[JobStatus]", self.job(job_id))
         out: list[Any] = []
         for n in range(st.progress.total if st.kind != "ingest" else 0):
             r = await self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r)

@@ -29,7 +29,7 @@ def _settings(args: argparse.Namespace, **extra: Any) -> Any:
     if getattr(args, "state_root", None):
         kw["state_root"] = args.state_root
     settings = Settings(**kw)
-    if not getattr(args, "url", None) and not settings.remote and not settings.root.is_dir():
+    if not getattr(args, "url", None) and not settings.remote and not Path(settings.root).is_dir():
         raise ValueError(f"--root: {settings.root} is not a folder")
     return settings
 
@@ -130,7 +130,8 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
     from lodcast.service.volumes import list_volumes, volume_summary
 
     if settings is None:
-        settings = Settings(**({"root": root} if root is not None else {}))
+        kw: dict[str, Any] = {"root": root} if root is not None else {}
+        settings = Settings(**kw)
     if not (1 <= int(port) <= 65535):
         raise ValueError(f"--port: {port} is not a TCP port")
     from lodcast.service.queue import JobQueue
@@ -245,9 +246,8 @@ def _cmd_submit(args: argparse.Namespace) -> int:
             st = _plain(st)
     else:
         from lodcast.service.jobs import parse_job, validate_job
-        from lodcast.service.records import status_json
-
         from lodcast.service.queue import Worker
+        from lodcast.service.records import status_json
 
         # no server: the job runs here and now (a local queue no worker reads would keep it queued forever)
         jq = _local(args, create=True)

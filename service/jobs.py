@@ -1,4 +1,4 @@
-"""Job kinds (DESIGN.md: turntable, scenes, tf_sweep, volumes, ingest), their validation and their frames.
+"""Job kinds (docs/design.md: turntable, scenes, tf_sweep, volumes, ingest), their validation and their frames.
 
 A job is a list of frames, each one (volume, scene); frame n is written to ``ROOT/.jobs/<id>/frame_<n>.<fmt>``
 atomically (temporary name, then rename), so a frame file exists only when it is complete, and a resumed job

@@ -10,6 +10,7 @@ it completes exactly once. The same code runs on both back ends.
 """
 from __future__ import annotations
 
+import builtins
 import json
 import logging
 import os
@@ -22,11 +23,11 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from lodcast.service.frames import FrameRenderer
 from lodcast.service.jobs import IngestJob, TurntableJob, encode_animation, frame_ext, parse_job, plan_frames
 from lodcast.service.records import ACTIVE, Records, open_records
-from lodcast.service.frames import FrameRenderer
-from lodcast.service.results import JobFiles, drop_upload, frame_name, parked_uploads
 from lodcast.service.rendering import RenderEngine
+from lodcast.service.results import JobFiles, drop_upload, frame_name, parked_uploads
 from lodcast.service.volumes import JOB_ID, volume_path
 from lodcast.store.remote import is_url
 
@@ -120,7 +121,7 @@ class JobQueue:
             self.records.update(job_id, {"state": "cancelled", "finished": time.time()}, expect={"state": ACTIVE})
         return self.get(job_id)
 
-    def sweep_uploads(self) -> list[str]:
+    def sweep_uploads(self) -> builtins.list[str]:
         """Delete uploaded files that no queued or running job will read (a job cancelled while running, a crash
         between an upload's last byte and its job's record) once they are `upload_grace_s` old: an upload still
         arriving is younger, its file being written."""
@@ -161,7 +162,7 @@ class JobQueue:
             log.exception("could not list pending messages")
             return set()
 
-    def reap(self) -> list[str]:
+    def reap(self) -> builtins.list[str]:
         """Re-enqueue running jobs whose heartbeat is stale and queued jobs whose message was lost."""
         now = time.time()
         stale = now - self.settings.stale_after_s
@@ -187,7 +188,7 @@ class JobQueue:
                     out.append(jid)
         return out
 
-    def expire(self) -> list[str]:
+    def expire(self) -> builtins.list[str]:
         """Delete jobs that ended more than `keep_jobs_s` ago: results first, then the record, so that a crash
         between the two leaves a record that the next call finds again (never results without a record)."""
         keep = self.settings.keep_jobs_s
@@ -261,7 +262,9 @@ class JobQueue:
 
     def _mine(self, job_id: str, owner: str) -> bool:
         rec = self.records.get(job_id)
-        return bool(rec) and rec["state"] == "running" and rec["owner"] == owner
+        if not rec:
+            return False
+        return rec["state"] == "running" and rec["owner"] == owner
 
     def _release(self, job_id: str, owner: str) -> None:
         """Graceful stop: put the job back in the queue for another worker, keeping its frames."""

@@ -7,7 +7,7 @@ Redis hash per job plus a sorted set of ids (several hosts).
 """
 from __future__ import annotations
 
-
+import builtins
 import sqlite3
 import threading
 import time
@@ -39,7 +39,7 @@ FINAL = ("done", "failed", "cancelled")
 
 
 def _blank(rec: dict[str, Any]) -> dict[str, Any]:
-    out = {k: None for k in FIELDS}
+    out: dict[str, Any] = {k: None for k in FIELDS}
     out.update({"done": 0, "total": 0, "attempts": 0, "completions": 0})
     out.update(rec)
     return out
@@ -60,7 +60,7 @@ class Records:
     def update(self, job_id: str, fields: dict[str, Any], expect: dict[str, tuple] | None = None) -> bool:
         raise NotImplementedError
 
-    def finished_before(self, cutoff: float, limit: int = 1000) -> list[str]:
+    def finished_before(self, cutoff: float, limit: int = 1000) -> builtins.list[str]:
         """Ids of jobs in a final state that finished before `cutoff` (Unix seconds)."""
         raise NotImplementedError
 
@@ -146,7 +146,7 @@ class SqliteRecords(Records):
         cur = self._conn().execute(f"UPDATE jobs SET {sets} WHERE {' AND '.join(where)}", args)
         return cur.rowcount == 1
 
-    def finished_before(self, cutoff: float, limit: int = 1000) -> list[str]:
+    def finished_before(self, cutoff: float, limit: int = 1000) -> builtins.list[str]:
         rows = self._conn().execute(
             f"SELECT id FROM jobs WHERE state IN ({', '.join('?' for _ in FINAL)}) AND finished < ? LIMIT ?",
             (*FINAL, cutoff, limit),
@@ -257,7 +257,8 @@ class RedisRecords(Records):
     def __init__(self, url: str, prefix: str = "lodcast") -> None:
         import redis
 
-        self.client = redis.Redis.from_url(url, decode_responses=True)
+        # decode_responses: every answer is a str, which redis's annotations (bytes | str) cannot express
+        self.client: Any = redis.Redis.from_url(url, decode_responses=True)
         self.prefix = prefix
         self._cas = self.client.register_script(_CAS)
         self._delete_final = self.client.register_script(_DELETE_FINAL)
@@ -332,7 +333,7 @@ class RedisRecords(Records):
             args += [k, _enc(v)]
         return bool(self._cas(keys=[self._key(job_id), self._active, job_id], args=args))
 
-    def finished_before(self, cutoff: float, limit: int = 1000) -> list[str]:
+    def finished_before(self, cutoff: float, limit: int = 1000) -> builtins.list[str]:
         # the index is scored by creation: a job that finished before the cutoff was created before it
         out: list[str] = []
         start, chunk = 0, 500
@@ -369,7 +370,7 @@ def open_records(settings: Any) -> Records:
 
 
 def status_json(rec: dict[str, Any]) -> dict[str, Any]:
-    """The job status exactly as DESIGN.md's Interfaces section fixes it (times ISO 8601 UTC, or null)."""
+    """The job status exactly as docs/design.md's Interfaces section fixes it (times ISO 8601 UTC, or null)."""
     from datetime import datetime, timezone
 
     def iso(t: float | None) -> str | None:

@@ -110,14 +110,14 @@ class RenderEngine:
         if self._renderer is not None:
             self._renderer.stores.forget(path)
 
-    def render(self, path: Path, scene: Any, sample_limit: int | None = None, stop: Any = None) -> Any:
+    def render(self, path: Path | str, scene: Any, sample_limit: int | None = None, stop: Any = None) -> Any:
         return self.renderer.render(self.store(path), scene, sample_limit=sample_limit, stop=stop)
 
-    def prefetch(self, path: Path, scene: Any) -> int:
+    def prefetch(self, path: Path | str, scene: Any) -> int:
         """The bricks a render of `scene` will need, read into the brick cache (Renderer.prefetch)."""
         return int(self.renderer.prefetch(self.store(path), scene))
 
-    def check_cost(self, path: Path, scene: Any, sample_limit: int) -> int:
+    def check_cost(self, path: Path | str, scene: Any, sample_limit: int) -> int:
         """The render's estimated samples; CostError (naming the field) above `sample_limit`."""
         return int(self.renderer.check_cost(self.store(path), scene, sample_limit))
 

@@ -175,7 +175,7 @@ def _proxy(server: S3Server, upstream_port: int) -> ThreadingHTTPServer:
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"
 
-        def log_message(self, *args) -> None:
+        def log_message(self, *args: Any) -> None:
             pass
 
         def _forward(self) -> None:

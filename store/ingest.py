@@ -15,13 +15,13 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import os
-import uuid
 import shutil
 import sys
-from collections.abc import Iterator
+import uuid
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
@@ -29,14 +29,17 @@ from zarr.codecs import BloscCodec, BloscShuffle
 
 from lodcast.environment import environment
 from lodcast.errors import SourceError, StoreExists
+from lodcast.store.atomic import move_into_place, remove_stale
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales, omero
-from lodcast.store.atomic import move_into_place, remove_stale
-from lodcast.store.remote import is_url
 from lodcast.store.orientation import axis_codes
+from lodcast.store.remote import is_url
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
+
+if TYPE_CHECKING:
+    from zarr.core.array_spec import ArrayConfigParams
 
 __all__ = ["ingest", "level_mean", "round_to_dtype", "std_dtype"]
 
@@ -185,7 +188,7 @@ def _pool2(a: np.ndarray) -> np.ndarray:
 
 #: level and std arrays are written whole, fill-value chunks included, so that a missing shard file (or chunk) in
 #: them is damage, never "empty here": the reader refuses it instead of rendering the fill value
-COMPLETE = {"write_empty_chunks": True}
+COMPLETE: ArrayConfigParams = {"write_empty_chunks": True}
 
 
 class _LevelWriter:
@@ -241,6 +244,7 @@ class _LevelWriter:
     def _write(self, band_of: Any, n: int) -> None:
         """One band of shards across y at a time: every call still writes whole shards, and zarr's encoding
         temporaries stay a band's size rather than a slab's."""
+        assert self.array.shards is not None  # every level array is created sharded
         band = self.array.shards[1]
         for y0 in range(0, self.array.shape[1], band):
             y1 = min(y0 + band, self.array.shape[1])
@@ -249,7 +253,7 @@ class _LevelWriter:
 
 
 def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int,
-                  below: np.ndarray | None) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, np.ndarray]]:
+                  below: np.ndarray | None) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any]]:
     """Levels 1.. of one row of blocks (block row `by` of block-slab `bz`), each cut to its level's true extent,
     the standard deviation of the level-0 values behind every coarse voxel (NaN and edge padding left out: the
     distribution a coarse sample stands for), and the row's interior statistics, with the per-block mean
@@ -261,7 +265,8 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int,
     px = lay.padded_shape[2]
     padded = np.pad(strip, ((0, b - zs), (0, b - ny), (0, px - nx)), mode="edge") if (zs, ny, nx) != (b, b, px) else strip
     # sums of up to 8 voxels of <= 16-bit integers are exact in float32; everything after level 1 runs in float64
-    values = padded.astype(np.float32 if slab.dtype.kind in "iu" and slab.dtype.itemsize <= 2 else np.float64)
+    values: np.ndarray = padded.astype(
+        np.float32 if slab.dtype.kind in "iu" and slab.dtype.itemsize <= 2 else np.float64)
     counts = None
     if slab.dtype.kind == "f":
         valid = ~np.isnan(values)
@@ -297,6 +302,7 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int,
             n = float(8**k)
             var = sq / n - np.square(values / n - c)
         else:
+            assert s1 is not None  # set beside `real`
             s1, real = _pool2(s1), _pool2(real)
             with np.errstate(invalid="ignore", divide="ignore"):
                 var = np.where(real > 0, sq / np.maximum(real, 1e-300) - np.square(s1 / np.maximum(real, 1e-300) - c), 0.0)
@@ -312,7 +318,7 @@ def _strip_levels(slab: np.ndarray, lay: Layout, bz: int, by: int,
         starts = np.arange(0, lx, e)
         widths = np.diff(np.append(starts, lx))
         block_var[:, k] = np.add.reduceat(v.sum(axis=(0, 1)), starts) / (rows * cols * widths)
-    stats = _interior_stats(strip, b)
+    stats: dict[str, Any] = _interior_stats(strip, b)
     stats["cell_min"], stats["cell_max"] = _strip_cells(slab, lay, by, below)
     stats["level_var"] = block_var
     stats["std_max"] = std_max
@@ -506,6 +512,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         # so only the piece being counted, the one being read (when pieces are small) and up to three rows of
         # counts are alive.
         level0 = group["0"]
+        assert isinstance(level0, zarr.Array)  # created above as an array
         if src.rereads_cheaply:  # pieces of a few slices: a slab of wide slices is this pass's largest array
             read = lambda z0, z1: _read_slices(src, lay, z0, z1)  # noqa: E731
             step = _count_slices(lay, dtype)
@@ -641,6 +648,7 @@ def _read_banded(array: zarr.Array, z0: int, z1: int) -> np.ndarray:
     """array[z0:z1] read one band of shards across y at a time, so decoding temporaries stay a band's size."""
     z1 = min(z1, array.shape[0])
     out = np.empty((z1 - z0,) + tuple(array.shape[1:]), array.dtype)
+    assert array.shards is not None  # level 0 is created sharded
     band = array.shards[1]
     for y0 in range(0, out.shape[1], band):
         out[:, y0 : y0 + band] = array[z0:z1, y0 : y0 + band]
@@ -660,7 +668,8 @@ def _read_slices(src: VolumeSource, lay: Layout, z0: int, z1: int) -> np.ndarray
     return slab
 
 
-def _read_ahead(read, count: int, reader: ThreadPoolExecutor | None) -> Iterator[np.ndarray]:
+def _read_ahead(read: Callable[[int], np.ndarray], count: int,
+                reader: ThreadPoolExecutor | None) -> Iterator[np.ndarray]:
     """read(0), read(1), … read(count − 1), each started on `reader` while the previous one is being used (without
     a reader, each when the previous one is done with)."""
     if reader is None:
@@ -733,7 +742,7 @@ def _show_progress(progress: bool | None) -> bool:
     return sys.stderr.isatty() if progress is None else progress
 
 
-def _progress(total: int, show: bool, desc: str):
+def _progress(total: int, show: bool, desc: str) -> Any:
     from tqdm import tqdm
 
     return tqdm(total=total, desc=desc, unit="slab", disable=not show, file=sys.stderr, leave=False)

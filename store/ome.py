@@ -3,6 +3,10 @@ open the same store at the right scale and position."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 __all__ = ["multiscales", "omero"]
 
@@ -14,7 +18,7 @@ def ome_unit(units: str) -> str:
     return _UNITS.get(units, units)
 
 
-def omero(label: str, hist: Sequence[int], edges: Sequence[float], value_range: Sequence[float],
+def omero(label: str, hist: ArrayLike, edges: ArrayLike, value_range: Sequence[float],
           clip: float = 0.005) -> dict:
     """The `omero` rendering settings viewers start from: a greyscale window over the values between the 0.5th
     and 99.5th percentiles of the volume's histogram, so that a CT or a 16-bit micrograph is not shown as black."""

@@ -23,7 +23,7 @@ from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from math import ceil, prod
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numcodecs import blosc, zstd
@@ -46,9 +46,10 @@ def _workers() -> int:
     return min(32, os.cpu_count() or 1)
 
 
-def _endian(codec: dict[str, Any]) -> str:
+def _endian(codec: dict[str, Any]) -> Literal["<", ">"]:
     """'<' or '>' from a `bytes` codec (no configuration, as for 1-byte types, means little endian)."""
-    return {"little": "<", "big": ">", None: "<"}[(codec.get("configuration") or {}).get("endian")]
+    orders: dict[str | None, Literal["<", ">"]] = {"little": "<", "big": ">", None: "<"}
+    return orders[(codec.get("configuration") or {}).get("endian")]
 
 
 class _LocalFiles:
@@ -198,7 +199,7 @@ def _geometry(meta: dict) -> tuple[tuple[int, ...], np.dtype, Any, Any] | None:
     elif not isinstance(fill, (int, float, bool)):
         return None
     enc = meta.get("chunk_key_encoding", {"name": "default"})
-    sep = (enc.get("configuration") or {}).get("separator")
+    sep: Any = (enc.get("configuration") or {}).get("separator")  # JSON: a str when given
     if enc.get("name") == "default":
         sep = sep or "/"
 
@@ -399,15 +400,15 @@ class ShardedReader(_Reader):
         nd = len(self.chunk)
         start = [a * c for a, c in zip(c0, self.chunk)]
         ends = [s + k * c for s, k, c in zip(start, counts, self.chunk)]
-        dst = tuple(slice(max(l, s) - l, min(h, e) - l) for l, h, s, e in zip(lo, hi, start, ends))
+        dst = tuple(slice(max(a, s) - a, min(h, e) - a) for a, h, s, e in zip(lo, hi, start, ends))
         chunks = box.reshape(counts + self.chunk)
-        if all(l <= s and e <= h for l, h, s, e in zip(lo, hi, start, ends)):
+        if all(a <= s and e <= h for a, h, s, e in zip(lo, hi, start, ends)):
             target = out[dst].reshape(tuple(x for kc in zip(counts, self.chunk) for x in kc))
             target.transpose([2 * i for i in range(nd)] + [2 * i + 1 for i in range(nd)])[...] = chunks
         else:
             grid = chunks.transpose([i // 2 + (nd if i % 2 else 0) for i in range(2 * nd)])
             grid = grid.reshape(tuple(k * c for k, c in zip(counts, self.chunk)))
-            out[dst] = grid[tuple(slice(max(l, s) - s, min(h, e) - s) for l, h, s, e in zip(lo, hi, start, ends))]
+            out[dst] = grid[tuple(slice(max(a, s) - s, min(h, e) - s) for a, h, s, e in zip(lo, hi, start, ends))]
 
     def _entries(self, fd: Any, name: str, coords: np.ndarray) -> np.ndarray | None:
         """The index entries of the chunks `coords` (n, ndim), in their order (None: the shard object does not

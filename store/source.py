@@ -7,6 +7,7 @@ memory then stays one slab, whatever the depth.
 from __future__ import annotations
 
 import abc
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,7 +66,8 @@ class ArraySource(VolumeSource):
 
     rereads_cheaply = True
 
-    def __init__(self, array: np.ndarray, *, spacing=None, origin=None, units: str = "millimeter", format: str = "numpy"):
+    def __init__(self, array: np.ndarray, *, spacing: Sequence[float] | None = None,
+                 origin: Sequence[float] | None = None, units: str = "millimeter", format: str = "numpy") -> None:
         from lodcast.errors import SourceError
 
         a = np.asarray(array) if not isinstance(array, np.memmap) else array

@@ -27,7 +27,8 @@ import uuid
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from types import EllipsisType
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -130,10 +131,10 @@ class Store:
         """The array at `path`, opened once (on object storage each opening costs requests for its metadata)."""
         a = self._arrays.get(path)
         if a is None:
-            a = self._arrays[path] = self.group[path]  # type: ignore[assignment]
+            a = self._arrays[path] = cast("zarr.Array", self.group[path])  # every path asked for names an array
         return a
 
-    def read_region(self, k: int, region: tuple = ..., dtype: Any = None,  # type: ignore[assignment]
+    def read_region(self, k: int, region: tuple | EllipsisType = ..., dtype: Any = None,
                     out: np.ndarray | None = None) -> np.ndarray:
         """Samples `region` (a tuple of slices, or ... for all) of level k, in `dtype` when given (into `out`, an
         array of the region's shape, when given)."""
@@ -153,7 +154,8 @@ class Store:
             reader = self._readers[path] = reader or False
         return reader
 
-    def _read(self, path: str, region: tuple, dtype: Any = None, out: np.ndarray | None = None) -> np.ndarray:
+    def _read(self, path: str, region: tuple | EllipsisType, dtype: Any = None,
+              out: np.ndarray | None = None) -> np.ndarray:
         """A region of the array at `path` through the shard-level reader (store/shardio.py: locally 8-10x
         zarr-python's per-chunk cost on 16³ and 8³ blocks; on object storage a few range requests per shard
         instead of one per chunk), else through zarr-python."""
@@ -224,7 +226,7 @@ class Store:
         """The largest stored standard deviation (0 for a format-1 store)."""
         return float(self.attrs.get("distribution", {}).get("std_max", 0.0)) if self.has_distribution else 0.0
 
-    def read_std_region(self, k: int, region: tuple = ...) -> np.ndarray:  # type: ignore[assignment]
+    def read_std_region(self, k: int, region: tuple | EllipsisType = ...) -> np.ndarray:
         """Standard deviation of the level-0 values behind each sample of `region` of level k (NaN and edge
         padding left out; zeros at level 0 and for a format-1 store, which keeps no distributions)."""
         self.layout._check_level(k)
@@ -409,6 +411,7 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
             raise StoreInvalid(f"{location} is a temporary folder of an unfinished ingest, not a store")
         if not (p / "zarr.json").is_file():
             raise StoreInvalid(f"{location} is not a lodcast store (no zarr.json: not a zarr v3 group)")
+    attrs: dict[str, Any]
     if is_url:
         import zarr
 

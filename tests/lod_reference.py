@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pyopencl as cl
 
-from lodcast.renderer.data.atlas import pack, pack_std
 from lodcast.opencl import Device
+from lodcast.renderer.data.atlas import pack, pack_std
 
 
 def pyramid(v0: np.ndarray, n_levels: int) -> list[np.ndarray]:
@@ -34,9 +34,9 @@ def bricks_of(levels: np.ndarray, pyr: list[np.ndarray], B: int) -> dict:
     return out
 
 
-def _trilinear(a: np.ndarray, l: tuple[float, float, float]) -> float:
-    """a[z, y, x] at brick coordinates l = (x, y, z), clamped to the array (clamp to edge)."""
-    c = [min(max(l[i], 0.0), a.shape[2 - i] - 1) for i in range(3)]
+def _trilinear(a: np.ndarray, p: tuple[float, float, float]) -> float:
+    """a[z, y, x] at brick coordinates p = (x, y, z), clamped to the array (clamp to edge)."""
+    c = [min(max(p[i], 0.0), a.shape[2 - i] - 1) for i in range(3)]
     i0 = [int(math.floor(v)) for v in c]
     f = [v - i for v, i in zip(c, i0)]
     i1 = [min(i + 1, a.shape[2 - k] - 1) for k, i in enumerate(i0)]
@@ -70,9 +70,9 @@ def nb_apron(levels, bricks, B, b, q) -> float:
     if k != 0:
         return nb(levels, bricks, B, b, q)
     n = B >> k
-    l = [min(max((q[a] + 0.5 - b[a] * B) / 2.0**k - 0.5, -1.0), float(n)) for a in range(3)]
-    i0 = [int(math.floor(v)) for v in l]
-    f = [v - i for v, i in zip(l, i0)]
+    p = [min(max((q[a] + 0.5 - b[a] * B) / 2.0**k - 0.5, -1.0), float(n)) for a in range(3)]
+    i0 = [int(math.floor(v)) for v in p]
+    f = [v - i for v, i in zip(p, i0)]
 
     def at(idx) -> float:
         d = [-1 if i < 0 else (1 if i > n - 1 else 0) for i in idx]
@@ -124,8 +124,8 @@ def sample(levels, bricks, B, q, interp: str = "interblock") -> float:
             continue
         w = 1.0
         for a in range(3):
-            lo = list(s); lo[a] = 0
-            hi = list(s); hi[a] = 1
+            lo, hi = list(s), list(s)
+            lo[a], hi[a] = 0, 1
             e = edge(xs[a], half(lo), half(hi))
             w *= e if s[a] else 1 - e
         if w > 0:

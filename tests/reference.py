@@ -1,11 +1,11 @@
-"""Independent float64 reference for the ray caster (issue 4, item 6), written from DESIGN.md alone.
+"""Independent float64 reference for the ray caster (issue 4, item 6), written from docs/design.md alone.
 
 This is deliberately *not* the kernel's algorithm: the kernel marches at a fixed step and composites
 α = 1 − (1 − a)^(Δ/unit); this module integrates the continuous emission–absorption model over the exact
 piecewise-trilinear field with a quadrature that converges, so a shared mistake in the step logic cannot
 hide. It is meant for small volumes (≤ 64³) and small images (≤ 64² pixels); it vectorises over rays.
 
-Conventions (DESIGN.md, "Conventions"), as implemented here
+Conventions (docs/design.md, "Conventions"), as implemented here
 -----------------------------------------------------------
 * Arrays are indexed (z, y, x). ``spacing`` and ``origin`` are given in the same array-axis order (z, y, x),
   so that world = index × spacing + origin holds element-wise; the world point is then (x, y, z), i.e. the
@@ -156,7 +156,7 @@ def _is_ortho(camera: Mapping[str, Any]) -> bool:
 
 def camera_rays(camera: Mapping[str, Any], width: int, height: int, shape: Sequence[int],
                 spacing: Vec3 = (1, 1, 1), origin: Vec3 = (0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
-    """Ray origins and unit directions, each H×W×3 world (x, y, z), per DESIGN.md's camera convention.
+    """Ray origins and unit directions, each H×W×3 world (x, y, z), per docs/design.md's camera convention.
 
     Pixel (i, j), row 0 at the top: px = (2(j+½)/W − 1)·W/H, py = 1 − 2(i+½)/H. Perspective: origin = eye,
     direction ∝ f + px·tan(fov/2)·r + py·tan(fov/2)·u. Orthographic: direction f, origin = eye +
@@ -245,7 +245,7 @@ def sample_field(vol: np.ndarray, pts_xyz: np.ndarray, spacing: Vec3 = (1, 1, 1)
 
 # --------------------------------------------------------------------------------- transfer function
 class TransferFunction:
-    """Piecewise linear sRGB colour and opacity over data values, constant outside (DESIGN.md)."""
+    """Piecewise linear sRGB colour and opacity over data values, constant outside (docs/design.md)."""
 
     def __init__(self, tf: Mapping[str, Any], spacing: Vec3 = (1, 1, 1)):
         pts = sorted(tf["points"], key=lambda p: float(p["value"]))
@@ -269,8 +269,8 @@ def _gl_rule(order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     well conditioned)."""
     x, w = npleg.leggauss(order)
     V = npleg.legvander(x, order - 1)  # V[i, k] = P_k(x_i)
-    I = np.stack([npleg.legval(x, npleg.legint(np.eye(order)[k], lbnd=-1)) for k in range(order)], axis=1)
-    S = I @ np.linalg.inv(V)  # on [-1, 1]
+    integ = np.stack([npleg.legval(x, npleg.legint(np.eye(order)[k], lbnd=-1)) for k in range(order)], axis=1)
+    S = integ @ np.linalg.inv(V)  # on [-1, 1]
     return (x + 1) / 2, w / 2, S / 2
 
 
@@ -293,7 +293,7 @@ class _Integrator:
         self.tau_max = tau_max
         self.lo, self.hi = box_bounds(self.vol.shape, spacing, origin)
         clip = clip or {}
-        if clip.get("box"):  # DESIGN.md: the crop box (world x, y, z) cuts the volume's box
+        if clip.get("box"):  # docs/design.md: the crop box (world x, y, z) cuts the volume's box
             self.lo = np.maximum(self.lo, np.asarray(clip["box"]["min"], np.float64))
             self.hi = np.minimum(self.hi, np.asarray(clip["box"]["max"], np.float64))
         self.planes = [(np.asarray(p["normal"], np.float64), np.asarray(p["point"], np.float64))
@@ -497,7 +497,7 @@ class _Integrator:
 def reference_render(volume: np.ndarray, scene: Mapping[str, Any], spacing: Vec3 = (1, 1, 1), origin: Vec3 = (0, 0, 0),
                      *, order: int = 8, max_panel: float | None = None, tau_max: float = 0.5,
                      chunk: int = 256) -> np.ndarray:
-    """Render a scene (DESIGN.md's JSON, as a dict) in float64: H×W×4 premultiplied RGBA.
+    """Render a scene (docs/design.md's JSON, as a dict) in float64: H×W×4 premultiplied RGBA.
 
     ``volume`` is indexed (z, y, x); ``spacing`` and ``origin`` are in the same (z, y, x) order. Modes
     ``composite`` (the emission–absorption integral, see the module docstring for the quadrature) and
@@ -553,7 +553,7 @@ def reference_render(volume: np.ndarray, scene: Mapping[str, Any], spacing: Vec3
 
 
 def analytic_slab_alpha(a: float, length: float, unit: float) -> float:
-    """DESIGN.md: accumulated opacity over a length L of constant TF opacity a: 1 − (1 − a)^(L/unit)."""
+    """docs/design.md: accumulated opacity over a length L of constant TF opacity a: 1 − (1 − a)^(L/unit)."""
     if a >= 1.0:
         return 1.0 if length > 0 else 0.0
     return float(-math.expm1(length / unit * math.log1p(-a)))
@@ -572,7 +572,7 @@ def _srgb_to_luv(rgb: np.ndarray) -> np.ndarray:
 
 
 def delta_e(img_a: np.ndarray, img_b: np.ndarray) -> dict[str, float]:
-    """DESIGN.md's image error: CIE76 ΔE in CIELUV (D65, sRGB input), per pixel, after compositing both
+    """docs/design.md's image error: CIE76 ΔE in CIELUV (D65, sRGB input), per pixel, after compositing both
     premultiplied RGBA images over opaque black (which leaves the premultiplied rgb, clipped to [0, 1]);
     mean and 95th percentile over the footprint (pixels where either image has alpha ≥ 1/255), and max.
     ``footprint`` is the pixel count."""

@@ -1,6 +1,6 @@
 """Scene-building helpers for tests: transfer functions, cameras and the pixel a world point lands on.
 
-Written from DESIGN.md's camera and transfer-function conventions (f = normalize(target − eye),
+Written from docs/design.md's camera and transfer-function conventions (f = normalize(target − eye),
 r = normalize(f × up), u = r × f; pixel centres at (i + 0.5, j + 0.5); aspect W/H on the horizontal axis),
 independently of the renderer's code, so that tests of the reference and of the kernel build their scenes
 and predictions without trusting either. Only `box_bounds` is taken from tests/reference.py.
@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from reference import box_bounds
 
 
@@ -36,7 +35,7 @@ def axis_camera(axis: str, shape, spacing=(1, 1, 1), origin=(0, 0, 0), view_heig
 
 
 def basis(cam: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """DESIGN.md: f = normalize(target − eye), r = normalize(f × up), u = r × f (written out again here)."""
+    """docs/design.md: f = normalize(target − eye), r = normalize(f × up), u = r × f (written out again here)."""
     eye, tgt, up = (np.asarray(cam[k], float) for k in ("eye", "target", "up"))
     f = (tgt - eye) / np.linalg.norm(tgt - eye)
     r = np.cross(f, up)
@@ -45,7 +44,7 @@ def basis(cam: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 
 def predicted_pixel(cam: dict, W: int, H: int, p: np.ndarray) -> tuple[float, float]:
-    """DESIGN.md's pixel formula inverted: the (row, col) whose ray passes through world point p (written out
+    """docs/design.md's pixel formula inverted: the (row, col) whose ray passes through world point p (written out
     independently of reference.project_point)."""
     eye, f, r, u = basis(cam)
     d = p - eye
@@ -66,7 +65,7 @@ def centroid(a: np.ndarray) -> tuple[float, float]:
 def aim_at(p: np.ndarray, pixel: tuple[int, int], W: int, H: int, f0, up, dist: float, fov: float | None = None,
            view_height: float | None = None) -> dict:
     """A camera looking along f0 whose pixel (i, j) ray passes exactly through world point p, built from
-    DESIGN.md's pixel formula: the basis depends only on f0 and up, so the eye is placed on that ray.
+    docs/design.md's pixel formula: the basis depends only on f0 and up, so the eye is placed on that ray.
     Perspective with `fov`, orthographic with `view_height`."""
     f = np.asarray(f0, float) / np.linalg.norm(f0)
     r = np.cross(f, up)

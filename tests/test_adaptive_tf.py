@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import lodcast
+from lodcast.renderer.data.volume import as_volume
 from lodcast.renderer.scene.adaptive_tf import alpha_histogram, tissue_peaks, volume_peaks
 from lodcast.renderer.scene.presets import ADAPTIVE
-from lodcast.renderer.data.volume import as_volume
 
 
 @pytest.mark.parametrize("alpha", [1.0, 2.0, 4.0, 8.0])

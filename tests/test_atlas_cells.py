@@ -10,10 +10,9 @@ import pytest
 
 import lodcast
 from lodcast.renderer.data import atlas as lod_atlas
-from lodcast.renderer.data import atlas_cells
-from lodcast.renderer.data import passes
-from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.data import atlas_cells, passes
 from lodcast.renderer.data.volume import VolumeView, as_volume
+from lodcast.renderer.frame.render import Renderer
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
                    {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}

@@ -15,9 +15,9 @@ import pytest
 import lodcast
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import atlas_cells
+from lodcast.renderer.data.volume import as_volume
 from lodcast.renderer.engine import BrickCache
 from lodcast.renderer.frame.render import Renderer
-from lodcast.renderer.data.volume import as_volume
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
                    {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from reference import delta_e, reference_render
 
 REPO = Path(__file__).resolve().parents[1]

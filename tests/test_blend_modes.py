@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference import box_bounds, camera_rays, reference_render, sample_field
 
 import lodcast
 from lodcast.renderer.scene.scene import SceneError
-from reference import box_bounds, camera_rays, reference_render, sample_field
 
 TF = {"points": [{"value": 0.0, "color": [1, 0.2, 0], "opacity": 0.9}, {"value": 1.0, "color": [0, 0.5, 1],
                                                                        "opacity": 0.3}]}

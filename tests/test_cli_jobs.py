@@ -50,8 +50,8 @@ def test_no_queue_here_is_a_one_line_refusal_and_creates_nothing(tmp_path):
 
 
 def test_wait_times_out_with_exit_1(tmp_path):
-    from lodcast.service.queue import JobQueue
     from lodcast.service.jobs import parse_job, validate_job
+    from lodcast.service.queue import JobQueue
     from lodcast.service.settings import Settings
 
     lodcast.ingest(np.zeros((8, 8, 8), np.float32), tmp_path / "v", block_size=8)

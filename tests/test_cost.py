@@ -1,4 +1,4 @@
-"""DESIGN.md, Limits: every render's cost is estimated before it starts and refused above LODCAST_MAX_SAMPLES,
+"""docs/design.md, Limits: every render's cost is estimated before it starts and refused above LODCAST_MAX_SAMPLES,
 naming the field to change (renderer/scene/cost.py; issue 10, item 2)."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 import lodcast
-from lodcast.renderer.scene.cost import CostError
 from lodcast.renderer.frame.render import check_cost
+from lodcast.renderer.scene.cost import CostError
 from lodcast.service.app import create_app
 from lodcast.service.settings import Settings
 from lodcast.service.testing import make_volume

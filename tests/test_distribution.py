@@ -17,22 +17,22 @@ import warnings
 import zlib
 from pathlib import Path
 
+import lod_reference as ref
 import numpy as np
 import pytest
 import zarr
+from scenes import axis_camera
 from scipy.special import ndtr
 
 import lodcast
-import lod_reference as ref
+from lodcast.renderer.data.volume import VolumeView
+from lodcast.renderer.frame.render import Renderer, render
 from lodcast.renderer.lod import classification
 from lodcast.renderer.lod.classification import EXT_CAP, dist_table
-from lodcast.renderer.frame.render import Renderer, render
-from lodcast.renderer.scene.scene import TransferFunction
 from lodcast.renderer.lod.significance import srgb_to_luv
+from lodcast.renderer.scene.scene import TransferFunction
 from lodcast.renderer.scene.transfer_function import CT_PRESETS, Lut, build_lut
 from lodcast.store.store import FORMAT_VERSION
-from lodcast.renderer.data.volume import VolumeView
-from scenes import axis_camera
 
 
 # ------------------------------------------------------------------------------------------- float64 helpers
@@ -501,7 +501,7 @@ def test_thin_opaque_slab_keeps_its_optical_depth(slab_store, a):
 
 
 def test_empty_space_skipping_does_not_change_a_coarse_level_image(slab_store):
-    """DESIGN/scene: empty-space skipping never changes the image. At level 2 the slab's coarse voxel (centre
+    """docs/design.md, scene: empty-space skipping never changes the image. At level 2 the slab's coarse voxel (centre
     z = 13.5) interpolates into block 1 (z >= 15.5) up to the next centre (17.5); block 1's level-0 values (border
     included) are all 0, so a skip test on them alone dropped that part of the distribution's depth (alpha 0.7892
     instead of 0.7950): near coarse blocks the block info is the neighbourhood's."""

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference import delta_e, reference_render
 
 import lodcast
-from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.data.atlas import neighbourhood_max
-from lodcast.renderer.lod.dual import dilate_bits, priority_map, visibility_bits
 from lodcast.renderer.frame.render import prepare
+from lodcast.renderer.lod.dual import dilate_bits, priority_map, visibility_bits
+from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene.scene import Scene, SceneError
-from reference import delta_e, reference_render
 
 
 def _tf(lo, hi, rgb, a, unit=None):

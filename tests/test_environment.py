@@ -28,7 +28,7 @@ def test_defaults_and_units(monkeypatch):
     eng = Renderer()
     assert eng.read_threads(remote=False) == max(1, cores - 1) and eng.read_threads(remote=True) == 8
     assert env.significance_numpy is False and env.tmp is None
-    monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # DESIGN.md, Limits: MB = 10⁶ bytes
+    monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # docs/design.md, Limits: MB = 10⁶ bytes
     monkeypatch.setenv("LODCAST_MAX_SAMPLES", "2e7")
     monkeypatch.setenv("LODCAST_SIGNIFICANCE_NUMPY", "1")
     monkeypatch.setenv("LODCAST_READ_THREADS", "3")

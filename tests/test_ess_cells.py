@@ -34,7 +34,7 @@ def test_cell_ranges_match_numpy(eng, shape):
         blocks = tuple(slice(1, g - 1) for g in G)
         lo = (13, 13, 13)
         hi = tuple(min(s, (g - 1) * 16 + 3) for s, g in zip(shape, G))
-        sub = a[tuple(slice(l, h) for l, h in zip(lo, hi))]
+        sub = a[tuple(slice(b, h) for b, h in zip(lo, hi))]
         pmn, pmx = sampler.level0_cells(eng.device, _buf(eng, sub), sub.shape, lo, blocks, vol)
         k = 16 // C  # cells per block edge
         own = tuple(slice(k, k * (g - 1)) for g in G)

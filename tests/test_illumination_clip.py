@@ -6,12 +6,12 @@ import json
 
 import numpy as np
 import pytest
+from reference import delta_e, reference_render
 
 import lodcast
 from lodcast.renderer.kernel.preintegration import axis, preintegrate, segment_integral
-from lodcast.renderer.scene.scene import Scene, SceneError, TransferFunction
 from lodcast.renderer.lod.selection import select_lod
-from reference import delta_e, reference_render
+from lodcast.renderer.scene.scene import Scene, SceneError, TransferFunction
 
 RED = {"points": [{"value": 0, "color": [1, 0, 0], "opacity": 0.1}, {"value": 2, "color": [1, 0, 0], "opacity": 0.1}],
        "unit_distance": 1.0}
@@ -361,16 +361,17 @@ def test_a_preset_name_is_a_tf_in_every_scene():
 
 
 def test_demo_lighting_is_the_shading_default():
-    from lodcast.renderer.tools.demo import SHADING
     from lodcast.renderer.scene.scene import Shading
+    from lodcast.renderer.tools.demo import SHADING
 
     assert Shading.model_validate(SHADING) == Shading()
 
 
 @pytest.mark.parametrize("az,el", [(0, 0), (30, 15), (120, 25), (210, -40), (75, 89)])
 def test_fit_distance_puts_every_box_corner_in_the_picture(az, el):
-    from lodcast.renderer.scene.camera import box_world, fit_distance
     from reference import project_point
+
+    from lodcast.renderer.scene.camera import box_world, fit_distance
 
     shape, spacing = (40, 90, 60), (2.0, 0.7, 1.1)
     lo, hi = box_world(shape, spacing, (0, 0, 0))

@@ -184,6 +184,20 @@ def test_ingest_refuses_a_slice_too_wide_for_its_memory_limit(tmp_path: Path):
     assert 0.4 * estimate < peak < estimate, (peak, estimate)
 
 
+def test_negative_numbers_are_option_values(tmp_path: Path):
+    """`--origin -680.05,-59.2,-201.2` is the origin, not an unknown option (argparse alone takes only a lone
+    negative number for a value); a real unknown option is still refused."""
+    np.save(tmp_path / "v.npy", np.zeros((4, 4, 4), np.float32))
+    out = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"), "--origin", "-680.05,-59.2,-201.2",
+               "--spacing", "2,1e-1,-.5")
+    assert out.returncode == 2 and "spacing must be three positive numbers" in out.stderr, out.stderr
+    out = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"), "--origin", "-680.05,-59.2,-201.2")
+    assert out.returncode == 0, out.stderr
+    assert lodcast.open_store(tmp_path / "v.zarr").origin == (-680.05, -59.2, -201.2)
+    out = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "w.zarr"), "-x1,2,3")
+    assert out.returncode == 2 and "unrecognized arguments: -x1,2,3" in out.stderr, out.stderr
+
+
 def test_ingest_prints_a_short_summary_and_json_on_request(tmp_path: Path):
     np.save(tmp_path / "v.npy", np.arange(40 * 36 * 20, dtype=np.int16).reshape(40, 36, 20))
     out = _cli("ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"), "--spacing", "2,1,0.5")
@@ -196,9 +210,9 @@ def test_ingest_prints_a_short_summary_and_json_on_request(tmp_path: Path):
 
 
 def test_every_command_says_what_it_does_with_examples_and_every_option_has_help():
-    from lodcast.service.cli import build_parser
-
     import argparse
+
+    from lodcast.service.cli import build_parser
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     for name, parser in sub.choices.items():

@@ -25,12 +25,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-
-import lodcast
 from reference import analytic_slab_alpha, delta_e, orbit_to_lookat, reference_render
 from scenes import aim_at, axis_camera, centroid, const_tf, predicted_pixel
 
-TOL = 2e-3  # DESIGN/issue 4: float32 kernel vs float64 reference, max abs error on premultiplied RGBA
+import lodcast
+
+TOL = 2e-3  # docs/design.md, issue 4: float32 kernel vs float64 reference, max abs error on premultiplied RGBA
 STEPS = (0.125, 0.25, 0.5, 1.0, 2.0)  # "from 1/8 to 2 voxels"
 
 RED, BLUE, GREEN = [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]
@@ -98,7 +98,7 @@ def blob_ref() -> np.ndarray:
 @pytest.mark.parametrize("step", STEPS)
 @pytest.mark.parametrize("axis", ["x", "y", "z"])
 def test_constant_slab_any_step(store, axis: str, step: float) -> None:
-    """DESIGN.md: crossing L of constant value gives 1 − (1 − a)^(L/unit) whatever the step; rgb = c·A.
+    """docs/design.md: crossing L of constant value gives 1 − (1 − a)^(L/unit) whatever the step; rgb = c·A.
     13, 9 and 6 voxels are not multiples of 2 voxels, so a mishandled partial last step shows (at step 2
     it would be off by ≥ 0.02)."""
     shape = (6, 9, 13)
@@ -174,7 +174,7 @@ def test_sphere(store) -> None:
 # ------------------------------------------------------------------------------------------ step invariance
 @pytest.mark.parametrize("step", STEPS)
 def test_step_invariance_delta_e(store, blob_ref: np.ndarray, step: float) -> None:
-    """The image of a smooth blob under steps 1/8 … 2 voxels against the converged integral (DESIGN.md's
+    """The image of a smooth blob under steps 1/8 … 2 voxels against the converged integral (docs/design.md's
     scene reference is step ≤ ¼ voxel; ours is the limit). Stated bound: mean ΔE ≤ 0.4·step² + 0.02 and
     p95 ≤ 1.5·step² + 0.05 (the fixed-step sum is second order; at 2 voxels that is mean ≤ 1.6, about one
     just-noticeable difference), and at step ≤ ¼ voxel the RGBA is within TOL. An opacity that were not
@@ -208,7 +208,7 @@ MARKER_TF = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"va
 @pytest.mark.parametrize("projection", ["perspective", "orthographic"])
 def test_marker_voxel_on_predicted_pixel(store, form: str, projection: str) -> None:
     """A single marker voxel, non-square image: the alpha-weighted centroid of its footprint lies within
-    0.25 px of the pixel DESIGN.md's camera formula predicts (the footprint is a few pixels wide; a flipped
+    0.25 px of the pixel docs/design.md's camera formula predicts (the footprint is a few pixels wide; a flipped
     axis, a wrong aspect or a half-pixel shift would move it by ≥ 0.5 px)."""
     vol = np.zeros((16, 24, 32), np.float32)
     vol[5, 14, 20] = 1.0

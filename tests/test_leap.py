@@ -9,10 +9,18 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.walk import info as R
 from lodcast.renderer.data.atlas import NEAR_LEVEL0
-from lodcast.renderer.walk.leap import (LEAP_MAX, NO_PLANE, OCTANTS, Leaps, cell_leaps, coarsen_ranges, octant_radii,
-                                   step_leaps)
+from lodcast.renderer.walk import info as R
+from lodcast.renderer.walk.leap import (
+    LEAP_MAX,
+    NO_PLANE,
+    OCTANTS,
+    Leaps,
+    cell_leaps,
+    coarsen_ranges,
+    octant_radii,
+    step_leaps,
+)
 
 
 def _forward_cube(empty: np.ndarray, c, o: int, cap: int) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_lod_render import TF, _field
 
 import lodcast
 from lodcast.renderer.image.delta_e import delta_e_stats, srgb_to_luv
@@ -11,7 +12,6 @@ from lodcast.renderer.lod.level_error import level_zeta, step_zeta
 from lodcast.renderer.lod.selection import step_delta_e
 from lodcast.renderer.lod.significance import as_tf, meta_of_store, tf_visible
 from lodcast.renderer.scene.transfer_function import evaluate
-from test_lod_render import TF, _field
 
 B = 8
 OPAQUE_SHEET_TF = {"points": [{"value": 400, "color": [1, 1, 1], "opacity": 0.0},

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.data import passes
-from lodcast.renderer.data import sampler
+from lodcast.renderer.data import passes, sampler
 from lodcast.store.layout import cell_edge
 
 B = 16
@@ -48,7 +47,7 @@ def _scene(cam, interp="nearest_block", step=0.7, **s):
 
 
 def _chord_in_fine_block(cam) -> np.ndarray:
-    """Per pixel: length of the ray inside box ∩ the fine block's slab (x in [31.5, 47.5]), DESIGN's camera."""
+    """Per pixel: length of the ray inside box ∩ the fine block's slab (x in [31.5, 47.5]), docs/design.md's camera."""
     eye, tgt, up = (np.asarray(cam[k], float) for k in ("eye", "target", "up"))
     f = (tgt - eye) / np.linalg.norm(tgt - eye)
     r = np.cross(f, up)

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.data import atlas as lod_atlas
-from lodcast.renderer.data import bricks
 from lodcast.environment import EnvironmentInvalid, environment
 from lodcast.renderer.cache import ByteLru
+from lodcast.renderer.data import atlas as lod_atlas
+from lodcast.renderer.data import bricks
+from lodcast.renderer.data.volume import as_volume
 from lodcast.renderer.engine import BRICK_ENTRY_BYTES, BrickCache
 from lodcast.renderer.frame.render import Renderer
-from lodcast.renderer.data.volume import as_volume
 
 B = 8
 TF = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 0.5, 0], "opacity": 0.2}]}

@@ -4,10 +4,9 @@ e(x) = clamp((x + delta_L) / (delta_L + delta_U), 0, 1). The three properties as
 trilinear where neighbouring blocks share a level, C0 across arbitrary level differences, 1-sample blocks."""
 from __future__ import annotations
 
+import lod_reference as ref
 import numpy as np
 import pytest
-
-import lod_reference as ref
 
 B = 8
 NL = 4  # levels 0..3; level 3 = one sample per block

@@ -18,9 +18,9 @@ import pytest
 import zarr
 
 import lodcast
-from lodcast.renderer.image.delta_e import delta_e_stats
-from lodcast.renderer.frame.render import render
 from lodcast.renderer.data.volume import VolumeView, as_volume
+from lodcast.renderer.frame.render import render
+from lodcast.renderer.image.delta_e import delta_e_stats
 from lodcast.store.layout import cell_edge
 
 

@@ -3,17 +3,16 @@ gives the full-resolution image (interblock and nearest block, the latter throug
 blocks are empty space, the report carries the LOD keys."""
 from __future__ import annotations
 
+import lod_reference as ref
 import numpy as np
 import pytest
 
 import lodcast
-import lod_reference as ref
-from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.opencl import Device
-from lodcast.renderer.data import bricks
+from lodcast.renderer.data import atlas as lod_atlas
+from lodcast.renderer.data import bricks, sampler
 from lodcast.renderer.engine import BrickCache
 from lodcast.renderer.frame.render import Renderer
-from lodcast.renderer.data import sampler
 from lodcast.store.layout import cell_edge
 
 
@@ -37,7 +36,7 @@ def _field(shape):
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
-    # not a multiple of the block size on any axis: edge-padded bricks and DESIGN's rim clamp are exercised
+    # not a multiple of the block size on any axis: edge-padded bricks and docs/design.md's rim clamp are exercised
     return lodcast.ingest(_field((37, 45, 58)), tmp_path_factory.mktemp("lod") / "v.zarr", block_size=B,
                           spacing=(1.2, 1.0, 0.9), progress=False)
 

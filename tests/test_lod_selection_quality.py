@@ -1,6 +1,6 @@
 """Thesis fig. 3.4 on a real CT volume: at 64:1, TF-based block significance (eq. 3.1) selects levels whose
 image is closer to the full-resolution reference than data-error (L2) significance and uniform level
-reduction, measured as DESIGN.md's mean ΔE of the rendered images."""
+reduction, measured as docs/design.md's mean ΔE of the rendered images."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,8 +10,8 @@ import pytest
 import lodcast
 from lodcast.renderer.data import sampler
 from lodcast.renderer.image.delta_e import delta_e_stats
-from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.lod.selection import select_lod
+from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.scene.transfer_function import CT_PRESETS
 from lodcast.store.layout import cell_edge
 

@@ -1,4 +1,4 @@
-"""Renders in several passes (DESIGN.md, Limits: LODCAST_DEVICE_BUDGET_MB; issue 14 item 1): a volume whose data
+"""Renders in several passes (docs/design.md, Limits: LODCAST_DEVICE_BUDGET_MB; issue 14 item 1): a volume whose data
 exceeds the device budget renders the same image as an uncapped render, bit for bit, in every mode and sampler,
 while the report's device_bytes stays within the budget and `passes` counts the passes."""
 from __future__ import annotations
@@ -8,8 +8,8 @@ import pytest
 
 import lodcast
 from lodcast.renderer.data import passes as mp
-from lodcast.renderer.scene.camera import frame, pixel_rays, ray_box, box_world
 from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.scene.camera import box_world, frame, pixel_rays, ray_box
 from lodcast.renderer.scene.scene import Scene, SceneError
 
 TF = {"points": [{"value": -50, "color": [0.2, 0.4, 0.9], "opacity": 0.0},

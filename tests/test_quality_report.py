@@ -1,4 +1,4 @@
-"""DESIGN.md's image error and the error-against-run-time report."""
+"""docs/design.md's image error and the error-against-run-time report."""
 from __future__ import annotations
 
 import json
@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reference import delta_e as reference_delta_e
 
 import lodcast
 from lodcast.renderer.image.delta_e import delta_e_stats
 from lodcast.renderer.tools.quality_report import Variant, reference_scene, run_report, write_report
-from reference import delta_e as reference_delta_e
 
 
 def test_delta_e_matches_the_independent_reference_and_closed_forms():

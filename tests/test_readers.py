@@ -251,6 +251,22 @@ def test_nifti_axes_spacing_origin(tmp_path: Path, name: str) -> None:
         check(src, data.transpose(2, 1, 0))
 
 
+def test_nifti_header_numbers_are_the_decimals_written(tmp_path: Path) -> None:
+    """A NIfTI header holds float32: 1.2 mm is 1.2000000476837158 as a double. Spacing and origin come out as the
+    decimals written (what `lodcast info` prints), turned to LPS or not; a value that is not such a decimal keeps
+    float32's precision."""
+    affine = np.diag([1.2, 0.7, 0.3, 1.0])
+    affine[:3, 3] = [-680.05, -59.2, 1 / 3]
+    nib.save(nib.Nifti1Image(volume((5, 6, 7), "uint8"), affine), tmp_path / "d.nii")
+    with open_source(tmp_path / "d.nii", orient="source") as src:
+        assert src.info.spacing == (0.3, 0.7, 1.2)
+        assert src.info.origin == (0.33333334, -59.2, -680.05)  # 0.33333334: the shortest decimal of float32(1/3)
+    with open_source(tmp_path / "d.nii") as src:  # LPS: x and y reversed, the origin at their far ends
+        assert src.info.spacing == (0.3, 0.7, 1.2)
+        assert src.info.origin[0] == 0.33333334
+        assert src.info.origin[1:] == (55.7, 675.25)  # exact decimals, no float64 residue of the turn
+
+
 def test_nifti_scaled_is_float32_of_nibabels_values(tmp_path: Path) -> None:
     data = volume((6, 5, 4), "uint8")
     img = nib.Nifti1Image(data, np.eye(4))

@@ -1,6 +1,6 @@
 """The float64 reference (tests/reference.py) against closed forms.
 
-Every expected value here is computed from DESIGN.md's formulas directly (slab law, closed-form optical depth
+Every expected value here is computed from docs/design.md's formulas directly (slab law, closed-form optical depth
 of a linear opacity ramp, chord lengths, the camera formula written out again), never by calling the
 reference's own quadrature, so these tests hold the reference to the contract before it is used to hold the
 kernel. Tolerances are stated per test; the reference's quadrature converges to ~1e-12, so most are tight.
@@ -11,8 +11,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy import integrate
-
 from reference import (
     analytic_slab_alpha,
     box_bounds,
@@ -24,6 +22,7 @@ from reference import (
     sample_field,
 )
 from scenes import aim_at, axis_camera, basis, centroid, const_tf, predicted_pixel
+from scipy import integrate
 
 RED, BLUE = [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]
 

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lodcast.renderer.kernel.config import KernelConfig
 from lodcast.opencl import DeviceError, kernel_source
-from lodcast.renderer.frame.render import render
 from lodcast.renderer.data.sampler import upload_level0, voxel_offset
-from lodcast.renderer.scene.transfer_function import evaluate
-from lodcast.renderer.scene.scene import TransferFunction
 from lodcast.renderer.data.volume import VolumeView, block_minmax_border
+from lodcast.renderer.frame.render import render
+from lodcast.renderer.kernel.config import KernelConfig
+from lodcast.renderer.scene.scene import TransferFunction
+from lodcast.renderer.scene.transfer_function import evaluate
 
 REPORT_KEYS = {"wall_ms", "kernel_ms", "bricks_read", "bricks_cached", "bricks_skipped", "reduction",
                "predicted_delta_e", "samples", "build_options"}

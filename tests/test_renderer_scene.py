@@ -1,4 +1,4 @@
-"""Scene model: defaults per DESIGN.md, both camera forms, one-line errors naming the field, features that have
+"""Scene model: defaults per docs/design.md, both camera forms, one-line errors naming the field, features that have
 not landed refused (never silently ignored)."""
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ def test_defaults_follow_design():
     assert s.background == (0, 0, 0, 0) and s.tf2 is None and s.shading is None and s.clip is None
     sp = s.sampling
     assert (sp.step, sp.jitter, sp.early_termination, sp.priority_map) == (0.5, False, 0.99, True)
-    # DESIGN's example names "interblock": left out, the interpolation is interblock, or nearest block at a
-    # budgeted quality's selection of 8:1 or more (tests/test_lod_adaptive.py, README "When it pays")
+    # the design's example scene names "interblock": left out, the interpolation is interblock, or nearest block at a
+    # budgeted quality's selection of 8:1 or more (tests/test_lod_adaptive.py, docs/lod.md "When it pays")
     assert sp.interpolation is None
     assert isinstance(s.camera, OrbitCamera)
 

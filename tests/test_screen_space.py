@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference import delta_e
 
 import lodcast
-from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.frame.screen import plan, reconstruct, resolutions, tile_priorities
-from reference import delta_e
+from lodcast.renderer.scene import camera as cam
 
 
 def _lattice_bilinear(vals: np.ndarray, n: int, tile: int, W: int, H: int) -> np.ndarray:

@@ -7,13 +7,12 @@ import itertools
 
 import numpy as np
 import pytest
+from test_significance import SKIN_BONE, synthetic_meta
 
-from lodcast.renderer.scene.scene import QualityBudget, QualityReduction, SceneError, TransferFunction
 from lodcast.renderer.lod.selection import MB, _take_prefix, crop_mask, greedy, select_from_meta
 from lodcast.renderer.lod.significance import BlockMeta, block_significance, level_profile
+from lodcast.renderer.scene.scene import QualityBudget, QualityReduction, SceneError, TransferFunction
 from lodcast.store.histogram import Bins
-
-from test_significance import SKIN_BONE, synthetic_meta
 
 
 def heap_greedy(zeta: np.ndarray, maxlev: np.ndarray, nsamp: np.ndarray, budget: int) -> np.ndarray:

@@ -441,7 +441,7 @@ def test_failed_jobs_do_not_name_server_paths(env):
 
 
 def test_every_route_but_healthz_and_docs_needs_the_token(env):
-    """DESIGN.md, Limits: with LODCAST_TOKEN set every route but /healthz needs the bearer token, reads included
+    """docs/design.md, Limits: with LODCAST_TOKEN set every route but /healthz needs the bearer token, reads included
     (issue 10, item 3); the scheme is declared in OpenAPI."""
     client = env[0]
     from fastapi.routing import APIRoute

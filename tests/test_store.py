@@ -13,9 +13,9 @@ import zarr
 
 import lodcast
 from lodcast.errors import SourceError, StoreExists, StoreInvalid, StoreNotFound
+from lodcast.store import ingest as ingest_module
 from lodcast.store.histogram import Bins, segmentation_sse, simplify
 from lodcast.store.layout import Layout
-from lodcast.store import ingest as ingest_module
 from lodcast.store.source import ArraySource
 
 
@@ -274,7 +274,7 @@ def test_read_brick_pads_with_edge(tmp_path: Path):
 
 def test_summary_has_the_info_keys(tmp_path: Path):
     st = lodcast.ingest(np.zeros((40, 8, 8), np.int16), tmp_path / "s.zarr")
-    assert st.block_size == 16  # DESIGN's default, the thesis' choice
+    assert st.block_size == 16  # docs/design.md's default, the thesis' choice
     info = json.loads(json.dumps(st.summary()))
     for key in ("shape", "dtype", "spacing", "origin", "block_size", "levels", "value_range", "blocks", "shards", "bytes_on_disk"):
         assert key in info

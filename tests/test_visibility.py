@@ -8,14 +8,14 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 import lodcast
-from lodcast.renderer.scene import camera as cam
-from lodcast.renderer.lod import visibility
-from lodcast.renderer.image.delta_e import delta_e_stats
-from lodcast.renderer.frame.prepare import geometry, resolved
-from lodcast.renderer.scene.scene import Scene
-from lodcast.renderer.lod.selection import select_lod
-from lodcast.renderer.scene.transfer_function import evaluate, unit_distance
 from lodcast.renderer.data.volume import as_volume
+from lodcast.renderer.frame.prepare import geometry, resolved
+from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.lod import visibility
+from lodcast.renderer.lod.selection import select_lod
+from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.scene.scene import Scene
+from lodcast.renderer.scene.transfer_function import evaluate, unit_distance
 
 B = 16
 WALL = {"points": [{"value": 0.4, "color": [1, 1, 1], "opacity": 0.0}, {"value": 0.6, "color": [1, 1, 1], "opacity": 1.0}]}

@@ -25,15 +25,16 @@ import hashlib
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Callable, cast
 
 import numpy as np
 import pyopencl as cl
+from numpy.typing import ArrayLike
 
 from lodcast.opencl import DeviceError
 from lodcast.renderer.data.bricks import BrickStats, iter_bricks
-from lodcast.renderer.engine import BrickCache, Engine
 from lodcast.renderer.data.volume import voxel_options
+from lodcast.renderer.engine import BrickCache, Engine
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
            "device_atlas", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
@@ -96,7 +97,7 @@ def pack_index(offset: np.ndarray, level: np.ndarray, slices: np.ndarray | None 
     return np.where(level >= 0, ent, np.uint64(MISSING)).astype(np.uint64)
 
 
-def brick_elements(levels: np.ndarray, block_size: int) -> np.ndarray:
+def brick_elements(levels: ArrayLike, block_size: int) -> np.ndarray:
     """Atlas elements of every block's brick (grid-shaped int64, 0 for unloaded blocks): (B >> level) samples per
     edge, plus the one-sample apron on every face at level 0."""
     lv = np.asarray(levels).astype(np.int64)
@@ -180,8 +181,8 @@ def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block
     rank = np.full(lv.shape, -1, np.int64)  # a brick's place in A; -1: not at level 0
     rank[where] = np.arange(cnt)
     pos = np.stack(np.nonzero(where), axis=1)  # (cnt, 3) z, y, x in C order: the ranks 0 ... cnt - 1
-    for d in np.ndindex(3, 3, 3):
-        d = np.array(d) - 1
+    for d0 in np.ndindex(3, 3, 3):
+        d = np.array(d0) - 1
         if not d.any():
             continue
         to = pos + d
@@ -308,7 +309,7 @@ def half_cells(a: np.ndarray) -> np.ndarray:
     return per_cell(a, 2)
 
 
-def pair_reduce(a: np.ndarray, f) -> np.ndarray:
+def pair_reduce(a: np.ndarray, f: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
     """A grid of cells (z, y, x) reduced to cells of twice the edge by `f` (np.fmin, np.fmax, np.maximum) over each
     one's up to eight children; an odd axis is padded with NaN."""
     for ax in range(3):  # pairs along one axis at a time (a reduction over a 6-D view took 10x as long)
@@ -367,6 +368,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
     hit = eng.device_cache.get(key) if key is not None else None
     family = None if key is None else (vol.key, levels.shape, with_std, str(vol.voxel_dtype))
     if hit is not None:
+        assert family is not None  # a hit needs a key, which comes with a family
         eng.remember_atlas(family, hit)  # the next selection starts from the latest one shown
         return replace(hit, read=0, cached=n_sel, read_ms=0.0, upload_ms=0.0, reused=True)
     t_read = time.perf_counter()
@@ -399,22 +401,26 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
         d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
         try:
             if old is not None and with_std:  # (packed: the coarse values ride along with their deviations)
+                # old maps base (with deviations: with_std is part of its family), and kept compares with it
+                assert base is not None and kept is not None and sig is not None and old[1] is not None
                 copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
             items = iter_bricks(eng, vol, todo, cache, stats=st)
             deviations = sig
             if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
                 assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
+                assert sig is not None  # packed needs with_std
                 halves = sig.view(np.uint16)
                 items, deviations = _coarse_bits(items, halves[0::2], levels.shape, offsets), halves[1::2]
-            reuse = None if old is None else (
+            reuse = None if old is None or base is None or kept is None else (
                 lambda host: copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
                                                    range(0, 1 if packed else L), B))
             d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse)
             if with_std:
+                assert deviations is not None  # sig or its high halves, with_std
                 _place(deviations, levels.shape, offsets, iter_bricks(eng, vol, todo, cache, what="std"))
         finally:
             if sig is not None:
-                sig.base.release(queue)
+                cast(cl.MemoryMap, sig.base).release(queue)  # a mapped array's base is its mapping
     if kept is not None:
         st.cached += int(kept.sum())
         st.skipped = int(np.count_nonzero(levels < 0))
@@ -426,6 +432,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
                      flat if family is not None else None, offsets.ravel() if family is not None else None,
                      None if base is None else base.key, None if base is None else base.levels)
     if key is not None:
+        assert family is not None
         eng.device_cache.put(key, da, nbytes + index.nbytes)
         eng.remember_atlas(family, da)
     cache.trim()  # its bound may follow the device cache's bytes
@@ -443,6 +450,7 @@ def _reading(queue: Any, da: "DeviceAtlas | None", dtype: Any,
     maps = [cl.enqueue_map_buffer(queue, b, cl.map_flags.READ, 0, (b.size // np.dtype(t).itemsize,), t)[0]
             if b is not None else None
             for b, t in ((da.atlas, dtype), (da.std, sig_type))]
+    assert maps[0] is not None  # an atlas always has its buffer
     try:
         yield maps[0], maps[1]
     finally:
@@ -469,7 +477,7 @@ def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offset
         _place(host, levels.shape, offsets, items)
         _fill_aprons(host, levels, offsets, block_size)
     finally:
-        host.base.release(queue)
+        cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
     return buf
 
 

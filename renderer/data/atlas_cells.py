@@ -32,7 +32,7 @@ class AtlasCells:
     cpb: int = 2  # cells per block edge: 2, half-block cells; 4, their octants (quarter-block cells)
 
     @property
-    def at(self) -> tuple[slice, slice, slice]:
+    def at(self) -> tuple[slice, ...]:
         """Where these cells lie in the whole grid of cells."""
         if self.blocks is None:
             return (slice(None),) * 3
@@ -93,16 +93,17 @@ def _device_cells(dev: Device, da: DeviceAtlas, grid: tuple[int, int, int], bloc
     """atlas_cells computed on the device over the box of cells of `blocks` (None: all)."""
     lo = (0, 0, 0) if blocks is None else tuple(cpb * b.start for b in blocks)
     hi = tuple(cpb * g for g in grid) if blocks is None else tuple(cpb * b.stop for b in blocks)
-    shape = tuple(h - l for l, h in zip(lo, hi))
+    shape = tuple(h - a for a, h in zip(lo, hi))
     box = tuple(np.array([c[2], c[1], c[0], 0], np.int32) for c in (lo, hi))
     out = _bounds(dev, da, interpolation, cpb, "lc_atlas_cells", shape[::-1], grid, block_size, box, shape, std_unit)
-    return AtlasCells(*out, blocks, cpb)
+    return AtlasCells(out[0], out[1], out[2], blocks, cpb)
 
 
 def _updated_cells(dev: Device, da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int], block_size: int,
                    interpolation: str, std_unit: float, cpb: int) -> AtlasCells:
     """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from: those of the blocks the
     change of levels can reach (atlas.dirty_blocks) computed on the device, the others copied."""
+    assert da.base_levels is not None and da.levels is not None  # set on an atlas built from another (base_key)
     dirty = dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation)
     out = [a.copy() for a in (base.vmin, base.vmax, base.std)]
     zyx = np.argwhere(dirty)

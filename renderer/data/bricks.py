@@ -15,8 +15,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from lodcast.renderer.engine import BrickCache, Engine
 from lodcast.renderer.data.volume import device_dtype
+from lodcast.renderer.engine import BrickCache, Engine
 from lodcast.store.layout import Layout
 
 __all__ = ["AtlasLoad", "BrickStats", "iter_bricks", "load_bricks"]

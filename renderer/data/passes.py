@@ -1,4 +1,4 @@
-"""Renders in several passes: volume data larger than the device budget (DESIGN.md, Limits:
+"""Renders in several passes: volume data larger than the device budget (docs/design.md, Limits:
 `LODCAST_DEVICE_BUDGET_MB`) or than one device allocation.
 
 When the data a render samples — level 0 at quality "full", the brick atlas of a selection otherwise (with its
@@ -23,18 +23,19 @@ import contextlib
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import pyopencl as cl
 
 from lodcast.malloc import release_free_memory
+from lodcast.opencl import Device, DeviceError
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import atlas_cells
-from lodcast.renderer.scene.camera import Frame
-from lodcast.opencl import Device, DeviceError
-from lodcast.renderer.engine import Engine
 from lodcast.renderer.data.sampler import ess_cell, level0_buffer, level0_cells, upload_level0
+from lodcast.renderer.data.volume import VolumeView
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.scene.camera import Frame
 
 __all__ = ["Region", "PassPlan", "volume_limit", "ghost_voxels", "ring_blocks", "split_grid",
            "visibility_order", "plan", "own_mask", "pass_levels", "pass_steps", "PassStats", "PassData", "volume_data",
@@ -85,8 +86,8 @@ def _cuts(n: int, parts: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n, parts + 1)).astype(np.int64))
 
 
-def split_grid(grid: tuple[int, int, int], nbytes, limit: int, extent: tuple[float, float, float],
-               what: str = "LODCAST_DEVICE_BUDGET_MB") -> tuple[list[np.ndarray], int]:
+def split_grid(grid: tuple[int, int, int], nbytes: Callable[[Sequence[int], Sequence[int]], int], limit: int,
+               extent: Sequence[float], what: str = "LODCAST_DEVICE_BUDGET_MB") -> tuple[list[np.ndarray], int]:
     """Cuts per axis (block indices, 0 ... grid) of the coarsest grid of regions whose every region's data,
     `nbytes(lo, hi)` for block ranges lo..hi (z, y, x), fits `limit`: the axis of largest region extent
     (`extent`: a block's size per axis) is halved until it does. When single blocks do not fit, raises ValueError
@@ -109,7 +110,7 @@ def split_grid(grid: tuple[int, int, int], nbytes, limit: int, extent: tuple[flo
         parts[a] = min(grid[a], parts[a] * 2)
 
 
-def visibility_order(cuts: list[np.ndarray], fr: Frame, vol) -> np.ndarray:
+def visibility_order(cuts: list[np.ndarray], fr: Frame, vol: VolumeView) -> np.ndarray:
     """A key per region (C order of the region grid) such that along every ray of the view the regions it
     crosses have strictly increasing keys: perspective, the Manhattan distance in region indices from the
     eye's (virtual, outside the grid: -1 or n) region — a ray from the eye moves every index away from the eye's;
@@ -118,27 +119,27 @@ def visibility_order(cuts: list[np.ndarray], fr: Frame, vol) -> np.ndarray:
     B = float(vol.block_size)
     f = np.asarray(fr.f, np.float64)[::-1]  # z, y, x
     if fr.orthographic:
-        return sum(np.sign(f[a]) * idx[a] for a in range(3))
+        return np.asarray(sum(np.sign(f[a]) * idx[a] for a in range(3)))
     q = (np.asarray(fr.eye, np.float64) - np.asarray(vol.origin[::-1], np.float64)) / np.asarray(vol.spacing[::-1])
     p = (q[::-1] + 0.5) / B  # block coordinates z, y, x
     eye = [int(np.searchsorted(c, p[a], side="right")) - 1 for a, c in enumerate(cuts)]
     eye = [-1 if p[a] < cuts[a][0] else (len(cuts[a]) - 1 if p[a] >= cuts[a][-1] else e) for a, e in enumerate(eye)]
-    return sum(np.abs(idx[a] - eye[a]) for a in range(3))
+    return np.asarray(sum(np.abs(idx[a] - eye[a]) for a in range(3)))
 
 
-def _box_sum(per_block: np.ndarray):
+def _box_sum(per_block: np.ndarray) -> Callable[[Sequence[int], Sequence[int]], int]:
     """Sums of `per_block` over block boxes in O(1) each (a 3D prefix sum)."""
     c = np.zeros(tuple(s + 1 for s in per_block.shape), np.int64)
     c[1:, 1:, 1:] = per_block.astype(np.int64).cumsum(0).cumsum(1).cumsum(2)
 
-    def total(lo, hi) -> int:
+    def total(lo: Sequence[int], hi: Sequence[int]) -> int:
         (z0, y0, x0), (z1, y1, x1) = lo, hi
         return int(c[z1, y1, x1] - c[z0, y1, x1] - c[z1, y0, x1] - c[z1, y1, x0]
                    + c[z0, y0, x1] + c[z0, y1, x0] + c[z1, y0, x0] - c[z0, y0, x0])
     return total
 
 
-def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std: bool,
+def plan(vol: VolumeView, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std: bool,
          unsampled: Callable[[], np.ndarray], limit: int, interpolation: str = "interblock",
          what: str = "LODCAST_DEVICE_BUDGET_MB") -> PassPlan | None:
     """The passes of a render, or None when its data fits `limit` in one. `levels`: the atlas selection (None: level
@@ -150,10 +151,11 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
     if levels is None:
         g = ghost_voxels(step_voxels)
 
-        def data_box(lo, hi) -> tuple[slice, ...]:
-            return tuple(slice(max(0, lo[a] * B - g), min(shape[a], hi[a] * B + g)) for a in range(3))
+        def data_box(lo: Sequence[int], hi: Sequence[int]) -> tuple[slice, slice, slice]:
+            z, y, x = (slice(max(0, lo[a] * B - g), min(shape[a], hi[a] * B + g)) for a in range(3))
+            return z, y, x
 
-        def nbytes(lo, hi) -> int:
+        def nbytes(lo: Sequence[int], hi: Sequence[int]) -> int:
             return size * math.prod(s.stop - s.start for s in data_box(lo, hi))
 
         single = size * vol.n_voxels
@@ -164,10 +166,11 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
         per = lod_atlas.brick_elements(lv, B) * np.where(lv >= 1, coarse, size)
         total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
 
-        def data_box(lo, hi) -> tuple[slice, ...]:
-            return tuple(slice(max(0, lo[a] - r), min(G[a], hi[a] + r)) for a in range(3))
+        def data_box(lo: Sequence[int], hi: Sequence[int]) -> tuple[slice, slice, slice]:
+            z, y, x = (slice(max(0, lo[a] - r), min(G[a], hi[a] + r)) for a in range(3))
+            return z, y, x
 
-        def nbytes(lo, hi) -> int:
+        def nbytes(lo: Sequence[int], hi: Sequence[int]) -> int:
             d = data_box(lo, hi)
             return total(tuple(s.start for s in d), tuple(s.stop for s in d))
 
@@ -176,7 +179,7 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
         return None
     extent = tuple(B * float(s) for s in vol.spacing)
     cuts, _ = split_grid(G, nbytes, limit, extent, what)
-    unsampled = unsampled()
+    not_sampled = unsampled()
     key = visibility_order(cuts, fr, vol).ravel()
     regions = []
     boxes = [(z0, y0, x0, z1, y1, x1) for z0, z1 in zip(cuts[0][:-1], cuts[0][1:])
@@ -184,7 +187,7 @@ def plan(vol, fr: Frame, step_voxels: float, levels: np.ndarray | None, with_std
     for i in np.argsort(key, kind="stable"):
         z0, y0, x0, z1, y1, x1 = (int(v) for v in boxes[i])
         own = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
-        if unsampled[own].all():
+        if not_sampled[own].all():
             continue  # nothing here is sampled: no pass
         regions.append(Region(own, data_box((z0, y0, x0), (z1, y1, x1)), nbytes((z0, y0, x0), (z1, y1, x1))))
     return PassPlan(tuple(regions), tuple(len(c) - 1 for c in cuts), limit, single)  # type: ignore[arg-type]
@@ -243,7 +246,7 @@ def _empty_region(levels: np.ndarray | None) -> Region:
     return Region(none, none if levels is not None else (slice(0, 1),) * 3, 4)
 
 
-def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
+def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
     """The volume data of each pass of `pr` (renderer/frame/render.py's Prepared), uploaded when its pass comes and
     dropped after it, counting into `stats`."""
     eng: Engine = pr.engine
@@ -305,7 +308,7 @@ def volume_data(pr, stats: PassStats) -> Iterator[PassData]:
         release_free_memory()  # the pass's bricks or voxels, freed by many threads, leave the process
 
 
-def _level0_pass(dev: Device, vol: Any, reg: Region, shape: tuple[int, ...], own: np.ndarray, steps: np.ndarray,
+def _level0_pass(dev: Device, vol: Any, reg: Region, shape: tuple[int, int, int], own: np.ndarray, steps: np.ndarray,
                  placeholder: cl.Buffer) -> PassData:
     """A full-resolution pass's data: its voxels read straight into a mapped device buffer (no host copy beside
     it), and the value ranges of its cells for empty-space skipping."""
@@ -314,7 +317,7 @@ def _level0_pass(dev: Device, vol: Any, reg: Region, shape: tuple[int, ...], own
     return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size))
 
 
-def _cells(pr, da: "lod_atlas.DeviceAtlas",
+def _cells(pr: Any, da: "lod_atlas.DeviceAtlas",
            blocks: tuple[slice, slice, slice] | None = None) -> "atlas_cells.AtlasCells | None":
     """The atlas's half-block cells, where the walk can skip on them (renderer/walk/info.py); a pass needs
     those of the blocks it owns (`blocks`) only."""
@@ -327,14 +330,15 @@ def _cells(pr, da: "lod_atlas.DeviceAtlas",
                                    pr.volume.std_unit if cfg.distribution else 1.0, blocks)
 
 
-def _cells_and_octants(pr, da: "lod_atlas.DeviceAtlas") -> tuple["atlas_cells.AtlasCells", "atlas_cells.AtlasCells"]:
+def _cells_and_octants(pr: Any,
+                       da: "lod_atlas.DeviceAtlas") -> tuple["atlas_cells.AtlasCells", "atlas_cells.AtlasCells"]:
     """The whole atlas's half-block cells and their octants (config.octants), kept beside the atlas."""
     cfg = pr.config
     return atlas_cells.cells_and_octants(pr.engine, da, pr.volume.grid, int(pr.volume.block_size),
                                          cfg.interpolation, pr.volume.std_unit if cfg.distribution else 1.0)
 
 
-def fill_pass(p: np.ndarray, region: Region | None, pr, first: bool) -> None:
+def fill_pass(p: np.ndarray, region: Region | None, pr: Any, first: bool) -> None:
     """The pass fields of the parameter block: the world box of the samples the pass owns (one voxel wider, for
     rounding), its sub-volume's offset and extent (full resolution), whether it is the first."""
     if region is None:

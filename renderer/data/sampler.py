@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import pyopencl as cl
+from numpy.typing import ArrayLike
 
 from lodcast.opencl import Device, DeviceError
-from lodcast.renderer.engine import Engine
 from lodcast.renderer.data.volume import VolumeView, voxel_options
+from lodcast.renderer.engine import Engine
 from lodcast.store.layout import cell_edge
 
 __all__ = ["DeviceVolume", "upload_level0", "level0_buffer", "voxel_offset", "ess_cell", "level0_cells"]
@@ -80,7 +82,7 @@ class DeviceVolume:
     cell: int  # their edge in voxels (ess_cell)
 
 
-def voxel_offset(z, y, x, shape_zyx) -> np.ndarray:
+def voxel_offset(z: ArrayLike, y: ArrayLike, x: ArrayLike, shape_zyx: Sequence[int]) -> np.ndarray:
     """Host mirror of the kernel's LC_OFFSET: ((z·ny + y)·nx + x) in 64-bit unsigned arithmetic."""
     nz, ny, nx = (np.uint64(s) for s in shape_zyx)
     z, y, x = (np.asarray(v).astype(np.uint64) for v in (z, y, x))
@@ -120,8 +122,9 @@ def upload_level0(eng: Engine, vol: VolumeView) -> tuple[DeviceVolume, bool]:
     if hit is not None:
         return hit, True
     t = time.perf_counter()
-    buf = level0_buffer(eng.device, vol, tuple(slice(0, n) for n in vol.shape))
-    cmin, cmax = level0_cells(eng.device, buf, vol.shape, (0, 0, 0), tuple(slice(0, g) for g in vol.grid), vol)
+    (nz, ny, nx), (gz, gy, gx) = vol.shape, vol.grid
+    buf = level0_buffer(eng.device, vol, (slice(0, nz), slice(0, ny), slice(0, nx)))
+    cmin, cmax = level0_cells(eng.device, buf, vol.shape, (0, 0, 0), (slice(0, gz), slice(0, gy), slice(0, gx)), vol)
     dv = DeviceVolume(buf, (vol.shape[2], vol.shape[1], vol.shape[0]), nbytes, (time.perf_counter() - t) * 1e3,
                       cmin, cmax, ess_cell(vol.shape, vol.block_size))
     if vol.key is not None:

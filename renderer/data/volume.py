@@ -82,7 +82,7 @@ class VolumeView:
         return self.source.read_region(level, ..., dtype)
 
     def level_shape(self, level: int) -> tuple[int, int, int]:
-        return tuple(self.source.layout.level_shape(level))  # type: ignore[return-value]
+        return tuple(self.source.layout.level_shape(level))
 
     @property
     def n_levels(self) -> int:
@@ -117,7 +117,7 @@ class VolumeView:
             return None
         hit = None if kept is None else kept.get(self.source)
         if hit is not None:
-            return hit  # type: ignore[no-any-return]
+            return hit
         ranges = self.source.cell_ranges
         half, c = self.block_size // 2, cell_edge(self.block_size)
         g2 = tuple(2 * g for g in self.grid)
@@ -186,7 +186,7 @@ def _axis_window(a: np.ndarray, B: int, axis: int, fn: np.ufunc) -> np.ndarray:
     return np.moveaxis(r, -1, axis)
 
 
-def _from_array(a: np.ndarray, spacing=None, origin=None, block_size: int = 16) -> VolumeView:
+def _from_array(a: np.ndarray, spacing: Any = None, origin: Any = None, block_size: int = 16) -> VolumeView:
     a = np.asarray(a)
     if a.ndim == 2:
         a = a[None]

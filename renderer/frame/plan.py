@@ -9,19 +9,19 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from lodcast.renderer.lod.classification import DistTable
-from lodcast.renderer.kernel.config import PRECISE_SAMPLES, KernelConfig
-from lodcast.renderer.engine import Engine
-from lodcast.renderer.kernel.preintegration import PreintTable
 from lodcast.renderer.data.sampler import FINE_CELLS
+from lodcast.renderer.data.volume import VolumeView
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.kernel.config import PRECISE_SAMPLES, KernelConfig
+from lodcast.renderer.kernel.preintegration import PreintTable
+from lodcast.renderer.lod.classification import DistTable
 from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.scene.transfer_function import Lut
-from lodcast.renderer.data.volume import VolumeView
 
 if TYPE_CHECKING:  # pragma: no cover
-    from lodcast.renderer.lod import dual
     from lodcast.renderer.data import passes as multipass
     from lodcast.renderer.frame import screen as screen_space
+    from lodcast.renderer.lod import dual
 
 __all__ = ["Prepared", "LodPlan", "kernel_config", "MAX_SAMPLES_PER_RAY"]
 

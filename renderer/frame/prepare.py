@@ -15,23 +15,22 @@ import numpy as np
 
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import bricks
+from lodcast.renderer.data import passes as multipass
+from lodcast.renderer.data.volume import VOXEL_CTYPES, VolumeView, as_volume
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.frame import screen as screen_space
+from lodcast.renderer.frame.plan import MAX_SAMPLES_PER_RAY, LodPlan, Prepared, kernel_config
+from lodcast.renderer.kernel.config import EXTREMUM_MODES, KernelConfig
+from lodcast.renderer.kernel.params import fill_params, fill_tf2
+from lodcast.renderer.kernel.preintegration import PreintTable, preintegrate
+from lodcast.renderer.lod import dual, visibility
+from lodcast.renderer.lod.classification import DistTable, cached_dist_table
 from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene import clip as clipping
 from lodcast.renderer.scene import cost
-from lodcast.renderer.lod import dual
-from lodcast.renderer.data import passes as multipass
-from lodcast.renderer.frame import screen as screen_space
-from lodcast.renderer.lod import visibility
 from lodcast.renderer.scene.adaptive_tf import resolve_tfs
-from lodcast.renderer.lod.classification import DistTable, cached_dist_table
-from lodcast.renderer.kernel.config import EXTREMUM_MODES, KernelConfig
-from lodcast.renderer.engine import Engine
-from lodcast.renderer.kernel.params import fill_params, fill_tf2
-from lodcast.renderer.frame.plan import MAX_SAMPLES_PER_RAY, LodPlan, Prepared, kernel_config
-from lodcast.renderer.kernel.preintegration import PreintTable, preintegrate
 from lodcast.renderer.scene.scene import OrbitCamera, Scene, SceneError
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
-from lodcast.renderer.data.volume import VOXEL_CTYPES, VolumeView, as_volume
 from lodcast.renderer.walk.info import block_info
 
 __all__ = ["prepare", "check_cost", "prefetch", "resolved", "geometry"]
@@ -59,7 +58,7 @@ def _step_error(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | N
     if hit is None:
         hit = step_delta_e(meta_of_store(vol.source, eng.tables), tfs, scene.sampling.step, keep, eng.tables)
         eng.step_errors.put(key, hit, 1)
-    return hit  # type: ignore[no-any-return]
+    return hit
 
 
 def _view_weighted(scene: Scene, vol: VolumeView) -> bool:
@@ -155,7 +154,7 @@ def _step_levels(eng: Engine, lv: np.ndarray, block_size: int, skip: np.ndarray 
     if hit is None:
         hit = lod_atlas.step_levels(lv, block_size, skip)
         eng.steps.put(key, hit, hit.nbytes)
-    return hit  # type: ignore[no-any-return]
+    return hit
 
 
 def geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:

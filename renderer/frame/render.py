@@ -33,17 +33,17 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.renderer.data import passes as multipass
+from lodcast.renderer.data.volume import as_volume
+from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.frame import screen as screen_space
-from lodcast.renderer.lod import visibility
-from lodcast.renderer.engine import Engine
+from lodcast.renderer.frame.plan import Prepared
 from lodcast.renderer.image.output import RenderResult
 from lodcast.renderer.kernel.params import ext_table, lut_table, tables
-from lodcast.renderer.frame.plan import Prepared
-from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.kernel.structs import STATE_FLOATS
+from lodcast.renderer.lod import visibility
+from lodcast.renderer.scene.scene import Scene, TransferFunction
 from lodcast.renderer.scene.transfer_function import build_lut, unit_distance
-from lodcast.renderer.data.volume import as_volume
 from lodcast.renderer.walk.info import adaptive_walk, walk_info
 
 __all__ = ["Renderer", "RenderResult", "default_renderer", "render", "prepare", "prefetch", "check_cost", "launch",
@@ -115,7 +115,8 @@ def launch(queue: cl.CommandQueue, kern: cl.Kernel, width: int, height: int, *, 
             events[-1].wait()
             stop()  # type: ignore[misc]
         h = int(math.ceil(min(rows, height - y0) / ly) * ly)
-        events.append(cl.enqueue_nd_range_kernel(queue, kern, (gx, h), LOCAL_SIZE, global_work_offset=(0, y0)))
+        # the offset (0, y0) positionally: pyopencl's binding calls it global_work_offset, its stub global_offset
+        events.append(cl.enqueue_nd_range_kernel(queue, kern, (gx, h), LOCAL_SIZE, (0, y0)))
     return events
 
 
@@ -186,6 +187,8 @@ def _render(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin:
     reconstruct_ms = (time.perf_counter() - t_rec) * 1e3
     kernel_ms = sum(ev.profile.end - ev.profile.start for ev in evs) * 1e-6
     n_blocks = vol.n_blocks
+    reduction: float | None
+    pred: float | None
     if pr.lod is None:
         skipped = pr.n_empty if (scene.sampling.empty_space_skipping and scene.mode == "composite") else 0
         reduction, pred, quality = 1.0, pr.step_delta_e, "full"
@@ -286,6 +289,7 @@ class Renderer(Engine):
         vol = as_volume(store, stores=self.stores)
         sc = preparing.resolved(self, Scene.parse(scene), vol)
         _, fr, kbox, _ = preparing.geometry(vol, sc)
+        assert isinstance(sc.tf, TransferFunction)  # resolved() put an adaptive TF's control points in its place
         return visibility.block_visibility(self, vol, sc, fr, kbox, build_lut(sc.tf, vol.value_range),
                                            unit_distance(sc.tf, vol.spacing))
 

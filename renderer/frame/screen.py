@@ -22,6 +22,7 @@ resolutions give bilinear interpolation of the sample lattice; the weights are c
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -58,9 +59,9 @@ def _ray_points(fr: cam.Frame, xy: np.ndarray, W: int, H: int, box: tuple, step:
     return pts
 
 
-def tile_priorities(fr: cam.Frame, levels: np.ndarray, visible: np.ndarray, shape, spacing, origin,
-                    block_size: int, width: int, height: int, tile: int = TILE,
-                    statistic: str = "rms") -> np.ndarray:
+def tile_priorities(fr: cam.Frame, levels: np.ndarray, visible: np.ndarray, shape: Sequence[int],
+                    spacing: Sequence[float], origin: Sequence[float], block_size: int, width: int, height: int,
+                    tile: int = TILE, statistic: str = "rms") -> np.ndarray:
     """(th, tw) float in [0, 1]: the statistic of the block scales 2^-level along each tile's centre and corner
     rays (loaded and visible blocks only; 0 where the rays meet none)."""
     if statistic not in STATISTICS:
@@ -93,7 +94,7 @@ def tile_priorities(fr: cam.Frame, levels: np.ndarray, visible: np.ndarray, shap
         s_sq[a:a + 4096] = np.where(seen, v * v, 0).sum(axis=1)
         s_max[a:a + 4096] = np.where(seen, v, 0).max(axis=1)
 
-    def per_tile(arr: np.ndarray, combine) -> np.ndarray:
+    def per_tile(arr: np.ndarray, combine: Callable[[list[np.ndarray]], np.ndarray]) -> np.ndarray:
         c = arr[: th * tw].reshape(th, tw)
         k = arr[th * tw:].reshape(th + 1, tw + 1)
         return combine([c, k[:-1, :-1], k[:-1, 1:], k[1:, :-1], k[1:, 1:]])
@@ -168,7 +169,7 @@ def reconstruct(sp: ScreenPlan, samples: np.ndarray, at: np.ndarray | None = Non
     S = [np.clip(cy - 1 + s, 0, th - 1).astype(np.int64) for s in (0, 1)]
     half = 0.5 / sp.res.astype(np.float64)
 
-    def edge(x, hl, hu):
+    def edge(x: np.ndarray, hl: np.ndarray, hu: np.ndarray) -> np.ndarray:
         return np.clip((x + hl) / (hl + hu), 0.0, 1.0)
 
     acc = np.zeros((len(pts), samples.shape[1]))

@@ -1,4 +1,4 @@
-"""Image error as DESIGN.md defines it: CIE76 ΔE in CIELUV (D65, sRGB input) per pixel, after compositing both
+"""Image error as docs/design.md defines it: CIE76 ΔE in CIELUV (D65, sRGB input) per pixel, after compositing both
 premultiplied RGBA images over opaque black; mean and 95th percentile over the footprint (pixels where either
 image has alpha ≥ 1/255), and max. Colours are composited as given (no linearisation), so "over black" leaves
 the premultiplied rgb, clipped to [0, 1]."""

@@ -7,14 +7,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lodcast.renderer.data.volume import VolumeView
+from lodcast.renderer.kernel.preintegration import PreintTable
+from lodcast.renderer.kernel.structs import new_params
+from lodcast.renderer.lod.classification import DistTable
 from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene import clip as clipping
-from lodcast.renderer.lod.classification import DistTable
-from lodcast.renderer.kernel.preintegration import PreintTable
 from lodcast.renderer.scene.scene import Scene
-from lodcast.renderer.kernel.structs import new_params
 from lodcast.renderer.scene.transfer_function import Lut
-from lodcast.renderer.data.volume import VolumeView
 
 if TYPE_CHECKING:
     from lodcast.renderer.frame.plan import Prepared
@@ -118,9 +118,11 @@ def fill_tf2(p: np.ndarray, pr: "Prepared") -> None:
     q["tf2_vis_lo"], q["tf2_vis_hi"] = sec.lut.visible_span()
     q["tf2_inv_unit"] = 1.0 / sec.unit
     if sec.dist is not None:
+        assert pr.dist is not None  # tf2 has a table only where tf has one: one kernel config builds both
         q["tf2_dtab_at"] = np.asarray(pr.dist.kernel_table).reshape(-1, 4).shape[0]
         q["tf2_dist_n"], q["tf2_dist_lo"], q["tf2_dist_scale"] = sec.dist.n, sec.dist.lo, sec.dist.scale
     if sec.preint is not None:
+        assert pr.preint is not None
         q["tf2_ptab_at"] = pr.preint.kernel_table.shape[0]
         q["tf2_pre_n"], q["tf2_pre_knots"] = sec.preint.n, len(sec.preint.warp)
     if pr.priority is not None:

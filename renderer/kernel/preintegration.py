@@ -3,7 +3,7 @@
 A ray segment of length l0 (the base step) whose scalar runs linearly from s_f (front) to s_b (back) gets its
 colour and opacity from a table over (s_f, s_b) built once per TF and step:
 
-    tau(x)  = l0/unit · ∫_0^x σ(s(x')) dx',   σ(s) = −ln(1 − a(s))   (opacity per unit distance, DESIGN.md)
+    tau(x)  = l0/unit · ∫_0^x σ(s(x')) dx',   σ(s) = −ln(1 − a(s))   (opacity per unit distance, docs/design.md)
     alpha   = 1 − exp(−tau(1))
     C       = ∫_0^1 c(s(x)) dτ/dx exp(−tau(x)) dx          (premultiplied, emission ∝ extinction as in the kernel)
 
@@ -34,6 +34,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.scene.scene import TransferFunction
@@ -59,7 +60,7 @@ class PreintTable:
         """The table's n·n float4 entries, then the K warp rows (lc_preint.h)."""
         return np.ascontiguousarray(np.concatenate([self.table.reshape(-1, 4), self.warp]), dtype=np.float32)
 
-    def coord(self, s) -> np.ndarray:
+    def coord(self, s: np.ndarray | float) -> np.ndarray:
         """The kernel's table coordinate of values s (float64): the last warp row at or below s, clamped."""
         w = self.warp.astype(np.float64)
         k = np.clip(np.searchsorted(w[:, 0], np.asarray(s, np.float64), side="right") - 1, 0, len(w) - 1)
@@ -108,14 +109,14 @@ def _tf_arrays(tf: TransferFunction) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return v, c, a
 
 
-def _eval(v, c, a, s):
+def _eval(v: np.ndarray, c: np.ndarray, a: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """TF colour (…, 3) and opacity at values s, piecewise linear, constant outside (only evaluated strictly
     inside a piece, never on a knot)."""
     rgb = np.stack([np.interp(s, v, c[:, k]) for k in range(3)], -1)
     return rgb, np.interp(s, v, a)
 
 
-def _tau_piece(a0, a1, w):
+def _tau_piece(a0: np.ndarray, a1: np.ndarray, w: np.ndarray) -> np.ndarray:
     """∫ −ln(1 − a) over a piece of width w on which a runs linearly from a0 to a1 (inf where a = 1 on a span)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         F = lambda a: np.where(a < 1.0, (1.0 - a) * (np.log1p(-np.minimum(a, 1.0)) - 1.0), 0.0)  # noqa: E731
@@ -125,7 +126,8 @@ def _tau_piece(a0, a1, w):
     return np.where(w > 0.0, out, 0.0)
 
 
-def segment_integral(tf: TransferFunction, sf, sb, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def segment_integral(tf: TransferFunction, sf: ArrayLike, sb: ArrayLike,
+                     ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """(C (…, 3) premultiplied, alpha (…)) of segments of `ratio` = length/unit from sf to sb (arrays, float64)."""
     v, c, a = _tf_arrays(tf)
     sf, sb = np.broadcast_arrays(np.asarray(sf, np.float64), np.asarray(sb, np.float64))
@@ -171,7 +173,7 @@ def preintegrate(tf: TransferFunction, lo: float, hi: float, ratio: float, n: in
     key = (tf.model_dump_json(), float(lo), float(hi), float(ratio), int(n))
     hit = None if kept is None else kept.get(key)
     if hit is not None:
-        return hit  # type: ignore[no-any-return]
+        return hit
     t = time.perf_counter()
     s, warp = axis(tf, key[1], key[2], key[4])
     C, alpha = segment_integral(tf, s[:, None], s[None, :], key[3])

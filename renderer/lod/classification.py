@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, extinction
@@ -95,7 +96,7 @@ class DistTable:
             spans[0, j, :2] = nz[0], nz[-1]
         return np.ascontiguousarray(np.concatenate([t, spans], axis=0))
 
-    def visible(self, vmin, vmax, std) -> np.ndarray:
+    def visible(self, vmin: ArrayLike, vmax: ArrayLike, std: ArrayLike) -> np.ndarray:
         """True where a sample of mean in [vmin, vmax] and standard deviation in (0, std] may have a non-zero
         expected extinction: the kernel's test (the spans of `kernel_table`, for every row pair up to std's), half
         an entry wider each side for float32 rounding. False where std is 0 (such samples take the point
@@ -109,18 +110,18 @@ class DistTable:
         with np.errstate(invalid="ignore"):
             return ok & ((vmax - self.lo) * self.scale > lo[j] - 1.5) & ((vmin - self.lo) * self.scale < hi[j] + 1.5)
 
-    def interp(self, grid: np.ndarray, mean, std) -> np.ndarray:
+    def interp(self, grid: np.ndarray, mean: ArrayLike, std: ArrayLike) -> np.ndarray:
         """Bilinear interpolation of `grid` (rows, n, C), any per-entry quantity of this table, at (mean, std), as
         the kernel looks the table up (clamped at both axes' ends), float64 (..., C)."""
         return self.lerp(grid, self.mean_axis(mean), self.std_axis(std))
 
-    def mean_axis(self, mean) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def mean_axis(self, mean: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(entry, next entry, weight[..., None]) of `mean` along the table's value axis, for `lerp`."""
         fi = np.clip((np.asarray(mean, np.float64) - self.lo) * self.scale, 0.0, self.n - 1.0)
         i = np.minimum(fi.astype(np.intp), max(self.n - 2, 0))
         return i, i + (self.n > 1), (fi - i)[..., None]
 
-    def std_axis(self, std) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def std_axis(self, std: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, next row, weight[..., None]) of `std` along the table's √σ axis, for `lerp`."""
         fj = np.clip(np.sqrt(np.maximum(np.asarray(std, np.float64), 0.0)) * self.std_scale, 0.0, self.rows - 1.0)
         j = np.minimum(fj.astype(np.intp), max(self.rows - 2, 0))
@@ -144,7 +145,7 @@ class DistTable:
         b = g10 + (g11 - g10) * wi
         return a + (b - a) * wj
 
-    def lookup(self, mean, std) -> tuple[np.ndarray, np.ndarray]:
+    def lookup(self, mean: ArrayLike, std: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """(colour (..., 3), σ̄ (...)) as the kernel's bilinear lookup gives them (float64, for tests)."""
         e = self.interp(self.kernel_table[: self.rows, : self.n].astype(np.float64), mean, std)
         return e[..., :3], e[..., 3]
@@ -153,7 +154,8 @@ class DistTable:
 def _normal_cdf(z: np.ndarray) -> np.ndarray:
     """Φ(z) = erfc(−z/√2)/2 to double precision, element by element through math.erfc: importing SciPy's ndtr
     for it took 0.2–0.3 s, a fifth of a first render; the tables need a few thousand values per row."""
-    return 0.5 * np.frompyfunc(math.erfc, 1, 1)(-np.asarray(z, np.float64) / math.sqrt(2.0)).astype(np.float64)
+    e = np.frompyfunc(math.erfc, 1, 1)(-np.asarray(z, np.float64) / math.sqrt(2.0))
+    return 0.5 * np.asarray(e).astype(np.float64)
 
 
 def _blurred_hat(s: float) -> np.ndarray:
@@ -236,4 +238,4 @@ def cached_dist_table(tf: Any, value_range: tuple[float, float], std_max: float,
         hit = dist_table(build_lut(tf, (key[1], key[2])), key[3])
         if kept is not None:
             kept.put(key, hit, 1)
-    return hit  # type: ignore[no-any-return]
+    return hit

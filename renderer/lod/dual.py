@@ -17,13 +17,14 @@ image up to float rounding.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import numpy as np
 
-from lodcast.renderer.scene import camera as cam
-from lodcast.renderer.lod.classification import DistTable
-from lodcast.renderer.scene.clip import block_bounds
 from lodcast.renderer.kernel.preintegration import PreintTable
+from lodcast.renderer.lod.classification import DistTable
+from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.scene.clip import block_bounds
 from lodcast.renderer.scene.scene import TransferFunction
 from lodcast.renderer.scene.transfer_function import Lut
 
@@ -50,7 +51,7 @@ def visibility_bits(vis1: np.ndarray, vis2: np.ndarray) -> np.ndarray:
     return (np.asarray(vis1, bool) * 1 + np.asarray(vis2, bool) * 2).astype(np.float32)
 
 
-def dilate_bits(info: np.ndarray, spread) -> np.ndarray:
+def dilate_bits(info: np.ndarray, spread: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     """`spread` (a grid-shaped max filter) applied to each visibility bit on its own: the max of the flags would
     drop bit 1 where a neighbour has bit 2."""
     bits = np.asarray(info).astype(np.int64)
@@ -73,8 +74,9 @@ class PriorityMap:
         return np.repeat(np.repeat(self.tiles.astype(bool), t, 0), t, 1)[:height, :width]
 
 
-def priority_map(fr: cam.Frame, mask: np.ndarray, shape, spacing, origin, block_size: int, width: int,
-                 height: int, tile: int = PRIORITY_TILE) -> PriorityMap:
+def priority_map(fr: cam.Frame, mask: np.ndarray, shape: Sequence[int], spacing: Sequence[float],
+                 origin: Sequence[float], block_size: int, width: int, height: int,
+                 tile: int = PRIORITY_TILE) -> PriorityMap:
     """The tiles whose pixels' rays may meet a block of `mask` (grid-shaped bool: tf2 visible and loaded)."""
     assert tile >= 1
     th, tw = -(-height // tile), -(-width // tile)

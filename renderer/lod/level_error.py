@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from lodcast.renderer.lod.classification import DistTable, cached_dist_table
 from lodcast.renderer.engine import Tables
+from lodcast.renderer.lod.classification import DistTable, cached_dist_table
 from lodcast.renderer.lod.significance import BlockMeta, as_tf, effective_starts, srgb_to_luv
 
 __all__ = ["block_zetas", "level_zeta", "luv_table", "step_zeta"]

@@ -48,10 +48,10 @@ voxels: about one slab for an opaque surface, several for a translucent layer), 
 IMAGE_GAIN · RMS / ā, with IMAGE_GAIN fitted once on the chest CT (ct-bone, ct-skin, ct-skin-bone, two views,
 lossless … 100:1). It is the level of detail's own error, against full resolution at the same step. A render's
 report adds the step's own error (step_delta_e: against the step-¼ reference, STEP_GAIN · h² · RMS(ζ_step) / ā,
-fitted on two CTs and seven TFs), so that it predicts what DESIGN.md measures; at 5:1 and below that is most of
+fitted on two CTs and seven TFs), so that it predicts what docs/design.md measures; at 5:1 and below that is most of
 it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fit's rows (2.2: ct-skin-bone at
 5:1 measures 3.2 from one view and 0.8 from the other, which no view-independent figure can both meet within 2).
-Both are estimates of DESIGN.md's measured ΔE, not bounds.
+Both are estimates of docs/design.md's measured ΔE, not bounds.
 
 What the camera sees (`visibility`, renderer/lod/visibility.py; a render passes it at the budgeted qualities where
 `sampling.lod_visibility` says so, by default for volumes of up to 2^27 voxels): per block the largest
@@ -87,11 +87,17 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from lodcast.renderer.scene.clip import block_bounds
-from lodcast.renderer.lod.level_error import block_zetas
 from lodcast.renderer.engine import Tables
-from lodcast.renderer.lod.significance import (BlockMeta, as_tf, block_significance, level_profile, meta_of_store,
-                                           tf_visible)
+from lodcast.renderer.lod.level_error import block_zetas
+from lodcast.renderer.lod.significance import (
+    BlockMeta,
+    as_tf,
+    block_significance,
+    level_profile,
+    meta_of_store,
+    tf_visible,
+)
+from lodcast.renderer.scene.clip import block_bounds
 
 __all__ = ["LOSSLESS_ZETA", "LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "step_delta_e",
            "BYTES_PER_SAMPLE", "MB"]
@@ -155,7 +161,8 @@ def parse_quality(quality: Any, full_bytes: int) -> tuple[str, float | None]:
 
 
 # --------------------------------------------------------------------------------------------- crop
-def crop_mask(grid, shape, spacing, origin, block_size: int, crop) -> np.ndarray:
+def crop_mask(grid: Sequence[int], shape: Sequence[int], spacing: Sequence[float], origin: Sequence[float],
+              block_size: int, crop: Any) -> np.ndarray:
     """Grid-shaped bool: True where a block meets the crop box. `crop` = (lower, upper) in world (z, y, x) or
     {"lower": …, "upper": …}. A block's box is its voxels' box (half a voxel beyond the outer centres) grown by one
     voxel each side, so that every interpolation stencil of a sample inside the crop box is loaded."""
@@ -310,6 +317,7 @@ def greedy(
             targets = np.full((n, L - 1), -1, np.int64)
             costs = np.zeros((n, L - 1), np.int64)
             for m, chain in chains.items():
+                assert chain is not None
                 rows = np.flatnonzero(maxlev == m) if len(chains) > 1 else slice(None)
                 prev = L - 1
                 for step, to in enumerate(chain):
@@ -323,6 +331,7 @@ def greedy(
                     prev = to
     if slopes is None:
         slopes, targets = _chains_general(z, maxlev, nsamp)
+    assert targets is not None  # set with slopes, above
     for j in range(1, L - 1):  # clamp an ulp's rise (see module doc); column-wise, -inf past a chain's end stays
         np.minimum(slopes[:, j], slopes[:, j - 1], out=slopes[:, j])
     valid = targets >= 0
@@ -375,7 +384,7 @@ def _image_gain(opac: np.ndarray, count: np.ndarray, loaded: np.ndarray, gain: f
 
 def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.ndarray | None = None,
                  tables: Tables | None = None) -> float:
-    """The predicted mean ΔE that sampling every `step` voxels adds against the reference (step ¼, DESIGN.md):
+    """The predicted mean ΔE that sampling every `step` voxels adds against the reference (step ¼, docs/design.md):
     STEP_GAIN · step² · RMS / ā. RMS: of ζ_step (level_error.step_zeta: the colour change over one voxel along a
     ray) over the visible blocks in the crop, weighted by their voxels; ā as for the level of detail (ζ_step is a
     unit slab's; a ray shows ~1/ā of them). A ray marcher's error at step h against a finer one grows as h²
@@ -456,6 +465,7 @@ def select_from_meta(
             # the coarsest level each block shows within ζ of its level-0 colours (ζ · IMAGE_GAIN / ā, the predicted
             # ΔE, at most lossless_zeta)
             # (levels finer than a block's max level count as fine: they are not allowed anyway)
+            assert opac is not None  # per_level
             gain = _image_gain(opac, weight, loaded)
             ok = (zeta_w * gain <= lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
             first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
@@ -463,6 +473,7 @@ def select_from_meta(
         elif kind == "lossless":
             levels[refine] = maxlev[refine]
         else:
+            assert budget is not None  # parse_quality gives one with kind "budget"
             budget_samples = int(budget // BYTES_PER_SAMPLE)
             if budget_samples < base_samples:
                 from lodcast.renderer.scene.scene import SceneError
@@ -506,8 +517,9 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | N
     key = (id(meta), json.dumps(as_tf(tf).model_dump(mode="json"), sort_keys=True), classification)
     hit = None if tables is None else tables.tf.get(key)
     if hit is not None and hit[0]() is meta:
-        return hit[1]  # type: ignore[no-any-return]
+        return hit[1]
     visible = tf_visible(tf, meta.min_border, meta.max_border)
+    assert meta.value_range is not None  # a store's metadata has it (meta_of_store), and only a store's has spreads
     zeta, step, opac = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables)
     out = (zeta.astype(np.float32), step, opac, visible)
     for a in out:

@@ -9,7 +9,7 @@ with h the block's border-inclusive histogram (the one-voxel border from the nei
 near a face reads those voxels too), n its total count, T* the TF in CIELUV and ΔE the CIE76 distance there.
 
 **How opacity enters the colour.** T*(s) is the CIELUV colour (sRGB input, D65; image_error.srgb_to_luv) of what a slab
-of constant value s and length one *unit distance* (the TF's opacity unit, DESIGN.md) contributes over black:
+of constant value s and length one *unit distance* (the TF's opacity unit, docs/design.md) contributes over black:
 the premultiplied colour rgb(s)·a(s), a being the TF opacity per unit distance (a slab of length `unit` takes
 opacity 1 − (1 − a)^1 = a, and its colour over black is rgb·a). Why: (1) a fully transparent value maps to black,
 L*u*v* = 0, so every value of a transparent range has the same T* and a block whose values all lie in one gives
@@ -53,9 +53,10 @@ import os
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lodcast.environment import environment
 from lodcast.renderer.image.delta_e import srgb_to_luv
@@ -86,7 +87,7 @@ DENSE_MAX = 8192  # cap on the dense T* table
 
 # --------------------------------------------------------------------------------------------- colour
 
-def unit_slab_colour(tf: TransferFunction, values) -> np.ndarray:
+def unit_slab_colour(tf: TransferFunction, values: ArrayLike) -> np.ndarray:
     """Premultiplied sRGB colour over black of a slab of one unit distance at each value: rgb·a."""
     rgb, a = evaluate(tf, values)
     return rgb * a[..., None]
@@ -140,12 +141,12 @@ class TStar:
         return c
 
 
-def bin_centres(bins) -> np.ndarray:
+def bin_centres(bins: Any) -> np.ndarray:
     e = bins.edges
     return np.arange(bins.count, dtype=np.float64) + bins.lo if bins.integer else 0.5 * (e[:-1] + e[1:])
 
 
-def tstar(tf: TransferFunction, bins, value_range: tuple[float, float] | None = None) -> TStar:
+def tstar(tf: TransferFunction, bins: Any, value_range: tuple[float, float] | None = None) -> TStar:
     """Tabulate T* of `tf` once (the only place colour-science runs per TF). The dense table is the renderer's
     LUT grid (`build_lut`: uniform, with every control point inside the range on an entry when that fits, else
     at least 64 entries per smallest control-point gap), or a uniform DENSE_MAX-entry grid when that is finer
@@ -208,7 +209,7 @@ def zero_intervals(tf: TransferFunction) -> tuple[np.ndarray, np.ndarray]:
     return m[:, 0], m[:, 1]
 
 
-def tf_visible(tf: TransferFunction, vmin, vmax) -> np.ndarray:
+def tf_visible(tf: TransferFunction, vmin: ArrayLike, vmax: ArrayLike) -> np.ndarray:
     """True where the TF opacity is non-zero somewhere on [vmin, vmax] (exact for the piecewise-linear TF,
     constant outside its points): the range is invisible iff one zero-opacity interval contains it.
     Non-finite bounds (no valid voxel) are invisible."""
@@ -262,7 +263,7 @@ class BlockMeta:
         return _precompute(self)
 
 
-def _hist_reader(ref):
+def _hist_reader(ref: Callable[[], Any]) -> Callable[[], Any]:
     return lambda: ref().hist
 
 
@@ -270,7 +271,7 @@ def meta_of_store(store: Any, tables: Any = None) -> BlockMeta:
     """The store's block metadata, flattened; kept per store object in `tables` (an engine's Tables) when given."""
     kept = None if tables is None else tables.meta
     try:
-        return kept[store]  # type: ignore[index,no-any-return]
+        return kept[store]  # type: ignore[index]
     except (KeyError, TypeError):
         pass
     st = store.stats
@@ -288,7 +289,7 @@ def meta_of_store(store: Any, tables: Any = None) -> BlockMeta:
         heights=np.asarray(heights).reshape(n, -1),
         hist=_hist_reader(weakref.ref(store)),  # weak: the cache's value must not keep its key alive
         level_std=None if getattr(store, "level_std", None) is None else np.asarray(store.level_std, np.float64).reshape(n, -1),
-        value_range=tuple(float(v) for v in store.value_range),
+        value_range=(float(store.value_range[0]), float(store.value_range[1])),
         std_max=float(getattr(store, "std_max", 0.0)),
     )
     if kept is not None:
@@ -310,7 +311,7 @@ class _Pre:
     csr: Any = None  # the same map as a SciPy CSR matrix (N × (nb + 1)) when SciPy is installed
 
 
-def _csr(starts: np.ndarray, coef: np.ndarray, width: int):
+def _csr(starts: np.ndarray, coef: np.ndarray, width: int) -> Any | None:
     """Σ_j c_j P(s_j) for every block is one sparse × dense product M @ P, M (N × (nb + 1)) with the coefficients
     at the starts: SciPy's CSR product does it in one C loop (~2× the NumPy gather + batched product)."""
     if environment().significance_numpy:

@@ -14,12 +14,10 @@ its value, and records per block the largest transmittance with which any ray of
 (visibility.cl). Classifying coarse means thins small opaque structures rather than thickening them, so the
 estimate errs towards calling a block visible. Blocks no ray reaches (outside the picture, or behind what the
 cast saw as opaque) get 0. Where a block and its neighbours hold nothing the TF shows (`quiet_blocks`) the cast
-takes no sample, only the block's entry: the same result in 1.2-1.6x less time on the chest and engine CTs.
+takes no sample, only the block's entry: the same result in less time.
 
-Measured on the chest and engine CTs (four TFs, two views each, 10:1 to 100:1, 256², the selection's mean ΔE
-against the step-¼ reference): the selection weighted by this estimate from level 1 summed 145 against 168
-unweighted; the same weight from a level-0 cast gave 145, from level 2 149 (tests and figures: README, "Level of
-detail").
+Why a coarse level, and which: docs/lod.md ("What the camera sees") compares the selection's error weighted by
+this estimate from levels 0, 1 and 2 and unweighted.
 """
 from __future__ import annotations
 
@@ -27,13 +25,13 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.opencl import Device
-from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.data.atlas import neighbourhood_max
-from lodcast.renderer.kernel.params import fill_params
+from lodcast.renderer.data.volume import VolumeView
 from lodcast.renderer.engine import Engine
+from lodcast.renderer.kernel.params import fill_params
+from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.scene.transfer_function import Lut
-from lodcast.renderer.data.volume import VolumeView
 
 __all__ = ["AUTO_VOXELS", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "quiet_blocks",
            "visibility_level"]
@@ -60,7 +58,7 @@ def _coarse(eng: Engine, vol: VolumeView, k: int) -> tuple[cl.Buffer, tuple[int,
     key = None if vol.key is None else ("visibility", vol.key, k)
     hit = eng.device_cache.get(key) if key is not None else None
     if hit is not None:
-        return hit  # type: ignore[no-any-return]
+        return hit
     a = np.ascontiguousarray(vol.read_level(k, np.float32))
     buf = cl.Buffer(eng.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
     out = (buf, (a.shape[2], a.shape[1], a.shape[0]))

@@ -102,7 +102,7 @@ def volume_peaks(vol: Any, kept: ByteLru | None = None) -> tuple[float, float]:
         peaks = tissue_peaks(*_histograms(vol))
         if kept is not None and vol.key is not None:
             kept.put(vol.key, peaks, 1)
-    return peaks  # type: ignore[no-any-return]
+    return peaks
 
 
 def resolve_tfs(scene: Any, vol: Any, kept: ByteLru | None = None) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Camera per DESIGN.md, in world (x, y, z) coordinates (x is the last array axis, z the first).
+"""Camera per docs/design.md, in world (x, y, z) coordinates (x is the last array axis, z the first).
 
 Pixel (row i, column j), row 0 at the top, casts its ray through its centre: f = normalize(target − eye),
 r = normalize(f × up), u = r × f; perspective direction ∝ f + ((2(j+½)/W − 1)·tan(fov/2)·W/H)·r +
@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lodcast.renderer.scene.scene import LookAtCamera, OrbitCamera, SceneError
 
@@ -18,7 +19,7 @@ __all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye"
            "rays_at", "resolve_view"]
 
 
-def box_world(shape_zyx, spacing_zyx, origin_zyx) -> tuple[np.ndarray, np.ndarray]:
+def box_world(shape_zyx: ArrayLike, spacing_zyx: ArrayLike, origin_zyx: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """The volume's box (lo, hi) in world xyz: origin − spacing/2 to origin + (shape − ½)·spacing."""
     sh = np.asarray(shape_zyx, np.float64)[::-1]
     sp = np.asarray(spacing_zyx, np.float64)[::-1]
@@ -48,11 +49,13 @@ def orbit_eye(cam: OrbitCamera, center: np.ndarray, radius: float,
     a, e = np.radians(cam.azimuth), np.radians(cam.elevation)
     d = np.array([np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
     up = np.array([-np.sin(a) * np.sin(e), np.cos(a) * np.sin(e), np.cos(e)])
-    return center + d * radius * (cam.distance if distance is None else distance), up
+    dist = cam.distance if distance is None else distance
+    assert dist is not None, "orbit_eye: the camera has no distance and none was given"
+    return center + d * radius * dist, up
 
 
-def fit_distance(box_lo, box_hi, azimuth: float, elevation: float, fov: float = 30.0, aspect: float = 1.0,
-                 margin: float = 0.05) -> float:
+def fit_distance(box_lo: ArrayLike, box_hi: ArrayLike, azimuth: float, elevation: float, fov: float = 30.0,
+                 aspect: float = 1.0, margin: float = 0.05) -> float:
     """The smallest orbit distance (in bounding-sphere radii) at which every corner of the box projects inside the
     perspective view with `margin` (a fraction of the half-width) to spare: the whole volume in the picture."""
     lo, hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
@@ -82,14 +85,15 @@ def resolve_view(cam: OrbitCamera, codes: list[str] | None) -> OrbitCamera:
     return cam.model_copy(update={"azimuth": azimuth, "elevation": elevation, "view": None})
 
 
-def look_at(eye, target, up, fov: float, width: int, height: int, orthographic: bool = False,
-            view_height: float | None = None) -> Frame:
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike, fov: float, width: int, height: int,
+            orthographic: bool = False, view_height: float | None = None) -> Frame:
     eye = np.asarray(eye, np.float64)
     f = _unit(np.asarray(target, np.float64) - eye)
     r = _unit(np.cross(f, np.asarray(up, np.float64)))
     u = np.cross(r, f)
     aspect = width / height
     if orthographic:
+        assert view_height is not None  # the camera models require it with an orthographic projection
         hh = 0.5 * float(view_height)
         return Frame(eye, f, r, u, hh * aspect, hh, True)
     t = float(np.tan(np.radians(fov) / 2))
@@ -110,7 +114,7 @@ def frame(cam: LookAtCamera | OrbitCamera, width: int, height: int, box_lo: np.n
     return look_at(cam.eye, cam.target, cam.up, cam.fov, width, height, ortho, cam.view_height)
 
 
-def rays_at(fr: Frame, x, y, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def rays_at(fr: Frame, x: ArrayLike, y: ArrayLike, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """(origins, unit directions) (..., 3) float64 of the rays through image positions (x, y) in pixels from the
     top left corner (pixel (i, j)'s centre is x = j + 1/2, y = i + 1/2) — the host-side mirror of the kernel's ray
     setup (lc_pixel_ray)."""
@@ -145,7 +149,7 @@ def pixel_rays(fr: Frame, width: int, height: int) -> tuple[np.ndarray, np.ndarr
     return rays_at(fr, x, y, width, height)
 
 
-def ray_box(o: np.ndarray, d: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+def ray_box(o: np.ndarray, d: np.ndarray, lo: ArrayLike, hi: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(t0, t1) per ray (..., 3) of the part inside the box [lo, hi] (world), t0 >= 0 (rays start at the eye or the
     image plane); t1 <= t0 where a ray misses it."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)

@@ -8,6 +8,8 @@ the exact opacity of its length. Blocks entirely outside the kept region are nei
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 
 from lodcast.renderer.scene.scene import Clip
@@ -36,7 +38,8 @@ def kernel_planes(clip: Clip | None) -> np.ndarray:
     return out
 
 
-def block_bounds(grid, shape, spacing, origin, block_size: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def block_bounds(grid: Sequence[int], shape: Sequence[int], spacing: Sequence[float], origin: Sequence[float],
+                 block_size: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per array axis (z, y, x): the world lower and upper bounds of every block's box — its voxels' box (half a
     voxel beyond the outer centres) grown by one voxel each side, so that every interpolation stencil of a kept
     sample lies in a kept block."""
@@ -49,7 +52,8 @@ def block_bounds(grid, shape, spacing, origin, block_size: int) -> tuple[list[np
     return lo, hi
 
 
-def block_mask(grid, shape, spacing, origin, block_size: int, clip: Clip | None) -> np.ndarray | None:
+def block_mask(grid: Sequence[int], shape: Sequence[int], spacing: Sequence[float], origin: Sequence[float],
+               block_size: int, clip: Clip | None) -> np.ndarray | None:
     """Grid-shaped bool (z, y, x): False where a block's box (block_bounds) lies entirely outside the kept region
     (None: no clip)."""
     if clip is None or (clip.box is None and not clip.planes):

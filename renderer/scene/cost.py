@@ -1,4 +1,4 @@
-"""What a render will cost, estimated before it starts (DESIGN.md, Limits: `LODCAST_MAX_SAMPLES`).
+"""What a render will cost, estimated before it starts (docs/design.md, Limits: `LODCAST_MAX_SAMPLES`).
 
 The estimate is rays × samples per ray: the scene's rays on a grid of at most 64 × 64 pixels across the same view
 are intersected with the (clipped) box, and the mean length of their paths over the step, times every pixel of

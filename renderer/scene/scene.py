@@ -1,6 +1,6 @@
 """The Scene: one pydantic model shared by `lodcast.render`, the CLI, the HTTP API, jobs and the client.
 
-Field names and defaults follow DESIGN.md's scene JSON. Every validation error names its field
+Field names and defaults follow docs/design.md's scene JSON. Every validation error names its field
 (``SceneError: sampling.step: Input should be greater than 0``).
 """
 from __future__ import annotations
@@ -122,8 +122,9 @@ class OrbitCamera(_Model):
     elevation: Annotated[float, Field(ge=-90.0, le=90.0)] = 0.0
     distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
     view: Literal["anterior", "posterior", "left", "right", "superior", "inferior"] | None = Field(
-        None, description="an anatomical view instead of azimuth/elevation: the eye on that side of the patient, "
-                          "whichever way the file stored the volume (needs a DICOM, NIfTI or NRRD source)")
+        default=None,
+        description="an anatomical view instead of azimuth/elevation: the eye on that side of the patient, "
+                    "whichever way the file stored the volume (needs a DICOM, NIfTI or NRRD source)")
     fov: Annotated[float, Field(gt=0.0, lt=180.0)] = 30.0
     projection: Literal["perspective", "orthographic"] = "perspective"
     view_height: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None

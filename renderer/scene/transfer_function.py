@@ -1,7 +1,7 @@
 """Transfer function: evaluation (float64), exact opacity correction, the kernel's lookup table, and the
 per-block visibility used by empty-space skipping.
 
-DESIGN.md: piecewise linear over data values between control points, constant outside; sRGB colour composited
+docs/design.md: piecewise linear over data values between control points, constant outside; sRGB colour composited
 as given; opacity `a` per *unit distance* (default: the smallest voxel spacing). A step of length Δ takes
 α = 1 − (1 − a)^(Δ/unit), computed as −expm1((Δ/unit)·log1p(−a)) so that it stays exact for a → 1 and Δ → 0.
 
@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lodcast.renderer.scene.presets import PRESETS
 from lodcast.renderer.scene.scene import TransferFunction
@@ -45,12 +47,12 @@ LUT_MIN = 1024
 LUT_MAX = 65536
 
 
-def unit_distance(tf: TransferFunction, spacing) -> float:
+def unit_distance(tf: TransferFunction, spacing: Sequence[float]) -> float:
     """World length over which opacity is given: the TF's own, else the smallest voxel spacing."""
     return float(tf.unit_distance) if tf.unit_distance is not None else float(min(spacing))
 
 
-def evaluate(tf: TransferFunction, values) -> tuple[np.ndarray, np.ndarray]:
+def evaluate(tf: TransferFunction, values: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(rgb (..., 3), opacity (...)) in float64 at data values, piecewise linear, constant outside."""
     v = np.asarray(values, dtype=np.float64)
     xs = np.array([p.value for p in tf.points], dtype=np.float64)
@@ -60,7 +62,7 @@ def evaluate(tf: TransferFunction, values) -> tuple[np.ndarray, np.ndarray]:
     return rgb, np.interp(v, xs, ops)
 
 
-def opacity_for_step(a, ratio) -> np.ndarray:
+def opacity_for_step(a: ArrayLike, ratio: ArrayLike) -> np.ndarray:
     """α = 1 − (1 − a)^ratio for opacity `a` per unit distance and ratio = Δ/unit, exact for a → 1 and ratio → 0
     (a = 1 gives 1 for any ratio > 0; ratio = 0 gives 0)."""
     a = np.asarray(a, dtype=np.float64)
@@ -71,7 +73,7 @@ def opacity_for_step(a, ratio) -> np.ndarray:
     return np.where((a >= 1.0) & (r > 0.0), 1.0, out)
 
 
-def extinction(a) -> np.ndarray:
+def extinction(a: ArrayLike) -> np.ndarray:
     """σ = −log1p(−a) per unit distance (≥ 0), a = 1 ↦ SIGMA_OPAQUE."""
     a = np.asarray(a, dtype=np.float64)
     with np.errstate(divide="ignore"):
@@ -126,7 +128,7 @@ class Lut:
             return float(self.n + 1), -2.0
         return float(nz[0] - 1), float(nz[-1] + 1)
 
-    def visible(self, vmin, vmax) -> np.ndarray:
+    def visible(self, vmin: ArrayLike, vmax: ArrayLike) -> np.ndarray:
         """True where the LUT's interpolant has non-zero opacity somewhere on [vmin, vmax] (arrays, any shape).
         Conservative: the index range is widened by one entry each side. Non-finite bounds (NaN-only blocks)
         are invisible."""

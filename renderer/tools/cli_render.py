@@ -1,6 +1,6 @@
 """`lodcast render STORE -o OUT.png|OUT.npy [--scene scene.json] [--report out.json] [shortcuts]`.
 
-The scene file is the JSON scene of DESIGN.md; flag shortcuts override it (or build one from nothing, with
+The scene file is the JSON scene of docs/design.md; flag shortcuts override it (or build one from nothing, with
 --tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --tf2 TF.json --step --mode --isovalue
 --jitter --seed --background. --azimuth/--elevation/--distance make the camera the orbit form; --fov applies to either form.
 The output format follows OUT's extension. Bad input raises SceneError/ImageError (LodcastError + ValueError),
@@ -13,16 +13,19 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from lodcast.renderer.kernel.config import MODES
 from lodcast.renderer.scene.presets import preset_names
 from lodcast.renderer.scene.scene import SceneError
 
+if TYPE_CHECKING:
+    from lodcast.renderer.scene.scene import Scene
+
 __all__ = ["add_parser", "run", "scene_from_args"]
 
 
-def _floats(name: str, n: int):
+def _floats(name: str, n: int) -> Callable[[str], tuple[float, ...]]:
     def parse(text: str) -> tuple[float, ...]:
         try:
             vals = tuple(float(p) for p in text.split(",") if p.strip())
@@ -52,7 +55,7 @@ def _quality(text: str) -> Any:
                                          "such as {\"budget_mb\": 64}") from None
 
 
-def add_parser(sub: argparse._SubParsersAction, func) -> argparse.ArgumentParser:
+def add_parser(sub: argparse._SubParsersAction, func: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a store locally to PNG (straight alpha) or .npy (float32 premultiplied RGBA)")
     p.add_argument("store", help="a lodcast store (folder written by `lodcast ingest`)")
     p.add_argument("-o", "--output", required=True, help="image to write: OUT.png or OUT.npy")
@@ -94,7 +97,7 @@ def _load_json(path: str, what: str) -> Any:
         raise SceneError(f"{what} {path!r}: not valid JSON ({exc})") from None
 
 
-def scene_from_args(args: argparse.Namespace):
+def scene_from_args(args: argparse.Namespace) -> Scene:
     """The Scene the flags describe (validated; SceneError naming the field otherwise)."""
     from lodcast.renderer.scene.scene import Scene
 
@@ -145,8 +148,8 @@ def scene_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from lodcast.renderer.image.output import format_for
     from lodcast.renderer.frame.render import render
+    from lodcast.renderer.image.output import format_for
 
     fmt = format_for(args.output)
     out = Path(args.output)

@@ -13,7 +13,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -80,7 +80,8 @@ def demo_scenes(store: Any, size: int = 384) -> dict[str, dict]:
     return scenes
 
 
-def render_demo(store: Any, out_dir: str | Path, size: int = 384, log=None) -> list[Path]:
+def render_demo(store: Any, out_dir: str | Path, size: int = 384,
+                log: Callable[[str], Any] | None = None) -> list[Path]:
     """Render the demo pictures of `store` (a Store or its path) into `out_dir` as PNG, each with its scene beside
     it (render_NAME.scene.json: `lodcast render STORE --scene` reproduces it). Returns the PNG paths."""
     import lodcast

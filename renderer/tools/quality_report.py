@@ -4,7 +4,7 @@ One scene is rendered at every quality (full resolution, virtually lossless, red
 nearest-block and interblock sampling, with and without adaptive object-space sampling (and its naive variant),
 and at full resolution at the steps 2, 1, ½, ¼ with and without pre-integration,
 and each image is compared with the scene's reference — its full-resolution render with a step of at most ¼ of
-the smallest spacing and no LOD or adaptive sampling (DESIGN.md) — by ΔE (mean, p95, max over the footprint).
+the smallest spacing and no LOD or adaptive sampling (docs/design.md) — by ΔE (mean, p95, max over the footprint).
 Each configuration is rendered once to warm the brick cache and the program cache, then timed `repeat` times
 (the fastest run counts: the machine is shared). Output: a Markdown table, JSON, and a PNG plot of ΔE against
 milliseconds with the report's predicted ΔE (level of detail plus step) beside the measured one.
@@ -17,7 +17,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -109,7 +109,8 @@ def reference_scene(scene: dict, store: Any) -> dict:
 
 
 def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = None, repeat: int = 2,
-               log=None, reference: Any = None, renderer: Any = None) -> dict[str, Any]:
+               log: Callable[[str], Any] | None = None, reference: Any = None,
+               renderer: Any = None) -> dict[str, Any]:
     """Render every variant (and the reference, unless `reference`, the RenderResult of `reference_scene`, is
     given) on `renderer` (default: lodcast.render's); return rows of error and time."""
     from lodcast.renderer.frame.render import default_renderer

@@ -12,13 +12,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lodcast.renderer.data import atlas as lod_atlas
-from lodcast.renderer.scene import clip as clipping
+from lodcast.renderer.data.volume import VolumeView
+from lodcast.renderer.kernel.config import EXTREMUM_MODES, KernelConfig
 from lodcast.renderer.lod import dual
 from lodcast.renderer.lod.classification import DistTable
-from lodcast.renderer.kernel.config import EXTREMUM_MODES, KernelConfig
-from lodcast.renderer.walk.leap import Leaps, cell_leaps, children, coarsen_ranges, step_leaps
+from lodcast.renderer.scene import clip as clipping
 from lodcast.renderer.scene.transfer_function import Lut
-from lodcast.renderer.data.volume import VolumeView
+from lodcast.renderer.walk.leap import Leaps, cell_leaps, children, coarsen_ranges, step_leaps
 from lodcast.store.layout import cell_edge
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -127,6 +127,7 @@ def _level0_walk(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray
     lut2 = None if pr.second is None else pr.second.lut
     empty = -np.inf if mode in EXTREMUM_MODES else 0.0
     cmin, cmax = data.cell_min, data.cell_max
+    assert cmin is not None and cmax is not None  # walk_info asks only with the cells' ranges (set together)
     coarse_walk = pr.scene.sampling.step > FINE_STEP  # the parents are the walk's cells
     # cells of twice the edge still lie inside a block, and the walk is over them or classifies under them
     parents = (2 * C <= cell_edge(B) and B % (2 * C) == 0
@@ -200,6 +201,7 @@ def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.n
     # Without empty-space skipping (the walk then runs for this alone, prepare()) every other cell is sampled.
     level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells) if pr.lod is not None else None
     if level0 is not None:
+        assert pr.lod is not None
         coarse = lod_atlas.half_cells(pr.lod.levels >= 1)[cells.at]
         lo0, hi0 = (a[cells.at] for a in level0)
     skip_empty = pr.scene.sampling.empty_space_skipping
@@ -276,7 +278,7 @@ def octant_masks(pr: "Prepared", octants: "atlas_cells.AtlasCells | None", steps
     bits = vis.reshape(g[0], 2, g[1], 2, g[2], 2).astype(np.uint8)
     mask = sum(bits[:, oz, :, oy, :, ox] << np.uint8(oz << 2 | oy << 1 | ox)
                for oz in (0, 1) for oy in (0, 1) for ox in (0, 1))
-    return mask.astype(np.float32)
+    return np.asarray(mask).astype(np.float32)
 
 
 def walk_steps(pr: "Prepared", steps: np.ndarray, walk: np.ndarray) -> np.ndarray:

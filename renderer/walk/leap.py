@@ -28,6 +28,7 @@ ends, as after a run of skipped cells (tests/test_leap.py).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterable
 
 import numpy as np
 
@@ -115,7 +116,7 @@ class Leaps:
         kept)."""
         return self.empty.nbytes * (1 + 2 * max(2, len(self.planes)))
 
-    def for_octants(self, octants) -> tuple[np.ndarray, int]:
+    def for_octants(self, octants: Iterable[int]) -> tuple[np.ndarray, int]:
         """(the kernel's buffer: the planes of `octants` one after another, (k, z, y, x) uint8; LcParams.leap_planes:
         4 bits per octant o at bit 4 o, the index of its plane in the buffer, NO_PLANE for the others)."""
         octants = sorted(set(int(o) for o in octants))

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import io
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from lodcast.errors import SourceError
 from lodcast.store.source import SUPPORTED_DTYPES, SourceInfo, VolumeSource
@@ -47,15 +49,16 @@ class Reader(VolumeSource):
         return np.ascontiguousarray(self._slab(z0, z1), dtype=self.info.dtype)
 
 
-def files_in(folder: Path, keep) -> list[Path]:
+def files_in(folder: Path, keep: Callable[[Path], bool]) -> list[Path]:
     """The plain files of `folder` that `keep(path)` accepts, sorted, leaving out any whose real path (symlinks
     resolved) lies outside the folder: a source folder can only ever read its own files."""
     real = folder.resolve()
     return sorted(f for f in folder.iterdir() if f.is_file() and f.resolve().parent == real and keep(f))
 
 
-def source_info(shape: Sequence[int], dtype: np.dtype, fmt: str, path: Path, spacing: Sequence[float] = (1.0, 1.0, 1.0),
-                origin: Sequence[float] = (0.0, 0.0, 0.0), units: str = "millimeter", space: str | None = None,
+def source_info(shape: Sequence[int], dtype: DTypeLike, fmt: str, path: Path,
+                spacing: Sequence[float] = (1.0, 1.0, 1.0), origin: Sequence[float] = (0.0, 0.0, 0.0),
+                units: str = "millimeter", space: str | None = None,
                 direction: Any = None, **provenance: Any) -> SourceInfo:
     """`direction`: rows of (x, y, z) vectors in `space` for the array's x, y, z axes, of any length."""
     direction = _unit_rows(direction)
@@ -99,8 +102,9 @@ def finish(reader: Reader, spacing: Sequence[float] | None, origin: Sequence[flo
         if str(units) not in UNITS:
             raise SourceError(f"units {units!r}: expected one of {', '.join(sorted(UNITS))}")
         units = UNITS[str(units)]
-    reader.info = dataclasses.replace(info, dtype=dtype, provenance=prov, spacing=spacing, origin=origin,
-                                      units=units or info.units)
+    reader.info = dataclasses.replace(info, dtype=dtype, provenance=prov,
+                                      spacing=spacing,  # type: ignore[arg-type]  # three numbers on every branch
+                                      origin=origin, units=units or info.units)
     return reader
 
 
@@ -147,7 +151,7 @@ def _triple(what: str, value: Sequence[float], positive: bool) -> tuple[float, f
     if len(t) != 3 or not all(math.isfinite(v) and (v > 0 or not positive) for v in t):
         need = "positive " if positive else "finite "
         raise SourceError(f"{what} must be three {need}numbers (z, y, x), got {value!r}")
-    return t  # type: ignore[return-value]
+    return t
 
 
 def tidy(value: float) -> float:
@@ -165,25 +169,26 @@ def pick_volume(shape: Sequence[int], index: int | None, what: str) -> tuple[tup
     shape = tuple(int(s) for s in shape)
     if len(shape) == 4:
         if shape[0] == 1 and index is None:
-            return shape, 0  # type: ignore[return-value]
+            return shape, 0
         if index is None:
             raise SourceError(f"{what} is 4D ({shape_text(shape)}) with {shape[0]} volumes along its first axis; "
                               f"choose one with index=0..{shape[0] - 1}")
         if not 0 <= index < shape[0]:
             raise SourceError(f"index {index} is out of range: {what} has {shape[0]} volumes (0..{shape[0] - 1})")
-        return shape, index  # type: ignore[return-value]
+        return shape, index
     if index is not None:
         raise SourceError(f"index {index} given but {what} is not a 4D series (shape {shape_text(shape)})")
     if len(shape) == 3:
-        return (1,) + shape, 0  # type: ignore[return-value]
+        return (1,) + shape, 0
     if len(shape) == 2:
-        return (1, 1) + shape, 0  # type: ignore[return-value]
+        return (1, 1) + shape, 0
     raise SourceError(f"{what} has {len(shape)} dimensions (shape {shape_text(shape)}); expected 3 (z, y, x), "
                       f"2 (one slice) or 4 with an index")
 
 
-def read_exact(f: IO[bytes], out: np.ndarray, name: object) -> None:
-    view = memoryview(out.reshape(-1).view(np.uint8))
+def read_exact(f: io.BufferedIOBase, out: np.ndarray, name: object) -> None:
+    # `.data` is memoryview(array); numpy declares the buffer protocol (for memoryview()) only from Python 3.12
+    view = out.reshape(-1).view(np.uint8).data
     got = 0
     while got < len(view):  # in pieces: decompressors hold a copy or two of what one call returns
         n = f.readinto(view[got:got + READ_CHUNK])
@@ -192,7 +197,7 @@ def read_exact(f: IO[bytes], out: np.ndarray, name: object) -> None:
         got += n
 
 
-def skip_bytes(f: IO[bytes], n: int, name: object) -> None:
+def skip_bytes(f: io.BufferedIOBase, n: int, name: object) -> None:
     while n > 0:
         chunk = f.read(min(n, 1 << 20))
         if not chunk:
@@ -211,4 +216,4 @@ def _unit_rows(direction: Any) -> tuple[tuple[float, float, float], ...] | None:
     d = d / np.linalg.norm(d, axis=1)[:, None]
     if abs(np.linalg.det(d)) < 0.5:  # two axes nearly along one direction
         return None
-    return tuple(tuple(float(v) for v in row) for row in d)  # type: ignore[return-value]
+    return tuple(tuple(float(v) for v in row) for row in d)  # type: ignore[misc]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import bz2
 import gzip
+import io
 import math
 import zlib
 from collections.abc import Callable, Sequence
@@ -17,9 +18,8 @@ import numpy as np
 
 import lodcast.store.readers as _package
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import (UNITS, Reader, shape_text, source_info, pick_volume, read_exact, skip_bytes,
-                                        tidy)
 from lodcast.store.orientation import space_name
+from lodcast.store.readers.base import UNITS, Reader, pick_volume, read_exact, shape_text, skip_bytes, source_info, tidy
 from lodcast.store.source import SourceInfo
 
 __all__ = ["open_npy", "open_raw", "open_nrrd"]
@@ -59,11 +59,11 @@ class _StreamReader(Reader):
     """A C-ordered (t, z, y, x) array in a forward-only stream (gzip, bzip2). `start` opens the file and returns it
     with the decompressed stream positioned at the first voxel."""
 
-    def __init__(self, start: Callable[[], tuple[IO[bytes], IO[bytes]]], name: str,
+    def __init__(self, start: Callable[[], tuple[io.BufferedIOBase, io.BufferedIOBase]], name: str,
                  shape4: tuple[int, int, int, int], dtype: np.dtype, index: int, info: SourceInfo) -> None:
         self._start, self._name, self._shape4, self._dtype, self._index = start, name, shape4, dtype, index
         self.info = info
-        self._files: tuple[IO[bytes], IO[bytes]] | None = None
+        self._files: tuple[io.BufferedIOBase, io.BufferedIOBase] | None = None
         self._pos = 0
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
@@ -104,7 +104,8 @@ def open_npy(path: Path, index: int | None) -> Reader:
     # only the header is used: the slab reads are plain file reads
     offset, dtype, fortran = mm.offset, mm.dtype, mm.ndim > 1 and mm.flags.f_contiguous and not mm.flags.c_contiguous
     del mm
-    info = source_info(shape4[1:], dtype, "npy", path, **({"index": t} if index is not None else {}))
+    extra: dict[str, Any] = {"index": t} if index is not None else {}
+    info = source_info(shape4[1:], dtype, "npy", path, **extra)
     if fortran:
         info.provenance["order"] = "F"
     return _BinaryReader(path, offset, shape4, dtype, fortran, t, info)
@@ -174,6 +175,7 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
     spatial = keep[:3]
     directions = header.get("space directions")
     provenance: dict[str, Any] = {"encoding": encoding}
+    geometry: dict[str, Any]
     origin, geometry = [0.0, 0.0, 0.0], {}
     if directions is not None:
         d = np.asarray([directions[a] for a in spatial], dtype=float)
@@ -222,14 +224,16 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
             raise SourceError(f"NRRD data in {data_path} is {data_path.stat().st_size - max(offset, 0)} bytes but "
                               f"sizes {shape_text(sizes)} of {dtype.name} need {nbytes}")
         return _BinaryReader(data_path, offset, shape4, dtype, False, t, info)
-    decompress = {"gzip": _gunzip, "gz": _gunzip, "bzip2": bz2.BZ2File, "bz2": bz2.BZ2File}.get(encoding)
+    decoders: dict[str, Callable[[IO[bytes]], io.BufferedIOBase]] = {
+        "gzip": _gunzip, "gz": _gunzip, "bzip2": bz2.BZ2File, "bz2": bz2.BZ2File}
+    decompress = decoders.get(encoding)
     if decompress is None:
         raise SourceError(f"NRRD encoding '{encoding}' of {path} is not supported; expected raw, gzip or bzip2")
     if byte_skip < 0:
         raise SourceError(f"NRRD {path}: byte skip {byte_skip} with {encoding} encoding is not supported; "
                           f"expected 0 or more")
 
-    def opened() -> tuple[IO[bytes], IO[bytes]]:
+    def opened() -> tuple[io.BufferedIOBase, io.BufferedIOBase]:
         raw = open(data_path, "rb")
         raw.seek(start)
         stream = decompress(raw)
@@ -239,5 +243,5 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
     return _StreamReader(opened, str(data_path), shape4, dtype, t, info)
 
 
-def _gunzip(f: IO[bytes]) -> IO[bytes]:
-    return gzip.GzipFile(fileobj=f, mode="rb")  # type: ignore[return-value]
+def _gunzip(f: IO[bytes]) -> io.BufferedIOBase:
+    return gzip.GzipFile(fileobj=f, mode="rb")

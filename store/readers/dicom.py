@@ -108,7 +108,7 @@ def _dicom_header(f: Path) -> dict[str, Any]:
         syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
         header["compressed"] = syntax is None or syntax.is_compressed
         if syntax in _NATIVE_SYNTAXES and "PixelData" in ds:
-            item = ds.get_item("PixelData")  # a raw element when small, a deferred DataElement when large
+            item: Any = ds.get_item("PixelData")  # a raw element when small, a deferred DataElement when large
             header["pixel_offset"] = int(item.value_tell if hasattr(item, "value_tell") else item.file_tell)
     except Exception as exc:  # pydicom raises many types on corrupt files
         raise SourceError(f"unreadable DICOM file {f}: {exc}") from None
@@ -261,7 +261,9 @@ class DicomReader(Reader):
         pydicom), with pydicom's handling of unused high bits: masked off, and the sign taken from bit
         BitsStored - 1 for signed data."""
         f = self._files[k]
-        offset, stored = self._native_layout[k]
+        layout = self._native_layout[k]
+        assert layout is not None  # _slab reads natively only the files that have a layout
+        offset, stored = layout
         dtype = np.dtype(self._pixel_dtype).newbyteorder("<")
         count = int(np.prod(self.info.shape[1:]))
         pixels = np.fromfile(f, dtype, count=count, offset=offset)

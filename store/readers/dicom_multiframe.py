@@ -7,7 +7,7 @@ decoded one at a time (pydicom's `pixel_array(..., index=i)`), so memory holds a
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -88,15 +88,16 @@ class MultiFrameDicomReader(Reader):
             provenance["warnings"].append(f"frames lack PlanePositionSequence; in file order, z spacing {thickness}")
             order, dz = list(range(n)), thickness
         else:
+            known = cast("list[list[float]]", positions)  # None is not among them
             normal = np.cross(orientation[:3], orientation[3:])
-            depth = np.array([np.dot(p, normal) for p in positions])
+            depth = np.array([np.dot(p, normal) for p in known])
             order = [int(i) for i in np.argsort(depth, kind="stable")]
             where = coincident(depth[order])
             if where is not None:
                 raise SourceError(f"DICOM file {path} has two frames at one position ({depth[order][where]:g} mm); "
                                   f"expected one frame per slice (a 4D series is not supported)")
             dz = z_spacing(depth[order], thickness, provenance, "frame")
-            geometry = patient_geometry(orientation, positions[order[0]], provenance)
+            geometry = patient_geometry(orientation, known[order[0]], provenance)
         self._order, self._rescale, self._pixel_dtype = order, [rescale[i] for i in order], pixel_dtype
         dtype = rescaled_dtype(pixel_dtype, int(ds.get("BitsStored", bits)), self._rescale)
         if dtype != pixel_dtype:

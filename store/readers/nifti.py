@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import READ_CHUNK, UNITS, Reader, shape_text, source_info, pick_volume
+from lodcast.store.readers.base import READ_CHUNK, UNITS, Reader, pick_volume, shape_text, source_info
 
 __all__ = ["NiftiReader"]
 
@@ -21,6 +21,12 @@ __all__ = ["NiftiReader"]
 _NIFTI_VECTOR_INTENTS = {"vector", "displacement vector", "rgb vector", "rgba vector", "quaternion",
                          "symmetric matrix", "general matrix", "pointset", "triangle", "fnirt disp field"}
 
+
+
+def _decimal(x: Any) -> float:
+    """A header's float32 number as the decimal it was written as (1.2, not 1.2000000476837158): the shortest
+    decimal that rounds to the same float32."""
+    return float(np.format_float_positional(np.float32(x), unique=True, trim="-"))
 
 class NiftiReader(Reader):
     """NIfTI-1/2 (and Analyze) through nibabel: slabs of `transpose(data, (2, 1, 0))`. The proxy keeps its file
@@ -30,7 +36,7 @@ class NiftiReader(Reader):
         import nibabel as nib
 
         try:
-            img = nib.load(str(path), keep_file_open=True)
+            img: Any = nib.load(str(path), keep_file_open=True)  # NIfTI-1, NIfTI-2 or Analyze, each its own API
             ondisk = img.get_data_dtype()
         except Exception as exc:  # nibabel raises many types for files it cannot parse
             raise SourceError(f"{path} is not a readable NIfTI file: {exc}") from None
@@ -52,7 +58,7 @@ class NiftiReader(Reader):
         self._path = path
         slope, inter = float(getattr(self._proxy, "slope", 1.0)), float(getattr(self._proxy, "inter", 0.0))
         scaled = (slope, inter) != (1.0, 0.0)
-        zooms = [float(z) for z in img.header.get_zooms()[:3]] + [1.0] * (3 - min(3, len(shape)))
+        zooms = [_decimal(z) for z in img.header.get_zooms()[:3]] + [1.0] * (3 - min(3, len(shape)))
         affine = np.asarray(img.affine, dtype=float)
         # the scanner or standard-space affine (sform, else qform); neither coded: NIfTI says nothing of where
         # the patient is, and nibabel's fallback affine is only a guess
@@ -60,8 +66,10 @@ class NiftiReader(Reader):
         if hasattr(img.header, "get_sform"):  # Analyze headers have neither
             coded = next((a for a, code in (img.header.get_sform(coded=True), img.header.get_qform(coded=True))
                           if code and a is not None), None)
-        geometry = {} if coded is None else {"space": "RAS", "direction": np.asarray(coded)[:3, :3].T,
-                                             "origin": np.asarray(coded)[:3, 3][::-1]}
+        if coded is not None:
+            coded = np.vectorize(_decimal, otypes=[np.float64])(np.asarray(coded))
+        geometry: dict[str, Any] = {} if coded is None else {"space": "RAS", "direction": coded[:3, :3].T,
+                                                              "origin": coded[:3, 3][::-1]}
         units = img.header.get_xyzt_units()[0] if hasattr(img.header, "get_xyzt_units") else "unknown"
         provenance: dict[str, Any] = {"affine": affine.tolist(), "intent": intent}
         if scaled:

@@ -22,7 +22,7 @@ ORIENTS = ("LPS", "source")
 PATIENT_FORMATS = ("dicom", "nifti", "nrrd")
 
 
-def reorient(reader: VolumeSource, orient: str = "LPS") -> VolumeSource:
+def reorient(reader: Reader, orient: str = "LPS") -> Reader:
     """The source in the store's world (module docstring). "LPS" turns the array so that its axes are the patient's
     closest ones; "source" keeps the array's axes and writes the geometry as a rotation of the patient frame onto
     them. A source without patient geometry (no direction, or a space that is not a patient frame, such as NRRD's
@@ -55,19 +55,28 @@ def reorient(reader: VolumeSource, orient: str = "LPS") -> VolumeSource:
         prov["orientation_kept"] = (f"the source's space {info.space!r} is not a patient frame (LPS, RAS or LAS): "
                                     "its axes are kept")
     if not turn.identity:
+        assert space is not None  # only a patient frame is turned
         codes = {turn.order[j]: OPPOSITE[FRAMES[space][j]] if turn.flip[j] else FRAMES[space][j] for j in range(3)}
         prov["reoriented"] = {"source_axes": [codes[i] for i in range(3)], "order": list(turn.order),
                               "flipped": list(turn.flip)}
+    # the ignores: each tuple below has three items, but mypy types a tuple built from a generator as any length
     turned = dataclasses.replace(
-        info, shape=tuple(shape_xyz[turn.order[j]] for j in (2, 1, 0)),
-        spacing=tuple(spacing_xyz[turn.order[j]] for j in (2, 1, 0)),
-        origin=tuple(float(v) + 0.0 for v in (direction @ corner)[::-1]), space=space,
-        direction=tuple(tuple(float(v) + 0.0 for v in row) for row in direction), provenance=prov)
+        info, shape=tuple(shape_xyz[turn.order[j]] for j in (2, 1, 0)),  # type: ignore[arg-type]
+        spacing=tuple(spacing_xyz[turn.order[j]] for j in (2, 1, 0)),  # type: ignore[arg-type]
+        origin=tuple(_significant(v) for v in (direction @ corner)[::-1]), space=space,  # type: ignore[arg-type]
+        direction=tuple(tuple(float(v) + 0.0 for v in row) for row in direction),  # type: ignore[misc]
+        provenance=prov)
     if turn.identity:
         reader.info = turned
         return reader
     return _Reoriented(reader, turn, turned)
 
+
+
+def _significant(v: float) -> float:
+    """A world coordinate to 12 significant digits: what turning the axes adds in float64 arithmetic (3 × 0.7 =
+    2.0999999999999996) is noise far below any header's precision, and would show in `lodcast info`."""
+    return float(f"{float(v):.12g}") + 0.0
 
 class _Reoriented(Reader):
     """A source turned by permutations and flips. While the source's slice axis stays the store's z, unreversed,
@@ -90,7 +99,8 @@ class _Reoriented(Reader):
             return out
         if self._spool is None:
             self._copy()
-        return self._turn.apply(self._spool)[z0:z1]  # type: ignore[index]
+        assert self._spool is not None  # set by _copy
+        return self._turn.apply(self._spool)[z0:z1]
 
     def _copy(self) -> None:
         fd, self._spool_path = tempfile.mkstemp(prefix="lodcast-reorient-", suffix=".npy")

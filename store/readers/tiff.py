@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import UNITS, Reader, files_in, shape_text, source_info, pick_volume
+from lodcast.store.readers.base import UNITS, Reader, files_in, pick_volume, shape_text, source_info
 
 __all__ = ["open_tiff"]
 
@@ -101,7 +101,7 @@ class _TiffFileReader(Reader):
             shape4, t = pick_volume([shape[a] for a in stack] + [shape[z_axis] if lead else 1, *shape[-2:]], index, str(path))
             self._select: list[Any] = [t if a in stack else 0 for a in range(len(shape) - 2)]
             self._z_axis = z_axis
-            self._array = zarr.open(self._tif.aszarr(series=0), mode="r")
+            self._array: Any = zarr.open(self._tif.aszarr(series=0), mode="r")  # zarr types it an array or a group
             self.info = source_info(shape4[1:], series.dtype, "tiff", path, axes=axes, **_tiff_geometry(self._tif))
         except BaseException:
             self._tif.close()

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import UNITS, Reader, shape_text, source_info, pick_volume
+from lodcast.store.readers.base import UNITS, Reader, pick_volume, shape_text, source_info
 
 __all__ = ["ZarrReader"]
 
@@ -27,12 +27,13 @@ class ZarrReader(Reader):
         except Exception as exc:  # zarr raises several types for folders that are not stores
             raise SourceError(f"{path} is not a readable zarr store: {exc}") from None
         provenance: dict[str, Any] = {}
+        array: Any  # zarr types a node read by path as an array or a group
         if isinstance(node, zarr.Array):
             array, image, dataset = node, None, None
             names = {2: "yx", 3: "zyx", 4: "tzyx"}.get(array.ndim) or pick_volume(array.shape, index, f"zarr array {path}")
             axes: list[dict[str, Any]] = [{"name": n} for n in names]
         else:
-            ome = dict(node.attrs)
+            ome: Any = dict(node.attrs)  # JSON as the writer made it: checked as it is read
             ome = ome.get("ome", ome)  # 0.5 nests its metadata under "ome", 0.4 does not
             multiscales = ome.get("multiscales") if isinstance(ome, dict) else None
             if not multiscales:
@@ -60,6 +61,7 @@ class ZarrReader(Reader):
         self._array, self._select, self._flat = array, [t if k in stacks else 0 for k in range(lead)], len(spatial) == 2
         spacing, origin, units = [1.0] * 3, [0.0] * 3, "millimeter"
         if image is not None:
+            assert dataset is not None  # read with `image`
             scale, translation = _ome_transform(dataset, image, array.ndim)
             pad = 3 - len(spatial)  # a 2D image is one slice of unit thickness
             spacing, origin = [1.0] * pad + [scale[k] for k in spatial], [0.0] * pad + [translation[k] for k in spatial]
