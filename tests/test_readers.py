@@ -317,6 +317,32 @@ def test_nifti_oblique_4d_and_refusals(tmp_path: Path) -> None:
 
 # --- TIFF --------------------------------------------------------------------------------------------------------
 
+def test_a_tiff_folder_of_two_series_or_of_links_says_so(tmp_path: Path) -> None:
+    """Two name patterns in one folder (a reconstruction beside its projections, say) are refused naming both,
+    not stacked into one volume; TIFFs that are symbolic links to files elsewhere are skipped, and the error or
+    the warning says so and why."""
+    import tifffile
+
+    two = tmp_path / "two"
+    two.mkdir()
+    for z in range(3):
+        tifffile.imwrite(two / f"recon_{z:03d}.tif", np.full((4, 5), z, np.uint8))
+        tifffile.imwrite(two / f"proj{z}.tif", np.full((4, 5), z, np.uint8))
+    tifffile.imwrite(two / "recon_003.tif", np.zeros((4, 5), np.uint8))
+    refused(r"2 name patterns, 'recon_#\.tif' \(4 files, e\.g\. recon_000\.tif\), 'proj#\.tif' \(3 files", two)
+    elsewhere, links = tmp_path / "elsewhere", tmp_path / "links"
+    elsewhere.mkdir()
+    links.mkdir()
+    for z in range(3):
+        tifffile.imwrite(elsewhere / f"s{z}.tif", np.full((4, 5), z, np.uint8))
+        (links / f"s{z}.tif").symlink_to(elsewhere / f"s{z}.tif")
+    refused(r"no \.tif/\.tiff files in folder .*links; 3 \.tif/\.tiff files are symbolic links to files outside", links)
+    tifffile.imwrite(links / "s3.tif", np.full((4, 5), 3, np.uint8))  # one of its own
+    with open_source(links) as src:
+        assert src.info.shape == (1, 4, 5)
+        assert any("3 .tif/.tiff files are symbolic links" in w for w in src.info.provenance["warnings"])
+
+
 def test_tiff_multipage_imagej_and_folder(tmp_path: Path) -> None:
     a = volume((9, 6, 7), "uint16")
     tifffile.imwrite(tmp_path / "plain.tif", a)

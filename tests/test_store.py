@@ -402,3 +402,25 @@ def test_read_chunks_are_the_level_regions_of_those_chunks(tmp_path, monkeypatch
                     region = tuple(slice(int(x) * int(n), min((int(x) + 1) * int(n), int(s))) for x, n, s in zip(co, c, shape))
                     want = st.read_std_region(k, region) if std else st.read_region(k, region)
                     assert a.shape == want.shape and np.array_equal(a, want, equal_nan=True), (k, co, std)
+
+
+def test_a_ct_opens_in_the_soft_tissue_window(tmp_path: Path, shared_data: Path):
+    """A CT in Hounsfield units (air near -1000, tissue and bone above) gets the soft-tissue window (level 40, width
+    400) as its OME `omero` window, as a radiology viewer opens it, rather than its full range (air to bone, grey);
+    a volume that merely spans negative values, or an MR, keeps the percentile window."""
+    rng = np.random.default_rng(5)
+    z, y, x = np.mgrid[:48, :48, :48] - 23.5
+    r = np.sqrt(z**2 + y**2 + x**2)
+    ct = np.where(r < 20, 40.0, -1000.0) + rng.normal(0, 10, r.shape)
+    ct[(r > 8) & (r < 11)] = 1200.0  # bone
+    st = lodcast.ingest(np.rint(ct).astype(np.int16), tmp_path / "ct.zarr")
+    win = st.attrs["ome"]["omero"]["channels"][0]["window"]
+    assert (win["start"], win["end"]) == (-160.0, 240.0) and win["min"] < -950 and win["max"] > 1150, win
+    signal = rng.normal(0, 300, (32, 32, 32)).astype(np.float32)  # symmetric about 0: no air peak
+    win = lodcast.ingest(signal, tmp_path / "s.zarr").attrs["ome"]["omero"]["channels"][0]["window"]
+    assert win["start"] < -500 and win["end"] > 500, win
+    real = lodcast.ingest(shared_data / "ct_chest_dicom", tmp_path / "chest.zarr")
+    assert real.attrs["ome"]["omero"]["channels"][0]["window"]["start"] == -160.0
+    mr = lodcast.ingest(shared_data / "mr_head.nii.gz", tmp_path / "mr.zarr")
+    win = mr.attrs["ome"]["omero"]["channels"][0]["window"]
+    assert win["start"] >= 0.0 and (win["start"], win["end"]) != (-160.0, 240.0), win

@@ -137,9 +137,23 @@ class _TiffFolderReader(Reader):
     """A folder of single-image TIFFs, one slice each, in natural name order (img2 before img10)."""
 
     def __init__(self, path: Path, index: int | None) -> None:
-        self._files = sorted(files_in(path, lambda f: f.suffix.lower() in (".tif", ".tiff")), key=_natural)
+        is_tiff = lambda f: f.suffix.lower() in (".tif", ".tiff")  # noqa: E731
+        self._files = sorted(files_in(path, is_tiff), key=_natural)
+        linked = len([f for f in path.iterdir() if f.is_file() and is_tiff(f)]) - len(self._files)
+        why = (f"{linked} .tif/.tiff {'files are symbolic links' if linked > 1 else 'file is a symbolic link'} to "
+               f"files outside {path}, skipped: a source folder reads only its own files (copy them in)"
+               ) if linked else None
         if not self._files:
-            raise SourceError(f"no .tif/.tiff files in folder {path}")
+            raise SourceError(f"no .tif/.tiff files in folder {path}" + (f"; {why}" if why else ""))
+        series: dict[str, list[Path]] = {}
+        for f in self._files:
+            series.setdefault(re.sub(r"\d+", "#", f.name.lower()), []).append(f)
+        if len(series) > 1:
+            named = sorted(series.items(), key=lambda kv: -len(kv[1]))
+            raise SourceError(f"TIFF folder {path} holds files of {len(series)} name patterns, "
+                              + ", ".join(f"{pat!r} ({len(fs)} files, e.g. {fs[0].name})" for pat, fs in named[:3])
+                              + ": which are the slices of one volume is unclear; move each series to a folder "
+                              "of its own")
         if index is not None:
             raise SourceError(f"index {index} given but TIFF folder {path} is a single 3D volume")
         shape, dtype, geometry = _single_image(self._files[0], path)
@@ -148,6 +162,8 @@ class _TiffFolderReader(Reader):
             if other[:2] != (shape, dtype):
                 raise SourceError(f"TIFF folder {path} has inconsistent images: {self._files[0].name} is "
                                   f"{shape_text(shape)} {dtype} but {f.name} is {shape_text(other[0])} {other[1]}")
+        if why:
+            geometry["warnings"] = [*geometry.get("warnings", []), why]
         self.info = source_info((len(self._files), *shape), dtype, "tiff", path, files=len(self._files), **geometry)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
