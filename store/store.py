@@ -122,6 +122,32 @@ class Store:
         sp, org, shp = (np.asarray(v, np.float64) for v in (self.spacing, self.origin, self.shape))
         return org - sp / 2, org + (shp - 0.5) * sp
 
+    def level_geometry(self, k: int) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(spacing, origin) of level k, z-y-x in world units: its voxels are 2^k level-0 voxels across, the first
+        one's centre (2^k - 1)/2 level-0 voxels past level 0's first centre (as the OME metadata says)."""
+        self.layout._check_level(k)
+        f = float(1 << k)
+        sp = tuple(s * f for s in self.spacing)
+        org = tuple(o + s * (f - 1.0) / 2.0 for o, s in zip(self.origin, self.spacing))
+        return sp, org  # type: ignore[return-value]
+
+    def to_xarray(self, level: int = 0) -> Any:
+        """Level `level` as an `xarray.DataArray` (dims z, y, x; coordinates in world units at voxel centres,
+        named with the store's units; attrs: units, orientation, value range). The data stay on disk (a lazy
+        zarr array) until asked for. Needs xarray (`pip install "lodcast[interop]"`): `xarray.open_zarr` cannot
+        read OME-Zarr multiscales, whose levels are arrays of one group."""
+        try:
+            import xarray as xr
+        except ImportError:
+            raise ImportError('Store.to_xarray needs xarray: pip install "lodcast[interop]" (or xarray)') from None
+        sp, org = self.level_geometry(level)
+        arr = self.level(level)
+        coords = {ax: (ax, org[i] + sp[i] * np.arange(arr.shape[i]), {"units": self.units})
+                  for i, ax in enumerate(("z", "y", "x"))}
+        return xr.DataArray(arr, dims=("z", "y", "x"), coords=coords, name=self.name,
+                            attrs={"units": self.units, "level": level, "value_range": list(self.value_range),
+                                   "orientation": self.orientation, "source": self.location})
+
     # --- data -----------------------------------------------------------------------------------------------
     def level(self, k: int) -> zarr.Array:
         self.layout._check_level(k)
