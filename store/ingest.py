@@ -35,7 +35,7 @@ from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales, omero
 from lodcast.store.orientation import axis_codes
 from lodcast.store.remote import is_url
-from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource
+from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource, check_world_box
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
 if TYPE_CHECKING:
@@ -92,8 +92,10 @@ def ingest(
         if len(info.shape) != 3 or min(info.shape) < 1:
             raise SourceError(f"volume shape must have three non-empty axes (z, y, x), got {tuple(info.shape)}")
         env = environment()
+        # the bounds (_check_size, check_world_box): voxels in whole blocks, the store's files, memory, a finite box
         _check_size(info.shape, np.dtype(info.dtype), block_size, env.max_voxels if max_voxels is None else max_voxels,
-                    env.max_ingest_bytes if max_memory is None else max_memory)
+                    env.max_ingest_bytes if max_memory is None else max_memory, src.held_bytes)
+        check_world_box(info)
         dest.parent.mkdir(parents=True, exist_ok=True)
         tmp = temp_path(dest, "partial")
         try:
@@ -136,17 +138,45 @@ def working_bytes(shape: tuple[int, ...], dtype: np.dtype, block_size: int) -> i
     return BASE_BYTES + block_size * ny * nx * per_voxel
 
 
+#: a store's files (shards, per-block statistics, metadata): this many whatever the volume, plus one per
+#: VOXELS_PER_FILE voxels. Ordinary volumes stay far inside (`store_files`: 512³ ~1,000 of the 2.1 million allowed,
+#: 2 x 8192² ~6,900, 1000 x 16² ~900 of 6,048); a thin one does not (1x1x20000: 15,856 files, most of them per-block
+#: statistics of one block each, for 20,000 voxels)
+FILES_FLOOR = 2048
+VOXELS_PER_FILE = 64
+
+
+def store_files(lay: Layout) -> int:
+    """The files `_write` makes, at most: the shards of every level and standard deviation array, a chunk per row of
+    blocks of each of the ten per-block arrays, the cell ranges' chunks, and the metadata."""
+    shards = sum(lay.shard_count(k) for k in range(lay.n_levels)) * 2 - lay.shard_count(0)
+    cells = 2 * math.ceil(lay.cell_grid[0] / (lay.block_size // lay.cell_edge))
+    return shards + 10 * lay.grid[0] + cells + 2 * lay.n_levels + 14
+
+
 def _check_size(shape: tuple[int, ...], dtype: np.dtype, block_size: int, max_voxels: int | None,
-                max_memory: int | None) -> None:
+                max_memory: int | None, held: int = 0) -> None:
+    """What the declared shape costs, before anything is read: voxels of whole blocks (ingest pads every block to
+    B³ and works on the padding) against `max_voxels`, the store's files, and the working set plus what the
+    reader holds (`held`) against `max_memory`."""
     dims = "x".join(str(int(s)) for s in shape)
     voxels = math.prod(int(s) for s in shape)
-    if max_voxels is not None and voxels > max_voxels:
-        raise SourceError(f"the source declares {dims} = {voxels:.4g} voxels, more than the limit of "
+    lay = Layout(tuple(int(s) for s in shape), block_size)  # type: ignore[arg-type]  # three lengths, checked above
+    padded = lay.n_blocks * block_size**3
+    if max_voxels is not None and padded > max_voxels:
+        blocks = f" in blocks of {block_size}³ (padded to {padded:.4g} voxels)" if padded != voxels else ""
+        raise SourceError(f"the source declares {dims} = {voxels:.4g} voxels{blocks}, more than the limit of "
                           f"{max_voxels:.4g} (LODCAST_MAX_VOXELS); nothing was read")
-    need = working_bytes(shape, dtype, block_size)
+    files, allowed = store_files(lay), FILES_FLOOR + voxels // VOXELS_PER_FILE
+    if files > allowed:
+        raise SourceError(f"the source declares {dims} voxels, slices of {shape[1]}x{shape[2]}: its store would be "
+                          f"{files} files in {lay.grid[0]} rows of blocks of {block_size}³, more than the {allowed} "
+                          f"allowed for {voxels} voxels; nothing was read")
+    need = working_bytes(shape, dtype, block_size) + held
     if max_memory is not None and need > max_memory:
+        kept = f" ({held / 1e6:.0f} MB of it the reader's: a decoded row of chunks, and chunks decoding)" if held else ""
         raise SourceError(f"the source declares {dims} voxels: ingesting slices of {shape[1]}x{shape[2]} needs about "
-                          f"{need / 1e6:.0f} MB, more than the limit of {max_memory / 1e6:.0f} MB "
+                          f"{need / 1e6:.0f} MB{kept}, more than the limit of {max_memory / 1e6:.0f} MB "
                           f"(LODCAST_MAX_INGEST_MEMORY_MB); nothing was read")
 
 

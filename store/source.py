@@ -7,13 +7,14 @@ memory then stays one slab, whatever the depth.
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-__all__ = ["VolumeSource", "ArraySource", "SourceInfo", "SUPPORTED_DTYPES"]
+__all__ = ["VolumeSource", "ArraySource", "SourceInfo", "SUPPORTED_DTYPES", "check_world_box"]
 
 #: dtypes a store can hold; anything else (complex, object, bool, 64-bit ints beyond float64's exact range…) is refused.
 SUPPORTED_DTYPES = tuple(
@@ -39,6 +40,37 @@ class SourceInfo:
     direction: tuple[tuple[float, float, float], ...] | None = None
 
 
+#: the world box's bounds, in world units: its coordinates, their squares and a voxel's reciprocal stay finite in the
+#: renderer's float32, and a box thinner than RELATIVE_EXTENT of its distance from the world's origin (about eight
+#: float32 steps across it) is degenerate there
+MIN_SPACING, MAX_SPACING, WORLD_LIMIT, RELATIVE_EXTENT = 1e-12, 1e12, 1e15, 1e-6
+
+
+def check_world_box(info: SourceInfo) -> None:
+    """Refuses (SourceError naming the file and the field) spacing and origin that do not give a finite,
+    non-degenerate world box: the box runs from origin − spacing/2 to origin + (shape − ½)·spacing."""
+    from lodcast.errors import SourceError
+
+    name = info.provenance.get("path") or f"the {info.format or 'volume'} source"
+    spacing, origin = [float(v) for v in info.spacing], [float(v) for v in info.origin]
+    if len(spacing) != 3 or not all(MIN_SPACING <= v <= MAX_SPACING for v in spacing):  # NaN fails too
+        raise SourceError(f"{name}: spacing (z, y, x) {spacing} must be three numbers from {MIN_SPACING:g} to "
+                          f"{MAX_SPACING:g} world units")
+    if len(origin) != 3 or not all(math.isfinite(v) and abs(v) <= WORLD_LIMIT for v in origin):
+        raise SourceError(f"{name}: origin (z, y, x) {origin} must be three finite numbers within "
+                          f"±{WORLD_LIMIT:g} world units")
+    for axis, n, s, o in zip("zyx", info.shape, spacing, origin):
+        lo, hi = o - s / 2, o + (int(n) - 0.5) * s
+        far = max(abs(lo), abs(hi))
+        if far > WORLD_LIMIT:
+            raise SourceError(f"{name}: the world box along {axis} runs from {lo:.6g} to {hi:.6g} (origin {o:g}, "
+                              f"spacing {s:g}, {n} voxels), beyond ±{WORLD_LIMIT:g} world units")
+        if hi - lo < RELATIVE_EXTENT * far:
+            raise SourceError(f"{name}: the world box along {axis} is {hi - lo:.3g} thick (spacing {s:g}, {n} voxels) "
+                              f"at origin {o:g}, less than {RELATIVE_EXTENT:g} of its distance from 0: too thin to "
+                              f"place in float32 (set a smaller origin or a larger spacing)")
+
+
 class VolumeSource(abc.ABC):
     """A scalar 3D volume readable in z-slabs. Use as a context manager."""
 
@@ -46,6 +78,9 @@ class VolumeSource(abc.ABC):
     # True when reading a slab again costs about what reading raw bytes does (arrays, plain binary files,
     # uncompressed DICOM): ingest's second pass then reads the source again instead of decompressing level 0
     rereads_cheaply: bool = False
+    # memory the reader holds beside the slab it returns (a zarr source's decoded chunk row), counted by ingest
+    # against its memory limit
+    held_bytes: int = 0
 
     @abc.abstractmethod
     def read(self, z0: int, z1: int) -> np.ndarray:

@@ -43,8 +43,9 @@ def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[
     (the default) turns a source with patient geometry so that x, y, z point left, posterior, superior, by axis
     permutations and flips only, and "source" keeps the file's array axes (store/orientation.py); a source without
     patient geometry is never turned; `index` picks one volume of a 4D series (time or channel axis);
-    `detached=False` refuses sources that name other files (a detached NRRD header), for uploads. Every reader reads
-    only the source itself or files beside it in its own folder (symlinks resolved).
+    `detached=False` refuses sources that name other files (a detached NRRD header, a NIfTI .hdr/.img pair, a
+    multi-file OME-TIFF), for uploads. Every reader reads only the source itself or files beside it in its own
+    folder (symlinks resolved), never by absolute path or `..`.
     Raises SourceNotFound for a missing path and SourceError for anything that cannot be ingested."""
     p = Path(path)
     if not p.exists():
@@ -62,9 +63,12 @@ def open_source(path: str | Path, *, format: str | None = None, shape: Sequence[
         reader: Reader = open_raw(p, shape, dtype, byte_order, header_bytes, index)
     elif fmt == "nrrd":
         reader = open_nrrd(p, index, detached)
+    elif fmt == "tiff":
+        reader = open_tiff(p, index, detached)
+    elif fmt == "nifti":
+        reader = NiftiReader(p, index, detached)
     else:
-        reader = {"npy": open_npy, "nifti": NiftiReader, "tiff": open_tiff, "dicom": open_dicom,
-                  "zarr": ZarrReader}[fmt](p, index)
+        reader = {"npy": open_npy, "dicom": open_dicom, "zarr": ZarrReader}[fmt](p, index)
     try:
         return finish(reorient(reader, orient), spacing, origin, units)
     except BaseException:

@@ -94,6 +94,9 @@ def finish(reader: Reader, spacing: Sequence[float] | None, origin: Sequence[flo
             del prov["warnings"]
     elif all(math.isfinite(s) and s > 0 for s in info.spacing):
         spacing = info.spacing
+    elif not all(math.isfinite(s) for s in info.spacing):
+        raise SourceError(f"{name}: file spacing (z, y, x) {list(info.spacing)} is not finite; set it with "
+                          f"--spacing z,y,x (spacing= in Python)")
     else:  # headers with zero spacing exist; a unit step keeps the volume usable
         prov.setdefault("warnings", []).append(f"file spacing {list(info.spacing)} is not positive; 1 used instead")
         spacing = tuple(s if math.isfinite(s) and s > 0 else 1.0 for s in info.spacing)
@@ -211,8 +214,9 @@ def _unit_rows(direction: Any) -> tuple[tuple[float, float, float], ...] | None:
     if direction is None:
         return None
     d = np.asarray(direction, dtype=np.float64)
-    if d.shape != (3, 3) or not np.isfinite(d).all() or not np.linalg.norm(d, axis=1).all():
+    if d.shape != (3, 3) or not np.isfinite(d).all() or not np.abs(d).max(axis=1).all():
         return None
+    d = d / np.abs(d).max(axis=1)[:, None]  # first: squares of 1e200 overflow, of 1e-200 underflow
     d = d / np.linalg.norm(d, axis=1)[:, None]
     if abs(np.linalg.det(d)) < 0.5:  # two axes nearly along one direction
         return None

@@ -19,7 +19,17 @@ import numpy as np
 import lodcast.store.readers as _package
 from lodcast.errors import SourceError
 from lodcast.store.orientation import space_name
-from lodcast.store.readers.base import UNITS, Reader, pick_volume, read_exact, shape_text, skip_bytes, source_info, tidy
+from lodcast.store.readers.base import (
+    READ_CHUNK,
+    UNITS,
+    Reader,
+    pick_volume,
+    read_exact,
+    shape_text,
+    skip_bytes,
+    source_info,
+    tidy,
+)
 from lodcast.store.source import SourceInfo
 
 __all__ = ["open_npy", "open_raw", "open_nrrd"]
@@ -179,7 +189,11 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
     origin, geometry = [0.0, 0.0, 0.0], {}
     if directions is not None:
         d = np.asarray([directions[a] for a in spatial], dtype=float)
-        spacing = [tidy(v) for v in np.linalg.norm(d, axis=1)]
+        # each row scaled by its largest component first: squared, a 1e-320 step underflowed to 0 and 1e308 to inf
+        big = np.abs(d).max(axis=1, initial=0.0)
+        with np.errstate(invalid="ignore"):
+            norms = big * np.linalg.norm(d / np.where(big > 0, big, 1.0)[:, None], axis=1)
+        spacing = [tidy(v) for v in norms]
         provenance["space_directions"] = d.tolist()
         o = header.get("space origin")
         if o is not None:
@@ -211,19 +225,27 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
                               f"expected a file beside the header")
         if not data_path.is_file():
             raise SourceError(f"data file {data_path} named by NRRD header {path} does not exist")
+    size = data_path.stat().st_size
+    line_skip, byte_skip = (_skip(header, key, path) for key in ("line skip", "byte skip"))
+    if line_skip > size - start:  # every line is at least its newline
+        raise SourceError(f"NRRD {path}: line skip {line_skip} is more lines than the {size - start} bytes of "
+                          f"{data_path.name} after the header can hold")
     with open(data_path, "rb") as f:
         f.seek(start)
-        for _ in range(int(header.get("line skip", header.get("lineskip", 0)))):
-            f.readline()
-        start = f.tell()
-    byte_skip = int(header.get("byte skip", header.get("byteskip", 0)))
+        start = _skip_lines(f, line_skip, path)
     nbytes = math.prod(sizes) * dtype.itemsize
     if encoding == "raw":
-        offset = data_path.stat().st_size - nbytes if byte_skip == -1 else start + byte_skip
-        if offset < 0 or data_path.stat().st_size < offset + nbytes:
-            raise SourceError(f"NRRD data in {data_path} is {data_path.stat().st_size - max(offset, 0)} bytes but "
+        if byte_skip > size - start:
+            raise SourceError(f"NRRD {path}: byte skip {byte_skip} is beyond the end of {data_path.name} "
+                              f"({size - start} bytes after the header)")
+        offset = size - nbytes if byte_skip == -1 else start + byte_skip
+        if offset < 0 or size < offset + nbytes:
+            raise SourceError(f"NRRD data in {data_path} is {size - max(offset, 0)} bytes but "
                               f"sizes {shape_text(sizes)} of {dtype.name} need {nbytes}")
         return _BinaryReader(data_path, offset, shape4, dtype, False, t, info)
+    if encoding in ("gzip", "gz") and byte_skip > _DEFLATE_RATIO * (size - start):
+        raise SourceError(f"NRRD {path}: byte skip {byte_skip} is more than the {size - start} gzip bytes of "
+                          f"{data_path.name} can hold (at most {_DEFLATE_RATIO} times their size)")
     decoders: dict[str, Callable[[IO[bytes]], io.BufferedIOBase]] = {
         "gzip": _gunzip, "gz": _gunzip, "bzip2": bz2.BZ2File, "bz2": bz2.BZ2File}
     decompress = decoders.get(encoding)
@@ -241,6 +263,39 @@ def open_nrrd(path: Path, index: int | None, detached: bool = True) -> Reader:
         return stream, raw
 
     return _StreamReader(opened, str(data_path), shape4, dtype, t, info)
+
+
+#: the most bytes one byte of a deflate stream expands to (its longest match, 258 bytes, in about two bits)
+_DEFLATE_RATIO = 1032
+
+
+def _skip(header: dict[str, Any], key: str, path: Path) -> int:
+    """The header's `line skip` or `byte skip` (also spelt without the space), 0 when absent."""
+    value = header.get(key, header.get(key.replace(" ", ""), 0))
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        raise SourceError(f"NRRD {path}: {key} {value!r} is not a whole number") from None
+    if n < (-1 if key == "byte skip" else 0):
+        raise SourceError(f"NRRD {path}: {key} {n} is negative")
+    return n
+
+
+def _skip_lines(f: IO[bytes], lines: int, path: Path) -> int:
+    """Moves past `lines` lines (reading in pieces: one line may be the whole file) and returns the position."""
+    pos = f.tell()
+    while lines > 0:
+        piece = f.read(READ_CHUNK)
+        if not piece:
+            raise SourceError(f"NRRD {path}: the data file ends {lines} lines short of its line skip")
+        cut = 0
+        while lines > 0:
+            cut = piece.find(b"\n", cut) + 1
+            if not cut:
+                break
+            lines -= 1
+        pos += cut if lines == 0 else len(piece)
+    return pos
 
 
 def _gunzip(f: IO[bytes]) -> io.BufferedIOBase:

@@ -27,6 +27,30 @@ def frame_count(f: Path) -> int:
         return 1
 
 
+def _check_frames(ds: Any, path: Path, n: int, bits: int) -> None:
+    """NumberOfFrames against what the file holds, from the header: uncompressed frames are Rows x Columns pixels
+    each, all in the file; compressed ones (encapsulated) are at least one fragment each, whose item header alone
+    is 8 bytes. (What compressed frames decode to is bounded by ingest's voxel and memory limits.)"""
+    if n < 1:
+        raise SourceError(f"DICOM file {path} declares NumberOfFrames = {n}; expected 1 or more")
+    if "PixelData" not in ds:
+        raise SourceError(f"DICOM file {path} has no PixelData")
+    item: Any = ds.get_item("PixelData")  # a raw element when small, a deferred DataElement when large
+    offset = int(item.value_tell if hasattr(item, "value_tell") else item.file_tell)
+    held = path.stat().st_size - offset
+    syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+    rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
+    if syntax is None or syntax.is_compressed:
+        need, what = 8 * n, "an 8-byte fragment header each at least"
+    else:
+        need, what = n * rows * cols * (bits // 8), f"{rows}x{cols} pixels of {bits} bits each"
+        if syntax.is_deflated:  # the whole dataset is one deflate stream: at most 1032 bytes out per byte in
+            held = 1032 * path.stat().st_size
+    if need > held:
+        raise SourceError(f"DICOM file {path} declares NumberOfFrames = {n} ({what}: {need} bytes), but holds "
+                          f"{max(held, 0)} bytes of pixel data")
+
+
 def _group(ds: Any, k: int, sequence: str) -> Any:
     """The first item of functional group `sequence` for frame k: per frame, else shared, else None."""
     for groups, i in (("PerFrameFunctionalGroupsSequence", k), ("SharedFunctionalGroupsSequence", 0)):
@@ -60,6 +84,7 @@ class MultiFrameDicomReader(Reader):
         if (bits, signed) not in PIXEL_DTYPES:
             raise SourceError(f"DICOM file {path} has {bits}-bit pixels; expected 8, 16 or 32")
         pixel_dtype = np.dtype(PIXEL_DTYPES[bits, signed])
+        _check_frames(ds, path, n, bits)  # before anything is done per frame
         provenance: dict[str, Any] = {"frames": n, "warnings": []}
         positions, orientations, rescale = [], [], []
         for k in range(n):

@@ -28,18 +28,49 @@ def _decimal(x: Any) -> float:
     decimal that rounds to the same float32."""
     return float(np.format_float_positional(np.float32(x), unique=True, trim="-"))
 
+def _pair(path: Path) -> list[Path]:
+    """What nibabel reads for an Analyze/NIfTI pair besides `path`: the .img of a .hdr, the .hdr of an .img, and
+    SPM's .mat (same stem, same compression suffix)."""
+    import nibabel as nib
+    from nibabel.filename_parser import splitext_addext
+
+    if splitext_addext(str(path))[1].lower() not in (".hdr", ".img"):
+        return []
+    return [Path(h.filename) for h in nib.Spm99AnalyzeImage.filespec_to_file_map(str(path)).values() if h.filename]
+
+
+def _check_companions(path: Path, files: list[Path], detached: bool) -> None:
+    """Each of `files` other than `path` that exists must be a file in `path`'s own folder, symlinks resolved;
+    `detached=False` (uploads: one file) accepts none."""
+    folder = path.parent.resolve()
+    for f in files:
+        if f == path or not (f.exists() or f.is_symlink()):
+            continue
+        if not detached:
+            raise SourceError(f"NIfTI {path} keeps its data or header in another file ({f.name}); only a single-file "
+                              f".nii or .nii.gz is accepted here")
+        if f.resolve().parent != folder:
+            raise SourceError(f"{f.name}, the companion of NIfTI {path}, links to a file outside its folder; "
+                              f"expected a file beside it (copy it in)")
+        if not f.is_file():
+            raise SourceError(f"{f.name}, the companion of NIfTI {path}, is not a regular file")
+
+
 class NiftiReader(Reader):
     """NIfTI-1/2 (and Analyze) through nibabel: slabs of `transpose(data, (2, 1, 0))`. The proxy keeps its file
     open so that a .gz reads forwards."""
 
-    def __init__(self, path: Path, index: int | None) -> None:
+    def __init__(self, path: Path, index: int | None, detached: bool = True) -> None:
         import nibabel as nib
 
+        _check_companions(path, _pair(path), detached)  # before nibabel opens any of them
         try:
             img: Any = nib.load(str(path), keep_file_open=True)  # NIfTI-1, NIfTI-2 or Analyze, each its own API
             ondisk = img.get_data_dtype()
         except Exception as exc:  # nibabel raises many types for files it cannot parse
             raise SourceError(f"{path} is not a readable NIfTI file: {exc}") from None
+        # and what nibabel took the file for (given format="nifti", any of its formats), before any voxel is read
+        _check_companions(path, [Path(h.filename) for h in img.file_map.values() if h.filename], detached)
         shape = list(img.shape)
         while len(shape) > 3 and shape[-1] == 1:
             shape.pop()

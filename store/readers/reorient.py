@@ -87,6 +87,7 @@ class _Reoriented(Reader):
         self._inner, self._turn, self.info = inner, turn, info
         self._streams = turn.order[2] == 2 and not turn.flip[2]
         self.rereads_cheaply = inner.rereads_cheaply if self._streams else True
+        self.held_bytes = inner.held_bytes
         self._spool: np.ndarray | None = None
         self._spool_path: str | None = None
 

@@ -16,8 +16,11 @@ from lodcast.store.readers.base import UNITS, Reader, files_in, pick_volume, sha
 __all__ = ["open_tiff"]
 
 
-def open_tiff(path: Path, index: int | None) -> Reader:
-    return _TiffFolderReader(path, index) if path.is_dir() else _TiffFileReader(path, index)
+def open_tiff(path: Path, index: int | None, detached: bool = True) -> Reader:
+    """`detached=False` refuses a multi-file OME-TIFF (uploads: only the uploaded file may be read); otherwise the
+    files its OME-XML names must lie in its own folder. A folder's slices are read page by page: no slice reads
+    another file."""
+    return _TiffFolderReader(path, index) if path.is_dir() else _TiffFileReader(path, index, detached)
 
 
 _MICROMETERS = {"nanometer": 1e-3, "micrometer": 1.0, "millimeter": 1e3, "centimeter": 1e4, "meter": 1e6}
@@ -68,13 +71,61 @@ def _tiff_geometry(tif: Any) -> dict[str, Any]:
     return {"spacing": spacing, "units": UNITS.get(str(meta.get("unit", "")), "millimeter")}
 
 
-def _open_tiff(path: Path) -> Any:
+def _open_tiff(path: Path, companions: bool = False) -> Any:
+    """tifffile's view of one file, with its series that read other files turned off: NDTiff and Micro-Manager
+    series (which take file names from an index file or a glob) always, OME series naming other files unless
+    `companions` (checked by `_check_companions` first)."""
     import tifffile
 
     try:
-        return tifffile.TiffFile(path)
+        return tifffile.TiffFile(path, _multifile=companions, is_ndtiff=False, is_mmstack=False)
     except Exception as exc:  # tifffile raises many types for files it cannot parse
         raise SourceError(f"{path} is not a readable TIFF file: {exc}") from None
+
+
+def _ome_files(tif: Any, path: Path) -> list[str]:
+    """The FileName of every OME-XML `<TiffData><UUID>` that tifffile opens as a file of its own (a UUID other than
+    the OME element's): a multi-file OME-TIFF's other files, or `path` itself named under another UUID."""
+    import xml.etree.ElementTree as ET
+
+    if not tif.is_ome or not tif.ome_metadata:
+        return []
+    try:
+        root = ET.fromstring(tif.ome_metadata)
+    except ET.ParseError:
+        return []  # tifffile cannot parse it either: it falls back to the file's own pages
+    own = root.get("UUID")
+    names = []
+    for data in root.iter():
+        if data.tag.endswith("TiffData"):
+            names += [uuid.get("FileName", "") for uuid in data
+                      if uuid.tag.endswith("UUID") and not (own and uuid.text == own)]
+    # as tifffile tells its own file when the OME element has no UUID: by name, in any case
+    return [n for n in names if not (own is None and n.lower() == path.name.lower())]
+
+
+def _check_companions(tif: Any, path: Path, detached: bool) -> bool:
+    """Whether `path` is a multi-file OME-TIFF whose files may be read: each other file must be a file in `path`'s
+    own folder (symlinks resolved), and `detached=False` (uploads) accepts none. Raises SourceError otherwise,
+    naming the field."""
+    names = _ome_files(tif, path)
+    for name in names:
+        if name == path.name:
+            continue  # itself
+        field = f"OME-XML <TiffData><UUID FileName={name!r}>"
+        if not detached:
+            raise SourceError(f"OME-TIFF {path} names another file in its {field}; only a single-file OME-TIFF is "
+                              f"accepted here")
+        if not name:
+            raise SourceError(f"OME-TIFF {path} names another file by UUID alone in its OME-XML <TiffData><UUID>; "
+                              f"expected a FileName beside it")
+        other = path.parent / name
+        if Path(name).is_absolute() or other.resolve().parent != path.resolve().parent:
+            raise SourceError(f"{field} of OME-TIFF {path} names a file outside the TIFF's folder; expected a file "
+                              f"beside it")
+        if not other.is_file():
+            raise SourceError(f"{field} of OME-TIFF {path} names a file that does not exist")
+    return bool(names)
 
 
 class _TiffFileReader(Reader):
@@ -82,12 +133,18 @@ class _TiffFileReader(Reader):
     non-singleton axis from `index`. Read through tifffile's zarr view, which also serves ImageJ files whose
     pages after the first are not indexed."""
 
-    def __init__(self, path: Path, index: int | None) -> None:
+    def __init__(self, path: Path, index: int | None, detached: bool = True) -> None:
         import zarr
 
         self._tif = _open_tiff(path)
         try:
-            series, page = self._tif.series[0], self._tif.pages[0]
+            if _check_companions(self._tif, path, detached):
+                self._tif.close()
+                self._tif = _open_tiff(path, companions=True)
+            try:
+                series, page = self._tif.series[0], self._tif.pages[0]
+            except Exception as exc:  # tifffile raises many types for series it cannot make sense of
+                raise SourceError(f"{path} is not a readable TIFF file: {exc}") from None
             axes, shape = series.axes, series.shape
             if "S" in axes or page.samplesperpixel > 1:
                 raise SourceError(f"non-scalar data: {path} is {page.photometric.name} with {page.samplesperpixel} "
@@ -167,6 +224,13 @@ class _TiffFolderReader(Reader):
         self.info = source_info((len(self._files), *shape), dtype, "tiff", path, files=len(self._files), **geometry)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
-        import tifffile
+        return np.stack([_first_page(f).reshape(self.info.shape[1:]) for f in self._files[z0:z1]])
 
-        return np.stack([tifffile.imread(f).reshape(self.info.shape[1:]) for f in self._files[z0:z1]])
+
+def _first_page(f: Path) -> np.ndarray:
+    """The one image of a folder's slice, its page read directly (a series would follow OME-XML to other files)."""
+    with _open_tiff(f) as tif:
+        try:
+            return np.asarray(tif.pages[0].asarray())
+        except Exception as exc:  # decoding errors come from tifffile and imagecodecs
+            raise SourceError(f"cannot decode TIFF slice {f}: {exc}") from None
