@@ -28,7 +28,12 @@ def _type(annotation: Any) -> str:
     args = typing.get_args(annotation)
     if origin is typing.Annotated:
         base, *meta = args
-        text = _type(base)
+        shown = next((m for m in meta if isinstance(getattr(m, "model", None), type)), None)
+        if shown is not None:  # a field validated as `base`, typed in the schema as a model (a job's scene)
+            text = _type(shown.model) + ("" if getattr(shown, "tf_required", True) else ", `tf` optional")
+            meta = [m for m in meta if m is not shown]
+        else:
+            text = _type(base)
         bounds = []
         for m in meta:  # a constraint itself, or a FieldInfo holding them
             for c in (m, *(getattr(m, "metadata", None) or ())):
@@ -38,7 +43,8 @@ def _type(annotation: Any) -> str:
                         bounds.append(f"{sym} {v:g}" if isinstance(v, (int, float)) else f"{sym} {v}")
         return f"{text} ({', '.join(bounds)})" if bounds else text
     if origin is typing.Literal:
-        return " \\| ".join(f'`"{a}"`' if isinstance(a, str) else f"`{a}`" for a in args)
+        return " \\| ".join(f'`"{a}"`' if isinstance(a, str) else f"`{str(a).lower()}`" if isinstance(a, bool)
+                             else f"`{a}`" for a in args)
     if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
         parts = [_type(a) for a in args if a is not type(None)]
         return " or ".join(parts) + (" or null" if type(None) in args else "")
@@ -77,6 +83,14 @@ def _model(cls: Any, level: str = "###") -> str:
         rows.append(f"| `{f.alias or name}` | {_type(f.annotation if not f.metadata else typing.Annotated[(f.annotation, *f.metadata)])} "
                     f"| {_default(f)} | {' '.join((f.description or '').split())} |")
     return f"{level} {cls.__name__}\n\n{doc}\n\n" + "\n".join(rows) + "\n"
+
+
+def _typed_dict(cls: Any, level: str = "###") -> str:
+    """A TypedDict's keys and their types, as a table (what each means is its caller's to add)."""
+    doc = " ".join((cls.__doc__ or "").split())
+    rows = ["| key | type |", "|---|---|"]
+    rows += [f"| `{k}` | {_type(t)} |" for k, t in typing.get_type_hints(cls).items()]
+    return f"{level} {cls.__name__}\n\n{doc}\n\n" + "\n".join(rows)
 
 
 def camera_picture(path: Path) -> None:
@@ -118,9 +132,9 @@ def reference() -> str:
     import warnings
 
     from lodcast.environment import VARIABLES
+    from lodcast.renderer.image import report as rp
     from lodcast.renderer.scene import scene as sc
     from lodcast.renderer.scene.presets import catalogue
-    from lodcast.renderer.tools.report_fields import REPORT_FIELDS
     from lodcast.service import jobs, models
     from lodcast.service.app import create_app
     from lodcast.service.settings import Settings
@@ -166,8 +180,11 @@ def reference() -> str:
     out += ["A job's status (`GET /jobs/{id}`, what `lodcast submit` and `lodcast jobs` print):", "",
             _model(models.JobStatus), _model(models.Progress),
             "## Render report", "", "Every render returns one (`RenderResult.report`, the `X-Lodcast-Report` header, "
-            "`lodcast render --report FILE`).", "", "| key | meaning |", "|---|---|"]
-    out += [f"| `{k}` | {v} |" for k, v in REPORT_FIELDS.items()]
+            "`lodcast render --report FILE`): a JSON object, in Python a plain dict typed `lodcast.RenderReport` (a "
+            "TypedDict).", "", "| key | type | meaning |", "|---|---|---|"]
+    hints = typing.get_type_hints(rp.RenderReport)
+    out += [f"| `{k}` | {_type(hints[k])} | {v} |" for k, v in rp.REPORT_FIELDS.items()]
+    out += ["", _typed_dict(rp.PriorityMapReport), "", _typed_dict(rp.ScreenReport)]
     out += ["", "## HTTP routes", "", "OpenAPI (with every body and answer typed) at `/openapi.json`; Swagger UI at "
             "`/docs`. With `LODCAST_TOKEN` set, every route but `/healthz` and the docs needs "
             "`Authorization: Bearer TOKEN`. Errors are JSON `{\"detail\": ...}` naming the field.", "",
@@ -240,13 +257,16 @@ def cli() -> str:
 _METHODS = {"Renderer": ("render", "prepare", "prefetch", "check_cost", "visibility", "close")}
 #: pydantic models: fields are in docs/reference.md under these headings
 _MODELS = {"Scene": "scene", "JobStatus": "jobstatus", "VolumeSummary": "volumesummary"}
+#: TypedDicts: keys are in docs/reference.md under these headings
+_TYPED = {"RenderReport": "render-report"}
 
 
 def _annotation(annotation: Any) -> str:
     """An annotation as its source wrote it: no quotes, no module paths inside lodcast, None for NoneType."""
     text = annotation if isinstance(annotation, str) else inspect.formatannotation(annotation)
     text = re.sub(r"\blodcast(?:\.\w+)*\.(?=[A-Z_])", "", text.replace('"', "").replace("'", ""))
-    return text.replace("typing.", "").replace("NoneType", "None")
+    text = text.replace("typing.", "").replace("collections.abc.", "").replace("numpy.", "np.")
+    return text.replace("NoneType", "None")
 
 
 def _signature(name: str, obj: Any, prefix: str = "def ", returns: bool = True) -> str:
@@ -284,6 +304,30 @@ def _doc(obj: Any) -> str:
     return doc.strip()
 
 
+def _is_alias(obj: Any) -> bool:
+    """A type alias (`StoreLike = Store | str | ...`), not a class or function."""
+    return typing.get_origin(obj) in (typing.Union, getattr(__import__("types"), "UnionType", None))
+
+
+def _alias_doc(name: str) -> str:
+    """The `#:` comment above `NAME: TypeAlias = ...` in the module lodcast takes NAME from."""
+    import importlib
+
+    import lodcast
+
+    lines = inspect.getsource(importlib.import_module(lodcast._LAZY[name][0])).splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith(f"{name}: TypeAlias"))
+    doc: list[str] = []
+    while at > 0 and lines[at - 1].startswith("#:"):
+        at -= 1
+        doc.insert(0, lines[at][2:].strip())
+    return " ".join(doc)
+
+
+def _what(name: str, obj: Any) -> str:
+    return _alias_doc(name) if _is_alias(obj) else _doc(obj)
+
+
 def _public_methods(cls: type) -> list[str]:
     names: list[str] = []
     for klass in cls.__mro__:
@@ -308,7 +352,7 @@ def python_api() -> str:
            "conventions (axes, camera, opacity, ΔE) in [design.md](design.md).", "",
            "| name | what |", "|---|---|"]
     for n in names:
-        first = (_doc(getattr(lodcast, n)).split("\n\n")[0])
+        first = _what(n, getattr(lodcast, n)).split("\n\n")[0]
         out.append(f"| [`{n}`](#{'errors' if n in errors else n.lower()}) | {_cell(first)} |")
     out.append("")
     for n in names:
@@ -318,6 +362,13 @@ def python_api() -> str:
         out += [f"## {n}", ""]
         if inspect.isfunction(obj):
             out += ["```python", _signature(f"lodcast.{n}", obj), "```", "", _doc(obj), ""]
+            continue
+        if _is_alias(obj):
+            out += ["```python", f"lodcast.{n} = {_annotation(obj)}", "```", "", _alias_doc(n), ""]
+            continue
+        if typing.is_typeddict(obj):
+            out += ["```python", f"class lodcast.{n}(TypedDict)", "```", "", _doc(obj), "",
+                    f"Its keys, each with its type and meaning, are in [reference.md](reference.md#{_TYPED[n]}).", ""]
             continue
         if n in _MODELS:
             fields = ", ".join(f"`{f.alias or k}`" for k, f in obj.model_fields.items())

@@ -30,7 +30,10 @@ __all__ = [
     "JobStatus",
     "VolumeSummary",
     "RenderResult",
+    "RenderReport",
     "Scene",
+    "SceneLike",
+    "StoreLike",
     "LodcastError",
     "SourceError",
     "SourceNotFound",
@@ -58,7 +61,10 @@ _LAZY = {
     "EnvironmentInvalid": ("lodcast.environment", "EnvironmentInvalid"),
     "ServiceError": ("lodcast.service.client", "ServiceError"),
     "RenderResult": ("lodcast.renderer.image.output", "RenderResult"),
+    "RenderReport": ("lodcast.renderer.image.report", "RenderReport"),
     "Scene": ("lodcast.renderer.scene.scene", "Scene"),
+    "SceneLike": ("lodcast.renderer.scene.scene", "SceneLike"),
+    "StoreLike": ("lodcast.renderer.data.volume", "StoreLike"),
     "Client": ("lodcast.service.client", "Client"),
     "AsyncClient": ("lodcast.service.client", "AsyncClient"),
     "JobStatus": ("lodcast.service.models", "JobStatus"),
@@ -68,10 +74,12 @@ _LAZY = {
 if TYPE_CHECKING:  # pragma: no cover
     from lodcast.environment import EnvironmentInvalid
     from lodcast.opencl import DeviceError
+    from lodcast.renderer.data.volume import StoreLike
     from lodcast.renderer.frame.render import Renderer, render
     from lodcast.renderer.image.output import ImageError, RenderResult
+    from lodcast.renderer.image.report import RenderReport
     from lodcast.renderer.scene.cost import CostError
-    from lodcast.renderer.scene.scene import Scene, SceneError
+    from lodcast.renderer.scene.scene import Scene, SceneError, SceneLike
     from lodcast.service.client import AsyncClient, Client, ServiceError
     from lodcast.service.models import JobStatus, VolumeSummary
     from lodcast.store.ingest import ingest

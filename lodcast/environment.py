@@ -48,7 +48,8 @@ VARIABLES: tuple[tuple[str, str, str], ...] = (
      "(local files: decoding is the work, the calling thread places what they read, and threads beyond the cores "
      "only contend; object storage: requests wait on the network)"),
     ("LODCAST_MAX_SAMPLES", "2·10⁹", "most samples one render may take, estimated before it starts"),
-    ("LODCAST_MAX_VOXELS", "no limit", "largest volume ingest accepts, checked on the source's declared shape"),
+    ("LODCAST_MAX_VOXELS", "no limit", "largest volume ingest accepts (voxels of the whole blocks it would store), "
+                                       "checked from the source's header"),
     ("LODCAST_MAX_INGEST_MEMORY_MB", "no limit", "most memory (10⁶ bytes) ingest may plan for, checked on the "
                                                  "source's declared shape"),
     ("LODCAST_LOSSLESS_ZETA", "0.5", "ΔE per block that `quality: \"lossless\"` allows"),

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import logging
 import os
 import re
 import threading
@@ -26,10 +27,41 @@ import pyopencl as cl
 from lodcast.environment import environment
 from lodcast.errors import LodcastError
 
-__all__ = ["Device", "DeviceError", "Built", "kernel_source", "cache_dir", "renderer_folder"]
+__all__ = ["Device", "DeviceError", "Built", "kernel_source", "cache_dir", "renderer_folder", "BUILD_LOG",
+           "SLOW_BUILD_S"]
 
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.M)
 _PROBE = "__kernel void lc_ok(__global int* a) { a[0] = 1; }"
+
+
+#: a compile that runs longer than this (seconds) says what it builds, once per Device, at INFO on BUILD_LOG
+SLOW_BUILD_S = 1.0
+#: where it says so: quiet unless INFO is shown (the `lodcast` command shows it on stderr; libraries stay quiet)
+BUILD_LOG = logging.getLogger("lodcast.opencl.build")
+
+
+def _announce_after(name: str, options: tuple[str, ...], device: str,
+                    announced: threading.Event) -> threading.Timer | None:
+    """Say what is being built once SLOW_BUILD_S have passed (at once when it is 0 or less), unless `announced`
+    (the Device's) says it was said already or no one would see it; the timer to cancel when the build ends."""
+    if announced.is_set() or not BUILD_LOG.isEnabledFor(logging.INFO):
+        return None
+    flags = " for this scene's options" if options else ""
+    what = f"building the OpenCL kernel {name}{flags} on {device} (first use; cached afterwards)…"
+
+    def say() -> None:
+        if announced.is_set():
+            return
+        announced.set()
+        BUILD_LOG.info(what)
+
+    if SLOW_BUILD_S <= 0:
+        say()
+        return None
+    timer = threading.Timer(SLOW_BUILD_S, say)
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 class DeviceError(LodcastError, RuntimeError):
@@ -122,6 +154,7 @@ class Device:
         self._sources: dict[tuple[str, Path], tuple[tuple[tuple[Path, int, int], ...], str]] = {}
         self._keys: dict[tuple, tuple[str, str]] = {}
         self._thread = threading.local()
+        self._announced = threading.Event()  # a slow build was announced (once per Device: a CLI process has one)
 
     def __repr__(self) -> str:
         return f"Device({self.want or 'default'!r}, {'open' if self._opened else 'not opened'})"
@@ -248,10 +281,14 @@ class Device:
                 return cl.Program(ctx, [dev], [path.read_bytes()]).build(options=list(options)), "disk"
             except (cl.Error, OSError):
                 pass  # stale or corrupt binary: rebuilt below
+        notice = _announce_after(name, options, dev.name.strip(), self._announced)
         try:
             prg = cl.Program(ctx, src).build(options=list(options))
         except cl.RuntimeError as exc:
             raise DeviceError(f"building {name} with {' '.join(options)} failed: {exc}") from None
+        finally:
+            if notice is not None:
+                notice.cancel()
         try:
             binary = prg.get_info(cl.program_info.BINARIES)[0]
             if binary:

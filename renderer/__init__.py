@@ -7,7 +7,7 @@
   walk/                 which cells a ray may skip and how far it may leap
   kernel/               the OpenCL sources and what the host hands them: config, parameters, tables
   frame/                one frame: plan, preparation, launch and report (Renderer), screen-space tiles
-  image/                the result, its encodings, and ΔE between images
+  image/                the result and its typed report, its encodings, and ΔE between images
   tools/                `lodcast render`, `lodcast demo`'s pictures, `lodcast report`
 
 The public verbs (`lodcast.Renderer`, `lodcast.render`, `RenderResult`, `Scene`) are re-exported lazily by

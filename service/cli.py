@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import re
 import sys
 import time
@@ -39,15 +40,18 @@ EXAMPLES = {
                "metadata; written atomically (nothing is left on failure)",
                "lodcast ingest ct_series/ chest.zarr                       # a DICOM folder\n"
                "lodcast ingest head.nii.gz head.zarr --block-size 32\n"
-               "lodcast ingest scan.raw scan.zarr --shape 256,512,512 --dtype uint16 --spacing 1.5,0.7,0.7"),
+               "lodcast ingest scan.raw scan.zarr --shape 128,256,256 --dtype uint16 --spacing 1.5,0.7,0.7"),
     "info": ("print a store's attributes as JSON: shape, spacing, levels, blocks, shards, size on disk",
              "lodcast info chest.zarr"),
     "render": ("render one image of a store on this machine's OpenCL device; the scene's fields (camera, tf, "
-               "quality, sampling, shading, clip, mode, ...) are described in docs/reference.md",
+               "quality, sampling, shading, clip, mode, ...) are described in docs/reference.md. 8-bit images "
+               "(png, jpg, webp, tif) are composited over opaque black unless the scene or --background gives a "
+               "background; a .npy is the float32 premultiplied RGBA as the integral produced it",
                "lodcast render chest.zarr -o chest.png --tf ct-bone --azimuth 30 --elevation 15\n"
-               "lodcast render head.zarr -o head.png --tf '{\"points\": [{\"value\": 40, \"opacity\": 0}, "
+               "lodcast render chest.zarr -o bone.png --tf ct-bone --background transparent   # keeps the alpha\n"
+               "lodcast render head.zarr -o head.jpg --tf '{\"points\": [{\"value\": 40, \"opacity\": 0}, "
                "{\"value\": 120, \"opacity\": 0.6}]}'\n"
-               "lodcast render chest.zarr -o lod.png --scene scene.json --report report.json   # quality, shading"),
+               "lodcast render head.zarr -o lod.png --scene examples/head-lod.scene.json --report report.json   # 30:1, shading"),
     "serve": ("serve the HTTP API (OpenAPI at /docs) over the stores under a root, with a job queue and a worker",
               "lodcast serve --root stores/ --port 8000\n"
               "LODCAST_TOKEN=secret lodcast serve --root stores/ --host 0.0.0.0 --queue redis://localhost:6379/0\n"
@@ -55,13 +59,16 @@ EXAMPLES = {
     "worker": ("run batch jobs from the queue: SIGTERM or Ctrl-C finishes the frame and hands the job back",
                "lodcast worker --root stores/ --queue redis://queue-host:6379/0 --threads 2"),
     "submit": ("submit a batch job (turntable, scenes, tf_sweep, volumes, ingest) to a server, or run it here "
-               "without one", "lodcast submit examples/turntable.json --url http://127.0.0.1:8000 --wait\n"
-               "lodcast submit examples/turntable.json --root stores/        # no server: runs here"),
-    "jobs": ("list, show, cancel or wait for batch jobs, or fetch their results",
+               "without one", "lodcast submit examples/turntable.job.json --url http://127.0.0.1:8000 --wait\n"
+               "lodcast submit examples/turntable.job.json --root stores/        # no server: runs here"),
+    "jobs": ("list, show, cancel or wait for batch jobs, or fetch their results (frames, and a turntable's "
+             "animation); they are looked up on the server at --url (or LODCAST_URL), else in the local queue "
+             "under --root (or LODCAST_ROOT)",
              "lodcast jobs list --state running\nlodcast jobs wait JOB_ID --timeout 600\n"
              "lodcast jobs results JOB_ID -o frames/"),
-    "report": ("measure the levels of detail of a store on this machine: time, reduction, predicted and measured ΔE",
-               "lodcast report chest.zarr --tf ct-bone -o report/"),
+    "report": ("measure the levels of detail of a store on this machine: time, reduction, predicted and measured ΔE, "
+               "for a scene (--scene, or made with the flags as `lodcast render` takes them)",
+               "lodcast report chest.zarr --tf ct-bone --width 256 --height 256 -o report/"),
     "demo": ("fetch a real MR head from a package registry, ingest it, render pictures and serve it",
              "lodcast demo\nlodcast demo --size 512 --no-serve"),
     "presets": ("the named transfer functions a scene may give as \"tf\": NAME", "lodcast presets\nlodcast presets --json"),
@@ -212,38 +219,39 @@ def _add_jobs(sub: argparse._SubParsersAction) -> None:
 # --- report -------------------------------------------------------------------------------------------------
 
 def _add_report(sub: argparse._SubParsersAction) -> None:
+    from lodcast.renderer.tools.cli_render import add_scene_options
+
     p = sub.add_parser("report", help="error against run time: one scene at every quality, interpolation and stepping, vs its reference")
     p.add_argument("store", help="a lodcast store (a folder written by `lodcast ingest`)")
-    p.add_argument("--scene", required=True, help="scene JSON (its quality and sampling options are swept)")
+    p.add_argument("--scene", help="scene JSON (its quality and sampling options are swept); the flags below "
+                   "override its fields, or make one with --tf")
     p.add_argument("-o", "--out", default="report", help="folder for report.md, report.json and report.png (default ./report)")
     p.add_argument("--repeat", type=int, default=2, help="timed renders per configuration after a warm-up (default 2)")
     p.add_argument("--no-adaptive", action="store_true", help="leave out adaptive object-space sampling")
     p.add_argument("--no-naive", action="store_true", help="leave out naive adaptive stepping")
     p.add_argument("--no-steps", action="store_true",
                    help="leave out full resolution at steps 2, 1, 1/2, 1/4 with and without pre-integration")
+    add_scene_options(p, sweep=True)
     p.set_defaults(func=_cmd_report)
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
     from lodcast.renderer.scene.scene import Scene
+    from lodcast.renderer.tools.cli_render import scene_data
     from lodcast.renderer.tools.quality_report import default_variants, run_report, table, write_report
     from lodcast.store.store import open_store
 
-    scene_path = Path(args.scene)
-    if not scene_path.is_file():
-        raise UsageError(f"--scene: no file {args.scene}")
-    try:
-        scene = json.loads(scene_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise UsageError(f"--scene: {args.scene} is not JSON ({exc.msg} at line {exc.lineno})") from None
-    Scene.parse(scene)  # a bad scene fails here, naming the field, before any rendering (SceneError: exit 2)
+    store = open_store(args.store)  # in the order a user fixes them: the store, the output, then the scene
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"-o {args.out}: not a folder")
     if args.repeat < 1:
         raise UsageError(f"--repeat must be at least 1, got {args.repeat}")
-    store = open_store(args.store)
-    dual = Scene.parse(scene).tf2 is not None
+    scene = scene_data(args)
+    dual = Scene.parse(scene).tf2 is not None  # a bad scene fails here, naming the field, before any rendering
     result = run_report(store, scene, default_variants(adaptive=not args.no_adaptive, naive=not args.no_naive,
                                                            steps=not args.no_steps, dual=dual), repeat=args.repeat)
-    paths = write_report(result, args.out)
+    paths = write_report(result, out)
     print(table(result))
     print(f"wrote {paths['table']}, {paths['json']} and {paths['plot']}")
     return 0
@@ -341,10 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # exits 2 with one line on malformed arguments (_Parser.error)
-    import logging
-
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     logging.getLogger("lodcast").setLevel(args.log_level.upper())  # the libraries below stay at warning
+    _announce_slow_builds(args.command, args.log_level)
     try:
         return int(args.func(args) or 0)
     except (LodcastError, OSError, ValueError) as exc:
@@ -355,6 +362,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"lodcast {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+class _Stderr(logging.StreamHandler):
+    """Writes to sys.stderr as it is when a record comes (main() may run in a process that swaps it later)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+def _announce_slow_builds(command: str, log_level: str) -> None:
+    """A first kernel build can take tens of seconds: the first one of this process that takes over a second says
+    what it builds, once, at INFO on the logger lodcast.opencl.build (lodcast/opencl.py), which the command shows
+    on stderr unless --log-level is error (libraries leave it quiet)."""
+    build_log = logging.getLogger("lodcast.opencl.build")  # by name: no pyopencl import for commands that build nothing
+    handler = _Stderr()
+    handler.setFormatter(logging.Formatter(f"lodcast {command}: %(message)s"))
+    build_log.handlers[:] = [handler]
+    build_log.setLevel(logging.INFO if log_level != "error" else logging.ERROR)
+    build_log.propagate = False  # said once, not again by the root handler at --log-level info
 
 
 def _one_line(exc: BaseException) -> str:

@@ -1,7 +1,8 @@
 """``lodcast.Client`` and ``lodcast.AsyncClient``: the service's verbs over HTTP (httpx), with typed results.
 
-Both share one description of every request and of how to read its answer (`_Api`); `Client` sends them blocking,
-`AsyncClient` awaiting. Statuses are `JobStatus`, volumes `VolumeSummary`, health `Health` (service/models.py, the
+Both share one description of every request and of how to read its answer (`_Requests`, each a `_Request`) and
+one retry policy (`_Api`); `Client` sends them blocking, `AsyncClient` awaiting (its verbs are coroutines, typed as
+such). Statuses are `JobStatus`, volumes `VolumeSummary`, health `Health` (service/models.py, the
 same models the server's OpenAPI schema is made from); renders are `RenderResult`s as local rendering returns.
 Errors raise ServiceError carrying the server's status and message.
 """
@@ -13,13 +14,18 @@ import json
 import os
 import sys
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import IO, Any, Generic, TypeVar, cast
 
 import httpx
+from pydantic import BaseModel
 
 from lodcast.errors import LodcastError
+from lodcast.renderer.image.output import RenderResult
+from lodcast.renderer.image.report import RenderReport
+from lodcast.renderer.scene.scene import SceneLike
 from lodcast.service.models import Health, JobStatus, VolumeSummary
 
 __all__ = ["Client", "AsyncClient", "ServiceError"]
@@ -41,18 +47,23 @@ def _detail_text(detail: Any) -> str:
     return str(detail)
 
 
-def _scene_dict(scene: Any) -> dict[str, Any]:
-    if hasattr(scene, "model_dump"):
+def _scene_dict(scene: SceneLike) -> dict[str, Any]:
+    """A scene as its JSON: a Scene, a mapping, or a JSON file's path."""
+    if isinstance(scene, BaseModel):
         return scene.model_dump(mode="json")
-    if isinstance(scene, (str, Path)):
+    if isinstance(scene, (str, os.PathLike)):
         return json.loads(Path(scene).read_text())
     return dict(scene)
 
 
-def _job_dict(job: Any) -> dict[str, Any]:
-    if isinstance(job, (str, Path)):
+#: what `submit` takes as a job: a dict (any mapping) of its JSON, a job model, or a JSON file's path
+_Job = Mapping[str, Any] | BaseModel | str | os.PathLike[str]
+
+
+def _job_dict(job: _Job) -> dict[str, Any]:
+    if isinstance(job, (str, os.PathLike)):
         return json.loads(Path(job).read_text())
-    return job.model_dump(mode="json") if hasattr(job, "model_dump") else dict(job)
+    return job.model_dump(mode="json") if isinstance(job, BaseModel) else dict(job)
 
 
 def _t(timeout: float | None) -> dict[str, Any]:
@@ -70,24 +81,34 @@ def _checked(r: httpx.Response, method: str, url: str) -> httpx.Response:
     return r
 
 
-def _model(cls: Any) -> Callable[[httpx.Response], Any]:
+M = TypeVar("M", bound=BaseModel)
+T = TypeVar("T")
+
+
+def _model(cls: type[M]) -> Callable[[httpx.Response], M]:
     return lambda r: cls.model_validate(r.json())
 
 
-def _models(cls: Any) -> Callable[[httpx.Response], Any]:
+def _models(cls: type[M]) -> Callable[[httpx.Response], list[M]]:
     return lambda r: [cls.model_validate(x) for x in r.json()]
 
 
-def _report(r: httpx.Response) -> dict[str, Any]:
-    return json.loads(r.headers.get("x-lodcast-report", "{}"))
+def _report(r: httpx.Response) -> RenderReport:
+    return cast(RenderReport, json.loads(r.headers.get("x-lodcast-report", "{}")))
 
 
-def _render_result(r: httpx.Response) -> Any:
+def _render_result(r: httpx.Response) -> RenderResult:
     import numpy as np
 
-    from lodcast.renderer.image.output import RenderResult
-
     return RenderResult(np.load(io.BytesIO(r.content), allow_pickle=False), _report(r))
+
+
+def _content(r: httpx.Response) -> bytes:
+    return r.content
+
+
+def _nothing(r: httpx.Response) -> None:
+    return None
 
 
 def _upload_query(path: Path, overwrite: bool, options: dict[str, Any]) -> dict[str, Any]:
@@ -132,14 +153,111 @@ class _Bar:
             self.bar.close()
 
 
-#: failures of the connection, not answers of the server: _delay decides whether to try again
+#: failures of the connection, not answers of the server: _Api._delay decides whether to try again
 _TRANSPORT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError)
 #: methods a retry cannot duplicate (a render has no side effect, so its POST is one of them)
 _IDEMPOTENT = ("GET", "HEAD", "DELETE", "PUT")
 
 
+@dataclass(frozen=True)
+class _Request(Generic[T]):
+    """One request and how to read its answer (`read`, given the checked response): what `Client` sends blocking
+    and `AsyncClient` awaiting. `idempotent`: whether a retry may repeat it (None: by its method)."""
+
+    method: str
+    url: str
+    read: Callable[[httpx.Response], T]
+    idempotent: bool | None = None
+    kw: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def again(self) -> bool:
+        return self.method in _IDEMPOTENT if self.idempotent is None else self.idempotent
+
+
+class _Requests:
+    """Every request of the service's verbs, built once for both clients (each verb of `Client` and `AsyncClient`
+    sends the `_Request` of the same name here)."""
+
+    @staticmethod
+    def health(timeout: float | None) -> _Request[Health]:
+        return _Request("GET", "/healthz", _model(Health), kw=_t(timeout))
+
+    @staticmethod
+    def volumes(timeout: float | None) -> _Request[list[VolumeSummary]]:
+        return _Request("GET", "/volumes", _models(VolumeSummary), kw=_t(timeout))
+
+    @staticmethod
+    def volume(volume_id: str, timeout: float | None) -> _Request[VolumeSummary]:
+        return _Request("GET", f"/volumes/{volume_id}", _model(VolumeSummary), kw=_t(timeout))
+
+    @staticmethod
+    def delete_volume(volume_id: str, timeout: float | None) -> _Request[None]:
+        return _Request("DELETE", f"/volumes/{volume_id}", _nothing, kw=_t(timeout))
+
+    @staticmethod
+    def render_image(volume: str, scene: SceneLike, timeout: float | None) -> _Request[tuple[bytes, RenderReport]]:
+        return _Request("POST", f"/volumes/{volume}/render", lambda r: (r.content, _report(r)), idempotent=True,
+                        kw={"json": _scene_dict(scene), **_t(timeout)})
+
+    @staticmethod
+    def render(volume: str, scene: SceneLike, timeout: float | None) -> _Request[RenderResult]:
+        return _Request("POST", f"/volumes/{volume}/render", _render_result, idempotent=True,
+                        kw={"json": {**_scene_dict(scene), "format": "npy"}, **_t(timeout)})
+
+    @staticmethod
+    def submit(job: _Job, timeout: float | None) -> _Request[JobStatus]:
+        return _Request("POST", "/jobs", _model(JobStatus), kw={"json": _job_dict(job), **_t(timeout)})
+
+    @staticmethod
+    def job(job_id: str, timeout: float | None = None) -> _Request[JobStatus]:
+        return _Request("GET", f"/jobs/{job_id}", _model(JobStatus), kw=_t(timeout))
+
+    @staticmethod
+    def jobs(limit: int, state: str | None, timeout: float | None) -> _Request[list[JobStatus]]:
+        params: dict[str, Any] = {"limit": limit, **({"state": state} if state else {})}
+        return _Request("GET", "/jobs", _models(JobStatus), kw={"params": params, **_t(timeout)})
+
+    @staticmethod
+    def cancel(job_id: str, timeout: float | None) -> _Request[JobStatus]:
+        return _Request("DELETE", f"/jobs/{job_id}", _model(JobStatus), kw=_t(timeout))
+
+    @staticmethod
+    def result(job_id: str, n: int, timeout: float | None = None) -> _Request[bytes]:
+        return _Request("GET", f"/jobs/{job_id}/results/{n}", _content, kw=_t(timeout))
+
+    @staticmethod
+    def frame(job_id: str, n: int, dest: str | os.PathLike[str] | None) -> _Request[bytes | Path]:
+        """Result `n` as `results` keeps it: its bytes, or the file it is written to in folder `dest`."""
+        return _Request("GET", f"/jobs/{job_id}/results/{n}",
+                        _content if dest is None else lambda r: _frame_file(dest, n, r))
+
+    @staticmethod
+    def animation(job_id: str, timeout: float | None) -> _Request[bytes]:
+        return _Request("GET", f"/jobs/{job_id}/animation", _content, kw=_t(timeout))
+
+    @staticmethod
+    def ingest(source: str | os.PathLike[str], name: str, overwrite: bool, upload: IO[bytes] | AsyncIterator[bytes] | None,
+               options: dict[str, Any], timeout: float | None) -> _Request[JobStatus]:
+        """An ingest job: a server-side path, or (`upload`: the body, a file or an async iterator of its bytes)
+        a local file sent in the request's body."""
+        if upload is not None:
+            return _Request("POST", f"/volumes/{name}/upload", _model(JobStatus),
+                            kw={"content": upload, "params": _upload_query(Path(source), overwrite, options),
+                                **_t(timeout)})
+        return _Request("POST", "/volumes", _model(JobStatus),
+                        kw={"json": {"name": name, "source": os.fspath(source), "overwrite": overwrite,
+                                     "options": options}, **_t(timeout)})
+
+
+def _results(st: JobStatus) -> range:
+    """The results a job has: one per frame (an ingest job has none)."""
+    return range(st.progress.total if st.kind != "ingest" else 0)
+
+
 class _Api:
-    """Every request and how to read its answer; `_call` is the one thing the two clients do differently."""
+    """What the two clients share: the server, the token and the retry policy (`_delay`); every request they send is
+    built by `_Requests`."""
 
     retries: int
 
@@ -153,10 +271,6 @@ class _Api:
         token = token if token is not None else os.environ.get("LODCAST_TOKEN")
         self._headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.base_url = base_url.rstrip("/")
-
-    def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any], idempotent: bool | None = None,
-              **kw: Any) -> Any:
-        raise NotImplementedError
 
     def _delay(self, attempt: int, again: bool, r: httpx.Response | None, exc: Exception | None) -> float | None:
         """Seconds to wait before trying again, or None to stop here: after 0.25 s, 0.5 s, 1 s, ... (or the
@@ -173,59 +287,6 @@ class _Api:
             return max(delay, min(30.0, float(r.headers.get("retry-after", 0))))
         except ValueError:
             return delay
-
-    # --- volumes ----------------------------------------------------------------------------------------------
-    def health(self, *, timeout: float | None = None) -> Health:
-        return self._call("GET", "/healthz", read=_model(Health), **_t(timeout))
-
-    def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary]:
-        return self._call("GET", "/volumes", read=_models(VolumeSummary), **_t(timeout))
-
-    def volume(self, volume_id: str, *, timeout: float | None = None) -> VolumeSummary:
-        return self._call("GET", f"/volumes/{volume_id}", read=_model(VolumeSummary), **_t(timeout))
-
-    def delete_volume(self, volume_id: str, *, timeout: float | None = None) -> None:
-        return self._call("DELETE", f"/volumes/{volume_id}", read=lambda r: None, **_t(timeout))
-
-    # --- rendering --------------------------------------------------------------------------------------------
-    def render_image(self, volume: str, scene: Any, *, timeout: float | None = None) -> tuple[bytes, dict[str, Any]]:
-        """The encoded image as the server sends it (PNG or .npy bytes) and the render report. `timeout`: seconds
-        for this call (default: the client's)."""
-        return self._call("POST", f"/volumes/{volume}/render", json=_scene_dict(scene), idempotent=True,
-                          read=lambda r: (r.content, _report(r)), **_t(timeout))
-
-    def render(self, volume: str, scene: Any, *, timeout: float | None = None) -> Any:
-        """A RenderResult, as local rendering returns: float32 premultiplied RGBA (fetched as .npy) and the report."""
-        return self._call("POST", f"/volumes/{volume}/render", json={**_scene_dict(scene), "format": "npy"},
-                          idempotent=True, read=_render_result, **_t(timeout))
-
-    # --- jobs -------------------------------------------------------------------------------------------------
-    def submit(self, job: dict[str, Any] | str | os.PathLike[str], *, timeout: float | None = None) -> JobStatus:
-        """A job (a dict, a job model, or a JSON file's path); its status as queued."""
-        return self._call("POST", "/jobs", json=_job_dict(job), read=_model(JobStatus), **_t(timeout))
-
-    def job(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
-        return self._call("GET", f"/jobs/{job_id}", read=_model(JobStatus), **_t(timeout))
-
-    def jobs(self, limit: int = 100, state: str | None = None, *, timeout: float | None = None) -> list[JobStatus]:
-        params: dict[str, Any] = {"limit": limit, **({"state": state} if state else {})}
-        return self._call("GET", "/jobs", params=params, read=_models(JobStatus), **_t(timeout))
-
-    def cancel(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
-        return self._call("DELETE", f"/jobs/{job_id}", read=_model(JobStatus), **_t(timeout))
-
-    def result(self, job_id: str, n: int, *, timeout: float | None = None) -> bytes:
-        return self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r.content, **_t(timeout))
-
-    def animation(self, job_id: str, *, timeout: float | None = None) -> bytes:
-        return self._call("GET", f"/jobs/{job_id}/animation", read=lambda r: r.content, **_t(timeout))
-
-    def _ingest_request(self, source: Any, name: str, overwrite: bool, upload: bool,
-                        options: dict[str, Any]) -> tuple[str, dict[str, Any]]:
-        if upload:
-            return f"/volumes/{name}/upload", {"params": _upload_query(Path(source), overwrite, options)}
-        return "/volumes", {"json": {"name": name, "source": os.fspath(source), "overwrite": overwrite,
-                                     "options": options}}
 
 
 class Client(_Api):
@@ -251,33 +312,75 @@ class Client(_Api):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any], idempotent: bool | None = None,
-              **kw: Any) -> Any:
-        again = method in _IDEMPOTENT if idempotent is None else idempotent
+    def _send(self, req: _Request[T]) -> T:
         for attempt in range(self.retries + 1):
             try:
-                r = self._http.request(method, url, **kw)
+                r = self._http.request(req.method, req.url, **req.kw)
             except _TRANSPORT as exc:
-                delay = self._delay(attempt, again, None, exc)
+                delay = self._delay(attempt, req.again, None, exc)
                 if delay is None:
                     raise
             else:
-                delay = self._delay(attempt, again, r, None)
+                delay = self._delay(attempt, req.again, r, None)
                 if delay is None:
-                    return read(_checked(r, method, url))
+                    return req.read(_checked(r, req.method, req.url))
             time.sleep(delay)
         raise AssertionError("unreachable: the last attempt returns or raises")
+
+    # --- volumes ----------------------------------------------------------------------------------------------
+    def health(self, *, timeout: float | None = None) -> Health:
+        return self._send(_Requests.health(timeout))
+
+    def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary]:
+        return self._send(_Requests.volumes(timeout))
+
+    def volume(self, volume_id: str, *, timeout: float | None = None) -> VolumeSummary:
+        return self._send(_Requests.volume(volume_id, timeout))
+
+    def delete_volume(self, volume_id: str, *, timeout: float | None = None) -> None:
+        return self._send(_Requests.delete_volume(volume_id, timeout))
+
+    # --- rendering --------------------------------------------------------------------------------------------
+    def render_image(self, volume: str, scene: SceneLike, *,
+                     timeout: float | None = None) -> tuple[bytes, RenderReport]:
+        """The encoded image as the server sends it (PNG or .npy bytes) and the render report. `timeout`: seconds
+        for this call (default: the client's)."""
+        return self._send(_Requests.render_image(volume, scene, timeout))
+
+    def render(self, volume: str, scene: SceneLike, *, timeout: float | None = None) -> RenderResult:
+        """A RenderResult, as local rendering returns: float32 premultiplied RGBA (fetched as .npy) and the report."""
+        return self._send(_Requests.render(volume, scene, timeout))
+
+    # --- jobs -------------------------------------------------------------------------------------------------
+    def submit(self, job: Mapping[str, Any] | BaseModel | str | os.PathLike[str], *,
+               timeout: float | None = None) -> JobStatus:
+        """A job (a dict, a job model, or a JSON file's path); its status as queued."""
+        return self._send(_Requests.submit(job, timeout))
+
+    def job(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
+        return self._send(_Requests.job(job_id, timeout))
+
+    def jobs(self, limit: int = 100, state: str | None = None, *, timeout: float | None = None) -> list[JobStatus]:
+        return self._send(_Requests.jobs(limit, state, timeout))
+
+    def cancel(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
+        return self._send(_Requests.cancel(job_id, timeout))
+
+    def result(self, job_id: str, n: int, *, timeout: float | None = None) -> bytes:
+        return self._send(_Requests.result(job_id, n, timeout))
+
+    def animation(self, job_id: str, *, timeout: float | None = None) -> bytes:
+        return self._send(_Requests.animation(job_id, timeout))
 
     def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False, upload: bool = False,
                wait: bool = False, timeout: float | None = None, **options: Any) -> JobStatus:
         """Ingest as a job: a server-side path under the server's import roots, or (``upload=True``) a local file
         sent in the request body (``format`` from its extension unless given). Returns the job status."""
-        url, kw = self._ingest_request(source, name, overwrite, upload, options)
         if upload:
             with open(source, "rb") as f:
-                st = self._call("POST", url, content=f, read=_model(JobStatus), **kw, **_t(timeout))
+                st = self._send(_Requests.ingest(source, name, overwrite, f, options, timeout))
         else:
-            st = self._call("POST", url, read=_model(JobStatus), **kw, **_t(timeout))
+            st = self._send(_Requests.ingest(source, name, overwrite, None, options, timeout))
         return self.wait(st.id, progress=False, timeout=timeout) if wait else st
 
     def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,
@@ -299,10 +402,7 @@ class Client(_Api):
     def results(self, job_id: str, dest: str | os.PathLike[str] | None = None) -> list[bytes] | list[Path]:
         """Every result of a job, in order: as bytes, or written to folder ``dest`` (then their paths)."""
         st = self.job(job_id)
-        out: list[Any] = []
-        for n in range(st.progress.total if st.kind != "ingest" else 0):
-            r = self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r)
-            out.append(r.content if dest is None else _frame_file(dest, n, r))
+        out: list[Any] = [self._send(_Requests.frame(job_id, n, dest)) for n in _results(st)]
         return out
 
 
@@ -325,32 +425,68 @@ class AsyncClient(_Api):
     async def __aexit__(self, *exc: object) -> None:
         await self.aclose()
 
-    async def _call(self, method: str, url: str, *, read: Callable[[httpx.Response], Any],
-                    idempotent: bool | None = None, **kw: Any) -> Any:
-        again = method in _IDEMPOTENT if idempotent is None else idempotent
+    async def _send(self, req: _Request[T]) -> T:
         for attempt in range(self.retries + 1):
             try:
-                r = await self._http.request(method, url, **kw)
+                r = await self._http.request(req.method, req.url, **req.kw)
             except _TRANSPORT as exc:
-                delay = self._delay(attempt, again, None, exc)
+                delay = self._delay(attempt, req.again, None, exc)
                 if delay is None:
                     raise
             else:
-                delay = self._delay(attempt, again, r, None)
+                delay = self._delay(attempt, req.again, r, None)
                 if delay is None:
-                    return read(_checked(r, method, url))
+                    return req.read(_checked(r, req.method, req.url))
             await asyncio.sleep(delay)
         raise AssertionError("unreachable: the last attempt returns or raises")
+
+    # --- volumes ----------------------------------------------------------------------------------------------
+    async def health(self, *, timeout: float | None = None) -> Health:
+        return await self._send(_Requests.health(timeout))
+
+    async def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary]:
+        return await self._send(_Requests.volumes(timeout))
+
+    async def volume(self, volume_id: str, *, timeout: float | None = None) -> VolumeSummary:
+        return await self._send(_Requests.volume(volume_id, timeout))
+
+    async def delete_volume(self, volume_id: str, *, timeout: float | None = None) -> None:
+        return await self._send(_Requests.delete_volume(volume_id, timeout))
+
+    # --- rendering --------------------------------------------------------------------------------------------
+    async def render_image(self, volume: str, scene: SceneLike, *,
+                           timeout: float | None = None) -> tuple[bytes, RenderReport]:
+        return await self._send(_Requests.render_image(volume, scene, timeout))
+
+    async def render(self, volume: str, scene: SceneLike, *, timeout: float | None = None) -> RenderResult:
+        return await self._send(_Requests.render(volume, scene, timeout))
+
+    # --- jobs -------------------------------------------------------------------------------------------------
+    async def submit(self, job: Mapping[str, Any] | BaseModel | str | os.PathLike[str], *,
+                     timeout: float | None = None) -> JobStatus:
+        return await self._send(_Requests.submit(job, timeout))
+
+    async def job(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
+        return await self._send(_Requests.job(job_id, timeout))
+
+    async def jobs(self, limit: int = 100, state: str | None = None, *,
+                   timeout: float | None = None) -> list[JobStatus]:
+        return await self._send(_Requests.jobs(limit, state, timeout))
+
+    async def cancel(self, job_id: str, *, timeout: float | None = None) -> JobStatus:
+        return await self._send(_Requests.cancel(job_id, timeout))
+
+    async def result(self, job_id: str, n: int, *, timeout: float | None = None) -> bytes:
+        return await self._send(_Requests.result(job_id, n, timeout))
+
+    async def animation(self, job_id: str, *, timeout: float | None = None) -> bytes:
+        return await self._send(_Requests.animation(job_id, timeout))
 
     async def ingest(self, source: str | os.PathLike[str], name: str, *, overwrite: bool = False,
                      upload: bool = False, wait: bool = False, timeout: float | None = None,
                      **options: Any) -> JobStatus:
-        url, kw = self._ingest_request(source, name, overwrite, upload, options)
-        if upload:
-            st = await self._call("POST", url, content=_chunks(Path(source)), read=_model(JobStatus), **kw,
-                                  **_t(timeout))
-        else:
-            st = await self._call("POST", url, read=_model(JobStatus), **kw, **_t(timeout))
+        body = _chunks(Path(source)) if upload else None
+        st = await self._send(_Requests.ingest(source, name, overwrite, body, options, timeout))
         return await self.wait(st.id, progress=False, timeout=timeout) if wait else st
 
     async def wait(self, job_id: str, *, timeout: float | None = None, poll: float = 0.25,
@@ -358,8 +494,7 @@ class AsyncClient(_Api):
         bar, end = _Bar(job_id, progress), None if timeout is None else time.monotonic() + timeout
         try:
             while True:
-                # the verbs of _Api are typed as Client's; here `_call` makes each a coroutine
-                st = await cast("Awaitable[JobStatus]", self.job(job_id))
+                st = await self.job(job_id)
                 bar.update(st)
                 if st.state in FINAL:
                     return st
@@ -370,11 +505,8 @@ class AsyncClient(_Api):
             bar.close()
 
     async def results(self, job_id: str, dest: str | os.PathLike[str] | None = None) -> list[bytes] | list[Path]:
-        st = await cast("Awaitable[JobStatus]", self.job(job_id))
-        out: list[Any] = []
-        for n in range(st.progress.total if st.kind != "ingest" else 0):
-            r = await self._call("GET", f"/jobs/{job_id}/results/{n}", read=lambda r: r)
-            out.append(r.content if dest is None else _frame_file(dest, n, r))
+        st = await self.job(job_id)
+        out: list[Any] = [await self._send(_Requests.frame(job_id, n, dest)) for n in _results(st)]
         return out
 
 

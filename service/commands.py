@@ -269,7 +269,8 @@ def add_jobs(sub: argparse._SubParsersAction) -> None:
     p.add_argument("action", nargs="?", default="list", choices=("list", "show", "cancel", "wait", "results"),
                    help="list the newest jobs, show / cancel / wait for one, or fetch its results into -o DIR")
     p.add_argument("id", nargs="?", help="job id (show, cancel, wait, results)")
-    p.add_argument("-o", "--out", default=None, help="results: folder for the frames (frame_00000.png, ...)")
+    p.add_argument("-o", "--out", default=None, help="results: folder for the frames (frame_00000.png, ...) and a "
+                   "turntable's animation (turntable.gif or .mp4) when it has one")
     p.add_argument("--state", choices=("queued", "running", "done", "failed", "cancelled"), help="list: only jobs in this state")
     p.add_argument("--limit", type=int, default=50, help="list: at most this many jobs, newest first")
     p.add_argument("--timeout", type=float, default=None, help="wait: give up after this many seconds (exit 1)")
@@ -288,7 +289,7 @@ def _cmd_jobs(args: argparse.Namespace) -> int:
                 _print(c.jobs(limit=args.limit, state=args.state))
                 return 0
             if args.action == "results":
-                return _report_results(c.results(args.id, args.out))
+                return _report_results([*c.results(args.id, args.out), *_remote_animation(c, args.id, Path(args.out))])
             try:
                 st = _plain({"show": c.job, "cancel": c.cancel}.get(
                     args.action, lambda i: c.wait(i, timeout=args.timeout))(args.id))
@@ -316,15 +317,41 @@ def _cmd_jobs(args: argparse.Namespace) -> int:
     return 0 if args.action != "wait" or st["state"] == "done" else 1
 
 
+#: the names a turntable's animation is written under (service/queue.py), by the format the job asked for
+ANIMATIONS = ("turntable.gif", "turntable.mp4")
+
+
 def _local_results(jq: Any, job_id: str, dest: Path) -> list[Path]:
-    """Copies of a local job's frames (as written so far) in `dest`."""
+    """Copies of a local job's frames (as written so far), and of its animation once written, in `dest`."""
     files = jq.files(job_id)
     dest.mkdir(parents=True, exist_ok=True)
     out = []
-    for name in files.frames():
+    names = files.names()
+    for name in files.frames() + [a for a in ANIMATIONS if a in names]:
         (dest / name).write_bytes(files.read(name))
         out.append(dest / name)
     return out
+
+
+def _remote_animation(client: Any, job_id: str, dest: Path) -> list[Path]:
+    """A turntable's animation from the server (GET /jobs/{id}/animation) in `dest`, once written: [] when the job
+    has none (not a turntable, no `animation` asked for, or not encoded yet)."""
+    from lodcast.service.client import ServiceError
+
+    if client.job(job_id).kind != "turntable":
+        return []
+    try:
+        data = client.animation(job_id)
+    except ServiceError as exc:
+        if exc.status == 404:
+            return []
+        raise
+    name = ANIMATIONS[0] if data[:4] == b"GIF8" else ANIMATIONS[1]  # GIF says so in its first bytes; else MP4
+    dest.mkdir(parents=True, exist_ok=True)
+    tmp = dest / f".{name}.tmp{os.getpid()}"
+    tmp.write_bytes(data)
+    os.replace(tmp, dest / name)
+    return [dest / name]
 
 
 def _report_results(paths: list) -> int:

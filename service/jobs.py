@@ -12,8 +12,11 @@ import tempfile
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, GetJsonSchemaHandler
+from pydantic.json_schema import JsonSchemaValue
+from pydantic_core import CoreSchema
 
+from lodcast.renderer.scene.scene import Scene
 from lodcast.service.rendering import RequestInvalid, check_tf, parse_scene, scene_format
 from lodcast.service.volumes import BadId, VolumeNotFound, check_volume_id, safe_import_path, volume_exists, volume_path
 
@@ -30,7 +33,36 @@ __all__ = [
     "write_atomic",
 ]
 
-Scene = dict[str, Any]
+#: a scene as a job carries it: its JSON (see SceneSchema)
+SceneDict = dict[str, Any]
+
+
+class SceneSchema:
+    """A job's scene in the OpenAPI schema: the Scene model's schema (a reference to it), while the field is
+    validated as a plain JSON object, so that each scene is checked by validate_job (parse_scene: against the
+    service's caps, each error naming the scene's place in the job). `tf_required=False`: the Scene with `tf`
+    optional (a TF sweep replaces it)."""
+
+    model = Scene  # what docs/generate.py shows as the field's type
+
+    def __init__(self, *, tf_required: bool = True) -> None:
+        self.tf_required = tf_required
+
+    def __get_pydantic_json_schema__(self, core: CoreSchema, handler: GetJsonSchemaHandler) -> JsonSchemaValue:
+        ref = handler(Scene.__pydantic_core_schema__)
+        if self.tf_required:
+            return ref
+        schema = dict(handler.resolve_ref_schema(ref))
+        required = [k for k in schema.pop("required", []) if k != "tf"]
+        if required:
+            schema["required"] = required
+        schema["title"] = "Scene (tf optional)"
+        return schema
+
+
+#: a job's scene: a JSON object validated by validate_job, typed in OpenAPI as the Scene it must be
+JobScene = Annotated[SceneDict, SceneSchema()]
+
 #: keyword options of lodcast.ingest an ingest job may pass (reader options and the block size)
 INGEST_OPTIONS = frozenset({"format", "shape", "dtype", "byte_order", "header_bytes", "spacing", "origin", "index",
                             "block_size", "units", "orient"})
@@ -46,7 +78,7 @@ class TurntableJob(_Job):
 
     kind: Literal["turntable"]
     volume: str = Field(max_length=128)
-    scene: Scene
+    scene: JobScene
     frames: int = Field(36, ge=1)
     start_azimuth: float = Field(0.0, ge=-360, le=360, description="degrees, azimuth of frame 0")
     animation: Literal["gif", "mp4"] | None = Field(None, description="also encode the frames to an animated GIF or MP4")
@@ -58,7 +90,7 @@ class ScenesJob(_Job):
 
     kind: Literal["scenes"]
     volume: str = Field(max_length=128)
-    scenes: list[Scene] = Field(min_length=1)
+    scenes: list[JobScene] = Field(min_length=1)
 
 
 class TfSweepJob(_Job):
@@ -66,7 +98,8 @@ class TfSweepJob(_Job):
 
     kind: Literal["tf_sweep"]
     volume: str = Field(max_length=128)
-    scene: Scene = Field(default_factory=dict, description="the scene each TF is rendered in (its own tf is replaced)")
+    scene: Annotated[SceneDict, SceneSchema(tf_required=False)] = Field(
+        default_factory=dict, description="the scene each TF is rendered in (its own tf is replaced)")
     tfs: list[dict[str, Any] | str] = Field(min_length=1, description="transfer functions (JSON or preset names)")
 
 
@@ -75,7 +108,7 @@ class VolumesJob(_Job):
 
     kind: Literal["volumes"]
     volumes: list[str] = Field(min_length=1)
-    scene: Scene
+    scene: JobScene
 
 
 class IngestJob(_Job):
@@ -180,7 +213,7 @@ def _cap(n: int, settings: Any, field: str) -> None:
 
 # --- frames ----------------------------------------------------------------------------------------------------
 
-def _turn(scene: Scene, azimuth: float) -> Scene:
+def _turn(scene: SceneDict, azimuth: float) -> SceneDict:
     """The scene seen from ``azimuth`` degrees: the convenience camera gets its azimuth replaced; a look-at camera
     has its eye turned about the vertical axis (world z) through the target. The level of detail is selected by
     the TF alone unless the scene says otherwise (sampling.lod_visibility): one selection for the whole animation,
@@ -201,7 +234,7 @@ def _turn(scene: Scene, azimuth: float) -> Scene:
     return out
 
 
-def plan_frames(job: Any) -> list[tuple[str, Scene]]:
+def plan_frames(job: Any) -> list[tuple[str, SceneDict]]:
     """(volume id, scene dict) for every frame, in result order."""
     if isinstance(job, TurntableJob):
         return [(job.volume, _turn(job.scene, job.start_azimuth + 360.0 * i / job.frames)) for i in range(job.frames)]

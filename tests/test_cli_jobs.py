@@ -60,3 +60,31 @@ def test_wait_times_out_with_exit_1(tmp_path):
     p = lc("jobs", "wait", rec["id"], "--timeout", "0.3", cwd=tmp_path)
     assert p.returncode == 1 and "still queued after 0.3 s" in p.stderr
     assert json.loads(p.stdout)["state"] == "queued"
+
+
+def test_results_fetch_a_turntables_animation_too(tmp_path):
+    """Issue 46, item 3: `lodcast jobs results ID -o DIR` writes the turntable's animation beside its frames, from
+    the local queue and from a server; a job without one gets its frames only."""
+    from lodcast.service.testing import free_port, running, start_serve
+
+    lodcast.ingest(np.random.default_rng(0).random((16, 16, 16)).astype(np.float32), tmp_path / "v", block_size=8)
+    (tmp_path / "gif.json").write_text(json.dumps({**JOB, "animation": "gif", "fps": 5}))
+    (tmp_path / "plain.json").write_text(json.dumps(JOB))
+    frames = [f"frame_{k:05d}.png" for k in range(3)]
+    p = lc("submit", "gif.json", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    p = lc("jobs", "results", json.loads(p.stdout)["id"], "-o", "local", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert sorted(f.name for f in (tmp_path / "local").iterdir()) == [*frames, "turntable.gif"]
+    assert str(Path("local") / "turntable.gif") in p.stdout.splitlines()
+    assert (tmp_path / "local" / "turntable.gif").read_bytes()[:4] == b"GIF8"
+    port = free_port()
+    with running(start_serve(tmp_path, port, env={"LODCAST_TOKEN": ""})):
+        url = {"LODCAST_URL": f"http://127.0.0.1:{port}"}
+        for job, out, want in (("gif.json", "remote", [*frames, "turntable.gif"]), ("plain.json", "plain", frames)):
+            p = lc("submit", job, "--wait", cwd=tmp_path, env=url)
+            assert p.returncode == 0, p.stderr
+            p = lc("jobs", "results", json.loads(p.stdout)["id"], "-o", out, cwd=tmp_path, env=url)
+            assert p.returncode == 0, p.stderr
+            assert sorted(f.name for f in (tmp_path / out).iterdir()) == want
+    assert (tmp_path / "remote" / "turntable.gif").read_bytes() == (tmp_path / "local" / "turntable.gif").read_bytes()

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import lodcast
-from lodcast.renderer.tools.report_fields import REPORT_FIELDS
+from lodcast.renderer.image.report import REPORT_FIELDS
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"

@@ -9,7 +9,7 @@ import lodcast
 
 PUBLIC = [
     "__version__", "ingest", "open_store", "render", "Renderer", "Client", "AsyncClient", "JobStatus",
-    "VolumeSummary", "RenderResult", "Scene",
+    "VolumeSummary", "RenderResult", "RenderReport", "Scene", "SceneLike", "StoreLike",
     "LodcastError", "SourceError", "SourceNotFound", "StoreExists", "StoreInvalid", "StoreNotFound", "StoreCorrupt",
     "SceneError", "CostError", "ImageError", "DeviceError", "EnvironmentInvalid", "ServiceError",
 ]

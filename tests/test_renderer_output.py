@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -30,11 +31,39 @@ def test_png_is_straight_alpha_and_npy_premultiplied(tmp_path):
     assert to_straight_rgba8(np.full((1, 1, 4), np.nan, np.float32)).tolist() == [[[0, 0, 0, 0]]]
 
 
+SUFFIXES = ".png, .jpg (.jpeg), .webp, .tif (.tiff) or .npy"
+
+
 def test_bad_output_names_are_refused(tmp_path):
-    with pytest.raises(ImageError, match="png or npy"):
-        save_image(tmp_path / "a.jpg", np.zeros((1, 1, 4), np.float32))
+    for name, got in (("a.gif", "got .gif"), ("a", "got no extension")):
+        with pytest.raises(ImageError, match=re.escape(f"the name must end in {SUFFIXES}, {got}")):
+            save_image(tmp_path / name, np.zeros((1, 1, 4), np.float32))
+    with pytest.raises(ImageError, match="format must be one of jpg, npy, png, tif, webp, got 'bmp'"):
+        save_image(tmp_path / "a.png", np.zeros((1, 1, 4), np.float32), format="bmp")
     with pytest.raises(ImageError, match="does not exist"):
         save_image(tmp_path / "no" / "a.png", np.zeros((1, 1, 4), np.float32))
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_jpeg_webp_and_tiff_are_written_as_such(tmp_path):
+    """Issue 46, item 3: -o x.jpg / .webp / .tif write those formats (Pillow): WebP (lossless) and TIFF keep the
+    straight alpha a PNG has; JPEG has none, so the image is composited over opaque black (its premultiplied
+    colour)."""
+    rgba = np.zeros((4, 6, 4), np.float32)
+    rgba[0, 0] = (0.25, 0.125, 0.0, 0.5)  # premultiplied; straight (0.5, 0.25, 0), alpha 0.5
+    rgba[1:, 2:] = (0.2, 0.6, 1.0, 1.0)
+    straight = to_straight_rgba8(rgba)
+    for name, fmt in (("a.webp", "WEBP"), ("a.tif", "TIFF"), ("a.tiff", "TIFF"), ("b.TIF", "TIFF")):
+        path = save_image(tmp_path / name, rgba)
+        im = Image.open(path)
+        assert im.format == fmt and im.mode == "RGBA", (name, im.format, im.mode)
+        np.testing.assert_array_equal(np.asarray(im), straight)
+    for name in ("a.jpg", "a.jpeg", "c.JPG"):
+        im = Image.open(save_image(tmp_path / name, rgba))
+        assert im.format == "JPEG" and im.mode == "RGB"
+        error = np.abs(np.asarray(im).astype(int) - np.round(rgba[..., :3] * 255))  # over black: the premultiplied
+        assert error.mean() < 4 and error[0, 0].max() <= 6, (name, error.mean())  # JPEG is lossy, not that lossy
+    assert not list(tmp_path.glob(".*"))  # written atomically: no temporary left
 
 
 @pytest.fixture(scope="module")
@@ -136,9 +165,121 @@ def test_cli_render_bad_output_and_store(store, tmp_path):
     tf = tmp_path / "tf.json"
     tf.write_text(json.dumps(TF))
     p = lodcast_cli("render", store, "-o", tmp_path / "o.gif", "--tf", tf)
-    assert p.returncode == 2 and "png or npy" in p.stderr
+    assert p.returncode == 2 and SUFFIXES in p.stderr
     p = lodcast_cli("render", tmp_path / "nostore", "-o", tmp_path / "o.png", "--tf", tf)
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1
+
+
+def test_cli_render_reports_errors_in_the_order_a_user_fixes_them(store, tmp_path, capsys):
+    """Issue 46, item 3: `lodcast render nosuch.zarr -o x.png` says the store is missing (exit 2, one line naming
+    the path), not that a TF is required: the store first, then the output path and format, then the scene."""
+    from lodcast.service.cli import main
+
+    def error(*args: object) -> str:
+        assert main(["render", *map(str, args)]) == 2
+        (line,) = capsys.readouterr().err.strip().splitlines()
+        assert line.startswith("lodcast render: error: "), line
+        return line
+
+    missing = tmp_path / "nosuch.zarr"
+    for bad_rest in (["-o", tmp_path / "x.png"], ["-o", tmp_path / "x.gif"], ["-o", tmp_path / "no" / "x.png"],
+                     ["-o", tmp_path / "x.png", "--tf", "ct-nope", "--width", "0"]):
+        assert error(missing, *bad_rest) == f"lodcast render: error: no store at {missing}"
+    (tmp_path / "empty").mkdir()
+    assert "is not a lodcast store" in error(tmp_path / "empty", "-o", tmp_path / "x.gif")
+    # a store: then the output
+    assert SUFFIXES in error(store, "-o", tmp_path / "x.gif")
+    assert "does not exist" in error(store, "-o", tmp_path / "no" / "x.png", "--tf", "ct-nope")
+    assert "--report" in error(store, "-o", tmp_path / "x.png", "--report", tmp_path / "no" / "r.json")
+    # a store and an output: then the scene
+    assert "tf: a transfer function is required" in error(store, "-o", tmp_path / "x.png")
+    assert "width" in error(store, "-o", tmp_path / "x.png", "--tf", "ct-bone", "--width", "0")
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]
+
+
+def test_cli_8bit_images_are_over_opaque_black_unless_a_background_is_given(store, tmp_path, capsys):
+    """Issue 46, item 3: the CLI's default background is opaque black for 8-bit outputs (as VTK's and ParaView's
+    are); `--background transparent` keeps the straight alpha, a scene's own background is kept, and a .npy is the
+    integral as produced."""
+    tf = tmp_path / "tf.json"
+    tf.write_text(json.dumps(TF))
+    common = ["--tf", tf, "--width", 24, "--height", 16, "--azimuth", 10]
+
+    from lodcast.service.cli import main
+
+    def render(name: str, *extra: object) -> np.ndarray:
+        assert main(["render", str(store), "-o", str(tmp_path / name), *map(str, common), *map(str, extra)]) == 0
+        path = tmp_path / name
+        return np.load(path) if path.suffix == ".npy" else np.asarray(Image.open(path))
+
+    integral = render("o.npy")
+    assert integral[..., 3].min() == 0.0 and integral[..., 3].max() > 0.05  # the volume does not fill the frame
+    straight = to_straight_rgba8(integral)
+    for name in ("o.png", "o.webp", "o.tif"):
+        img = render(name)
+        if img.shape[-1] == 4:  # WebP leaves out an alpha channel that is opaque everywhere
+            assert (img[..., 3] == 255).all(), name
+        np.testing.assert_allclose(img[..., :3], np.round(integral[..., :3] * 255), atol=1, err_msg=name)
+    jpg = render("o.jpg").astype(int)
+    assert np.abs(jpg - np.round(integral[..., :3] * 255)).mean() < 3
+    np.testing.assert_array_equal(render("t.png", "--background", "transparent"), straight)
+    np.testing.assert_array_equal(render("t.npy", "--background", "transparent"), integral)
+    white = render("w.png", "--background", "1,1,1,1")
+    assert white[0, 0].tolist() == [255, 255, 255, 255]
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps({"tf": TF, "background": [0, 0, 1, 1]}))
+    assert render("s.png", "--scene", scene)[0, 0].tolist() == [0, 0, 255, 255]  # the scene's own
+    with pytest.raises(SystemExit) as exit_:
+        main(["render", str(store), "-o", str(tmp_path / "x.png"), "--tf", str(tf), "--background", "grey"])
+    assert exit_.value.code == 2 and "transparent or 4 comma-separated numbers" in capsys.readouterr().err
+
+
+SLOW_BUILDS = """
+import sys, time
+import pyopencl as cl
+
+_build, builds = cl.Program.build, []
+
+
+def slow(self, *args, **kwargs):  # the two compiles after the device's probe take over a second, as first builds do
+    builds.append(1)
+    if 2 <= len(builds) <= 3:
+        time.sleep(1.1)
+    return _build(self, *args, **kwargs)
+
+
+cl.Program.build = slow
+if sys.argv[1] == "cli":
+    from lodcast.service.cli import main
+
+    sys.exit(main(sys.argv[2:]))
+import lodcast
+
+lodcast.render(sys.argv[2], {"tf": "ct-bone", "width": 8, "height": 8})
+"""
+
+
+def test_a_slow_kernel_build_says_what_it_builds_once_on_the_cli_only(store, tmp_path):
+    """Issue 46, item 3: a kernel build that takes over a second prints what it is building, once per process, on
+    stderr, from the `lodcast` command only (a library call stays quiet). The kernel cache is empty, so that every
+    program is compiled, and the first two compiles are made slow."""
+    import os
+
+    env = {**os.environ, "LODCAST_CACHE_DIR": str(tmp_path / "cache")}
+    p = subprocess.run([sys.executable, "-c", SLOW_BUILDS, "cli", "render", str(store), "-o", str(tmp_path / "o.png"),
+                        "--tf", "ct-bone", "--width", "8", "--height", "8"], capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr
+    said = [line for line in p.stderr.splitlines() if "building the OpenCL kernel" in line]
+    assert len(said) == 1, p.stderr
+    assert said[0].startswith("lodcast render: building the OpenCL kernel ") and "cached afterwards" in said[0]
+    assert len(list((tmp_path / "cache" / "kernels").glob("*.bin"))) >= 2  # more than one build, one line
+    assert p.stderr.splitlines()[-1].startswith("wrote ")
+    env["LODCAST_CACHE_DIR"] = str(tmp_path / "cache2")
+    p = subprocess.run([sys.executable, "-c", SLOW_BUILDS, "library", str(store)], capture_output=True, text=True,
+                       env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "building" not in p.stderr and len(list((tmp_path / "cache2" / "kernels").glob("*.bin"))) >= 1
 
 
 def test_demo_pictures_from_a_store(store, tmp_path):

@@ -3,18 +3,20 @@ to one, or a NumPy array (tests, quick looks). All store access of the renderer 
 from __future__ import annotations
 
 import math
+import os
 import warnings
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 
 from lodcast.renderer.kernel.config import voxel_define
 from lodcast.store.layout import cell_edge
+from lodcast.store.store import Store
 
-__all__ = ["VolumeView", "as_volume", "block_minmax_border", "device_dtype", "voxel_options", "VOXEL_CTYPES"]
+__all__ = ["VolumeView", "StoreLike", "as_volume", "block_minmax_border", "device_dtype", "voxel_options", "VOXEL_CTYPES"]
 
 #: OpenCL C names of the voxel types the device keeps as they are (renderer/kernel/lc_common.h's LC_VOXEL)
 VOXEL_CTYPES = {np.dtype(np.int8): "char", np.dtype(np.uint8): "uchar", np.dtype(np.int16): "short",
@@ -238,15 +240,20 @@ def _stamp(path: Any) -> Any:
         return None
 
 
-def as_volume(obj: Any, *, spacing: Any = None, origin: Any = None, stores: Any = None) -> VolumeView:
-    """A VolumeView of a store, a store path, a VolumeView or a 3D NumPy array (spacing/origin for arrays). A path
-    is opened through `stores` (an OpenStores, e.g. an engine's: opened once for a series of renders), else
+#: What the verbs take as a volume (`lodcast.render`, `Renderer.render`, ...): an opened lodcast store, a store's
+#: path or URL, a 3D NumPy array (z, y, x; with optional spacing and origin), or a VolumeView
+StoreLike: TypeAlias = Store | str | os.PathLike[str] | np.ndarray | VolumeView
+
+
+def as_volume(obj: StoreLike, *, spacing: Any = None, origin: Any = None, stores: Any = None) -> VolumeView:
+    """A VolumeView of a store, a store path or URL, a VolumeView or a 3D NumPy array (spacing/origin for arrays).
+    A path is opened through `stores` (an OpenStores, e.g. an engine's: opened once for a series of renders), else
     afresh."""
     if isinstance(obj, VolumeView):
         return obj
     if isinstance(obj, np.ndarray):
         return _from_array(obj, spacing, origin)
-    if isinstance(obj, (str, Path)):
+    if isinstance(obj, (str, os.PathLike)):
         from lodcast.store.store import open_store
 
         return _from_store(open_store(obj) if stores is None else stores.get(obj))

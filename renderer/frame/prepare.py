@@ -16,7 +16,7 @@ import numpy as np
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import bricks
 from lodcast.renderer.data import passes as multipass
-from lodcast.renderer.data.volume import VOXEL_CTYPES, VolumeView, as_volume
+from lodcast.renderer.data.volume import VOXEL_CTYPES, StoreLike, VolumeView, as_volume
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import screen as screen_space
 from lodcast.renderer.frame.plan import MAX_SAMPLES_PER_RAY, LodPlan, Prepared, kernel_config
@@ -29,7 +29,7 @@ from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene import clip as clipping
 from lodcast.renderer.scene import cost
 from lodcast.renderer.scene.adaptive_tf import resolve_tfs
-from lodcast.renderer.scene.scene import OrbitCamera, Scene, SceneError
+from lodcast.renderer.scene.scene import AdaptiveTF, OrbitCamera, Scene, SceneError, SceneLike, TransferFunction
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.walk.info import block_info
 
@@ -185,7 +185,7 @@ def resolved(eng: Engine, scene: Scene, vol: VolumeView) -> Scene:
     return scene.model_copy(update=update) if update else scene
 
 
-def check_cost(eng: Engine, store: Any, scene: Any, sample_limit: int | None = None) -> int:
+def check_cost(eng: Engine, store: StoreLike, scene: SceneLike, sample_limit: int | None = None) -> int:
     """Renderer.check_cost."""
     vol = as_volume(store, stores=eng.stores)
     scene = resolved(eng, Scene.parse(scene), vol)
@@ -193,14 +193,16 @@ def check_cost(eng: Engine, store: Any, scene: Any, sample_limit: int | None = N
     return _cost(eng, scene, fr, kbox, step_world, sample_limit)
 
 
-def prepare(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
             levels: np.ndarray | None = None, sample_limit: int | None = None) -> Prepared:
     """Renderer.prepare."""
     vol = as_volume(store, spacing=spacing, origin=origin, stores=eng.stores)
     scene = resolved(eng, Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
+    tf, tf2 = scene.tf, scene.tf2
+    assert isinstance(tf, TransferFunction) and not isinstance(tf2, AdaptiveTF)  # resolved() placed adaptive TFs
     box, fr, kbox, step_world = geometry(vol, scene)
     estimated = _cost(eng, scene, fr, kbox, step_world, sample_limit)
-    unit = unit_distance(scene.tf, vol.spacing)
+    unit = unit_distance(tf, vol.spacing)
     diag = float(np.linalg.norm(box[1] - box[0]))
     max_samples = int(math.ceil(diag / step_world)) + 2
     if max_samples > MAX_SAMPLES_PER_RAY:
@@ -208,10 +210,10 @@ def prepare(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin:
             f"sampling.step: {scene.sampling.step} voxels is too small for this volume "
             f"({max_samples} samples per ray, at most {MAX_SAMPLES_PER_RAY})"
         )
-    lut = build_lut(scene.tf, vol.value_range)
+    lut = build_lut(tf, vol.value_range)
     second = None
-    if scene.tf2 is not None:
-        second = dual.SecondTf(scene.tf2, build_lut(scene.tf2, vol.value_range), unit_distance(scene.tf2, vol.spacing))
+    if tf2 is not None:
+        second = dual.SecondTf(tf2, build_lut(tf2, vol.value_range), unit_distance(tf2, vol.spacing))
     info, n_empty = block_info(vol, lut, scene.mode, None if second is None else second.lut)
     keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
     if keep is not None:  # blocks outside the clip region are empty space
@@ -228,7 +230,7 @@ def prepare(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin:
             cfg = replace(cfg, ess=True)  # the walk leaves out coarse cells empty at level 0 (walk.py: _cell_info), always
         if cfg.distribution and not (lod.levels > 0).any():
             cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
-    dist, pre = _classification_tables(eng, scene.tf, lut, unit, cfg, vol, step_world)
+    dist, pre = _classification_tables(eng, tf, lut, unit, cfg, vol, step_world)
     params = fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
     prio = None
     if second is not None:
@@ -297,7 +299,7 @@ def _screen_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, info: np.ndarray,
     return screen_space.plan(screen_space.resolutions(pri, s.screen_tile), scene.width, scene.height, s.screen_tile)
 
 
-def prefetch(eng: Engine, store: Any, scene: Any) -> int:
+def prefetch(eng: Engine, store: StoreLike, scene: SceneLike) -> int:
     """Renderer.prefetch."""
     pr = prepare(eng, store, scene)
     if pr.lod is None or pr.volume.key is None:

@@ -22,32 +22,34 @@ value range) are empty space: the block walk skips them, a sample inside one is 
 interpolation gives them weight 0 (lc_atlas.h), so nothing leaks into or out of them. Empty-space skipping on the
 LOD path also skips loaded blocks whose border-inclusive range is invisible, as at full resolution.
 """
+from __future__ import annotations
 
 import math
 import threading
 import time
 from dataclasses import replace
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import numpy as np
 import pyopencl as cl
 
 from lodcast.renderer.data import passes as multipass
-from lodcast.renderer.data.volume import as_volume
+from lodcast.renderer.data.volume import StoreLike, as_volume
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.frame import screen as screen_space
 from lodcast.renderer.frame.plan import Prepared
 from lodcast.renderer.image.output import RenderResult
+from lodcast.renderer.image.report import PriorityMapReport, RenderReport, ScreenReport
 from lodcast.renderer.kernel.params import ext_table, lut_table, tables
 from lodcast.renderer.kernel.structs import STATE_FLOATS
 from lodcast.renderer.lod import visibility
-from lodcast.renderer.scene.scene import Scene, TransferFunction
+from lodcast.renderer.scene.scene import Scene, SceneLike, TransferFunction
 from lodcast.renderer.scene.transfer_function import build_lut, unit_distance
 from lodcast.renderer.walk.info import adaptive_walk, walk_info
 
-__all__ = ["Renderer", "RenderResult", "default_renderer", "render", "prepare", "prefetch", "check_cost", "launch",
-           "LOCAL_SIZE"]
+__all__ = ["Renderer", "RenderResult", "RenderReport", "StoreLike", "SceneLike", "default_renderer", "render",
+           "prepare", "prefetch", "check_cost", "launch", "LOCAL_SIZE"]
 
 LOCAL_SIZE = (8, 8)
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
@@ -73,7 +75,7 @@ def _coarse_cells(pr: Prepared) -> str | None:
     return "sampled (this store keeps no level-0 cell ranges, format < 3: re-ingest it to skip them)"
 
 
-def _screen_report(pr: Prepared, reconstruct_ms: float) -> dict | None:
+def _screen_report(pr: Prepared, reconstruct_ms: float) -> ScreenReport | None:
     """Adaptive screen-space sampling: the rays cast against one per pixel, and the tiles per resolution."""
     sp = pr.screen
     if sp is None:
@@ -84,7 +86,7 @@ def _screen_report(pr: Prepared, reconstruct_ms: float) -> dict | None:
             "tiles": {f"{int(a)}x{int(a)}": int(b) for a, b in zip(n, k)}, "reconstruct_ms": reconstruct_ms}
 
 
-def _priority_report(pr: Prepared, nsamp: np.ndarray) -> dict | None:
+def _priority_report(pr: Prepared, nsamp: np.ndarray) -> PriorityMapReport | None:
     """Dual TF with a priority map: its tile size, the share of pixels with priority (their rays integrate tf2),
     and the samples taken by the pixels with and without it."""
     if pr.priority is None:
@@ -120,7 +122,7 @@ def launch(queue: cl.CommandQueue, kern: cl.Kernel, width: int, height: int, *, 
     return events
 
 
-def _render(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
             levels: np.ndarray | None = None, sample_limit: int | None = None,
             stop: Callable[[], None] | None = None) -> RenderResult:
     t_start = time.perf_counter()
@@ -189,6 +191,7 @@ def _render(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin:
     n_blocks = vol.n_blocks
     reduction: float | None
     pred: float | None
+    quality: Literal["full", "lossless"] | dict[str, Any]
     if pr.lod is None:
         skipped = pr.n_empty if (scene.sampling.empty_space_skipping and scene.mode == "composite") else 0
         reduction, pred, quality = 1.0, pr.step_delta_e, "full"
@@ -197,7 +200,7 @@ def _render(eng: Engine, store: Any, scene: Any, *, spacing: Any = None, origin:
         reduction = pr.lod.reduction
         pred = None if pr.lod.predicted_delta_e is None else pr.lod.predicted_delta_e + pr.step_delta_e
         quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
-    report = {
+    report: RenderReport = {
         "wall_ms": (time.perf_counter() - t_start) * 1e3,
         "kernel_ms": kernel_ms,
         "bricks_read": n_read,
@@ -250,7 +253,7 @@ class Renderer(Engine):
         super().__init__(device=device, device_budget_mb=device_budget_mb, brick_cache_mb=brick_cache_mb,
                          device_cache_mb=device_cache_mb)
 
-    def render(self, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+    def render(self, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
                levels: np.ndarray | None = None, sample_limit: int | None = None,
                stop: Callable[[], None] | None = None) -> RenderResult:
         """Render `scene` (a Scene, dict, JSON text or file) of `store` (a lodcast store, its path or URL, or a 3D
@@ -261,7 +264,7 @@ class Renderer(Engine):
         return _render(self, store, scene, spacing=spacing, origin=origin, levels=levels,
                        sample_limit=sample_limit, stop=stop)
 
-    def prepare(self, store: Any, scene: Any, *, spacing: Any = None, origin: Any = None,
+    def prepare(self, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
                 levels: np.ndarray | None = None, sample_limit: int | None = None) -> Prepared:
         """Everything a launch needs. `sample_limit`: the most samples the render may take (estimated before it
         starts: renderer/scene/cost.py), default LODCAST_MAX_SAMPLES or 2·10⁹; above it CostError (a SceneError) names
@@ -269,7 +272,7 @@ class Renderer(Engine):
         return preparing.prepare(self, store, scene, spacing=spacing, origin=origin, levels=levels,
                                  sample_limit=sample_limit)
 
-    def prefetch(self, store: Any, scene: Any) -> int:
+    def prefetch(self, store: StoreLike, scene: SceneLike) -> int:
         """Read the bricks a render of `scene` will need (its level-of-detail selection, and the distributions
         behind coarse bricks) into the brick cache, without touching the device but for the small cast that weighs
         the selection by the view (visibility.py, on a queue of its own): a job calls it for its next frame while
@@ -277,12 +280,12 @@ class Renderer(Engine):
         "full", whose level 0 goes to the device whole)."""
         return preparing.prefetch(self, store, scene)
 
-    def check_cost(self, store: Any, scene: Any, sample_limit: int | None = None) -> int:
+    def check_cost(self, store: StoreLike, scene: SceneLike, sample_limit: int | None = None) -> int:
         """The samples `scene` of `store` would take (renderer/scene/cost.py), before anything is loaded or built;
         raises CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES)."""
         return preparing.check_cost(self, store, scene, sample_limit)
 
-    def visibility(self, store: Any, scene: Any) -> np.ndarray:
+    def visibility(self, store: StoreLike, scene: SceneLike) -> np.ndarray:
         """Per block, what the camera of `scene` sees of it (visibility.block_visibility), as a render computes it
         for its selection: to look at, or to select with outside a render (selection.select_lod's
         `visibility`)."""
@@ -307,25 +310,25 @@ def default_renderer() -> Renderer:
         return _DEFAULT[0]
 
 
-def render(store: Any, scene: Any, *, spacing: Any = None, origin: Any = None, levels: np.ndarray | None = None,
+def render(store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None, levels: np.ndarray | None = None,
            sample_limit: int | None = None, stop: Callable[[], None] | None = None) -> RenderResult:
     """`Renderer.render` on the default renderer."""
     return default_renderer().render(store, scene, spacing=spacing, origin=origin, levels=levels,
                                      sample_limit=sample_limit, stop=stop)
 
 
-def prepare(store: Any, scene: Any, *, spacing: Any = None, origin: Any = None, levels: np.ndarray | None = None,
+def prepare(store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None, levels: np.ndarray | None = None,
             sample_limit: int | None = None) -> Prepared:
     """`Renderer.prepare` on the default renderer."""
     return default_renderer().prepare(store, scene, spacing=spacing, origin=origin, levels=levels,
                                       sample_limit=sample_limit)
 
 
-def prefetch(store: Any, scene: Any) -> int:
+def prefetch(store: StoreLike, scene: SceneLike) -> int:
     """`Renderer.prefetch` on the default renderer."""
     return default_renderer().prefetch(store, scene)
 
 
-def check_cost(store: Any, scene: Any, sample_limit: int | None = None) -> int:
+def check_cost(store: StoreLike, scene: SceneLike, sample_limit: int | None = None) -> int:
     """`Renderer.check_cost` on the default renderer."""
     return default_renderer().check_cost(store, scene, sample_limit)

@@ -6,11 +6,12 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from lodcast.errors import LodcastError
+from lodcast.renderer.image.report import RenderReport
 
 __all__ = ["RenderResult", "ImageError", "to_straight_rgba8", "png_bytes", "save_image", "format_for"]
 
@@ -19,12 +20,25 @@ class ImageError(LodcastError, ValueError):
     """Unsupported output format or unwritable destination."""
 
 
+#: the formats an image is written in, by the names (extensions) that ask for them: 8-bit sRGB images (PNG, WebP
+#: and TIFF with straight alpha; JPEG, which has no alpha, composited over opaque black) and the float32
+#: premultiplied RGBA itself (.npy)
+IMAGE_FORMATS = {"png": "png", "jpg": "jpg", "jpeg": "jpg", "webp": "webp", "tif": "tif", "tiff": "tif", "npy": "npy"}
+_SUFFIXES = ".png, .jpg (.jpeg), .webp, .tif (.tiff) or .npy"
+
+
 def format_for(path: str | Path, format: str | None = None) -> str:
+    """The format `path` is written in (png, jpg, webp, tif or npy), from `format` or else its extension; ImageError
+    naming the suffixes it takes otherwise."""
     ext = Path(path).suffix.lower().lstrip(".")
-    fmt = (format or ext).lower()
-    if fmt not in ("png", "npy"):
-        raise ImageError(f"output {str(path)!r}: format must be png or npy (from the extension or --format), got {fmt or 'none'!r}")
-    if format and ext and ext in ("png", "npy") and ext != fmt:
+    fmt = IMAGE_FORMATS.get((format or ext).lower().lstrip("."))
+    if fmt is None and format:
+        raise ImageError(f"output {str(path)!r}: format must be one of {', '.join(sorted(set(IMAGE_FORMATS.values())))}, "
+                         f"got {format!r}")
+    if fmt is None:
+        raise ImageError(f"output {str(path)!r}: the name must end in {_SUFFIXES}, got "
+                         f"{'.' + ext if ext else 'no extension'}")
+    if format and ext in IMAGE_FORMATS and IMAGE_FORMATS[ext] != fmt:
         raise ImageError(f"output {str(path)!r}: extension .{ext} contradicts format {fmt!r}")
     return fmt
 
@@ -54,7 +68,10 @@ def png_bytes(rgba: np.ndarray, text: dict[str, Any] | None = None) -> bytes:
 
 def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None,
                text: dict[str, Any] | None = None) -> Path:
-    """Write atomically (temporary name, then rename): nothing is half-written. `text`: PNG text (png_bytes)."""
+    """Write atomically (temporary name, then rename): nothing is half-written. The format follows `format`, else
+    the extension (format_for): .npy the float32 premultiplied RGBA as given; .png, .webp (lossless) and .tif 8-bit
+    straight alpha; .jpg (no alpha) 8-bit composited over opaque black, which leaves an image rendered over an
+    opaque background as it is. `text`: PNG text (png_bytes)."""
     path = Path(path)
     fmt = format_for(path, format)
     if not path.parent.is_dir():
@@ -64,8 +81,20 @@ def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None,
         if fmt == "npy":
             with open(tmp, "wb") as f:
                 np.save(f, np.ascontiguousarray(rgba, dtype=np.float32))
-        else:
+        elif fmt == "png":
             tmp.write_bytes(png_bytes(rgba, text))
+        else:
+            from PIL import Image
+
+            if fmt == "jpg":  # premultiplied colour is the image over opaque black
+                rgb = np.round(np.clip(np.nan_to_num(np.asarray(rgba, np.float64)[..., :3]), 0.0, 1.0) * 255.0)
+                Image.fromarray(rgb.astype(np.uint8), mode="RGB").save(tmp, format="JPEG", quality=95, subsampling=0)
+            else:
+                image = Image.fromarray(to_straight_rgba8(rgba), mode="RGBA")
+                if fmt == "webp":
+                    image.save(tmp, format="WEBP", lossless=True)
+                else:
+                    image.save(tmp, format="TIFF", compression="tiff_adobe_deflate")
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
@@ -75,10 +104,11 @@ def save_image(path: str | Path, rgba: np.ndarray, format: str | None = None,
 
 @dataclass(frozen=True)
 class RenderResult:
-    """`rgba`: float32 premultiplied RGBA, shape (H, W, 4), row 0 at the top; `report`: JSON-ready dict."""
+    """`rgba`: float32 premultiplied RGBA, shape (H, W, 4), row 0 at the top; `report`: what the render did, a
+    JSON-ready dict (typed `RenderReport`: every key and its meaning in docs/reference.md)."""
 
     rgba: np.ndarray
-    report: dict = field(default_factory=dict)
+    report: RenderReport = field(default_factory=lambda: cast(RenderReport, {}))
     scene: dict | None = None  # the scene as rendered (JSON), stored in the PNG beside the report
 
     def _text(self) -> dict:

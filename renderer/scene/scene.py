@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, TypeAlias, Union
 
 from pydantic import (
     BaseModel,
@@ -28,6 +30,7 @@ from lodcast.renderer.scene.presets import ADAPTIVE, preset
 __all__ = [
     "SceneError",
     "Scene",
+    "SceneLike",
     "TransferFunction",
     "AdaptiveTF",
     "TFPoint",
@@ -341,28 +344,37 @@ class Scene(_Model):
 
     # -- construction with one-line errors ---------------------------------------------------------------
     @classmethod
-    def parse(cls, data: "Scene | dict | str | bytes | Path") -> "Scene":
-        """A Scene from a Scene, a dict, JSON text or a JSON file; raises SceneError naming the field."""
+    def parse(cls, data: SceneLike | bytes) -> Scene:
+        """A Scene from a Scene, a dict (any mapping), JSON text or a JSON file's path; raises SceneError naming
+        the field."""
         if isinstance(data, Scene):
             return data
         if isinstance(data, str) and not data.lstrip().startswith("{") and Path(data).is_file():
             data = Path(data)  # a file's name, not JSON text
-        if isinstance(data, Path):
+        if isinstance(data, os.PathLike):
+            path = Path(data)
             try:
-                data = data.read_text()
+                data = path.read_text()
             except OSError as exc:
-                raise SceneError(f"scene file {str(data)!r}: {exc.strerror or exc}") from None
+                raise SceneError(f"scene file {str(path)!r}: {exc.strerror or exc}") from None
         if isinstance(data, (str, bytes)):
             try:
                 data = json.loads(data)
             except json.JSONDecodeError as exc:
                 raise SceneError(f"scene is not valid JSON: {exc}") from None
+        if isinstance(data, Mapping) and not isinstance(data, dict):
+            data = dict(data)
         if not isinstance(data, dict):
             raise SceneError(f"a scene must be a JSON object, got {type(data).__name__}")
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
             raise SceneError(validation_message(exc)) from None
+
+
+#: What the verbs take as a scene (`lodcast.render`, `Renderer.render`, ...): a Scene, a dict or other mapping of
+#: the scene's JSON, JSON text, or a JSON file's path (Scene.parse reads each)
+SceneLike: TypeAlias = Scene | Mapping[str, Any] | str | os.PathLike[str]
 
 
 def parse_scene(data: Any) -> Scene:

@@ -1,1 +1,1 @@
-"""What the CLI and the demo build on the renderer: `lodcast render`, `lodcast demo`'s pictures, `lodcast report` (error against time) and the report's field documentation."""
+"""What the CLI and the demo build on the renderer: `lodcast render`, `lodcast demo`'s pictures, `lodcast report` (error against time)."""

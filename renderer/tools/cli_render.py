@@ -1,10 +1,12 @@
-"""`lodcast render STORE -o OUT.png|OUT.npy [--scene scene.json] [--report out.json] [shortcuts]`.
+"""`lodcast render STORE -o OUT.png|.jpg|.webp|.tif|.npy [--scene scene.json] [--report out.json] [shortcuts]`.
 
 The scene file is the JSON scene of docs/design.md; flag shortcuts override it (or build one from nothing, with
 --tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --tf2 TF.json --step --mode --isovalue
 --jitter --seed --background. --azimuth/--elevation/--distance make the camera the orbit form; --fov applies to either form.
-The output format follows OUT's extension. Bad input raises SceneError/ImageError (LodcastError + ValueError),
-which the CLI turns into exit code 2 and one line.
+The output format follows OUT's extension; an 8-bit image is composited over opaque black unless the scene or
+--background gives a background (docs/design.md), a .npy is the integral as produced. Bad input raises
+SceneError/ImageError/StoreNotFound (LodcastError), which the CLI turns into exit code 2 and one line, in the order a
+user fixes them: the store, then the output (and --report) path and format, then the scene.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from lodcast.renderer.scene.scene import SceneError
 if TYPE_CHECKING:
     from lodcast.renderer.scene.scene import Scene
 
-__all__ = ["add_parser", "run", "scene_from_args"]
+__all__ = ["add_parser", "add_scene_options", "run", "scene_data", "scene_from_args"]
 
 
 def _floats(name: str, n: int) -> Callable[[str], tuple[float, ...]]:
@@ -55,12 +57,37 @@ def _quality(text: str) -> Any:
                                          "such as {\"budget_mb\": 64}") from None
 
 
+def _background(text: str) -> tuple[float, ...]:
+    """--background: "transparent" or r,g,b,a in [0, 1]."""
+    if text.strip().lower() == "transparent":
+        return (0.0, 0.0, 0.0, 0.0)
+    try:
+        return _floats("--background", 4)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"--background must be transparent or 4 comma-separated numbers r,g,b,a, "
+                                         f"got {text!r}") from None
+
+
+#: the 8-bit image formats, which the CLI composites over opaque black unless a background is given
+OPAQUE_BY_DEFAULT = ("png", "jpg", "webp", "tif")
+
+
 def add_parser(sub: argparse._SubParsersAction, func: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
-    p = sub.add_parser("render", help="render a store locally to PNG (straight alpha) or .npy (float32 premultiplied RGBA)")
+    p = sub.add_parser("render", help="render a store locally to an image (PNG, JPEG, WebP, TIFF) or .npy "
+                       "(float32 premultiplied RGBA)")
     p.add_argument("store", help="a lodcast store (folder written by `lodcast ingest`)")
-    p.add_argument("-o", "--output", required=True, help="image to write: OUT.png or OUT.npy")
+    p.add_argument("-o", "--output", required=True, help="image to write: OUT.png, OUT.jpg, OUT.webp, OUT.tif (8-bit "
+                   "sRGB; JPEG has no alpha) or OUT.npy (float32 premultiplied RGBA, the integral as produced)")
     p.add_argument("--scene", help="scene JSON file (camera, width, height, tf, quality, sampling, shading, clip, mode, ...: docs/reference.md); the flags below override its fields")
     p.add_argument("--report", help="write the render report (JSON) here")
+    add_scene_options(p)
+    p.set_defaults(func=func)
+    return p
+
+
+def add_scene_options(p: argparse.ArgumentParser, *, sweep: bool = False) -> None:
+    """The flag shortcuts of a scene (what `scene_data` reads); `sweep` (lodcast report, which sweeps quality and
+    sampling) leaves out --quality, --step, --jitter and --seed."""
     names = ", ".join(preset_names())
     p.add_argument("--tf", help="transfer function: a JSON file or inline JSON ({\"points\": [...], \"unit_distance\": d}) "
                    f"or a preset: {names}")
@@ -72,18 +99,22 @@ def add_parser(sub: argparse._SubParsersAction, func: Callable[[argparse.Namespa
     p.add_argument("--elevation", type=float, help="orbit camera: degrees towards +z")
     p.add_argument("--distance", type=float, help="orbit camera: multiples of the box's bounding-sphere radius")
     p.add_argument("--fov", type=float, help="vertical field of view in degrees")
-    p.add_argument("--quality", type=_quality, help="full, lossless, a data reduction (30 or 30:1: "
-                   "{\"reduction\": 30}) or a quality as JSON ({\"budget_mb\": 64})")
-    p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
+    if not sweep:
+        p.add_argument("--quality", type=_quality, help="full, lossless, a data reduction (30 or 30:1: "
+                       "{\"reduction\": 30}) or a quality as JSON ({\"budget_mb\": 64})")
+        p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
     p.add_argument("--mode", choices=MODES, help="composite (default), mip, minip, average or iso (with --isovalue)")
     p.add_argument("--isovalue", type=float, help="mode iso: the data value of the surface")
     p.add_argument("--shading", action=argparse.BooleanOptionalAction, default=None,
                    help="local illumination (Blinn-Phong, a headlight); --no-shading turns a scene's off")
-    p.add_argument("--jitter", action=argparse.BooleanOptionalAction, default=None, help="jittered ray start")
-    p.add_argument("--seed", type=int, help="jitter seed")
-    p.add_argument("--background", type=_floats("--background", 4), help="r,g,b,a in [0,1]")
-    p.set_defaults(func=func)
-    return p
+    if not sweep:
+        p.add_argument("--jitter", action=argparse.BooleanOptionalAction, default=None, help="jittered ray start")
+        p.add_argument("--seed", type=int, help="jitter seed")
+    p.add_argument("--background", type=_background,
+                   help="r,g,b,a in [0,1] (straight colour and opacity), or transparent; " + (
+                       "default the scene's, else transparent" if sweep else
+                       "when neither this nor the scene gives one, 8-bit images (png, jpg, webp, tif) are composited "
+                       "over opaque black (0,0,0,1) and a .npy is the integral as produced"))
 
 
 def _load_json(path: str, what: str) -> Any:
@@ -101,6 +132,12 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
     """The Scene the flags describe (validated; SceneError naming the field otherwise)."""
     from lodcast.renderer.scene.scene import Scene
 
+    return Scene.parse(scene_data(args))
+
+
+def scene_data(args: argparse.Namespace) -> dict[str, Any]:
+    """The scene the flags describe, as JSON data (--scene's file with the shortcuts applied), not yet validated;
+    SceneError for a file or TF that cannot be read, or no TF at all."""
     data: dict[str, Any] = {}
     if args.scene:
         data = _load_json(args.scene, "--scene")
@@ -122,7 +159,7 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
     if "tf" not in data:
         raise SceneError("tf: a transfer function is required (in --scene or with --tf)")
     for key in ("width", "height", "mode", "isovalue", "quality"):
-        if getattr(args, key) is not None:
+        if getattr(args, key, None) is not None:
             data[key] = getattr(args, key)
     if args.shading is not None:
         data["shading"] = (data.get("shading") or {}) if args.shading else None
@@ -140,25 +177,33 @@ def scene_from_args(args: argparse.Namespace) -> Scene:
         data["camera"] = cam
     sampling = dict(data.get("sampling") or {})
     for key in ("step", "jitter", "seed"):
-        if getattr(args, key) is not None:
+        if getattr(args, key, None) is not None:
             sampling[key] = getattr(args, key)
     if sampling:
         data["sampling"] = sampling
-    return Scene.parse(data)
+    return data
 
 
 def run(args: argparse.Namespace) -> int:
+    """`lodcast render`. Errors come in the order a user fixes them: the store, then the output (and --report)
+    path and format, then the scene."""
     from lodcast.renderer.frame.render import render
     from lodcast.renderer.image.output import format_for
+    from lodcast.renderer.scene.scene import Scene
+    from lodcast.store.store import open_store
 
+    store = open_store(args.store)  # StoreNotFound / StoreInvalid / StoreCorrupt name the path
     fmt = format_for(args.output)
     out = Path(args.output)
     if not out.parent.is_dir():
         raise SceneError(f"-o {args.output!r}: folder {str(out.parent)!r} does not exist")
     if args.report and not Path(args.report).parent.is_dir():
         raise SceneError(f"--report {args.report!r}: folder does not exist")
-    scene = scene_from_args(args)
-    result = render(args.store, scene)
+    data = scene_data(args)
+    if "background" not in data and fmt in OPAQUE_BY_DEFAULT:
+        data["background"] = [0.0, 0.0, 0.0, 1.0]  # as VTK and ParaView show a volume; --background transparent keeps alpha
+    scene = Scene.parse(data)
+    result = render(store, scene)
     result.save(out, fmt)
     if args.report:
         rp = Path(args.report)
