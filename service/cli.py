@@ -9,6 +9,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from lodcast.errors import LodcastError
 
@@ -139,6 +140,17 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_ingest)
 
 
+def _summary(dest: Any, info: dict[str, Any]) -> tuple[str, str]:
+    """A store's summary in two parts: its volume (shape, type, spacing, values) and its layout (levels, blocks,
+    size on disk), as ingest and the demo print them."""
+    shape, spacing = "x".join(map(str, info["shape"])), " x ".join(f"{v:g}" for v in info["spacing"])
+    lo, hi = info["value_range"]
+    on_disk = "" if info["bytes_on_disk"] is None else f", {info['bytes_on_disk'] / 1e6:.1f} MB on disk"
+    values = "no finite values" if lo is None or hi is None or lo != lo else f"values {lo:g} .. {hi:g}"
+    return (f"{dest}: {shape} {info['dtype']} voxels (z, y, x) of {spacing} {info['units'] or 'units'}, {values}",
+            f"{len(info['levels'])} levels, {info['blocks']} blocks of {info['block_size']}³{on_disk}")
+
+
 def _cmd_ingest(args: argparse.Namespace) -> int:
     from lodcast.malloc import tame_malloc
     from lodcast.store.ingest import ingest
@@ -158,13 +170,8 @@ def _cmd_ingest(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
-    shape, spacing = "x".join(map(str, info["shape"])), " x ".join(f"{v:g}" for v in info["spacing"])
-    lo, hi = info["value_range"]
-    on_disk = "" if info["bytes_on_disk"] is None else f"{info['bytes_on_disk'] / 1e6:.1f} MB on disk, "
-    values = "no finite values" if lo is None or hi is None or lo != lo else f"values {lo:g} .. {hi:g}"
-    print(f"{args.dest}: {shape} {info['dtype']} voxels (z, y, x) of {spacing} {info['units'] or 'units'}, {values}\n  {len(info['levels'])} levels, {info['blocks']} blocks of {info['block_size']}³, "
-          f"{on_disk}in {time.perf_counter() - t0:.1f} s "
-          f"(`lodcast info {args.dest}` for everything)")
+    volume, layout = _summary(args.dest, info)
+    print(f"{volume}\n  {layout}, in {time.perf_counter() - t0:.1f} s (`lodcast info {args.dest}` for everything)")
     turned = (info.get("source") or {}).get("reoriented")
     if turned:
         print(f"  the file's axes point {', '.join(turned['source_axes'])}: turned to {', '.join(info['orientation'] or [])} "
@@ -280,8 +287,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     dest = out / f"{vol.name}.zarr"
     store = open_store(dest) if dest.exists() else ingest(vol.path, dest, progress=None)
     s = store.summary()
-    print(f"store: {dest}  shape {s['shape']} {s['dtype']}, spacing {s['spacing']}, {s['blocks']} blocks of {s['block_size']}^3, "
-          f"{len(s['levels'])} levels, {s['shards']} shard files, {s['bytes_on_disk'] / 1e6:.1f} MB on disk, value range {s['value_range']}")
+    volume, layout = _summary(dest, s)
+    print(f"{volume}; {layout}")
     from lodcast.renderer.tools.demo import render_demo
 
     pictures = render_demo(store, out / "pictures", size=args.size)

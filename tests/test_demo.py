@@ -1,6 +1,7 @@
 """`lodcast demo` end to end, with the download replaced by a real volume already in the cache."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -19,7 +20,13 @@ def test_demo_ingests_renders_and_reuses(tmp_path: Path, shared_data: Path):
     cmd = [sys.executable, "-m", "lodcast.service.cli", "demo", "--out", str(tmp_path / "out"), "--no-serve", "--size", "64"]
     p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert p.returncode == 0, p.stderr
-    assert "store:" in p.stdout and "shape [91, 109, 91] uint8" in p.stdout
+    # one line for the store, as ingest prints it: shape, type, spacing without float32 noise, values, layout
+    [line] = [ln for ln in p.stdout.splitlines() if "ch2.zarr: " in ln]
+    assert "91x109x91 uint8 voxels (z, y, x) of 2 x 2 x 2 millimeter" in line and "levels" in line, p.stdout
+    # the MNI template is turned to LPS: azimuth 0 (the first soft picture) looks at the face
+    info = subprocess.run([sys.executable, "-m", "lodcast.service.cli", "info", str(tmp_path / "out" / "ch2.zarr")],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert json.loads(info.stdout)["orientation"] == ["L", "P", "S"]
     pictures = sorted((tmp_path / "out" / "pictures").glob("*.png"))
     assert len(pictures) >= 3
     for pic in pictures:
