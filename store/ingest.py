@@ -100,7 +100,7 @@ def ingest(
         tmp = temp_path(dest, "partial")
         try:
             label = type(source).__name__ if isinstance(source, (np.ndarray, VolumeSource)) else os.fspath(source)
-            # batching lets zarr compress many inner chunks of a shard concurrently (measured 1.4x on writes)
+            # batching lets zarr compress many inner chunks of a shard concurrently (faster writes)
             with zarr.config.set({"codec_pipeline.batch_size": 32}):
                 _write(src, tmp, Layout(info.shape, block_size), bins, segments, workers, _show_progress(progress), label)
             move_into_place(tmp, dest, overwrite)
@@ -115,15 +115,13 @@ def ingest(
 #: ingest's working set per voxel of one block-slab (B slices of Y x X): the source slab, plus the levels and
 #: standard deviations of the slab and float32 temporaries per row of blocks (the coarse levels' rows wait for their
 #: shard depth in a temporary file, and the per-block statistics go to the store row by row, not held in memory).
-#: Peak RSS measured at B = 16, 48 slices: uint8 2048² 335 MB, uint16 1024² 251 MB, uint16 2048² 391 MB, float32
-#: 1536² 446 MB (1024x2048² uint16, 8 GiB: 533 MB before the statistics went row by row); this formula is 27-71 %
-#: above each, an upper estimate with room for the base of another installation (a fresh CI install once peaked
-#: 90 MB above this machine)
+#: The formula is an upper estimate: above ingest's peak memory measured on slices of several types and sizes, with
+#: room for the base of another installation (docs/measurements/code-notes.md)
 WORKING_BYTES_PER_ITEM, WORKING_BYTES_EXTRA = 1, 3
 #: slabs up to this size are read while the last one is processed; larger ones after it (memory over speed)
 READ_AHEAD_BYTES = 64 << 20
 #: pass 2 (histograms) reads a cheaply re-read source in pieces of up to this many bytes (at least a slice), one
-#: counted while the next is read: on 2048² uint16 slices a whole 16-slice slab was 128 MB of its peak
+#: counted while the next is read (a whole 16-slice slab of 2048² uint16 slices is 128 MiB, all of it on the peak)
 COUNT_BYTES = 32 << 20
 #: the interpreter, NumPy, zarr, numcodecs, the thread pools and the OpenCL device (simplified histograms), before
 #: any voxel
@@ -477,8 +475,8 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             dimension_names=("z", "y", "x"), config=COMPLETE,
         )
         std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-std-{k}"))
-    # per-block statistics go to the store a row of blocks at a time: held whole, a 1024x2048² volume's came to
-    # 92 MB of ingest's peak, growing with the depth
+    # per-block statistics go to the store a row of blocks at a time: held whole, they grew ingest's peak with the
+    # volume's depth
     blocks = _Unlisted(root, "blocks")
     stats = {name: blocks.create_array(name, shape=lay.grid, dtype=np.float64, chunks=(1, gy, gx), fill_value=np.nan)
              for name in ("min", "max", "mean", "count", "min_border", "max_border")}
@@ -565,7 +563,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
                 overall += hist.reshape(-1, bins.count).sum(axis=0)
                 bar.update(1)
         # the simplified histograms, once the volume's data is no longer in memory: the OpenCL device that finds
-        # them took 100-150 MB of the process's memory (PoCL's compiler and threads) from the moment it started
+        # them holds memory of its own (PoCL's compiler and threads) from the moment it starts
         starts_arr = blocks.create_array("hist_starts", shape=lay.grid + (seg + 1,), dtype=np.uint16,
                                          chunks=(1, gy, gx, seg + 1), fill_value=0)
         heights_arr = blocks.create_array("hist_heights", shape=lay.grid + (seg,), dtype=np.float32,

@@ -25,8 +25,8 @@ SHARD_BLOCKS_YX = 8
 
 def cell_edge(block_size: int) -> int:
     """Edge (voxels) of the cells finer than the blocks that empty-space skipping walks, and whose level-0 value
-    ranges the store keeps: 8, or the block itself when it is not a multiple of 8 (cells of 16³ left 22% of the
-    chest CT to sample under a bone TF at full resolution, cells of 8³ 13.5%)."""
+    ranges the store keeps: 8, or the block itself when it is not a multiple of 8 (cells of 8³ leave clearly less
+    of a CT to sample under a bone TF at full resolution than cells of 16³)."""
     return 8 if block_size % 8 == 0 else block_size
 
 

@@ -1,7 +1,7 @@
 """Shard-level reader for the sharded zarr v3 level arrays written by ingest, bypassing zarr-python's codec pipeline.
 
-Why: zarr-python spends ~0.2–0.3 ms of Python per inner chunk, so a region of thousands of small blocks (16³ or
-8³ samples) costs seconds to read. Here each needed shard file is opened once, its index (the trailing
+Why: zarr-python spends a fixed amount of Python per inner chunk, so a region of thousands of small blocks (16³
+or 8³ samples) is slow to read. Here each needed shard file is opened once, its index (the trailing
 16·n + 4 bytes: little-endian uint64 (offset, nbytes) per inner chunk in C order, then a crc32c) is parsed once
 and cached per (path, mtime, size), the needed chunks' bytes are read as one span when they lie close together,
 and blosc decodes them straight into a per-unit buffer on a shared thread pool (blosc releases the GIL), which is
@@ -109,7 +109,7 @@ class _RemoteFiles:
 def fast_reader(source: Any, complete: bool = False, url: str | None = None) -> ShardedReader | ChunkReader | None:
     """A reader for `source`, or None when its store or codecs are not handled (use zarr-python then). `source`:
     a zarr Array, or the folder of an array on the local filesystem, whose zarr.json is all that is read to open
-    it (zarr-python is not imported until a read with steps needs it: importing it took 0.2-0.4 s of a first
+    it (zarr-python is not imported until a read with steps needs it: importing it is a noticeable part of a first
     render). A sharded array gets a ShardedReader; an unsharded local one (the per-block metadata arrays) a
     ChunkReader. `complete`: ingest wrote every chunk, so a missing shard file or chunk is damage (StoreCorrupt),
     not empty. `url`: the group's fsspec URL, for an array in an fsspec store (read through a synchronous
@@ -226,7 +226,7 @@ class _Reader:
     def read_region(self, region: Any, dtype: Any = None, out: np.ndarray | None = None) -> np.ndarray:
         """The same array as `np.asarray(array[region])` for a tuple of slices or ... (non-unit steps go through
         zarr), in `dtype` when given: each worker casts its chunks as it places them, so a conversion costs no
-        pass of its own (level 0 of the chest CT as float32: 0.74 s of a 1.9 s first render). `out`: an array of
+        pass of its own (one over level 0 would be a good part of a first render). `out`: an array of
         the region's shape (and `dtype`) to read into, e.g. a mapped device buffer, instead of a new one."""
         if region is ...:
             region = (slice(None),) * len(self.shape)
@@ -256,7 +256,7 @@ class _Reader:
 class ChunkReader(_Reader):
     """Reads regions of one unsharded zarr v3 array on the local filesystem: each chunk file read whole and
     decoded (blosc or zstd, or raw). The per-block metadata arrays are a few dozen such chunks, which zarr-python's
-    asynchronous pipeline took 0.1-0.3 s to read for a first render."""
+    asynchronous pipeline is slow to read for a first render."""
 
     def __init__(self, shape: tuple[int, ...], dtype: np.dtype, fill_value: Any, chunk_key: Any, array: Any,
                  files: Any, chunk: tuple[int, ...], *, chunk_dtype: np.dtype, codec: str | None) -> None:

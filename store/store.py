@@ -182,16 +182,16 @@ class Store:
 
     def _read(self, path: str, region: tuple | EllipsisType, dtype: Any = None,
               out: np.ndarray | None = None) -> np.ndarray:
-        """A region of the array at `path` through the shard-level reader (store/shardio.py: locally 8-10x
-        zarr-python's per-chunk cost on 16³ and 8³ blocks; on object storage a few range requests per shard
-        instead of one per chunk), else through zarr-python."""
+        """A region of the array at `path` through the shard-level reader (store/shardio.py: locally far less per
+        chunk than zarr-python on 16³ and 8³ blocks; on object storage a few range requests per shard instead of
+        one per chunk), else through zarr-python."""
         reader = self._reader(path)
         if reader is not False:
             return reader.read_region(region, dtype, out)
         import zarr
 
-        # zarr decodes one inner chunk at a time unless batched: for a whole level of the chest CT at 16³ blocks
-        # (9,400 chunks) batching 256 measured 4.1 -> 2.7 s, at 8³ blocks (143,000 chunks) 30 -> 20 s
+        # zarr decodes one inner chunk at a time unless batched: batching shortens reads of a whole level of small
+        # blocks
         with zarr.config.set({"codec_pipeline.batch_size": 256}):
             a = np.asarray(self._array(path)[region], dtype=dtype)
         if out is None:

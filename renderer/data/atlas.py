@@ -5,8 +5,8 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
 - the **atlas**: one buffer (of `volume.device_dtype`) holding the selected bricks one after another, the bricks
   of a level together, each the block's (B >> level)³ samples in C order (z, y, x), a level-0 brick inside a
   one-sample apron of its level-0 neighbours' samples (`_fill_aprons`: nearest block reads one brick and is still
-  trilinear across faces between level-0 blocks; PoCL measured trilinear sampling from a plain buffer ~2x faster
-  than from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how
+  trilinear across faces between level-0 blocks; on PoCL trilinear sampling from a plain buffer is faster than
+  from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how
   much it needs and what the device allows;
 - the **index map**: one uint64 per block (C order of the grid): 0 for a block that is not loaded, else
   ``(offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1)``, offset = the brick's
@@ -160,8 +160,8 @@ def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block
     own + d when that block is at level 0 too, else the brick's own nearest sample (clamp to edge). Inside a region
     of level-0 blocks trilinear interpolation within a padded brick is then trilinear interpolation of level 0
     across the blocks' faces, clamped at the volume's faces as full resolution is (lc_atlas.h). Coarse bricks have
-    no apron: theirs would take 1.95x (8³ of a 16³ block) to 27x (1³) their samples, and doubled the 30:1 atlas of
-    the 8 GiB volume (the renderer's peak RSS 1,731 -> 2,352 MB after its first image)."""
+    no apron: theirs would take 1.95x (8³ of a 16³ block) to 27x (1³) their samples, and at high reductions, where
+    most bricks are coarse, the atlas would grow by about as much as the apron-less one holds."""
     lv = np.asarray(levels).astype(np.int64)
     G = np.array(lv.shape)
     flat_off = offsets.reshape(lv.shape)
@@ -254,26 +254,23 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
     would pass it sampled, without its samples, so that what it skips changes no other sample. The cells are the
     half-block cells (grid 2G, cell h in block h >> 1) for both interpolations: nearest block's step level is
     constant over a block, but the walk also leaves out the coarse half-cells that level 0 leaves empty
-    (walk._cell_info), which on whole blocks it could do only where all eight are (32 images,
-    benchmarks/bench_lod_sweep.py, nearest block: samples 0.67 -> 0.48 of full resolution's, summed mean ΔE
-    151.8 -> 145.7). A cell takes its own block's level k; cells of skipped blocks (`skip`) and of
-    unloaded ones (level -1, stepped as level 0) are skipped.
+    (walk._cell_info), which on whole blocks it could do only where all eight are: half-block cells take fewer
+    samples for no more image error (benchmarks/bench_lod_sweep.py). A cell takes its own block's level k; cells of
+    skipped blocks (`skip`) and of unloaded ones (level -1, stepped as level 0) are skipped.
 
     s = k at level 0, s = k + 1 at coarse levels (capped at log2 B, the longest step the kernel has a table for;
     a step never runs past its cell anyway): the base step over-samples level 0 (default 1/2 voxel: a sharp TF
     edge crossed inside a voxel), while a level-k field is a smooth average, classified by a distribution that
     blurs the TF by the spread behind it, and needs no more than about one sample per coarse voxel (2^k voxels
-    at the default step). Measured against step * 2^k over the same selections on the chest and engine CTs (3 + 2
-    TFs, 10:1 to 100:1, 256²): 1.1-1.8x fewer samples, mean ΔE within ±0.25.
+    at the default step). Against step * 2^k over the same selections it takes fewer samples for about the same
+    image error.
 
     With interblock interpolation a coarse half-cell next to a finer block keeps its own step too (thesis §3.6.1
     limits it by the finest of the eight blocks around): inside the coarse block the blend towards the finer
     neighbour spans 2^(k-1) voxels and mixes in that neighbour's samples clamped to its face, which are constant
     along the face's normal: along the normal the field there holds no finer detail than the coarse field (at
     most twice as steep); what a coarse step can miss is the neighbour's detail across the face, met by oblique
-    rays. On the chest and engine CTs (four TFs, two views, 5:1-100:1, 256²: benchmarks/bench_lod_sweep.py) the
-    finest-of-eight rule took 1.28x the samples (0.76 of full resolution's against 0.59) for the same summed mean
-    ΔE (145.8 against 145.5 over 32 images)."""
+    rays. The finest-of-eight rule took more samples for the same image error (benchmarks/bench_lod_sweep.py)."""
     lv = np.asarray(levels).astype(np.int64)
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
     out = np.maximum(lv, 0)
@@ -297,8 +294,8 @@ NEAR_LEVEL0 = 8
 
 def skipped(steps: np.ndarray, where: np.ndarray) -> np.ndarray:
     """Step levels (`step_levels`) with the cells `where` marks skipped: -(s + 1) (cells skipped already stay)."""
-    st = np.asarray(steps, np.int8)  # (in int8 throughout: int64 temporaries over the 8 GiB volume's 8 million
-    out = st.copy()  # half-block cells added 190 MB to each lossless pass's peak)
+    st = np.asarray(steps, np.int8)  # (in int8 throughout: int64 temporaries, eight bytes a half-block cell,
+    out = st.copy()  # add up to a good part of each pass's peak memory on a large volume)
     m = np.asarray(where, bool) & (st >= 0)
     out[m] = -st[m] - 1
     return np.ascontiguousarray(out)
@@ -312,7 +309,7 @@ def half_cells(a: np.ndarray) -> np.ndarray:
 def pair_reduce(a: np.ndarray, f: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
     """A grid of cells (z, y, x) reduced to cells of twice the edge by `f` (np.fmin, np.fmax, np.maximum) over each
     one's up to eight children; an odd axis is padded with NaN."""
-    for ax in range(3):  # pairs along one axis at a time (a reduction over a 6-D view took 10x as long)
+    for ax in range(3):  # pairs along one axis at a time (a reduction over a 6-D view is much slower)
         if a.shape[ax] % 2:
             pad = [(0, 0)] * 3
             pad[ax] = (0, 1)

@@ -123,8 +123,8 @@ def cells_and_octants(eng: Engine, da: DeviceAtlas, grid: tuple[int, int, int], 
                       std_unit: float = 1.0) -> tuple[AtlasCells, AtlasCells]:
     """(the half-block cells, their octants) of the whole atlas `da`: the octants from the device, the half-block
     cells reduced from them, each the union of its eight octants' bounds, which is what `atlas_cells` gives for
-    them (the same brick samples reached: tests/test_atlas_cells.py) without a second kernel (on the chest CT's
-    30:1 and lossless atlases 12-29 ms of kernel against 7 ms of reduction), kept as `atlas_cells` keeps its."""
+    them (the same brick samples reached: tests/test_atlas_cells.py) without a second kernel (the reduction on the
+    host costs less than the kernel would), kept as `atlas_cells` keeps its."""
     octants = atlas_cells(eng, da, grid, block_size, interpolation, std_unit, cpb=4)
     key = None if da.key is None else ("cells", da.key, interpolation, None, 2)
     cells = eng.cells.get(key) if key is not None else None

@@ -41,8 +41,8 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, 
     start = np.array(blocks, np.int64).reshape(-1, 3) * e  # the bricks' first samples in the level
     stop = np.minimum(start + e, np.array(lay.level_shape(level)))
     where = start // c
-    # chunks by their flat index in the level's chunk grid (np.unique along an axis sorts rows as records: at 8³
-    # blocks, 0.18 s of a first render's 1.2 s of reading)
+    # chunks by their flat index in the level's chunk grid (np.unique along an axis sorts rows as records, slowly:
+    # at small blocks, a good part of a first render's reading)
     flat = np.ravel_multi_index(tuple(where.T), tuple(-(-np.array(lay.level_shape(level)) // c)))
     first, which = np.unique(flat, return_index=True, return_inverse=True)[1:]
     need = where[first]
@@ -92,7 +92,7 @@ def iter_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickCache | N
     base = ("bricks" if what == "mean" else "std", vol.key)
     groups: dict[tuple, list] = {}
     stats.skipped = int(np.count_nonzero(levels < 0))
-    # per level once, not per brick (a million bricks: seconds of layout arithmetic)
+    # per level once, not per brick (the layout arithmetic, repeated per brick, adds up over a million of them)
     geom = {k: (lay.block_edge(k), lay.shard_shape(k)) for k in range(lay.n_levels)}
     for k, z, y, x in zip(lv.tolist(), bz.tolist(), by.tolist(), bx.tolist()):
         a = cache.get((base, k, z, y, x)) if vol.key is not None else None

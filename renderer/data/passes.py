@@ -144,8 +144,8 @@ def plan(vol: VolumeView, fr: Frame, step_voxels: float, levels: np.ndarray | No
          what: str = "LODCAST_DEVICE_BUDGET_MB") -> PassPlan | None:
     """The passes of a render, or None when its data fits `limit` in one. `levels`: the atlas selection (None: level
     0, full resolution); `unsampled()`: the blocks the kernel never samples in this scene (empty-space skipping, or
-    adaptive cells all skipped): regions of only those are left out (asked only when there are passes: it costs
-    1-2 ms a render)."""
+    adaptive cells all skipped): regions of only those are left out (asked only when there are passes: it is not
+    free)."""
     G, B, shape = vol.grid, int(vol.block_size), vol.shape
     size = vol.voxel_dtype.itemsize  # bytes of a voxel on the device
     if levels is None:
@@ -272,7 +272,7 @@ def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
                            octants=_cells_and_octants(pr, da)[1] if cfg.octants and cells is not None else None)
         return
     # a render beyond the budget has the device to itself, and the host what was kept beside the atlases it drops
-    # (their cells and walks: 135 MB of the 8 GiB volume's 30:1 selection, over a quarter of the volume at lossless)
+    # (their cells and walks, which grow with the selection: on a large volume, a good part of its size)
     eng.clear_passes()
     release_free_memory()  # (freed, they would stay resident under the first pass's data)
     regions = pr.passes.regions or (_empty_region(None if lod is None else lod.levels),)

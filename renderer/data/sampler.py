@@ -1,6 +1,6 @@
 """Device-side voxels kept between renders: level 0 as one buffer for quality "full" (the store's integer type up
 to 16 bits, else float32: volume.device_dtype; on PoCL trilinear
-from a plain buffer measured ~2x faster than from a 3D image), and the device cache that keeps those buffers and
+sampling from a plain buffer is faster than from a 3D image), and the device cache that keeps those buffers and
 the LOD atlases (`atlas.device_atlas`) resident: the engine's `device_cache` (renderer/engine.py), LRU by bytes
 (``LODCAST_DEVICE_CACHE_MB``, default 1024, and never more than the device budget): a service
 alternating between a few volumes or selections uploads nothing. The newest entry stays even when it alone exceeds
@@ -26,7 +26,7 @@ __all__ = ["DeviceVolume", "upload_level0", "level0_buffer", "voxel_offset", "es
 
 #: full resolution keeps the ranges of cells of 4³ voxels while their grid has at most this many cells, else the
 #: store's 8³: the finer cells leave fewer samples, but the host classifies those under a visible 8³ parent for each
-#: new TF (walk._level0_walk: 21-31 ms on the chest CT's 1.1 million cells)
+#: new TF (walk._level0_walk), in time that grows with their number
 FINE_CELLS = 1 << 22
 
 
@@ -34,9 +34,8 @@ def ess_cell(shape: tuple[int, ...], block_size: int) -> int:
     """The edge (voxels) of the cells of empty-space skipping at full resolution: 4 on volumes whose grid of 4³
     cells stays within FINE_CELLS, else the store's cells (store.layout.cell_edge: 8, or the block when that is not
     a multiple of 8). Runs of cells to sample cost the walk a step per cell (raycast.cl), so finer cells pay where
-    they leave out more samples than that: at steps up to a voxel (walk.FINE_STEP; beyond, the walk takes their
-    8³ parents), e.g. kernel ms 8³ -> 4³ at step 1, 512², on the engine CT 61.6 -> 52.3 under a metal TF and
-    131.7 -> 125.7 translucent, at step ½ on the chest CT 170 -> 140 under ct-bone."""
+    they leave out more samples than the walk's extra steps cost: at steps up to a voxel (walk.FINE_STEP; beyond,
+    the walk takes their 8³ parents)."""
     c = cell_edge(block_size)
     if c % 4 == 0 and c > 4 and int(np.prod([-(-int(n) // 4) for n in shape])) <= FINE_CELLS:
         return 4
@@ -91,8 +90,8 @@ def voxel_offset(z: ArrayLike, y: ArrayLike, x: ArrayLike, shape_zyx: Sequence[i
 
 def level0_buffer(dev: Device, vol: VolumeView, region: tuple[slice, slice, slice]) -> cl.Buffer:
     """A device buffer of level 0's voxels `region` (z-y-x slices), read straight into its host mapping: no host
-    array beside it (reading the chest CT's level 0 into a new array and copying it took 0.25 s more of a first
-    full-resolution render, and the array's 144 MB were touched twice)."""
+    array beside it (one, read and then copied, touches level 0's bytes twice and slows a first full-resolution
+    render)."""
     ctx, queue = dev.context, dev.queue
     shape = tuple(s.stop - s.start for s in region)
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=max(4, int(np.prod(shape)) * vol.voxel_dtype.itemsize))

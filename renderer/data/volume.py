@@ -142,8 +142,8 @@ class VolumeView:
     @property
     def std_unit(self) -> float:
         """The unit in which the device holds standard deviations, as uint16: std_max / 65535. Linear, so that the
-        kernel interpolates the integers and scales once (decoding eight float16 per coarse sample took a third of
-        an interblock sample's time at 30:1); the absolute step std_max / 65535 is 16 times finer than the first
+        kernel interpolates the integers and scales once (decoding eight float16 per coarse sample took a good part
+        of an interblock sample's time); the absolute step std_max / 65535 is 16 times finer than the first
         row of the classification table above zero (std_max / 63²), whatever the data's unit."""
         return self.std_max / 65535.0 if self.std_max > 0 else 1.0
 

@@ -34,20 +34,18 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
     """`distribution`: whether the volume keeps the distributions behind its coarse voxels (the scene decides
     whether to use them); `voxel`: the OpenCL C type of its voxels on the device; `block_size`, `n_blocks`: its
     blocks' edge and number. Octant masks need blocks of 16 or more, a multiple of 4 (half-block cells of 4³ are
-    full resolution's own, and octants of 2³ skipped little more and took 0.57 s more of an 8³ store's first
-    render, chest CT, 2.96 s), and a grid of at most sampler.FINE_CELLS octants, as full resolution's 4³ cells:
-    the octants' bounds are kept for the whole grid, 12 bytes each on the host and again on the device (on the
-    8 GiB volume's 64 million octants a turntable frame at 30:1 took 12.5 s against 1.2 s, the renderer's peak
-    RSS 5.3 GB against 2.1)."""
+    full resolution's own, and octants of 2³ skipped little more but slowed a first render), and a grid of at most
+    sampler.FINE_CELLS octants, as full resolution's 4³ cells: the octants' bounds are kept for the whole grid, 12
+    bytes each on the host and again on the device (beyond the bound, recomputed every frame, they cost a large
+    volume's frames many times their time and memory)."""
     s = scene.sampling
     # default (None): on at every quality that samples the atlas. Level-0 cells step on full resolution's lattice
-    # (raycast.cl), so "lossless" keeps its image (chest CT, 512², three TFs: mean ΔE against full resolution
-    # 0.13/0.08/0.35, with fixed steps 0.12/0.08/0.35) and its coarse blocks, which lose nothing the TF shows, are
-    # stepped over faster
+    # (raycast.cl), so "lossless" keeps its image (its error against full resolution is that of fixed steps) and
+    # its coarse blocks, which lose nothing the TF shows, are stepped over faster
     adaptive = lod and (s.adaptive_object is not False or s.adaptive_naive)
     # "lossless" promises full resolution's image: its level 0 keeps full resolution's lattice after coarse cells
-    # too (at 128², closer up, mean ΔE against full resolution 0.34 without, 0.17 with, as with fixed steps); the
-    # budgeted qualities leave it out (it cost them about 5% of the kernel's time)
+    # too (without it, close up, its error against full resolution grows past that of fixed steps); the budgeted
+    # qualities leave it out (it costs them kernel time and they do not promise full resolution's image)
     lattice = adaptive and not s.adaptive_naive and scene.quality == "lossless"
     return KernelConfig(
         sampler="atlas" if lod else "full",

@@ -52,7 +52,7 @@ __all__ = ["Renderer", "RenderResult", "RenderReport", "StoreLike", "SceneLike",
            "prepare", "prefetch", "check_cost", "launch", "LOCAL_SIZE"]
 
 LOCAL_SIZE = (8, 8)
-BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): about 0.2-0.5 s of kernel time on two CPU cores
+BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): a stop waits for the band in flight, so keep it short
 
 
 def _classification(pr: Prepared) -> str:

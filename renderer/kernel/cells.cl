@@ -1,5 +1,5 @@
 /* cells.cl: the border-inclusive value range of the cells of empty-space skipping at full resolution, computed
- * where level 0 already is (renderer/data/sampler.py: level0_cells; the host's NumPy took 0.8 s for the chest CT).
+ * where level 0 already is (renderer/data/sampler.py: level0_cells; NumPy on the host was much slower).
  *
  * Work-item (x, y, z) is cell c = lo + (x, y, z) of edge C voxels: min and max, ignoring NaN, over the voxels
  * [c C - 1, (c + 1) C] of the volume (clipped to its dims), read from a sub-volume of `sub` voxels whose first

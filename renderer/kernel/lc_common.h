@@ -35,9 +35,8 @@ typedef ushort lc_sig;
 #define LC_OFFSET(x, y, z, nx, ny) (((ulong)(z) * (ulong)(ny) + (ulong)(y)) * (ulong)(nx) + (ulong)(x))
 
 /* For the atlas sampler's per-sample functions: PoCL's clang leaves them out of line (they have several callers),
- * and a call in the march makes every live value spill (measured on the chest CT at 30:1, 256²: nearest block
- * 1.2-1.35x, interblock 1.07x faster inlined; inlining interblock's eq. 3.5 sample, face blend and general sampler
- * too: its kernel 0.84-0.88 of before at 512², bone 30:1 and lossless, skin 10:1, for 0.3 s more of a first build).
+ * and a call in the march makes every live value spill: both samplers run faster inlined, interblock also with its
+ * eq. 3.5 sample, face blend and general sampler inlined, for a somewhat longer first build.
  * Other compilers keep their own judgement. */
 #ifdef __clang__
 #define LC_HOT inline __attribute__((always_inline))
@@ -63,7 +62,7 @@ static inline float lc_exp_neg_big(const float x) { /* e^-x for 0.25 <= x <= 87 
 
 /* 1 - e^-x for an optical depth x >= 0, to float32's precision (relative error below 4e-7, tested against
  * float64), without a library call: PoCL calls exp and native_exp out of line, and the call makes every live value
- * of the march spill (measured: 30-40% of a nearest-block LOD render's kernel time). A series where 1 - e^-x would
+ * of the march spill (a large share of a nearest-block LOD render's kernel time). A series where 1 - e^-x would
  * cancel; else e^-x = 2^-k e^-g from the exponent bits and a series in g <= 0.694 (truncation < 1e-7). */
 static inline float lc_alpha_of_depth(const float x) {
     if (x < 0.25f)

@@ -21,7 +21,7 @@ coordinate (the `warp` rows: values in [b_k, b_k+1) sit at table coordinate g_k 
 binary search over the control points). A segment that crosses a hard step is cut where the (linear) field
 crosses it, and each piece is looked up between its own ends on its own side of the step (lc_preint.h), so a hard
 step is exact: on a ramp through one the image equals the float64 reference (tests/test_illumination_clip.py;
-a uniform axis smeared the step over one table interval, mean ΔE 0.88–14.6 there, worse than point sampling). A
+a uniform axis smeared the step over one table interval and did worse there than point sampling). A
 TF of more than PREINT_N/2 control points has only its hard steps aligned (of those, at most PREINT_N/2).
 
 Other segment lengths l (the last, shorter segment of a ray, clipped segments, adaptive steps of l0·2^k) scale the

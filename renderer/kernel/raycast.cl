@@ -330,8 +330,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
              * on (those whose sample lies in the cell are all whole; the last may end past tb, inside the next
              * cell, which goes on from its end), so a run of level-0 cells takes the samples of full resolution's
              * walk. In a coarse cell the steps start at the cell's entry and the last one is cut at tb (limited:
-             * a coarse step never runs into a finer block; running on there as well saved 8-20% of the samples
-             * from 30:1 on but added up to 1.05 mean ΔE, chest CT, ct-bone, 256²). A skipped cell leaves t
+             * a coarse step never runs into a finer block; running on there as well saved samples at high
+             * reductions but added image error). A skipped cell leaves t
              * where sampling it would for the cells after it: a level-0 one on the lattice (the next level-0 cell
              * finds its first step there, a coarse one starts at its entry anyway), a coarse one at its exit; so
              * skipping it changes no other sample. */
@@ -418,9 +418,8 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
                         } else {
                             /* the nearest whole number of steps (at least one): the last one h/2 to 3h/2 long. A
                              * cut step took one more sample per coarse cell, often for a sliver of it: rounding
-                             * took 3-18% fewer samples from 5:1 to 100:1 on the chest and engine CTs (five TFs,
-                             * 256²), summed mean ΔE 42.66 against 43.53 over nine chest images and 36.20 against
-                             * 35.97 over eight engine ones; rounding down (steps up to 2h) added 0.9 on the chest */
+                             * takes fewer samples at every reduction for about the same image error; rounding
+                             * down (steps up to 2h) added error */
                             whole = (int)((tcut - t) * inv_dt * lc_exp2_neg(lvl) + 0.5f) - 1;
                         }
                         whole = whole < 0 ? 0 : whole;

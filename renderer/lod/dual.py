@@ -30,7 +30,7 @@ from lodcast.renderer.scene.transfer_function import Lut
 
 __all__ = ["PRIORITY_TILE", "SecondTf", "visibility_bits", "dilate_bits", "PriorityMap", "priority_map"]
 
-#: pixels per priority-map tile edge: a 512² image has a 128² map (a block of the chest CT covers ~16² pixels)
+#: pixels per priority-map tile edge: a 512² image has a 128² map (finer than a block's footprint in a whole view)
 PRIORITY_TILE = 4
 _CHUNK = 65536  # blocks projected at a time (bounds the host's memory for very large grids)
 

@@ -45,12 +45,13 @@ Predicted ΔE of a selection: the count-weighted RMS over loaded blocks of ζ at
 sqrt(Σ_i n_i ζ_i(γ_i)² / Σ_i n_i), n_i the block's valid voxels, is the RMS per-voxel error in unit-slab colours.
 An image shows a colour made of ~1/ā unit slabs along a ray (ā the opacity-weighted mean TF opacity of the loaded
 voxels: about one slab for an opaque surface, several for a translucent layer), so the selection's predicted ΔE is
-IMAGE_GAIN · RMS / ā, with IMAGE_GAIN fitted once on the chest CT (ct-bone, ct-skin, ct-skin-bone, two views,
-lossless … 100:1). It is the level of detail's own error, against full resolution at the same step. A render's
+IMAGE_GAIN · RMS / ā, with IMAGE_GAIN fitted once on measured renders of a CT (docs/measurements/code-notes.md).
+It is the level of detail's own error, against full resolution at the same step. A render's
 report adds the step's own error (step_delta_e: against the step-¼ reference, STEP_GAIN · h² · RMS(ζ_step) / ā,
 fitted on two CTs and seven TFs), so that it predicts what docs/design.md measures; at 5:1 and below that is most of
-it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fit's rows (2.2: ct-skin-bone at
-5:1 measures 3.2 from one view and 0.8 from the other, which no view-independent figure can both meet within 2).
+it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fit's rows; what is left is the view:
+a scene can measure well above its prediction from one view and below it from another, and no view-independent
+figure meets both.
 Both are estimates of docs/design.md's measured ΔE, not bounds.
 
 What the camera sees (`visibility`, renderer/lod/visibility.py; a render passes it at the budgeted qualities where
@@ -66,13 +67,12 @@ per-level spread (the RMS over the block's level-k voxels of the standard deviat
 each), where ζ alone would be the thesis' choice. ζ models what each value loses through the level's blur of the
 TF, not where the level moves structure: a block whose colours survive the blur but whose voxels spread widely
 loses its shapes (a translucent skin's folds, trabecular bone), which s_k measures and ζ does not; the geometric
-mean ranks first the blocks where both are large, and a block of either zero stays coarse. Measured on the chest
-and engine CTs (four TFs, two views, 5:1 to 100:1, 256², summed mean ΔE against the step-¼ reference): 155 → 146
-with the view's weight, 181 → 172 without; every TF gained, ct-skin most (62.7 → 56.0); the worst single image
-moved 0.03 (the engine CT at 5:1, 0.64 → 0.67). ζ stays the prediction's and 'lossless''s measure (a ΔE); the
-product only orders the greedy. What such a greedy leaves coarse loses less in the picture than its ζ says, so
-its prediction takes its own gain, BUDGET_GAIN (0.44, fitted as IMAGE_GAIN was, on the chest CT's 5:1 to 100:1;
-with IMAGE_GAIN the budgeted rows were predicted 1.5× high on average and up to 2.3×).
+mean ranks first the blocks where both are large, and a block of either zero stays coarse. Over two CTs, four
+TFs, two views and 5:1 to 100:1 this lowered the summed mean ΔE against the step-¼ reference, with the view's
+weight and without, for every TF, and moved no single image noticeably. ζ stays the prediction's and
+'lossless''s measure (a ΔE); the product only orders the greedy. What such a greedy leaves coarse loses less in
+the picture than its ζ says, so its prediction takes its own gain, BUDGET_GAIN (0.44, fitted as IMAGE_GAIN was,
+on the budgeted qualities; with IMAGE_GAIN their error was predicted too high).
 
 TF-empty blocks are excluded from the prediction (they show nothing either way), as are blocks outside the crop.
 "lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at most LODCAST_LOSSLESS_ZETA
@@ -108,20 +108,18 @@ MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
 METHODS = ("tf", "tf_full_hist", "l2", "uniform")
 #: the ΔE per block that "lossless" allows by default (LODCAST_LOSSLESS_ZETA overrides it in an engine)
 LOSSLESS_ZETA = 0.5
-#: image-space calibration of the predicted ΔE (see module doc): fitted on the chest CT (ct-bone, ct-skin,
-#: ct-skin-bone, two views, lossless ... 100:1, geometric mean of measured / predicted = 1): mean ΔE ≈
+#: image-space calibration of the predicted ΔE (see module doc), fitted so that the geometric mean of measured /
+#: predicted is 1 over a set of CT renders (docs/measurements/code-notes.md): mean ΔE ≈
 #: IMAGE_GAIN · RMS(ζ) / ā, ā the opacity-weighted mean opacity of the loaded voxels (translucent structures add
 #: colour errors up over ~1/ā unit slabs along a ray; opaque ones show about one)
 IMAGE_GAIN = 0.72
 #: the same for the budgeted qualities, whose greedy orders by √(ζ · s_k) and the view's weight (module doc: what
 #: it leaves coarse loses less in the picture than ζ says): geometric mean of measured / predicted = 1 over
-#: bench_consistent_lod.py's chest CT rows at 5:1 to 100:1 (ct-bone, ct-skin, ct-skin-bone; 256² and 512²); the
-#: engine CT held out (worst factor 1.9 there)
+#: bench_consistent_lod.py's budgeted rows (docs/measurements/code-notes.md)
 BUDGET_GAIN = 0.44
 #: the step's own error (step_delta_e): mean ΔE against the step-¼ reference ≈ STEP_GAIN · h² · RMS(ζ_step) / ā,
-#: fitted on the chest CT (ct-bone, ct-skin, ct-skin-bone, ct-body and a two-band lung/vessel TF) and the engine CT
-#: (two TFs), two views each, steps ½ and 1: geometric mean of measured / predicted = 1 over all of them but one
-#: outlying view of the lung/vessel TF (measured 3.1-5.8x the prediction there; the others within 0.5-2.3x)
+#: fitted on renders of two CTs under seven TFs at steps ½ and 1: geometric mean of measured / predicted = 1 over
+#: all of them but one outlying view (docs/measurements/code-notes.md)
 STEP_GAIN = 0.052
 MIN_OPACITY = 0.05
 
@@ -388,7 +386,7 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
     STEP_GAIN · step² · RMS / ā. RMS: of ζ_step (level_error.step_zeta: the colour change over one voxel along a
     ray) over the visible blocks in the crop, weighted by their voxels; ā as for the level of detail (ζ_step is a
     unit slab's; a ray shows ~1/ā of them). A ray marcher's error at step h against a finer one grows as h²
-    (measured: 3.5–4.5× from h = ½ to 1 on every scene of the fit). 0 for a store without per-level spreads
+    (as measured on every scene of the fit). 0 for a store without per-level spreads
     (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
     if meta.level_std is None or meta.n_levels < 2:
         return 0.0

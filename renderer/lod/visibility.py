@@ -38,8 +38,7 @@ __all__ = ["AUTO_VOXELS", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "quiet_b
 
 VIS_RAYS = 96  # rays along the longer side of the image
 #: sampling.lod_visibility left out is on for volumes of at most this many voxels: beyond, a new view's selection
-#: and atlas cost more than the picture (8 GiB body, 30:1: 4.9-6.7 s a turntable frame, its atlas built from the
-#: last one, against 0.4 s)
+#: and atlas cost many times the picture (even with its atlas built from the last one's)
 AUTO_VOXELS = 1 << 27
 VIS_VOXELS = 1 << 24  # the coarse level cast through has at most this many voxels
 _ONE = float(1 << 24)  # visibility.cl's fixed point

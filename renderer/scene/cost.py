@@ -4,7 +4,7 @@ The estimate is rays × samples per ray: the scene's rays on a grid of at most 6
 are intersected with the (clipped) box, and the mean length of their paths over the step, times every pixel of
 the image, is the number of samples a march without empty-space skipping, early termination or adaptive steps
 takes. That bounds what the kernel does (those only take samples away), to within the sub-grid's sampling of the
-image, and costs well under a millisecond.
+image, and costs next to nothing beside the render.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from lodcast.renderer.scene.scene import SceneError
 
 __all__ = ["CostError", "DEFAULT_MAX_SAMPLES", "estimate_samples", "refuse_over_limit"]
 
-DEFAULT_MAX_SAMPLES = 2_000_000_000  # tens of seconds on two CPU cores
+DEFAULT_MAX_SAMPLES = 2_000_000_000  # far beyond an interactive render: only a runaway scene reaches it
 
 
 class CostError(SceneError):

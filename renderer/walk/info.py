@@ -92,7 +92,7 @@ def _walk_key(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple |
     the atlas); then the TFs' opacities (only where they are zero matters, but the tables are small), the mode, the
     clip planes, the leaps and which cells the step walks (FINE_STEP); on the atlas also the selection's block info,
     the distribution tables' visible spans and whether the store keeps its level-0 cell ranges (atlas_cell_info
-    took 5-8 ms a render of the chest CT at 30:1).
+    costs too much to run on every render of the same scene).
     Passes and volumes the device cache does not keep (arrays without a key): None (computed per render)."""
     if data.region is not None or not pr.config.ess or pr.volume.key is None:
         return None
@@ -113,8 +113,7 @@ def _walk_key(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple |
 
 #: full resolution walks its finest cells (4³: sampler.ess_cell) while the step is at most this many voxels, and cells
 #: of 8³ (their ranges from the finer ones') beyond: a long step takes few samples per fine cell, and each costs its
-#: walk step (kernel ms 4³ / 8³, 512²: at step ½ chest bone 140 / 170, engine metal 85 / 110; at step 1 engine metal
-#: 52 / 62, chest bone 95 / 97; at step 1.5 about even; at step 2 engine translucent 99 / 88, metal 54 / 48)
+#: walk step (the finer cells won in kernel time up to a step of a voxel, about even at 1.5, lost at 2)
 FINE_STEP = 1.0
 
 
@@ -139,8 +138,8 @@ def _level0_walk(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray
             pr.engine.parents.put(id(cmin), hit, hit[1].nbytes * 2)
         if coarse_walk:
             cmin, cmax, C, parents = hit[1], hit[2], 2 * C, False
-    if data.region is not None:  # a pass: its own blocks' cells hold values, the rest NaN (on the 8 GiB volume, 32
-        # passes each over all 8.4 million cells took 37 of the 92 s of a full-resolution render)
+    if data.region is not None:  # a pass: its own blocks' cells hold values, the rest NaN (every pass over all the
+        # cells of a large volume took a good part of its full-resolution render)
         k = B // C
         box = tuple(slice(b.start * k, min(n, b.stop * k)) for b, n in zip(data.region.blocks, cmin.shape))
         info = np.full(cmin.shape, empty, np.float32)
@@ -194,10 +193,9 @@ def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.n
     # A coarse cell (its block at level >= 1) whose level-0 voxels, one-voxel border included, the TF shows nothing
     # of is not sampled (the store's cell ranges), however its coarse field classifies: full resolution skips that
     # cell too, and what the coarse field shows there is its blur of the neighbouring cells or a Gaussian's tail
-    # (the haze that bimodal voxels, air against skin, give a bone TF). On the chest and engine CTs (32 images,
-    # benchmarks/bench_lod_sweep.py) it left out a tenth of the LOD's samples (0.589 -> 0.524 of full
-    # resolution's) and lowered the summed mean ΔE (145.5 -> 143.6). Without the border it saved more (0.494,
-    # 139.7) but clipped silhouettes that end at a cell's face, which full resolution shows a voxel further.
+    # (the haze that bimodal voxels, air against skin, give a bone TF). It leaves out samples and lowers the image
+    # error (benchmarks/bench_lod_sweep.py). Without the border it saved more but clipped silhouettes that end at a
+    # cell's face, which full resolution shows a voxel further.
     # Without empty-space skipping (the walk then runs for this alone, prepare()) every other cell is sampled.
     level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells) if pr.lod is not None else None
     if level0 is not None:
@@ -243,7 +241,7 @@ def adaptive_walk(pr: "Prepared", cfg: KernelConfig, data: "multipass.PassData",
     cells' skips in the steps, the octant masks of its sampled cells in the info (config.octants) and the leaps
     over its skipped level-0 cells (renderer/walk/leap.py: step_leaps); without adaptive steps, (data.steps, walk,
     leaps). Kept per (walk info, step levels), both by identity (each comes from a cache of its own when the scene
-    repeats): 3-4 ms a render of the chest CT at 30:1."""
+    repeats), so that a repeated scene does not pay for it again."""
     if not cfg.adaptive:
         return data.steps, walk, leaps
     key = (None if data.region is not None or pr.volume.key is None
@@ -266,8 +264,7 @@ def octant_masks(pr: "Prepared", octants: "atlas_cells.AtlasCells | None", steps
     `_cell_info` tests its cells; the kernel takes no sample in the others, whose samples add nothing. Only the
     octants of sampled cells are classified (a skipped cell's entry is 0). Without octants (no half-block
     cells to walk): every bit set. At lossless and 5:1 most of what the rays meet is level 0 in cells of 8³, where
-    full resolution walks cells of 4³: the chest CT under ct-bone took 1.47 and 1.57 times full resolution's
-    samples."""
+    full resolution walks cells of 4³: without octant masks such renders took more samples than full resolution."""
     if octants is None:
         return np.full(steps.shape, 255.0, np.float32)
     want = lod_atlas.per_cell(steps >= 0, 2).reshape(-1)  # the octants of sampled cells

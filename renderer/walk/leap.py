@@ -1,22 +1,20 @@
 """Space leaping: how far a ray may jump from an empty cell of the block walk without passing a cell it must sample.
 
 The walk (raycast.cl's 3D DDA over empty-space skipping's cells) skips an empty cell in one DDA step, so a ray
-through air still pays a step per cell: on the chest CT at 512², an image whose TF shows almost nothing took 52 ms
-of such steps at full resolution (cells of 8³), 40% of a bone image's kernel time. Empty-space leaping with a
-distance map (Cohen and Sheffer, "Proximity clouds: an acceleration technique for 3D grid traversal", 1994; Sramek
-and Kaufman's chessboard distance for ray casting, 2000) lets a ray in an empty cell leave, in one step, a cube of
-cells that the map says is empty. A ray only moves forward, so only the cells ahead of it matter: the map keeps one
-distance per octant of ray directions (direction-dependent distance maps, as in Deakin and Knackstedt, "Efficient
-ray casting of volumetric images using distance maps for empty space skipping", Computational Visual Media 2020):
-the edge r of the largest cube that starts at the cell and runs r cells forward along each axis in that octant's
-directions with every cell in it empty. A ray going in that octant (an axis it does not move along counts either
-way) stays in the cube until it leaves through one of its far faces, r - 1 cells ahead along that axis, and it
-leaves in one step. A Chebyshev distance, the same in every direction, is held down by the nearest non-empty cell
-anywhere — the wall a ray has just passed through, the floor beside it; the octant's sees only what lies ahead. On
-the engine CT under its metal TF (512², step 1) the walk took 6.8 million steps with Chebyshev distances (4³ cells
-leaping from their 8³ parents' distances), 3.9 million with each 4³ cell's own, 2.7 million with the octants'.
-Cells outside the grid count as empty: past the grid the ray has left the volume's box, where there is nothing to
-sample.
+through air still pays a step per cell, a large share of the kernel's time where the TF shows little. Empty-space
+leaping with a distance map (Cohen and Sheffer, "Proximity clouds: an acceleration technique for 3D grid
+traversal", 1994; Sramek and Kaufman's chessboard distance for ray casting, 2000) lets a ray in an empty cell
+leave, in one step, a cube of cells that the map says is empty. A ray only moves forward, so only the cells ahead
+of it matter: the map keeps one distance per octant of ray directions (direction-dependent distance maps, as in
+Deakin and Knackstedt, "Efficient ray casting of volumetric images using distance maps for empty space skipping",
+Computational Visual Media 2020): the edge r of the largest cube that starts at the cell and runs r cells forward
+along each axis in that octant's directions with every cell in it empty. A ray going in that octant (an axis it
+does not move along counts either way) stays in the cube until it leaves through one of its far faces, r - 1 cells
+ahead along that axis, and it leaves in one step. A Chebyshev distance, the same in every direction, is held down
+by the nearest non-empty cell anywhere — the wall a ray has just passed through, the floor beside it; the octant's
+sees only what lies ahead, and left the walk the fewest steps (against Chebyshev distances, each 4³ cell's own or
+its 8³ parent's). Cells outside the grid count as empty: past the grid the ray has left the volume's box, where
+there is nothing to sample.
 
 The map rides beside the walk's info (renderer/walk/info.py: walk_info, adaptive_walk) as planes of uint8 over its
 cells (Leaps), one per octant o = (x forward) | (y forward) << 1 | (z forward) << 2, 0 in a cell that is not empty;
@@ -98,8 +96,8 @@ NO_PLANE = 15
 @dataclass(eq=False)
 class Leaps:
     """A walk's leaps, its empty cells' octant_radii, computed one octant at a time as views need them: a view's
-    rays go in one to four octants (camera.ray_octants), and each octant costs a pass over the grid (the chest CT's
-    1.1 million 4³ cells: 32 ms for all eight) and a byte per cell."""
+    rays go in one to four octants (camera.ray_octants), and each octant costs a pass over the grid and a byte per
+    cell."""
 
     empty: np.ndarray
     planes: dict[int, np.ndarray]
@@ -142,8 +140,8 @@ def step_leaps(steps: np.ndarray) -> Leaps:
     """The adaptive walk's leaps (over its half-block cells, renderer/data/atlas.py: step_levels' codes), as Leaps of its
     skipped level-0 cells (code -1: empty blocks, unloaded ones, empty level-0 cells). Such a cell leaves the ray's
     next step where it is, so a cube of them is passed alike cell by cell or at once. (A skipped coarse cell moves
-    the next step to its exit; cubes of them hardly occur: none of Chebyshev radius 2 in 9 chest and engine CT
-    selections from 10:1 to 100:1, against 8,600-93,000 level-0 cells that leap.)"""
+    the next step to its exit; cubes of them hardly occur in real selections, where skipped level-0 cells that leap
+    are many.)"""
     return Leaps.of(np.asarray(steps) == -1)
 
 
