@@ -195,7 +195,7 @@ def reference() -> str:
     for path, ops in spec["paths"].items():
         for method, op in ops.items():
             out.append(f"| {method.upper()} | `{path}` | {op.get('summary', '')} | {', '.join(sorted(op['responses']))} |")
-    out += ["", _model(models.VolumeSummary), _model(models.Level), _model(models.Health), _model(models.ErrorBody),
+    out += ["", _model(models.VolumeSummary), _model(models.VolumeUnreadable), _model(models.Level), _model(models.Health), _model(models.ErrorBody),
             _model(models.FieldError),
             "## Environment variables", "", "The store's and renderer's (read at each use):", "",
             "| variable | default | what |", "|---|---|---|"]

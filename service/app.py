@@ -26,22 +26,23 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 import lodcast
 from lodcast.errors import LodcastError, StoreCorrupt, StoreInvalid, StoreNotFound
 from lodcast.renderer.scene.cost import CostError
-from lodcast.renderer.scene.scene import Scene
-from lodcast.service.asgi import BodyLimit, offline_docs
+from lodcast.renderer.scene.scene import Scene, SceneError, validation_message
+from lodcast.service.asgi import BodyLimit, TokenGate, offline_docs
 from lodcast.service.jobs import IngestJob, Job, validate_job
-from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeSummary, errors
+from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeListing, VolumeSummary, errors
 from lodcast.service.records import status_json
-from lodcast.service.rendering import RenderEngine, RequestInvalid, encode, parse_scene
+from lodcast.service.rendering import RenderEngine, RequestInvalid, encode, field_error, parse_scene, scene_refused
 from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.settings import Settings
 from lodcast.service.volumes import (
     JOB_ID,
     BadId,
+    StoreUnusable,
     VolumeNotFound,
     check_volume_id,
     delete_volume,
@@ -52,8 +53,14 @@ from lodcast.service.volumes import (
 
 __all__ = ["create_app"]
 
-VolumeId = Annotated[str, PathParam(description="volume id: the store's folder name under the root", max_length=200)]
-JobId = Annotated[str, PathParam(description="job id (32 hex digits)", max_length=200)]
+# the id rules in the schema, so that generated clients and schemathesis send ids the server takes; checked by the
+# routes themselves (check_volume_id: 400 naming the id; a job id that is not one: 404)
+VolumeId = Annotated[str, PathParam(description="volume id: the store's folder name under the root (a letter or "
+                                                "digit, then up to 127 letters, digits, '.', '_' or '-')",
+                                    json_schema_extra={"pattern": "^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$",
+                                                       "minLength": 1, "maxLength": 128})]
+JobId = Annotated[str, PathParam(description="job id (32 hex digits)", max_length=200,
+                                 json_schema_extra={"pattern": "^[0-9a-f]{32}$", "minLength": 32, "maxLength": 32})]
 
 
 EXAMPLE_SCENE = {
@@ -78,6 +85,8 @@ def _store_error(volume_id: str, path: Any, exc: Exception) -> "HttpError":
     msg = " ".join(str(exc).replace(str(path) + os.sep, "").replace(str(path), "").split())
     if isinstance(exc, StoreCorrupt):
         return HttpError(409, f"volume {volume_id!r}: the store is damaged ({msg})")
+    if isinstance(exc, StoreUnusable):  # its message names the volume and the attribute
+        return HttpError(409, msg)
     return HttpError(404, f"volume: {volume_id!r} is not a valid store ({msg})")
 
 
@@ -116,6 +125,12 @@ def _result(files: JobFiles, name: str, media: str) -> Response | None:
     except FileNotFoundError:
         return None
     return Response(data, media_type=media, headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+def gzipped(path: Path) -> bool:
+    """Whether the file starts with gzip's magic bytes (1f 8b)."""
+    with open(path, "rb") as f:
+        return f.read(2) == b"\x1f\x8b"
 
 
 def _finite(obj: Any) -> Any:
@@ -197,6 +212,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # docs/design.md, Limits: with LODCAST_TOKEN set every route but /healthz (and the docs) needs the token, reads too
     auth = [Depends(require_token)]
 
+    def protected(scope: dict) -> bool:
+        """Whether the route the request goes to declares the token dependency (`auth`): TokenGate checks the token
+        of those before their body is read (the dependency itself runs after FastAPI parsed the body)."""
+        from starlette.routing import Match
+
+        for route in app.router.routes:
+            if route.matches(scope)[0] == Match.FULL:
+                return any(getattr(d, "dependency", None) is require_token for d in getattr(route, "dependencies", ()))
+        return False
+
+    app.add_middleware(TokenGate, token=settings.token, protected=protected)  # outside BodyLimit: 401 before 413
+
     # --- errors -------------------------------------------------------------------------------------------------
     @app.exception_handler(HttpError)
     async def _http_error(request: Request, exc: HttpError) -> JSONResponse:
@@ -220,9 +247,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         out = []
         for e in exc.errors():
             loc = [p if isinstance(p, int) else str(p) for p in e.get("loc", ())]
-            field = ".".join(str(p) for p in loc if p not in ("body", "query", "path"))
-            msg = str(e.get("msg", "invalid")).removeprefix("Value error, ")
-            out.append({"loc": loc, "msg": f"{field}: {msg}" if field else msg, "type": str(e.get("type", "value_error"))})
+            if e.get("type") == "json_invalid":  # its loc is ("body", the character's offset): no field to name
+                error = (e.get("ctx") or {}).get("error")
+                out.append({"loc": ["body"], "msg": f"body: not valid JSON (at character {loc[-1]}"
+                                                    f"{': ' + str(error) if error else ''})", "type": "json_invalid"})
+                continue
+            out.append(field_error(loc, str(e.get("msg", "invalid")), str(e.get("type", "value_error"))))
         return JSONResponse({"detail": out}, status_code=422)
 
     @app.exception_handler(RequestInvalid)
@@ -271,15 +301,35 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return catalogue()
 
     @app.get("/volumes", tags=["volumes"], dependencies=auth, summary="Every volume under the store root",
-             response_model=list[VolumeSummary], responses=errors(401))
+             response_model=list[VolumeListing], responses=errors(401))
     def get_volumes() -> list[dict[str, Any]]:
+        """Every store under the root: its attributes, or, for one that cannot be read, its id and an `error`
+        (one damaged store never hides the others)."""
         out = []
         for vid in list_volumes(settings.root):
             try:
-                out.append(_finite(volume_summary(settings.root, vid)))
-            except (LodcastError, OSError, ValueError):
-                continue  # a folder that is not (yet) a complete store is not a volume
+                out.append(summary_of(vid))
+            except VolumeNotFound:
+                continue  # deleted since the listing
+            except HttpError as exc:
+                out.append({"id": vid, "error": exc.detail})
+            except Exception as exc:  # noqa: BLE001 - whatever one store does, the others are listed
+                out.append({"id": vid, "error": f"volume {vid!r}: the store cannot be read "
+                                                f"({type(exc).__name__}: {' '.join(str(exc).split())[:500]})"})
         return out
+
+    def summary_of(vid: str) -> dict[str, Any]:
+        """A volume's summary as GET /volumes/{id} returns it; HttpError (409, 404) naming what is wrong."""
+        try:
+            summary = _finite(volume_summary(settings.root, vid))
+        except StoreInvalid as exc:
+            raise _store_error(vid, volume_path(settings.root, vid, must_exist=False), exc) from None
+        try:
+            VolumeSummary.model_validate(summary)  # what the response model will check, checked here
+        except ValidationError as exc:
+            raise HttpError(409, f"volume {vid!r}: the store's attributes are not what this lodcast writes "
+                                 f"({validation_message(exc)}); re-ingest it") from None
+        return summary
 
     @app.post("/volumes", status_code=202, tags=["volumes"], dependencies=auth,
               summary="Ingest a server-side file (under an import root) as a new volume: an ingest job",
@@ -340,6 +390,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     f.write(chunk)
             if size == 0:
                 raise RequestInvalid.one(("body",), "body: the upload is empty")
+            if format == "nifti" and gzipped(dest):  # nibabel reads a NIfTI by its name: .nii.gz is gzip
+                zipped = dest.with_name(dest.name + ".gz")
+                os.replace(dest, zipped)
+                dest = zipped
+                job = job.model_copy(update={"source": str(dest)})
             parked: Path | str = dest
             if settings.remote:  # the worker that ingests it may be on another host: parked beside the volumes
                 parked = f"{settings.root}/.uploads/{dest.name}"
@@ -355,10 +410,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/volumes/{volume_id}", tags=["volumes"], dependencies=auth, summary="One volume's attributes",
              response_model=VolumeSummary, responses=errors(400, 401, 404, 409))
     def get_volume(volume_id: VolumeId) -> dict[str, Any]:
-        try:
-            return _finite(volume_summary(settings.root, volume_id))
-        except StoreInvalid as exc:
-            raise _store_error(volume_id, volume_path(settings.root, volume_id, must_exist=False), exc) from None
+        return summary_of(volume_id)
 
     @app.delete("/volumes/{volume_id}", tags=["volumes"], dependencies=auth, summary="Delete a volume's store",
                 response_model=Deleted, responses=errors(400, 401, 404))
@@ -392,6 +444,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             samples = await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
         except CostError as exc:
             raise HttpError(413, " ".join(str(exc).split())) from None
+        except SceneError as exc:  # the scene's view of this volume is degenerate (renderer/scene/camera.py: frame)
+            raise scene_refused(exc) from None
         except (StoreNotFound, StoreInvalid) as exc:
             raise _store_error(volume_id, path, exc) from None
         async with semaphore(samples):
@@ -417,6 +471,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 return Response(status_code=499)  # nobody is listening; the status is for the access log
             except (StoreNotFound, StoreInvalid) as exc:
                 raise _store_error(volume_id, path, exc) from None
+            except SceneError as exc:  # one the cost check could not see (a step too small for this volume)
+                raise scene_refused(exc) from None
             except (ValueError, ArithmeticError) as exc:
                 raise HttpError(400, f"scene: {' '.join(str(exc).split())}") from None
             finally:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import re
 import sys
 import time
@@ -361,6 +362,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     _announce_slow_builds(args.command, args.log_level)
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:
+        # the reader of our output went away (`lodcast info S | head`): nothing more to say, and nowhere to say it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (LodcastError, OSError, ValueError) as exc:
         # User errors and the environment's (a full disk, a permission): one line, exit 2, no traceback (what was
         # being written is gone: ingest and frames write atomically). Anything else is a bug and keeps its traceback.

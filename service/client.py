@@ -2,7 +2,7 @@
 
 Both share one description of every request and of how to read its answer (`_Requests`, each a `_Request`) and
 one retry policy (`_Api`); `Client` sends them blocking, `AsyncClient` awaiting (its verbs are coroutines, typed as
-such). Statuses are `JobStatus`, volumes `VolumeSummary`, health `Health` (service/models.py, the
+such). Statuses are `JobStatus`, volumes `VolumeSummary` (a store the server cannot read: `VolumeUnreadable`), health `Health` (service/models.py, the
 same models the server's OpenAPI schema is made from); renders are `RenderResult`s as local rendering returns.
 Errors raise ServiceError carrying the server's status and message.
 """
@@ -26,7 +26,7 @@ from lodcast.errors import LodcastError
 from lodcast.renderer.image.output import RenderResult
 from lodcast.renderer.image.report import RenderReport
 from lodcast.renderer.scene.scene import SceneLike
-from lodcast.service.models import Health, JobStatus, VolumeSummary
+from lodcast.service.models import Health, JobStatus, VolumeListing, VolumeSummary, VolumeUnreadable
 
 __all__ = ["Client", "AsyncClient", "ServiceError"]
 
@@ -91,6 +91,12 @@ def _model(cls: type[M]) -> Callable[[httpx.Response], M]:
 
 def _models(cls: type[M]) -> Callable[[httpx.Response], list[M]]:
     return lambda r: [cls.model_validate(x) for x in r.json()]
+
+
+def _listing(r: httpx.Response) -> list[VolumeSummary | VolumeUnreadable]:
+    from pydantic import TypeAdapter
+
+    return TypeAdapter(list[VolumeListing]).validate_python(r.json())
 
 
 def _report(r: httpx.Response) -> RenderReport:
@@ -184,8 +190,8 @@ class _Requests:
         return _Request("GET", "/healthz", _model(Health), kw=_t(timeout))
 
     @staticmethod
-    def volumes(timeout: float | None) -> _Request[list[VolumeSummary]]:
-        return _Request("GET", "/volumes", _models(VolumeSummary), kw=_t(timeout))
+    def volumes(timeout: float | None) -> _Request[list[VolumeSummary | VolumeUnreadable]]:
+        return _Request("GET", "/volumes", _listing, kw=_t(timeout))
 
     @staticmethod
     def volume(volume_id: str, timeout: float | None) -> _Request[VolumeSummary]:
@@ -331,7 +337,8 @@ class Client(_Api):
     def health(self, *, timeout: float | None = None) -> Health:
         return self._send(_Requests.health(timeout))
 
-    def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary]:
+    def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary | VolumeUnreadable]:
+        """Every volume's attributes; a store the server cannot read is a VolumeUnreadable (its id and error)."""
         return self._send(_Requests.volumes(timeout))
 
     def volume(self, volume_id: str, *, timeout: float | None = None) -> VolumeSummary:
@@ -444,7 +451,8 @@ class AsyncClient(_Api):
     async def health(self, *, timeout: float | None = None) -> Health:
         return await self._send(_Requests.health(timeout))
 
-    async def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary]:
+    async def volumes(self, *, timeout: float | None = None) -> list[VolumeSummary | VolumeUnreadable]:
+        """Every volume's attributes; a store the server cannot read is a VolumeUnreadable (its id and error)."""
         return await self._send(_Requests.volumes(timeout))
 
     async def volume(self, volume_id: str, *, timeout: float | None = None) -> VolumeSummary:

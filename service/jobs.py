@@ -16,8 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, GetJsonSchemaHandler
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import CoreSchema
 
-from lodcast.renderer.scene.scene import Scene
-from lodcast.service.rendering import RequestInvalid, check_tf, parse_scene, scene_format
+from lodcast.renderer.scene.scene import Scene, SceneError
+from lodcast.service.rendering import RequestInvalid, check_tf, parse_scene, scene_format, scene_refused
 from lodcast.service.volumes import BadId, VolumeNotFound, check_volume_id, safe_import_path, volume_exists, volume_path
 
 __all__ = [
@@ -168,42 +168,59 @@ def validate_job(job: Any, settings: Any, engine: Any, *, upload: Path | None = 
         vol(job.volume, ("volume",))
         if job.frames > settings.max_frames:
             raise RequestInvalid.one(("body", "frames"), f"{job.frames} exceeds the service's cap of {settings.max_frames}")
-        _affordable(engine, job.volume, parse_scene(job.scene, settings, ("body", "scene")), settings, ("body", "scene"))
+        one = _affordable(engine, job.volume, parse_scene(job.scene, settings, ("body", "scene")), settings, ("body", "scene"))
+        _within_job_limit(settings, "frames", one * job.frames, f"{job.frames} frames of about {one:.3g} samples each")
     elif isinstance(job, ScenesJob):
         vol(job.volume, ("volume",))
         _cap(len(job.scenes), settings, "scenes")
+        total = 0
         for i, s in enumerate(job.scenes):
-            _affordable(engine, job.volume, parse_scene(s, settings, ("body", "scenes", i)), settings, ("body", "scenes", i))
+            total += _affordable(engine, job.volume, parse_scene(s, settings, ("body", "scenes", i)), settings,
+                                 ("body", "scenes", i))
+        _within_job_limit(settings, "scenes", total, f"{len(job.scenes)} scenes")
     elif isinstance(job, TfSweepJob):
         vol(job.volume, ("volume",))
         _cap(len(job.tfs), settings, "tfs")
         for i, tf in enumerate(job.tfs):
             check_tf(tf, ("body", "tfs", i))
         sc = parse_scene({**job.scene, "tf": job.tfs[0]}, settings, ("body", "scene"))
-        _affordable(engine, job.volume, sc, settings, ("body", "scene"))
+        one = _affordable(engine, job.volume, sc, settings, ("body", "scene"))  # the TF does not change the estimate
+        _within_job_limit(settings, "tfs", one * len(job.tfs), f"{len(job.tfs)} frames of about {one:.3g} samples each")
     elif isinstance(job, VolumesJob):
         _cap(len(job.volumes), settings, "volumes")
         for i, v in enumerate(job.volumes):
             vol(v, ("volumes", str(i)))
         sc = parse_scene(job.scene, settings, ("body", "scene"))
-        for v in job.volumes:
-            _affordable(engine, v, sc, settings, ("body", "scene"))
+        total = sum(_affordable(engine, v, sc, settings, ("body", "scene")) for v in job.volumes)
+        _within_job_limit(settings, "volumes", total, f"the scene on {len(job.volumes)} volumes")
     return job
 
 
-def _affordable(engine: Any, volume: str, scene: Any, settings: Any, loc: tuple) -> None:
+def _affordable(engine: Any, volume: str, scene: Any, settings: Any, loc: tuple) -> int:
     """A job's frame must fit LODCAST_MAX_SAMPLES (estimated on the volume's geometry, renderer/scene/cost.py): refused
-    at submission (422 naming the field), not after it has queued. A store that cannot be opened is left to the
-    job, which fails with the store's own message."""
+    at submission (422 naming the field), not after it has queued; its estimated samples. A store that cannot be
+    opened is left to the job, which fails with the store's own message (0 samples)."""
     from lodcast.errors import StoreInvalid, StoreNotFound
     from lodcast.renderer.scene.cost import CostError
 
     try:
-        engine.check_cost(volume_path(settings.root, volume), scene, settings.max_samples)
+        return int(engine.check_cost(volume_path(settings.root, volume), scene, settings.max_samples))
     except CostError as exc:
         raise RequestInvalid.one((*loc, *exc.field.split(".")), " ".join(str(exc).split(": ", 1)[-1].split())) from None
+    except SceneError as exc:  # a view of this volume that is degenerate (renderer/scene/camera.py: frame)
+        raise scene_refused(exc, loc) from None
     except (StoreNotFound, StoreInvalid):
-        pass
+        return 0
+
+
+def _within_job_limit(settings: Any, field: str, total: int, what: str) -> None:
+    """A job's frames' estimated samples, summed, must fit LODCAST_MAX_JOB_SAMPLES (docs/design.md, Limits):
+    refused at submission with a 422 naming `field`."""
+    limit = settings.max_job_samples
+    if total > limit:
+        raise RequestInvalid.one(("body", field), f"{what} would take about {total:.3g} samples in all, more than "
+                                 f"the limit of {limit:.3g} per job (LODCAST_MAX_JOB_SAMPLES); use fewer {field}, "
+                                 f"fewer pixels or a larger sampling.step")
 
 
 def _cap(n: int, settings: Any, field: str) -> None:

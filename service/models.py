@@ -3,12 +3,12 @@ each route returns and others can generate clients from it. Request bodies are t
 job models (service/jobs.py)."""
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["Health", "Progress", "JobStatus", "Level", "VolumeSummary", "Deleted", "ErrorBody", "FieldError",
-           "errors", "REPORT_HEADER"]
+__all__ = ["Health", "Progress", "JobStatus", "Level", "VolumeSummary", "VolumeUnreadable", "VolumeListing", "Deleted",
+           "ErrorBody", "FieldError", "errors", "REPORT_HEADER"]
 
 JOB_STATES = Literal["queued", "running", "done", "failed", "cancelled"]
 JOB_KINDS = Literal["turntable", "scenes", "tf_sweep", "volumes", "ingest"]
@@ -83,6 +83,20 @@ class VolumeSummary(_Out):
                                                             "voxel (null: format 1, classified by the mean)")
     source: dict[str, Any] = Field(description="format and header facts of the ingested file; its file name only")
     provenance: dict[str, Any]
+
+
+class VolumeUnreadable(_Out):
+    """A store under the root that `GET /volumes` cannot describe: its id and why, so that one damaged store never
+    hides the others (`GET /volumes/{id}` answers 409 or 404 with the same reason)."""
+
+    id: str
+    error: str = Field(description="one line: what is wrong with the store (a zarr.json that is not valid JSON, "
+                                   "attributes an older lodcast wrote that give no finite world box); re-ingest or "
+                                   "delete it")
+
+
+#: one entry of `GET /volumes`: a volume's attributes, or, for a store that cannot be read, its id and the error
+VolumeListing = Annotated[Union[VolumeSummary, VolumeUnreadable], Field(union_mode="left_to_right")]
 
 
 class Deleted(_Out):

@@ -246,7 +246,7 @@ class JobQueue:
     def _unplaced(self, message: str) -> str:
         """A job's error as its client may read it: paths relative to the store root and the import roots (an
         upload's file is "the upload"), never where they lie on the server."""
-        message = re.sub(r"\S*/\.uploads/[0-9a-f]{32}\.\w+", "the upload", message)  # a local file or a parked object
+        message = re.sub(r"\S*/\.uploads/[0-9a-f]{32}(?:\.\w+)+", "the upload", message)  # a local file or a parked object
         for base in (*self.settings.import_roots, self.settings.root):
             message = message.replace(str(base) + os.sep, "").replace(str(base), ".")
         return message

@@ -7,13 +7,17 @@ goes through one renderer (one brick pool, one device cache, the same opened sto
 from __future__ import annotations
 
 import io
+import re
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from lodcast.errors import LodcastError
+from lodcast.renderer.scene.scene import branchless
 
-__all__ = ["RequestInvalid", "parse_scene", "from_pydantic", "check_tf", "RenderEngine", "encode"]
+__all__ = ["RequestInvalid", "parse_scene", "from_pydantic", "field_error", "scene_refused", "check_tf", "RenderEngine",
+           "encode"]
 
 
 class RequestInvalid(LodcastError, ValueError):
@@ -30,16 +34,39 @@ class RequestInvalid(LodcastError, ValueError):
         return cls([{"loc": list(loc), "msg": f"{field}: {msg}" if field else msg, "type": type_}])
 
 
+_NAMED = re.compile(r"([a-z_][a-z0-9_]*(?:\.[a-z0-9_]+)*): (.*)", re.S)
+_PLACES = ("body", "query", "path", "header")
+
+
+def field_error(loc: Sequence[Any], msg: str, type_: str = "value_error") -> dict[str, Any]:
+    """One error in FastAPI's shape ({"loc", "msg", "type"}) whose `loc` is the field's path as the request has it
+    (without the branch labels pydantic puts into union paths, such as 'orbit') and whose message starts with that
+    dotted path. A message that names its field itself (a model validator's "camera.target: ...", its path from
+    the scene's root) places the error there: under the last element of `loc` that the path starts with, else
+    below `loc`."""
+    where: list[Any] = branchless(loc)
+    msg = " ".join(str(msg).removeprefix("Value error, ").split())
+    named = _NAMED.fullmatch(msg)
+    if named:
+        path, msg = named.group(1).split("."), named.group(2)
+        at = max((i for i, p in enumerate(where) if p == path[0]), default=None)
+        where = [*where[:at], *path] if at is not None else [*where, *path]
+    field = ".".join(str(p) for p in where if p not in _PLACES)
+    return {"loc": where, "msg": f"{field}: {msg}" if field else msg, "type": type_}
+
+
 def from_pydantic(exc: Any, loc: tuple, drop: int = 0) -> RequestInvalid:
     """FastAPI-shaped errors, each message starting with the field's dotted path (`drop` leading parts of
     pydantic's own path are replaced by `loc`)."""
-    errs = []
-    for e in exc.errors(include_url=False):
-        where = [*loc, *e.get("loc", ())[drop:]]
-        field = ".".join(str(p) for p in where if p != "body")
-        msg = str(e.get("msg", "invalid")).removeprefix("Value error, ")
-        errs.append({"loc": where, "msg": f"{field}: {msg}", "type": e.get("type", "value_error")})
-    return RequestInvalid(errs)
+    return RequestInvalid([field_error([*loc, *e.get("loc", ())[drop:]], str(e.get("msg", "invalid")),
+                                       str(e.get("type", "value_error"))) for e in exc.errors(include_url=False)])
+
+
+def scene_refused(exc: Exception, loc: tuple = ("body",)) -> RequestInvalid:
+    """A scene the renderer refuses for the volume it is rendered on (SceneError: a camera whose view of this volume
+    is degenerate, a step too small for it), as a 422 naming the field its message names (else the scene)."""
+    named = _NAMED.fullmatch(" ".join(str(exc).split())) is not None
+    return RequestInvalid([field_error(loc if named or loc != ("body",) else (*loc, "scene"), str(exc))])
 
 
 def parse_scene(data: Any, settings: Any, loc: tuple = ("body",)) -> Any:
@@ -103,8 +130,13 @@ class RenderEngine:
             return self._renderer
 
     def store(self, path: Path | str) -> Any:
-        """The opened store at `path` (a folder, or a URL: a str)."""
-        return self.renderer.stores.get(path)
+        """The opened store at `path` (a folder, or a URL: a str); StoreUnusable (service/volumes.py) where its
+        spacing and origin give no finite world box (a store an older lodcast wrote): no render can use it."""
+        from lodcast.service.volumes import check_store_geometry
+
+        store = self.renderer.stores.get(path)
+        check_store_geometry(store, str(path).rstrip("/").replace("\\", "/").rsplit("/", 1)[-1])
+        return store
 
     def forget(self, path: Path | str) -> None:
         if self._renderer is not None:

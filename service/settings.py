@@ -67,6 +67,9 @@ class Settings(BaseSettings):
                                         "(LODCAST_MAX_INGEST_MEMORY_MB)")
     max_samples: int = Field(default=2_000_000_000, ge=1, description="most samples (rays x samples per ray, estimated "
                              "before rendering) one render may take (LODCAST_MAX_SAMPLES)")
+    max_job_samples: int = Field(default=10**12, ge=1, description="most samples one job may take in all (each "
+                                 "frame estimated as for LODCAST_MAX_SAMPLES, summed at submission; above it the "
+                                 "job is refused with 422 naming frames or scenes) (LODCAST_MAX_JOB_SAMPLES)")
     device_budget_mb: float | None = Field(default=None, gt=0, description="most device memory (10⁶ bytes) one "
                                            "render's volume data may use; larger ones render in passes "
                                            "(LODCAST_DEVICE_BUDGET_MB; default: one device allocation)")
@@ -107,7 +110,7 @@ class Settings(BaseSettings):
     def _absolute_state(cls, v: Path | None) -> Path | None:
         return None if v is None else Path(v).expanduser().resolve()
 
-    @field_validator("max_samples", "max_voxels", mode="before")
+    @field_validator("max_samples", "max_voxels", "max_job_samples", mode="before")
     @classmethod
     def _count(cls, v: object) -> object:
         return int(float(v)) if isinstance(v, str) and v.strip() else v  # "2e9" reads as 2000000000

@@ -18,7 +18,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from lodcast.errors import LodcastError
+from lodcast.errors import LodcastError, SourceError, StoreInvalid
 from lodcast.store.remote import is_url, published
 
 __all__ = [
@@ -26,6 +26,8 @@ __all__ = [
     "JOB_ID",
     "BadId",
     "OutsideRoot",
+    "StoreUnusable",
+    "check_store_geometry",
     "VolumeNotFound",
     "check_volume_id",
     "volume_path",
@@ -38,6 +40,7 @@ __all__ = [
 
 VOLUME_ID = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9._-]{0,127}\Z")  # \Z: "$" lets a trailing newline through
 JOB_ID = re.compile(r"\A[0-9a-f]{32}\Z")
+NAME_MAX, PATH_MAX = 255, 4096  # bytes of one path component, of a whole path (Linux's limits)
 
 
 class BadId(LodcastError, ValueError):
@@ -133,15 +136,41 @@ def list_volumes(root: Path | str) -> list[str]:
     return sorted(out)
 
 
+class StoreUnusable(StoreInvalid):
+    """A complete store whose attributes no render can use: spacing and origin that give no finite world box (an
+    older lodcast ingested them; ingest refuses them now). HTTP 409: re-ingest or delete it."""
+
+
+def check_store_geometry(store: Any, volume_id: Any) -> None:
+    """Raises StoreUnusable, naming the volume and the attribute, when the store's spacing and origin do not give
+    the finite, non-degenerate world box that ingest requires of a source (store/source.py: check_world_box)."""
+    from lodcast.store.source import SourceInfo, check_world_box
+
+    try:
+        shape = tuple(int(n) for n in store.shape)
+        info = SourceInfo(shape=(shape[0], shape[1], shape[2]), dtype=store.dtype, spacing=tuple(store.spacing),
+                          origin=tuple(store.origin), provenance={"path": f"volume {str(volume_id)!r}"})
+        check_world_box(info)
+    except SourceError as exc:
+        raise StoreUnusable(f"{' '.join(str(exc).split())}; the store was written by an older lodcast: re-ingest "
+                            f"or delete it") from None
+    except (TypeError, ValueError, IndexError, OverflowError) as exc:
+        raise StoreUnusable(f"volume {str(volume_id)!r}: the store's shape, spacing or origin is malformed "
+                            f"({exc}): re-ingest or delete it") from None
+
+
 def volume_summary(root: Path | str, volume_id: Any) -> dict[str, Any]:
-    """The store's attributes (``Store.summary()``) plus its id; raises VolumeNotFound / StoreInvalid."""
+    """The store's attributes (``Store.summary()``) plus its id; raises VolumeNotFound / StoreInvalid
+    (StoreUnusable where its spacing and origin give no finite world box)."""
     from lodcast.errors import StoreNotFound
 
     path = volume_path(root, volume_id)
     from lodcast.store.store import open_store
 
     try:
-        summary = dict(open_store(path).summary())
+        store = open_store(path)
+        check_store_geometry(store, volume_id)
+        summary = dict(store.summary())
     except StoreNotFound:
         raise VolumeNotFound(str(volume_id)) from None
     summary.pop("path", None)  # the server's own filesystem layout is not the client's business
@@ -188,14 +217,28 @@ def safe_import_path(source: Any, import_roots: list[Path], field: str = "source
         raise BadId(field, f"{field}: must be a non-empty path")
     if not import_roots:
         raise BadId(field, f"{field}: ingest from server-side paths is disabled (no import roots configured)")
+    try:
+        raw = os.fsencode(source)
+    except UnicodeError:
+        raise BadId(field, f"{field}: {source[:140]!r} holds characters no file name can have") from None
+    longest = max(len(part) for part in raw.split(b"/"))
+    if longest > NAME_MAX:  # ENAMETOOLONG from the filesystem, a 500 before
+        raise BadId(field, f"{field}: a component of the path is {longest} bytes long, more than a file name may "
+                           f"be ({NAME_MAX} bytes)")
+    if len(raw) > PATH_MAX:
+        raise BadId(field, f"{field}: the path is {len(raw)} bytes long, more than {PATH_MAX}")
     p = Path(source)
-    for base in import_roots:
-        cand = p if p.is_absolute() else base / p
-        if _inside(cand, base):
-            resolved = cand.resolve()
-            if not resolved.exists():
-                raise BadId(field, f"{field}: {source!r} does not exist")
-            if resolved.is_dir():
-                _no_links_out(resolved, base, source, field)
-            return resolved
+    try:
+        for base in import_roots:
+            cand = p if p.is_absolute() else base / p
+            if _inside(cand, base):
+                resolved = cand.resolve()
+                if not resolved.exists():
+                    raise BadId(field, f"{field}: {source!r} does not exist")
+                if resolved.is_dir():
+                    _no_links_out(resolved, base, source, field)
+                return resolved
+    except (OSError, RuntimeError) as exc:  # a name too long once resolved, a loop of links, a permission
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else type(exc).__name__
+        raise BadId(field, f"{field}: {source[:140]!r} cannot be opened ({reason})") from None
     raise OutsideRoot(field, f"{field}: {source!r} is outside the configured import roots")

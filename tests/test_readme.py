@@ -124,6 +124,6 @@ def test_the_readme_runs_as_written(workspace):
             server.terminate()
             server.wait(timeout=30)
     assert ran >= 6
-    for name in ("head.png", "bone.webp", "scan.png", "ct.npy", "ribs.png", "xray.png", "head-http.png", "report.json"):
+    for name in ("head.png", "bone.webp", "scan.png", "ct.npy", "ribs.png", "body-dense.png", "head-http.png", "report.json"):
         assert (ws / name).stat().st_size > 0, name
     assert len(list((ws / "frames").glob("frame_*.png"))) == json.loads((REPO / "examples/turntable.job.json").read_text())["frames"]

@@ -65,6 +65,12 @@ def test_parse_json_text_and_file(tmp_path):
     ({"camera": {"eye": [0, 0, 0], "target": [1, 0, 0], "projection": "orthographic"}}, "camera.view_height"),
     ({"camera": {"azimuth": 0, "elevation": 95}}, "camera.elevation"),
     ({"camera": {"azimuth": 0, "distance": -1}}, "camera.distance"),
+    # finite but extreme (issue 49): a view no volume could be seen in, or numbers that overflow
+    ({"camera": {"azimuth": 0, "distance": 1e308}}, "camera.distance"),
+    ({"camera": {"azimuth": 0, "distance": 1e-308}}, "camera.distance"),
+    ({"camera": {"azimuth": 0, "fov": 1e-300}}, "camera.fov"),
+    ({"camera": {"eye": [-1e308, 0, 0], "target": [1e308, 0, 0]}}, "camera.target"),
+    ({"tf": {"points": [{"value": 1}], "unit_distance": 1e-300}}, "tf.unit_distance"),
     ({"tf": {"points": []}}, "tf.points"),
     ({"tf": {"points": [{"value": 2}, {"value": 1}]}}, "tf.points"),
     ({"tf": {"points": [{"value": 1, "opacity": 1.5}]}}, "tf.points.0.opacity"),
@@ -83,6 +89,25 @@ def test_errors_name_the_field(patch, field):
     assert msg.split(":")[0].startswith(field), msg
     assert "\n" not in msg
     assert isinstance(ei.value, LodcastError) and isinstance(ei.value, ValueError)
+
+
+def test_extreme_directions_keep_their_direction():
+    """A look-at camera, clip normal or light of components near 1e308 or 1e-300 is a direction like any other: its
+    length overflowed or underflowed when squared ("up parallel to the view direction", a normal of length 0)."""
+    from lodcast.renderer.scene.camera import frame
+
+    box = (np.zeros(3), np.full(3, 10.0))
+    base = frame(Scene.parse({"tf": TF, "camera": {"eye": [5, -20, 5], "target": [5, 5, 5]}}).camera, 8, 8, *box)
+    for up in ([0, 0, 1e308], [0, 0, 1e-300], [0, 0, 5e-324]):
+        cam = Scene.parse({"tf": TF, "camera": {"eye": [5, -20, 5], "target": [5, 5, 5], "up": up}}).camera
+        fr = frame(cam, 8, 8, *box)
+        assert np.array_equal(fr.r, base.r) and np.array_equal(fr.u, base.u), up
+    fr = frame(Scene.parse({"tf": TF, "camera": {"eye": [5, -1e-300, 5], "target": [5, 0, 5]}}).camera, 8, 8, *box)
+    assert np.allclose(fr.f, [0, 1, 0])
+    s = Scene.parse({"tf": TF, "shading": {"light": [0, 1e308, 0]},
+                     "clip": {"planes": [{"point": [5, 5, 5], "normal": [1e-320, 0, 0]}]}})
+    assert s.shading is not None and s.shading.light == (0.0, 1.0, 0.0)
+    assert s.clip is not None and s.clip.planes[0].normal == (1.0, 0.0, 0.0)
 
 
 def test_missing_tf_is_named():

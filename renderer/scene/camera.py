@@ -5,6 +5,12 @@ r = normalize(f × up), u = r × f; perspective direction ∝ f + ((2(j+½)/W �
 ((1 − 2(i+½)/H)·tan(fov/2))·u. Orthographic: parallel rays along f from the image plane through the eye, of
 height `view_height`. The orbit form puts the eye at azimuth/elevation around the box centre at `distance` times
 the bounding-sphere radius.
+
+`frame` refuses (SceneError naming the field) what the scene model alone cannot judge, since it depends on the
+volume: an eye or target more than MAX_RADII bounding-sphere radii from the box centre, an orthographic view height
+outside VIEW_HEIGHT_RADII radii, and any frame whose numbers are not finite in the kernel's single precision (an
+eye that coincides with the target once rounded, a view height that underflows) — such a view is empty or noise,
+never a picture of the volume.
 """
 from __future__ import annotations
 
@@ -13,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from lodcast.renderer.scene.scene import LookAtCamera, OrbitCamera, SceneError
+from lodcast.renderer.scene.scene import MAX_RADII, VIEW_HEIGHT_RADII, LookAtCamera, OrbitCamera, SceneError
 
 __all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays", "ray_box", "ray_octants",
            "rays_at", "resolve_view"]
@@ -38,7 +44,15 @@ class Frame:
     orthographic: bool
 
 
+def _tame(v: np.ndarray) -> np.ndarray:
+    """`v`, divided by its largest |component| where squaring it would overflow or underflow (a vector of 1e-300
+    or 1e308 components has a direction too); as it is otherwise."""
+    m = float(np.max(np.abs(v)))
+    return v / m if (m < 1e-150 or m > 1e150) and 0.0 < m < np.inf else v
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
+    v = _tame(v)
     return v / np.linalg.norm(v)
 
 
@@ -89,7 +103,7 @@ def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike, fov: float, width:
             orthographic: bool = False, view_height: float | None = None) -> Frame:
     eye = np.asarray(eye, np.float64)
     f = _unit(np.asarray(target, np.float64) - eye)
-    r = _unit(np.cross(f, np.asarray(up, np.float64)))
+    r = _unit(np.cross(f, _tame(np.asarray(up, np.float64))))
     u = np.cross(r, f)
     aspect = width / height
     if orthographic:
@@ -100,18 +114,66 @@ def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike, fov: float, width:
     return Frame(eye, f, r, u, t * aspect, t, False)
 
 
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def _far(p: np.ndarray, center: np.ndarray, radius: float) -> float:
+    """|p − center| in bounding-sphere radii (inf where it overflows)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        d = np.abs(np.asarray(p, np.float64) - center)
+        m = float(np.max(d))
+        far = m * float(np.linalg.norm(d / m)) / radius if 0.0 < m < np.inf else m / radius
+    return far if np.isfinite(far) else float("inf")
+
+
+def _check(fr: Frame, field: str, view_field: str) -> Frame:
+    """The frame as the kernel takes it (float32): every number finite, the basis unit vectors, the image plane of
+    non-zero size; otherwise SceneError naming `field` (the eye's place) or `view_field` (the image plane's size)."""
+    basis = np.concatenate([fr.eye, fr.f, fr.r, fr.u])
+    if not (np.all(np.isfinite(basis)) and float(np.max(np.abs(basis))) < _F32_MAX
+            and all(abs(float(np.linalg.norm(v)) - 1.0) < 1e-6 for v in (fr.f, fr.r, fr.u))):
+        raise SceneError(f"{field}: the view is degenerate for this volume (the eye coincides with the target or "
+                         f"its position overflows single precision)")
+    for half in (fr.half_w, fr.half_h):
+        if not (np.isfinite(half) and 0.0 < half < _F32_MAX and np.float32(half) > 0):
+            raise SceneError(f"{view_field}: the image's half extent ({half:.3g}) is not a positive number in "
+                             f"single precision; the view is degenerate")
+    return fr
+
+
 def frame(cam: LookAtCamera | OrbitCamera, width: int, height: int, box_lo: np.ndarray, box_hi: np.ndarray) -> Frame:
+    """The camera's frame for a `width` x `height` image of the volume whose world box is [box_lo, box_hi]; raises
+    SceneError naming the camera's field where the view would be non-finite or degenerate for this volume."""
     ortho = cam.projection == "orthographic"
+    box_lo, box_hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
+    center = (box_lo + box_hi) / 2
+    radius = 0.5 * float(np.linalg.norm(box_hi - box_lo))
+    if not (np.all(np.isfinite(center)) and np.isfinite(radius) and radius > 0.0):
+        raise SceneError("camera: the volume's world box is not finite (its spacing or origin), no view of it can "
+                         "be computed; re-ingest the volume")
+    if ortho:
+        assert cam.view_height is not None  # the camera models require it with an orthographic projection
+        lo, hi = VIEW_HEIGHT_RADII
+        if not lo * radius <= cam.view_height <= hi * radius:
+            raise SceneError(f"camera.view_height: {cam.view_height:.6g} world units is outside {lo:g} to {hi:g} "
+                             f"times this volume's bounding-sphere radius ({radius:.6g})")
+    view_field = "camera.view_height" if ortho else "camera.fov"
     if isinstance(cam, OrbitCamera):
-        center = (box_lo + box_hi) / 2
-        radius = 0.5 * float(np.linalg.norm(box_hi - box_lo))
         distance = cam.distance
         if distance is None:  # the whole box in the picture (orthographic: any eye outside the box will do)
             distance = 2.0 if ortho else fit_distance(box_lo, box_hi, cam.azimuth, cam.elevation, cam.fov,
                                                       width / height)
         eye, up = orbit_eye(cam, center, radius, distance)
-        return look_at(eye, center, up, cam.fov, width, height, ortho, cam.view_height)
-    return look_at(cam.eye, cam.target, cam.up, cam.fov, width, height, ortho, cam.view_height)
+        fr = look_at(eye, center, up, cam.fov, width, height, ortho, cam.view_height)
+        return _check(fr, "camera.distance" if cam.distance is not None else "camera.fov", view_field)
+    for name, p in (("eye", cam.eye), ("target", cam.target)):
+        far = _far(np.asarray(p, np.float64), center, radius)
+        if far > MAX_RADII:
+            raise SceneError(f"camera.{name}: {far:.3g} bounding-sphere radii from the volume's centre, more than "
+                             f"{MAX_RADII:g} (radius {radius:.6g} world units): the image would be empty or noise")
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        fr = look_at(cam.eye, cam.target, cam.up, cam.fov, width, height, ortho, cam.view_height)
+    return _check(fr, "camera.eye", view_field)
 
 
 def rays_at(fr: Frame, x: ArrayLike, y: ArrayLike, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -153,7 +215,7 @@ def ray_box(o: np.ndarray, d: np.ndarray, lo: ArrayLike, hi: ArrayLike) -> tuple
     """(t0, t1) per ray (..., 3) of the part inside the box [lo, hi] (world), t0 >= 0 (rays start at the eye or the
     image plane); t1 <= t0 where a ray misses it."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a direction of 1e-308 along an axis: ±inf
         ta, tb = (lo - o) / d, (hi - o) / d
     t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=-1), 0.0)
     return t0, np.nanmin(np.maximum(ta, tb), axis=-1)

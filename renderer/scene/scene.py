@@ -53,6 +53,8 @@ class _Model(BaseModel):
 
 
 Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+#: world units per opacity unit: its reciprocal must be finite and non-zero in the kernel's single precision
+UnitDistance = Annotated[float, Field(ge=1e-30, le=1e30, allow_inf_nan=False)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 
@@ -70,7 +72,7 @@ class TransferFunction(_Model):
     (None: the volume's smallest spacing)."""
 
     points: list[TFPoint] = Field(min_length=1, max_length=4096)
-    unit_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+    unit_distance: UnitDistance | None = None
 
     @field_validator("points")
     @classmethod
@@ -84,32 +86,60 @@ class TransferFunction(_Model):
         return pts
 
 
+#: the camera's limits (docs/design.md, Camera): a vertical field of view outside FOV_RANGE degrees, an orbit
+#: distance outside DISTANCE_RANGE bounding-sphere radii, or (renderer/scene/camera.py: frame, which knows the
+#: volume) an eye or target farther than MAX_RADII radii from the volume's centre or a view height outside
+#: VIEW_HEIGHT_RADII radii makes the view degenerate or its numbers overflow in the kernel's single precision
+FOV_RANGE = (0.1, 179.0)
+DISTANCE_RANGE = (1e-6, 1e6)
+MAX_RADII = 1e6
+VIEW_HEIGHT_RADII = (1e-6, 1e6)
+
+Fov = Annotated[float, Field(ge=FOV_RANGE[0], le=FOV_RANGE[1], allow_inf_nan=False,
+                             description=f"vertical field of view, degrees ({FOV_RANGE[0]:g} to {FOV_RANGE[1]:g})")]
+ViewHeight = Annotated[float, Field(gt=0.0, allow_inf_nan=False, description="orthographic: the image's height in "
+                                    "world units (within 10^-6 to 10^6 times the volume's bounding-sphere radius)")]
+
+
+def _scaled(v: tuple[float, ...]) -> tuple[tuple[float, ...], float]:
+    """`v` divided by its largest |component| (so that squaring cannot overflow or underflow), and that scale."""
+    m = max(abs(c) for c in v)
+    return (tuple(c / m for c in v) if m > 0.0 else tuple(v)), m
+
+
+def _norm(v: tuple[float, ...]) -> float:
+    return math.sqrt(sum(c * c for c in v))
+
+
 class LookAtCamera(_Model):
     """The eye at `eye`, looking at `target` (world units, x, y, z), `up` towards the image's top; `fov` is the
-    vertical field of view in degrees; `orthographic` projection needs `view_height` (world units)."""
+    vertical field of view in degrees; `orthographic` projection needs `view_height` (world units). The eye and
+    the target must lie within 10^6 bounding-sphere radii of the volume's centre."""
 
     eye: Vec3
     target: Vec3
     up: Vec3 = (0.0, 0.0, 1.0)
-    fov: Annotated[float, Field(gt=0.0, lt=180.0)] = 30.0
+    fov: Fov = 30.0
     projection: Literal["perspective", "orthographic"] = "perspective"
-    view_height: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+    view_height: ViewHeight | None = None
 
     @model_validator(mode="after")
     def _geometry(self) -> "LookAtCamera":
-        f = [t - e for t, e in zip(self.target, self.eye)]
-        nf = math.sqrt(sum(c * c for c in f))
+        d = tuple(t - e for t, e in zip(self.target, self.eye))
+        if not all(math.isfinite(c) for c in d):
+            raise ValueError("camera.target: too far from camera.eye (target - eye overflows)")
+        f, nf = _scaled(d)  # unit-free: no overflow for 1e308, no underflow for 1e-308
         if nf == 0.0:
             raise ValueError("camera.target: equals camera.eye, there is no view direction")
-        nu = math.sqrt(sum(c * c for c in self.up))
+        up, nu = _scaled(self.up)
         if nu == 0.0:
             raise ValueError("camera.up: must not be the zero vector")
         cross = (
-            f[1] * self.up[2] - f[2] * self.up[1],
-            f[2] * self.up[0] - f[0] * self.up[2],
-            f[0] * self.up[1] - f[1] * self.up[0],
+            f[1] * up[2] - f[2] * up[1],
+            f[2] * up[0] - f[0] * up[2],
+            f[0] * up[1] - f[1] * up[0],
         )
-        if math.sqrt(sum(c * c for c in cross)) <= 1e-9 * nf * nu:
+        if _norm(cross) <= 1e-9 * _norm(f) * _norm(up):
             raise ValueError("camera.up: parallel to the view direction (target - eye)")
         if self.projection == "orthographic" and self.view_height is None:
             raise ValueError("camera.view_height: required with projection 'orthographic'")
@@ -118,19 +148,19 @@ class LookAtCamera(_Model):
 
 class OrbitCamera(_Model):
     """Around the box centre: azimuth 0, elevation 0 looks from -y towards +y with +z up; azimuth turns towards
-    +x, elevation towards +z; distance in multiples of the box's bounding-sphere radius (null, the default: the
-    nearest at which the whole box is in the picture from this view, with 5 % to spare)."""
+    +x, elevation towards +z; distance in multiples of the box's bounding-sphere radius, 10^-6 to 10^6 (null, the
+    default: the nearest at which the whole box is in the picture from this view, with 5 % to spare)."""
 
     azimuth: Finite = 0.0
     elevation: Annotated[float, Field(ge=-90.0, le=90.0)] = 0.0
-    distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+    distance: Annotated[float, Field(ge=DISTANCE_RANGE[0], le=DISTANCE_RANGE[1], allow_inf_nan=False)] | None = None
     view: Literal["anterior", "posterior", "left", "right", "superior", "inferior"] | None = Field(
         default=None,
         description="an anatomical view instead of azimuth/elevation: the eye on that side of the patient, "
                     "whichever way the file stored the volume (needs a DICOM, NIfTI or NRRD source)")
-    fov: Annotated[float, Field(gt=0.0, lt=180.0)] = 30.0
+    fov: Fov = 30.0
     projection: Literal["perspective", "orthographic"] = "perspective"
-    view_height: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+    view_height: ViewHeight | None = None
 
     @model_validator(mode="after")
     def _ortho(self) -> "OrbitCamera":
@@ -175,10 +205,9 @@ class Sampling(_Model):
     left out) samples a position's own block, clamped half a sample inside it (eq. 3.5), except across faces
     between level-0 blocks, whose bricks carry a one-sample apron of their neighbours' samples: trilinear there
     (thin seams where a ray grazes a face of a coarse block); "interblock" blends the blocks around every block
-    face, continuous everywhere, at about twice the time (measured on the chest CT at 512²: the same mean ΔE at
-    lossless, within 0.1-0.4 from 5:1 on, either way; nearest block renders 10:1 and up faster than full
-    resolution, interblock at half its speed). At quality 'full' the field is trilinear interpolation of
-    level 0 whatever it says. `priority_map` belongs to the dual-TF mode (tf2).
+    face, continuous everywhere, but slower, for about the same mean ΔE (docs/lod.md: When it pays). At quality
+    'full' the field is trilinear interpolation of level 0 whatever it says. `priority_map` belongs to the dual-TF
+    mode (tf2).
     `empty_space_skipping` (default on) may be turned off for comparison; it never changes the image. (With coarse
     levels from a store of format 3 the walk over cells runs anyway: it also leaves out the coarse cells whose
     level-0 voxels the TF shows nothing of, which is part of what a coarse level shows.)
@@ -196,8 +225,8 @@ class Sampling(_Model):
     how much of it the camera sees (a low-resolution cast of the view through a coarse level,
     renderer/lod/visibility.py), so that what lies behind opaque material stays coarse and the budget goes to what the
     picture shows; the selection then follows the view, and each new view selects and packs its atlas again. Left
-    out (null) it is on for volumes of at most 2^27 voxels (a 512³ CT: a new view costs a tenth of a second or
-    so) and off above (on the 8 GiB body a turntable frame took 17-19 s with it against 0.5-0.7 s without), and a
+    out (null) it is on for volumes of at most 2^27 voxels (a 512³ CT: a new view's selection costs little beside
+    its render) and off above (where each new view's selection and atlas cost many times the render), and a
     turntable job's frames take it off (one selection for the whole animation: nothing changes from frame to
     frame but the view). Off: the selection depends on the TFs alone. Composite with one TF only (the projections
     and a second TF see what one TF hides).
@@ -228,9 +257,12 @@ NonNeg = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 
 
 def _nonzero(v: Vec3) -> Vec3:
+    """A direction: not the zero vector; scaled to a largest |component| of 1 where squaring its components would
+    overflow or underflow (a normal of [0, 1e308, 0] is +y, which the renderer's normalisation made 0)."""
     if not any(v):
         raise ValueError("must not be the zero vector")
-    return v
+    m = max(abs(c) for c in v)
+    return (v[0] / m, v[1] / m, v[2] / m) if m > 1e150 or m < 1e-150 else v
 
 
 class Shading(_Model):
@@ -296,7 +328,7 @@ class AdaptiveTF(_Model):
     (renderer/scene/adaptive_tf.py); given as `"tf": "auto"` (or another adaptive preset's name)."""
 
     template: Literal[tuple(ADAPTIVE)]  # type: ignore[valid-type]
-    unit_distance: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+    unit_distance: UnitDistance | None = None
 
 
 def _named_tf(v: Any) -> Any:
@@ -381,6 +413,14 @@ def parse_scene(data: Any) -> Scene:
     return Scene.parse(data)
 
 
+def branchless(loc: Any) -> list[str | int]:
+    """A pydantic error location without the branch labels pydantic inserts into union paths ('lookat', 'orbit',
+    "literal['full','lossless']", 'tuple[float, float, float]', 'QualityReduction', 'function-after[...]'): the
+    field's path as the JSON has it."""
+    return [p for p in loc if not isinstance(p, str) or (
+        p not in ("lookat", "orbit") and "[" not in p and not (p.startswith("function-") or p[:1].isupper()))]
+
+
 def validation_message(exc: ValidationError, prefix: str = "") -> str:
     """One line naming the (first) bad field as a dotted path, e.g. ``sampling.step: Input should be ...``."""
     errs = exc.errors(include_url=False)
@@ -389,10 +429,7 @@ def validation_message(exc: ValidationError, prefix: str = "") -> str:
     # inside a union pydantic reports every branch; the most specific one (deepest, not a mere tag mismatch) wins
     weak = {"literal_error", "missing", "extra_forbidden", "model_type", "dict_type"}
     e = min(errs, key=lambda x: (len(errs) > 1 and x.get("type") in weak, -len(x.get("loc", ()))))
-    # drop the branch labels pydantic inserts into union paths ('lookat', "literal['full','lossless']",
-    # 'QualityReduction', 'function-after[...]')
-    loc = [str(p) for p in e.get("loc", ())]
-    loc = [p for p in loc if p not in ("lookat", "orbit") and not (p.startswith(("literal[", "function-")) or p[:1].isupper())]
+    loc = [str(p) for p in branchless(e.get("loc", ()))]
     msg = str(e.get("msg", "invalid"))
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]
