@@ -59,6 +59,19 @@ def make_volume(root: Path, name: str = "tiny", n: int = 24, block_size: int = 8
     return Path(root) / name
 
 
+def service_folders(base: Path, source: str, data: Any) -> tuple[Path, Path]:
+    """(store root, import root) under `base`: the root holding the volume "tiny" (make_volume), the import root
+    one NumPy source `source` holding `data`."""
+    import numpy as np
+
+    root, imports = Path(base) / "root", Path(base) / "imports"
+    root.mkdir()
+    imports.mkdir()
+    make_volume(root, "tiny")
+    np.save(imports / source, data)
+    return root, imports
+
+
 def wait_job(client: Any, job_id: str, timeout: float = 120.0) -> dict[str, Any]:
     """The status of a job once it ended, polled over HTTP (a TestClient or an httpx client); AssertionError after
     `timeout` seconds."""

@@ -39,7 +39,7 @@ from lodcast.renderer.frame.render import check_cost
 from lodcast.renderer.scene.scene import SceneError
 from lodcast.service.app import create_app
 from lodcast.service.settings import Settings
-from lodcast.service.testing import TINY_TF, free_port, make_volume, start_serve, tiny_scene, wait_job
+from lodcast.service.testing import TINY_TF, free_port, make_volume, service_folders, start_serve, tiny_scene, wait_job
 
 TOKEN = "hostile-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -51,11 +51,7 @@ NAMED = re.compile(r"^[a-z_][a-z0-9_]*(\.[a-z0-9_]+)*: \S")
 @pytest.fixture(scope="module")
 def env(tmp_path_factory: pytest.TempPathFactory):
     base = tmp_path_factory.mktemp("hostile")
-    root, imports = base / "root", base / "imports"
-    root.mkdir()
-    imports.mkdir()
-    make_volume(root, "tiny")
-    np.save(imports / "blob.npy", np.zeros((8, 8, 8), np.float32))
+    root, imports = service_folders(base, "blob.npy", np.zeros((8, 8, 8), np.float32))
     settings = Settings(root=root, token=TOKEN, import_roots=[imports], max_width=64, max_height=64, max_frames=50,
                         min_step=0.25, workers=1, poll_s=0.05)
     with TestClient(create_app(settings), headers=AUTH) as client:

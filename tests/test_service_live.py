@@ -17,7 +17,7 @@ import pytest
 import lodcast
 import lodcast.service.models
 from lodcast.service.client import ServiceError
-from lodcast.service.testing import TINY_TF, free_port, make_volume, start_serve, tiny_scene
+from lodcast.service.testing import TINY_TF, free_port, service_folders, start_serve, tiny_scene
 
 TOKEN = "live-token"
 SOAK_S = float(os.environ.get("LODCAST_SOAK_S", "30"))
@@ -26,11 +26,7 @@ SOAK_S = float(os.environ.get("LODCAST_SOAK_S", "30"))
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory):
     base = tmp_path_factory.mktemp("live")
-    root, imports = base / "root", base / "imports"
-    root.mkdir()
-    imports.mkdir()
-    make_volume(root, "tiny")
-    np.save(imports / "cube.npy", np.arange(16**3, dtype=np.float32).reshape(16, 16, 16))
+    root, imports = service_folders(base, "cube.npy", np.arange(16**3, dtype=np.float32).reshape(16, 16, 16))
     port = free_port()
     env = {"LODCAST_TOKEN": TOKEN, "LODCAST_MAX_WIDTH": "512", "LODCAST_MAX_HEIGHT": "512", "LODCAST_RENDER_CONCURRENCY": "2",
            "LODCAST_POLL_S": "0.05", "LODCAST_IMPORT_ROOTS": json.dumps([str(imports)])}
