@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from phantoms import dicom_dataset, head
 
 import lodcast
 from lodcast.service.cli import build_parser
@@ -58,19 +59,10 @@ def help_examples() -> list[tuple[str, str]]:
     return out
 
 
-def _head(n: int) -> np.ndarray:
-    z, y, x = (np.mgrid[:n, :n, :n] - (n - 1) / 2) / (n / 2)
-    r = np.sqrt((z / 0.8) ** 2 + (y / 0.9) ** 2 + (x / 0.75) ** 2)
-    vol = np.where(r < 1.0, 90.0, 4.0) + np.random.default_rng(3).normal(0, 3, r.shape)
-    vol[(r > 0.88) & (r < 1.0)] = 160.0
-    return np.clip(vol, 0, 255).astype(np.uint8)
-
-
 def _dicom_ct(folder: Path, n: int = 40) -> None:
     """A CT series in Hounsfield units (air, soft tissue, a shell of bone), one file per slice, as a scanner
     writes them: unsigned 12-bit pixels with intercept -1024."""
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+    from pydicom.uid import CTImageStorage, generate_uid
 
     folder.mkdir()
     z, y, x = (np.mgrid[:n, :n, :n] - (n - 1) / 2) / (n / 2)
@@ -79,13 +71,8 @@ def _dicom_ct(folder: Path, n: int = 40) -> None:
     hu[(r > 0.45) & (r < 0.55)] = 900.0
     series, study = generate_uid(), generate_uid()
     for k in range(n):
-        meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = CTImageStorage, generate_uid()
-        meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds = Dataset()
-        ds.file_meta = meta
-        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
-        ds.Modality, ds.SeriesInstanceUID, ds.StudyInstanceUID = "CT", series, study
+        ds = dicom_dataset(CTImageStorage)
+        ds.SeriesInstanceUID, ds.StudyInstanceUID = series, study
         ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = n, n, 1, "MONOCHROME2"
         ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
         ds.PixelSpacing, ds.SliceThickness = [1.0, 1.0], 1.0
@@ -102,12 +89,12 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ws = tmp_path_factory.mktemp("help")
     shutil.copytree(REPO / "examples", ws / "examples")
     _dicom_ct(ws / "ct_series")
-    nib.save(nib.Nifti1Image(_head(48), np.eye(4)), str(ws / "head.nii.gz"))
+    nib.save(nib.Nifti1Image(head(48), np.eye(4)), str(ws / "head.nii.gz"))
     with open(ws / "scan.raw", "wb") as f:  # zeros, sparse: the size the example's --shape and --dtype say
         f.truncate(int(np.prod(RAW_SHAPE)) * 2)
-    lodcast.ingest(_head(48), ws / "stores" / "ch2.zarr", progress=False)
+    lodcast.ingest(head(48), ws / "stores" / "ch2.zarr", progress=False)
     (ws / "cache" / "data").mkdir(parents=True)  # what the demo's download leaves (service/demo.py)
-    nib.save(nib.Nifti1Image(_head(48), np.eye(4)), str(ws / "cache" / "data" / "ch2.nii.gz"))
+    nib.save(nib.Nifti1Image(head(48), np.eye(4)), str(ws / "cache" / "data" / "ch2.nii.gz"))
     (ws / "home").mkdir()
     return ws
 

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import tifffile
 import zarr
-from pydicom.dataset import Dataset, FileMetaDataset
-from pydicom.uid import EnhancedCTImageStorage, ExplicitVRLittleEndian, generate_uid
+from phantoms import dicom_dataset
+from pydicom.uid import EnhancedCTImageStorage
 
 from lodcast.errors import SourceError
 from lodcast.store.ingest import FILES_FLOOR, ingest, store_files
@@ -227,13 +227,8 @@ def test_zarr_source_reads_only_its_own_files(tmp_path: Path) -> None:
 
 def multiframe(path: Path, frames: int, syntax: str | None = None) -> None:
     """A multi-frame DICOM holding one 64x64 frame of pixel data whose header declares `frames` frames."""
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = EnhancedCTImageStorage, generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID = EnhancedCTImageStorage, meta.MediaStorageSOPInstanceUID
-    ds.Modality, ds.NumberOfFrames, ds.Rows, ds.Columns = "CT", 1, 64, 64
+    ds = dicom_dataset(EnhancedCTImageStorage)
+    ds.NumberOfFrames, ds.Rows, ds.Columns = 1, 64, 64
     ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
     ds.PixelData = np.arange(64 * 64, dtype=np.uint16).tobytes()

@@ -15,8 +15,9 @@ import pydicom
 import pytest
 import tifffile
 import zarr
-from pydicom.dataset import Dataset, FileMetaDataset
-from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+from phantoms import dicom_dataset
+from pydicom.dataset import Dataset
+from pydicom.uid import CTImageStorage, generate_uid
 
 from lodcast.errors import SourceError, SourceNotFound
 from lodcast.store.readers import open_source
@@ -429,14 +430,8 @@ JPEG_LOSSLESS = {"1.2.840.10008.1.2.4.70": 1, "1.2.840.10008.1.2.4.57": 6}
 def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826.0.1.1", slope: float = 1.0,
                 intercept: float = -1024.0, samples: int = 1, syntax: str | None = None,
                 orientation=(1, 0, 0, 0, 1, 0), position=None) -> None:
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = CTImageStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
-    ds.Modality, ds.SeriesInstanceUID, ds.StudyInstanceUID = "CT", series, "1.2.826.0.1.2"
+    ds = dicom_dataset(CTImageStorage)
+    ds.SeriesInstanceUID, ds.StudyInstanceUID = series, "1.2.826.0.1.2"
     ds.Rows, ds.Columns = pixels.shape[:2]
     ds.SamplesPerPixel = samples
     ds.PhotometricInterpretation = "MONOCHROME2" if samples == 1 else "RGB"
@@ -457,7 +452,7 @@ def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826
         assert frame.find(b"\xff\xc3") > 0  # SOF3: the lossless process, not a DCT one
         ds.PixelData = encapsulate([frame])
         ds["PixelData"].VR = "OB"
-        meta.TransferSyntaxUID = syntax
+        ds.file_meta.TransferSyntaxUID = syntax
     elif syntax is not None:  # compressed by pydicom's own encoders and its plugins (pyjpegls, pylibjpeg-openjpeg)
         ds.compress(syntax)
     ds.save_as(path, enforce_file_format=True)
@@ -509,13 +504,8 @@ def enhanced_ct(path: Path, frames: np.ndarray, z: list[float], syntax: str | No
     from pydicom.sequence import Sequence
     from pydicom.uid import EnhancedCTImageStorage
 
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = EnhancedCTImageStorage, generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID = EnhancedCTImageStorage, meta.MediaStorageSOPInstanceUID
-    ds.Modality, ds.SeriesInstanceUID, ds.StudyInstanceUID = "CT", generate_uid(), generate_uid()
+    ds = dicom_dataset(EnhancedCTImageStorage)
+    ds.SeriesInstanceUID, ds.StudyInstanceUID = generate_uid(), generate_uid()
     ds.NumberOfFrames, (ds.Rows, ds.Columns) = len(frames), frames.shape[1:]
     ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0

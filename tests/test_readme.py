@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from phantoms import head
 
 import lodcast
 
@@ -26,14 +27,6 @@ FENCE = re.compile(r"(?:<!-- not run by tests/test_readme.py: (?P<why>[^>]*?) --
 
 def blocks() -> list[tuple[str, str, str | None]]:
     return [(m["lang"], m["body"], m["why"]) for m in FENCE.finditer((REPO / "README.md").read_text())]
-
-
-def _head(n: int) -> np.ndarray:
-    z, y, x = (np.mgrid[:n, :n, :n] - (n - 1) / 2) / (n / 2)
-    r = np.sqrt((z / 0.8) ** 2 + (y / 0.9) ** 2 + (x / 0.75) ** 2)
-    vol = np.where(r < 1.0, 90.0, 4.0) + np.random.default_rng(3).normal(0, 3, r.shape)
-    vol[(r > 0.88) & (r < 1.0)] = 160.0
-    return np.clip(vol, 0, 255).astype(np.uint8)
 
 
 def _ct(n: int) -> np.ndarray:
@@ -51,10 +44,10 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ws = tmp_path_factory.mktemp("readme")
     (ws / ".venv").symlink_to(Path(sys.prefix))  # the environment running the tests: ./test.sh's .venv
     (ws / "examples").symlink_to(REPO / "examples")
-    nib.save(nib.Nifti1Image(_head(128), np.diag([1.0, 1.0, 1.0, 1.0])), str(ws / "scan.nii.gz"))
+    nib.save(nib.Nifti1Image(head(128), np.diag([1.0, 1.0, 1.0, 1.0])), str(ws / "scan.nii.gz"))
     (np.random.default_rng(0).integers(0, 4000, (64, 128, 128)).astype(">u2")).tofile(ws / "volume.raw")
     lodcast.ingest(_ct(64), ws / "ct.zarr")
-    lodcast.ingest(_head(64), ws / "demo-output" / "ch2.zarr")
+    lodcast.ingest(head(64), ws / "demo-output" / "ch2.zarr")
     return ws
 
 

@@ -1,0 +1,31 @@
+"""Small test data several test files write: a head phantom and a DICOM dataset's common header."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def head(n: int) -> np.ndarray:
+    """A uint8 head phantom, n³: an ellipsoid of 90 with a bright skull shell of 160 in background 4, noisy."""
+    z, y, x = (np.mgrid[:n, :n, :n] - (n - 1) / 2) / (n / 2)
+    r = np.sqrt((z / 0.8) ** 2 + (y / 0.9) ** 2 + (x / 0.75) ** 2)
+    vol = np.where(r < 1.0, 90.0, 4.0) + np.random.default_rng(3).normal(0, 3, r.shape)
+    vol[(r > 0.88) & (r < 1.0)] = 160.0
+    return np.clip(vol, 0, 255).astype(np.uint8)
+
+
+def dicom_dataset(sop_class: str) -> Any:
+    """A CT DICOM dataset of `sop_class` with its file meta (explicit VR little endian) and a fresh instance UID;
+    the caller adds series, geometry and pixels."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = sop_class, generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID = sop_class, meta.MediaStorageSOPInstanceUID
+    ds.Modality = "CT"
+    return ds
