@@ -248,11 +248,6 @@ class Renderer(Engine):
     LODCAST_DEVICE_CACHE_MB (MiB)). Its verbs are thread-safe; two renderers share nothing but the kernel
     binaries cached on disk. `lodcast.render` and the other module-level verbs use `default_renderer()`."""
 
-    def __init__(self, *, device: str | None = None, device_budget_mb: float | None = None,
-                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> None:
-        super().__init__(device=device, device_budget_mb=device_budget_mb, brick_cache_mb=brick_cache_mb,
-                         device_cache_mb=device_cache_mb)
-
     def render(self, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
                levels: np.ndarray | None = None, sample_limit: int | None = None,
                stop: Callable[[], None] | None = None) -> RenderResult:
