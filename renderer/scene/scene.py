@@ -261,8 +261,8 @@ def _nonzero(v: Vec3) -> Vec3:
     overflow or underflow (a normal of [0, 1e308, 0] is +y, which the renderer's normalisation made 0)."""
     if not any(v):
         raise ValueError("must not be the zero vector")
-    m = max(abs(c) for c in v)
-    return (v[0] / m, v[1] / m, v[2] / m) if m > 1e150 or m < 1e-150 else v
+    scaled, m = _scaled(v)
+    return (scaled[0], scaled[1], scaled[2]) if m > 1e150 or m < 1e-150 else v
 
 
 class Shading(_Model):
