@@ -11,6 +11,7 @@ Nothing here is shared between Devices but the disk cache, whose files are writt
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.util
 import logging
@@ -228,10 +229,11 @@ class Device:
     def max_alloc_bytes(self) -> int:
         return int(self.cl_device.max_mem_alloc_size)
 
-    @property
+    @functools.cached_property
     def memory_is_host(self) -> bool:
         """Whether the device's buffers live in the host's memory (a CPU device such as PoCL's, or an integrated
-        GPU that says so): then they count in the process's resident memory beside the host caches."""
+        GPU that says so): then they count in the process's resident memory beside the host caches. Asked once:
+        the brick cache's bound asks at every insertion, a million times in a large volume's first image."""
         d = self.cl_device
         try:
             unified = bool(d.host_unified_memory)
