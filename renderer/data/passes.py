@@ -9,7 +9,7 @@ central differences and a pre-integrated segment's front end reach that far past
 bricks of the region's blocks and of `ring_blocks` blocks around them (interblock interpolation reads the
 neighbouring blocks, nearest block a level-0 brick's apron, and their neighbours where a gradient or a segment end
 reaches into them). Each pass takes
-the samples of the blocks it owns and carries every ray's state to the next (lc_passes.h), in a front-to-back
+the samples of the blocks it owns and carries every ray's state to the next (lc_integrator.h), in a front-to-back
 visibility order of the regions, the same for every ray of the view (`visibility_order`): the image is the
 single-pass image exactly. Regions whose blocks all are empty space for this scene are not uploaded at all.
 

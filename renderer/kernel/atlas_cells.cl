@@ -48,7 +48,7 @@ static float3 lc_cell_bounds(__global const lc_voxel* atlas, __global const lc_s
     const float3 a = (float3)((float)x * C - 0.5f - eps, (float)y * C - 0.5f - eps, (float)z * C - 0.5f - eps);
     const float3 b = a + (C + 2.0f * eps);
     float mn = INFINITY, mx = -INFINITY, sd = 0.0f;
-    if (LC_IMAP(x / LC_CPB, y / LC_CPB, z / LC_CPB)) {
+    if (lc_imap(imap, g, x / LC_CPB, y / LC_CPB, z / LC_CPB)) {
 #ifdef LC_INTERP_II
         const int hx = x / (LC_CPB / 2), hy = y / (LC_CPB / 2), hz = z / (LC_CPB / 2); /* the half-block cell */
         const int cx = (hx + 1) >> 1, cy = (hy + 1) >> 1, cz = (hz + 1) >> 1;
@@ -60,7 +60,7 @@ static float3 lc_cell_bounds(__global const lc_voxel* atlas, __global const lc_s
         for (int bz = z0; bz <= z1; ++bz)
             for (int by = y0; by <= y1; ++by)
                 for (int bx = x0; bx <= x1; ++bx) {
-                    const ulong ent = LC_IMAP(bx, by, bz);
+                    const ulong ent = lc_imap(imap, g, bx, by, bz);
                     if (!ent) continue; /* a missing neighbour weighs 0 */
                     const int lvl = (int)(ent & 15UL) - 1, n = (int)g.B >> lvl;
                     const float s = 1.0f / (float)(1 << lvl);

@@ -124,7 +124,10 @@ static LC_HOT float2 lc_nb(__global const lc_voxel* atlas, __global const lc_sig
 }
 
 
-#define LC_IMAP(x, y, z) imap[((ulong)(z) * (ulong)g.gy + (ulong)(y)) * (ulong)g.gx + (ulong)(x)]
+/* the index map's entry of block (x, y, z) */
+static LC_HOT ulong lc_imap(__global const ulong* imap, const LcAtlasGeom g, const int x, const int y, const int z) {
+    return imap[((ulong)z * (ulong)g.gy + (ulong)y) * (ulong)g.gx + (ulong)x];
+}
 
 /* half-sample width of the level in the 4-bit field at `shift` of an entry, in level-0 voxels: 2^(level - 1) */
 static inline float lc_hw(const ulong entry, const int shift) {
@@ -169,7 +172,7 @@ static inline void lc_hood(LcHood* hd, __global const ulong* imap, const LcAtlas
     hd->Y[0] = lc_clampi(cy - 1, g.gy - 1); hd->Y[1] = lc_clampi(cy, g.gy - 1);
     hd->Z[0] = lc_clampi(cz - 1, g.gz - 1); hd->Z[1] = lc_clampi(cz, g.gz - 1);
     for (int s = 0; s < 8; ++s) {
-        hd->E[s] = LC_IMAP(hd->X[s & 1], hd->Y[(s >> 1) & 1], hd->Z[s >> 2]);
+        hd->E[s] = lc_imap(imap, g, hd->X[s & 1], hd->Y[(s >> 1) & 1], hd->Z[s >> 2]);
         hd->h[s] = lc_half(hd->E[s]);
     }
     for (int k = 0; k < 4; ++k) {
@@ -223,7 +226,7 @@ static LC_HOT float2 lc_face_blend(__global const lc_voxel* atlas, __global cons
     const int d = up ? 1 : -1;
     const int nx = bx + (in_x ? d : 0), ny = by + (in_y ? d : 0), nz = bz + (in_x | in_y ? 0 : d);
     if (nx < 0 || ny < 0 || nz < 0 || nx >= g.gx || ny >= g.gy || nz >= g.gz) return a; /* the cell folds onto own */
-    const ulong nb = LC_IMAP(nx, ny, nz);
+    const ulong nb = lc_imap(imap, g, nx, ny, nz);
     if (!nb) return a; /* a missing neighbour weighs 0 */
     const float hn = lc_half(nb);
     /* e: the weight of the upper block of the edge, the interblock coordinate measured from the face */
@@ -243,7 +246,7 @@ static LC_HOT float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global 
     const int bx = lc_clampi((int)p.x, g.gx - 1);
     const int by = lc_clampi((int)p.y, g.gy - 1);
     const int bz = lc_clampi((int)p.z, g.gz - 1);
-    const ulong own = LC_IMAP(bx, by, bz);
+    const ulong own = lc_imap(imap, g, bx, by, bz);
     if (!own) return (float2)(NAN, 0.0f);
 #ifndef LC_INTERP_II
     return lc_nb_in(atlas, sig, own, bx, by, bz, g, q, 1);
@@ -298,7 +301,7 @@ typedef struct LcBlk {
 
 static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, const int bx, const int by, const int bz) {
     LcBlk b;
-    const ulong ent = LC_IMAP(bx, by, bz);
+    const ulong ent = lc_imap(imap, g, bx, by, bz);
     b.n = 0;
     b.coarse = 0;
     b.off = 0;
@@ -351,9 +354,9 @@ static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g,
      * there repeats the brick's edge, as the fold does) */
     const int sx = (x & 1) ? 1 : -1, sy = (y & 1) ? 1 : -1, sz = (z & 1) ? 1 : -1;
     const int nx = lc_clampi(bx + sx, g.gx - 1), ny = lc_clampi(by + sy, g.gy - 1), nz = lc_clampi(bz + sz, g.gz - 1);
-    const ulong eX = LC_IMAP(nx, by, bz), eY = LC_IMAP(bx, ny, bz), eZ = LC_IMAP(bx, by, nz);
-    const ulong eXY = LC_IMAP(nx, ny, bz), eXZ = LC_IMAP(nx, by, nz), eYZ = LC_IMAP(bx, ny, nz);
-    const ulong eXYZ = LC_IMAP(nx, ny, nz);
+    const ulong eX = lc_imap(imap, g, nx, by, bz), eY = lc_imap(imap, g, bx, ny, bz), eZ = lc_imap(imap, g, bx, by, nz);
+    const ulong eXY = lc_imap(imap, g, nx, ny, bz), eXZ = lc_imap(imap, g, nx, by, nz), eYZ = lc_imap(imap, g, bx, ny, nz);
+    const ulong eXYZ = lc_imap(imap, g, nx, ny, nz);
     if (!b.coarse && (eX & 15UL) == 1UL && (eY & 15UL) == 1UL && (eZ & 15UL) == 1UL && (eXY & 15UL) == 1UL &&
         (eXZ & 15UL) == 1UL && (eYZ & 15UL) == 1UL && (eXYZ & 15UL) == 1UL) { /* all eight at level 0 */
         if (x & 1) b.hi.x = (float)b.n; else b.lo.x = -1.0f;

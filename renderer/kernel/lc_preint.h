@@ -1,4 +1,5 @@
-/* lc_preint.h: pre-integrated classification of a ray segment (LC_PREINT), for lc_classify.h.
+/* lc_preint.h: pre-integrated classification of a ray segment (LC_PREINT), a piece of the classifier
+ * (lc_classify.h).
  *
  * A segment of length len whose sample sits at q (fraction u of the segment) is classified by the scalars at its
  * ends, s_f at q - u len dq and s_b at q + (1 - u) len dq, through ptab (lodcast.renderer.kernel.preintegration: exact
@@ -9,9 +10,7 @@
  * with the segment's average colour kept.
  * The back sample of a segment is the front of the next one, so a ray takes one extra sample per segment, not two
  * (reused when the next front lies within 1e-4 voxels of it). A NaN at either end makes the segment transparent.
- * Coarse samples under LC_DIST keep their distribution classification (the `else` of LC_DIST_BODY leads here).
- * Per TF (suffix S, see lc_classify.h): ptab, pre_n, pre_knots, the reuse cache pre_q, pre_v and the ray
- * state; shared: u, dq, dt, inv_dt, LC_SEG_LEN (lc_classify.h) and LC_SAMPLE.
+ * Coarse samples under LC_DIST keep their distribution classification (lc_classify).
  */
 #ifndef LC_PREINT_H
 #define LC_PREINT_H
@@ -43,54 +42,55 @@ static inline float4 lc_preint_at(__global const float4* ptab, const float ff, c
     return a + (b - a) * wi;
 }
 
+/* alpha' = 1 - (1 - a0)^ratio of a piece `ratio` base steps long whose base-step alpha is a0, composited with
+ * colour col (in line: a library call in the march puts its state in memory, lc_common.h) */
+static LC_HOT void lc_preint_blend(LcRay* ray, const float a0, const float ratio, const float3 col, const float t_stop) {
 #ifdef LC_PRECISE
-#define LC_PREINT_COMPOSITE(a0, ratio, col, S) LC_KAHAN_COMPOSITE(lc_depth_of_alpha(a0) * (ratio), col, S)
+    lc_blend_depth(ray, lc_depth_of_alpha(a0) * ratio, col, t_stop);
 #else
-/* alpha' = 1 - (1 - a0)^ratio, in line (lc_common.h: a library call in the march puts its state in memory) */
-#define LC_PREINT_COMPOSITE(a0, ratio, col, S)                                   \
-    {                                                                            \
-        const float al_ = (ratio) == 1.0f ? (a0) : lc_alpha_of_depth((ratio) * lc_depth_of_alpha(a0)); \
-        LC_BLEND(T##S * al_, col, S)                                             \
-    }
+    const float al = ratio == 1.0f ? a0 : lc_alpha_of_depth(ratio * lc_depth_of_alpha(a0));
+    lc_blend(ray, ray->T * al, col, t_stop);
 #endif
+}
 
 /* one piece of a segment: table coordinates (fa, fb), length ratio (to the base step) */
-#define LC_PREINT_PIECE(fa, fb, ratio, q, S)                                     \
-    {                                                                            \
-        const float4 pe_ = lc_preint_at(ptab##S, (fa), (fb), pre_n##S);          \
-        if (pe_.w > 0.0f) LC_PREINT_COMPOSITE(pe_.w, (ratio), LC_SHADE_COL(pe_.xyz / pe_.w, q), S) \
-    }
+static LC_HOT void lc_preint_piece(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
+                                   const float fa, const float fb, const float ratio, const float3 q) {
+    const float4 pe = lc_preint_at(tf->ptab, fa, fb, tf->pre_n);
+    if (pe.w > 0.0f) lc_preint_blend(ray, pe.w, ratio, lc_shade(s, sh, pe.xyz / pe.w, q), m->t_stop);
+}
 
-/* A segment that crosses hard steps of the TF (warp rows with hard_k = 1 between its ends' rows) is cut where the
- * (linear) field crosses each, every piece looked up between its own ends (the step's value from below or from
- * above), so that no lookup interpolates across a step: a short segment over a step takes the exact split. */
-#define LC_PREINT_BODY(r, q, S)                                                  \
-    {                                                                            \
-        const float len_ = LC_SEG_LEN(r, S);                                     \
-        const float3 qf_ = (q) - (u * len_) * dq, qb_ = qf_ + len_ * dq;         \
-        const float3 dd_ = qf_ - pre_q##S;                                       \
-        const float sf_ = dd_.x * dd_.x + dd_.y * dd_.y + dd_.z * dd_.z < 1e-8f ? pre_v##S : LC_SAMPLE(qf_).x; \
-        const float sb_ = LC_SAMPLE(qb_).x;                                      \
-        pre_q##S = qb_;                                                          \
-        pre_v##S = sb_;                                                          \
-        if (sf_ == sf_ && sb_ == sb_) {                                          \
-            __global const float4* warp_ = ptab##S + pre_n##S * pre_n##S;        \
-            const float fmax_ = (float)(pre_n##S - 1), rl_ = len_ * inv_dt;       \
-            int kf_, kb_;                                                        \
-            const float ff_ = lc_preint_coord(warp_, pre_knots##S, sf_, fmax_, &kf_); \
-            const float fb_ = lc_preint_coord(warp_, pre_knots##S, sb_, fmax_, &kb_); \
-            float fa_ = ff_, x0_ = 0.0f;                                         \
-            const int up_ = kb_ > kf_;                                           \
-            for (int k_ = up_ ? kf_ + 1 : kf_; up_ ? k_ <= kb_ : k_ > kb_; k_ += up_ ? 1 : -1) { \
-                const float4 w_ = warp_[k_];                                     \
-                if (w_.w == 0.0f) continue;                                      \
-                const float x_ = (w_.x - sf_) / (sb_ - sf_);                     \
-                LC_PREINT_PIECE(fa_, up_ ? w_.y - 1.0f : w_.y, (x_ - x0_) * rl_, q, S) \
-                fa_ = up_ ? w_.y : w_.y - 1.0f;                                  \
-                x0_ = x_;                                                        \
-            }                                                                    \
-            LC_PREINT_PIECE(fa_, fb_, (1.0f - x0_) * rl_, q, S)                  \
-        }                                                                        \
+/* The segment r whose sample sits at q. A segment that crosses hard steps of the TF (warp rows with hard_k = 1
+ * between its ends' rows) is cut where the (linear) field crosses each, every piece looked up between its own ends
+ * (the step's value from below or from above), so that no lookup interpolates across a step: a short segment over
+ * a step takes the exact split. */
+static LC_HOT void lc_preint_segment(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
+                                     const float r, const float3 q) {
+    const float len = lc_seg_len(r, tf, m);
+    const float3 qf = q - (m->u * len) * m->dq, qb = qf + len * m->dq;
+    const float3 dd = qf - ray->pre_q;
+    const float sf = dd.x * dd.x + dd.y * dd.y + dd.z * dd.z < 1e-8f ? ray->pre_v : lc_sampler_at(s, qf).x;
+    const float sb = lc_sampler_at(s, qb).x;
+    ray->pre_q = qb;
+    ray->pre_v = sb;
+    if (sf == sf && sb == sb) {
+        __global const float4* warp = tf->ptab + tf->pre_n * tf->pre_n;
+        const float fmax = (float)(tf->pre_n - 1), rl = len * m->inv_dt;
+        int kf, kb;
+        const float ff = lc_preint_coord(warp, tf->pre_knots, sf, fmax, &kf);
+        const float fb = lc_preint_coord(warp, tf->pre_knots, sb, fmax, &kb);
+        float fa = ff, x0 = 0.0f;
+        const int up = kb > kf;
+        for (int k = up ? kf + 1 : kf; up ? k <= kb : k > kb; k += up ? 1 : -1) {
+            const float4 w = warp[k];
+            if (w.w == 0.0f) continue;
+            const float x = (w.x - sf) / (sb - sf);
+            lc_preint_piece(ray, tf, m, s, sh, fa, up ? w.y - 1.0f : w.y, (x - x0) * rl, q);
+            fa = up ? w.y : w.y - 1.0f;
+            x0 = x;
+        }
+        lc_preint_piece(ray, tf, m, s, sh, fa, fb, (1.0f - x0) * rl, q);
     }
+}
 #endif
 #endif

@@ -88,7 +88,7 @@ PARAMS_DTYPE = np.dtype(
 assert PARAMS_DTYPE.itemsize == 592 and PARAMS_DTYPE.itemsize % 16 == 0
 
 
-#: LC_PASSES: floats of ray state kept per ray between passes (lc_passes.h's LC_STATE_FLOATS)
+#: LC_PASSES: floats of ray state kept per ray between passes (lc_integrator.h's LC_STATE_FLOATS)
 STATE_FLOATS = 32
 
 
