@@ -71,7 +71,7 @@ def run_bare(eng, store, scene: dict) -> dict:
     ctx, queue = eng.device.context, eng.device.queue
     pr = eng.prepare(store, scene)
     W, H = pr.scene.width, pr.scene.height
-    opts = ("-DLC_SAMPLER_FULL",) + (("-DLC_ORTHO",) if pr.config.orthographic else ()) + voxel_options(pr.volume.voxel_dtype)
+    opts = ("-DLC_SAMPLER_FULL",) + voxel_options(pr.volume.voxel_dtype)
     prg = eng.device.program("march_bare.cl", opts).program
     dvol, _ = upload_level0(eng, pr.volume)
     mf = cl.mem_flags

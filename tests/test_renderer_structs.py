@@ -47,10 +47,11 @@ def test_every_field_reads_back_through_the_kernel():
     p["pass_lo"], p["pass_hi"] = (-1.5, -2.5, -3.5, 0.0), (4.25, 5.25, 6.25, 0.0)
     p["pass_off"], p["pass_dims"], p["pass_first"] = (41, 42, 43, 0), (44, 45, 46, 0), 1
     p["ess_grid"] = (51, 52, 53, 8)
+    p["jitter"], p["ortho"] = 71, 72
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
     f = np.zeros(104, np.float32)
-    n = np.zeros(46, np.int32)
+    n = np.zeros(48, np.int32)
     d_f = cl.Buffer(ctx, mf.WRITE_ONLY, f.nbytes)
     d_n = cl.Buffer(ctx, mf.WRITE_ONLY, n.nbytes)
     prg = dev.program("probe.cl").program
@@ -78,3 +79,4 @@ def test_every_field_reads_back_through_the_kernel():
     assert n[28:37].tolist() == [41, 42, 43, 0, 44, 45, 46, 0, 1]
     assert n[40:44].tolist() == [51, 52, 53, 8]
     assert n[44:46].tolist() == [61, 62]
+    assert n[46:48].tolist() == [71, 72]

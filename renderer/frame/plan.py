@@ -28,7 +28,7 @@ __all__ = ["Prepared", "LodPlan", "kernel_config", "MAX_SAMPLES_PER_RAY"]
 MAX_SAMPLES_PER_RAY = 2**30
 
 
-def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool = False,
+def kernel_config(scene: Scene, max_samples: int, lod: bool = False,
                   distribution: bool = False, voxel: str = "float", block_size: int = 16,
                   n_blocks: int = 0) -> KernelConfig:
     """`distribution`: whether the volume keeps the distributions behind its coarse voxels (the scene decides
@@ -55,12 +55,9 @@ def kernel_config(scene: Scene, orthographic: bool, max_samples: int, lod: bool 
         lattice=lattice,
         distribution=lod and distribution and s.classification == "distribution" and scene.mode == "composite",
         mode=scene.mode,
-        orthographic=orthographic,
         ess=s.empty_space_skipping and scene.mode not in ("average", "iso"),  # these read every sample
         octant_cells=block_size >= 16 and block_size % 4 == 0 and 64 * n_blocks <= FINE_CELLS,
-        jitter=s.jitter,
         precise=max_samples > PRECISE_SAMPLES,
-        background=scene.background[3] > 0,
         clip=scene.clip is not None and len(scene.clip.planes) > 0,
         shade=scene.shading is not None and scene.mode in ("composite", "iso"),
         preint=s.preintegration and scene.mode == "composite",

@@ -221,7 +221,7 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
         n_empty = int(np.count_nonzero(info == 0.0)) if scene.mode == "composite" else 0
     lod = None
     use_lod = levels is not None or scene.quality != "full"
-    cfg = kernel_config(scene, fr.orthographic, max_samples, lod=use_lod, distribution=vol.has_distribution,
+    cfg = kernel_config(scene, max_samples, lod=use_lod, distribution=vol.has_distribution,
                         voxel=VOXEL_CTYPES[vol.voxel_dtype], block_size=int(vol.block_size), n_blocks=vol.n_blocks)
     if use_lod:
         view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene, vol) else None

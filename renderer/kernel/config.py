@@ -1,5 +1,7 @@
 """KernelConfig: everything that specialises the kernel, frozen, turned into `-D` options — the only way a
-scene changes the compiled code (no source pasting). Features a scene does not use are compiled out."""
+scene changes the compiled code (no source pasting). Features a scene does not use are compiled out; what costs
+a ray nothing measurable as a branch on its parameters (the projection, jitter, the background) is not an option,
+so that scenes differing only there share one program."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -32,12 +34,9 @@ class KernelConfig:
     lattice: bool = False  # with adaptive: level 0 after a coarse cell on full resolution's lattice too ("lossless")
     distribution: bool = False  # atlas, composite: classify coarse samples by their distribution (LC_DIST)
     mode: str = "composite"  # "composite" | "mip" | "minip" | "average" | "iso"
-    orthographic: bool = False
     ess: bool = True
     octant_cells: bool = True  # the blocks' half-block cells have octants worth walking (render.kernel_config)
-    jitter: bool = False
     precise: bool = False
-    background: bool = False
     clip: bool = False  # clip planes (a crop box alone needs no option: the host shrinks the box)
     shade: bool = False  # local illumination (composite only)
     preint: bool = False  # pre-integrated classification (composite only)
@@ -100,13 +99,10 @@ class KernelConfig:
         opts += {"mip": ["-DLC_MODE_MIP"], "minip": ["-DLC_MODE_MIP", "-DLC_MINIP"], "average": ["-DLC_MODE_AVG"],
                  "iso": ["-DLC_MODE_ISO"]}.get(self.mode, [])
         for flag, name in (
-            (self.orthographic, "LC_ORTHO"),
             (self.ess, "LC_ESS"),
             (self.leap, "LC_LEAP"),
             (self.octants, "LC_OCTANTS"),
-            (self.jitter, "LC_JITTER"),
             (self.precise and self.mode == "composite", "LC_PRECISE"),
-            (self.background, "LC_BACKGROUND"),
             (self.clip, "LC_CLIP"),
             (self.shade, "LC_SHADE"),
             (self.preint, "LC_PREINT"),

@@ -83,11 +83,7 @@ static inline LcMarch lc_march_make(__constant const LcParams* P, const float3 d
     LcMarch m;
     m.dt = P->step;
     m.inv_dt = 1.0f / m.dt;
-#ifdef LC_JITTER
-    m.u = lc_jitter(P->seed, pix);
-#else
-    m.u = 0.5f;
-#endif
+    m.u = P->jitter ? lc_jitter(P->seed, pix) : 0.5f;
     m.dq = d * P->inv_spacing.xyz;
     m.t_stop = 1.0f - P->early_term;
     m.dist_sscale = P->dist_sscale;

@@ -128,13 +128,13 @@ static inline float lc_jitter(uint seed, uint pixel) {
 static inline void lc_pixel_ray(__constant const LcParams* P, float x, float y, float3* o, float3* d) {
     float px = (2.0f * x / (float)P->width - 1.0f) * P->half_w;
     float py = (1.0f - 2.0f * y / (float)P->height) * P->half_h;
-#ifdef LC_ORTHO
-    *o = P->eye.xyz + px * P->cam_r.xyz + py * P->cam_u.xyz;
-    *d = P->cam_f.xyz;
-#else
-    *o = P->eye.xyz;
-    *d = normalize(P->cam_f.xyz + px * P->cam_r.xyz + py * P->cam_u.xyz);
-#endif
+    if (P->ortho) {
+        *o = P->eye.xyz + px * P->cam_r.xyz + py * P->cam_u.xyz;
+        *d = P->cam_f.xyz;
+    } else {
+        *o = P->eye.xyz;
+        *d = normalize(P->cam_f.xyz + px * P->cam_r.xyz + py * P->cam_u.xyz);
+    }
 }
 
 /* Slab test of the ray o + t d against the world box [lo, hi]: where it enters (*tn) and leaves (*tf) the box's

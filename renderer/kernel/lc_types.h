@@ -39,7 +39,7 @@ typedef struct LcParams {
     float dist_lo;      /* standard deviation std_max (j / (rows - 1))^2, i.e. j = sqrt(std) dist_sscale */
     float dist_scale;
     float dist_sscale;
-    int pad0;
+    int jitter;         /* 1: each pixel's samples sit at a random fraction of their steps (seeded), else at 1/2 */
     float4 clip[6];     /* LC_CLIP: planes (nx, ny, nz, w) world; a point x is kept where n.x + w >= 0 */
     float4 light;       /* LC_SHADE: unit world direction towards the light (headlight: unused) */
     float4 shade;       /* LC_SHADE: ambient, diffuse, specular, shininess */
@@ -47,7 +47,7 @@ typedef struct LcParams {
     int n_clip;         /* LC_CLIP: planes in use (<= 6) */
     int pre_n;          /* LC_PREINT: the pre-integration table has pre_n x pre_n entries, then pre_knots rows */
     int pre_knots;      /* of its axis' warp (lc_preint.h) */
-    int pad9;
+    int ortho;          /* 1: orthographic projection, else perspective */
     float iso;          /* LC_MODE_ISO: the iso value */
     float shade_gref;   /* LC_SHADE: gradient magnitude at which a sample is fully lit (0: no weighting) */
     int pad3;

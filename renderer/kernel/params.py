@@ -40,7 +40,8 @@ def fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: L
     p["early_term"] = scene.sampling.early_termination
     p["iso"] = scene.isovalue if scene.isovalue is not None else 0.0
     p["width"], p["height"] = scene.width, scene.height
-    p["seed"] = scene.sampling.seed
+    p["seed"], p["jitter"] = scene.sampling.seed, int(scene.sampling.jitter)
+    p["ortho"] = int(fr.orthographic)
     p["max_samples"] = max_samples
     p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
     if pre is not None:

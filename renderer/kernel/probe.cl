@@ -23,6 +23,7 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     f[85] = P->tf2_lut_lo; f[86] = P->tf2_lut_scale; f[87] = P->tf2_vis_lo; f[88] = P->tf2_vis_hi;
     f[89] = P->tf2_inv_unit; f[90] = P->tf2_dist_lo; f[91] = P->tf2_dist_scale;
     n[44] = P->pre_knots; n[45] = P->tf2_pre_knots;
+    n[46] = P->jitter; n[47] = P->ortho;
     vstore4(P->pass_lo, 24, f); vstore4(P->pass_hi, 25, f); /* f[96..103] */
     vstore4(P->pass_off, 7, n); vstore4(P->pass_dims, 8, n); /* n[28..35] */
     n[36] = P->pass_first;

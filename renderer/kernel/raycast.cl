@@ -7,7 +7,8 @@
  * (lc_integrator.h: LcIntegrator, what a ray makes of its samples in each mode). lc_render below sets them up and
  * runs the loop: for each interval, its samples through the sampler into the integrator.
  *
- * Specialised only by -D options (lodcast.renderer.kernel.config.KernelConfig.build_options()):
+ * Specialised only by -D options (lodcast.renderer.kernel.config.KernelConfig.build_options()); the projection
+ * (P->ortho), jitter (P->jitter, P->seed) and the background (P->background, zero for none) are parameters:
  *   LC_SAMPLER_FULL   sample the full-resolution volume from a plain buffer of lc_voxel (LC_VOXEL: lc_common.h)
  *   LC_SAMPLER_ATLAS  sample the multiresolution field from the brick atlas through the block index map
  *                     (lc_atlas.h), with LC_INTERP_NB (nearest block, eq. 3.5) or LC_INTERP_II (interblock, eq. 3.6)
@@ -33,7 +34,6 @@
  *   LC_MINIP          with LC_MODE_MIP: minimum intensity projection
  *   LC_MODE_MIP       maximum intensity projection (default: emission-absorption compositing; MIP keeps the mean
  *                     of coarse samples: the store keeps no coarse maximum)
- *   LC_ORTHO          orthographic projection (default: perspective)
  *   LC_ESS            empty-space skipping: march cell by cell (3D DDA over P->ess_grid: at full resolution cells
  *                     finer than the blocks, on the atlas half-block cells) and skip cells whose block_info says
  *                     nothing there can contribute, without sampling them
@@ -49,9 +49,7 @@
  *                     its eight octants (quarter-block cells) where the field can show something (walk.py:
  *                     octant_masks, bit (z & 1) << 2 | (y & 1) << 1 | (x & 1)); a sample in another octant adds
  *                     nothing and is not taken (no lookup, no blend: the image is the same)
- *   LC_JITTER         per-pixel random offset of the sample positions (seeded, reproducible)
  *   LC_PRECISE        compensated (Kahan) sums of optical depth and colour, for rays of very many samples
- *   LC_BACKGROUND     composite the background under the integral
  *   LC_CLIP           clip planes (lc_common.h: the ray's interval is cut exactly at each plane; a crop box needs no
  *                     option, the host intersects it with the volume's box)
  *   LC_PREINT         pre-integrated classification of each segment by the scalars at its ends (lc_preint.h)
@@ -176,9 +174,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
     lc_state_move(&it, state + pix, lc_rays(P), 1);
 #endif
     float4 res = lc_integrator_finish(&it, &cls);
-#ifdef LC_BACKGROUND
-    res += (1.0f - res.w) * P->background;
-#endif
+    res += (1.0f - res.w) * P->background; /* (premultiplied; none: zero) */
     out[pix] = res;
     nsamples[pix] = it.taken;
 }

@@ -81,9 +81,7 @@ def block_visibility(eng: Engine, vol: VolumeView, scene: Scene, fr: cam.Frame, 
     p[0]["width"], p[0]["height"] = w, h
     alpha = np.ascontiguousarray(lut.kernel_table("alpha", step_world / unit)[:, 3], dtype=np.float32)
     quiet = quiet_blocks(vol, lut, k)
-    opts = ["-DLC_ORTHO"] if fr.orthographic else []
-    if scene.clip is not None and scene.clip.planes:
-        opts.append("-DLC_CLIP")
+    opts = ["-DLC_CLIP"] if scene.clip is not None and scene.clip.planes else []
     dev: Device = eng.device
     ctx = dev.context
     queue = cl.CommandQueue(ctx)  # its own: a job's prefetch casts the next frame while the current one renders
