@@ -48,6 +48,7 @@ def test_every_field_reads_back_through_the_kernel():
     p["pass_off"], p["pass_dims"], p["pass_first"] = (41, 42, 43, 0), (44, 45, 46, 0), 1
     p["ess_grid"] = (51, 52, 53, 8)
     p["jitter"], p["ortho"] = 71, 72
+    p["grad_op"], p["tf2_grad_op"] = 0.375, 2.625
     mf = cl.mem_flags
     d_p = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
     f = np.zeros(104, np.float32)
@@ -80,3 +81,4 @@ def test_every_field_reads_back_through_the_kernel():
     assert n[40:44].tolist() == [51, 52, 53, 8]
     assert n[44:46].tolist() == [61, 62]
     assert n[46:48].tolist() == [71, 72]
+    assert f[92:94].tolist() == [0.375, 2.625]

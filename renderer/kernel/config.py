@@ -40,6 +40,7 @@ class KernelConfig:
     clip: bool = False  # clip planes (a crop box alone needs no option: the host shrinks the box)
     shade: bool = False  # local illumination (composite only)
     preint: bool = False  # pre-integrated classification (composite only)
+    gradient_opacity: bool = False  # a TF's extinction scaled by the gradient magnitude (composite only)
     tf2: bool = False  # dual-TF compositing, a second TF integrated concurrently (composite only)
     screen: bool = False  # adaptive screen-space sampling: rays through given image positions (tile samples)
     passes: bool = False  # one pass of a render in several (the volume data exceeds the device budget)
@@ -60,6 +61,8 @@ class KernelConfig:
             raise ValueError("shading needs composite or iso mode")
         if self.preint and self.mode != "composite":
             raise ValueError("pre-integration needs composite mode")
+        if self.gradient_opacity and self.mode != "composite":
+            raise ValueError("gradient opacity needs composite mode")
         if self.tf2 and self.mode != "composite":
             raise ValueError("a second transfer function (tf2) needs composite mode")
         if self.lattice and not self.adaptive:
@@ -106,6 +109,7 @@ class KernelConfig:
             (self.clip, "LC_CLIP"),
             (self.shade, "LC_SHADE"),
             (self.preint, "LC_PREINT"),
+            (self.gradient_opacity, "LC_GRADIENT_OPACITY"),
             (self.tf2, "LC_TF2"),
             (self.screen, "LC_SCREEN"),
             (self.passes, "LC_PASSES"),

@@ -36,6 +36,7 @@ typedef struct LcTf {
     int drow, dspans;
     __global const float4* ptab; /* LC_PREINT: the pre-integration table (pre_n x pre_n, then pre_knots warp rows) */
     int pre_n, pre_knots;
+    float gop;                   /* LC_GRADIENT_OPACITY: 1 / the gradient magnitude of full opacity (0: none) */
 } LcTf;
 
 /* the first TF (second = 0) or the second (LC_TF2), whose tables follow the first's in the same buffers */
@@ -66,6 +67,7 @@ static inline LcTf lc_tf_make(__constant const LcParams* P, __global const float
     f.ptab = ptab + (second ? P->tf2_ptab_at : 0);
     f.pre_n = second ? P->tf2_pre_n : P->pre_n;
     f.pre_knots = second ? P->tf2_pre_knots : P->pre_knots;
+    f.gop = second ? P->tf2_grad_op : P->grad_op;
     return f;
 }
 
@@ -168,13 +170,32 @@ static LC_HOT float lc_len_units(const float r, const LcTf* tf) {
 #endif
 }
 
+/* LC_GRADIENT_OPACITY (Levoy 1988's boundary emphasis, as VTK's gradient opacity): the factor w in [0, 1] on the
+ * TF's extinction at q, min(1, |gradient| / gradient_opacity), so that a segment's alpha becomes
+ * 1 - (1 - alpha)^w: independent of the step, as opacity per unit distance is; 1 without (the compiler drops it) */
+static LC_HOT float lc_extinction_weight(const LcTf* tf, LcSampler* s, const LcShade* sh, const float3 q) {
+#ifdef LC_GRADIENT_OPACITY
+    if (tf->gop <= 0.0f) return 1.0f;
+    const float3 g = lc_gradient(s, sh, q);
+    const float w = sqrt(g.x * g.x + g.y * g.y + g.z * g.z) * tf->gop;
+    return w < 1.0f ? w : (w == w ? 1.0f : 0.0f); /* NaN (a stencil into missing data): no defined boundary */
+#else
+    return 1.0f;
+#endif
+}
+
+/* alpha of a segment whose extinction is scaled by w */
+static LC_HOT float lc_weighted_alpha(const float alpha, const float w) {
+    return w == 1.0f ? alpha : lc_alpha_of_depth(w * lc_depth_of_alpha(alpha));
+}
+
 #include "lc_preint.h"
 
 /* LC_DIST: a coarse sample (sd > 0) by its distribution. The row after the table holds, per row pair (j, j + 1),
  * the span of entries where the expected extinction is non-zero: outside it the sample is transparent without the
  * bilinear lookup. */
 static LC_HOT void lc_classify_dist(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
-                                    const float v, const float sd, const float r, const float3 q) {
+                                    const float v, const float sd, const float r, const float3 q, const float ew) {
     float fj = sqrt(sd) * m->dist_sscale;
     fj = fj < m->dist_jmax ? fj : m->dist_jmax;
     const float4 sp = tf->dtab[tf->dspans + (int)fj];
@@ -189,10 +210,10 @@ static LC_HOT void lc_classify_dist(LcRay* ray, const LcTf* tf, const LcMarch* m
         const float4 e = a + (b - a) * wj;
         if (e.w > 0.0f) {
 #ifdef LC_PRECISE
-            const float depth = e.w * lc_len_units(r, tf);
+            const float depth = (e.w * lc_len_units(r, tf)) * ew;
             lc_blend_depth(ray, depth, lc_shade(s, sh, e.xyz, q), m->t_stop);
 #else
-            const float wgt = ray->T * lc_alpha_of_depth(e.w * lc_len_units(r, tf));
+            const float wgt = ray->T * lc_alpha_of_depth((e.w * lc_len_units(r, tf)) * ew);
             lc_blend(ray, wgt, lc_shade(s, sh, e.xyz, q), m->t_stop);
 #endif
         }
@@ -220,13 +241,13 @@ static LC_HOT int lc_visible(const LcTf* tf, const float v) {
  * not expm1: a library call anywhere in the march makes its ray state live in memory); a whole adaptive step of
  * step * 2^k (r = -1 - k, k >= 1) from row k of ext, which the host fills with that step's alphas. */
 static LC_HOT void lc_classify_point(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
-                                     const float v, const float r, const float3 q) {
+                                     const float v, const float r, const float3 q, const float ew) {
     if (!lc_visible(tf, v)) return;
     int i;
     float w;
     const float4 e = lc_tf_at(tf, v, &i, &w);
 #ifdef LC_PRECISE
-    const float depth = e.w * r;
+    const float depth = (e.w * r) * ew;
     lc_blend_depth(ray, depth, lc_shade(s, sh, e.xyz, q), m->t_stop);
 #else
     float alpha = e.w;
@@ -237,7 +258,7 @@ static LC_HOT void lc_classify_point(LcRay* ray, const LcTf* tf, const LcMarch* 
         const int o = (int)(-1.0f - r) * tf->row + i;
         alpha = tf->ext[o] + (tf->ext[o + 1] - tf->ext[o]) * w;
     }
-    lc_blend(ray, ray->T * alpha, lc_shade(s, sh, e.xyz, q), m->t_stop);
+    lc_blend(ray, ray->T * lc_weighted_alpha(alpha, ew), lc_shade(s, sh, e.xyz, q), m->t_stop);
 #endif
 }
 
@@ -248,16 +269,17 @@ static LC_HOT void lc_classify(LcRay* ray, const LcTf* tf, const LcMarch* m, LcS
 #ifndef LC_PRECISE
     r = r >= 0.0f ? r * tf->r_units : r;
 #endif
+    const float ew = lc_extinction_weight(tf, s, sh, q);
 #ifdef LC_DIST
     if (sd > 0.0f) {
-        lc_classify_dist(ray, tf, m, s, sh, v, sd, r, q);
+        lc_classify_dist(ray, tf, m, s, sh, v, sd, r, q, ew);
         return;
     }
 #endif
 #ifdef LC_PREINT
-    lc_preint_segment(ray, tf, m, s, sh, r, q);
+    lc_preint_segment(ray, tf, m, s, sh, r, q, ew);
 #else
-    lc_classify_point(ray, tf, m, s, sh, v, r, q);
+    lc_classify_point(ray, tf, m, s, sh, v, r, q, ew);
 #endif
 }
 

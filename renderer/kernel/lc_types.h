@@ -50,7 +50,7 @@ typedef struct LcParams {
     int ortho;          /* 1: orthographic projection, else perspective */
     float iso;          /* LC_MODE_ISO: the iso value */
     float shade_gref;   /* LC_SHADE: gradient magnitude at which a sample is fully lit (0: no weighting) */
-    int pad3;
+    float grad_op;      /* LC_GRADIENT_OPACITY: 1 / the TF's gradient_opacity (0: none) */
     /* LC_TF2: the second TF. Its tables follow the first's in the same buffers, at these entry offsets */
     int tf2_lut_at;     /* float4 entries into lut */
     int tf2_ext_at;     /* float entries into lut_ext */
@@ -66,7 +66,7 @@ typedef struct LcParams {
     float tf2_dist_lo;
     float tf2_dist_scale;
     int tf2_pre_knots;  /* its pre-integration table's axis */
-    int pad10;
+    float tf2_grad_op;  /* the same of tf2 */
     int tf2_pre_n;
     int prio_tile;      /* priority map: one byte per prio_tile x prio_tile pixels (0: no map, every pixel has */
     int prio_w;         /* priority), prio_w tiles per row */

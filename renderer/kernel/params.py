@@ -44,6 +44,7 @@ def fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: L
     p["ortho"] = int(fr.orthographic)
     p["max_samples"] = max_samples
     p["lut_vis_lo"], p["lut_vis_hi"] = lut.visible_span()
+    p["grad_op"] = _inverse_gradient_opacity(scene.tf)
     if pre is not None:
         p["pre_n"], p["pre_knots"] = pre.n, len(pre.warp)
     p["clip"] = clipping.kernel_planes(scene.clip)
@@ -67,6 +68,12 @@ def fill_params(vol: VolumeView, scene: Scene, fr: cam.Frame, box: tuple, lut: L
         p["dist_lo"], p["dist_scale"] = dist.lo, dist.scale
         p["dist_sscale"] = dist.std_scale * math.sqrt(vol.std_unit)
     return p.reshape(1)
+
+
+def _inverse_gradient_opacity(tf: object) -> float:
+    """LcParams.grad_op of a TF: 1 / its gradient_opacity, 0 for none (LC_GRADIENT_OPACITY)."""
+    g = getattr(tf, "gradient_opacity", None)
+    return 0.0 if g is None else 1.0 / float(g)
 
 
 def _tfs(pr: "Prepared") -> list[tuple[Lut, float]]:
@@ -118,6 +125,7 @@ def fill_tf2(p: np.ndarray, pr: "Prepared") -> None:
     q["tf2_lut_lo"], q["tf2_lut_scale"], q["tf2_lut_n"] = sec.lut.lo, sec.lut.scale, sec.lut.n
     q["tf2_vis_lo"], q["tf2_vis_hi"] = sec.lut.visible_span()
     q["tf2_inv_unit"] = 1.0 / sec.unit
+    q["tf2_grad_op"] = _inverse_gradient_opacity(sec.tf)
     if sec.dist is not None:
         assert pr.dist is not None  # tf2 has a table only where tf has one: one kernel config builds both
         q["tf2_dtab_at"] = np.asarray(pr.dist.kernel_table).reshape(-1, 4).shape[0]

@@ -24,6 +24,7 @@ __kernel void lc_probe(__constant const LcParams* P, __global float* f, __global
     f[89] = P->tf2_inv_unit; f[90] = P->tf2_dist_lo; f[91] = P->tf2_dist_scale;
     n[44] = P->pre_knots; n[45] = P->tf2_pre_knots;
     n[46] = P->jitter; n[47] = P->ortho;
+    f[92] = P->grad_op; f[93] = P->tf2_grad_op;
     vstore4(P->pass_lo, 24, f); vstore4(P->pass_hi, 25, f); /* f[96..103] */
     vstore4(P->pass_off, 7, n); vstore4(P->pass_dims, 8, n); /* n[28..35] */
     n[36] = P->pass_first;

@@ -53,6 +53,8 @@
  *   LC_CLIP           clip planes (lc_common.h: the ray's interval is cut exactly at each plane; a crop box needs no
  *                     option, the host intersects it with the volume's box)
  *   LC_PREINT         pre-integrated classification of each segment by the scalars at its ends (lc_preint.h)
+ *   LC_GRADIENT_OPACITY  (composite) a TF's extinction scaled by min(1, |gradient| / its gradient_opacity)
+ *                     (lc_classify.h: lc_extinction_weight; P->grad_op, P->tf2_grad_op)
  *   LC_SHADE          local illumination, Blinn-Phong with gradients through the ray's sampler (lc_shade.h)
  *   LC_SCREEN         adaptive screen-space sampling: work-item pix < P->screen_n casts the ray through image
  *                     position spos[pix] (a tile's sample, renderer/frame/screen.py) instead of its pixel's centre
@@ -132,9 +134,7 @@ __kernel void lc_render(__constant const LcParams* P, __global const lc_voxel* v
     cls.tf2 = lc_tf_make(P, lut, lut_ext, dtab, ptab, 1);
 #endif
     cls.m = lc_march_make(P, d, pix);
-#ifdef LC_SHADE
     cls.sh = lc_shade_make(P, d);
-#endif
     LcIntegrator it = lc_integrator_make(P, prio, xy);
 #ifdef LC_PASSES
     if (!P->pass_first) lc_state_move(&it, state + pix, lc_rays(P), 0);

@@ -56,6 +56,10 @@ Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 #: world units per opacity unit: its reciprocal must be finite and non-zero in the kernel's single precision
 UnitDistance = Annotated[float, Field(ge=1e-30, le=1e30, allow_inf_nan=False)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+GradientOpacity = Annotated[float, Field(gt=0.0, le=1e30, allow_inf_nan=False, description=(
+    "composite: the gradient magnitude (data units per world unit) from which the TF's opacity applies in full; "
+    "where the field's gradient is weaker the TF's extinction is scaled by |gradient| / gradient_opacity, so "
+    "boundaries show and homogeneous regions fade (None: opacity by value alone)"))]
 Vec3 = tuple[Finite, Finite, Finite]
 
 
@@ -73,6 +77,7 @@ class TransferFunction(_Model):
 
     points: list[TFPoint] = Field(min_length=1, max_length=4096)
     unit_distance: UnitDistance | None = None
+    gradient_opacity: GradientOpacity | None = None
 
     @field_validator("points")
     @classmethod
@@ -367,6 +372,9 @@ class Scene(_Model):
             raise ValueError("isovalue: required with mode 'iso' (the data value of the surface)")
         if self.tf2 is not None and self.mode != "composite":
             raise ValueError(f"tf2: a second transfer function needs mode 'composite', not {self.mode!r}")
+        for name in ("tf", "tf2"):
+            if getattr(getattr(self, name), "gradient_opacity", None) is not None and self.mode != "composite":
+                raise ValueError(f"{name}.gradient_opacity: gradient opacity needs mode 'composite', not {self.mode!r}")
         return self
 
     @field_validator("tf", "tf2", mode="before")
