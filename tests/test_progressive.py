@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recording import record_renders
 
 import lodcast
 from lodcast.renderer.frame.progressive import Ladder, upsample
@@ -22,19 +23,6 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def scene(**extra: object) -> dict:
     return {"camera": {"azimuth": 30, "elevation": 20}, "width": 96, "height": 64, "tf": TINY_TF, "format": "npy",
             **extra}
-
-
-def _count_renders(monkeypatch: pytest.MonkeyPatch, eng: lodcast.Renderer) -> list[dict]:
-    """The scenes `eng` renders from now on (each stage is one render)."""
-    seen: list[dict] = []
-    plain = eng.render
-
-    def counted(store, sc, **kw):  # type: ignore[no-untyped-def]
-        seen.append(lodcast.Scene.parse(sc).model_dump(mode="json"))
-        return plain(store, sc, **kw)
-
-    monkeypatch.setattr(eng, "render", counted)
-    return seen
 
 
 @pytest.mark.parametrize("quality", ["full", {"reduction": 4}])
@@ -70,7 +58,7 @@ def test_later_stages_reuse_what_earlier_ones_read(eng, store):
 
 
 def test_closing_the_generator_renders_nothing_more(eng, store, monkeypatch):
-    seen = _count_renders(monkeypatch, eng)
+    seen = record_renders(monkeypatch, eng)
     gen = eng.render_progressive(store, scene())
     first = next(gen)
     assert first.report["stage"] == 0 and not first.report["final"] and len(seen) == 1
@@ -81,7 +69,7 @@ def test_closing_the_generator_renders_nothing_more(eng, store, monkeypatch):
 
 def test_stop_ends_the_stages_between_them(eng, store, monkeypatch):
     """A caller's `stop` (a deadline, a superseded request) is asked before each stage after the first."""
-    seen = _count_renders(monkeypatch, eng)
+    seen = record_renders(monkeypatch, eng)
     asked = []
 
     def stop() -> None:

@@ -14,6 +14,7 @@ import httpx
 import numpy as np
 import pytest
 from PIL import Image
+from recording import record_renders
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -51,20 +52,6 @@ def client(root):
         yield c
 
 
-def renders_of(client: TestClient, monkeypatch: pytest.MonkeyPatch) -> list[dict]:
-    """The scenes the app's renderer renders from now on, one per stage."""
-    eng = client.app.state.engine.renderer  # type: ignore[attr-defined]
-    seen: list[dict] = []
-    plain = eng.render
-
-    def counted(store, sc, **kw):  # type: ignore[no-untyped-def]
-        seen.append(lodcast.Scene.parse(sc).model_dump(mode="json"))
-        return plain(store, sc, **kw)
-
-    monkeypatch.setattr(eng, "render", counted)
-    return seen
-
-
 def lines(text: str) -> list[dict]:
     return [json.loads(line) for line in text.splitlines() if line]
 
@@ -96,7 +83,7 @@ def test_a_newer_request_of_the_session_cancels_the_older_ones_stages(client, mo
     """The test client hands the app one line at a time as the test reads it: holding the first stream after its
     first line keeps it from starting its final stage, and the second request of the same session, read in full
     meanwhile, cancels what the first has to come."""
-    seen = renders_of(client, monkeypatch)
+    seen = record_renders(monkeypatch, client.app.state.engine.renderer)  # type: ignore[attr-defined]
     session = {"X-Lodcast-Session": "viewer-1"}
     with client.stream("POST", URL, params=PROGRESSIVE, json=scene(format="npy"), headers=session) as first:
         it = first.iter_lines()
@@ -122,7 +109,7 @@ def test_other_sessions_do_not_cancel(client):
 
 
 def test_a_dropped_connection_cancels_its_stages(client, monkeypatch):
-    seen = renders_of(client, monkeypatch)
+    seen = record_renders(monkeypatch, client.app.state.engine.renderer)  # type: ignore[attr-defined]
     with client.stream("POST", URL, params=PROGRESSIVE, json=scene(format="npy"),
                        headers={"X-Lodcast-Session": "gone"}) as r:
         assert json.loads(next(r.iter_lines()))["stage"] == 0

@@ -111,8 +111,11 @@ def stage_plan(engine: Engine, scene: Scene, vol: VolumeView, ladder: Ladder = L
         w, h = W, H
         if i == 0 and round(min(W, H) * ladder.first_scale) >= ladder.min_edge:
             w, h = max(1, round(W * ladder.first_scale)), max(1, round(H * ladder.first_scale))
-        # a preview samples adaptively whatever the scene says: coarse blocks hold nothing a finer step could find
-        sampling = scene.sampling.model_copy(update={"adaptive_object": None, "adaptive_naive": False})
+        # a preview samples adaptively whatever the scene says (coarse blocks hold nothing a finer step could find),
+        # and selects by the TF alone: its selection and atlas then serve every view, so a new view's first stage
+        # costs its kernel, not a visibility cast, a selection and a packing
+        sampling = scene.sampling.model_copy(update={"adaptive_object": None, "adaptive_naive": False,
+                                                     "lod_visibility": False})
         coarse = scene.model_copy(update={"quality": QualityReduction(reduction=r), "width": w, "height": h,
                                           "sampling": sampling})
         stages.append(Stage(coarse, W, H, False))
