@@ -24,6 +24,7 @@ __all__ = [
     "ingest",
     "open_store",
     "render",
+    "render_progressive",
     "Renderer",
     "Client",
     "AsyncClient",
@@ -53,6 +54,7 @@ _LAZY = {
     "ingest": ("lodcast.store.ingest", "ingest"),
     "open_store": ("lodcast.store.store", "open_store"),
     "render": ("lodcast.renderer.frame.render", "render"),
+    "render_progressive": ("lodcast.renderer.frame.render", "render_progressive"),
     "Renderer": ("lodcast.renderer.frame.render", "Renderer"),
     "SceneError": ("lodcast.renderer.scene.scene", "SceneError"),
     "CostError": ("lodcast.renderer.scene.cost", "CostError"),
@@ -75,7 +77,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from lodcast.environment import EnvironmentInvalid
     from lodcast.opencl import DeviceError
     from lodcast.renderer.data.volume import StoreLike
-    from lodcast.renderer.frame.render import Renderer, render
+    from lodcast.renderer.frame.render import Renderer, render, render_progressive
     from lodcast.renderer.image.output import ImageError, RenderResult
     from lodcast.renderer.image.report import RenderReport
     from lodcast.renderer.scene.cost import CostError

@@ -9,21 +9,21 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import os
 import sqlite3
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import Body, Depends, FastAPI, Query, Request
+from fastapi import Body, Depends, FastAPI, Header, Query, Request
 from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -33,9 +33,28 @@ from lodcast.renderer.scene.cost import CostError
 from lodcast.renderer.scene.scene import Scene, SceneError, validation_message
 from lodcast.service.asgi import BodyLimit, TokenGate, offline_docs
 from lodcast.service.jobs import IngestJob, Job, validate_job
-from lodcast.service.models import REPORT_HEADER, Deleted, Health, JobStatus, VolumeListing, VolumeSummary, errors
+from lodcast.service.models import (
+    NDJSON,
+    REPORT_HEADER,
+    SESSION_HEADER,
+    Deleted,
+    Health,
+    JobStatus,
+    VolumeListing,
+    VolumeSummary,
+    errors,
+)
+from lodcast.service.progressive import stream as progressive_stream
 from lodcast.service.records import status_json
-from lodcast.service.rendering import RenderEngine, RequestInvalid, encode, field_error, parse_scene, scene_refused
+from lodcast.service.rendering import (
+    RenderEngine,
+    RequestInvalid,
+    encode,
+    field_error,
+    finite_json,
+    parse_scene,
+    scene_refused,
+)
 from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.settings import Settings
 from lodcast.service.volumes import (
@@ -130,21 +149,6 @@ def gzipped(path: Path) -> bool:
     """Whether the file starts with gzip's magic bytes (1f 8b)."""
     with open(path, "rb") as f:
         return f.read(2) == b"\x1f\x8b"
-
-
-def _finite(obj: Any) -> Any:
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if hasattr(obj, "item") and callable(obj.item):  # numpy scalars
-        try:
-            return _finite(obj.item())
-        except (TypeError, ValueError):
-            return str(obj)
-    return obj
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -317,7 +321,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def summary_of(vid: str) -> dict[str, Any]:
         """A volume's summary as GET /volumes/{id} returns it; HttpError (409, 404) naming what is wrong."""
         try:
-            summary = _finite(volume_summary(settings.root, vid))
+            summary = finite_json(volume_summary(settings.root, vid))
         except StoreInvalid as exc:
             raise _store_error(vid, volume_path(settings.root, vid, must_exist=False), exc) from None
         try:
@@ -416,36 +420,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         delete_volume(settings.root, volume_id)
         return {"deleted": volume_id}
 
-    @app.post(
-        "/volumes/{volume_id}/render",
-        tags=["render"],
-        dependencies=auth,
-        response_class=Response,
-        summary="Render one image of a volume",
-        responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}},
-                                     "application/x-npy": {"schema": {"type": "string", "format": "binary"}}},
-                         "description": "the image (PNG, or premultiplied float32 RGBA as .npy); the render report "
-                                        "as JSON in the X-Lodcast-Report header",
-                         "headers": REPORT_HEADER},
-                   **errors(400, 401, 404, 409, 413, 422, 503)},
-    )
-    async def render(volume_id: VolumeId, request: Request,
-                     scene: Annotated[Scene, Body(description="what to render: camera, size, transfer function(s), "
-                                                              "quality, sampling, shading, clipping, mode, format",
-                                                  examples=[EXAMPLE_SCENE])]) -> Response:
-        path = volume_path(settings.root, volume_id)
-        sc = parse_scene(scene, settings)
-        eng = engine
-        try:  # before waiting for a render slot: a request that may not run is told so at once
-            samples = await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
-        except CostError as exc:
-            raise HttpError(413, " ".join(str(exc).split())) from None
-        except SceneError as exc:  # the scene's view of this volume is degenerate (renderer/scene/camera.py: frame)
-            raise scene_refused(exc) from None
-        except (StoreNotFound, StoreInvalid) as exc:
-            raise _store_error(volume_id, path, exc) from None
+    async def rendered(request: Request, volume_id: str, path: Any, samples: int,
+                       call: Callable[[Callable[[], None]], Any], cancel: threading.Event | None = None) -> Any:
+        """`call(stop)` on a worker thread, in a render slot: `stop` (between launch bands) raises _ClientGone once
+        the client hangs up or `cancel` is set, HttpError past the render timeout; the renderer's refusals raise
+        the HTTP errors that name them."""
         async with semaphore(samples):
-            gone, t0 = threading.Event(), time.monotonic()
+            gone, t0 = cancel or threading.Event(), time.monotonic()
 
             def stop() -> None:  # between launch bands (renderer/frame/render.py: launch)
                 if gone.is_set():
@@ -462,9 +443,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
             watcher = asyncio.create_task(watch())
             try:
-                result = await run_in_threadpool(eng.render, path, sc, settings.max_samples, stop)
-            except _ClientGone:
-                return Response(status_code=499)  # nobody is listening; the status is for the access log
+                return await run_in_threadpool(call, stop)
             except (StoreNotFound, StoreInvalid) as exc:
                 raise _store_error(volume_id, path, exc) from None
             except SceneError as exc:  # one the cost check could not see (a step too small for this volume)
@@ -473,9 +452,81 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 raise HttpError(400, f"scene: {' '.join(str(exc).split())}") from None
             finally:
                 watcher.cancel()
+
+    @app.post(
+        "/volumes/{volume_id}/render",
+        tags=["render"],
+        dependencies=auth,
+        response_class=Response,
+        summary="Render one image of a volume, or its progressive stages",
+        responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}},
+                                     "application/x-npy": {"schema": {"type": "string", "format": "binary"}},
+                                     NDJSON: {"schema": {"type": "string"}}},
+                         "description": "the image (PNG, or premultiplied float32 RGBA as .npy); the render report "
+                                        "as JSON in the X-Lodcast-Report header. With progressive=true, one JSON "
+                                        "line per stage, coarse to fine: {stage, final, report, image (base64 in "
+                                        "the scene's format)}",
+                         "headers": REPORT_HEADER},
+                   **errors(400, 401, 404, 409, 413, 422, 503)},
+    )
+    async def render(volume_id: VolumeId, request: Request,
+                     scene: Annotated[Scene, Body(description="what to render: camera, size, transfer function(s), "
+                                                              "quality, sampling, shading, clipping, mode, format",
+                                                  examples=[EXAMPLE_SCENE])],
+                     progressive: Annotated[bool, Query(description="stream the render's stages, coarse to fine, "
+                                                                    "as NDJSON (docs/serving.md)")] = False,
+                     session: Annotated[str | None, Header(alias=SESSION_HEADER.lower(), max_length=128,
+                                                           description="progressive: a newer stream of the same "
+                                                                       "session cancels this one's stages to come")]
+                     = None) -> Response:
+        path = volume_path(settings.root, volume_id)
+        sc = parse_scene(scene, settings)
+        eng = engine
+        started = time.perf_counter()
+        try:  # before waiting for a render slot: a request that may not run is told so at once
+            samples = await run_in_threadpool(eng.check_cost, path, sc, settings.max_samples)
+        except CostError as exc:
+            raise HttpError(413, " ".join(str(exc).split())) from None
+        except SceneError as exc:  # the scene's view of this volume is degenerate (renderer/scene/camera.py: frame)
+            raise scene_refused(exc) from None
+        except (StoreNotFound, StoreInvalid) as exc:
+            raise _store_error(volume_id, path, exc) from None
+        if progressive:
+            return await progressive_response(request, volume_id, path, sc, samples, session, started)
+        try:
+            result = await rendered(request, volume_id, path, samples,
+                                    lambda stop: eng.render(path, sc, settings.max_samples, stop))
+        except _ClientGone:
+            return Response(status_code=499)  # nobody is listening; the status is for the access log
         data, media = await run_in_threadpool(encode, result, sc)
-        report = json.dumps(_finite(dict(result.report)), separators=(",", ":"), default=str)
+        report = json.dumps(finite_json(dict(result.report)), separators=(",", ":"), default=str)
         return Response(content=data, media_type=media, headers={"X-Lodcast-Report": report})
+
+    async def progressive_response(request: Request, volume_id: str, path: Any, sc: Scene, samples: int,
+                                   session: str | None, started: float) -> Response:
+        """service/progressive.py: the first stage rendered here (its refusals are the plain route's), the others
+        as the client reads the stream."""
+        cancel = engine.sessions.begin(session)  # the session's older stream renders no more stages
+
+        def first(stop: Callable[[], None]) -> tuple[Any, Any]:
+            prog = engine.progressive(path, sc, started)
+            return prog, prog.render(0, settings.max_samples, stop)
+
+        try:
+            prog, result = await rendered(request, volume_id, path, samples, first)
+        except BaseException as exc:
+            engine.sessions.end(session, cancel)
+            if isinstance(exc, _ClientGone):
+                return Response(status_code=499)
+            raise
+
+        async def stage(k: int) -> Any:
+            return await rendered(request, volume_id, path, samples,
+                                  lambda stop: prog.render(k, settings.max_samples, stop), cancel)
+
+        lines = progressive_stream(result, len(prog.stages), sc, stage, cancel,
+                                   lambda: engine.sessions.end(session, cancel))
+        return StreamingResponse(lines, media_type=NDJSON)
 
     # --- jobs ---------------------------------------------------------------------------------------------------
     def get_record(job_id: str) -> dict[str, Any]:

@@ -53,7 +53,8 @@ EXAMPLES = {
                "lodcast render chest.zarr -o bone.png --tf ct-bone --background transparent   # keeps the alpha\n"
                "lodcast render head.zarr -o head.jpg --tf '{\"points\": [{\"value\": 40, \"opacity\": 0}, "
                "{\"value\": 120, \"opacity\": 0.6}]}'\n"
-               "lodcast render head.zarr -o lod.png --scene examples/head-lod.scene.json --report report.json   # 30:1, shading"),
+               "lodcast render head.zarr -o lod.png --scene examples/head-lod.scene.json --report report.json   # 30:1, shading\n"
+               "lodcast render chest.zarr -o chest.png --tf ct-bone --progressive   # chest-stage0.png, chest-stage1.png, then chest.png"),
     "serve": ("serve the HTTP API (OpenAPI at /docs) over the stores under a root, with a job queue and a worker",
               "lodcast serve --root stores/ --port 8000\n"
               "LODCAST_TOKEN=secret lodcast serve --root stores/ --host 0.0.0.0 --queue redis://localhost:6379/0\n"

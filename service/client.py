@@ -9,12 +9,14 @@ Errors raise ServiceError carrying the server's status and message.
 from __future__ import annotations
 
 import asyncio
+import base64
 import io
 import json
 import os
 import sys
 import time
-from collections.abc import AsyncIterator, Callable, Mapping
+import uuid
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Generic, TypeVar, cast
@@ -26,7 +28,7 @@ from lodcast.errors import LodcastError
 from lodcast.renderer.image.output import RenderResult
 from lodcast.renderer.image.report import RenderReport
 from lodcast.renderer.scene.scene import SceneLike
-from lodcast.service.models import Health, JobStatus, VolumeListing, VolumeSummary, VolumeUnreadable
+from lodcast.service.models import SESSION_HEADER, Health, JobStatus, VolumeListing, VolumeSummary, VolumeUnreadable
 
 __all__ = ["Client", "AsyncClient", "ServiceError"]
 
@@ -107,6 +109,18 @@ def _render_result(r: httpx.Response) -> RenderResult:
     import numpy as np
 
     return RenderResult(np.load(io.BytesIO(r.content), allow_pickle=False), _report(r))
+
+
+def _stage(line: str, url: str) -> RenderResult:
+    """One line of a progressive render's stream (service/progressive.py) as its RenderResult; an error line raises
+    ServiceError."""
+    import numpy as np
+
+    obj = json.loads(line)
+    if "error" in obj:
+        raise ServiceError(int(obj["error"]["status"]), obj["error"]["detail"], "POST", url)
+    rgba = np.load(io.BytesIO(base64.b64decode(obj["image"])), allow_pickle=False)
+    return RenderResult(rgba, cast(RenderReport, obj["report"]))
 
 
 def _content(r: httpx.Response) -> bytes:
@@ -212,6 +226,14 @@ class _Requests:
                         kw={"json": {**_scene_dict(scene), "format": "npy"}, **_t(timeout)})
 
     @staticmethod
+    def render_progressive(volume: str, scene: SceneLike, session: str,
+                           timeout: float | None) -> _Request[RenderResult]:
+        """Streamed: `read` is not used, each line is one stage (`_stage`)."""
+        return _Request("POST", f"/volumes/{volume}/render", _render_result, idempotent=False,
+                        kw={"json": {**_scene_dict(scene), "format": "npy"}, "params": {"progressive": "true"},
+                            "headers": {SESSION_HEADER: session}, **_t(timeout)})
+
+    @staticmethod
     def submit(job: _Job, timeout: float | None) -> _Request[JobStatus]:
         return _Request("POST", "/jobs", _model(JobStatus), kw={"json": _job_dict(job), **_t(timeout)})
 
@@ -277,6 +299,7 @@ class _Api:
         token = token if token is not None else os.environ.get("LODCAST_TOKEN")
         self._headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.base_url = base_url.rstrip("/")
+        self.session = uuid.uuid4().hex  # this client's progressive renders: a newer one cancels the older
 
     def _delay(self, attempt: int, again: bool, r: httpx.Response | None, exc: Exception | None) -> float | None:
         """Seconds to wait before trying again, or None to stop here: after 0.25 s, 0.5 s, 1 s, ... (or the
@@ -357,6 +380,21 @@ class Client(_Api):
     def render(self, volume: str, scene: SceneLike, *, timeout: float | None = None) -> RenderResult:
         """A RenderResult, as local rendering returns: float32 premultiplied RGBA (fetched as .npy) and the report."""
         return self._send(_Requests.render(volume, scene, timeout))
+
+    def render_progressive(self, volume: str, scene: SceneLike, *, session: str | None = None,
+                           timeout: float | None = None) -> Iterator[RenderResult]:
+        """The stages of a progressive render, coarse to fine, as they arrive (docs/serving.md): RenderResults of
+        the scene's size (float32 RGBA, fetched as .npy), the last at the scene's quality. A newer progressive
+        render of the same `session` (default: this client's) ends this one's stream before its final stage;
+        closing the generator hangs up, which cancels the stages still to come. Not retried."""
+        req = _Requests.render_progressive(volume, scene, session or self.session, timeout)
+        with self._http.stream(req.method, req.url, **req.kw) as r:
+            if r.status_code >= 400:
+                r.read()
+                _checked(r, req.method, req.url)
+            for line in r.iter_lines():
+                if line.strip():
+                    yield _stage(line, req.url)
 
     # --- jobs -------------------------------------------------------------------------------------------------
     def submit(self, job: Mapping[str, Any] | BaseModel | str | os.PathLike[str], *,
@@ -468,6 +506,18 @@ class AsyncClient(_Api):
 
     async def render(self, volume: str, scene: SceneLike, *, timeout: float | None = None) -> RenderResult:
         return await self._send(_Requests.render(volume, scene, timeout))
+
+    async def render_progressive(self, volume: str, scene: SceneLike, *, session: str | None = None,
+                                 timeout: float | None = None) -> AsyncIterator[RenderResult]:
+        """`Client.render_progressive`, awaited (``async for stage in c.render_progressive(...)``)."""
+        req = _Requests.render_progressive(volume, scene, session or self.session, timeout)
+        async with self._http.stream(req.method, req.url, **req.kw) as r:
+            if r.status_code >= 400:
+                await r.aread()
+                _checked(r, req.method, req.url)
+            async for line in r.aiter_lines():
+                if line.strip():
+                    yield _stage(line, req.url)
 
     # --- jobs -------------------------------------------------------------------------------------------------
     async def submit(self, job: Mapping[str, Any] | BaseModel | str | os.PathLike[str], *,

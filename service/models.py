@@ -8,7 +8,8 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = ["Health", "Progress", "JobStatus", "Level", "VolumeSummary", "VolumeUnreadable", "VolumeListing", "Deleted",
-           "ErrorBody", "FieldError", "errors", "REPORT_HEADER"]
+           "ErrorBody", "FieldError", "errors", "REPORT_HEADER",
+           "SESSION_HEADER", "NDJSON"]
 
 JOB_STATES = Literal["queued", "running", "done", "failed", "cancelled"]
 JOB_KINDS = Literal["turntable", "scenes", "tf_sweep", "volumes", "ingest"]
@@ -131,6 +132,11 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     """The `responses=` of a route: each code with the error body and why it happens."""
     return {code: {"model": ErrorBody, "description": _WHY[code]} for code in codes}
 
+
+#: the header naming a client's session: its newer progressive render cancels the stages still to come of the older
+SESSION_HEADER = "X-Lodcast-Session"
+#: the media type of a progressive render's stream: one JSON object per line
+NDJSON = "application/x-ndjson"
 
 REPORT_HEADER = {
     "X-Lodcast-Report": {

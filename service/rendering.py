@@ -7,6 +7,7 @@ goes through one renderer (one brick pool, one device cache, the same opened sto
 from __future__ import annotations
 
 import io
+import math
 import re
 import threading
 from collections.abc import Sequence
@@ -17,7 +18,7 @@ from lodcast.errors import LodcastError
 from lodcast.renderer.scene.scene import branchless
 
 __all__ = ["RequestInvalid", "parse_scene", "from_pydantic", "field_error", "scene_refused", "check_tf", "RenderEngine",
-           "encode"]
+           "encode", "finite_json"]
 
 
 class RequestInvalid(LodcastError, ValueError):
@@ -109,6 +110,23 @@ def check_tf(data: Any, loc: tuple) -> dict | str:
     return data
 
 
+def finite_json(obj: Any) -> Any:
+    """`obj` as JSON takes it: a float that is not finite (a reduction of infinity, when nothing is loaded) as null,
+    NumPy scalars as Python's, keys as strings."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item):  # numpy scalars
+        try:
+            return finite_json(obj.item())
+        except (TypeError, ValueError):
+            return str(obj)
+    return obj
+
+
 class RenderEngine:
     """The service's renderer (lodcast.Renderer, made on first use with the settings' device budget), addressed by
     store path: its opened stores are reopened when a store was replaced since (another process ingested it again
@@ -116,9 +134,12 @@ class RenderEngine:
     new root zarr.json)."""
 
     def __init__(self, settings: Any = None) -> None:
+        from lodcast.service.progressive import Sessions
+
         self._budget = None if settings is None else getattr(settings, "device_budget_mb", None)
         self._renderer: Any = None
         self._lock = threading.Lock()
+        self.sessions = Sessions()  # the progressive streams under way, by X-Lodcast-Session
 
     @property
     def renderer(self) -> Any:
@@ -144,6 +165,13 @@ class RenderEngine:
 
     def render(self, path: Path | str, scene: Any, sample_limit: int | None = None, stop: Any = None) -> Any:
         return self.renderer.render(self.store(path), scene, sample_limit=sample_limit, stop=stop)
+
+    def progressive(self, path: Path | str, scene: Any, started: float) -> Any:
+        """The stages of a progressive render (renderer/frame/progressive.py: Progressive), planned, none rendered;
+        wall ms counted from `started` (time.perf_counter() at the request)."""
+        from lodcast.renderer.frame.progressive import Progressive
+
+        return Progressive.plan(self.renderer, self.store(path), scene, started=started)
 
     def prefetch(self, path: Path | str, scene: Any) -> int:
         """The bricks a render of `scene` will need, read into the brick cache (Renderer.prefetch)."""

@@ -8,7 +8,7 @@ import sys
 import lodcast
 
 PUBLIC = [
-    "__version__", "ingest", "open_store", "render", "Renderer", "Client", "AsyncClient", "JobStatus",
+    "__version__", "ingest", "open_store", "render", "render_progressive", "Renderer", "Client", "AsyncClient", "JobStatus",
     "VolumeSummary", "RenderResult", "RenderReport", "Scene", "SceneLike", "StoreLike",
     "LodcastError", "SourceError", "SourceNotFound", "StoreExists", "StoreInvalid", "StoreNotFound", "StoreCorrupt",
     "SceneError", "CostError", "ImageError", "DeviceError", "EnvironmentInvalid", "ServiceError",

@@ -6,6 +6,7 @@ from __future__ import annotations
 import inspect
 import types
 import warnings
+from collections.abc import AsyncIterator, Iterator
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints, is_typeddict
 
 import numpy as np
@@ -120,7 +121,13 @@ def test_async_client_verbs_are_coroutines_typed_as_the_clients():
     from lodcast.service.client import AsyncClient, Client
 
     client_verbs = {n for n, v in vars(Client).items() if inspect.isfunction(v) and not n.startswith("_")}
-    assert client_verbs == {*VERBS, "close"}
+    assert client_verbs == {*VERBS, "close", "render_progressive"}
+    # the one streamed verb: a generator, and an async generator, of RenderResults with the same parameters
+    sync_stream, async_stream = Client.render_progressive, AsyncClient.render_progressive
+    assert inspect.isgeneratorfunction(sync_stream) and inspect.isasyncgenfunction(async_stream)
+    assert get_type_hints(sync_stream)["return"] == Iterator[lodcast.RenderResult]
+    assert get_type_hints(async_stream)["return"] == AsyncIterator[lodcast.RenderResult]
+    assert inspect.signature(sync_stream).parameters.keys() == inspect.signature(async_stream).parameters.keys()
     for name in VERBS:
         sync, coro = getattr(Client, name), getattr(AsyncClient, name)
         assert inspect.iscoroutinefunction(coro), name

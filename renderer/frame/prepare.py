@@ -33,7 +33,7 @@ from lodcast.renderer.scene.scene import AdaptiveTF, OrbitCamera, Scene, SceneEr
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.walk.info import block_info
 
-__all__ = ["prepare", "check_cost", "prefetch", "resolved", "geometry"]
+__all__ = ["prepare", "check_cost", "prefetch", "resolved", "geometry", "selection"]
 
 
 def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tuple[list, tuple]:
@@ -297,6 +297,19 @@ def _screen_plan(vol: VolumeView, scene: Scene, fr: cam.Frame, info: np.ndarray,
     pri = screen_space.tile_priorities(fr, levels, visible, vol.shape, vol.spacing, vol.origin, vol.block_size,
                                        scene.width, scene.height, s.screen_tile, s.screen_statistic)
     return screen_space.plan(screen_space.resolutions(pri, s.screen_tile), scene.width, scene.height, s.screen_tile)
+
+
+def selection(eng: Engine, vol: VolumeView, scene: Scene) -> Any:
+    """The level-of-detail selection (selection.Selection) `prepare` makes for `scene` (not at quality "full"),
+    kept where prepare finds it: asking first costs a render of the scene nothing."""
+    scene = resolved(eng, scene, vol)
+    assert isinstance(scene.tf, TransferFunction)  # resolved() put an adaptive TF's control points in its place
+    _, fr, kbox, _ = geometry(vol, scene)
+    keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
+    view = None
+    if _view_weighted(scene, vol):
+        view = (fr, kbox, build_lut(scene.tf, vol.value_range), unit_distance(scene.tf, vol.spacing))
+    return _select(eng, vol, scene, None, keep, view)[1]
 
 
 def prefetch(eng: Engine, store: StoreLike, scene: SceneLike) -> int:

@@ -28,7 +28,7 @@ import math
 import threading
 import time
 from dataclasses import replace
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Iterator, Literal
 
 import numpy as np
 import pyopencl as cl
@@ -39,6 +39,7 @@ from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.frame import screen as screen_space
 from lodcast.renderer.frame.plan import Prepared
+from lodcast.renderer.frame.progressive import Ladder, Progressive
 from lodcast.renderer.image.output import RenderResult
 from lodcast.renderer.image.report import PriorityMapReport, RenderReport, ScreenReport
 from lodcast.renderer.kernel.params import ext_table, lut_table, tables
@@ -49,7 +50,7 @@ from lodcast.renderer.scene.transfer_function import build_lut, unit_distance
 from lodcast.renderer.walk.info import adaptive_walk, walk_info
 
 __all__ = ["Renderer", "RenderResult", "RenderReport", "StoreLike", "SceneLike", "default_renderer", "render",
-           "prepare", "prefetch", "check_cost", "launch", "LOCAL_SIZE"]
+           "render_progressive", "Ladder", "prepare", "prefetch", "check_cost", "launch", "LOCAL_SIZE"]
 
 LOCAL_SIZE = (8, 8)
 BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): a stop waits for the band in flight, so keep it short
@@ -236,6 +237,9 @@ def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
         "width": W,
         "height": H,
         "device": dev.info()["name"],
+        "stage": 0,
+        "final": True,
+        "image_scale": 1.0,
     }
     return RenderResult(rgba, report, scene.model_dump(mode="json"))
 
@@ -258,6 +262,18 @@ class Renderer(Engine):
         called between launch bands (see `launch`); whatever it raises ends the render there."""
         return _render(self, store, scene, spacing=spacing, origin=origin, levels=levels,
                        sample_limit=sample_limit, stop=stop)
+
+    def render_progressive(self, store: StoreLike, scene: SceneLike, *, ladder: Ladder | None = None,
+                           sample_limit: int | None = None,
+                           stop: Callable[[], None] | None = None) -> Iterator[RenderResult]:
+        """`scene` of `store` coarse to fine (renderer/frame/progressive.py): RenderResults of the scene's size,
+        the last at its quality and equal to `render(store, scene)`; each report's `stage`, `final` and wall_ms
+        since the first stage was asked for. Each stage renders when the next result is asked for: closing the
+        generator ends the work. `ladder` (progressive.Ladder) changes the staging; `sample_limit` and `stop` as
+        `render`'s, for every stage."""
+        prog = Progressive.plan(self, store, scene, ladder or Ladder())
+        for k in range(len(prog.stages)):
+            yield prog.render(k, sample_limit, stop)
 
     def prepare(self, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
                 levels: np.ndarray | None = None, sample_limit: int | None = None) -> Prepared:
@@ -310,6 +326,13 @@ def render(store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: A
     """`Renderer.render` on the default renderer."""
     return default_renderer().render(store, scene, spacing=spacing, origin=origin, levels=levels,
                                      sample_limit=sample_limit, stop=stop)
+
+
+def render_progressive(store: StoreLike, scene: SceneLike, *, ladder: Ladder | None = None,
+                       sample_limit: int | None = None,
+                       stop: Callable[[], None] | None = None) -> Iterator[RenderResult]:
+    """`Renderer.render_progressive` on the default renderer."""
+    return default_renderer().render_progressive(store, scene, ladder=ladder, sample_limit=sample_limit, stop=stop)
 
 
 def prepare(store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None, levels: np.ndarray | None = None,

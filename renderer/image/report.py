@@ -73,11 +73,15 @@ class RenderReport(TypedDict):
     width: int
     height: int
     device: str
+    stage: int
+    final: bool
+    image_scale: float
 
 
 #: what each key of a RenderReport means (docs/reference.md's table), in the report's order
 REPORT_FIELDS: dict[str, str] = {
-    "wall_ms": "the whole render, milliseconds: selection, brick reads, uploads, kernel, read-back",
+    "wall_ms": "the whole render, milliseconds: selection, brick reads, uploads, kernel, read-back (at a "
+               "progressive render's stage: since the request, its earlier stages included)",
     "kernel_ms": "the ray-casting kernel alone (OpenCL profiling), milliseconds",
     "bricks_read": "bricks read from the store for this render (the rest were on the device or in the brick cache)",
     "bricks_cached": "bricks not read: the device had them (the same selection, or the same block at the same level in the last atlas of this store) or the brick cache did",
@@ -121,4 +125,9 @@ REPORT_FIELDS: dict[str, str] = {
     "width": "image width, pixels",
     "height": "image height, pixels",
     "device": "the OpenCL device",
+    "stage": "the stage of a progressive render (0, 1, ...: coarse to fine); 0 for a plain render",
+    "final": "whether this is the last stage of a progressive render, the scene's own quality (true for a plain "
+             "render)",
+    "image_scale": "rays per pixel edge: 1, or less at an early progressive stage rendered smaller and scaled up "
+                   "to width × height",
 }

@@ -1,4 +1,4 @@
-"""`lodcast render STORE -o OUT.png|.jpg|.webp|.tif|.npy [--scene scene.json] [--report out.json] [shortcuts]`.
+"""`lodcast render STORE -o OUT.png|.jpg|.webp|.tif|.npy [--scene scene.json] [--report out.json] [--progressive] [shortcuts]`.
 
 The scene file is the JSON scene of docs/design.md; flag shortcuts override it (or build one from nothing, with
 --tf): --width --height --azimuth --elevation --distance --fov --tf TF.json --tf2 TF.json --step --mode --isovalue
@@ -80,6 +80,10 @@ def add_parser(sub: argparse._SubParsersAction, func: Callable[[argparse.Namespa
                    "sRGB; JPEG has no alpha) or OUT.npy (float32 premultiplied RGBA, the integral as produced)")
     p.add_argument("--scene", help="scene JSON file (camera, width, height, tf, quality, sampling, shading, clip, mode, ...: docs/reference.md); the flags below override its fields")
     p.add_argument("--report", help="write the render report (JSON) here")
+    p.add_argument("--progressive", action="store_true",
+                   help="render coarse to fine: each stage before the last is written as OUT-stage0.png, "
+                        "OUT-stage1.png, ... (OUT's suffix), the last, at the scene's quality, as OUT; one line per "
+                        "stage on stderr")
     add_scene_options(p)
     p.set_defaults(func=func)
     return p
@@ -184,6 +188,27 @@ def scene_data(args: argparse.Namespace) -> dict[str, Any]:
     return data
 
 
+def stage_path(out: Path, k: int) -> Path:
+    """Where `lodcast render --progressive -o OUT` writes stage `k` before the last: OUT-stage{k} with OUT's suffix."""
+    return out.with_name(f"{out.stem}-stage{k}{out.suffix}")
+
+
+def _progressive(store: Any, scene: Scene, out: Path, fmt: str) -> Any:
+    """The stages of `scene`, each before the last written beside `out` (stage_path) as it arrives, one line each on
+    stderr; the last stage's result (its caller writes it to `out`)."""
+    from lodcast.renderer.frame.render import render_progressive
+
+    for result in render_progressive(store, scene):
+        r = result.report
+        pred = r["predicted_delta_e"]
+        where = out if r["final"] else result.save(stage_path(out, r["stage"]), fmt)
+        print(f"stage {r['stage']}{' (final)' if r['final'] else ''}: reduction "
+              f"{'-' if r['reduction'] is None else format(r['reduction'], '.3g')}:1, predicted ΔE "
+              f"{'-' if pred is None else format(pred, '.2f')}, {r['wall_ms']:.0f} ms since the start -> {where}",
+              file=sys.stderr)
+    return result
+
+
 def run(args: argparse.Namespace) -> int:
     """`lodcast render`. Errors come in the order a user fixes them: the store, then the output (and --report)
     path and format, then the scene."""
@@ -203,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
     if "background" not in data and fmt in OPAQUE_BY_DEFAULT:
         data["background"] = [0.0, 0.0, 0.0, 1.0]  # as VTK and ParaView show a volume; --background transparent keeps alpha
     scene = Scene.parse(data)
-    result = render(store, scene)
+    result = _progressive(store, scene, out, fmt) if args.progressive else render(store, scene)
     result.save(out, fmt)
     if args.report:
         rp = Path(args.report)
