@@ -66,8 +66,7 @@ def measure(store_path: str) -> dict:
         ms, r = _ms(lambda: eng.render(st, sc))
         views.append({"ms": ms, "bricks_read": r.report["bricks_read"]})
     out["new_views_visibility"] = views
-    eng.close()
-    del eng
+    eng.close()  # its caches go: the process holds one brick pool's worth, as with one renderer
     bud = lodcast.Renderer(brick_cache_mb=4096, device_budget_mb=256)
     frames = []
     for _ in range(2):
