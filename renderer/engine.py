@@ -13,18 +13,16 @@ import threading
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 from lodcast.environment import Environment, EnvironmentInvalid, environment
 from lodcast.opencl import Device
 from lodcast.renderer.cache import ByteLru
+from lodcast.renderer.pool import BrickPool
 from lodcast.store.opened import OpenStores
 
-__all__ = ["Engine", "Settings", "Tables", "BrickCache", "BRICK_ENTRY_BYTES", "OPEN_STORES"]
+__all__ = ["Engine", "Settings", "Tables", "OPEN_STORES"]
 
-#: what a cached brick costs beyond its voxels: the array object, its key and the LRU's entry, so that a million
-#: small coarse bricks count for what they hold
-BRICK_ENTRY_BYTES = 448
 #: stores named by path or URL kept opened per engine
 OPEN_STORES = 32
 
@@ -76,19 +74,6 @@ def _positive(name: str, value: float, zero: bool = False) -> float:
     return v
 
 
-class BrickCache(ByteLru):
-    """Bricks (arrays: values in the store's type up to 16-bit integers, else float32; deviations uint16 in units
-    of the volume's std_unit) keyed by (kind, store key, level, bz, by, bx), LRU by bytes (each brick's voxels plus
-    BRICK_ENTRY_BYTES); counts the bricks read."""
-
-    def __init__(self, max_bytes: "int | Callable[[], int]"):
-        super().__init__(max_bytes)
-        self.reads = 0  # bricks of values read from stores since creation (tests count these)
-
-    def put(self, key: tuple, a: Any) -> None:  # type: ignore[override]
-        super().put(key, a, a.nbytes + BRICK_ENTRY_BYTES)
-
-
 class Tables:
     """What is computed from a store and transfer functions alone, not from the view, kept for the recent ones: a
     turntable or a camera sweep computes each once. Stores are held weakly (an entry goes with its store)."""
@@ -108,7 +93,7 @@ class Engine:
     """The OpenCL device, the caches and the settings of one renderer (module docstring).
 
     Caches, each an LRU bounded by bytes or entries:
-    - `bricks`: bricks read from stores (renderer/data/bricks.py); on a device whose buffers are host memory it gives
+    - `bricks`: the pool of bricks read from stores, of every level and quality (renderer/pool.py); on a device whose buffers are host memory it gives
       way to what the device cache and the buffers being filled hold, down to an eighth of its size;
     - `device_cache`: level-0 volumes, atlases and coarse levels on the device;
     - `selections`, `step_errors`, `steps`: level-of-detail selections, predicted step errors and adaptive step
@@ -124,7 +109,7 @@ class Engine:
                                     brick_cache_mb=brick_cache_mb, device_cache_mb=device_cache_mb)
         self.device = Device(self.settings.device, env.cache_dir / "kernels")
         self.device_cache = ByteLru(self.settings.device_cache_bound, keep_last=True)
-        self.bricks = BrickCache(self._brick_bound)
+        self.bricks = BrickPool(self._brick_bound)
         self.selections = ByteLru(4)  # one unit each: (store, TFs, quality, classification, crop, view)
         self.step_errors = ByteLru(8)  # one unit each: (store, TFs, step, crop)
         self.steps = ByteLru(64 << 20)

@@ -16,8 +16,8 @@ import lodcast
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import atlas_cells
 from lodcast.renderer.data.volume import as_volume
-from lodcast.renderer.engine import BrickCache
 from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.pool import BrickPool
 
 BONE = {"points": [{"value": 300, "color": [1, 0.9, 0.8], "opacity": 0.0},
                    {"value": 900, "color": [1, 1, 1], "opacity": 0.7}]}
@@ -134,8 +134,8 @@ def test_only_the_bricks_of_blocks_whose_level_changed_are_read(store, eng):
     first = rng.integers(-1, store.n_levels, size=vol.grid).astype(np.int8)
     levels = _changed(first, rng, 0.25, store.n_levels - 1)
     _forget(eng)
-    lod_atlas.device_atlas(eng, vol, first, with_std=True, cache=BrickCache(1 << 30))
-    da = lod_atlas.device_atlas(eng, vol, levels, with_std=True, cache=BrickCache(1 << 30))  # nothing cached there
+    lod_atlas.device_atlas(eng, vol, first, with_std=True, cache=BrickPool(1 << 30))
+    da = lod_atlas.device_atlas(eng, vol, levels, with_std=True, cache=BrickPool(1 << 30))  # nothing cached there
     new = int(((levels != first) & (levels >= 0)).sum())
     assert 0 < new < int((levels >= 0).sum())
     assert (da.read, da.cached) == (new, int((levels >= 0).sum()) - new)

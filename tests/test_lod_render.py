@@ -11,8 +11,8 @@ import lodcast
 from lodcast.opencl import Device
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import bricks, sampler
-from lodcast.renderer.engine import BrickCache
 from lodcast.renderer.frame.render import Renderer
+from lodcast.renderer.pool import BrickPool
 from lodcast.store.layout import cell_edge
 
 
@@ -131,7 +131,7 @@ def test_mip_all_level0_equals_full(eng, store):
 
 def test_atlas_layout_and_max_alloc(eng, store):
     lv = np.random.default_rng(2).integers(-1, store.n_levels, store.grid).astype(np.int8)
-    ld = bricks.load_bricks(eng, lodcast.renderer.data.volume.as_volume(store), lv, BrickCache(2**30))
+    ld = bricks.load_bricks(eng, lodcast.renderer.data.volume.as_volume(store), lv, BrickPool(2**30))
     atlas, index = lod_atlas.pack(lv, ld.bricks, B, max_bytes=2**30)
     sizes = [((B >> int(k)) + 2 * (k == 0)) ** 3 for k in lv.ravel() if k >= 0]  # level 0 inside its apron
     assert atlas.size == sum(sizes) and index.dtype == np.uint64 and index.shape == lv.shape

@@ -32,9 +32,10 @@ import pyopencl as cl
 from numpy.typing import ArrayLike
 
 from lodcast.opencl import DeviceError
-from lodcast.renderer.data.bricks import BrickStats, iter_bricks
+from lodcast.renderer.data.bricks import BrickStats, brick_batches
 from lodcast.renderer.data.volume import voxel_options
-from lodcast.renderer.engine import BrickCache, Engine
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.pool import BrickPool
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
            "device_atlas", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
@@ -151,6 +152,26 @@ def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> Non
             out[o:o + m**3].reshape(m, m, m)[1:-1, 1:-1, 1:-1] = a
         else:
             out[o:o + a.size] = a.ravel()
+
+
+def _place_batches(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, batches: Any) -> None:
+    """Write each (level, blocks, bricks) batch of `batches` (bricks.brick_batches) at its blocks' offsets in `out`
+    (cast to out's type), as `_place` does brick by brick: the bricks of a level lie together in C order of the
+    grid, each the same size, so a batch is one assignment into the level's run of bricks."""
+    flat = np.asarray(levels).ravel()
+    runs: dict[int, tuple[int, np.ndarray]] = {}
+    for k, blocks, bricks in batches:
+        if k not in runs:
+            at = offsets[flat == k]
+            runs[k] = int(at.min()), at
+        o0, at = runs[k]
+        m = bricks.shape[1] + 2 * (k == 0)
+        run = out[o0:o0 + at.size * m**3].reshape(at.size, m, m, m)
+        rows = (offsets[blocks] - o0) // m**3
+        if k == 0:
+            run[rows, 1:-1, 1:-1, 1:-1] = bricks
+        else:
+            run[rows] = bricks
 
 
 def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int) -> None:
@@ -351,7 +372,7 @@ class DeviceAtlas:
 
 
 def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
-                 cache: BrickCache | None = None, slices: np.ndarray | None = None,
+                 cache: BrickPool | None = None, slices: np.ndarray | None = None,
                  keep: bool = True) -> DeviceAtlas:
     """The atlas and index map of `levels` on `eng`'s device (kept in its device cache: reused when a recent render
     had the same store and levels, else loaded through the brick cache, packed and uploaded); `with_std`: also the
@@ -401,20 +422,20 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
                 # old maps base (with deviations: with_std is part of its family), and kept compares with it
                 assert base is not None and kept is not None and sig is not None and old[1] is not None
                 copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
-            items = iter_bricks(eng, vol, todo, cache, stats=st)
+            items = brick_batches(eng, vol, todo, cache, stats=st)
             deviations = sig
             if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
                 assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
                 assert sig is not None  # packed needs with_std
                 halves = sig.view(np.uint16)
-                items, deviations = _coarse_bits(items, halves[0::2], levels.shape, offsets), halves[1::2]
+                items, deviations = _coarse_bits(items, halves[0::2], levels, offsets), halves[1::2]
             reuse = None if old is None or base is None or kept is None else (
                 lambda host: copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
                                                    range(0, 1 if packed else L), B))
             d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse)
             if with_std:
                 assert deviations is not None  # sig or its high halves, with_std
-                _place(deviations, levels.shape, offsets, iter_bricks(eng, vol, todo, cache, what="std"))
+                _place_batches(deviations, levels, offsets, brick_batches(eng, vol, todo, cache, what="std"))
         finally:
             if sig is not None:
                 cast(cl.MemoryMap, sig.base).release(queue)  # a mapped array's base is its mapping
@@ -465,28 +486,30 @@ def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.nda
 
 def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
             items: Any, reuse: Any = None) -> cl.Buffer:
-    """A device buffer of n elements with every brick of `items` (and those `reuse` copies into the host
-    mapping) placed at its offset and the level-0 bricks' aprons filled, written through a host mapping."""
+    """A device buffer of n elements with every brick of `items` (batches: bricks.brick_batches; and those `reuse`
+    copies into the host mapping) placed at its offset and the level-0 bricks' aprons filled, written through a
+    host mapping."""
     buf, host = _mapped(ctx, queue, n, dtype)
     try:
         if reuse is not None:
             reuse(host)
-        _place(host, levels.shape, offsets, items)
+        _place_batches(host, levels, offsets, items)
         _fill_aprons(host, levels, offsets, block_size)
     finally:
         cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
     return buf
 
 
-def _coarse_bits(items: Any, low: np.ndarray, grid: tuple, offsets: np.ndarray) -> Any:
-    """The level-0 bricks of `items`; each coarse brick's values go, as their 16 bits, into `low` (the low halves
-    of the deviations' buffer, lc_sig) instead: two's complement for signed types, 8-bit types widened as the
-    kernel narrows them back (lc_common.h: LC_SIG_VALUE)."""
-    for key, a in items:
-        if key[0] >= 1:
-            _place(low, grid, offsets, [(key, (a if a.dtype.itemsize == 2 else a.astype(np.int16)).view(np.uint16))])
+def _coarse_bits(items: Any, low: np.ndarray, levels: np.ndarray, offsets: np.ndarray) -> Any:
+    """The level-0 batches of `items` (bricks.brick_batches); each coarse batch's values go, as their 16 bits, into
+    `low` (the low halves of the deviations' buffer, lc_sig) instead: two's complement for signed types, 8-bit
+    types widened as the kernel narrows them back (lc_common.h: LC_SIG_VALUE)."""
+    for k, blocks, bricks in items:
+        if k >= 1:
+            bits = (bricks if bricks.dtype.itemsize == 2 else bricks.astype(np.int16)).view(np.uint16)
+            _place_batches(low, levels, offsets, [(k, blocks, bits)])
         else:
-            yield key, a
+            yield k, blocks, bricks
 
 
 # --- reuse: a new selection's atlas from the last one ------------------------------------------------------------

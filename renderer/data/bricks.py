@@ -1,6 +1,6 @@
-"""Bricks of a level selection, read from the store through a brick cache (thesis §3.4: LOAD).
+"""Bricks of a level selection, read from the store through the brick pool (thesis §3.4: LOAD).
 
-A **brick cache** is shared by every render of an engine (`Engine.bricks`, renderer/engine.py: LRU by bytes, size
+The **brick pool** is shared by every render of an engine (`Engine.bricks`, renderer/pool.py: LRU by bytes, size
 ``LODCAST_BRICK_CACHE_MB``, default 1024, less what a CPU device's buffers hold): only missing bricks are read, in
 parallel (a thread pool, one task per shard: the bricks of one shard are read together, from the chunks that hold
 them, since the number of requests dominates I/O), so a camera change reads nothing and a TF change reads only the
@@ -16,15 +16,16 @@ from typing import Any, Iterator
 import numpy as np
 
 from lodcast.renderer.data.volume import device_dtype
-from lodcast.renderer.engine import BrickCache, Engine
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.pool import BrickPool
 from lodcast.store.layout import Layout
 
-__all__ = ["AtlasLoad", "BrickStats", "iter_bricks", "load_bricks"]
+__all__ = ["AtlasLoad", "BrickStats", "brick_batches", "load_bricks"]
 
 
 @dataclass(frozen=True)
 class AtlasLoad:
-    bricks: dict  # (level, bz, by, bx) -> brick (iter_bricks)
+    bricks: dict  # (level, bz, by, bx) -> brick
     read: int  # bricks read from the store by this call
     cached: int  # bricks found in the cache
     skipped: int  # blocks not loaded (level -1)
@@ -32,35 +33,37 @@ class AtlasLoad:
     read_ms: float
 
 
-def _read_group(vol: Any, lay: Layout, level: int, blocks: list[tuple[int, int, int]], what: str = "mean") -> dict:
-    """The bricks `blocks` (all in one shard of `level`), cut into edge-padded bricks from the inner chunks that
-    hold them and no others (a brick lies in one chunk: chunks are whole blocks or cubes of them): the values
-    ("mean") or the standard deviations behind them ("std", uint16 in units of vol.std_unit)."""
+#: bricks handed on at once from the pool (bounded, so that a caller placing them keeps no more than this beside)
+BATCH_BYTES = 32 << 20
+
+
+def _read_group(vol: Any, lay: Layout, level: int, blocks: np.ndarray, what: str = "mean") -> np.ndarray:
+    """The bricks of `blocks` ((n, 3) z, y, x, all in one shard of `level`), (n, e, e, e), cut from the inner
+    chunks that hold them and no others (a brick lies in one chunk: chunks are whole blocks or cubes of them) and
+    edge-padded where the level ends inside them: the values ("mean") or the standard deviations behind them
+    ("std", uint16 in units of vol.std_unit). Whole-array operations: the bricks of a chunk are a view of it."""
     e = lay.block_edge(level)
-    c = np.array(lay.chunk_shape(level))
-    start = np.array(blocks, np.int64).reshape(-1, 3) * e  # the bricks' first samples in the level
-    stop = np.minimum(start + e, np.array(lay.level_shape(level)))
+    c = lay.chunk_shape(level)[0]
+    shape = np.array(lay.level_shape(level))
+    start = np.asarray(blocks, np.int64).reshape(-1, 3) * e  # the bricks' first samples in the level
     where = start // c
-    # chunks by their flat index in the level's chunk grid (np.unique along an axis sorts rows as records, slowly:
-    # at small blocks, a good part of a first render's reading)
-    flat = np.ravel_multi_index(tuple(where.T), tuple(-(-np.array(lay.level_shape(level)) // c)))
+    # chunks by their flat index in the level's chunk grid (np.unique along an axis sorts rows as records, slowly)
+    flat = np.ravel_multi_index(tuple(where.T), tuple(-(-shape // c)))
     first, which = np.unique(flat, return_index=True, return_inverse=True)[1:]
-    need = where[first]
-    chunks = vol.read_chunks(level, need, std=what != "mean")
-    lo, hi = start - where * c, stop - where * c  # within the chunk
+    chunks = vol.read_chunks(level, where[first], std=what != "mean")
+    # a chunk the level ends inside comes cut to it: its samples repeat the last one, as each brick's padding does
+    box = np.stack([a if a.shape == (c, c, c) else np.pad(a, [(0, c - n) for n in a.shape], mode="edge")
+                    for a in chunks])
+    q = c // e
+    if q == 1:
+        sub = box[which.ravel()]
+    else:  # a cube of q³ bricks per chunk: (m, q, e, q, e, q, e), each brick picked by its place in the chunk
+        at = (start - where * c) // e
+        sub = box.reshape(-1, q, e, q, e, q, e)[which.ravel(), at[:, 0], :, at[:, 1], :, at[:, 2], :]
     if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
-        dtype, unit = device_dtype(chunks[0].dtype), None
-    else:  # whole units of vol.std_unit (volume.py says why)
-        dtype, unit = np.dtype(np.uint16), np.float64(vol.std_unit)
-    out = {}
-    for b, i, a, z in zip(blocks, which.ravel().tolist(), lo.tolist(), hi.tolist()):
-        sub = chunks[i][a[0]:z[0], a[1]:z[1], a[2]:z[2]]
-        if unit is not None:
-            sub = np.clip(np.rint(np.nan_to_num(sub.astype(np.float64), nan=0.0) / unit), 0, 65535)
-        if sub.shape != (e, e, e):
-            sub = np.pad(sub, [(0, e - n) for n in sub.shape], mode="edge")
-        out[(level, *b)] = np.ascontiguousarray(sub, dtype=dtype)
-    return out
+        return np.ascontiguousarray(sub, dtype=device_dtype(box.dtype))
+    unit = np.float64(vol.std_unit)  # whole units of vol.std_unit (volume.py says why)
+    return np.clip(np.rint(np.nan_to_num(sub.astype(np.float64), nan=0.0) / unit), 0, 65535).astype(np.uint16)
 
 
 @dataclass
@@ -72,14 +75,15 @@ class BrickStats:
     read_ms: float = 0.0
 
 
-def iter_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickCache | None = None, what: str = "mean",
-                stats: BrickStats | None = None) -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
-    """((level, bz, by, bx), brick) for every brick `levels` selects, from `cache` (default: `eng`'s) or
-    read from the store (missing ones only, grouped by shard, shards read in parallel, a few at a time so that
-    bricks stream through rather than pile up: a caller that places each one keeps none); read bricks enter the
-    cache. Values keep the store's type up to 16-bit integers, else float32. what="std": the standard deviations
-    of the coarse bricks (level >= 1; level 0 has none), uint16 in units of vol.std_unit, instead of the values.
-    `stats` is filled in."""
+def brick_batches(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickPool | None = None, what: str = "mean",
+                  stats: BrickStats | None = None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """(level, blocks, bricks) for every brick `levels` selects, in batches: `blocks` the flat indices (C order of
+    the grid) of the blocks whose bricks `bricks` (n, e, e, e) holds, from `cache` (default: `eng`'s pool) or read
+    from the store (missing ones only, grouped by shard, shards read in parallel, a few at a time so that bricks
+    stream through rather than pile up: a caller that places each batch keeps none); read bricks enter the pool.
+    Values keep the store's type up to 16-bit integers, else float32. what="std": the standard deviations of the
+    coarse bricks (level >= 1; level 0 has none), uint16 in units of vol.std_unit, instead of the values. `stats`
+    is filled in."""
     cache = eng.bricks if cache is None else cache
     stats = BrickStats() if stats is None else stats
     t = time.perf_counter()
@@ -87,37 +91,50 @@ def iter_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickCache | N
     levels = np.asarray(levels)
     if levels.shape != lay.grid:
         raise ValueError(f"level grid has shape {levels.shape}, the volume's block grid is {lay.grid}")
-    bz, by, bx = np.nonzero(levels >= (0 if what == "mean" else 1))
-    lv = levels[bz, by, bx].astype(np.int64)
-    base = ("bricks" if what == "mean" else "std", vol.key)
-    groups: dict[tuple, list] = {}
-    stats.skipped = int(np.count_nonzero(levels < 0))
-    # per level once, not per brick (the layout arithmetic, repeated per brick, adds up over a million of them)
-    geom = {k: (lay.block_edge(k), lay.shard_shape(k)) for k in range(lay.n_levels)}
-    for k, z, y, x in zip(lv.tolist(), bz.tolist(), by.tolist(), bx.tolist()):
-        a = cache.get((base, k, z, y, x)) if vol.key is not None else None
-        if a is not None:
-            stats.cached += 1
-            yield (k, z, y, x), a
+    flat = levels.ravel()
+    n_blocks = flat.size
+    stats.skipped = int(np.count_nonzero(flat < 0))
+    kind = "bricks" if what == "mean" else "std"
+    missing = []
+    for k in np.unique(flat[flat >= (0 if what == "mean" else 1)]).tolist():
+        fam = (kind, vol.key, k)
+        blocks = np.flatnonzero(flat == k)
+        rows = cache.find(fam, n_blocks, blocks) if vol.key is not None else np.full(blocks.size, -1, np.int64)
+        held = rows >= 0
+        stats.cached += int(held.sum())
+        hit_blocks, hit_rows = blocks[held], rows[held]
+        step = max(1, BATCH_BYTES // ((lay.block_edge(k) ** 3) * 4))
+        for i in range(0, hit_blocks.size, step):
+            yield k, hit_blocks[i:i + step], cache.take(fam, hit_rows[i:i + step])
+        missing.append((k, blocks[~held]))
+    # the missing bricks by shard: (level, shard) sorted, each shard's blocks in C order
+    groups: list[tuple[int, np.ndarray]] = []
+    for k, blocks in missing:
+        if not blocks.size:
             continue
-        e, sh = geom[k]
-        groups.setdefault((k, z * e // sh[0], y * e // sh[1], x * e // sh[2]), []).append((z, y, x))
-    todo = sorted(groups.items())
-    stats.shards = len(todo)
+        e, sh = lay.block_edge(k), np.array(lay.shard_shape(k))
+        zyx = np.stack(np.unravel_index(blocks, lay.grid), axis=1)
+        shard = zyx * e // sh
+        key = np.ravel_multi_index(tuple(shard.T), tuple(int(v) + 1 for v in shard.max(axis=0)))
+        order = np.argsort(key, kind="stable")
+        cuts = np.flatnonzero(np.diff(key[order])) + 1
+        groups += [(k, part) for part in np.split(blocks[order], cuts)]
+    stats.shards = len(groups)
     threads = eng.read_threads("://" in str(getattr(vol.source, "location", "")))
     window = 2 * threads
     futs: deque = deque()
 
-    def take() -> Iterator[tuple[tuple[int, int, int, int], np.ndarray]]:
-        got = futs.popleft().result()
+    def take() -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        k, blocks, fut = futs.popleft()
+        got = fut.result()
         stats.read += len(got)
-        for key, a in got.items():
-            if vol.key is not None:
-                cache.put((base, *key), a)
-            yield key, a
+        if vol.key is not None:
+            cache.put((kind, vol.key, k), n_blocks, blocks, got)
+        yield k, blocks, got
 
-    for g, blks in todo:
-        futs.append(eng.read_pool(threads).submit(_read_group, vol, lay, g[0], blks, what))
+    for k, blocks in groups:
+        zyx = np.stack(np.unravel_index(blocks, lay.grid), axis=1)
+        futs.append((k, blocks, eng.read_pool(threads).submit(_read_group, vol, lay, k, zyx, what)))
         if len(futs) > window:
             yield from take()
     while futs:
@@ -127,9 +144,14 @@ def iter_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickCache | N
     stats.read_ms = (time.perf_counter() - t) * 1e3
 
 
-def load_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickCache | None = None,
+def load_bricks(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickPool | None = None,
                 what: str = "mean") -> AtlasLoad:
-    """iter_bricks as a dict, with its counts."""
+    """brick_batches as a dict (level, bz, by, bx) -> brick, with its counts (references and tests: a dict of
+    bricks is what a per-brick reference packs)."""
     st = BrickStats()
-    bricks = dict(iter_bricks(eng, vol, levels, cache, what, st))
+    bricks = {}
+    grid = np.asarray(levels).shape
+    for k, blocks, got in brick_batches(eng, vol, levels, cache, what, st):
+        for b, a in zip(np.stack(np.unravel_index(blocks, grid), axis=1).tolist(), got):
+            bricks[(k, *b)] = a
     return AtlasLoad(bricks, st.read, st.cached, st.skipped, st.shards, st.read_ms)

@@ -29,9 +29,10 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.malloc import release_free_memory
-from lodcast.opencl import Device, DeviceError
+from lodcast.opencl import DeviceError
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import atlas_cells
+from lodcast.renderer.data.bricks import BrickStats, brick_batches
 from lodcast.renderer.data.sampler import ess_cell, level0_buffer, level0_cells, upload_level0
 from lodcast.renderer.data.volume import VolumeView
 from lodcast.renderer.engine import Engine
@@ -288,8 +289,9 @@ def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
                 # a CPU device's buffer is host memory: the brick cache gives way to it while the pass lasts
                 held.enter_context(eng.holding(nbytes))
                 eng.bricks.trim()
-                data = _level0_pass(eng.device, vol, reg, shape, own, steps, placeholder)
-                stats.read += int(own.sum())
+                data, got = _level0_pass(eng, vol, reg, shape, own, steps, placeholder)
+                stats.read += got.read
+                stats.cached += got.cached
                 stats.upload_ms += (time.perf_counter() - t) * 1e3
             else:
                 da = lod_atlas.device_atlas(eng, vol, pass_levels(lod.levels, reg), with_std=cfg.distribution,
@@ -308,13 +310,51 @@ def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
         release_free_memory()  # the pass's bricks or voxels, freed by many threads, leave the process
 
 
-def _level0_pass(dev: Device, vol: Any, reg: Region, shape: tuple[int, int, int], own: np.ndarray, steps: np.ndarray,
-                 placeholder: cl.Buffer) -> PassData:
-    """A full-resolution pass's data: its voxels read straight into a mapped device buffer (no host copy beside
-    it), and the value ranges of its cells for empty-space skipping."""
-    buf = level0_buffer(dev, vol, reg.data)
+def _level0_pass(eng: Engine, vol: Any, reg: Region, shape: tuple[int, int, int], own: np.ndarray,
+                 steps: np.ndarray, placeholder: cl.Buffer) -> tuple[PassData, BrickStats]:
+    """A full-resolution pass's data: its voxels written into a mapped device buffer from the level-0 bricks of the
+    engine's brick pool (read into the pool where missing: a second frame, or a pass over the same blocks, reads
+    nothing), and the value ranges of its cells for empty-space skipping; with the counts of bricks read and
+    found. A volume without a store's bricks (an array) is read straight into the buffer."""
+    dev = eng.device
+    st = BrickStats()
+    if not vol.has_levels:
+        buf = level0_buffer(dev, vol, reg.data)
+        st.read = int(own.sum())
+    else:
+        buf = cl.Buffer(dev.context, cl.mem_flags.READ_ONLY, size=max(4, math.prod(shape) * vol.voxel_dtype.itemsize))
+        host, _ = cl.enqueue_map_buffer(dev.queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape,
+                                        vol.voxel_dtype)
+        try:
+            _level0_voxels(eng, vol, reg.data, host, st)
+        finally:
+            host.base.release(dev.queue)
+        dev.queue.finish()
     cmin, cmax = level0_cells(dev, buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
-    return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size))
+    return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size)), st
+
+
+def _level0_voxels(eng: Engine, vol: Any, box: tuple[slice, slice, slice], out: np.ndarray, st: BrickStats) -> None:
+    """Level 0's voxels `box` (z-y-x slices) into `out`, from the brick pool, one row of blocks across z at a time
+    (a row of level-0 shards: store/layout.py), each row's bricks scattered into a block-ordered array and copied
+    into `out` as voxels."""
+    B = int(vol.block_size)
+    lo = [s.start // B for s in box]
+    hi = [-(-s.stop // B) for s in box]
+    ny, nx = hi[1] - lo[1], hi[2] - lo[2]
+    row = np.empty((ny, nx, B, B, B), vol.voxel_dtype)
+    ys, xs = (slice(box[a].start - lo[a] * B, box[a].stop - lo[a] * B) for a in (1, 2))
+    for bz in range(lo[0], hi[0]):
+        levels = np.full(vol.grid, -1, np.int8)
+        levels[bz, lo[1]:hi[1], lo[2]:hi[2]] = 0
+        part = BrickStats()
+        for _, blocks, bricks in brick_batches(eng, vol, levels, stats=part):
+            _, y, x = np.unravel_index(blocks, vol.grid)
+            row[y - lo[1], x - lo[2]] = bricks
+        st.read, st.cached = st.read + part.read, st.cached + part.cached
+        z0, z1 = max(box[0].start, bz * B), min(box[0].stop, (bz + 1) * B)
+        out[z0 - box[0].start:z1 - box[0].start] = row.transpose(2, 0, 3, 1, 4).reshape(B, ny * B, nx * B)[
+            z0 - bz * B:z1 - bz * B, ys, xs]
 
 
 def _cells(pr: Any, da: "lod_atlas.DeviceAtlas",

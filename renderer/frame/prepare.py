@@ -320,7 +320,7 @@ def prefetch(eng: Engine, store: StoreLike, scene: SceneLike) -> int:
     n = 0
     for what in ("mean", "std") if pr.config.distribution else ("mean",):
         st = bricks.BrickStats()
-        for _ in bricks.iter_bricks(eng, pr.volume, pr.lod.levels, what=what, stats=st):
-            pass  # into the brick cache only: holding them all here would cost the selection's size
+        for _ in bricks.brick_batches(eng, pr.volume, pr.lod.levels, what=what, stats=st):
+            pass  # into the brick pool only: holding them all here would cost the selection's size
         n += st.read
     return n

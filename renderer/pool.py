@@ -1,0 +1,199 @@
+"""The engine's host brick pool: every brick an engine has read, of every store, level and quality, in one pool
+bounded by bytes (`Engine.bricks`).
+
+A million small coarse bricks as a million arrays in a dict cost a Python object, a key tuple and an LRU entry each,
+and looking them up, placing them and evicting them one at a time was most of a large volume's host time. Here the
+bricks of one (kind, store key, level) — an *arena* — lie in slabs of equal-shaped rows, and a block finds its row
+through a grid-sized slot table: lookup, gather, insertion and eviction take index arrays and run as NumPy
+operations, whatever the number of bricks. Recency is a stamp per row (the pool's operation count when the brick
+was last asked for or stored); eviction takes the least recent rows of all arenas together, so one quality's
+bricks give way to another's only by age, never by belonging to another selection.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["BrickPool", "ROW_BYTES", "SLAB_BYTES"]
+
+#: what a pooled brick costs beyond its samples: its row's owner and stamp (int64 each)
+ROW_BYTES = 16
+#: bytes of one slab of an arena's rows: memory is taken and given back a slab at a time
+SLAB_BYTES = 4 << 20
+#: eviction frees down to this share of the bound, so that a cold render that fills the pool sorts the pool's
+#: stamps once every few slabs rather than at every insertion
+EVICT_TO = 0.875
+
+
+@dataclass
+class _Arena:
+    shape: tuple[int, ...]  # one brick's
+    dtype: np.dtype
+    per: int  # rows per slab
+    slot: np.ndarray  # per block (flat grid index): its row, -1 when absent
+    slabs: list = field(default_factory=list)  # (per, *shape) arrays, None where given back
+    owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per row: its block, -1 free
+    stamp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per row: last use
+
+    @property
+    def brick_bytes(self) -> int:
+        return int(np.prod(self.shape)) * self.dtype.itemsize
+
+    def rows(self, n: int) -> np.ndarray:
+        """n free rows, the lowest first (rows fill slabs in order: a slab empties when its bricks age together),
+        adding slabs as needed."""
+        live = np.array([s is not None for s in self.slabs], bool)
+        free = np.flatnonzero(self.owner < 0)
+        free = free[live[free // self.per]]
+        if free.size >= n:
+            return free[:n]
+        more = -(-(n - free.size) // self.per)
+        empty = [i for i, s in enumerate(self.slabs) if s is None]
+        new: list[int] = []
+        for _ in range(more):
+            i = empty.pop(0) if empty else len(self.slabs)
+            if i == len(self.slabs):
+                self.slabs.append(None)
+                self.owner = np.concatenate([self.owner, np.full(self.per, -1, np.int64)])
+                self.stamp = np.concatenate([self.stamp, np.zeros(self.per, np.int64)])
+            self.slabs[i] = np.empty((self.per, *self.shape), self.dtype)
+            new.append(i)
+        extra = np.concatenate([np.arange(i * self.per, (i + 1) * self.per) for i in new])
+        return np.concatenate([free, extra])[:n]
+
+    def gather(self, rows: np.ndarray) -> np.ndarray:
+        """The bricks of `rows`, (n, *shape): one gather per slab they lie in."""
+        out = np.empty((rows.size, *self.shape), self.dtype)
+        slab = rows // self.per
+        order = np.argsort(slab, kind="stable")
+        bounds = np.flatnonzero(np.diff(slab[order])) + 1
+        for part in np.split(order, bounds) if rows.size else []:
+            out[part] = self.slabs[int(slab[part[0]])][rows[part] % self.per]
+        return out
+
+    def scatter(self, rows: np.ndarray, bricks: np.ndarray) -> None:
+        slab = rows // self.per
+        order = np.argsort(slab, kind="stable")
+        bounds = np.flatnonzero(np.diff(slab[order])) + 1
+        for part in np.split(order, bounds) if rows.size else []:
+            self.slabs[int(slab[part[0]])][rows[part] % self.per] = bricks[part]
+
+    def give_back(self) -> None:
+        """Drop the slabs that no longer hold a brick."""
+        used = np.zeros(len(self.slabs), bool)
+        used[np.unique(np.flatnonzero(self.owner >= 0) // self.per)] = True
+        for i in np.flatnonzero(~used).tolist():
+            self.slabs[i] = None
+
+
+class BrickPool:
+    """Bricks keyed by (kind, store key, level) and the block's flat index in the block grid; bounded by the bytes
+    of the bricks it holds (each brick's samples plus ROW_BYTES; `max_bytes` a number, or a function asked at every
+    insertion). Thread-safe. `reads` counts the bricks of values read from stores (the loader adds to it)."""
+
+    def __init__(self, max_bytes: "int | Callable[[], int]"):
+        self._max = max_bytes
+        self._arenas: dict[tuple, _Arena] = {}
+        self._bytes = 0
+        self._count = 0
+        self._tick = 0
+        self._lock = threading.Lock()
+        self.reads = 0
+
+    @property
+    def max_bytes(self) -> int:
+        return int(self._max() if callable(self._max) else self._max)
+
+    @property
+    def nbytes(self) -> int:
+        return self._bytes
+
+    def __len__(self) -> int:
+        return self._count
+
+    def find(self, family: tuple, n_blocks: int, blocks: np.ndarray) -> np.ndarray:
+        """The rows of `blocks` (flat block indices) in `family`'s arena, -1 for those not held; the held ones
+        count as used now."""
+        blocks = np.asarray(blocks, np.int64)
+        with self._lock:
+            a = self._arenas.get(family)
+            if a is None or a.slot.size != n_blocks:
+                return np.full(blocks.size, -1, np.int64)
+            rows = a.slot[blocks].astype(np.int64)
+            self._tick += 1
+            a.stamp[rows[rows >= 0]] = self._tick
+            return rows
+
+    def take(self, family: tuple, rows: np.ndarray) -> np.ndarray:
+        """The bricks at `rows` (from `find`, all held), (n, *brick shape)."""
+        with self._lock:
+            return self._arenas[family].gather(np.asarray(rows, np.int64))
+
+    def put(self, family: tuple, n_blocks: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
+        """Hold `bricks` (n, *shape) of `blocks` (flat indices, none held yet) in `family`'s arena, evicting the
+        least recently used bricks of the pool beyond its bound; what does not fit the bound at all is not kept."""
+        blocks = np.asarray(blocks, np.int64)
+        with self._lock:
+            a = self._arenas.get(family)
+            if a is None or a.slot.size != n_blocks or a.shape != bricks.shape[1:] or a.dtype != bricks.dtype:
+                if a is not None:
+                    self._drop(family)
+                per = max(1, SLAB_BYTES // max(1, int(np.prod(bricks.shape[1:])) * bricks.dtype.itemsize))
+                a = self._arenas[family] = _Arena(bricks.shape[1:], bricks.dtype, per, np.full(n_blocks, -1, np.int32))
+            cost = a.brick_bytes + ROW_BYTES
+            bound = self.max_bytes
+            keep = min(blocks.size, bound // cost)
+            blocks, bricks = blocks[:keep], bricks[:keep]
+            if self._bytes + keep * cost > bound:
+                self._evict(self._bytes + keep * cost - int(bound * EVICT_TO))
+            if not keep:
+                return
+            rows = a.rows(keep)
+            a.scatter(rows, bricks)
+            self._tick += 1
+            a.owner[rows], a.stamp[rows], a.slot[blocks] = blocks, self._tick, rows
+            self._bytes += keep * cost
+            self._count += keep
+
+    def trim(self) -> None:
+        """Evict down to the bound now (a bound that is a function may have shrunk since the last insertion)."""
+        with self._lock:
+            bound = self.max_bytes
+            if self._bytes > bound:
+                self._evict(self._bytes - bound)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._arenas.clear()
+            self._bytes = self._count = 0
+
+    def _drop(self, family: tuple) -> None:
+        a = self._arenas.pop(family)
+        n = int(np.count_nonzero(a.owner >= 0))
+        self._bytes -= n * (a.brick_bytes + ROW_BYTES)
+        self._count -= n
+
+    def _evict(self, nbytes: int) -> None:
+        """Free at least `nbytes` (or everything), the least recently used bricks of all arenas first."""
+        fams = list(self._arenas)
+        held = [np.flatnonzero(self._arenas[f].owner >= 0) for f in fams]
+        stamps = np.concatenate([self._arenas[f].stamp[h] for f, h in zip(fams, held)] or [np.zeros(0, np.int64)])
+        which = np.concatenate([np.full(h.size, i, np.int64) for i, h in enumerate(held)] or [np.zeros(0, np.int64)])
+        rows = np.concatenate(held or [np.zeros(0, np.int64)])
+        costs = np.array([self._arenas[f].brick_bytes + ROW_BYTES for f in fams], np.int64)[which]
+        order = np.argsort(stamps, kind="stable")
+        n = int(np.searchsorted(np.cumsum(costs[order]), nbytes)) + 1
+        gone = order[:n]
+        for i, f in enumerate(fams):
+            a = self._arenas[f]
+            r = rows[gone[which[gone] == i]]
+            if not r.size:
+                continue
+            a.slot[a.owner[r]] = -1
+            a.owner[r] = -1
+            a.give_back()
+        self._bytes -= int(costs[gone].sum())
+        self._count -= int(gone.size)
