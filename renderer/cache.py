@@ -1,23 +1,20 @@
-"""Byte-bounded LRU caches shared by every render in a process: host bricks (`bricks.brick_cache`) and device
-buffers (`sampler.device_cache`). Each is made on first use, sized from the environment then."""
+"""Byte-bounded caches an engine owns (renderer/engine.py): ByteLru for device buffers and other per-key values;
+the brick pool (renderer/pool.py) shares its bound."""
 from __future__ import annotations
 
 import threading
 from collections import OrderedDict
 from typing import Any, Callable
 
-__all__ = ["ByteLru"]
+__all__ = ["ByteBound", "ByteLru"]
 
 
-class ByteLru:
-    """Thread-safe LRU bounded by the bytes of its values (`max_bytes`: a number, or a function of no arguments
-    asked at every insertion, for a bound that follows the environment). `keep_last`: the newest entry stays even
-    when it alone exceeds the bound (else an entry larger than the bound is not kept at all)."""
+class ByteBound:
+    """What a byte-bounded store shares: its bound (`max_bytes`: a number, or a function of no arguments asked each
+    time, for a bound that follows the environment), the bytes it holds and the lock that guards them."""
 
-    def __init__(self, max_bytes: "int | Callable[[], int]", keep_last: bool = False):
+    def __init__(self, max_bytes: "int | Callable[[], int]"):
         self._max = max_bytes
-        self.keep_last = keep_last
-        self._d: OrderedDict[Any, tuple[Any, int]] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
@@ -28,6 +25,17 @@ class ByteLru:
     @property
     def nbytes(self) -> int:
         return self._bytes
+
+
+class ByteLru(ByteBound):
+    """Thread-safe LRU bounded by the bytes of its values (`max_bytes`: a number, or a function of no arguments
+    asked at every insertion, for a bound that follows the environment). `keep_last`: the newest entry stays even
+    when it alone exceeds the bound (else an entry larger than the bound is not kept at all)."""
+
+    def __init__(self, max_bytes: "int | Callable[[], int]", keep_last: bool = False):
+        super().__init__(max_bytes)
+        self.keep_last = keep_last
+        self._d: OrderedDict[Any, tuple[Any, int]] = OrderedDict()
 
     def __len__(self) -> int:
         return len(self._d)

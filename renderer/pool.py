@@ -11,11 +11,12 @@ bricks give way to another's only by age, never by belonging to another selectio
 """
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+
+from lodcast.renderer.cache import ByteBound
 
 __all__ = ["BrickPool", "ROW_BYTES", "SLAB_BYTES"]
 
@@ -89,27 +90,17 @@ class _Arena:
             self.slabs[i] = None
 
 
-class BrickPool:
+class BrickPool(ByteBound):
     """Bricks keyed by (kind, store key, level) and the block's flat index in the block grid; bounded by the bytes
     of the bricks it holds (each brick's samples plus ROW_BYTES; `max_bytes` a number, or a function asked at every
     insertion). Thread-safe. `reads` counts the bricks of values read from stores (the loader adds to it)."""
 
     def __init__(self, max_bytes: "int | Callable[[], int]"):
-        self._max = max_bytes
+        super().__init__(max_bytes)
         self._arenas: dict[tuple, _Arena] = {}
-        self._bytes = 0
         self._count = 0
         self._tick = 0
-        self._lock = threading.Lock()
         self.reads = 0
-
-    @property
-    def max_bytes(self) -> int:
-        return int(self._max() if callable(self._max) else self._max)
-
-    @property
-    def nbytes(self) -> int:
-        return self._bytes
 
     def __len__(self) -> int:
         return self._count
