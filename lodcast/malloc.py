@@ -19,10 +19,9 @@ def _libc() -> "ctypes.CDLL | None":
 def tame_malloc() -> None:
     """For processes that ingest (the CLI, the service's workers; `ingest()` leaves the host process's allocator
     alone): ingest allocates and frees slab-sized arrays on several threads. glibc then grows per-thread arenas and
-    raises its mmap threshold, so freed slabs stay resident: measured 2.3 GB peak RSS for a 1 GiB volume whose
-    live arrays never exceeded a few hundred MB. A fixed threshold returns every large array to the OS; at
-    16 MiB rather than 1 MiB, row-of-blocks temporaries stay on the heap, which cut system time by a third
-    (chest CT 36 -> 44 MB/s) for 350 MB peak RSS on the 1 GiB volume (344 MB at 1 MiB)."""
+    raises its mmap threshold, so freed slabs stay resident far beyond the live arrays. A fixed threshold returns
+    every large array to the OS; at 16 MiB rather than 1 MiB, row-of-blocks temporaries stay on the heap, which
+    costs system time less for about the same peak (docs/measurements/code-notes.md)."""
     libc = _libc()
     if libc is not None:
         libc.mallopt(-3, 16 << 20)  # M_MMAP_THRESHOLD (fixing it also turns off the dynamic adjustment)
