@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, GetJsonSchemaHandler
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import CoreSchema
 
-from lodcast.renderer.scene.scene import Scene, SceneError
+from lodcast.renderer.scene.scene import Scene, SceneError, TransferFunction
 from lodcast.service.rendering import RequestInvalid, check_tf, parse_scene, scene_format, scene_refused
 from lodcast.service.volumes import BadId, VolumeNotFound, check_volume_id, safe_import_path, volume_exists, volume_path
 
@@ -63,6 +63,20 @@ class SceneSchema:
 #: a job's scene: a JSON object validated by validate_job, typed in OpenAPI as the Scene it must be
 JobScene = Annotated[SceneDict, SceneSchema()]
 
+
+class TfSchema:
+    """A TF sweep's transfer function in the OpenAPI schema: the TransferFunction model's schema, while the field
+    is validated as a plain JSON object by validate_job (check_tf, each error naming the TF's place)."""
+
+    model = TransferFunction  # what docs/generate.py shows as the field's type
+
+    def __get_pydantic_json_schema__(self, core: CoreSchema, handler: GetJsonSchemaHandler) -> JsonSchemaValue:
+        return handler(TransferFunction.__pydantic_core_schema__)
+
+
+#: a sweep's TF: JSON typed as a TransferFunction, or a preset name
+JobTf = Union[Annotated[dict[str, Any], TfSchema()], str]
+
 #: keyword options of lodcast.ingest an ingest job may pass (reader options and the block size)
 INGEST_OPTIONS = frozenset({"format", "shape", "dtype", "byte_order", "header_bytes", "spacing", "origin", "index",
                             "block_size", "units", "orient"})
@@ -100,7 +114,7 @@ class TfSweepJob(_Job):
     volume: str = Field(max_length=128)
     scene: Annotated[SceneDict, SceneSchema(tf_required=False)] = Field(
         default_factory=dict, description="the scene each TF is rendered in (its own tf is replaced)")
-    tfs: list[dict[str, Any] | str] = Field(min_length=1, description="transfer functions (JSON or preset names)")
+    tfs: list[JobTf] = Field(min_length=1, description="transfer functions (JSON or preset names)")
 
 
 class VolumesJob(_Job):
