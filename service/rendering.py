@@ -171,7 +171,7 @@ class RenderEngine:
         wall ms counted from `started` (time.perf_counter() at the request)."""
         from lodcast.renderer.frame.progressive import Progressive
 
-        return Progressive.plan(self.renderer, self.store(path), scene, started=started)
+        return Progressive.plan(self.renderer, self.renderer.render, self.store(path), scene, started=started)
 
     def prefetch(self, path: Path | str, scene: Any) -> int:
         """The bricks a render of `scene` will need, read into the brick cache (Renderer.prefetch)."""

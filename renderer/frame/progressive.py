@@ -17,7 +17,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,8 +27,9 @@ from lodcast.renderer.image.output import RenderResult
 from lodcast.renderer.image.report import RenderReport
 from lodcast.renderer.scene.scene import QualityReduction, Scene, SceneLike
 
-if TYPE_CHECKING:  # pragma: no cover
-    from lodcast.renderer.frame.render import Renderer
+#: an engine's render (renderer/frame/render.py: Renderer.render), handed in so that this module does not import
+#: the one that imports it
+RenderFn = Callable[..., RenderResult]
 
 __all__ = ["Ladder", "Stage", "Progressive", "stage_plan", "upsample", "final_reduction"]
 
@@ -143,23 +143,24 @@ def upsample(rgba: np.ndarray, height: int, width: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Progressive:
-    """A progressive render under way: `stages` (stage_plan) of `scene` on `store`, rendered by `engine` when
-    `render(k)` asks, each report's wall_ms counted from `started` (time.perf_counter() at the request)."""
+    """A progressive render under way: `stages` (stage_plan) of `scene` on `store`, rendered by `renders` (the
+    engine's render) when `render(k)` asks, each report's wall_ms counted from `started` (time.perf_counter() at the
+    request)."""
 
-    engine: "Renderer"
+    renders: RenderFn
     store: StoreLike
     scene: Scene
     stages: list[Stage]
     started: float = field(default_factory=time.perf_counter)
 
     @classmethod
-    def plan(cls, engine: "Renderer", store: StoreLike, scene: SceneLike, ladder: Ladder = Ladder(),
+    def plan(cls, engine: Engine, renders: RenderFn, store: StoreLike, scene: SceneLike, ladder: Ladder = Ladder(),
              started: float | None = None) -> "Progressive":
         """Parse the scene (SceneError naming the field), open the store and plan the stages."""
         t = time.perf_counter() if started is None else started
         sc = Scene.parse(scene)
         vol = as_volume(store, stores=engine.stores)
-        return cls(engine, vol, sc, stage_plan(engine, sc, vol, ladder), t)
+        return cls(renders, vol, sc, stage_plan(engine, sc, vol, ladder), t)
 
     def render(self, k: int, sample_limit: int | None = None,
                stop: Callable[[], None] | None = None) -> RenderResult:
@@ -169,7 +170,7 @@ class Progressive:
         if k and stop is not None:
             stop()
         st = self.stages[k]
-        res = self.engine.render(self.store, st.scene, sample_limit=sample_limit, stop=stop)
+        res = self.renders(self.store, st.scene, sample_limit=sample_limit, stop=stop)
         report: RenderReport = {**res.report, "wall_ms": (time.perf_counter() - self.started) * 1e3,
                                 "width": st.width, "height": st.height, "stage": k, "final": st.final,
                                 "image_scale": st.image_scale}

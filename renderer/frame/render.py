@@ -271,7 +271,7 @@ class Renderer(Engine):
         since the first stage was asked for. Each stage renders when the next result is asked for: closing the
         generator ends the work. `ladder` (progressive.Ladder) changes the staging; `sample_limit` and `stop` as
         `render`'s, for every stage."""
-        prog = Progressive.plan(self, store, scene, ladder or Ladder())
+        prog = Progressive.plan(self, self.render, store, scene, ladder or Ladder())
         for k in range(len(prog.stages)):
             yield prog.render(k, sample_limit, stop)
 
