@@ -13,6 +13,7 @@ so a killed ingest never leaves anything at the destination that opens as a stor
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import math
 import os
 import shutil
@@ -25,11 +26,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec, BloscShuffle
+from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec, ZstdCodec
 
 from lodcast.environment import environment
 from lodcast.errors import SourceError, StoreExists
 from lodcast.store.atomic import move_into_place, remove_stale
+from lodcast.store.checksum import MANIFEST, attribute_digests, write_manifest
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales, omero
@@ -447,6 +449,8 @@ class _Unlisted:
         self.folder = root / prefix
 
     def create_array(self, name: str, **kwargs: Any) -> zarr.Array:
+        """A checksummed array (format 4): its compressor (zarr's default, zstd, unless given), then `crc32c`."""
+        kwargs["compressors"] = [kwargs.get("compressors", ZstdCodec(level=0)), Crc32cCodec()]
         return zarr.create_array(store=str(self.folder / name), zarr_format=3, **kwargs)
 
 
@@ -461,7 +465,8 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     for k in range(lay.n_levels):
         arr = group.create_array(
             str(k), shape=lay.level_shape(k), dtype=dtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
-            compressors=compressor, fill_value=np.nan if dtype.kind == "f" else 0, dimension_names=("z", "y", "x"),
+            compressors=[compressor, Crc32cCodec()], fill_value=np.nan if dtype.kind == "f" else 0,
+            dimension_names=("z", "y", "x"),
             config=COMPLETE,
         )
         writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-{k}"))
@@ -583,6 +588,17 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     attrs["ome"]["omero"] = omero(Path(source_label).name or "volume", overall, bins.edges, (lo, hi))
     attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
     group.attrs.update(attrs)
+    seal(root, group)
+
+
+def seal(root: Path, group: zarr.Group) -> None:
+    """Format 4's checksums of everything written (store/checksum.py): the manifest of every data file and array
+    zarr.json, and the digests of the root attributes as zarr wrote them, recorded under `lodcast.integrity`."""
+    written = json.loads((root / "zarr.json").read_bytes())["attributes"]
+    marker = dict(written["lodcast"])
+    marker["integrity"] = {"algorithm": "crc32c", "manifest": MANIFEST, "crc32c": write_manifest(root),
+                           "attributes": attribute_digests(written)}
+    group.attrs["lodcast"] = marker
 
 
 def _segmentation_device() -> Any:

@@ -65,7 +65,7 @@ def test_cell_ranges_equal_a_float64_reference(tmp_path: Path, name, shape, dtyp
     lodcast.ingest(vol, tmp_path / "s.zarr", block_size=block, progress=False)
     st = lodcast.open_store(tmp_path / "s.zarr")
     c = cell_edge(block)
-    assert st.format_version == 3 and c == min(8, block)
+    assert st.format_version == 4 and c == min(8, block)
     assert st.summary()["cells"] == {"edge": c, "grid": [-(-n // c) for n in shape]}
     lo, hi = st.cell_ranges
     want_lo, want_hi = _reference(vol, c)
