@@ -455,7 +455,9 @@ class _Unlisted:
 
 
 def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: int,
-           workers: int | None, show: bool, source_label: str) -> None:
+           workers: int | None, show: bool, source_label: str, carried: dict[str, Any] | None = None) -> None:
+    """The store of `src` at `root`; `carried`: root attributes that replace the ones ingest derives (what `upgrade`
+    carries over from the store it rewrites: the original source, orientation and provenance)."""
     info = src.info
     dtype = np.dtype(info.dtype)
     gz, gy, gx = lay.grid
@@ -587,7 +589,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     attrs = _attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label, std_max)
     attrs["ome"]["omero"] = omero(Path(source_label).name or "volume", overall, bins.edges, (lo, hi))
     attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
-    group.attrs.update(attrs)
+    group.attrs.update({**attrs, **(carried or {})})
     seal(root, group)
 
 

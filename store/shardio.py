@@ -278,7 +278,8 @@ class ChunkReader(_Reader):
         super().__init__(shape, dtype, fill_value, chunk_key, array, files, chunk)
         self._chunk_dtype, self._codec, self._chunk_crc, self._digests = chunk_dtype, codec, chunk_crc, digests
 
-    def _decoded(self, coords: tuple[int, ...]) -> np.ndarray | None:
+    def read_chunk(self, coords: tuple[int, ...]) -> np.ndarray | None:
+        """The chunk at chunk coordinates `coords`, decoded and checked (None: never written, the fill value)."""
         key = self._key(coords)
         name = self._files.name(key)
         try:
@@ -318,7 +319,7 @@ class ChunkReader(_Reader):
             start = [i * c for i, c in zip(coords, self.chunk)]
             src = tuple(slice(max(a, s) - s, min(b, s + c) - s) for a, b, s, c in zip(lo, hi, start, self.chunk))
             dst = tuple(slice(max(a, s) - a, min(b, s + c) - a) for a, b, s, c in zip(lo, hi, start, self.chunk))
-            a = self._decoded(coords)
+            a = self.read_chunk(coords)
             out[dst] = self.fill_value if a is None else a[src]
 
 
