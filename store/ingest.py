@@ -439,6 +439,11 @@ def _interior_stats(strip: np.ndarray, b: int) -> dict[str, np.ndarray]:
 
 # --- the writer ----------------------------------------------------------------------------------------------
 
+#: the codecs after every chunk's compressor (format 4: zarr's crc32c; benchmarks/bench_checksums.py writes a store
+#: without them to measure what they cost)
+CHECKSUMS: tuple[Any, ...] = (Crc32cCodec(),)
+
+
 class _Unlisted:
     """Arrays at ROOT/PREFIX/NAME with no group node at PREFIX. The level arrays stay the root group's only
     members, so a reader that takes a group's members for the image sees the image alone: napari's built-in
@@ -450,7 +455,7 @@ class _Unlisted:
 
     def create_array(self, name: str, **kwargs: Any) -> zarr.Array:
         """A checksummed array (format 4): its compressor (zarr's default, zstd, unless given), then `crc32c`."""
-        kwargs["compressors"] = [kwargs.get("compressors", ZstdCodec(level=0)), Crc32cCodec()]
+        kwargs["compressors"] = [kwargs.get("compressors", ZstdCodec(level=0)), *CHECKSUMS]
         return zarr.create_array(store=str(self.folder / name), zarr_format=3, **kwargs)
 
 
@@ -467,7 +472,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     for k in range(lay.n_levels):
         arr = group.create_array(
             str(k), shape=lay.level_shape(k), dtype=dtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
-            compressors=[compressor, Crc32cCodec()], fill_value=np.nan if dtype.kind == "f" else 0,
+            compressors=[compressor, *CHECKSUMS], fill_value=np.nan if dtype.kind == "f" else 0,
             dimension_names=("z", "y", "x"),
             config=COMPLETE,
         )

@@ -164,7 +164,7 @@ def to_format_2(path: Path) -> None:
     for name in ("cell_min", "cell_max"):
         shutil.rmtree(path / "blocks" / name)
     attrs = dict(g.attrs)
-    attrs["lodcast"] = {k: v for k, v in attrs["lodcast"].items() if k != "manifest"} | {"format_version": 2}
+    attrs["lodcast"] = {k: v for k, v in attrs["lodcast"].items() if k not in ("manifest", "integrity")} | {"format_version": 2}
     g.attrs.put(attrs)
 
 
