@@ -221,10 +221,15 @@ def _geometry(meta: dict) -> tuple[tuple[int, ...], np.dtype, Any, Any] | None:
     return tuple(int(n) for n in meta["shape"]), dtype, fill, key
 
 
+#: CRC-32C of any bytes followed by their own CRC-32C (little endian), as zarr's `crc32c` codec appends it: one pass
+#: over a chunk checks it, without slicing off its last four bytes first
+_RESIDUE = 0x48674BC7
+
+
 def _checked(raw: Any, name: str, what: str) -> Any:
     """`raw` without its trailing checksum (zarr's `crc32c` codec: the little-endian CRC-32C of the bytes before
     it), or StoreCorrupt naming the file and `what` (the chunk) when the checksum does not match."""
-    if len(raw) < 4 or crc32c(raw[:-4]) != int.from_bytes(raw[-4:], "little"):
+    if len(raw) < 4 or crc32c(raw) != _RESIDUE:
         raise StoreCorrupt(f"{name}: damaged shard: {what} fails its checksum: re-ingest the store")
     return raw[:-4]
 
@@ -466,8 +471,11 @@ class ShardedReader(_Reader):
             if len(raw) != n:
                 raise ValueError(f"{name}: shard truncated (chunk at {off}+{n})")
             if self._chunk_crc:
-                raw = _checked(raw, name, f"chunk {tuple(coords[i].tolist())} (voxels from "
-                                          f"{tuple((coords[i] * np.array(self.chunk)).tolist())})")
+                if crc32c(raw) != _RESIDUE:
+                    raise StoreCorrupt(f"{name}: damaged shard: chunk {tuple(coords[i].tolist())} (voxels from "
+                                       f"{tuple((coords[i] * np.array(self.chunk)).tolist())}) fails its checksum: "
+                                       f"re-ingest the store")
+                raw = raw[:-4]
             if self._compressed:
                 blosc.decompress(raw, box[i])
             else:

@@ -479,16 +479,15 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
             raise StoreInvalid(f"{location} is not a readable zarr v3 group: {exc}") from None
     if "lodcast" not in attrs:
         raise StoreInvalid(f"{location} is a zarr group but not a lodcast store (no 'lodcast' attribute)")
-    if is_url:
-        return Store(location, attrs, group)
     for problem in attribute_problems(location, attrs):  # before the attributes are used
         raise problem
     store = Store(location, attrs, group)
+    if is_url:  # the chunk and index checksums are checked as they are read; `verify` checks the rest locally
+        return store
     manifest = (attrs["lodcast"] or {}).get("manifest")
     if manifest is not None:
         _check_manifest(location, manifest)
-    checksums = check_metadata(store)
-    store.checksums = checksums
+    store.checksums = check_metadata(store)
     return store
 
 
