@@ -37,6 +37,7 @@ from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales, omero
 from lodcast.store.orientation import axis_codes
 from lodcast.store.remote import is_url
+from lodcast.store.shardwrite import ShardWriter
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource, check_world_box
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
@@ -225,10 +226,12 @@ class _LevelWriter:
     """Collects level-k slabs until a whole shard depth is there, then writes those shards: shards are written once
     (no read-modify-write). The rows wait in a temporary file beside the store rather than in memory (a level-k
     shard is 4^k block-slabs deep: kept in memory, every level's rows came to another slab's worth), and are
-    written one band of shards across y at a time, so memory holds one band."""
+    written one band of shards across y at a time, so memory holds one band, by store/shardwrite.py (the array at
+    `folder`)."""
 
-    def __init__(self, array: zarr.Array, depth: int, spill: Path):
+    def __init__(self, array: zarr.Array, folder: Path, depth: int, spill: Path):
         self.array = array
+        self.shards = ShardWriter(folder)
         self.depth = min(depth, array.shape[0])
         self.spill = spill  # created on first use: level 0 never needs it
         self.file: Any = None
@@ -272,13 +275,12 @@ class _LevelWriter:
         return out
 
     def _write(self, band_of: Any, n: int) -> None:
-        """One band of shards across y at a time: every call still writes whole shards, and zarr's encoding
-        temporaries stay a band's size rather than a slab's."""
-        assert self.array.shards is not None  # every level array is created sharded
-        band = self.array.shards[1]
+        """One band of shards across y at a time: every call writes whole shards, and the encoding temporaries stay
+        a band's size rather than a slab's."""
+        band = self.shards.shard[1]
         for y0 in range(0, self.array.shape[1], band):
             y1 = min(y0 + band, self.array.shape[1])
-            self.array[self.start : self.start + n, y0:y1] = band_of(y0, y1)
+            self.shards.write((self.start, y0, 0), band_of(y0, y1))
         self.start += n
 
 
@@ -476,7 +478,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             dimension_names=("z", "y", "x"),
             config=COMPLETE,
         )
-        writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-{k}"))
+        writers.append(_LevelWriter(arr, root / str(k), lay.shard_shape(k)[0], root / f".rows-{k}"))
     std_writers = []
     std_group = _Unlisted(root, "std")
     sdtype = std_dtype(dtype)
@@ -486,7 +488,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             compressors=BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle), fill_value=0,
             dimension_names=("z", "y", "x"), config=COMPLETE,
         )
-        std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-std-{k}"))
+        std_writers.append(_LevelWriter(arr, root / "std" / str(k), lay.shard_shape(k)[0], root / f".rows-std-{k}"))
     # per-block statistics go to the store a row of blocks at a time: held whole, they grew ingest's peak with the
     # volume's depth
     blocks = _Unlisted(root, "blocks")

@@ -303,3 +303,22 @@ def test_upgrade_refuses_a_damaged_store(store: Path):
         upgrade(store)
     assert json.loads((store / "zarr.json").read_text())["attributes"]["lodcast"]["format_version"] == 3
     assert os.path.exists(victim)
+
+
+# --- the stored-type rule ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("pixel,bits,rescale,want", [
+    ("uint16", 12, [(1.0, -1024.0)], "int16"),  # a CT: 0..4095 stored, −1024..3071 HU
+    ("uint16", 16, [(1.0, -1024.0)], "float32"),  # −1024..64511: no 16-bit type holds every value the bits allow
+    ("uint16", 8, [(1.0, 10.0)], "uint16"),  # 10..265
+    ("uint8", 8, [(1.0, -100.0)], "int16"),  # −100..155
+    ("uint8", 7, [(1.0, -64.0)], "int8"),  # −64..63
+    ("uint8", 6, [(2.0, 100.0)], "uint8"),  # 100..226
+    ("int16", 16, [(1.0, 0.0)], "int16"),  # nothing rescaled: the pixels' own type
+    ("int16", 16, [(1000.0, 0.0)], "int32"),  # whole values past float32's exact integers
+    ("uint16", 12, [(0.5, -1024.0)], "float32"),  # not whole
+])
+def test_rescaled_dicom_takes_the_smallest_type_that_holds_its_values(pixel, bits, rescale, want):
+    from lodcast.store.readers.dicom import rescaled_dtype
+
+    assert rescaled_dtype(np.dtype(pixel), bits, rescale) == np.dtype(want)
