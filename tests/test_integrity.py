@@ -234,6 +234,26 @@ def test_damaged_array_metadata_is_409_over_http_and_exit_2_on_the_cli(tmp_path:
     assert not (tmp_path / "x.png").exists()
 
 
+def test_a_flipped_bit_is_409_naming_the_shard_and_chunk(tmp_path: Path):
+    from fastapi.testclient import TestClient
+
+    from lodcast.service.app import create_app
+    from lodcast.service.settings import Settings
+    from lodcast.service.testing import make_volume, tiny_scene
+
+    bad = make_volume(tmp_path, "bad")
+    for shard in shards(bad):  # every level-0 shard: whatever the render reads first is damaged
+        raw = bytearray(shard.read_bytes())
+        raw[20] ^= 0x01
+        shard.write_bytes(bytes(raw))
+    with TestClient(create_app(Settings(root=tmp_path, token=None, workers=0))) as client:
+        r = client.post("/volumes/bad/render", json=tiny_scene(quality="full"))
+    assert r.status_code == 409, r.text
+    detail = r.json()["detail"]
+    assert "0/c/" in detail and "chunk (" in detail and "fails its checksum" in detail, detail
+    assert str(tmp_path) not in detail
+
+
 # --- verify and upgrade --------------------------------------------------------------------------------------
 
 def _verify(root: Path):  # type: ignore[no-untyped-def]
