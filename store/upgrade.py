@@ -3,7 +3,7 @@
 The store's level 0 is the source: ingest runs again on it (the same downsampling, statistics and histograms, so
 every level holds the voxels it held, and format 4 adds the checksums), under a hidden name beside the store;
 the new store is flushed to disk and renamed over the old one (store/atomic.py), so a killed upgrade leaves the
-old store as it was. Integer voxels wider than the stored-type rule's (store/source.py: narrowest_integer over the
+old store as it was (or moved aside for an instant: the next upgrade or ingest of that path puts it back). Integer voxels wider than the stored-type rule's (store/source.py: narrowest_integer over the
 store's value range) are stored in the rule's type: the same values in fewer bytes. The root attributes that
 describe the original source (its path, format, orientation, provenance) are carried over."""
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from lodcast.errors import StoreInvalid
-from lodcast.store.atomic import fsync_dir, fsync_tree, move_into_place
+from lodcast.store.atomic import fsync_dir, fsync_tree, move_into_place, remove_stale
 from lodcast.store.histogram import DEFAULT_BINS
 from lodcast.store.layout import Layout
 from lodcast.store.source import SourceInfo, VolumeSource, narrowest_integer
@@ -72,6 +72,7 @@ def upgrade(path: str | os.PathLike[str], *, progress: bool = False, workers: in
     location = os.fspath(path)
     if "://" in location:
         raise StoreInvalid(f"{location}: upgrade rewrites local stores (download it, upgrade it, upload it)")
+    remove_stale(Path(location))  # first: it puts back a store that a killed upgrade had moved aside
     old = open_store(location)
     dtype = upgraded_dtype(old)
     if old.format_version == FORMAT_VERSION and dtype == old.dtype:
