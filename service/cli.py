@@ -45,6 +45,14 @@ EXAMPLES = {
                "lodcast ingest scan.raw scan.zarr --shape 128,256,256 --dtype uint16 --spacing 1.5,0.7,0.7"),
     "info": ("print a store's attributes as JSON: shape, spacing, levels, blocks, shards, size on disk",
              "lodcast info chest.zarr"),
+    "verify": ("read every file of a store and check its checksums (a scrub): exit 0 clean, 1 damage found (each "
+               "damaged file listed on stdout), 2 not a store. A store written before checksums (format 3 or "
+               "older) is read whole and said to carry none",
+               "lodcast verify chest.zarr\n"
+               "lodcast verify chest.zarr --workers 8"),
+    "upgrade": ("rewrite a store written by an older lodcast in the current format (checksums, stored-type rule), "
+                "in place and atomically, from its own level 0: the source file is not needed",
+                "lodcast upgrade chest.zarr"),
     "render": ("render one image of a store on this machine's OpenCL device; the scene's fields (camera, tf, "
                "quality, sampling, shading, clip, mode, ...) are described in docs/reference.md. 8-bit images "
                "(png, jpg, webp, tif) are composited over opaque black unless the scene or --background gives a "
@@ -199,6 +207,54 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_verify(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("verify", help="read every file of a store and check its checksums; list what is damaged")
+    p.add_argument("store", help="a lodcast store (a local folder)")
+    p.add_argument("--workers", type=int, default=None, help="threads reading files (default: 2 per CPU, at most 16)")
+    p.set_defaults(func=_cmd_verify)
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from lodcast.store.verify import verify
+
+    show = sys.stderr.isatty()
+
+    def progress(done: int, total: int) -> None:
+        if show and (done == total or done % 64 == 0):
+            print(f"\rlodcast verify: {done}/{total} files", end="\n" if done == total else "", file=sys.stderr)
+
+    result = verify(args.store, workers=args.workers, progress=progress)
+    for d in result.damage:
+        print(f"{d.file or args.store}: {d.reason}")
+    size = f"{result.files} data files, {result.bytes / 1e6:.1f} MB"
+    if not result.checksums:
+        print(f"{args.store}: format {result.format_version} carries no checksums (written before format 4): "
+              f"{size} read and decoded; `lodcast upgrade {args.store}` adds them", file=sys.stderr)
+    if result.damage:
+        print(f"{args.store}: {len(result.damage)} damaged files; re-ingest the store", file=sys.stderr)
+        return 1
+    print(f"{args.store}: clean ({size})", file=sys.stderr)
+    return 0
+
+
+def _add_upgrade(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("upgrade", help="rewrite an older store in the current format, in place, without its source")
+    p.add_argument("store", help="a lodcast store (a local folder)")
+    p.set_defaults(func=_cmd_upgrade)
+
+
+def _cmd_upgrade(args: argparse.Namespace) -> int:
+    from lodcast.store.upgrade import upgrade
+
+    done = upgrade(args.store, progress=sys.stderr.isatty())
+    now = f"format {done.store.format_version} ({done.store.dtype.name})"
+    if not done.rewritten:
+        print(f"{args.store}: already {now}; nothing to do")
+    else:
+        print(f"{args.store}: format {done.from_format} ({done.from_dtype}) -> {now}")
+    return 0
+
+
 # --- service: serve / worker / submit / jobs (implemented in lodcast.service.commands) ----------------------
 
 def _add_serve(sub: argparse._SubParsersAction) -> None:
@@ -345,7 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
     parser.set_defaults(log_level="warning")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_ingest, _add_info, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo, _add_presets):
+    for add in (_add_ingest, _add_info, _add_verify, _add_upgrade, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo, _add_presets):
         add(sub)
     for name, command in sub.choices.items():
         command.description, examples = EXAMPLES[name]

@@ -13,6 +13,7 @@ so a killed ingest never leaves anything at the destination that opens as a stor
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import math
 import os
 import shutil
@@ -25,16 +26,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec, BloscShuffle
+from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec, ZstdCodec
 
 from lodcast.environment import environment
 from lodcast.errors import SourceError, StoreExists
 from lodcast.store.atomic import move_into_place, remove_stale
+from lodcast.store.checksum import MANIFEST, attribute_digests, write_manifest
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales, omero
 from lodcast.store.orientation import axis_codes
 from lodcast.store.remote import is_url
+from lodcast.store.shardwrite import ShardWriter
 from lodcast.store.source import SUPPORTED_DTYPES, ArraySource, VolumeSource, check_world_box
 from lodcast.store.store import FORMAT_VERSION, Store, data_manifest, open_store, parse_temp_name, temp_path
 
@@ -223,10 +226,12 @@ class _LevelWriter:
     """Collects level-k slabs until a whole shard depth is there, then writes those shards: shards are written once
     (no read-modify-write). The rows wait in a temporary file beside the store rather than in memory (a level-k
     shard is 4^k block-slabs deep: kept in memory, every level's rows came to another slab's worth), and are
-    written one band of shards across y at a time, so memory holds one band."""
+    written one band of shards across y at a time, so memory holds one band, by store/shardwrite.py (the array at
+    `folder`)."""
 
-    def __init__(self, array: zarr.Array, depth: int, spill: Path):
+    def __init__(self, array: zarr.Array, folder: Path, depth: int, spill: Path):
         self.array = array
+        self.shards = ShardWriter(folder)
         self.depth = min(depth, array.shape[0])
         self.spill = spill  # created on first use: level 0 never needs it
         self.file: Any = None
@@ -270,13 +275,12 @@ class _LevelWriter:
         return out
 
     def _write(self, band_of: Any, n: int) -> None:
-        """One band of shards across y at a time: every call still writes whole shards, and zarr's encoding
-        temporaries stay a band's size rather than a slab's."""
-        assert self.array.shards is not None  # every level array is created sharded
-        band = self.array.shards[1]
+        """One band of shards across y at a time: every call writes whole shards, and the encoding temporaries stay
+        a band's size rather than a slab's."""
+        band = self.shards.shard[1]
         for y0 in range(0, self.array.shape[1], band):
             y1 = min(y0 + band, self.array.shape[1])
-            self.array[self.start : self.start + n, y0:y1] = band_of(y0, y1)
+            self.shards.write((self.start, y0, 0), band_of(y0, y1))
         self.start += n
 
 
@@ -437,6 +441,11 @@ def _interior_stats(strip: np.ndarray, b: int) -> dict[str, np.ndarray]:
 
 # --- the writer ----------------------------------------------------------------------------------------------
 
+#: the codecs after every chunk's compressor (format 4: zarr's crc32c; benchmarks/bench_checksums.py writes a store
+#: without them to measure what they cost)
+CHECKSUMS: tuple[Any, ...] = (Crc32cCodec(),)
+
+
 class _Unlisted:
     """Arrays at ROOT/PREFIX/NAME with no group node at PREFIX. The level arrays stay the root group's only
     members, so a reader that takes a group's members for the image sees the image alone: napari's built-in
@@ -447,11 +456,15 @@ class _Unlisted:
         self.folder = root / prefix
 
     def create_array(self, name: str, **kwargs: Any) -> zarr.Array:
+        """A checksummed array (format 4): its compressor (zarr's default, zstd, unless given), then `crc32c`."""
+        kwargs["compressors"] = [kwargs.get("compressors", ZstdCodec(level=0)), *CHECKSUMS]
         return zarr.create_array(store=str(self.folder / name), zarr_format=3, **kwargs)
 
 
 def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: int,
-           workers: int | None, show: bool, source_label: str) -> None:
+           workers: int | None, show: bool, source_label: str, carried: dict[str, Any] | None = None) -> None:
+    """The store of `src` at `root`; `carried`: root attributes that replace the ones ingest derives (what `upgrade`
+    carries over from the store it rewrites: the original source, orientation and provenance)."""
     info = src.info
     dtype = np.dtype(info.dtype)
     gz, gy, gx = lay.grid
@@ -461,10 +474,11 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     for k in range(lay.n_levels):
         arr = group.create_array(
             str(k), shape=lay.level_shape(k), dtype=dtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
-            compressors=compressor, fill_value=np.nan if dtype.kind == "f" else 0, dimension_names=("z", "y", "x"),
+            compressors=[compressor, *CHECKSUMS], fill_value=np.nan if dtype.kind == "f" else 0,
+            dimension_names=("z", "y", "x"),
             config=COMPLETE,
         )
-        writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-{k}"))
+        writers.append(_LevelWriter(arr, root / str(k), lay.shard_shape(k)[0], root / f".rows-{k}"))
     std_writers = []
     std_group = _Unlisted(root, "std")
     sdtype = std_dtype(dtype)
@@ -474,7 +488,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
             compressors=BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle), fill_value=0,
             dimension_names=("z", "y", "x"), config=COMPLETE,
         )
-        std_writers.append(_LevelWriter(arr, lay.shard_shape(k)[0], root / f".rows-std-{k}"))
+        std_writers.append(_LevelWriter(arr, root / "std" / str(k), lay.shard_shape(k)[0], root / f".rows-std-{k}"))
     # per-block statistics go to the store a row of blocks at a time: held whole, they grew ingest's peak with the
     # volume's depth
     blocks = _Unlisted(root, "blocks")
@@ -582,7 +596,18 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     attrs = _attributes(src, lay, dtype, (lo, hi), bins, seg, nan_count, root, source_label, std_max)
     attrs["ome"]["omero"] = omero(Path(source_label).name or "volume", overall, bins.edges, (lo, hi))
     attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
-    group.attrs.update(attrs)
+    group.attrs.update({**attrs, **(carried or {})})
+    seal(root, group)
+
+
+def seal(root: Path, group: zarr.Group) -> None:
+    """Format 4's checksums of everything written (store/checksum.py): the manifest of every data file and array
+    zarr.json, and the digests of the root attributes as zarr wrote them, recorded under `lodcast.integrity`."""
+    written = json.loads((root / "zarr.json").read_bytes())["attributes"]
+    marker = dict(written["lodcast"])
+    marker["integrity"] = {"algorithm": "crc32c", "manifest": MANIFEST, "crc32c": write_manifest(root),
+                           "attributes": attribute_digests(written)}
+    group.attrs["lodcast"] = marker
 
 
 def _segmentation_device() -> Any:

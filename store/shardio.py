@@ -6,7 +6,9 @@ or 8³ samples) is slow to read. Here each needed shard file is opened once, its
 and cached per (path, mtime, size), the needed chunks' bytes are read as one span when they lie close together,
 and blosc decodes them straight into a per-unit buffer on a shared thread pool (blosc releases the GIL), which is
 then copied into the region. Only what ingest writes is handled: a regular chunk grid, one `sharding_indexed`
-codec holding `bytes` (+ optional `blosc`), index codecs `bytes` (+ optional `crc32c`), in a LocalStore or an
+codec holding `bytes` (+ optional `blosc`, + optional `crc32c`), index codecs `bytes` (+ optional `crc32c`); every
+checksum present is verified (a chunk or index that fails it is StoreCorrupt naming the file and the chunk), and a
+shard is checked against the store's manifest when the caller gives one. In a LocalStore or an
 fsspec store (object storage: the same reads as byte-range requests — per shard one suffix request for the index,
 then one per span of needed chunks, one work unit per shard — where zarr-python issues one request per inner
 chunk); and, on the local filesystem, unsharded arrays of `bytes` (+ optional `blosc` or `zstd`), the per-block
@@ -20,6 +22,7 @@ import json
 import os
 import threading
 from collections import OrderedDict
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from math import ceil, prod
 from pathlib import Path
@@ -29,11 +32,7 @@ import numpy as np
 from numcodecs import blosc, zstd
 
 from lodcast.errors import StoreCorrupt
-
-try:  # numcodecs >= 0.16 exposes the (google_crc32c / crc32c) checksum it uses for its CRC32C codec
-    from numcodecs.checksum32 import crc32c_checksum as _crc32c
-except ImportError:  # older numcodecs: the index checksum is skipped (offsets are still bounds-checked)
-    _crc32c = None
+from lodcast.store.checksum import crc32c
 
 __all__ = ["ShardedReader", "ChunkReader", "fast_reader"]
 
@@ -106,14 +105,16 @@ class _RemoteFiles:
         return self.fs.cat_file(path, start=-n)
 
 
-def fast_reader(source: Any, complete: bool = False, url: str | None = None) -> ShardedReader | ChunkReader | None:
+def fast_reader(source: Any, complete: bool = False, url: str | None = None,
+                digests: Mapping[str, list[int]] | None = None) -> ShardedReader | ChunkReader | None:
     """A reader for `source`, or None when its store or codecs are not handled (use zarr-python then). `source`:
     a zarr Array, or the folder of an array on the local filesystem, whose zarr.json is all that is read to open
     it (zarr-python is not imported until a read with steps needs it: importing it is a noticeable part of a first
     render). A sharded array gets a ShardedReader; an unsharded local one (the per-block metadata arrays) a
     ChunkReader. `complete`: ingest wrote every chunk, so a missing shard file or chunk is damage (StoreCorrupt),
     not empty. `url`: the group's fsspec URL, for an array in an fsspec store (read through a synchronous
-    filesystem)."""
+    filesystem). `digests`: what the store's manifest (store/checksum.py) says of each data file, by chunk key:
+    a shard whose index, or a chunk file whose bytes, are not the ones ingest wrote at that key is damage."""
     if isinstance(source, (str, os.PathLike)):
         folder = Path(source)
         try:
@@ -155,7 +156,8 @@ def fast_reader(source: Any, complete: bool = False, url: str | None = None) -> 
             return None
         cfg = codecs[0]["configuration"]
         inner, index_codecs = cfg["codecs"], cfg["index_codecs"]
-        if not inner or inner[0]["name"] != "bytes" or [c["name"] for c in inner[1:]] not in ([], ["blosc"]):
+        if not inner or inner[0]["name"] != "bytes" or [c["name"] for c in inner[1:]] not in (
+                [], ["blosc"], ["crc32c"], ["blosc", "crc32c"]):
             return None
         if not index_codecs or index_codecs[0]["name"] != "bytes" or [c["name"] for c in index_codecs[1:]] not in ([], ["crc32c"]):
             return None
@@ -165,16 +167,20 @@ def fast_reader(source: Any, complete: bool = False, url: str | None = None) -> 
         return ShardedReader(
             shape, dtype, fill, key, array, files, chunk, shard_shape,
             chunk_dtype=dtype.newbyteorder(_endian(inner[0])) if dtype.itemsize > 1 else dtype,
-            compressed=len(inner) > 1, index_dtype=np.dtype(_endian(index_codecs[0]) + "u8"),
-            index_crc=len(index_codecs) > 1, index_at_end=cfg.get("index_location", "end") == "end", complete=complete,
+            compressed=any(c["name"] == "blosc" for c in inner), chunk_crc=inner[-1]["name"] == "crc32c",
+            index_dtype=np.dtype(_endian(index_codecs[0]) + "u8"), index_crc=len(index_codecs) > 1,
+            index_at_end=cfg.get("index_location", "end") == "end", complete=complete, digests=digests,
         )
     # unsharded: local files only (on object storage zarr-python's concurrent requests beat one request at a time)
-    if files.remote or not codecs or codecs[0]["name"] != "bytes" or [c["name"] for c in codecs[1:]] not in (
+    names = [c["name"] for c in codecs]
+    chunk_crc = names[-1:] == ["crc32c"] and len(names) > 1
+    if files.remote or not codecs or names[0] != "bytes" or names[1:len(names) - chunk_crc] not in (
             [], ["blosc"], ["zstd"]):
         return None
     chunk_dtype = dtype.newbyteorder(_endian(codecs[0])) if dtype.itemsize > 1 else dtype
     return ChunkReader(shape, dtype, fill, key, array, files, tuple(meta["chunk_grid"]["configuration"]["chunk_shape"]),
-                       chunk_dtype=chunk_dtype, codec=codecs[1]["name"] if len(codecs) > 1 else None)
+                       chunk_dtype=chunk_dtype, codec=names[1] if len(names) > 1 + chunk_crc else None,
+                       chunk_crc=chunk_crc, digests=digests)
 
 
 def _geometry(meta: dict) -> tuple[tuple[int, ...], np.dtype, Any, Any] | None:
@@ -213,6 +219,19 @@ def _geometry(meta: dict) -> tuple[tuple[int, ...], np.dtype, Any, Any] | None:
     else:
         return None
     return tuple(int(n) for n in meta["shape"]), dtype, fill, key
+
+
+#: CRC-32C of any bytes followed by their own CRC-32C (little endian), as zarr's `crc32c` codec appends it: one pass
+#: over a chunk checks it, without slicing off its last four bytes first
+_RESIDUE = 0x48674BC7
+
+
+def _checked(raw: Any, name: str, what: str) -> Any:
+    """`raw` without its trailing checksum (zarr's `crc32c` codec: the little-endian CRC-32C of the bytes before
+    it), or StoreCorrupt naming the file and `what` (the chunk) when the checksum does not match."""
+    if len(raw) < 4 or crc32c(raw) != _RESIDUE:
+        raise StoreCorrupt(f"{name}: damaged shard: {what} fails its checksum: re-ingest the store")
+    return raw[:-4]
 
 
 class _Reader:
@@ -259,17 +278,31 @@ class ChunkReader(_Reader):
     asynchronous pipeline is slow to read for a first render."""
 
     def __init__(self, shape: tuple[int, ...], dtype: np.dtype, fill_value: Any, chunk_key: Any, array: Any,
-                 files: Any, chunk: tuple[int, ...], *, chunk_dtype: np.dtype, codec: str | None) -> None:
+                 files: Any, chunk: tuple[int, ...], *, chunk_dtype: np.dtype, codec: str | None,
+                 chunk_crc: bool = False, digests: Mapping[str, list[int]] | None = None) -> None:
         super().__init__(shape, dtype, fill_value, chunk_key, array, files, chunk)
-        self._chunk_dtype, self._codec = chunk_dtype, codec
+        self._chunk_dtype, self._codec, self._chunk_crc, self._digests = chunk_dtype, codec, chunk_crc, digests
 
-    def _decoded(self, coords: tuple[int, ...]) -> np.ndarray | None:
+    def read_chunk(self, coords: tuple[int, ...]) -> np.ndarray | None:
+        """The chunk at chunk coordinates `coords`, decoded and checked (None: never written, the fill value)."""
         key = self._key(coords)
+        name = self._files.name(key)
         try:
-            with open(self._files.name(key), "rb") as f:
+            with open(name, "rb") as f:
                 raw = f.read()
         except FileNotFoundError:
+            if self._digests is not None and key in self._digests:
+                raise StoreCorrupt(f"{name}: chunk file missing (ingest wrote it): the store is damaged, "
+                                   f"re-ingest it") from None
             return None
+        if self._digests is not None:
+            want = self._digests.get(key)
+            if want is None or want[:2] != [len(raw), crc32c(raw)]:
+                raise StoreCorrupt(f"{name}: damaged chunk (not the file ingest wrote at this place: "
+                                   f"{'none was written' if want is None else 'its checksum differs'}): re-ingest "
+                                   f"the store")
+        if self._chunk_crc:
+            raw = _checked(raw, name, f"chunk {coords}")
         n = prod(self.chunk) * self._chunk_dtype.itemsize
         try:
             if self._codec == "blosc":
@@ -279,11 +312,10 @@ class ChunkReader(_Reader):
             else:
                 data = raw
         except (ValueError, RuntimeError) as exc:
-            raise StoreCorrupt(f"{self._files.name(key)}: damaged chunk ({' '.join(str(exc).split())}): re-ingest "
+            raise StoreCorrupt(f"{name}: damaged chunk ({' '.join(str(exc).split())}): re-ingest "
                                f"the store") from None
         if len(data) != n:
-            raise StoreCorrupt(f"{self._files.name(key)}: chunk of {len(data)} bytes, expected {n}: re-ingest the "
-                               f"store")
+            raise StoreCorrupt(f"{name}: chunk of {len(data)} bytes, expected {n}: re-ingest the store")
         return np.frombuffer(data, self._chunk_dtype).reshape(self.chunk)
 
     def _fill(self, out: np.ndarray, lo: tuple[int, ...], hi: tuple[int, ...]) -> None:
@@ -292,7 +324,7 @@ class ChunkReader(_Reader):
             start = [i * c for i, c in zip(coords, self.chunk)]
             src = tuple(slice(max(a, s) - s, min(b, s + c) - s) for a, b, s, c in zip(lo, hi, start, self.chunk))
             dst = tuple(slice(max(a, s) - a, min(b, s + c) - a) for a, b, s, c in zip(lo, hi, start, self.chunk))
-            a = self._decoded(coords)
+            a = self.read_chunk(coords)
             out[dst] = self.fill_value if a is None else a[src]
 
 
@@ -305,10 +337,12 @@ class ShardedReader(_Reader):
     def __init__(self, shape: tuple[int, ...], dtype: np.dtype, fill_value: Any, chunk_key: Any, array: Any,
                  files: Any, chunk: tuple[int, ...], shard: tuple[int, ...], *, chunk_dtype: np.dtype,
                  compressed: bool, index_dtype: np.dtype, index_crc: bool, index_at_end: bool,
-                 complete: bool = False) -> None:
+                 complete: bool = False, chunk_crc: bool = False,
+                 digests: Mapping[str, list[int]] | None = None) -> None:
         super().__init__(shape, dtype, fill_value, chunk_key, array, files, chunk)
         self.complete, self.shard = complete, shard
-        self._chunk_dtype, self._compressed = chunk_dtype, compressed
+        self._chunk_dtype, self._compressed, self._chunk_crc = chunk_dtype, compressed, chunk_crc
+        self._digests = digests
         self._per_shard = tuple(s // c for s, c in zip(shard, chunk))
         self._n_index = prod(self._per_shard)
         self._index_dtype, self._index_crc, self._index_at_end = index_dtype, index_crc, index_at_end
@@ -367,7 +401,7 @@ class ShardedReader(_Reader):
         except FileNotFoundError:
             fd = None
         try:
-            entries = None if fd is None else self._entries(fd, name, coords)
+            entries = None if fd is None else self._entries(fd, name, key, coords)
             if entries is None:  # no shard file (remote: found on its first read)
                 if self.complete:
                     raise StoreCorrupt(f"{name}: shard file missing (ingest wrote it): the store is damaged, "
@@ -378,7 +412,7 @@ class ShardedReader(_Reader):
                 if self.complete and not full.all():
                     raise StoreCorrupt(f"{name}: {int((~full).sum())} chunks missing from the shard "
                                        f"(ingest wrote them all): the store is damaged, re-ingest it")
-                self._decode(fd, entries, full, box, name)
+                self._decode(fd, entries, full, box, name, coords)
         except (ValueError, RuntimeError) as exc:  # a truncated or overwritten shard, a chunk blosc rejects
             if isinstance(exc, StoreCorrupt):
                 raise
@@ -410,16 +444,17 @@ class ShardedReader(_Reader):
             grid = grid.reshape(tuple(k * c for k, c in zip(counts, self.chunk)))
             out[dst] = grid[tuple(slice(max(a, s) - s, min(h, e) - s) for a, h, s, e in zip(lo, hi, start, ends))]
 
-    def _entries(self, fd: Any, name: str, coords: np.ndarray) -> np.ndarray | None:
+    def _entries(self, fd: Any, name: str, key: str, coords: np.ndarray) -> np.ndarray | None:
         """The index entries of the chunks `coords` (n, ndim), in their order (None: the shard object does not
         exist)."""
         try:
-            index = self._index(fd, name)
+            index = self._index(fd, name, key)
         except FileNotFoundError:
             return None
         return index[np.ravel_multi_index(tuple((coords % np.array(self._per_shard)).T), self._per_shard)]
 
-    def _decode(self, fd: Any, entries: np.ndarray, full: np.ndarray, box: np.ndarray, name: str) -> None:
+    def _decode(self, fd: Any, entries: np.ndarray, full: np.ndarray, box: np.ndarray, name: str,
+                coords: np.ndarray) -> None:
         if not full.all():
             box[~full] = self.fill_value
         idx = np.flatnonzero(full)
@@ -435,14 +470,20 @@ class ShardedReader(_Reader):
             raw = memoryview(span)[off - first:off - first + n] if span is not None else pread(fd, n, off)
             if len(raw) != n:
                 raise ValueError(f"{name}: shard truncated (chunk at {off}+{n})")
+            if self._chunk_crc:
+                if crc32c(raw) != _RESIDUE:
+                    raise StoreCorrupt(f"{name}: damaged shard: chunk {tuple(coords[i].tolist())} (voxels from "
+                                       f"{tuple((coords[i] * np.array(self.chunk)).tolist())}) fails its checksum: "
+                                       f"re-ingest the store")
+                raw = raw[:-4]
             if self._compressed:
                 blosc.decompress(raw, box[i])
             else:
                 box[i] = np.frombuffer(raw, self._chunk_dtype).reshape(self.chunk)
 
-    def _index(self, fd: Any, path: str) -> np.ndarray:
+    def _index(self, fd: Any, path: str, chunk_key: str) -> np.ndarray:
         """The shard's (offset, nbytes) table, shape (n, 2) uint64, from this reader's cache keyed by (path, size,
-        mtime or ETag)."""
+        mtime or ETag); checked against the manifest's entry for `chunk_key` when the reader has one."""
         size, version = self._files.stamp(fd)
         key = (path, size, version)
         with self._lock:
@@ -459,8 +500,10 @@ class ShardedReader(_Reader):
         if len(raw) != n:
             raise ValueError(f"{path}: shard shorter than its index")
         body = raw[:16 * self._n_index]
-        if self._index_crc and _crc32c is not None and _crc32c(body) != int.from_bytes(raw[-4:], "little"):
+        if self._index_crc and crc32c(body) != int.from_bytes(raw[-4:], "little"):
             raise ValueError(f"{path}: shard index checksum mismatch")
+        if self._digests is not None:
+            self._check_binding(path, chunk_key, size, raw)
         index = np.frombuffer(body, self._index_dtype).reshape(-1, 2).astype(np.uint64)
         full = index[:, 0] != _EMPTY
         if size is not None and full.any() and int((index[full, 0] + index[full, 1]).max()) > size:
@@ -470,3 +513,13 @@ class ShardedReader(_Reader):
             while len(self._indexes) > INDEX_CACHE_MAX:
                 self._indexes.popitem(last=False)
         return index
+
+    def _check_binding(self, path: str, chunk_key: str, size: int | None, raw: bytes) -> None:
+        """StoreCorrupt unless this shard is the one ingest wrote at `chunk_key`: its size and its index's checksum
+        as the manifest records them (a shard swapped with, or replaced by, another has other chunk sizes)."""
+        want = self._digests.get(chunk_key) if self._digests is not None else None
+        if want is None:
+            raise StoreCorrupt(f"{path}: damaged shard: ingest wrote no shard at this place: re-ingest the store")
+        if (size is not None and size != want[0]) or (self._index_crc and len(want) > 2 and int.from_bytes(raw[-4:], "little") != want[2]):
+            raise StoreCorrupt(f"{path}: damaged shard: not the shard ingest wrote at this place (swapped or "
+                               f"replaced: its index differs from the manifest's): re-ingest the store")

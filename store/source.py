@@ -14,12 +14,25 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["VolumeSource", "ArraySource", "SourceInfo", "SUPPORTED_DTYPES", "check_world_box"]
+__all__ = ["VolumeSource", "ArraySource", "SourceInfo", "SUPPORTED_DTYPES", "check_world_box", "narrowest_integer",
+           "NARROW_TYPES"]
 
 #: dtypes a store can hold; anything else (complex, object, bool, 64-bit ints beyond float64's exact range…) is refused.
 SUPPORTED_DTYPES = tuple(
     np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 )
+
+#: the stored-type rule (store format 4): the first of these that holds every value exactly, else float32
+NARROW_TYPES = tuple(np.dtype(t) for t in ("uint8", "int8", "uint16", "int16"))
+
+
+def narrowest_integer(lo: float, hi: float) -> np.dtype | None:
+    """The first of NARROW_TYPES that holds every integer in [lo, hi], or None when none does."""
+    for t in NARROW_TYPES:
+        info = np.iinfo(t)
+        if info.min <= lo and hi <= info.max:
+            return t
+    return None
 
 
 @dataclass(frozen=True)

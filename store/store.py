@@ -24,6 +24,7 @@ import os
 import re
 import socket
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -33,21 +34,28 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from lodcast.errors import StoreCorrupt, StoreInvalid, StoreNotFound
+from lodcast.store.checksum import Manifest
 from lodcast.store.histogram import Bins
+from lodcast.store.integrity import array_problems, attribute_problems, load_manifest, value_range_problem
 from lodcast.store.layout import Layout
 
 if TYPE_CHECKING:  # pragma: no cover
     import zarr
 
-__all__ = ["Store", "BlockStats", "open_store", "data_manifest", "FORMAT_VERSION"]
+__all__ = ["Store", "BlockStats", "open_store", "data_manifest", "check_metadata", "read_local", "FORMAT_VERSION",
+           "READABLE_VERSIONS"]
 
 #: 2: adds the distribution behind every coarse voxel (`std/{level}`, `blocks/level_std`). Stores of format 1
 #: still open and render; they have no distributions, so coarse samples are classified at their mean.
 #: 3: adds the level-0 value range of every cell of Layout.cell_edge³ voxels (`blocks/cell_min`, `cell_max`).
 #: Stores of format 2 still open and render; coarse samples are then taken wherever their own field can show
 #: something, as before (renderer/frame/render.py: `_cell_info`).
-FORMAT_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+#: 4: checksums (store/checksum.py): zarr's `crc32c` codec after every chunk and shard index, a manifest binding
+#: every data file and array zarr.json to its place, digests of the root attributes; LPS orientation and the
+#: stored-type rule (smallest of uint8, int8, uint16, int16 that holds the values, else float32) come with it.
+#: Stores of format 3 and older still open and render, without those checks (`lodcast upgrade` rewrites them).
+FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 
 @dataclass(frozen=True)
@@ -67,8 +75,11 @@ class Store:
     zarr.json files alone (store/shardio.py reads the arrays): zarr-python is imported only when `group` or
     `level` is asked for, or for a read the readers leave to it."""
 
-    def __init__(self, location: str, attrs: dict, group: zarr.Group | None = None):
+    def __init__(self, location: str, attrs: dict, group: zarr.Group | None = None,
+                 checksums: Manifest | None = None):
         self.location = location
+        #: what ingest wrote, file by file (format 4, local stores): the readers check every shard against it
+        self.checksums = checksums
         if group is not None:
             self.__dict__["group"] = group
         a = dict(attrs)
@@ -176,7 +187,8 @@ class Store:
             if "://" in self.location:
                 reader = fast_reader(self._array(path), complete, self.location)
             else:
-                reader = fast_reader(Path(self.location) / path, complete)
+                digests = None if self.checksums is None else self.checksums.files.get(path, {})
+                reader = fast_reader(Path(self.location) / path, complete, digests=digests)
             reader = self._readers[path] = reader or False
         return reader
 
@@ -273,8 +285,14 @@ class Store:
 
     @cached_property
     def stats(self) -> BlockStats:
-        return BlockStats(**{f: self._read(f"blocks/{f}", ...)
-                             for f in ("min", "max", "mean", "count", "min_border", "max_border")})
+        """The per-block statistics; StoreCorrupt when the root's value range is not theirs (an edited attribute
+        would mis-place every histogram bin and transfer-function lookup)."""
+        stats = BlockStats(**{f: self._read(f"blocks/{f}", ...)
+                              for f in ("min", "max", "mean", "count", "min_border", "max_border")})
+        problem = value_range_problem(self.location, self.value_range, stats.min, stats.max)
+        if problem is not None:
+            raise problem
+        return stats
 
     @cached_property
     def level_std(self) -> np.ndarray | None:
@@ -461,7 +479,29 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
             raise StoreInvalid(f"{location} is not a readable zarr v3 group: {exc}") from None
     if "lodcast" not in attrs:
         raise StoreInvalid(f"{location} is a zarr group but not a lodcast store (no 'lodcast' attribute)")
+    for problem in attribute_problems(location, attrs):  # before the attributes are used
+        raise problem
+    store = Store(location, attrs, group)
+    if is_url:  # the chunk and index checksums are checked as they are read; `verify` checks the rest locally
+        return store
     manifest = (attrs["lodcast"] or {}).get("manifest")
-    if manifest is not None and not is_url:
+    if manifest is not None:
         _check_manifest(location, manifest)
-    return Store(location, attrs, group)
+    store.checksums = check_metadata(store)
+    return store
+
+
+def read_local(location: str) -> Callable[[str], bytes]:
+    """A reader of the files of the local store at `location` by relative path."""
+    return lambda rel: (Path(location) / rel).read_bytes()
+
+
+def check_metadata(store: Store) -> Manifest | None:
+    """What opening a local store checks before any voxel is read, once its root attributes are (store/integrity.py):
+    its manifest (format 4) and every array's zarr.json; raises the first StoreCorrupt. Returns the manifest (None
+    for a store written before checksums)."""
+    read = read_local(store.location)
+    manifest = load_manifest(store.location, store.attrs, read)
+    for problem in array_problems(store.location, store.attrs, store.layout, store.format_version, manifest, read):
+        raise problem
+    return manifest

@@ -540,13 +540,13 @@ def _field(shape):
 
 def to_format_1(path: Path) -> None:
     """What a store written before distributions looks like: no std/ group, no blocks/level_std, format 1 (and no
-    manifest, which came later still)."""
+    manifest or checksums, which came later still)."""
     shutil.rmtree(path / "std")  # a prefix without a group node (store/store.py): not a member to delete
     g = zarr.open_group(str(path), mode="a")
     del g["blocks/level_std"]
     attrs = dict(g.attrs)
     attrs.pop("distribution", None)
-    attrs["lodcast"] = {k: v for k, v in attrs["lodcast"].items() if k != "manifest"} | {"format_version": 1}
+    attrs["lodcast"] = {k: v for k, v in attrs["lodcast"].items() if k not in ("manifest", "integrity")} | {"format_version": 1}
     g.attrs.put(attrs)
 
 

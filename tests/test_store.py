@@ -279,7 +279,7 @@ def test_summary_has_the_info_keys(tmp_path: Path):
     for key in ("shape", "dtype", "spacing", "origin", "block_size", "levels", "value_range", "blocks", "shards", "bytes_on_disk"):
         assert key in info
     assert info["blocks"] == 3 and info["bytes_on_disk"] > 0 and len(info["levels"]) == 5
-    assert info["format_version"] == 3 and info["distribution"]["std"] == "std/{level}"
+    assert info["format_version"] == 4 and info["distribution"]["std"] == "std/{level}"
     assert info["cells"] == {"edge": 8, "grid": [5, 1, 1]}
     assert info["shards"] == sum(lvl["shard_count"] for lvl in info["levels"])
 

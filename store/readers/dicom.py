@@ -12,6 +12,7 @@ import numpy as np
 
 from lodcast.errors import SourceError
 from lodcast.store.readers.base import Reader, files_in, shape_text, source_info, tidy
+from lodcast.store.source import narrowest_integer
 
 __all__ = ["DicomReader", "open_dicom", "is_dicom", "rescaled_dtype", "coincident", "z_spacing", "patient_geometry",
            "PIXEL_DTYPES"]
@@ -60,17 +61,21 @@ def patient_geometry(orientation: Any, first: list[float], provenance: dict[str,
 
 
 def rescaled_dtype(pixel: np.dtype, bits_stored: int, rescale: list[tuple[float, float]]) -> np.dtype:
-    """The stored pixels' type when nothing is rescaled; else the smallest of int16/int32 that holds every
-    rescaled value when slopes and intercepts are whole (CT Hounsfield units), float32 otherwise."""
+    """The stored pixels' type when nothing is rescaled; else the stored-type rule (store/source.py:
+    narrowest_integer) over every value the stored bits can give once rescaled, when slopes and intercepts are whole
+    (CT Hounsfield units: 12 stored bits with intercept −1024 give int16); float32 otherwise, or int32 where whole
+    values reach past float32's exact integers."""
     if all(r == (1.0, 0.0) for r in rescale):
         return pixel
     signed = pixel.kind == "i"
     lo, hi = (-(2 ** (bits_stored - 1)), 2 ** (bits_stored - 1) - 1) if signed else (0, 2**bits_stored - 1)
     if all(s.is_integer() and i.is_integer() for s, i in rescale):
         ends = [v for s, i in rescale for v in (s * lo + i, s * hi + i)]
-        for candidate in (np.int16, np.int32):
-            if np.iinfo(candidate).min <= min(ends) and max(ends) <= np.iinfo(candidate).max:
-                return np.dtype(candidate)
+        narrow = narrowest_integer(min(ends), max(ends))
+        if narrow is not None:
+            return narrow
+        if max(abs(v) for v in ends) > 2**24:
+            return np.dtype(np.int32)
     return np.dtype(np.float32)
 
 
