@@ -359,6 +359,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             summary = finite_json(volume_summary(settings.root, vid))
         except StoreInvalid as exc:
             raise failure(vid, volume_path(settings.root, vid, must_exist=False), exc) from None
+        except Exception as exc:
+            raise (unavailable(settings, exc, vid) or exc) from None
         try:
             VolumeSummary.model_validate(summary)  # what the response model will check, checked here
         except ValidationError as exc:
@@ -516,7 +518,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                            description="progressive: a newer stream of the same "
                                                                        "session cancels this one's stages to come")]
                      = None) -> Response:
-        path = await run_in_threadpool(engine.locate, settings.root, volume_id)
+        try:
+            path = await run_in_threadpool(engine.locate, settings.root, volume_id)
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
         sc = parse_scene(scene, settings)
         eng = engine
         started = time.perf_counter()
@@ -528,6 +533,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise scene_refused(exc) from None
         except (StoreNotFound, StoreInvalid) as exc:
             raise failure(volume_id, path, exc) from None
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
         if progressive:
             return await progressive_response(request, volume_id, path, sc, samples, session, started)
         try:
