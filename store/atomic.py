@@ -11,7 +11,7 @@ from pathlib import Path
 from lodcast.errors import StoreExists
 from lodcast.store.store import host_tag, parse_temp_name, temp_path
 
-__all__ = ["remove_stale", "move_into_place", "FOREIGN_STALE_S"]
+__all__ = ["remove_stale", "move_into_place", "fsync_tree", "fsync_dir", "FOREIGN_STALE_S"]
 
 #: another host's ingest folder is taken for a leftover of a dead ingest after this long untouched (its process
 #: cannot be asked from here)
@@ -64,3 +64,25 @@ def move_into_place(tmp: Path, dest: Path, overwrite: bool) -> None:
     os.rename(dest, old)
     os.rename(tmp, dest)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def fsync_tree(root: Path) -> None:
+    """Flush every file and folder under `root` to disk: a rename that publishes `root` afterwards cannot outlive,
+    after a power loss, the data it names."""
+    for dirpath, _, names in os.walk(root):
+        for name in names:
+            fd = os.open(os.path.join(dirpath, name), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        fsync_dir(Path(dirpath))
+
+
+def fsync_dir(folder: Path) -> None:
+    """Flush a folder's entries (a rename in it) to disk."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

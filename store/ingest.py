@@ -29,7 +29,7 @@ from zarr.codecs import BloscCodec, BloscShuffle
 
 from lodcast.environment import environment
 from lodcast.errors import SourceError, StoreExists
-from lodcast.store.atomic import move_into_place, remove_stale
+from lodcast.store.atomic import fsync_dir, fsync_tree, move_into_place, remove_stale
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
 from lodcast.store.ome import multiscales, omero
@@ -103,7 +103,9 @@ def ingest(
             # batching lets zarr compress many inner chunks of a shard concurrently (faster writes)
             with zarr.config.set({"codec_pipeline.batch_size": 32}):
                 _write(src, tmp, Layout(info.shape, block_size), bins, segments, workers, _show_progress(progress), label)
+            fsync_tree(tmp)  # every file and folder on disk before the rename publishes them
             move_into_place(tmp, dest, overwrite)
+            fsync_dir(dest.parent)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
