@@ -23,9 +23,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from phantoms import head  # noqa: E402
+
 import lodcast  # noqa: E402
 from lodcast.renderer.frame.render import Renderer  # noqa: E402
-from phantoms import head  # noqa: E402
 
 TF = {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 200, "color": [1, 0.8, 0.6], "opacity": 0.05}]}
 BIG = {"camera": {"azimuth": 30, "elevation": 10, "distance": 2.5}, "width": 768, "height": 768, "tf": TF,
