@@ -1,8 +1,9 @@
 """OpenCL devices and the programs built on them, below both the store (its histogram segmentation kernel) and the
 renderer, so that neither imports the other for it.
 
-A `Device` is a context and a profiling queue on one OpenCL device, opened on first use, with the programs built
-on it. Programs are built from `.cl` files (the renderer's folder by default, or the caller's; our own
+A `Device` is a context on one OpenCL device, opened on first use, with an in-order profiling queue per thread and
+the programs built on it: a render waits (clFinish) only for its own commands, never for another render's kernels
+queued before them, so a small render is not served behind big ones on the device. Programs are built from `.cl` files (the renderer's folder by default, or the caller's; our own
 `#include "..."` lines are resolved here, so no include path reaches the OpenCL compiler) and the `-D` options of
 a KernelConfig, and cached by sha256(source, options, platform, device, driver): in the Device for its lifetime
 and on disk under the user cache directory (see `cache_dir`) as device binaries, so that a second process skips
@@ -131,7 +132,7 @@ def _key(src: str, options: tuple[str, ...], dev: cl.Device) -> str:
 
 
 class Device:
-    """One OpenCL context and profiling queue, opened on first use, and the programs built on it.
+    """One OpenCL context, opened on first use, a profiling queue per thread, and the programs built on it.
 
     `want`: "gpu", "cpu" or a substring of the device name (default ``$LODCAST_DEVICE`` as it is when the Device
     is made), else the first GPU, else the first CPU; a device whose compiler cannot build a trivial kernel is
@@ -147,7 +148,7 @@ class Device:
         self.want = (environment().device if want is None else want).strip().lower()
         self.kernels = cache_dir() if kernels is None else Path(kernels)
         self._lock = threading.RLock()
-        self._opened: tuple[cl.Context, cl.CommandQueue] | None = None
+        self._opened: cl.Context | None = None
         self._programs: dict[str, cl.Program] = {}
         # a render asks for its program every time: the expanded source per (file, folder), valid while every
         # file it was read from keeps its modification time and size, and its cache key per (source, options),
@@ -162,17 +163,23 @@ class Device:
 
     @property
     def context(self) -> cl.Context:
-        return self._open()[0]
+        return self._open()
 
     @property
     def queue(self) -> cl.CommandQueue:
-        return self._open()[1]
+        """The calling thread's queue. Every render runs on one thread and finishes its own commands before it hands
+        a buffer to others (an atlas in the device cache), so queues need no events between them."""
+        q = self._thread.__dict__.get("queue")
+        if q is None:
+            q = self._thread.queue = cl.CommandQueue(self._open(),
+                                                     properties=cl.command_queue_properties.PROFILING_ENABLE)
+        return q
 
     @property
     def cl_device(self) -> cl.Device:
-        return self._open()[0].devices[0]
+        return self._open().devices[0]
 
-    def _open(self) -> tuple[cl.Context, cl.CommandQueue]:
+    def _open(self) -> cl.Context:
         opened = self._opened
         if opened is not None:
             return opened
@@ -181,7 +188,7 @@ class Device:
                 self._opened = self._choose()
             return self._opened
 
-    def _choose(self) -> tuple[cl.Context, cl.CommandQueue]:
+    def _choose(self) -> cl.Context:
         if "OCL_ICD_VENDORS" not in os.environ and os.path.isdir("/etc/OpenCL/vendors"):
             os.environ["OCL_ICD_VENDORS"] = "/etc/OpenCL/vendors"
         devices = []
@@ -211,7 +218,7 @@ class Device:
                 failures.append(f"{dev.name.strip()} ({dev.platform.version.strip()}): "
                                 f"{str(exc).splitlines()[-1] if str(exc) else exc}")
                 continue
-            return ctx, cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+            return ctx
         raise DeviceError("no OpenCL device can build a kernel: " + "; ".join(failures)
                           + " (on Debian/Ubuntu: apt-get install pocl-opencl-icd)")
 

@@ -1,6 +1,6 @@
 """The HTTP API (FastAPI). ``create_app(settings)`` builds everything; nothing is created at import time.
 
-Routes (docs/design.md "Interfaces"): ``GET /healthz``; ``GET/POST /volumes``, ``GET/DELETE /volumes/{id}``,
+Routes (docs/design.md "Interfaces"): ``GET /healthz``, ``GET /readyz``; ``GET/POST /volumes``, ``GET/DELETE /volumes/{id}``,
 ``POST /volumes/{id}/upload``; ``POST /volumes/{id}/render``; ``GET/POST /jobs``, ``GET/DELETE /jobs/{id}``,
 ``GET /jobs/{id}/results/{n}``, ``GET /jobs/{id}/animation``; OpenAPI at ``/docs``.
 Every bad request is a 4xx whose JSON ``detail`` names the field (FastAPI's 422 list shape for bodies).
@@ -32,6 +32,10 @@ from lodcast.errors import LodcastError, StoreCorrupt, StoreInvalid, StoreNotFou
 from lodcast.renderer.scene.cost import CostError
 from lodcast.renderer.scene.scene import Scene, SceneError, validation_message
 from lodcast.service.asgi import BodyLimit, TokenGate, offline_docs
+from lodcast.service.faults import StorageUnavailable, unavailable
+from lodcast.service.faults import install as install_fault_handlers
+from lodcast.service.health import Monitor
+from lodcast.service.health import probes as health_probes
 from lodcast.service.jobs import IngestJob, Job, validate_job
 from lodcast.service.models import (
     NDJSON,
@@ -166,8 +170,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 state["jobs"] = JobQueue(settings, engine=engine)
             return state["jobs"]
 
+    monitor = Monitor(health_probes(settings, jobs, engine), settings.health_every_s)
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):  # type: ignore[no-untyped-def]
+        monitor.start()
         worker = None
         if settings.workers > 0:
             from lodcast.service.queue import Worker
@@ -177,6 +184,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            monitor.stop()
             if worker is not None:
                 await run_in_threadpool(worker.stop)
 
@@ -225,6 +233,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(TokenGate, token=settings.token, protected=protected)  # outside BodyLimit: 401 before 413
 
     # --- errors -------------------------------------------------------------------------------------------------
+    def failure(volume_id: str, path: Any, exc: Exception) -> Exception:
+        """A store that cannot be used now (503, a storage fault) or at all (409, 404: _store_error)."""
+        return unavailable(settings, exc, volume_id) or _store_error(volume_id, path, exc)
+
+    install_fault_handlers(app, settings)
+
     @app.exception_handler(HttpError)
     async def _http_error(request: Request, exc: HttpError) -> JSONResponse:
         return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
@@ -287,10 +301,26 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         pass
 
     # --- health / volumes ---------------------------------------------------------------------------------------
-    @app.get("/healthz", tags=["service"], summary="Liveness: the version and the queue back end",
+    @app.get("/healthz", tags=["service"], summary="Liveness, and each component (store root, queue, device)",
              response_model=Health)
-    def healthz() -> dict[str, Any]:
-        return {"status": "ok", "version": lodcast.__version__, "queue": "redis" if settings.is_redis else "sqlite"}
+    async def healthz() -> dict[str, Any]:
+        """What each component's last probe found (service/health.py: probed off the request path, so this answers
+        at once however busy the renderer is); `degraded` when one is down."""
+        parts = monitor.start().components()
+        return {"status": "degraded" if any(c["status"] == "down" for c in parts.values()) else "ok",
+                "version": lodcast.__version__, "queue": "redis" if settings.is_redis else "sqlite",
+                "components": parts}
+
+    @app.get("/readyz", tags=["service"], summary="Readiness: 503 naming each component that is down",
+             response_model=Health, responses=errors(503))
+    async def readyz() -> Any:
+        parts = monitor.start().components()
+        down = [f"{name}: {c['status']} ({c['detail']})" for name, c in parts.items() if c["status"] != "ok"]
+        if down:
+            return JSONResponse({"detail": "; ".join(down)}, status_code=503,
+                                headers={"Retry-After": str(settings.retry_after_s)})
+        return {"status": "ok", "version": lodcast.__version__, "queue": "redis" if settings.is_redis else "sqlite",
+                "components": parts}
 
     @app.get("/presets", tags=["service"], dependencies=auth, summary="The named transfer functions",
              response_model=dict[str, dict[str, Any]], responses=errors(401))
@@ -313,7 +343,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 continue  # deleted since the listing
             except HttpError as exc:
                 out.append({"id": vid, "error": exc.detail})
+            except StorageUnavailable:
+                raise  # the storage, not this store: the listing as a whole is to be asked again
             except Exception as exc:  # noqa: BLE001 - whatever one store does, the others are listed
+                fault = unavailable(settings, exc, vid)
+                if fault is not None:
+                    raise fault from None
                 out.append({"id": vid, "error": f"volume {vid!r}: the store cannot be read "
                                                 f"({type(exc).__name__}: {' '.join(str(exc).split())[:500]})"})
         return out
@@ -323,7 +358,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             summary = finite_json(volume_summary(settings.root, vid))
         except StoreInvalid as exc:
-            raise _store_error(vid, volume_path(settings.root, vid, must_exist=False), exc) from None
+            raise failure(vid, volume_path(settings.root, vid, must_exist=False), exc) from None
+        except Exception as exc:
+            raise (unavailable(settings, exc, vid) or exc) from None
         try:
             VolumeSummary.model_validate(summary)  # what the response model will check, checked here
         except ValidationError as exc:
@@ -445,11 +482,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             try:
                 return await run_in_threadpool(call, stop)
             except (StoreNotFound, StoreInvalid) as exc:
-                raise _store_error(volume_id, path, exc) from None
+                raise failure(volume_id, path, exc) from None
             except SceneError as exc:  # one the cost check could not see (a step too small for this volume)
                 raise scene_refused(exc) from None
             except (ValueError, ArithmeticError) as exc:
                 raise HttpError(400, f"scene: {' '.join(str(exc).split())}") from None
+            except Exception as exc:
+                raise (unavailable(settings, exc, volume_id) or exc) from None
             finally:
                 watcher.cancel()
 
@@ -479,7 +518,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                            description="progressive: a newer stream of the same "
                                                                        "session cancels this one's stages to come")]
                      = None) -> Response:
-        path = volume_path(settings.root, volume_id)
+        try:
+            path = await run_in_threadpool(engine.locate, settings.root, volume_id)
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
         sc = parse_scene(scene, settings)
         eng = engine
         started = time.perf_counter()
@@ -490,7 +532,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         except SceneError as exc:  # the scene's view of this volume is degenerate (renderer/scene/camera.py: frame)
             raise scene_refused(exc) from None
         except (StoreNotFound, StoreInvalid) as exc:
-            raise _store_error(volume_id, path, exc) from None
+            raise failure(volume_id, path, exc) from None
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
         if progressive:
             return await progressive_response(request, volume_id, path, sc, samples, session, started)
         try:

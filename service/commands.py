@@ -140,6 +140,7 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
     if settings.remote:
         _check_remote_root(settings.root)
     JobQueue(settings).check()  # an unreachable Redis is a one-line error now, not a failing request later
+    _sweep(settings.root)
     url = f"http://{host if ':' not in host else '[' + host + ']'}:{port}"
     vols = list_volumes(settings.root)
     example, lo, hi = (vols[0] if vols else "VOLUME"), 0.0, 1000.0
@@ -164,6 +165,16 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
     # SIGTERM/Ctrl-C: requests in flight get a bounded time to finish (renders stop at their deadline anyway)
     uvicorn.run(create_app(settings), host=host, port=int(port), log_level=log_level, timeout_graceful_shutdown=10)
     return 0
+
+
+def _sweep(root: Any) -> None:
+    """What killed ingests of this host left (store/sweep.py), removed before this process takes work."""
+    from lodcast.store.sweep import sweep
+
+    gone = sweep(root)
+    if gone:
+        print(f"lodcast: removed {len(gone)} folder(s) of killed ingests: {', '.join(gone[:5])}"
+              f"{' ...' if len(gone) > 5 else ''}", file=sys.stderr, flush=True)
 
 
 # --- worker ----------------------------------------------------------------------------------------------------
@@ -192,6 +203,7 @@ def _cmd_worker(args: argparse.Namespace) -> int:
     settings = _settings(args)
     jq = JobQueue(settings)
     jq.check()
+    _sweep(settings.root)
     print(f"lodcast worker {os.getpid()} on {'redis' if settings.is_redis else 'sqlite'} queue, root {settings.root}", file=sys.stderr, flush=True)
     return Worker(jq, threads=args.threads).run_forever()
 

@@ -19,6 +19,7 @@ from pydantic_core import CoreSchema
 from lodcast.renderer.scene.scene import Scene, SceneError, TransferFunction
 from lodcast.service.rendering import RequestInvalid, check_tf, parse_scene, scene_format, scene_refused
 from lodcast.service.volumes import BadId, VolumeNotFound, check_volume_id, safe_import_path, volume_exists, volume_path
+from lodcast.store.atomic import fsync_dir
 
 __all__ = [
     "Job",
@@ -285,7 +286,8 @@ def frame_ext(scene: Any) -> str:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write to a temporary file in the same folder, fsync, then rename: the file is complete or absent."""
+    """Write to a temporary file in the same folder, fsync, then rename, and fsync the folder: the file is complete
+    or absent, also after a power loss."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -294,6 +296,7 @@ def write_atomic(path: Path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        fsync_dir(path.parent)
     except BaseException:
         try:
             os.unlink(tmp)

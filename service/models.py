@@ -20,10 +20,17 @@ class _Out(BaseModel):
     model_config = ConfigDict(extra="ignore")
 
 
+class ComponentHealth(_Out):
+    status: Literal["ok", "down", "starting"] = Field(description="what its last probe found (starting: none yet)")
+    detail: str
+    checked: float | None = Field(description="when it was last probed (seconds since the epoch)")
+
+
 class Health(_Out):
-    status: Literal["ok"]
+    status: Literal["ok", "degraded"] = Field(description="degraded: a component is down")
     version: str
     queue: Literal["sqlite", "redis"]
+    components: dict[str, ComponentHealth] = Field(default_factory=dict, description="store_root, queue, device")
 
 
 class Progress(_Out):

@@ -23,6 +23,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from lodcast.faults import storage_fault
 from lodcast.service.frames import FrameRenderer
 from lodcast.service.jobs import IngestJob, TurntableJob, encode_animation, frame_ext, parse_job, plan_frames
 from lodcast.service.records import ACTIVE, Records, open_records
@@ -225,7 +226,7 @@ class JobQueue:
         hb = threading.Thread(target=self._heartbeat, args=(job_id, owner, beat), daemon=True, name=f"hb-{job_id[:8]}")
         hb.start()
         try:
-            outcome = self._run(job_id, owner, rec)
+            outcome = self._run_resuming(job_id, owner, rec)
             if outcome == "done":
                 cur = self.records.get(job_id) or rec
                 self.records.update(
@@ -234,7 +235,7 @@ class JobQueue:
                      "completions": int(cur["completions"] or 0) + 1},
                     expect={"state": ("running",), "owner": (owner,)},
                 )
-        except Exception as exc:  # the job's own failure: recorded, never retried
+        except Exception as exc:  # the job's own failure, or a storage fault past its retries: recorded
             log.exception("job %s failed", job_id)
             self.records.update(job_id, {"state": "failed", "error": self._unplaced(_one_line(exc)), "finished": time.time()},
                                 expect={"state": ("running",), "owner": (owner,)})
@@ -242,6 +243,32 @@ class JobQueue:
             beat.set()
             hb.join(timeout=5)
             self.records.drop_leases(job_id, owner)
+
+    def _run_resuming(self, job_id: str, owner: str, rec: dict[str, Any]) -> str:
+        """`_run`, resumed after a transient storage fault (lodcast.faults: object storage unreachable or
+        throttling, a full disk) up to `storage_retries` times, waiting `storage_backoff_s`, doubled each time (at
+        most 60 s), before each: a resumed job renders only the frames it has not written. The job stays running
+        and its heartbeat beats meanwhile; its `error` says what it waits for."""
+        attempt = 0
+        while True:
+            try:
+                return self._run(job_id, owner, rec)
+            except Exception as exc:
+                why = storage_fault(exc)
+                if why is None or attempt == self.settings.storage_retries:
+                    raise
+                wait = min(60.0, self.settings.storage_backoff_s * 2.0**attempt)
+                log.warning("job %s: storage fault (%s); resumed in %.1f s", job_id, why, wait)
+                self.records.update(job_id, {"error": self._unplaced(f"storage fault, retry {attempt + 1} of "
+                                                                     f"{self.settings.storage_retries} in "
+                                                                     f"{wait:g} s: {why}")},
+                                    expect={"state": ("running",), "owner": (owner,)})
+                if self.stopping.wait(wait):
+                    self._release(job_id, owner)
+                    return "released"
+                if not self._mine(job_id, owner):
+                    return "lost"
+                attempt += 1
 
     def _unplaced(self, message: str) -> str:
         """A job's error as its client may read it: paths relative to the store root and the import roots (an
@@ -368,8 +395,8 @@ class JobQueue:
         except StoreExists:
             if int(rec["attempts"] or 0) < 1:  # a retry after a crash that happened after the rename: it is done
                 raise
-        except Exception:
-            if upload:  # the job fails for good: the uploaded file is of no further use
+        except Exception as exc:
+            if upload and storage_fault(exc) is None:  # the job fails for good: the upload is of no further use
                 drop_upload(job.source)
             raise
         finally:

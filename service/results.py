@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from lodcast.service.jobs import write_atomic
+from lodcast.store.atomic import fsync_dir
 from lodcast.store.remote import is_url
 
 __all__ = ["JobFiles", "frame_name", "park_upload", "drop_upload", "parked_uploads"]
@@ -69,7 +70,10 @@ class JobFiles:
         if self.fs is not None:
             self.fs.pipe(self._at(name), data)  # one PUT: the object is complete or absent
             return
-        Path(self.dir).mkdir(parents=True, exist_ok=True)
+        folder = Path(self.dir)
+        if not folder.is_dir():
+            folder.mkdir(parents=True, exist_ok=True)
+            fsync_dir(folder.parent)  # the job's folder itself, before a result in it is published
         write_atomic(Path(self._at(name)), data)
 
     def read(self, name: str) -> bytes:

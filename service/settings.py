@@ -86,6 +86,17 @@ class Settings(BaseSettings):
                              "(LODCAST_JOB_HELPERS)")
 
     # crash safety
+    retry_after_s: int = Field(default=5, ge=1, description="Retry-After of a 503 for a storage fault (object "
+                               "storage unreachable or throttling, a full disk), in seconds")
+    store_check_s: float = Field(default=2.0, ge=0, description="a volume on object storage found and opened is "
+                                 "trusted this long before its existence and root metadata are asked again (0: every "
+                                 "request)")
+    storage_retries: int = Field(default=5, ge=0, description="times a job whose storage has a transient fault is "
+                                 "resumed before it fails with the error (LODCAST_STORAGE_RETRIES)")
+    storage_backoff_s: float = Field(default=2.0, gt=0, description="first wait before a job resumes after a storage "
+                                     "fault; doubled each time, at most 60 s")
+    health_every_s: float = Field(default=1.0, gt=0, description="how often /healthz's components (store root, "
+                                  "queue, device) are probed, off the request path")
     heartbeat_s: float = Field(default=2.0, gt=0, description="how often a running job refreshes its heartbeat")
     stale_after_s: float = Field(default=15.0, gt=0, description="a running job whose heartbeat is older is re-enqueued")
     reap_every_s: float = Field(default=5.0, gt=0, description="how often stale jobs are looked for")

@@ -173,6 +173,9 @@ class S3Server:
     endpoint: str  # the proxy's URL: what clients use (AWS_ENDPOINT_URL)
     requests: list = field(default_factory=list)  # (method, path, range header, response bytes)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    # an outage to play: None (pass requests on), "cut" (the connection closed without an answer, as a network
+    # that drops it) or "slowdown" (503 SlowDown, S3's throttling answer)
+    fault: str | None = None
 
     def reset(self) -> None:
         with self.lock:
@@ -194,6 +197,18 @@ def _proxy(server: S3Server, upstream_port: int) -> ThreadingHTTPServer:
         def _forward(self) -> None:
             n = int(self.headers.get("Content-Length") or 0)
             body = self.rfile.read(n) if n else None
+            if server.fault == "cut":
+                self.close_connection = True
+                self.connection.shutdown(socket.SHUT_RDWR)
+                return
+            if server.fault == "slowdown":
+                msg = b"<Error><Code>SlowDown</Code><Message>Please reduce your request rate.</Message></Error>"
+                self.send_response(503, "Slow Down")
+                self.send_header("Content-Length", str(len(msg) if self.command != "HEAD" else 0))
+                self.end_headers()
+                if self.command != "HEAD":
+                    self.wfile.write(msg)
+                return
             conn = http.client.HTTPConnection("127.0.0.1", upstream_port, timeout=60)
             headers = {k: v for k, v in self.headers.items() if k.lower() != "connection"}
             conn.request(self.command, self.path, body=body, headers=headers)

@@ -30,7 +30,7 @@ from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec, ZstdCodec
 
 from lodcast.environment import environment
 from lodcast.errors import SourceError, StoreExists
-from lodcast.store.atomic import move_into_place, remove_stale
+from lodcast.store.atomic import fsync_dir, fsync_tree, move_into_place, remove_stale
 from lodcast.store.checksum import MANIFEST, attribute_digests, write_manifest
 from lodcast.store.histogram import DEFAULT_BINS, DEFAULT_SEGMENTS, Bins, simplify
 from lodcast.store.layout import Layout
@@ -106,7 +106,9 @@ def ingest(
             # batching lets zarr compress many inner chunks of a shard concurrently (faster writes)
             with zarr.config.set({"codec_pipeline.batch_size": 32}):
                 _write(src, tmp, Layout(info.shape, block_size), bins, segments, workers, _show_progress(progress), label)
+            fsync_tree(tmp)  # every file and folder on disk before the rename publishes them
             move_into_place(tmp, dest, overwrite)
+            fsync_dir(dest.parent)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise

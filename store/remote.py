@@ -14,7 +14,6 @@ import os
 from pathlib import Path
 from typing import Any
 
-from lodcast.environment import environment
 from lodcast.errors import StoreExists
 
 __all__ = ["is_url", "published", "publish", "ingest_to_url"]
@@ -35,18 +34,25 @@ def published(url: str) -> bool:
 
 
 def ingest_to_url(source: Any, url: str, *, overwrite: bool, **kw: Any) -> Any:
-    """`lodcast.ingest` to a URL: into a local temporary folder, then `publish`; the store opened there."""
-    import tempfile
+    """`lodcast.ingest` to a URL: into a local folder named by host and pid (store/sweep.py), then `publish`; the
+    store opened there. The local copy goes however the ingest ends; one a killed ingest left is removed by the
+    next ingest to object storage on this host, or by `serve`/`worker` start-up."""
+    import shutil
 
     from lodcast.store.ingest import ingest
     from lodcast.store.store import open_store
+    from lodcast.store.sweep import local_copy, sweep_local_copies
 
     if not overwrite and published(url):  # before the work, as for a local destination
         raise StoreExists(f"destination {url} exists (use --overwrite to replace it)")
-    with tempfile.TemporaryDirectory(prefix="lodcast-ingest-", dir=environment().tmp) as tmp:
-        local = Path(tmp) / (url.rstrip("/").rsplit("/", 1)[-1] or "store.zarr")
+    sweep_local_copies()
+    tmp = local_copy()
+    try:
+        local = tmp / (url.rstrip("/").rsplit("/", 1)[-1] or "store.zarr")
         ingest(source, local, **kw)
         publish(local, url, overwrite)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return open_store(url)
 
 

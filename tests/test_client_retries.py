@@ -13,7 +13,7 @@ import pytest
 from lodcast.service.client import Client, ServiceError
 from lodcast.service.testing import free_port
 
-HEALTH = {"status": "ok", "version": "9.9", "queue": "sqlite"}
+HEALTH = {"status": "ok", "version": "9.9", "queue": "sqlite", "components": {}}
 
 
 class _Flaky:

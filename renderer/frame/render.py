@@ -106,17 +106,21 @@ def _priority_report(pr: Prepared, nsamp: np.ndarray) -> PriorityMapReport | Non
 def launch(queue: cl.CommandQueue, kern: cl.Kernel, width: int, height: int, *, estimated_samples: int = 0,
            stop: Callable[[], None] | None = None) -> list[cl.Event]:
     """Enqueue the image as bands of rows of about BAND_SAMPLES estimated samples each (one band for most renders),
-    calling `stop()` after each band but the last: it raises to end the render there (a client gone, a deadline),
-    so that no render is beyond reach for longer than one band. The events of the bands launched."""
+    each band after the one before has finished, calling `stop()` (if given) between them: it raises to end the
+    render there (a client gone, a deadline), so that no render is beyond reach for longer than one band. Waiting
+    between bands also lets the kernels other threads queued meanwhile run before this render's next band: a CPU
+    device such as PoCL's runs one kernel at a time, whatever queue it came from, so a small render waits for at
+    most one band of each big one. The events of the bands launched."""
     lx, ly = LOCAL_SIZE
     gx = int(math.ceil(width / lx) * lx)
-    bands = max(1, math.ceil(estimated_samples / BAND_SAMPLES)) if stop is not None else 1
+    bands = max(1, math.ceil(estimated_samples / BAND_SAMPLES))
     rows = int(math.ceil(math.ceil(height / bands) / ly) * ly)
     events: list[cl.Event] = []
     for y0 in range(0, height, rows):
         if events:
             events[-1].wait()
-            stop()  # type: ignore[misc]
+            if stop is not None:
+                stop()
         h = int(math.ceil(min(rows, height - y0) / ly) * ly)
         # the offset (0, y0) positionally: pyopencl's binding calls it global_work_offset, its stub global_offset
         events.append(cl.enqueue_nd_range_kernel(queue, kern, (gx, h), LOCAL_SIZE, (0, y0)))
