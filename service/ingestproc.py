@@ -5,9 +5,12 @@ storage) is removed as the start-up sweep removes it (store/sweep.py). An error 
 itself, with what lodcast.faults needs to tell a transient storage fault, since its causes do not cross processes."""
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import multiprocessing
 import os
 import pickle
+import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -18,6 +21,9 @@ from lodcast.errors import LodcastError
 from lodcast.faults import storage_fault
 
 __all__ = ["IngestFailed", "StorageFault", "run_ingest"]
+
+#: prctl's option: the signal this process gets when the thread that started it ends
+PR_SET_PDEATHSIG = 1
 
 
 class IngestFailed(LodcastError):
@@ -45,7 +51,18 @@ def _failure(exc: BaseException) -> _Failure:
     return _Failure(blob, str(exc) or type(exc).__name__, storage_fault(exc))
 
 
-def _child(conn: Connection, source: str, dest: str, options: dict[str, Any], storage: dict[str, Any]) -> None:
+def _die_with(parent: int) -> None:
+    """The kernel kills this process when its worker dies, SIGKILL included (Linux; elsewhere nothing), so that a
+    killed worker leaves no ingest behind, still writing the volume that the job's next owner writes again."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # the worker died before the line above
+        os._exit(1)
+
+
+def _child(conn: Connection, parent: int, source: str, dest: str, options: dict[str, Any],
+           storage: dict[str, Any]) -> None:
+    _die_with(parent)
     try:
         from lodcast.malloc import tame_malloc
         from lodcast.service.objectstorage import bound_object_storage
@@ -82,7 +99,7 @@ def run_ingest(source: str, dest: str | os.PathLike[str], options: dict[str, Any
     False returned. True when the ingest is done; its error, raised here, otherwise."""
     ctx = multiprocessing.get_context("spawn")  # not fork: the worker runs threads (heartbeats, huey, renders)
     recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, source, os.fspath(dest), options, storage), name="lodcast-ingest")
+    proc = ctx.Process(target=_child, args=(send, os.getpid(), source, os.fspath(dest), options, storage), name="lodcast-ingest")
     proc.start()
     send.close()  # the child holds the only writer: its end is an end of file here
     try:

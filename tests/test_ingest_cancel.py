@@ -4,14 +4,19 @@ ingest is left beside the store root's volumes."""
 from __future__ import annotations
 
 import gzip
+import os
+import signal
 import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lodcast.service.jobs import IngestJob
 from lodcast.service.queue import JobQueue, Worker
 from lodcast.service.settings import Settings
+from lodcast.service.testing import start_worker
+from lodcast.store.store import parse_temp_name
 
 
 def _slow_nrrd(path: Path, n: int = 256) -> None:
@@ -55,3 +60,33 @@ def test_a_cancelled_ingest_frees_its_worker_for_the_next_job_and_leaves_nothing
     # the big ingest was stopped, not finished behind the small one: no store of it, and no partial one
     assert sorted(p.name for p in root.iterdir() if not p.name.startswith(".lodcast")) == ["small"], \
         sorted(p.name for p in root.iterdir())
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie whose parent is gone does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+def test_an_ingest_dies_with_its_killed_worker(tmp_path: Path):
+    """A worker SIGKILLed mid-ingest leaves no ingest process behind (the job's next owner ingests it again)."""
+    if not Path("/proc/self/stat").exists():
+        pytest.skip("needs Linux's /proc (and prctl)")
+    _slow_nrrd(tmp_path / "big.nrrd")
+    root = tmp_path / "root"
+    root.mkdir()
+    jq = JobQueue(Settings(root=root, token=None))
+    jq.submit(IngestJob(kind="ingest", source=str(tmp_path / "big.nrrd"), name="big"))
+    worker = start_worker(root, env={"LODCAST_POLL_S": "0.05", "LODCAST_TOKEN": ""})
+    try:
+        partial = _wait(lambda: next((p for p in root.iterdir() if p.name.startswith(".big.")), None),
+                        what="the big ingest's partial store")
+        owner = parse_temp_name(partial.name)
+        assert owner is not None and owner[3] != worker.pid  # written by the worker's ingest process
+        os.kill(worker.pid, signal.SIGKILL)  # the worker alone, not its process group
+        _wait(lambda: not _alive(owner[3]), timeout=30, what="the ingest process to die with its worker")
+    finally:
+        worker.stop()
+    assert not (root / "big").exists()
