@@ -48,6 +48,7 @@ from lodcast.service.models import (
     VolumeSummary,
     errors,
 )
+from lodcast.service.objectstorage import bound_object_storage, s3_limits
 from lodcast.service.progressive import stream as progressive_stream
 from lodcast.service.records import status_json
 from lodcast.service.rendering import (
@@ -157,6 +158,7 @@ def gzipped(path: Path) -> bool:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
+    bound_object_storage(**s3_limits(settings))  # an outage answers 503 within seconds, not after the S3 client's retries
     engine = RenderEngine(settings)  # every render of this app and its in-process workers
     state: dict[str, Any] = {"jobs": None, "worker": None, "sem": None}
     lock = threading.Lock()

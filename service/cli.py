@@ -13,6 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from lodcast.errors import LodcastError
+from lodcast.faults import storage_fault
+from lodcast.store.remote import is_url
 
 __all__ = ["main", "UsageError"]
 
@@ -423,10 +425,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the reader of our output went away (`lodcast info S | head`): nothing more to say, and nowhere to say it
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except (LodcastError, OSError, ValueError) as exc:
-        # User errors and the environment's (a full disk, a permission): one line, exit 2, no traceback (what was
-        # being written is gone: ingest and frames write atomically). Anything else is a bug and keeps its traceback.
-        print(f"lodcast {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+    except Exception as exc:
+        # User errors, the environment's (a full disk, a permission) and the storage's (object storage unreachable,
+        # whichever library's error says so): one line, exit 2, no traceback (what was being written is gone: ingest
+        # and frames write atomically). Anything else is a bug and keeps its traceback.
+        if not isinstance(exc, (LodcastError, OSError, ValueError)) and storage_fault(exc) is None:
+            raise
+        print(f"lodcast {args.command}: error: {_one_line(exc, _store(args))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"lodcast {args.command}: interrupted", file=sys.stderr)
@@ -453,7 +458,16 @@ def _announce_slow_builds(command: str, log_level: str) -> None:
     build_log.propagate = False  # said once, not again by the root handler at --log-level info
 
 
-def _one_line(exc: BaseException) -> str:
+def _store(args: argparse.Namespace) -> str | None:
+    """The store or store root a command works on, as the user named it."""
+    named = (getattr(args, key, None) for key in ("dest", "store", "root"))
+    return next((str(v) for v in named if isinstance(v, (str, Path))), None)
+
+
+def _one_line(exc: BaseException, store: str | None = None) -> str:
+    why = storage_fault(exc)
+    if why is not None and store is not None and is_url(store) and not isinstance(exc, LodcastError):
+        return " ".join(f"{store} is unavailable ({why})".split())  # the library's message names a request, not the store
     if isinstance(exc, OSError) and exc.strerror and not isinstance(exc, LodcastError):
         where = f" ({exc.filename})" if exc.filename else ""
         return " ".join(f"{exc.strerror}{where}".split())

@@ -193,6 +193,7 @@ def add_worker(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_worker(args: argparse.Namespace) -> int:
+    from lodcast.service.objectstorage import bound_object_storage, s3_limits
     from lodcast.service.queue import JobQueue, Worker
 
     if args.threads < 1:
@@ -201,6 +202,7 @@ def _cmd_worker(args: argparse.Namespace) -> int:
 
     tame_malloc()  # it runs ingest jobs
     settings = _settings(args)
+    bound_object_storage(**s3_limits(settings))  # a job meets an outage within seconds, and resumes after it
     jq = JobQueue(settings)
     jq.check()
     _sweep(settings.root)

@@ -25,7 +25,9 @@ from typing import Any
 
 from lodcast.faults import storage_fault
 from lodcast.service.frames import FrameRenderer
+from lodcast.service.ingestproc import run_ingest
 from lodcast.service.jobs import IngestJob, TurntableJob, encode_animation, frame_ext, parse_job, plan_frames
+from lodcast.service.objectstorage import s3_limits
 from lodcast.service.records import ACTIVE, Records, open_records
 from lodcast.service.rendering import RenderEngine
 from lodcast.service.results import JobFiles, drop_upload, frame_name, parked_uploads
@@ -375,7 +377,6 @@ class JobQueue:
 
     def _run_ingest(self, job_id: str, owner: str, job: IngestJob, rec: dict[str, Any], upload: bool) -> str:
         from lodcast.errors import StoreExists
-        from lodcast.store.ingest import ingest
 
         dest = volume_path(self.settings.root, job.name, must_exist=False, field="name")
         source, fetched = job.source, None
@@ -389,9 +390,13 @@ class JobQueue:
             source = str(fetched)
         try:
             # an upload is one file: it may not name others (a detached NRRD header could read any server file)
-            ingest(source, dest, overwrite=job.overwrite, max_voxels=self.settings.max_voxels,
-                   max_memory=int(self.settings.max_ingest_memory_mb * 1e6), **job.options,
-                   **({"detached": False} if upload else {}))
+            options = {"overwrite": job.overwrite, "max_voxels": self.settings.max_voxels,
+                       "max_memory": int(self.settings.max_ingest_memory_mb * 1e6), **job.options,
+                       **({"detached": False} if upload else {})}
+            # in a child process, killed when the job is cancelled (or taken from this worker): the worker is free
+            if not run_ingest(source, dest, options, storage=s3_limits(self.settings), poll_s=self.settings.poll_s,
+                              keep_going=lambda: self._mine(job_id, owner)):
+                return "lost"
         except StoreExists:
             if int(rec["attempts"] or 0) < 1:  # a retry after a crash that happened after the rename: it is done
                 raise

@@ -95,6 +95,12 @@ class Settings(BaseSettings):
                                  "resumed before it fails with the error (LODCAST_STORAGE_RETRIES)")
     storage_backoff_s: float = Field(default=2.0, gt=0, description="first wait before a job resumes after a storage "
                                      "fault; doubled each time, at most 60 s")
+    s3_connect_timeout_s: float = Field(default=3.0, gt=0, description="object storage: seconds to wait for a "
+                                        "connection before the try fails (LODCAST_S3_CONNECT_TIMEOUT_S)")
+    s3_read_timeout_s: float = Field(default=10.0, gt=0, description="object storage: seconds to wait for the next "
+                                     "bytes of an answer (LODCAST_S3_READ_TIMEOUT_S)")
+    s3_retries: int = Field(default=2, ge=0, description="object storage: retries of a request that found no "
+                            "answer, before the fault is answered 503 (LODCAST_S3_RETRIES)")
     health_every_s: float = Field(default=1.0, gt=0, description="how often /healthz's components (store root, "
                                   "queue, device) are probed, off the request path")
     heartbeat_s: float = Field(default=2.0, gt=0, description="how often a running job refreshes its heartbeat")
