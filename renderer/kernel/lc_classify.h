@@ -170,18 +170,25 @@ static LC_HOT float lc_len_units(const float r, const LcTf* tf) {
 #endif
 }
 
-/* LC_GRADIENT_OPACITY (Levoy 1988's boundary emphasis, as VTK's gradient opacity): the factor w in [0, 1] on the
- * TF's extinction at q, min(1, |gradient| / gradient_opacity), so that a segment's alpha becomes
- * 1 - (1 - alpha)^w: independent of the step, as opacity per unit distance is; 1 without (the compiler drops it) */
-static LC_HOT float lc_extinction_weight(const LcTf* tf, LcSampler* s, const LcShade* sh, const float3 q) {
+/* What the field's gradient at q does to a sample of colour col that shows something: its colour as lit
+ * (lc_shade), and into *ew the factor on its TF's extinction, 1 but with LC_GRADIENT_OPACITY (Levoy 1988's
+ * boundary emphasis, as VTK's gradient opacity): min(1, |gradient| / gradient_opacity), so that a segment's alpha
+ * becomes 1 - (1 - alpha)^ew, independent of the step as opacity per unit distance is. One gradient serves both,
+ * and only samples that show something take it. */
+static LC_HOT float3 lc_gradient_look(const LcTf* tf, LcSampler* s, const LcShade* sh, const float3 col, const float3 q,
+                                      float* ew) {
+    *ew = 1.0f;
 #ifdef LC_GRADIENT_OPACITY
-    if (tf->gop <= 0.0f) return 1.0f;
-    const float3 g = lc_gradient(s, sh, q);
-    const float w = sqrt(g.x * g.x + g.y * g.y + g.z * g.z) * tf->gop;
-    return w < 1.0f ? w : (w == w ? 1.0f : 0.0f); /* NaN (a stencil into missing data): no defined boundary */
-#else
-    return 1.0f;
+    if (tf->gop > 0.0f) {
+        const float3 g = lc_gradient(s, sh, q);
+        const float w = sqrt(g.x * g.x + g.y * g.y + g.z * g.z) * tf->gop;
+        *ew = w < 1.0f ? w : (w == w ? 1.0f : 0.0f); /* NaN (a stencil into missing data): no defined boundary */
+#ifdef LC_SHADE
+        return lc_lit(sh, col, g);
 #endif
+    }
+#endif
+    return lc_shade(s, sh, col, q);
 }
 
 /* alpha of a segment whose extinction is scaled by w */
@@ -195,7 +202,7 @@ static LC_HOT float lc_weighted_alpha(const float alpha, const float w) {
  * the span of entries where the expected extinction is non-zero: outside it the sample is transparent without the
  * bilinear lookup. */
 static LC_HOT void lc_classify_dist(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
-                                    const float v, const float sd, const float r, const float3 q, const float ew) {
+                                    const float v, const float sd, const float r, const float3 q) {
     float fj = sqrt(sd) * m->dist_sscale;
     fj = fj < m->dist_jmax ? fj : m->dist_jmax;
     const float4 sp = tf->dtab[tf->dspans + (int)fj];
@@ -209,12 +216,14 @@ static LC_HOT void lc_classify_dist(LcRay* ray, const LcTf* tf, const LcMarch* m
         const float4 b = r0[tf->drow] + (r0[tf->drow + 1] - r0[tf->drow]) * wi;
         const float4 e = a + (b - a) * wj;
         if (e.w > 0.0f) {
+            float ew;
+            const float3 col = lc_gradient_look(tf, s, sh, e.xyz, q, &ew);
 #ifdef LC_PRECISE
             const float depth = (e.w * lc_len_units(r, tf)) * ew;
-            lc_blend_depth(ray, depth, lc_shade(s, sh, e.xyz, q), m->t_stop);
+            lc_blend_depth(ray, depth, col, m->t_stop);
 #else
             const float wgt = ray->T * lc_alpha_of_depth((e.w * lc_len_units(r, tf)) * ew);
-            lc_blend(ray, wgt, lc_shade(s, sh, e.xyz, q), m->t_stop);
+            lc_blend(ray, wgt, col, m->t_stop);
 #endif
         }
     }
@@ -241,14 +250,15 @@ static LC_HOT int lc_visible(const LcTf* tf, const float v) {
  * not expm1: a library call anywhere in the march makes its ray state live in memory); a whole adaptive step of
  * step * 2^k (r = -1 - k, k >= 1) from row k of ext, which the host fills with that step's alphas. */
 static LC_HOT void lc_classify_point(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
-                                     const float v, const float r, const float3 q, const float ew) {
+                                     const float v, const float r, const float3 q) {
     if (!lc_visible(tf, v)) return;
     int i;
-    float w;
+    float w, ew;
     const float4 e = lc_tf_at(tf, v, &i, &w);
+    const float3 col = lc_gradient_look(tf, s, sh, e.xyz, q, &ew);
 #ifdef LC_PRECISE
     const float depth = (e.w * r) * ew;
-    lc_blend_depth(ray, depth, lc_shade(s, sh, e.xyz, q), m->t_stop);
+    lc_blend_depth(ray, depth, col, m->t_stop);
 #else
     float alpha = e.w;
     if (r >= 0.0f) {
@@ -258,7 +268,7 @@ static LC_HOT void lc_classify_point(LcRay* ray, const LcTf* tf, const LcMarch* 
         const int o = (int)(-1.0f - r) * tf->row + i;
         alpha = tf->ext[o] + (tf->ext[o + 1] - tf->ext[o]) * w;
     }
-    lc_blend(ray, ray->T * lc_weighted_alpha(alpha, ew), lc_shade(s, sh, e.xyz, q), m->t_stop);
+    lc_blend(ray, ray->T * lc_weighted_alpha(alpha, ew), col, m->t_stop);
 #endif
 }
 
@@ -269,17 +279,16 @@ static LC_HOT void lc_classify(LcRay* ray, const LcTf* tf, const LcMarch* m, LcS
 #ifndef LC_PRECISE
     r = r >= 0.0f ? r * tf->r_units : r;
 #endif
-    const float ew = lc_extinction_weight(tf, s, sh, q);
 #ifdef LC_DIST
     if (sd > 0.0f) {
-        lc_classify_dist(ray, tf, m, s, sh, v, sd, r, q, ew);
+        lc_classify_dist(ray, tf, m, s, sh, v, sd, r, q);
         return;
     }
 #endif
 #ifdef LC_PREINT
-    lc_preint_segment(ray, tf, m, s, sh, r, q, ew);
+    lc_preint_segment(ray, tf, m, s, sh, r, q);
 #else
-    lc_classify_point(ray, tf, m, s, sh, v, r, q, ew);
+    lc_classify_point(ray, tf, m, s, sh, v, r, q);
 #endif
 }
 

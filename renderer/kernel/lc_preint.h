@@ -57,7 +57,11 @@ static LC_HOT void lc_preint_blend(LcRay* ray, const float a0, const float ratio
 static LC_HOT void lc_preint_piece(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
                                    const float fa, const float fb, const float ratio, const float3 q) {
     const float4 pe = lc_preint_at(tf->ptab, fa, fb, tf->pre_n);
-    if (pe.w > 0.0f) lc_preint_blend(ray, pe.w, ratio, lc_shade(s, sh, pe.xyz / pe.w, q), m->t_stop);
+    if (pe.w > 0.0f) {
+        float ew;
+        const float3 col = lc_gradient_look(tf, s, sh, pe.xyz / pe.w, q, &ew);
+        lc_preint_blend(ray, pe.w, ratio * ew, col, m->t_stop);
+    }
 }
 
 /* The segment r whose sample sits at q. A segment that crosses hard steps of the TF (warp rows with hard_k = 1
@@ -65,7 +69,7 @@ static LC_HOT void lc_preint_piece(LcRay* ray, const LcTf* tf, const LcMarch* m,
  * (the step's value from below or from above), so that no lookup interpolates across a step: a short segment over
  * a step takes the exact split. */
 static LC_HOT void lc_preint_segment(LcRay* ray, const LcTf* tf, const LcMarch* m, LcSampler* s, const LcShade* sh,
-                                     const float r, const float3 q, const float ew) {
+                                     const float r, const float3 q) {
     const float len = lc_seg_len(r, tf, m);
     const float3 qf = q - (m->u * len) * m->dq, qb = qf + len * m->dq;
     const float3 dd = qf - ray->pre_q;
@@ -75,7 +79,7 @@ static LC_HOT void lc_preint_segment(LcRay* ray, const LcTf* tf, const LcMarch* 
     ray->pre_v = sb;
     if (sf == sf && sb == sb) {
         __global const float4* warp = tf->ptab + tf->pre_n * tf->pre_n;
-        const float fmax = (float)(tf->pre_n - 1), rl = (len * m->inv_dt) * ew; /* ew: lc_extinction_weight */
+        const float fmax = (float)(tf->pre_n - 1), rl = len * m->inv_dt;
         int kf, kb;
         const float ff = lc_preint_coord(warp, tf->pre_knots, sf, fmax, &kf);
         const float fb = lc_preint_coord(warp, tf->pre_knots, sb, fmax, &kb);

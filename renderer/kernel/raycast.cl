@@ -54,7 +54,7 @@
  *                     option, the host intersects it with the volume's box)
  *   LC_PREINT         pre-integrated classification of each segment by the scalars at its ends (lc_preint.h)
  *   LC_GRADIENT_OPACITY  (composite) a TF's extinction scaled by min(1, |gradient| / its gradient_opacity)
- *                     (lc_classify.h: lc_extinction_weight; P->grad_op, P->tf2_grad_op)
+ *                     (lc_classify.h: lc_gradient_look; P->grad_op, P->tf2_grad_op)
  *   LC_SHADE          local illumination, Blinn-Phong with gradients through the ray's sampler (lc_shade.h)
  *   LC_SCREEN         adaptive screen-space sampling: work-item pix < P->screen_n casts the ray through image
  *                     position spos[pix] (a tile's sample, renderer/frame/screen.py) instead of its pixel's centre
