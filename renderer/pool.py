@@ -118,14 +118,25 @@ class BrickPool(ByteBound):
             a.stamp[rows[rows >= 0]] = self._tick
             return rows
 
-    def take(self, family: tuple, rows: np.ndarray) -> np.ndarray:
-        """The bricks at `rows` (from `find`, all held), (n, *brick shape)."""
+    def get(self, family: tuple, n_blocks: int, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Which of `blocks` are held (a mask) and their bricks (n held, *brick shape; None when the arena does not
+        exist), looked up and gathered under one lock: rows that `find` gave may be evicted and reused by another
+        thread's `put` before they are read. The held count as used now."""
+        blocks = np.asarray(blocks, np.int64)
         with self._lock:
-            return self._arenas[family].gather(np.asarray(rows, np.int64))
+            a = self._arenas.get(family)
+            if a is None or a.slot.size != n_blocks:
+                return np.zeros(blocks.size, bool), None
+            rows = a.slot[blocks].astype(np.int64)
+            held = rows >= 0
+            self._tick += 1
+            a.stamp[rows[held]] = self._tick
+            return held, a.gather(rows[held])
 
     def put(self, family: tuple, n_blocks: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
-        """Hold `bricks` (n, *shape) of `blocks` (flat indices, none held yet) in `family`'s arena, evicting the
-        least recently used bricks of the pool beyond its bound; what does not fit the bound at all is not kept."""
+        """Hold `bricks` (n, *shape) of `blocks` (flat indices) in `family`'s arena, evicting the least recently used
+        bricks of the pool beyond its bound; what does not fit the bound at all is not kept, and blocks already held
+        (another thread read them too) keep their row."""
         blocks = np.asarray(blocks, np.int64)
         with self._lock:
             a = self._arenas.get(family)
@@ -134,12 +145,15 @@ class BrickPool(ByteBound):
                     self._drop(family)
                 per = max(1, SLAB_BYTES // max(1, int(np.prod(bricks.shape[1:])) * bricks.dtype.itemsize))
                 a = self._arenas[family] = _Arena(bricks.shape[1:], bricks.dtype, per, np.full(n_blocks, -1, np.int32))
+            new = a.slot[blocks] < 0
+            blocks, bricks = blocks[new], bricks[new]
             cost = a.brick_bytes + ROW_BYTES
             bound = self.max_bytes
             keep = min(blocks.size, bound // cost)
             blocks, bricks = blocks[:keep], bricks[:keep]
             if self._bytes + keep * cost > bound:
                 self._evict(self._bytes + keep * cost - int(bound * EVICT_TO))
+                self._arenas[family] = a  # (an arena the eviction emptied is dropped: this one is about to fill)
             if not keep:
                 return
             rows = a.rows(keep)
@@ -186,5 +200,7 @@ class BrickPool(ByteBound):
             a.slot[a.owner[r]] = -1
             a.owner[r] = -1
             a.give_back()
+            if not (a.owner >= 0).any():  # its block table is as large as the grid: not kept for nothing
+                del self._arenas[f]
         self._bytes -= int(costs[gone].sum())
         self._count -= int(gone.size)

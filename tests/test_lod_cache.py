@@ -114,7 +114,16 @@ def test_pool_is_an_lru_bounded_by_bytes():
     c.put(fam, 100, np.array([9]), np.full((1, 4, 4, 4), 9, np.float32))
     rows = c.find(fam, 100, np.array([0, 1, 2, 9]))
     assert rows[0] >= 0 and rows[1] < 0 and rows[3] >= 0 and c.nbytes <= c.max_bytes
-    np.testing.assert_array_equal(c.take(fam, rows[[0, 3]])[:, 0, 0, 0], [0, 9])
+    held, got = c.get(fam, 100, np.array([0, 9]))
+    assert held.all() and got is not None
+    np.testing.assert_array_equal(got[:, 0, 0, 0], [0, 9])
+    held, got = c.get(fam, 100, np.array([1, 9]))  # an evicted brick is not held, never another block's
+    assert held.tolist() == [False, True] and got is not None
+    np.testing.assert_array_equal(got[:, 0, 0, 0], [9])
+    n, nbytes = len(c), c.nbytes
+    c.put(fam, 100, np.array([9]), np.full((1, 4, 4, 4), 7, np.float32))  # held already: kept as it is
+    assert (len(c), c.nbytes) == (n, nbytes)
+    np.testing.assert_array_equal(c.get(fam, 100, np.array([9]))[1][:, 0, 0, 0], [9])
     c.put(("s", "key", 1), 100, np.array([0]), np.zeros((1, 16, 16, 16), np.float32))  # larger than the pool
     assert (c.find(("s", "key", 1), 100, np.array([0])) < 0).all() and c.nbytes <= c.max_bytes
 

@@ -99,14 +99,20 @@ def brick_batches(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickPool | 
     for k in np.unique(flat[flat >= (0 if what == "mean" else 1)]).tolist():
         fam = (kind, vol.key, k)
         blocks = np.flatnonzero(flat == k)
-        rows = cache.find(fam, n_blocks, blocks) if vol.key is not None else np.full(blocks.size, -1, np.int64)
-        held = rows >= 0
-        stats.cached += int(held.sum())
-        hit_blocks, hit_rows = blocks[held], rows[held]
+        if vol.key is None:
+            missing.append((k, blocks))
+            continue
+        held = cache.find(fam, n_blocks, blocks) >= 0
+        hit, lost = blocks[held], [blocks[~held]]
         step = max(1, BATCH_BYTES // ((lay.block_edge(k) ** 3) * 4))
-        for i in range(0, hit_blocks.size, step):
-            yield k, hit_blocks[i:i + step], cache.take(fam, hit_rows[i:i + step])
-        missing.append((k, blocks[~held]))
+        for i in range(0, hit.size, step):
+            part = hit[i:i + step]
+            ok, got = cache.get(fam, n_blocks, part)  # (evicted since find by another thread: read below)
+            stats.cached += int(ok.sum())
+            if got is not None and ok.any():
+                yield k, part[ok], got
+            lost.append(part[~ok])
+        missing.append((k, np.sort(np.concatenate(lost))))  # C order, as the shards are read
     # the missing bricks by shard: (level, shard) sorted, each shard's blocks in C order
     groups: list[tuple[int, np.ndarray]] = []
     for k, blocks in missing:
