@@ -80,7 +80,7 @@ def _store_root(settings: Any) -> str:
 
         fs, base = fsspec.core.url_to_fs(str(settings.root))
         fs.invalidate_cache(base)
-        fs.ls(base, detail=False)
+        fs.info(base)  # one small request: a listing of the root would grow with its volumes, every probe
         return f"{settings.root} answers"
     root = Path(settings.root)
     if not root.is_dir():
