@@ -16,7 +16,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import google_crc32c
 import numpy as np
@@ -62,9 +62,10 @@ def _is_sharded(meta: dict[str, Any]) -> bool:
     return bool(codecs) and codecs[0].get("name") == "sharding_indexed"
 
 
-def write_manifest(root: Path) -> int:
+def write_manifest(root: Path, known: Mapping[str, Mapping[str, list[int]]] | None = None) -> int:
     """Write the manifest of the store at `root` (every array's zarr.json and data files as they are now) and return
-    the CRC-32C of the manifest file, which the root attributes record."""
+    the CRC-32C of the manifest file, which the root attributes record. `known[array path][file key]`: entries of
+    files the caller wrote itself (store/shardwrite.py), taken instead of reading those files back."""
     files: dict[str, dict[str, list[int]]] = {}
     metadata: dict[str, int] = {}
     for dirpath, dirnames, names in os.walk(root):
@@ -76,14 +77,18 @@ def write_manifest(root: Path) -> int:
         metadata[(rel / "zarr.json").as_posix()] = crc32c(meta_bytes)
         sharded = _is_sharded(json.loads(meta_bytes))
         entries = files.setdefault(rel.as_posix(), {})
+        have = (known or {}).get(rel.as_posix(), {})
         for sub, _, chunk_files in os.walk(Path(dirpath) / "c"):
             for name in chunk_files:
                 path = Path(sub) / name
-                data = path.read_bytes()
-                entry = [len(data), crc32c(data)]
-                if sharded:
-                    entry.append(int.from_bytes(data[-4:], "little"))
-                entries[path.relative_to(dirpath).as_posix()] = entry
+                key = path.relative_to(dirpath).as_posix()
+                entry = have.get(key)
+                if entry is None:
+                    data = path.read_bytes()
+                    entry = [len(data), crc32c(data)]
+                    if sharded:
+                        entry.append(int.from_bytes(data[-4:], "little"))
+                entries[key] = list(entry)
     raw = _canonical({"algorithm": "crc32c", "files": files, "metadata": metadata})
     (root / MANIFEST).write_bytes(raw)
     return crc32c(raw)

@@ -599,15 +599,15 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     attrs["ome"]["omero"] = omero(Path(source_label).name or "volume", overall, bins.edges, (lo, hi))
     attrs["lodcast"]["manifest"] = data_manifest(root)  # what open_store checks: files deleted or cut are noticed
     group.attrs.update({**attrs, **(carried or {})})
-    seal(root, group)
+    seal(root, group, {w.shards.folder.relative_to(root).as_posix(): w.shards.written for w in writers + std_writers})
 
 
-def seal(root: Path, group: zarr.Group) -> None:
+def seal(root: Path, group: zarr.Group, known: dict[str, dict[str, list[int]]] | None = None) -> None:
     """Format 4's checksums of everything written (store/checksum.py): the manifest of every data file and array
     zarr.json, and the digests of the root attributes as zarr wrote them, recorded under `lodcast.integrity`."""
     written = json.loads((root / "zarr.json").read_bytes())["attributes"]
     marker = dict(written["lodcast"])
-    marker["integrity"] = {"algorithm": "crc32c", "manifest": MANIFEST, "crc32c": write_manifest(root),
+    marker["integrity"] = {"algorithm": "crc32c", "manifest": MANIFEST, "crc32c": write_manifest(root, known),
                            "attributes": attribute_digests(written)}
     group.attrs["lodcast"] = marker
 

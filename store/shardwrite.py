@@ -55,6 +55,9 @@ class ShardWriter:
         self.shard = tuple(int(n) for n in meta["chunk_grid"]["configuration"]["chunk_shape"])
         sep = ((meta.get("chunk_key_encoding") or {}).get("configuration") or {}).get("separator", "/")
         self._key = lambda coords: sep.join(["c", *map(str, coords)])
+        #: the manifest's entry of each shard written, by its key (store/checksum.py: write_manifest takes them
+        #: instead of reading the files back)
+        self.written: dict[str, list[int]] = {}
 
     def write(self, start: tuple[int, ...], data: np.ndarray) -> None:
         """The shards that `data` covers, `data` starting at voxel `start`, a corner of a shard: it must reach the
@@ -93,7 +96,11 @@ class ShardWriter:
             offset += len(raw)
         table = index.tobytes()
         pieces.append(table + (crc32c(table).to_bytes(4, "little") if self._index_crc else b""))
-        path = self.folder / self._key(coords)
+        key = self._key(coords)
+        path = self.folder / key
         path.parent.mkdir(parents=True, exist_ok=True)
+        blob = b"".join(pieces)
         with open(path, "wb") as f:
-            f.write(b"".join(pieces))
+            f.write(blob)
+        self.written[path.relative_to(self.folder).as_posix()] = [len(blob), crc32c(blob),
+                                                                 int.from_bytes(blob[-4:], "little")]

@@ -103,6 +103,19 @@ def test_zarr_python_reads_a_format_4_store_and_checks_its_crc32c(store: Path):
 
 # --- the corruption suite ----------------------------------------------------------------------------------
 
+def test_the_manifest_ingest_writes_is_the_one_read_back_from_disk(store: Path, tmp_path: Path):
+    """Ingest takes the entries of the shards it wrote instead of reading them back: the manifest must be the one a
+    fresh reading of every file gives."""
+    from lodcast.store.checksum import MANIFEST, write_manifest
+
+    written = json.loads((store / MANIFEST).read_bytes())
+    copy = tmp_path / "copy.zarr"
+    shutil.copytree(store, copy)
+    write_manifest(copy)
+    assert json.loads((copy / MANIFEST).read_bytes()) == written
+    assert len(written["files"]["0"]) >= 2  # shards of level 0 are among them
+
+
 def test_bit_flips_in_shard_data_and_index_are_never_silent(store: Path):
     """40 single-bit flips at random positions of level-0 shards (data and index alike): each one is StoreCorrupt
     naming the shard, or harmless (the voxels read are the ingested ones); none gives other voxels. A shard holds
