@@ -114,7 +114,7 @@ def brick_batches(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickPool | 
             lost.append(part[~ok])
         missing.append((k, np.sort(np.concatenate(lost))))  # C order, as the shards are read
     # the missing bricks by shard: (level, shard) sorted, each shard's blocks in C order
-    groups: list[tuple[int, np.ndarray]] = []
+    groups: list[tuple[int, np.ndarray, np.ndarray]] = []  # (level, blocks, their (z, y, x))
     for k, blocks in missing:
         if not blocks.size:
             continue
@@ -124,7 +124,7 @@ def brick_batches(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickPool | 
         key = np.ravel_multi_index(tuple(shard.T), tuple(int(v) + 1 for v in shard.max(axis=0)))
         order = np.argsort(key, kind="stable")
         cuts = np.flatnonzero(np.diff(key[order])) + 1
-        groups += [(k, part) for part in np.split(blocks[order], cuts)]
+        groups += [(k, part, where) for part, where in zip(np.split(blocks[order], cuts), np.split(zyx[order], cuts))]
     stats.shards = len(groups)
     threads = eng.read_threads("://" in str(getattr(vol.source, "location", "")))
     window = 2 * threads
@@ -138,8 +138,7 @@ def brick_batches(eng: Engine, vol: Any, levels: np.ndarray, cache: BrickPool | 
             cache.put((kind, vol.key, k), n_blocks, blocks, got)
         yield k, blocks, got
 
-    for k, blocks in groups:
-        zyx = np.stack(np.unravel_index(blocks, lay.grid), axis=1)
+    for k, blocks, zyx in groups:
         futs.append((k, blocks, eng.read_pool(threads).submit(_read_group, vol, lay, k, zyx, what)))
         if len(futs) > window:
             yield from take()
