@@ -42,7 +42,7 @@ def without_checksums() -> Iterator[None]:
     """Ingest as format 3 did: no crc32c after the chunks, no manifest, no attribute digests."""
     codecs, seal = ingest_module.CHECKSUMS, ingest_module.seal
     ingest_module.CHECKSUMS = ()
-    ingest_module.seal = lambda root, group: None  # type: ignore[assignment]
+    ingest_module.seal = lambda root, group, known=None: None  # type: ignore[assignment]
     try:
         yield
     finally:
