@@ -301,7 +301,9 @@ class ChunkReader(_Reader):
                 raise StoreCorrupt(f"{name}: damaged chunk (not the file ingest wrote at this place: "
                                    f"{'none was written' if want is None else 'its checksum differs'}): re-ingest "
                                    f"the store")
-        if self._chunk_crc:
+            if self._chunk_crc:  # the very bytes ingest wrote: their own trailing checksum holds
+                raw = raw[:-4]
+        elif self._chunk_crc:
             raw = _checked(raw, name, f"chunk {coords}")
         n = prod(self.chunk) * self._chunk_dtype.itemsize
         try:
