@@ -8,6 +8,11 @@ through a grid-sized slot table: lookup, gather, insertion and eviction take ind
 operations, whatever the number of bricks. Recency is a stamp per row (the pool's operation count when the brick
 was last asked for or stored); eviction takes the least recent rows of all arenas together, so one quality's
 bricks give way to another's only by age, never by belonging to another selection.
+
+Beside the arenas the pool holds *whole arrays*: a full-resolution pass's voxels, laid out as the kernel reads them
+(renderer/data/passes.py). Turning bricks into a sub-volume of voxels is a transposing copy that costs several
+times a plain one, so a render beyond the device budget keeps each pass's voxels rather than the bricks they came
+from; they age and go by the same stamps as the bricks.
 """
 from __future__ import annotations
 
@@ -98,6 +103,7 @@ class BrickPool(ByteBound):
     def __init__(self, max_bytes: "int | Callable[[], int]"):
         super().__init__(max_bytes)
         self._arenas: dict[tuple, _Arena] = {}
+        self._whole: dict[tuple, tuple[np.ndarray, int]] = {}  # family -> (array, stamp)
         self._count = 0
         self._tick = 0
         self.reads = 0
@@ -163,6 +169,40 @@ class BrickPool(ByteBound):
             self._bytes += keep * cost
             self._count += keep
 
+    def held(self, family: tuple) -> np.ndarray | None:
+        """The whole array held for `family` (`hold`), or None; it counts as used now. The array is the pool's
+        own (read it, do not write it): eviction only lets go of it, so a caller holding it keeps it intact."""
+        with self._lock:
+            hit = self._whole.get(family)
+            if hit is None:
+                return None
+            self._tick += 1
+            self._whole[family] = (hit[0], self._tick)
+            return hit[0]
+
+    def hold(self, family: tuple, array: np.ndarray) -> bool:
+        """Keep `array` itself (no copy; the caller no longer writes it) as `family`'s whole array, evicting the
+        least recently used bricks and arrays beyond the bound; False where it alone exceeds the bound (not kept)."""
+        cost = int(array.nbytes) + ROW_BYTES
+        with self._lock:
+            if family in self._whole:
+                self._forget(family)
+            bound = self.max_bytes
+            if cost > bound:
+                return False
+            if self._bytes + cost > bound:
+                self._evict(self._bytes + cost - int(bound * EVICT_TO))
+            self._tick += 1
+            self._whole[family] = (array, self._tick)
+            self._bytes += cost
+            self._count += 1
+            return True
+
+    def _forget(self, family: tuple) -> None:
+        array, _ = self._whole.pop(family)
+        self._bytes -= int(array.nbytes) + ROW_BYTES
+        self._count -= 1
+
     def trim(self) -> None:
         """Evict down to the bound now (a bound that is a function may have shrunk since the last insertion)."""
         with self._lock:
@@ -173,6 +213,7 @@ class BrickPool(ByteBound):
     def clear(self) -> None:
         with self._lock:
             self._arenas.clear()
+            self._whole.clear()
             self._bytes = self._count = 0
 
     def _drop(self, family: tuple) -> None:
@@ -182,16 +223,27 @@ class BrickPool(ByteBound):
         self._count -= n
 
     def _evict(self, nbytes: int) -> None:
-        """Free at least `nbytes` (or everything), the least recently used bricks of all arenas first."""
+        """Free at least `nbytes` (or everything), the least recently used bricks and whole arrays of all arenas
+        first."""
         fams = list(self._arenas)
         held = [np.flatnonzero(self._arenas[f].owner >= 0) for f in fams]
-        stamps = np.concatenate([self._arenas[f].stamp[h] for f, h in zip(fams, held)] or [np.zeros(0, np.int64)])
-        which = np.concatenate([np.full(h.size, i, np.int64) for i, h in enumerate(held)] or [np.zeros(0, np.int64)])
-        rows = np.concatenate(held or [np.zeros(0, np.int64)])
-        costs = np.array([self._arenas[f].brick_bytes + ROW_BYTES for f in fams], np.int64)[which]
+        wholes = list(self._whole)
+        none = np.zeros(0, np.int64)
+        stamps = np.concatenate([self._arenas[f].stamp[h] for f, h in zip(fams, held)]
+                                + [np.array([self._whole[w][1] for w in wholes], np.int64)])
+        # a whole array is arena -1 - its place in `wholes`
+        which = np.concatenate([np.full(h.size, i, np.int64) for i, h in enumerate(held)]
+                               + [-1 - np.arange(len(wholes), dtype=np.int64)])
+        rows = np.concatenate(held + [np.zeros(len(wholes), np.int64)]) if held or wholes else none
+        costs = np.concatenate([np.full(h.size, self._arenas[f].brick_bytes + ROW_BYTES, np.int64)
+                                for f, h in zip(fams, held)]
+                               + [np.array([self._whole[w][0].nbytes + ROW_BYTES for w in wholes], np.int64)])
         order = np.argsort(stamps, kind="stable")
         n = int(np.searchsorted(np.cumsum(costs[order]), nbytes)) + 1
         gone = order[:n]
+        for i in (-1 - which[gone[which[gone] < 0]]).tolist():
+            self._forget(wholes[i])
+        gone = gone[which[gone] >= 0]
         for i, f in enumerate(fams):
             a = self._arenas[f]
             r = rows[gone[which[gone] == i]]

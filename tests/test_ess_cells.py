@@ -45,6 +45,39 @@ def test_cell_ranges_match_numpy(eng, shape):
         assert np.isnan(pmn[rest]).all() and np.isnan(pmx[rest]).all()  # not this pass's: nothing to see
 
 
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_a_store_gives_its_cell_ranges_as_the_device_computes_them(eng, monkeypatch, tmp_path, dtype):
+    """Where the store keeps the ranges of the very cells the walk uses (format >= 3, cells of 8³), level0_cells
+    takes them from the store instead of reading every voxel on the device: for a whole volume and for a pass's
+    blocks alike they equal the float64 reference and what the device computes."""
+    rng = np.random.default_rng(3)
+    a = (rng.normal(size=(37, 50, 45)) * 300 + 1000).astype(dtype)
+    if dtype == np.float32:
+        a[a > 1600] = np.nan
+    store = lodcast.ingest(a, tmp_path / "v.zarr", progress=False)
+    monkeypatch.setattr(sampler, "FINE_CELLS", 0)  # the store's 8³ cells on this small volume too
+    vol = as_volume(store)
+    assert sampler.ess_cell(vol.shape, vol.block_size) == 8 and vol.has_cell_ranges
+    ref_min, ref_max = block_minmax_border(a.astype(np.float32), 8)
+    G = vol.grid
+    whole = tuple(slice(0, g) for g in G)
+    part = (slice(1, G[0]), slice(0, 2), slice(1, 2))
+    lo = tuple(max(0, b.start * 16 - 3) for b in part)
+    hi = tuple(min(s, b.stop * 16 + 3) for s, b in zip(a.shape, part))
+    sub = a[tuple(slice(p, q) for p, q in zip(lo, hi))]
+    cases = [(a, (0, 0, 0), whole), (sub, lo, part)]
+    bufs = [_buf(eng, x) for x, _, _ in cases]
+    with monkeypatch.context() as m:
+        m.setattr(eng.device, "program", lambda *_a: pytest.fail("the device read the voxels"))
+        got = [sampler.level0_cells(eng.device, d, x.shape, o, b, vol) for d, (x, o, b) in zip(bufs, cases)]
+    monkeypatch.setattr(type(vol), "has_cell_ranges", property(lambda self: False))
+    computed = [sampler.level0_cells(eng.device, _buf(eng, x), x.shape, o, b, vol) for x, o, b in cases]
+    for (mn, mx), (cmn, cmx) in zip(got, computed):
+        assert np.array_equal(mn, cmn, equal_nan=True) and np.array_equal(mx, cmx, equal_nan=True)
+    assert np.array_equal(got[0][0], ref_min, equal_nan=True) and np.array_equal(got[0][1], ref_max, equal_nan=True)
+    assert np.isnan(got[1][0]).sum() > 0 and not np.isnan(got[1][0][2:, :4, 2:4]).all()
+
+
 def _ribs(shape=(48, 64, 64)) -> np.ndarray:
     """Thin bright shells in soft tissue: most 16³ blocks see a little bone, most 8³ cells none."""
     z, y, x = np.mgrid[: shape[0], : shape[1], : shape[2]].astype(np.float64)

@@ -128,6 +128,32 @@ def test_pool_is_an_lru_bounded_by_bytes():
     assert (c.find(("s", "key", 1), 100, np.array([0])) < 0).all() and c.nbytes <= c.max_bytes
 
 
+def test_pool_holds_whole_arrays_by_the_same_recency():
+    """Whole arrays (a pass's voxels) are held as they are (no copy), found by family, and age with the bricks:
+    eviction takes whatever was used least recently, brick or array; an array larger than the bound is not kept."""
+    cost = 4 * 64 + ROW_BYTES
+    c = BrickPool(8 * cost)
+    fam = ("s", "key", 0)
+    for i in range(4):
+        c.put(fam, 100, np.array([i]), np.full((1, 4, 4, 4), i, np.float32))
+    whole = np.arange(3 * 64, dtype=np.float32)  # about three bricks' worth
+    assert c.hold(("voxels", "key", 1), whole)
+    assert c.held(("voxels", "key", 1)) is whole and len(c) == 5 and c.nbytes == 4 * cost + whole.nbytes + ROW_BYTES
+    c.find(fam, 100, np.arange(4))  # the bricks are used after the array
+    c.put(fam, 100, np.array([4, 5]), np.zeros((2, 4, 4, 4), np.float32))  # past the bound: the array is oldest
+    assert c.held(("voxels", "key", 1)) is None and (c.find(fam, 100, np.arange(6)) >= 0).all()
+    assert c.nbytes == 6 * cost and len(c) == 6
+    assert c.hold(("voxels", "key", 2), np.zeros(64, np.float32))
+    c.find(fam, 100, np.arange(1, 6))  # brick 0 is now the least recent; the array next
+    c.put(fam, 100, np.array([6, 7]), np.zeros((2, 4, 4, 4), np.float32))
+    assert c.find(fam, 100, np.array([0]))[0] < 0 and c.held(("voxels", "key", 2)) is None
+    assert (c.find(fam, 100, np.arange(1, 8)) >= 0).all() and c.nbytes == 7 * cost
+    assert not c.hold(("voxels", "key", 3), np.zeros(16 * 64, np.float32))  # larger than the whole pool
+    assert c.held(("voxels", "key", 3)) is None and c.nbytes <= c.max_bytes
+    c.clear()
+    assert (len(c), c.nbytes) == (0, 0) and c.held(("voxels", "key", 2)) is None
+
+
 def test_alternating_qualities_keep_both_working_sets(store):
     """One pool for every level and quality: a coarse selection and full resolution beyond the device budget,
     alternated, read from the store only the first time each is shown, and give the same images again."""
@@ -264,25 +290,37 @@ def test_on_a_cpu_device_the_brick_cache_gives_way_to_the_device_cache(store, mo
     assert shared.max_bytes == cap
 
 
-def test_a_full_resolution_pass_makes_the_brick_cache_give_way(store, monkeypatch):
-    """On a CPU device a pass's voxels are host memory too: while a full-resolution pass beyond the device budget
-    lasts, the brick cache shrinks by the pass's buffer (down to an eighth of its cap), so that the bricks of
-    earlier renders and the pass's voxels are not both held (the level-0 bricks the passes read enter it within that
-    bound); afterwards its bound is whole again. Without it the cache below would keep every brick through the
-    render. On a discrete GPU it keeps them (device memory)."""
+def test_full_resolution_passes_keep_their_voxels_whole(store, monkeypatch):
+    """A full-resolution render beyond the device budget keeps each pass's voxels whole in the brick pool: the next
+    frame, from any view, neither reads the store nor transposes bricks, and gives the unbudgeted image. Where the
+    pool holds every level-0 brick already (an earlier selection at level 0), the first frame makes its passes'
+    voxels from them without reading the store."""
+    from lodcast.renderer.data import passes
+    from lodcast.renderer.data.volume import VolumeView
+
     vol = as_volume(store)
     lv = np.zeros(store.grid, np.int8)
-    probe = BrickPool(2**30)
-    bricks.load_bricks(Renderer(), vol, lv, probe)
-    cap = probe.nbytes  # every level-0 brick fits
-    eng = Renderer(brick_cache_mb=cap / 2**20, device_budget_mb=cap / 4 / 1e6)
-    shared = eng.bricks
-    bricks.load_bricks(eng, vol, lv)
-    assert shared.nbytes == cap
-    r = eng.render(store, {**_scene(30), "quality": "full"})
-    assert r.report["passes"] >= 4
-    if eng.device.memory_is_host:
-        assert shared.nbytes < cap  # the passes' own bricks entered the pool within its bound while they lasted
-    else:
-        assert shared.nbytes == cap
-    assert shared.max_bytes == cap  # the passes are over
+    budget = vol.n_voxels * 4 / 4 / 1e6
+    eng = Renderer(brick_cache_mb=256, device_budget_mb=budget)
+    first = eng.render(store, {**_scene(30), "quality": "full"})
+    assert first.report["passes"] >= 4 and first.report["bricks_read"] > 0
+
+    def refused(*_a, **_k):
+        raise AssertionError("the pass's voxels were made again")
+
+    refs = {az: Renderer().render(store, {**_scene(az), "quality": "full"}) for az in (30, 110)}
+    np.testing.assert_array_equal(first.rgba, refs[30].rgba)
+    with monkeypatch.context() as m:
+        m.setattr(passes, "_level0_voxels", refused)
+        m.setattr(VolumeView, "read_level0_region", refused)
+        for az, ref in refs.items():
+            r = eng.render(store, {**_scene(az), "quality": "full"})
+            assert r.report["bricks_read"] == 0 and r.report["bricks_cached"] > 0
+            np.testing.assert_array_equal(r.rgba, ref.rgba)
+    again = Renderer(brick_cache_mb=256, device_budget_mb=budget)
+    bricks.load_bricks(again, vol, lv)  # every level-0 brick in the pool
+    with monkeypatch.context() as m:
+        m.setattr(VolumeView, "read_level0_region", refused)
+        r = again.render(store, {**_scene(30), "quality": "full"})
+    assert r.report["bricks_read"] == 0
+    np.testing.assert_array_equal(r.rgba, first.rgba)

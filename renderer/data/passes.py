@@ -32,7 +32,7 @@ from lodcast.malloc import release_free_memory
 from lodcast.opencl import DeviceError
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import atlas_cells
-from lodcast.renderer.data.bricks import BrickStats, brick_batches
+from lodcast.renderer.data.bricks import BrickStats
 from lodcast.renderer.data.sampler import ess_cell, level0_buffer, level0_cells, upload_level0
 from lodcast.renderer.data.volume import VolumeView
 from lodcast.renderer.engine import Engine
@@ -286,9 +286,11 @@ def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
             if lod is None:
                 shape = tuple(r.stop - r.start for r in reg.data)
                 nbytes = math.prod(shape) * vol.voxel_dtype.itemsize
-                # a CPU device's buffer is host memory: the brick cache gives way to it while the pass lasts
-                held.enter_context(eng.holding(nbytes))
-                eng.bricks.trim()
+                if not vol.has_levels or vol.key is None:
+                    # a CPU device's buffer is host memory: the brick pool gives way to it while the pass lasts (a
+                    # store's pass voxels are in the pool already, and are the buffer on such a device)
+                    held.enter_context(eng.holding(nbytes))
+                    eng.bricks.trim()
                 data, got = _level0_pass(eng, vol, reg, shape, own, steps, placeholder)
                 stats.read += got.read
                 stats.cached += got.cached
@@ -312,49 +314,74 @@ def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
 
 def _level0_pass(eng: Engine, vol: Any, reg: Region, shape: tuple[int, int, int], own: np.ndarray,
                  steps: np.ndarray, placeholder: cl.Buffer) -> tuple[PassData, BrickStats]:
-    """A full-resolution pass's data: its voxels written into a mapped device buffer from the level-0 bricks of the
-    engine's brick pool (read into the pool where missing: a second frame, or a pass over the same blocks, reads
-    nothing), and the value ranges of its cells for empty-space skipping; with the counts of bricks read and
-    found. A volume without a store's bricks (an array) is read straight into the buffer."""
+    """A full-resolution pass's data: its voxels on the device, and the value ranges of its cells for empty-space
+    skipping; with the counts of bricks read and found. A store's pass voxels are kept whole in the engine's brick
+    pool (`_pass_voxels`): a second frame, or a pass over the same region, reads nothing and transposes nothing.
+    A volume without a store's bricks (an array) is read straight into the buffer."""
     dev = eng.device
     st = BrickStats()
-    if not vol.has_levels:
+    if not vol.has_levels or vol.key is None:
         buf = level0_buffer(dev, vol, reg.data)
         st.read = int(own.sum())
     else:
-        buf = cl.Buffer(dev.context, cl.mem_flags.READ_ONLY, size=max(4, math.prod(shape) * vol.voxel_dtype.itemsize))
-        host, _ = cl.enqueue_map_buffer(dev.queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, shape,
-                                        vol.voxel_dtype)
-        try:
-            _level0_voxels(eng, vol, reg.data, host, st)
-        finally:
-            host.base.release(dev.queue)
-        dev.queue.finish()
+        voxels = _pass_voxels(eng, vol, reg.data, shape, st)
+        mf = cl.mem_flags
+        # a CPU device's buffer can be the pooled voxels themselves; a GPU's takes a copy of them
+        where = mf.USE_HOST_PTR if dev.memory_is_host else mf.COPY_HOST_PTR
+        buf = cl.Buffer(dev.context, mf.READ_ONLY | where, hostbuf=voxels)
     cmin, cmax = level0_cells(dev, buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
     return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size)), st
 
 
+def _pass_voxels(eng: Engine, vol: Any, box: tuple[slice, slice, slice], shape: tuple[int, int, int],
+                 st: BrickStats) -> np.ndarray:
+    """Level 0's voxels `box` (z-y-x slices) of a store, kept whole in the engine's brick pool (renderer/pool.py
+    says why): found there, else made from the pool's level-0 bricks where it holds all of them, else read from
+    the store straight into place (not as bricks: the pool would hold the region twice)."""
+    B = int(vol.block_size)
+    lo = [s.start // B for s in box]
+    hi = [-(-s.stop // B) for s in box]
+    n = math.prod(h - low for h, low in zip(hi, lo))
+    fam = ("voxels", vol.key, tuple((s.start, s.stop) for s in box))
+    got = eng.bricks.held(fam)
+    if got is not None:
+        st.cached += n
+        return got
+    out = np.empty(shape, vol.voxel_dtype)
+    blocks = np.asarray(np.ravel_multi_index(tuple(np.mgrid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].reshape(3, -1)), vol.grid))
+    if (eng.bricks.find(("bricks", vol.key, 0), vol.n_blocks, blocks) >= 0).all():
+        _level0_voxels(eng, vol, box, out, st)
+    else:
+        vol.read_level0_region(box, out)
+        st.read += n
+    eng.bricks.hold(fam, out)
+    return out
+
+
 def _level0_voxels(eng: Engine, vol: Any, box: tuple[slice, slice, slice], out: np.ndarray, st: BrickStats) -> None:
-    """Level 0's voxels `box` (z-y-x slices) into `out`, from the brick pool, one row of blocks across z at a time
-    (a row of level-0 shards: store/layout.py), each row's bricks scattered into a block-ordered array and copied
-    into `out` as voxels."""
+    """Level 0's voxels `box` (z-y-x slices) into `out` from the level-0 bricks of the brick pool, one row of blocks
+    across z at a time, each row's bricks transposed into voxels; a row whose bricks another thread evicted
+    meanwhile is read from the store."""
     B = int(vol.block_size)
     lo = [s.start // B for s in box]
     hi = [-(-s.stop // B) for s in box]
     ny, nx = hi[1] - lo[1], hi[2] - lo[2]
-    row = np.empty((ny, nx, B, B, B), vol.voxel_dtype)
+    row = np.empty((B, ny * B, nx * B), vol.voxel_dtype)
     ys, xs = (slice(box[a].start - lo[a] * B, box[a].stop - lo[a] * B) for a in (1, 2))
+    yx = np.mgrid[lo[1]:hi[1], lo[2]:hi[2]].reshape(2, -1)
+    fam = ("bricks", vol.key, 0)
     for bz in range(lo[0], hi[0]):
-        levels = np.full(vol.grid, -1, np.int8)
-        levels[bz, lo[1]:hi[1], lo[2]:hi[2]] = 0
-        part = BrickStats()
-        for _, blocks, bricks in brick_batches(eng, vol, levels, stats=part):
-            _, y, x = np.unravel_index(blocks, vol.grid)
-            row[y - lo[1], x - lo[2]] = bricks
-        st.read, st.cached = st.read + part.read, st.cached + part.cached
         z0, z1 = max(box[0].start, bz * B), min(box[0].stop, (bz + 1) * B)
-        out[z0 - box[0].start:z1 - box[0].start] = row.transpose(2, 0, 3, 1, 4).reshape(B, ny * B, nx * B)[
-            z0 - bz * B:z1 - bz * B, ys, xs]
+        dst = out[z0 - box[0].start:z1 - box[0].start]
+        blocks = np.ravel_multi_index((np.full(yx.shape[1], bz), yx[0], yx[1]), vol.grid)
+        held, bricks = eng.bricks.get(fam, vol.n_blocks, blocks)
+        if bricks is None or not held.all():
+            vol.read_level0_region((slice(z0, z1), box[1], box[2]), dst)
+            st.read += blocks.size
+            continue
+        st.cached += blocks.size
+        row.reshape(B, ny, B, nx, B)[...] = bricks.reshape(ny, nx, B, B, B).transpose(2, 0, 3, 1, 4)
+        dst[...] = row[z0 - bz * B:z1 - bz * B, ys, xs]
 
 
 def _cells(pr: Any, da: "lod_atlas.DeviceAtlas",

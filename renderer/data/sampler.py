@@ -46,7 +46,9 @@ def level0_cells(dev: Device, buf: cl.Buffer, sub_shape: tuple[int, int, int], s
                  blocks: tuple[slice, slice, slice], vol: VolumeView) -> tuple[np.ndarray, np.ndarray]:
     """The border-inclusive (min, max) of the ess_cell cells of `blocks`, from level-0 voxels on the device (`buf`:
     `sub_shape` voxels from voxel `start`, z-y-x, holding those cells and their borders), in float32 arrays over
-    the volume's whole cell grid (NaN elsewhere: no value, nothing to see). Computed on the device (cells.cl)."""
+    the volume's whole cell grid (NaN elsewhere: no value, nothing to see). Taken from the store where it keeps
+    the ranges of these very cells (format >= 3, cells of store.layout.cell_edge: the same voxels, rounded
+    outwards), else computed on the device (cells.cl)."""
     ctx, queue = dev.context, dev.queue
     C, B = ess_cell(vol.shape, vol.block_size), int(vol.block_size)
     k = B // C
@@ -55,6 +57,10 @@ def level0_cells(dev: Device, buf: cl.Buffer, sub_shape: tuple[int, int, int], s
     n = tuple(max(0, c.stop - c.start) for c in cells)
     full = [np.full(grid, np.nan, np.float32) for _ in range(2)]
     if 0 in n:
+        return full[0], full[1]
+    if vol.has_cell_ranges and C == cell_edge(B):
+        for f, r in zip(full, vol.source.cell_ranges):
+            f[cells] = r[cells]
         return full[0], full[1]
     parts = [np.empty(n, np.float32) for _ in range(2)]
     d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=p.nbytes) for p in parts]
