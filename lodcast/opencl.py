@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyopencl as cl
 
 from lodcast.environment import environment
@@ -247,6 +248,14 @@ class Device:
         except cl.Error:  # an OpenCL 3 driver may no longer answer the 1.x query
             unified = False
         return unified or bool(d.type & cl.device_type.CPU)
+
+    def read_only(self, host: np.ndarray) -> cl.Buffer:
+        """A read-only buffer of `host`, which the caller keeps unchanged while the buffer lives: on a device whose
+        buffers are host memory the array itself (a large walk's tables, kept between frames, are not copied each
+        frame), else a copy."""
+        mf = cl.mem_flags
+        where = mf.USE_HOST_PTR if self.memory_is_host and host.flags.c_contiguous else mf.COPY_HOST_PTR
+        return cl.Buffer(self.context, mf.READ_ONLY | where, hostbuf=host)
 
     def source(self, name: str, folder: Path | None = None) -> str:
         """kernel_source, read again only when one of its files has changed."""

@@ -96,8 +96,8 @@ class Engine:
     - `bricks`: the pool of bricks read from stores, of every level and quality (renderer/pool.py); on a device whose buffers are host memory it gives
       way to what the device cache and the buffers being filled hold, down to an eighth of its size;
     - `device_cache`: level-0 volumes, atlases and coarse levels on the device;
-    - `selections`, `step_errors`, `steps`: level-of-detail selections, predicted step errors and adaptive step
-      levels of recent scenes; `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
+    - `selections`, `step_errors`, `steps`, `block_infos`: level-of-detail selections, predicted step errors,
+      adaptive step levels and the blocks' walk info of recent scenes; `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
       atlas_cells.py); `last_atlas`: per atlas family the newest atlas, held weakly (atlas.py reuses its bricks);
     - `tables`: what is derived from a store and TFs (`Tables`); `stores`: stores named by path or URL, opened once.
     """
@@ -112,11 +112,14 @@ class Engine:
         self.bricks = BrickPool(self._brick_bound)
         self.selections = ByteLru(4)  # one unit each: (store, TFs, quality, classification, crop, view)
         self.step_errors = ByteLru(8)  # one unit each: (store, TFs, step, crop)
-        self.steps = ByteLru(64 << 20)
-        self.walks = ByteLru(64 << 20)
-        self.adaptive_walks = ByteLru(32 << 20)
-        self.parents = ByteLru(64 << 20)
-        self.cells = ByteLru(256 << 20)
+        self.block_infos = ByteLru(64 << 20, keep_last=True)  # (store, TFs, mode) -> the blocks' walk info
+        # the newest walk stays whatever its size: a large volume's walk alone may pass the bound, and computing
+        # it again every frame of a turntable costs several times the kernel
+        self.steps = ByteLru(64 << 20, keep_last=True)
+        self.walks = ByteLru(64 << 20, keep_last=True)
+        self.adaptive_walks = ByteLru(32 << 20, keep_last=True)
+        self.parents = ByteLru(64 << 20, keep_last=True)
+        self.cells = ByteLru(256 << 20, keep_last=True)
         self.tables = Tables()
         self.stores = OpenStores(OPEN_STORES)
         self._last_atlas: dict[tuple, weakref.ref[Any]] = {}
@@ -200,7 +203,7 @@ class Engine:
             pools, self._pools = self._pools, {}
         for pool in pools.values():
             pool.shutdown(wait=False)
-        for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.steps, self.walks,
+        for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps, self.walks,
                   self.adaptive_walks, self.parents, self.cells):
             c.clear()
         self.tables = Tables()

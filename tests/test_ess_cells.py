@@ -141,9 +141,9 @@ def test_walk_info_is_kept_per_volume_visibility_and_clip(eng, monkeypatch, tmp_
         n0 = len(calls)
         images.append(eng.render(st, sc).rgba)
         counts.append(len(calls) - n0)
-    # per render one call for the blocks' info; where the cells' walk info is computed afresh two more (the 8³
-    # parents, then the 4³ cells under them), MIP one (its cells' maxima)
-    assert counts == [3, 1, 1, 3, 3, 1, 2], counts
+    # one call for the blocks' info per TF and mode (kept: the clip region applies after it); where the cells' walk
+    # info is computed afresh two more (the 8³ parents, then the 4³ cells under them), MIP one (its cells' maxima)
+    assert counts == [3, 0, 1, 3, 2, 0, 2], counts
     eng.walks.clear()
     for sc, img in zip(scenes, images):
         assert np.array_equal(eng.render(st, sc).rgba, img)

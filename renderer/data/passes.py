@@ -164,6 +164,13 @@ def plan(vol: VolumeView, fr: Frame, step_voxels: float, levels: np.ndarray | No
         lv = np.asarray(levels).astype(np.int64)
         sig = lod_atlas.deviation_bytes(vol.voxel_dtype) if with_std else 0  # deviations: coarse bricks only
         coarse = sig if sig == 4 else size + sig  # 4: the coarse values live beside their deviations alone
+        # the total from the blocks per level first: the per-block sizes and their prefix sums below cost a good
+        # part of a large volume's frame, and most renders fit in one pass
+        count = np.bincount(lv.ravel() + 1)[1:]
+        single = sum(int(n) * int(lod_atlas.brick_elements(np.int64(k), B)) * (coarse if k >= 1 else size)
+                     for k, n in enumerate(count.tolist()))
+        if single <= limit:
+            return None
         per = lod_atlas.brick_elements(lv, B) * np.where(lv >= 1, coarse, size)
         total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
 
@@ -175,7 +182,6 @@ def plan(vol: VolumeView, fr: Frame, step_voxels: float, levels: np.ndarray | No
             d = data_box(lo, hi)
             return total(tuple(s.start for s in d), tuple(s.stop for s in d))
 
-        single = total((0, 0, 0), G)
     if single <= limit:
         return None
     extent = tuple(B * float(s) for s in vol.spacing)
@@ -324,11 +330,7 @@ def _level0_pass(eng: Engine, vol: Any, reg: Region, shape: tuple[int, int, int]
         buf = level0_buffer(dev, vol, reg.data)
         st.read = int(own.sum())
     else:
-        voxels = _pass_voxels(eng, vol, reg.data, shape, st)
-        mf = cl.mem_flags
-        # a CPU device's buffer can be the pooled voxels themselves; a GPU's takes a copy of them
-        where = mf.USE_HOST_PTR if dev.memory_is_host else mf.COPY_HOST_PTR
-        buf = cl.Buffer(dev.context, mf.READ_ONLY | where, hostbuf=voxels)
+        buf = dev.read_only(_pass_voxels(eng, vol, reg.data, shape, st))  # (a CPU device's: the pooled voxels)
     cmin, cmax = level0_cells(dev, buf, shape, tuple(s.start for s in reg.data), reg.blocks, vol)
     return PassData(reg, buf, placeholder, placeholder, steps, own, cmin, cmax, ess_cell(vol.shape, vol.block_size)), st
 

@@ -133,8 +133,8 @@ def _lod_plan(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | N
     # interblock interpolation reaches half a sample of a coarse block (2^(k-1) voxels) past its faces, further
     # than the one-voxel border of the block ranges: where a coarse block is near, a block may show what its
     # neighbours hold, so it takes its neighbourhood's info (empty-space skipping must not change the image)
-    near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing
-    if near_coarse.any() and cfg.interpolation == "interblock":  # nearest block: half a level-0 voxel, at most
+    near_coarse = (lod_atlas.neighbourhood_max(lv) >= 1) & ~missing if cfg.interpolation == "interblock" else None
+    if near_coarse is not None and near_coarse.any():  # nearest block: half a level-0 voxel, at most
         spread = lod_atlas.neighbourhood_max(info) if scene.tf2 is None else dual.dilate_bits(info, lod_atlas.neighbourhood_max)
         info = np.where(near_coarse, spread, info).astype(np.float32)
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
@@ -154,6 +154,19 @@ def _step_levels(eng: Engine, lv: np.ndarray, block_size: int, skip: np.ndarray 
     if hit is None:
         hit = lod_atlas.step_levels(lv, block_size, skip)
         eng.steps.put(key, hit, hit.nbytes)
+    return hit
+
+
+def _block_info(eng: Engine, vol: VolumeView, scene: Scene, lut: Lut, lut2: Lut | None) -> tuple[np.ndarray, int]:
+    """walk.info.block_info, kept for the last few (store, TFs, mode): a turntable asks for the same each frame, and
+    on a million blocks it is a good part of a frame's host time. Read-only: callers derive, never write."""
+    key = None if vol.key is None else (*_tfs_and_key(vol, scene, None)[1][:2], scene.mode)
+    hit = eng.block_infos.get(key) if key is not None else None
+    if hit is None:
+        hit = block_info(vol, lut, scene.mode, lut2)
+        hit[0].flags.writeable = False
+        if key is not None:
+            eng.block_infos.put(key, hit, hit[0].nbytes)
     return hit
 
 
@@ -214,7 +227,7 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     second = None
     if tf2 is not None:
         second = dual.SecondTf(tf2, build_lut(tf2, vol.value_range), unit_distance(tf2, vol.spacing))
-    info, n_empty = block_info(vol, lut, scene.mode, None if second is None else second.lut)
+    info, n_empty = _block_info(eng, vol, scene, lut, None if second is None else second.lut)
     keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
     if keep is not None:  # blocks outside the clip region are empty space
         info = np.where(keep, info, -np.inf if scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)

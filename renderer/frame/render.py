@@ -169,12 +169,12 @@ def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
             # (a pass's buffers go as it ends: a kept kernel would hold the last one's)
             kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else dev.kernel(built, "lc_render")
         steps, walk, leaps = adaptive_walk(pr, cfg, data, walk, leaps)
-        d_info = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=walk)
+        d_info = dev.read_only(walk)  # (walk, steps and leaps are kept: see walk/info.py)
         planes, p[0]["leap_planes"] = ((np.zeros(1, np.uint8), 0xFFFFFFFF) if leaps is None or not cfg.leap
                                        else leaps.for_octants(pr.octants))
-        d_leaps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=planes)
+        d_leaps = dev.read_only(planes)
         d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-        d_steps = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=steps)
+        d_steps = dev.read_only(steps)
         d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
         kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,
                       d_ptab, d_prio, d_spos, d_own, d_state, d_leaps)
