@@ -428,7 +428,7 @@ def select_from_meta(
     per_level = meta.level_std is not None and method == "tf"
     opac = None
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
-        zeta_tab, _, opac, visible = _max_tables(
+        zeta_tab, opac, visible, drive_base, drive_max = _drive_tables(
             meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs, classification, tables)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
@@ -438,14 +438,8 @@ def select_from_meta(
     seen = None if visibility is None or method not in ("tf", "tf_full_hist") else \
         np.clip(np.asarray(visibility, np.float64).ravel(), 0.0, 1.0)
     weight = meta.count if seen is None else meta.count * seen
-    zeta_w = zeta_tab if seen is None else (zeta_tab * seen[:, None]).astype(np.float32)
-    if per_level:
-        spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
-        spread[:, 0] = 0.0
-        drive_tab = np.sqrt(zeta_tab * spread)
-        if seen is not None:
-            drive_tab *= seen[:, None]
-        z0 = drive_tab.max(axis=1)  # drives the refinement: a block is refined if some level loses anything
+    if per_level:  # (the view's weight scales whole rows: its maximum is the TF's maximum times the weight)
+        z0 = drive_max if seen is None else drive_max * seen  # a block is refined if some level loses anything
     elif seen is not None:
         z0 = z0 * seen
     if kind == "full":
@@ -465,6 +459,7 @@ def select_from_meta(
             # (levels finer than a block's max level count as fine: they are not allowed anyway)
             assert opac is not None  # per_level
             gain = _image_gain(opac, weight, loaded)
+            zeta_w = zeta_tab if seen is None else (zeta_tab * seen[:, None]).astype(np.float32)
             ok = (zeta_w * gain <= lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
             first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
             levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
@@ -488,7 +483,10 @@ def select_from_meta(
                         break
             elif per_level:
                 rows = np.flatnonzero(refine)
-                levels[rows] = greedy(drive_tab[rows].astype(np.float64), maxlev[rows], nsamp, budget_samples - base_samples)
+                drive_rows = drive_base[rows]  # (a copy: fancy indexing)
+                if seen is not None:
+                    drive_rows *= seen[rows, None]
+                levels[rows] = greedy(drive_rows, maxlev[rows], nsamp, budget_samples - base_samples)
             else:
                 rows = np.flatnonzero(refine)
                 ztab = drive[rows, None] * prof[None, :]
@@ -538,6 +536,29 @@ def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
         zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
         opac, visible = np.maximum(opac, o_t), visible | vis_t
     return zeta, step, opac, visible
+
+
+def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
+                  tables: Tables | None = None) -> tuple[np.ndarray, ...]:
+    """(ζ(k) (N, L) float32, opacity moments (N, 2), TF-visible blocks (N,), what drives the greedy
+    √(ζ(k) · spread(k)) (N, L) float64 (module doc: "What the greedy weighs"; level 0 drives nothing), its maximum
+    per block (N,)): `_max_tables` and what follows from them and the store alone, kept in `tables` beside them (a
+    new view of a large volume selects again, and these are most of the arithmetic over a million blocks)."""
+    key = ("drive", id(meta), json.dumps([as_tf(t).model_dump(mode="json") for t in tfs], sort_keys=True),
+           classification)
+    hit = None if tables is None else tables.tf.get(key)
+    if hit is not None and hit[0]() is meta:
+        return hit[1]
+    zeta, _, opac, visible = _max_tables(meta, tfs, classification, tables)
+    spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
+    spread[:, 0] = 0.0
+    drive = np.sqrt(zeta * spread)  # (float64, as the greedy takes it: the selection does not depend on keeping it)
+    out = (zeta, opac, visible, drive, drive.max(axis=1))
+    for a in out:
+        a.setflags(write=False)
+    if tables is not None:
+        tables.tf.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
+    return out
 
 
 def zeta0_l2_cached(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
