@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["VolumeSource", "ArraySource", "SourceInfo", "SUPPORTED_DTYPES", "check_world_box", "narrowest_integer",
-           "NARROW_TYPES"]
+           "whole_type", "NARROW_TYPES"]
 
 #: dtypes a store can hold; anything else (complex, object, bool, 64-bit ints beyond float64's exact range…) is refused.
 SUPPORTED_DTYPES = tuple(
@@ -33,6 +33,16 @@ def narrowest_integer(lo: float, hi: float) -> np.dtype | None:
         if info.min <= lo and hi <= info.max:
             return t
     return None
+
+
+def whole_type(lo: float, hi: float) -> np.dtype:
+    """The type of rescaled whole values in [lo, hi]: the first of NARROW_TYPES that holds them, else int32, else
+    float64 (whole numbers up to 2^53 exactly, where float32 would round past 2^24)."""
+    narrow = narrowest_integer(lo, hi)
+    if narrow is not None:
+        return narrow
+    info = np.iinfo(np.int32)
+    return np.dtype(np.int32) if info.min <= lo and hi <= info.max else np.dtype(np.float64)
 
 
 @dataclass(frozen=True)
