@@ -3,6 +3,7 @@ values are stored in the smallest integer type that holds the values present, wh
 declares; fractional ones in float32. Files written here by pydicom and nibabel."""
 from __future__ import annotations
 
+import tracemalloc
 from pathlib import Path
 
 import nibabel as nib
@@ -115,3 +116,41 @@ def test_ingested_unsigned_ct_is_int16_with_a_soft_tissue_window(tmp_path: Path)
     assert np.array_equal(st.read_region(0, (slice(None),) * 3), rescaled(pixels, 1.0, [-1024.0]))
     win = st.attrs["ome"]["omero"]["channels"][0]["window"]
     assert (win["start"], win["end"]) == (-160.0, 240.0) and (win["min"], win["max"]) == (-1024.0, 3071.0), win
+
+
+def opening_peak(path: Path) -> int:
+    """tracemalloc's peak while a source is opened (where the scan of the values runs), after a first opening has
+    brought in the imports and caches."""
+    with open_source(path, orient="source"):
+        pass
+    tracemalloc.start()
+    try:
+        with open_source(path, orient="source") as src:
+            assert src.info.dtype == np.int16
+            return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_the_scan_of_the_values_holds_a_slice_or_a_few_not_the_volume(tmp_path: Path) -> None:
+    """The pass over the pixels that settles the type reads them as slabs are read: a DICOM slice at a time (the
+    series declared 16-bit, which is scanned, needs little more than the same series declared 12-bit, which is
+    not), NIfTI in a few slices; neither grows with the depth."""
+    slice_bytes = 128 * 128 * 2
+    peaks: dict[str, list[int]] = {"dicom": [], "nifti": []}
+    for depth in (32, 128):
+        pixels = (np.arange(depth * 128 * 128) % 4096).astype(np.uint16).reshape(depth, 128, 128)
+        declared = {}
+        for bits in (12, 16):
+            folder = tmp_path / f"ct{depth}_{bits}"
+            folder.mkdir()
+            for z in range(depth):
+                dicom_slice(folder / f"{z}.dcm", pixels[z], float(z), bits=bits)
+            declared[bits] = opening_peak(folder)
+        assert declared[16] - declared[12] < 4 * slice_bytes, (depth, declared)
+        peaks["dicom"].append(declared[16] - declared[12])
+        nifti(tmp_path / f"n{depth}.nii.gz", pixels, 1.0, -1024.0)
+        peaks["nifti"].append(opening_peak(tmp_path / f"n{depth}.nii.gz"))
+    assert peaks["nifti"][-1] < 128 * 128 * 128 * 2 // 4, peaks  # nibabel's copies of a few slices, not the volume
+    for kind, (shallow, deep) in peaks.items():
+        assert deep < shallow + slice_bytes, (kind, peaks)
