@@ -64,7 +64,8 @@ def rescaled_type(pixel: np.dtype, declared: tuple[float, float], rescale: Seque
         return pixel
     if pixel.kind not in "iu" or not all(float(s).is_integer() and float(i).is_integer() for s, i in rescale):
         return np.dtype(np.float32)
-    narrow = narrowest_integer(*_rescaled_ends([declared], rescale))
+    ends = _rescaled_ends([declared], rescale)
+    narrow = narrowest_integer(*ends)
     # a read of every pixel could then narrow only below the file's own width, at the cost of a second pass
     if narrow is not None and narrow.itemsize <= pixel.itemsize:
         return narrow
@@ -73,7 +74,7 @@ def rescaled_type(pixel: np.dtype, declared: tuple[float, float], rescale: Seque
         if values.size:
             a, b = _rescaled_ends([(values.min(), values.max())], [r])
             lo, hi = min(lo, a), max(hi, b)
-    return whole_type(lo, hi) if lo <= hi else narrow or whole_type(*_rescaled_ends([declared], rescale))
+    return whole_type(lo, hi) if lo <= hi else whole_type(*ends)  # no pixels: an empty volume, refused later
 
 
 def _rescaled_ends(ranges: Sequence[tuple[Any, Any]], rescale: Sequence[Rescale]) -> tuple[float, float]:
