@@ -343,7 +343,7 @@ def test_upgrade_refuses_a_damaged_store(store: Path):
 @pytest.mark.parametrize("pixel,bits,rescale,present,want", [
     ("uint16", 12, [(1.0, -1024.0)], (0, 4095), "int16"),  # a CT: 0..4095 stored, −1024..3071 HU
     ("uint16", 16, [(1.0, -1024.0)], (0, 4095), "int16"),  # the same pixels declared 16-bit: the values decide
-    ("uint16", 16, [(1.0, -1024.0)], (0, 40000), "int32"),  # −1024..38976: no 16-bit type holds them
+    ("uint16", 16, [(1.0, -1024.0)], (0, 40000), "float32"),  # −1024..38976: no 16-bit type; float32 is exact
     ("uint16", 8, [(1.0, 10.0)], (0, 255), "uint16"),  # 10..265
     ("uint8", 8, [(1.0, -100.0)], (0, 255), "int16"),  # −100..155
     ("uint8", 8, [(1.0, -64.0)], (0, 127), "int8"),  # −64..63, from the values present

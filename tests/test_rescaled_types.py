@@ -52,12 +52,13 @@ def test_unsigned_16_bit_dicom_holding_a_12_bit_ct_is_int16(tmp_path: Path) -> N
     assert np.array_equal(want.astype(np.int16).astype(np.float64), want)
 
 
-def test_rescaled_dicom_values_past_int16_are_int32(tmp_path: Path) -> None:
+def test_rescaled_dicom_values_past_int16_are_float32(tmp_path: Path) -> None:
+    """Past int16 the stored-type rule's float32, which holds whole numbers up to 2^24 exactly."""
     pixels = ct_pixels((4, 12, 10), top=40000)  # −1024…38976: neither int16 nor uint16 holds them
     dicom_series(tmp_path / "ct", pixels, [-1024.0])
     want = rescaled(pixels, 1.0, [-1024.0])
     with open_source(tmp_path / "ct") as src:
-        check(src, want.astype(np.int32))
+        check(src, want.astype(np.float32))
     assert want.max() == 38976.0
 
 
@@ -91,10 +92,10 @@ def nifti(path: Path, pixels: np.ndarray, slope: float, inter: float) -> np.ndar
 
 
 def test_nifti_with_whole_scaling_takes_the_type_of_its_values(tmp_path: Path) -> None:
-    """uint16 voxels 0…4095 with scl_inter −1024 are int16 (once float32); past int16, int32; a fractional slope
+    """uint16 voxels 0…4095 with scl_inter −1024 are int16 (once float32); past int16, float32 (exact); a fractional slope
     stays float32. Every value equals nibabel's float64 scaling exactly."""
     pixels = ct_pixels((6, 14, 12))
-    for name, slope, inter, top, want in [("hu", 1.0, -1024.0, 4095, np.int16), ("wide", 1.0, -1024.0, 60000, np.int32),
+    for name, slope, inter, top, want in [("hu", 1.0, -1024.0, 4095, np.int16), ("wide", 1.0, -1024.0, 60000, np.float32),
                                           ("twice", 2.0, -1024.0, 4095, np.int16), ("frac", 0.5, -1024.0, 4095, np.float32)]:
         stored = np.minimum(pixels, top)
         stored.flat[-1] = top
