@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["VolumeSource", "ArraySource", "SourceInfo", "SUPPORTED_DTYPES", "check_world_box", "narrowest_integer",
-           "NARROW_TYPES"]
+           "whole_type", "NARROW_TYPES"]
 
 #: dtypes a store can hold; anything else (complex, object, bool, 64-bit ints beyond float64's exact range…) is refused.
 SUPPORTED_DTYPES = tuple(
@@ -33,6 +33,23 @@ def narrowest_integer(lo: float, hi: float) -> np.dtype | None:
         if info.min <= lo and hi <= info.max:
             return t
     return None
+
+
+def whole_type(lo: float, hi: float) -> np.dtype:
+    """The type of rescaled whole values in [lo, hi]: the first of NARROW_TYPES that holds them, else float32 (the
+    stored-type rule) while it holds them exactly (|v| <= 2^24); past that int32, else float64 (float32 would round
+    them)."""
+    narrow = narrowest_integer(lo, hi)
+    if narrow is not None:
+        return narrow
+    if -FLOAT32_WHOLE <= lo and hi <= FLOAT32_WHOLE:
+        return np.dtype(np.float32)
+    info = np.iinfo(np.int32)
+    return np.dtype(np.int32) if info.min <= lo and hi <= info.max else np.dtype(np.float64)
+
+
+#: float32 holds every whole number of at most this magnitude exactly
+FLOAT32_WHOLE = float(2**24)
 
 
 @dataclass(frozen=True)

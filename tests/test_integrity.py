@@ -340,18 +340,34 @@ def test_upgrade_refuses_a_damaged_store(store: Path):
 
 # --- the stored-type rule ------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("pixel,bits,rescale,want", [
-    ("uint16", 12, [(1.0, -1024.0)], "int16"),  # a CT: 0..4095 stored, −1024..3071 HU
-    ("uint16", 16, [(1.0, -1024.0)], "float32"),  # −1024..64511: no 16-bit type holds every value the bits allow
-    ("uint16", 8, [(1.0, 10.0)], "uint16"),  # 10..265
-    ("uint8", 8, [(1.0, -100.0)], "int16"),  # −100..155
-    ("uint8", 7, [(1.0, -64.0)], "int8"),  # −64..63
-    ("uint8", 6, [(2.0, 100.0)], "uint8"),  # 100..226
-    ("int16", 16, [(1.0, 0.0)], "int16"),  # nothing rescaled: the pixels' own type
-    ("int16", 16, [(1000.0, 0.0)], "int32"),  # whole values past float32's exact integers
-    ("uint16", 12, [(0.5, -1024.0)], "float32"),  # not whole
+@pytest.mark.parametrize("pixel,bits,rescale,present,want", [
+    ("uint16", 12, [(1.0, -1024.0)], (0, 4095), "int16"),  # a CT: 0..4095 stored, −1024..3071 HU
+    ("uint16", 16, [(1.0, -1024.0)], (0, 4095), "int16"),  # the same pixels declared 16-bit: the values decide
+    ("uint16", 16, [(1.0, -1024.0)], (0, 40000), "float32"),  # −1024..38976: no 16-bit type; float32 is exact
+    ("uint16", 8, [(1.0, 10.0)], (0, 255), "uint16"),  # 10..265
+    ("uint8", 8, [(1.0, -100.0)], (0, 255), "int16"),  # −100..155
+    ("uint8", 8, [(1.0, -64.0)], (0, 127), "int8"),  # −64..63, from the values present
+    ("uint8", 6, [(2.0, 100.0)], (0, 63), "uint8"),  # 100..226
+    ("int16", 16, [(1.0, 0.0)], (-5, 5), "int16"),  # nothing rescaled: the pixels' own type
+    ("int16", 16, [(1000.0, 0.0)], (-32768, 32767), "int32"),  # whole values past float32's exact integers
+    ("int16", 16, [(-1.0, 0.0)], (-32768, 0), "uint16"),  # a negative slope turns the range round: 0..32768
+    ("uint32", 32, [(2.0, 0.0)], (0, 2**32 - 1), "float64"),  # whole, past int32: float64 holds them exactly
+    ("uint16", 12, [(0.5, -1024.0)], (0, 4095), "float32"),  # not whole
 ])
-def test_rescaled_dicom_takes_the_smallest_type_that_holds_its_values(pixel, bits, rescale, want):
-    from lodcast.store.readers.dicom import rescaled_dtype
+def test_rescaled_values_take_the_smallest_type_that_holds_them(pixel, bits, rescale, present, want):
+    from lodcast.store.readers.base import rescaled_type
+    from lodcast.store.readers.dicom import stored_range
 
-    assert rescaled_dtype(np.dtype(pixel), bits, rescale) == np.dtype(want)
+    values = np.array(present, dtype=pixel)
+    assert rescaled_type(np.dtype(pixel), stored_range(np.dtype(pixel), bits), rescale,
+                         lambda: [(values, r) for r in rescale]) == np.dtype(want)
+
+
+def test_declared_range_that_decides_reads_no_pixels():
+    """12 stored bits with intercept −1024 give int16 from the header alone: the pixels are not read twice."""
+    from lodcast.store.readers.base import rescaled_type
+
+    def never():
+        raise AssertionError("the pixels were scanned")
+
+    assert rescaled_type(np.dtype("uint16"), (0, 4095), [(1.0, -1024.0)], never) == np.int16

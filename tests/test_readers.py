@@ -429,7 +429,7 @@ JPEG_LOSSLESS = {"1.2.840.10008.1.2.4.70": 1, "1.2.840.10008.1.2.4.57": 6}
 
 def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826.0.1.1", slope: float = 1.0,
                 intercept: float = -1024.0, samples: int = 1, syntax: str | None = None,
-                orientation=(1, 0, 0, 0, 1, 0), position=None) -> None:
+                orientation=(1, 0, 0, 0, 1, 0), position=None, bits: int = 12) -> None:
     ds = dicom_dataset(CTImageStorage)
     ds.SeriesInstanceUID, ds.StudyInstanceUID = series, "1.2.826.0.1.2"
     ds.Rows, ds.Columns = pixels.shape[:2]
@@ -437,7 +437,7 @@ def dicom_slice(path: Path, pixels: np.ndarray, z: float, series: str = "1.2.826
     ds.PhotometricInterpretation = "MONOCHROME2" if samples == 1 else "RGB"
     if samples > 1:
         ds.PlanarConfiguration = 0
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, bits, bits - 1, 0
     ds.PixelSpacing, ds.SliceThickness = [0.5, 0.25], 2.0
     ds.ImagePositionPatient = list(position) if position is not None else [-10.0, -20.0, z]
     ds.ImageOrientationPatient = list(orientation)
@@ -498,7 +498,7 @@ def test_compressed_dicom_series(tmp_path: Path, syntax: str) -> None:
         check(src, stored.astype(np.int16) - 1024)
 
 
-def enhanced_ct(path: Path, frames: np.ndarray, z: list[float], syntax: str | None = None) -> None:
+def enhanced_ct(path: Path, frames: np.ndarray, z: list[float], syntax: str | None = None, bits: int = 12) -> None:
     """An Enhanced CT Image Storage file: the frames' positions in per-frame functional groups, spacing,
     orientation and rescaling in the shared group."""
     from pydicom.sequence import Sequence
@@ -508,7 +508,7 @@ def enhanced_ct(path: Path, frames: np.ndarray, z: list[float], syntax: str | No
     ds.SeriesInstanceUID, ds.StudyInstanceUID = generate_uid(), generate_uid()
     ds.NumberOfFrames, (ds.Rows, ds.Columns) = len(frames), frames.shape[1:]
     ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, bits, bits - 1, 0
 
     def item(**kw: Any) -> Dataset:
         d = Dataset()

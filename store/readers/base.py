@@ -3,7 +3,7 @@
 build a `SourceInfo`, `finish` which checks empty axes, settles the stored dtype (narrowing 64-bit integers after a
 value scan) and applies spacing/origin overrides, and helpers: `pick_volume` for 2D/3D/4D shapes and `index`,
 `read_exact` / `skip_bytes` on a stream, `files_in` a folder, `UNITS` names, `tidy` spacings, `shape_text`,
-`source_info`'s direction rows made unit.
+`source_info`'s direction rows made unit, and `rescaled_type`, the stored-type rule for readers that rescale.
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import abc
 import dataclasses
 import io
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,10 +19,10 @@ import numpy as np
 from numpy.typing import DTypeLike
 
 from lodcast.errors import SourceError
-from lodcast.store.source import SUPPORTED_DTYPES, SourceInfo, VolumeSource
+from lodcast.store.source import SUPPORTED_DTYPES, SourceInfo, VolumeSource, narrowest_integer, whole_type
 
 __all__ = ["Reader", "source_info", "finish", "pick_volume", "read_exact", "skip_bytes", "files_in", "tidy",
-           "shape_text", "UNITS", "READ_CHUNK"]
+           "shape_text", "UNITS", "READ_CHUNK", "rescaled_type", "Rescale"]
 
 
 _SLAB = 32  # ingest's block thickness, also the step of the 64-bit value scan
@@ -47,6 +47,41 @@ class Reader(VolumeSource):
         if z0 == z1:
             return np.empty((0, *self.info.shape[1:]), self.info.dtype)
         return np.ascontiguousarray(self._slab(z0, z1), dtype=self.info.dtype)
+
+
+#: (slope, intercept): a stored pixel p stands for the value p * slope + intercept
+Rescale = tuple[float, float]
+
+
+def rescaled_type(pixel: np.dtype, declared: tuple[float, float], rescale: Sequence[Rescale],
+                  pieces: Callable[[], Iterable[tuple[np.ndarray, Rescale]]]) -> np.dtype:
+    """The stored type of pixels of type `pixel`, in `declared` (lo, hi) as the file says, each rescaled by one of
+    `rescale`: the pixels' own type when nothing is rescaled; float32 when a slope or intercept is not whole (or
+    the pixels are not integers); else `whole_type` of the rescaled values. The declared range decides when its
+    type is no wider than the pixels; otherwise (16 stored bits of 0…4095 with intercept −1024 declare −1024…64511)
+    `pieces()` is read once, each (stored pixels, their rescale) in turn, for the values actually present."""
+    if all((s, i) == (1.0, 0.0) for s, i in rescale):
+        return pixel
+    if pixel.kind not in "iu" or not all(float(s).is_integer() and float(i).is_integer() for s, i in rescale):
+        return np.dtype(np.float32)
+    ends = _rescaled_ends([declared], rescale)
+    narrow = narrowest_integer(*ends)
+    # a read of every pixel could then narrow only below the file's own width, at the cost of a second pass
+    if narrow is not None and narrow.itemsize <= pixel.itemsize:
+        return narrow
+    lo, hi = math.inf, -math.inf
+    for values, r in pieces():
+        if values.size:
+            a, b = _rescaled_ends([(values.min(), values.max())], [r])
+            lo, hi = min(lo, a), max(hi, b)
+    return whole_type(lo, hi) if lo <= hi else whole_type(*ends)  # no pixels: an empty volume, refused later
+
+
+def _rescaled_ends(ranges: Sequence[tuple[Any, Any]], rescale: Sequence[Rescale]) -> tuple[float, float]:
+    """The least and greatest of each range's ends under each rescale (a negative slope swaps them); exact in
+    float64 for whole slopes and intercepts below 2^53."""
+    ends = [float(v) * s + i for lo, hi in ranges for s, i in rescale for v in (lo, hi)]
+    return min(ends), max(ends)
 
 
 def files_in(folder: Path, keep: Callable[[Path], bool]) -> list[Path]:

@@ -1,20 +1,20 @@
 """DICOM series: a folder of single-frame grayscale files (or one file; one multi-frame file: dicom_multiframe.py). Headers are read once, keeping only the few
 fields a series needs; the largest series is kept when several share a folder, slices are sorted along the normal of
-their orientation, RescaleSlope/Intercept are applied into the smallest type that holds every value, and pixels are
-decoded only for the slab asked for.
+their orientation, RescaleSlope/Intercept are applied into the smallest type that holds every value
+(base.rescaled_type), and pixels are decoded only for the slab asked for.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import Reader, files_in, shape_text, source_info, tidy
-from lodcast.store.source import narrowest_integer
+from lodcast.store.readers.base import Reader, files_in, rescaled_type, shape_text, source_info, tidy
 
-__all__ = ["DicomReader", "open_dicom", "is_dicom", "rescaled_dtype", "coincident", "z_spacing", "patient_geometry",
+__all__ = ["DicomReader", "open_dicom", "is_dicom", "stored_range", "coincident", "z_spacing", "patient_geometry",
            "PIXEL_DTYPES"]
 
 
@@ -60,23 +60,10 @@ def patient_geometry(orientation: Any, first: list[float], provenance: dict[str,
             "origin": (first[2], first[1], first[0])}
 
 
-def rescaled_dtype(pixel: np.dtype, bits_stored: int, rescale: list[tuple[float, float]]) -> np.dtype:
-    """The stored pixels' type when nothing is rescaled; else the stored-type rule (store/source.py:
-    narrowest_integer) over every value the stored bits can give once rescaled, when slopes and intercepts are whole
-    (CT Hounsfield units: 12 stored bits with intercept −1024 give int16); float32 otherwise, or int32 where whole
-    values reach past float32's exact integers."""
-    if all(r == (1.0, 0.0) for r in rescale):
-        return pixel
-    signed = pixel.kind == "i"
-    lo, hi = (-(2 ** (bits_stored - 1)), 2 ** (bits_stored - 1) - 1) if signed else (0, 2**bits_stored - 1)
-    if all(s.is_integer() and i.is_integer() for s, i in rescale):
-        ends = [v for s, i in rescale for v in (s * lo + i, s * hi + i)]
-        narrow = narrowest_integer(min(ends), max(ends))
-        if narrow is not None:
-            return narrow
-        if max(abs(v) for v in ends) > 2**24:
-            return np.dtype(np.int32)
-    return np.dtype(np.float32)
+def stored_range(pixel: np.dtype, bits_stored: int) -> tuple[int, int]:
+    """The values `bits_stored` bits of a `pixel` can hold (two's complement when it is signed)."""
+    bits = min(max(bits_stored, 1), pixel.itemsize * 8)
+    return (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) if pixel.kind == "i" else (0, 2**bits - 1)
 
 
 def is_dicom(p: Path) -> bool:
@@ -172,8 +159,7 @@ class DicomReader(Reader):
         self.rereads_cheaply = all(layout is not None for layout in self._native_layout)
         self._rescale = [(float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0))
                          for _, ds in slices]
-        dtype = rescaled_dtype(pixel_dtype, int(slices[0][1].get("BitsStored", pixel_dtype.itemsize * 8)), self._rescale)
-        if dtype != pixel_dtype:
+        if any(r != (1.0, 0.0) for r in self._rescale):
             provenance["scaling"] = {"slope": sorted({s for s, _ in self._rescale}),
                                      "intercept": sorted({i for _, i in self._rescale})}
         first = slices[0][1]
@@ -187,9 +173,13 @@ class DicomReader(Reader):
         if not provenance["warnings"]:
             del provenance["warnings"]
         # PixelSpacing is (between rows, between columns) = (y, x)
-        self.info = source_info((len(slices), ny, nx), dtype, "dicom", path, spacing=(dz, *map(float, pixel_spacing)),
-                                **geometry, **provenance)
-        self.info.provenance["dtype"] = pixel_dtype.name
+        self.info = source_info((len(slices), ny, nx), pixel_dtype, "dicom", path,
+                                spacing=(dz, *map(float, pixel_spacing)), **geometry, **provenance)
+        bits = max(int(ds.get("BitsStored", pixel_dtype.itemsize * 8)) for _, ds in slices)
+        declared = stored_range(pixel_dtype, bits)
+        dtype = rescaled_type(pixel_dtype, declared, self._rescale,
+                              lambda: ((self._pixels(k), self._rescale[k]) for k in range(len(self._files))))
+        self.info = dataclasses.replace(self.info, dtype=dtype)
 
     @staticmethod
     def _native_of(ds: dict[str, Any], pixel_dtype: np.dtype) -> tuple[int, int] | None:
@@ -243,11 +233,14 @@ class DicomReader(Reader):
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
         for k in range(z0, z1):
-            f = self._files[k]
-            pixels = self._native(k) if self._native_layout[k] is not None else self._decoded(f)
+            pixels = self._pixels(k)
             slope, intercept = self._rescale[k]
             out[k - z0] = pixels if (slope, intercept) == (1.0, 0.0) else pixels * slope + intercept
         return out
+
+    def _pixels(self, k: int) -> np.ndarray:
+        """Slice k's stored pixels, not rescaled."""
+        return self._native(k) if self._native_layout[k] is not None else self._decoded(self._files[k])
 
     def _decoded(self, f: Path) -> np.ndarray:
         import pydicom

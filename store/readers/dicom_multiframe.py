@@ -6,13 +6,14 @@ decoded one at a time (pydicom's `pixel_array(..., index=i)`), so memory holds a
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import Reader, shape_text, source_info
+from lodcast.store.readers.base import Reader, rescaled_type, shape_text, source_info
 
 __all__ = ["MultiFrameDicomReader", "frame_count"]
 
@@ -62,13 +63,13 @@ def _group(ds: Any, k: int, sequence: str) -> Any:
 
 
 class MultiFrameDicomReader(Reader):
-    """The frames of one multi-frame DICOM file as a volume; RescaleSlope/Intercept applied into the smallest of
-    int16 / int32 that holds every value when they are whole, float32 otherwise."""
+    """The frames of one multi-frame DICOM file as a volume; RescaleSlope/Intercept applied into the stored-type
+    rule's type (base.rescaled_type)."""
 
     def __init__(self, path: Path, index: int | None) -> None:
         import pydicom
 
-        from lodcast.store.readers.dicom import PIXEL_DTYPES, coincident, patient_geometry, rescaled_dtype, z_spacing
+        from lodcast.store.readers.dicom import PIXEL_DTYPES, coincident, patient_geometry, stored_range, z_spacing
 
         if index is not None:
             raise SourceError(f"index {index} given but DICOM file {path} is a single 3D volume")
@@ -124,8 +125,7 @@ class MultiFrameDicomReader(Reader):
             dz = z_spacing(depth[order], thickness, provenance, "frame")
             geometry = patient_geometry(orientation, known[order[0]], provenance)
         self._order, self._rescale, self._pixel_dtype = order, [rescale[i] for i in order], pixel_dtype
-        dtype = rescaled_dtype(pixel_dtype, int(ds.get("BitsStored", bits)), self._rescale)
-        if dtype != pixel_dtype:
+        if any(r != (1.0, 0.0) for r in rescale):
             provenance["scaling"] = {"slope": sorted({s for s, _ in rescale}),
                                      "intercept": sorted({i for _, i in rescale})}
         for key in ("Modality", "SeriesDescription"):
@@ -133,22 +133,29 @@ class MultiFrameDicomReader(Reader):
                 provenance[key.lower()] = str(ds.get(key))
         if not provenance["warnings"]:
             del provenance["warnings"]
-        self.info = source_info((n, int(ds.Rows), int(ds.Columns)), dtype, "dicom", path,
+        self.info = source_info((n, int(ds.Rows), int(ds.Columns)), pixel_dtype, "dicom", path,
                                 spacing=(dz, *map(float, pixel_spacing)), **geometry, **provenance)
-        self.info.provenance["dtype"] = pixel_dtype.name
+        dtype = rescaled_type(pixel_dtype, stored_range(pixel_dtype, int(ds.get("BitsStored", bits))), self._rescale,
+                              lambda: ((self._pixels(k), self._rescale[k]) for k in range(n)))
+        self.info = dataclasses.replace(self.info, dtype=dtype)
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
-        from pydicom.pixels import pixel_array
-
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
         for k in range(z0, z1):
-            try:
-                pixels = pixel_array(self._path, index=self._order[k])
-            except Exception as exc:  # decoding errors come from pydicom and its image plugins
-                raise SourceError(f"cannot decode frame {self._order[k]} of DICOM file {self._path}: {exc}") from None
-            if pixels.shape != self.info.shape[1:]:
-                raise SourceError(f"frame {self._order[k]} of {self._path} is {shape_text(pixels.shape)}; expected "
-                                  f"{shape_text(self.info.shape[1:])}")
+            pixels = self._pixels(k)
             slope, intercept = self._rescale[k]
             out[k - z0] = pixels if (slope, intercept) == (1.0, 0.0) else pixels * slope + intercept
         return out
+
+    def _pixels(self, k: int) -> np.ndarray:
+        """Slice k's stored pixels (frame `_order[k]`), not rescaled."""
+        from pydicom.pixels import pixel_array
+
+        try:
+            pixels = pixel_array(self._path, index=self._order[k])
+        except Exception as exc:  # decoding errors come from pydicom and its image plugins
+            raise SourceError(f"cannot decode frame {self._order[k]} of DICOM file {self._path}: {exc}") from None
+        if pixels.shape != self.info.shape[1:]:
+            raise SourceError(f"frame {self._order[k]} of {self._path} is {shape_text(pixels.shape)}; expected "
+                              f"{shape_text(self.info.shape[1:])}")
+        return pixels

@@ -1,19 +1,29 @@
 """NIfTI-1/2 (and Analyze .hdr/.img pairs) through nibabel. The data axes (i, j, k) are the store's (x, y, z) (the
 store is `transpose(data, (2, 1, 0))`) unless ingest is asked to turn them to LPS; the coded sform (else qform)
-affine, in RAS, is the patient geometry `store/readers/reorient.py` records or turns by; scaled data is stored as
-float32, 4D series give one volume chosen by `index` (vector-like intents are refused as non-scalar), and slabs
+affine, in RAS, is the patient geometry `store/readers/reorient.py` records or turns by; scaled data is stored in
+the stored-type rule's type (base.rescaled_type: int16 for integer voxels scaled to Hounsfield units), 4D series give one volume chosen by `index` (vector-like intents are refused as non-scalar), and slabs
 are read in pieces so that nibabel's temporaries stay small beside them.
 """
 from __future__ import annotations
 
+import dataclasses
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lodcast.errors import SourceError
-from lodcast.store.readers.base import READ_CHUNK, UNITS, Reader, pick_volume, shape_text, source_info
+from lodcast.store.readers.base import (
+    READ_CHUNK,
+    UNITS,
+    Reader,
+    pick_volume,
+    rescaled_type,
+    shape_text,
+    source_info,
+)
 
 __all__ = ["NiftiReader"]
 
@@ -107,25 +117,36 @@ class NiftiReader(Reader):
             provenance["scaling"] = {"slope": slope, "intercept": inter}
         if index is not None:
             provenance["index"] = t
-        self.info = source_info(shape4[1:], np.float32 if scaled else ondisk, "nifti", path, spacing=zooms[::-1],
+        self.info = source_info(shape4[1:], ondisk, "nifti", path, spacing=zooms[::-1],
                                 units=UNITS.get(units, "millimeter"), **geometry, **provenance)
-        self.info.provenance["dtype"] = str(ondisk)
+        if scaled:
+            declared = (np.iinfo(ondisk).min, np.iinfo(ondisk).max) if ondisk.kind in "iu" else (0, 0)
+            # nibabel's pieces come scaled (float64, exact for whole slopes and intercepts)
+            self.info = dataclasses.replace(self.info, dtype=rescaled_type(
+                np.dtype(ondisk), declared, [(slope, inter)],
+                lambda: ((piece, (1.0, 0.0)) for piece in self._pieces(0, self.info.shape[0]))))
 
     def _slab(self, z0: int, z1: int) -> np.ndarray:
         out = np.empty((z1 - z0, *self.info.shape[1:]), self.info.dtype)
-        # nibabel holds a few copies of what it reads (compressed bytes, scaled float64): ask for pieces of a
-        # slab so that those stay small beside it
-        step = max(1, READ_CHUNK // out[0].nbytes)
+        z = z0
+        for piece in self._pieces(z0, z1):
+            out[z - z0:z - z0 + len(piece)] = piece
+            z += len(piece)
+        return out
+
+    def _pieces(self, z0: int, z1: int) -> Iterator[np.ndarray]:
+        """Voxels [z0, z1) as nibabel gives them (scaled), (z, y, x), a few slices at a time: nibabel holds a few
+        copies of what it reads (compressed bytes, scaled float64), which then stay small beside a slab."""
+        step = max(1, READ_CHUNK // (self.info.shape[1] * self.info.shape[2] * self.info.dtype.itemsize))
         try:
             if self._flat:
-                out[0] = np.asarray(self._proxy[:, :]).T
-                return out
+                yield np.asarray(self._proxy[:, :]).T[None]
+                return
             for z in range(z0, z1, step):
                 piece = self._proxy[(slice(None), slice(None), slice(z, min(z + step, z1))) + self._tail]
-                out[z - z0:z - z0 + piece.shape[2]] = np.asarray(piece).transpose(2, 1, 0)
+                yield np.asarray(piece).transpose(2, 1, 0)
         except (OSError, EOFError, ValueError, zlib.error) as exc:
             raise SourceError(f"NIfTI data of {self._path} is corrupt or truncated: {exc}") from None
-        return out
 
     def close(self) -> None:
         self._proxy = None  # the proxy closes the file it kept open when it goes
