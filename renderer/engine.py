@@ -87,6 +87,7 @@ class Tables:
         self.luv = ByteLru(32)  # distribution table -> its unit-slab colours in CIELUV
         self.preint = ByteLru(16)  # (TF, value range, step ratio, n) -> pre-integration table
         self.peaks = ByteLru(64)  # store key -> the adaptive TFs' tissue peaks
+        self.levels = ByteLru(256 << 20)  # (store key, level) -> that level as a volume (progressive previews)
 
 
 class Engine:

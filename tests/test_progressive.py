@@ -136,3 +136,60 @@ def test_upsample_blends_between_pixel_centres():
     np.testing.assert_array_equal(up[0], up[3])
     assert upsample(a, 2, 2) is a
     np.testing.assert_array_equal(upsample(np.full((1, 1, 4), 0.5, np.float32), 3, 5), np.full((3, 5, 4), 0.5))
+
+
+def test_a_coarse_level_is_a_volume_in_the_store_world(tmp_path):
+    """volume.level_view: a level-k voxel is the mean of the 2^k-cube of level-0 voxels from 2^k times its index,
+    so on a linear ramp its value is the world position of its own centre (origin + index · spacing of the view),
+    exactly, wherever the cube lies inside the volume; the view frames the store's own box."""
+    from lodcast.renderer.data.volume import as_volume, level_view
+    from lodcast.renderer.scene.camera import box_world
+
+    z, y, x = np.mgrid[:40, :48, :64].astype(np.float32)
+    spacing, origin = (2.0, 0.5, 0.75), (-10.0, 3.0, 7.5)
+    ramp = (origin[2] + x * spacing[2]) + 1000.0 * (origin[0] + z * spacing[0])  # world x and z, apart in value
+    st = lodcast.ingest(ramp, tmp_path / "ramp.zarr", spacing=spacing, origin=origin, block_size=8, progress=False)
+    vol = as_volume(st)
+    for k in (1, 2, 3):
+        lv = level_view(vol, k)
+        f = 1 << k
+        assert lv.spacing == tuple(s * f for s in spacing)
+        a = np.asarray(lv.source, np.float64)
+        inside = a[: 40 // f, : 48 // f, : 64 // f]
+        n = inside.shape
+        cz = lv.origin[0] + np.arange(n[0])[:, None, None] * lv.spacing[0]
+        cx = lv.origin[2] + np.arange(n[2])[None, None, :] * lv.spacing[2]
+        np.testing.assert_allclose(inside, np.broadcast_to(cx + 1000.0 * cz, n), rtol=0, atol=1e-3)
+        for got, want in zip(lv.frame_box, box_world(vol.shape, vol.spacing, vol.origin)):
+            np.testing.assert_array_equal(got, want)
+
+
+def test_a_large_store_is_first_shown_as_a_coarse_level(tmp_path):
+    """Past Ladder.preview_voxels the first stage is a coarse level rendered as a volume: no selection (the TF's
+    error tables are not computed), no brick read, nothing predicted, the level's reduction; framed as the store,
+    so its picture lies where the final's does; then the selections' stages."""
+    from lodcast.renderer.frame.render import Renderer
+
+    a = np.zeros((64, 64, 64), np.float32)
+    a[20:44, 12:30, 30:58] = 1.0  # an opaque box off centre
+    st = lodcast.ingest(a, tmp_path / "box.zarr", block_size=8, progress=False)
+    tf = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0},
+                     {"value": 0.5, "color": [1, 0.8, 0.6], "opacity": 0.9}]}
+    eng = Renderer()
+    ladder = Ladder(preview_voxels=32**3, preview_level_voxels=16**3)
+    sc = scene(tf=tf, quality={"reduction": 2}, width=64, height=64)
+    stages = eng.render_progressive(st, sc, ladder=ladder)
+    first = next(stages)
+    rep = first.report
+    assert rep["stage"] == 0 and not rep["final"] and rep["level"] == 2 and rep["quality"] == {"level": 2}
+    assert rep["predicted_delta_e"] is None and rep["reduction"] == 64.0 and rep["image_scale"] == 0.5
+    assert eng.bricks.reads == 0 and len(eng.tables.tf) == 0  # no brick, no error table yet
+    rest = list(stages)
+    final = rest[-1]
+    assert final.report["final"] and final.report["predicted_delta_e"] is not None
+    np.testing.assert_array_equal(final.rgba, Renderer().render(st, sc).rgba)
+    # where the box shows: the same place within a preview pixel (two of the final's)
+    ya, yb = (np.nonzero(s.rgba[..., 3] > 0.5) for s in (first, final))
+    for p, q in zip(ya, yb):
+        assert abs(p.min() - q.min()) <= 2 and abs(p.max() - q.max()) <= 2 and abs(p.mean() - q.mean()) <= 1.0
+    assert np.abs(first.rgba[..., 3] - final.rgba[..., 3]).mean() < 0.05

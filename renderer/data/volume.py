@@ -16,7 +16,7 @@ from lodcast.renderer.kernel.config import voxel_define
 from lodcast.store.layout import cell_edge
 from lodcast.store.store import Store
 
-__all__ = ["VolumeView", "StoreLike", "as_volume", "block_minmax_border", "device_dtype", "voxel_options", "VOXEL_CTYPES"]
+__all__ = ["VolumeView", "StoreLike", "as_volume", "level_view", "block_minmax_border", "device_dtype", "voxel_options", "VOXEL_CTYPES"]
 
 #: OpenCL C names of the voxel types the device keeps as they are (renderer/kernel/lc_common.h's LC_VOXEL)
 VOXEL_CTYPES = {np.dtype(np.int8): "char", np.dtype(np.uint8): "uchar", np.dtype(np.int16): "short",
@@ -47,6 +47,9 @@ class VolumeView:
     key: Any  # hashable identity for device-side caching; None: do not cache
     _read0: Any = field(repr=False, default=None)
     source: Any = field(repr=False, default=None)
+    #: the world box (lo, hi, xyz) the camera frames and the rays integrate, where it is not this volume's own: a
+    #: coarse level shown in place of its store (`level_view`), whose last samples may reach past the store's box
+    frame_box: tuple[np.ndarray, np.ndarray] | None = field(repr=False, default=None)
 
     @property
     def grid(self) -> tuple[int, int, int]:
@@ -212,6 +215,24 @@ def _from_array(a: np.ndarray, spacing: Any = None, origin: Any = None, block_si
         _read0=lambda dtype=None: a,
         source=a,
     )
+
+
+def level_view(vol: VolumeView, k: int) -> VolumeView:
+    """Level k of a store's volume as a volume of its own, in the store's world: a level-k voxel is the mean of the
+    2^k × 2^k × 2^k level-0 voxels from 2^k times its index, so its centre lies (2^k − 1)/2 level-0 voxels past
+    theirs, and it spans 2^k of them; framed and integrated within the store's own box (`frame_box`). A progressive
+    render's first look at a large store (renderer/frame/progressive.py): one read of a small array, no selection
+    and no bricks."""
+    assert vol.has_levels, "only a lodcast store has coarse levels"
+    from lodcast.renderer.scene.camera import box_world
+
+    f = float(1 << k)
+    spacing = tuple(s * f for s in vol.spacing)
+    origin = tuple(o + (f - 1.0) / 2.0 * s for o, s in zip(vol.origin, vol.spacing))
+    out = _from_array(vol.read_level(k), spacing, origin, int(vol.block_size))
+    out.key = None if vol.key is None else ("level", vol.key, k)
+    out.frame_box = box_world(vol.shape, vol.spacing, vol.origin)
+    return out
 
 
 def _from_store(s: Any) -> VolumeView:

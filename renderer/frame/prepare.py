@@ -173,7 +173,7 @@ def _block_info(eng: Engine, vol: VolumeView, scene: Scene, lut: Lut, lut2: Lut 
 def geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
     """(the volume's world box, the camera frame, the box the rays integrate (crop box applied), the step in world
     units)."""
-    box = cam.box_world(vol.shape, vol.spacing, vol.origin)
+    box = cam.box_world(vol.shape, vol.spacing, vol.origin) if vol.frame_box is None else vol.frame_box
     fr = cam.frame(scene.camera, scene.width, scene.height, *box)  # the camera frames the whole volume
     kbox = clipping.clipped_box(box, scene.clip)
     if np.any(kbox[0] >= kbox[1]):  # the crop box misses the volume: a degenerate box no ray enters

@@ -4,7 +4,13 @@
 level-of-detail selections holding 1/64 and 1/8 of the final's data (`Ladder.factors`), the first of them on a
 smaller image scaled up to H×W. A coarse stage is dropped where it would not be much cheaper than the one after it
 (a volume that is small already, a final that is coarse already, a store whose coarsest level is reached), so a
-scene may have the final stage alone. The stages run on one engine, one after the other, so what an early stage
+scene may have the final stage alone.
+
+A large store (more than `Ladder.preview_voxels` at level 0) is first shown as one of its coarse levels rendered as
+a volume of its own (volume.level_view: the finest level of at most `Ladder.preview_level_voxels`), on the smaller
+image: one read of a small array, where a selection's first stage needs the TF's error tables over every block and
+a brick per visible block (on a million blocks, many seconds before anything shows). That stage has no selection,
+so its report predicts no ΔE (null) and gives the level's reduction; the selections' stages follow. The stages run on one engine, one after the other, so what an early stage
 reads stays in its brick cache for the later ones (the coarse levels a selection keeps, the metadata and tables of
 the TF), and a stage is only rendered when the caller asks for it: a generator closed early renders nothing more.
 
@@ -20,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lodcast.renderer.data.volume import StoreLike, VolumeView, as_volume
+from lodcast.renderer.data.volume import StoreLike, VolumeView, as_volume, level_view
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.image.output import RenderResult
@@ -40,13 +46,16 @@ class Ladder:
     final's, coarsest first; `min_gain`: a coarse stage is kept when it holds at most 1/min_gain of the data of the
     stage after it; `first_scale`: the first stage's image edge against the scene's (its rays are what a coarse
     level's time goes to), used where both edges stay at least `min_edge` pixels; `min_voxels`: a volume with fewer
-    voxels renders its final stage alone (its full resolution is quick already)."""
+    voxels renders its final stage alone (its full resolution is quick already); `preview_voxels`: a store with
+    more voxels is shown first as its finest level of at most `preview_level_voxels` (module doc)."""
 
     factors: tuple[float, ...] = (64.0, 8.0)
     min_gain: float = 4.0
     first_scale: float = 0.5
     min_edge: int = 32
     min_voxels: int = 64**3
+    preview_voxels: int = 1 << 27
+    preview_level_voxels: int = 1 << 24
 
     def __post_init__(self) -> None:
         if any(not f > 1.0 for f in self.factors) or list(self.factors) != sorted(self.factors, reverse=True):
@@ -64,6 +73,7 @@ class Stage:
     width: int
     height: int
     final: bool
+    level: int | None = None  # a store's coarse level rendered as a volume of its own (module doc), else None
 
     @property
     def image_scale(self) -> float:
@@ -103,13 +113,45 @@ def _coarse_reductions(engine: Engine, scene: Scene, vol: VolumeView, ladder: La
     return kept[::-1]
 
 
+def _preview_level(vol: VolumeView, ladder: Ladder) -> int | None:
+    """The coarse level a large store is first shown as (module doc), or None."""
+    if not vol.has_levels or vol.n_voxels <= ladder.preview_voxels:
+        return None
+    for k in range(1, vol.n_levels):
+        if int(np.prod(vol.level_shape(k), dtype=np.int64)) <= ladder.preview_level_voxels:
+            return k
+    return vol.n_levels - 1 if vol.n_levels > 1 else None
+
+
+def _preview_scene(scene: Scene, vol: VolumeView, w: int, h: int) -> Scene:
+    """The scene of a preview stage: at quality "full" of the level's volume, with the store's opacity unit (a TF
+    without its own would take the level's coarser spacing as its unit and show more transparent)."""
+    unit = float(min(vol.spacing))
+    update: dict = {"quality": "full", "width": w, "height": h}
+    for name in ("tf", "tf2"):
+        tf = getattr(scene, name)
+        if tf is not None and getattr(tf, "unit_distance", 0.0) is None:
+            update[name] = tf.model_copy(update={"unit_distance": unit})
+    return scene.model_copy(update=update)
+
+
 def stage_plan(engine: Engine, scene: Scene, vol: VolumeView, ladder: Ladder = Ladder()) -> list[Stage]:
     """The stages of a progressive render of `scene` on `vol`, the final (the scene itself) last."""
     W, H = scene.width, scene.height
+    small = round(min(W, H) * ladder.first_scale) >= ladder.min_edge
     stages = []
-    for i, r in enumerate(_coarse_reductions(engine, scene, vol, ladder)):
+    reductions = _coarse_reductions(engine, scene, vol, ladder)
+    level = _preview_level(vol, ladder)
+    if level is not None:
+        # resolved on the store: an adaptive TF or a named view taken on the level's volume would differ
+        resolved = preparing.resolved(engine, scene, vol)
+        w, h = (max(1, round(W * ladder.first_scale)), max(1, round(H * ladder.first_scale))) if small else (W, H)
+        stages.append(Stage(_preview_scene(resolved, vol, w, h), W, H, False, level))
+        preview = vol.n_voxels / float(np.prod(vol.level_shape(level), dtype=np.int64))
+        reductions = [r for r in reductions if ladder.min_gain * r <= preview]
+    for i, r in enumerate(reductions):
         w, h = W, H
-        if i == 0 and round(min(W, H) * ladder.first_scale) >= ladder.min_edge:
+        if i == 0 and level is None and small:
             w, h = max(1, round(W * ladder.first_scale)), max(1, round(H * ladder.first_scale))
         # a preview samples adaptively whatever the scene says (coarse blocks hold nothing a finer step could find),
         # and selects by the TF alone: its selection and atlas then serve every view, so a new view's first stage
@@ -144,14 +186,27 @@ def upsample(rgba: np.ndarray, height: int, width: int) -> np.ndarray:
 @dataclass(frozen=True)
 class Progressive:
     """A progressive render under way: `stages` (stage_plan) of `scene` on `store`, rendered by `renders` (the
-    engine's render) when `render(k)` asks, each report's wall_ms counted from `started` (time.perf_counter() at the
+    render of `engine`, whose tables keep a preview's level) when `render(k)` asks, each report's wall_ms counted from `started` (time.perf_counter() at the
     request)."""
 
     renders: RenderFn
     store: StoreLike
     scene: Scene
     stages: list[Stage]
+    engine: Engine
     started: float = field(default_factory=time.perf_counter)
+
+    def _level(self, k: int) -> VolumeView:
+        """Level k of the store as a volume (kept in the engine's tables: the next request of a turntable shows it
+        again)."""
+        vol = as_volume(self.store)
+        key = None if vol.key is None else (vol.key, k)
+        hit = self.engine.tables.levels.get(key) if key is not None else None
+        if hit is None:
+            hit = level_view(vol, k)
+            if key is not None:
+                self.engine.tables.levels.put(key, hit, hit.n_voxels * hit.voxel_dtype.itemsize)
+        return hit
 
     @classmethod
     def plan(cls, engine: Engine, renders: RenderFn, store: StoreLike, scene: SceneLike, ladder: Ladder = Ladder(),
@@ -160,7 +215,7 @@ class Progressive:
         t = time.perf_counter() if started is None else started
         sc = Scene.parse(scene)
         vol = as_volume(store, stores=engine.stores)
-        return cls(renders, vol, sc, stage_plan(engine, sc, vol, ladder), t)
+        return cls(renders, vol, sc, stage_plan(engine, sc, vol, ladder), engine, t)
 
     def render(self, k: int, sample_limit: int | None = None,
                stop: Callable[[], None] | None = None) -> RenderResult:
@@ -170,9 +225,15 @@ class Progressive:
         if k and stop is not None:
             stop()
         st = self.stages[k]
-        res = self.renders(self.store, st.scene, sample_limit=sample_limit, stop=stop)
+        store = self.store if st.level is None else self._level(st.level)
+        res = self.renders(store, st.scene, sample_limit=sample_limit, stop=stop)
         report: RenderReport = {**res.report, "wall_ms": (time.perf_counter() - self.started) * 1e3,
                                 "width": st.width, "height": st.height, "stage": k, "final": st.final,
                                 "image_scale": st.image_scale}
+        if st.level is not None:  # what the level is of the store, not of itself; no selection: nothing predicted
+            vol = as_volume(self.store)
+            report.update({"reduction": vol.n_voxels / float(np.prod(vol.level_shape(st.level), dtype=np.int64)),
+                           "predicted_delta_e": None, "level": st.level, "quality": {"level": st.level},
+                           "blocks": vol.n_blocks})
         scene = res.scene if st.final else {**(res.scene or {}), "width": st.width, "height": st.height}
         return RenderResult(upsample(res.rgba, st.height, st.width), report, scene)

@@ -90,7 +90,8 @@ REPORT_FIELDS: dict[str, str] = {
                  "(1 at quality full; infinite, null over HTTP, when nothing is loaded)",
     "predicted_delta_e": "the predicted mean image error, ΔE (CIE76 in CIELUV), against the reference (full "
                          "resolution at step ¼): the level of detail's own (its selection's) plus the step's (a "
-                         "calibrated model of the unshaded composite; 0 for an array and in the projection modes)",
+                         "calibrated model of the unshaded composite; 0 for an array and in the projection modes; "
+                         "null at a progressive render's preview of one coarse level, which has no selection)",
     "samples": "samples the rays took",
     "estimated_samples": "samples estimated before the render started (the cost LODCAST_MAX_SAMPLES limits)",
     "launches": "kernel launches (bands of rows, so that a long render can stop between them)",
@@ -98,8 +99,9 @@ REPORT_FIELDS: dict[str, str] = {
     "program_cache": "where the compiled kernel came from: memory, disk or a fresh build (built)",
     "build_ms": "kernel build (or cache lookup), milliseconds",
     "upload_ms": "volume data uploaded to the device, milliseconds",
-    "quality": "the quality asked for: full, lossless, {reduction} or {budget_mb}",
-    "level": "the store level rendered when one level was asked for, else null",
+    "quality": "the quality asked for: full, lossless, {reduction} or {budget_mb}; {level} at a progressive "
+               "render's preview of one coarse level",
+    "level": "the store level rendered when one level was asked for (a progressive render's preview), else null",
     "interpolation": "sampling across blocks of different levels: interblock or nearest_block (trilinear at "
                      "quality full)",
     "classification": "how coarse samples were classified: by their distribution, by the mean, or point (level 0)",
