@@ -43,6 +43,7 @@ class _Arena:
     slabs: list = field(default_factory=list)  # (per, *shape) arrays, None where given back
     owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per row: its block, -1 free
     stamp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per row: last use
+    free_rows: bool = False  # whether a live slab may hold a free row (none while the arena only fills)
 
     @property
     def brick_bytes(self) -> int:
@@ -52,9 +53,12 @@ class _Arena:
         """n free rows, the lowest first (rows fill slabs in order: a slab empties when its bricks age together),
         adding slabs as needed."""
         live = np.array([s is not None for s in self.slabs], bool)
-        free = np.flatnonzero(self.owner < 0)
+        # (a pool filling up has no free row in its live slabs: looking for them among all rows at every insertion
+        # made a large volume's first image quadratic in its bricks)
+        free = np.flatnonzero(self.owner < 0) if self.free_rows else np.zeros(0, np.int64)
         free = free[live[free // self.per]]
         if free.size >= n:
+            self.free_rows = free.size > n
             return free[:n]
         more = -(-(n - free.size) // self.per)
         empty = [i for i, s in enumerate(self.slabs) if s is None]
@@ -68,6 +72,7 @@ class _Arena:
             self.slabs[i] = np.empty((self.per, *self.shape), self.dtype)
             new.append(i)
         extra = np.concatenate([np.arange(i * self.per, (i + 1) * self.per) for i in new])
+        self.free_rows = free.size + extra.size > n
         return np.concatenate([free, extra])[:n]
 
     def gather(self, rows: np.ndarray) -> np.ndarray:
@@ -251,6 +256,7 @@ class BrickPool(ByteBound):
                 continue
             a.slot[a.owner[r]] = -1
             a.owner[r] = -1
+            a.free_rows = True
             a.give_back()
             if not (a.owner >= 0).any():  # its block table is as large as the grid: not kept for nothing
                 del self._arenas[f]

@@ -26,6 +26,8 @@ distribution table's (mean, √spread) grid, so the per-block work is O(K) table
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -105,15 +107,16 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     t, luv = luv_table(tf, value_range, std_max, tables)
     row0 = t.std_axis(0.0)
     starts = effective_starts(meta)
-    for c0 in range(0, todo.size, _CHUNK):
-        rows = todo[c0 : c0 + _CHUNK]
+    level_std = meta.level_std
+
+    def chunk(rows: np.ndarray) -> None:
         x, wq = _pieces(meta, starts, rows)
         opac[rows, 0], opac[rows, 1], vis_frac = _opacity_moments(tf, x, wq)
         wq = wq.astype(np.float32)
         sheet = np.maximum(vis_frac, 1.0 / (1 << (n_lv - 1)))  # n_vis / n, at least a one-voxel sheet
         if n_lv == 1:
-            continue
-        s = np.asarray(meta.level_std[rows], np.float64)  # (m, L)
+            return
+        s = np.asarray(level_std[rows], np.float64)  # (m, L)
         # the step: the colour change over the level-1 spread (½ |T*(v + s_1) − T*(v − s_1)|)
         s1 = s[:, 1][:, None, None]
         d = t.lerp(luv, _f32(t.mean_axis(x + s1)), row0) - t.lerp(luv, _f32(t.mean_axis(x - s1)), row0)
@@ -130,6 +133,17 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
                 shown = t.lerp(luv, _f32(t.mean_axis(mbar + rho * (x - mbar))), row0)
             d2 = ((tstar - shown) ** 2).sum(axis=-1)
             out[rows, k] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0) / sheet)
+
+    # the chunks write disjoint rows, and NumPy lets go of the GIL in their array work: on a million blocks (a
+    # large volume's first selection) the cores share it
+    chunks = [todo[c0:c0 + _CHUNK] for c0 in range(0, todo.size, _CHUNK)]
+    workers = min(len(chunks), os.cpu_count() or 1)
+    if workers > 1:
+        with ThreadPoolExecutor(workers, thread_name_prefix="lodcast-zeta") as pool:
+            list(pool.map(chunk, chunks))
+    else:
+        for rows in chunks:
+            chunk(rows)
     return out, step, opac
 
 
