@@ -1,0 +1,86 @@
+"""Launch turns on one device (renderer/frame/render.py: Turns; issue 49, item 4): a small render's commands go
+before any further band of a big render, big renders' bands take turns one at a time, and a stream of small renders
+holds a band back for at most `yield_s`. Order is asserted, never a time."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+import lodcast
+from lodcast.renderer.frame import render as R
+
+
+def test_a_band_waits_while_a_small_render_is_under_way() -> None:
+    turns = R.Turns(yield_s=600)
+    order: list[str] = []
+    band = threading.Thread(target=lambda: _band(turns, order))
+    with turns.small():
+        band.start()
+        band.join(0.3)
+        assert band.is_alive() and order == []  # held back, not run
+        order.append("small")
+    band.join(60)
+    assert order == ["small", "band"]
+
+
+def test_bands_of_big_renders_take_turns_one_at_a_time() -> None:
+    turns = R.Turns()
+    inside, most, lock = [0], [0], threading.Lock()
+
+    def one() -> None:
+        for _ in range(50):
+            with turns.band():
+                with lock:
+                    inside[0] += 1
+                    most[0] = max(most[0], inside[0])
+                with lock:
+                    inside[0] -= 1
+
+    threads = [threading.Thread(target=one) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert most[0] == 1
+
+
+def test_small_renders_cannot_hold_a_band_back_for_good() -> None:
+    turns = R.Turns(yield_s=0.0)
+    order: list[str] = []
+    with turns.small():  # never let go while the band runs: it goes after yield_s all the same
+        t = threading.Thread(target=lambda: _band(turns, order))
+        t.start()
+        t.join(60)
+        assert order == ["band"]
+
+
+def test_the_device_s_turns_are_shared_and_a_banded_render_is_the_same_image(monkeypatch) -> None:
+    eng = lodcast.Renderer()
+    assert R.turns(eng.device) is R.turns(eng.device)
+    vol = np.random.default_rng(2).random((24, 24, 24)).astype(np.float32)
+    scene = {"tf": {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0.0},
+                               {"value": 1, "color": [1, 0.5, 0.2], "opacity": 0.6}]},
+             "width": 40, "height": 56, "format": "npy"}
+    whole = eng.render(vol, scene)
+    seen: list[str] = []
+    real = R.Turns.band
+
+    def counted(self):  # type: ignore[no-untyped-def]
+        seen.append("band")
+        return real(self)
+
+    monkeypatch.setattr(R.Turns, "band", counted)
+    monkeypatch.setattr(R, "BAND_SAMPLES", 5_000)
+    banded = eng.render(vol, scene)
+    assert banded.report["launches"] > 3 and len(seen) == banded.report["launches"]  # every band in its turn
+    np.testing.assert_array_equal(banded.rgba, whole.rgba)
+    seen.clear()
+    monkeypatch.setattr(R, "BAND_SAMPLES", 10**12)
+    assert eng.render(vol, scene).report["launches"] == 1 and seen == []  # a small render takes no turn
+    eng.close()
+
+
+def _band(turns: R.Turns, order: list[str]) -> None:
+    with turns.band():
+        order.append("band")
