@@ -5,10 +5,12 @@ Three threads render big frames (768², step 0.1, full resolution) one after ano
 max) and writes JSON with the date, machine and command.
 
     python benchmarks/bench_small_render.py --tries 20 --json docs/measurements/small_render.json
+    python benchmarks/bench_small_render.py --tries 20 --before --json docs/measurements/small_render_before.json
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import os
@@ -18,6 +20,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -38,7 +41,21 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--tries", type=int, default=20)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--before", action="store_true", help="launch as before the turns (renderer/frame/render.py: "
+                    "Turns): bands of 2·10⁷ samples, none taking turns, to measure before and after alike")
     args = ap.parse_args()
+    if args.before:
+        import lodcast.renderer.frame.render as R
+
+        class NoTurns(R.Turns):
+            @contextlib.contextmanager
+            def small(self) -> Iterator[None]:
+                yield
+
+        R.BAND_SAMPLES = 20_000_000
+        R.turns = lambda device: NoTurns()  # type: ignore[assignment]
+        real_launch = R.launch
+        R.launch = lambda *a, **k: real_launch(*a, **{**k, "turns": None})  # type: ignore[assignment]
     with tempfile.TemporaryDirectory() as tmp:
         store = lodcast.ingest(head(96), Path(tmp) / "head.zarr", progress=False)
         eng = Renderer()
@@ -78,7 +95,8 @@ def main() -> None:
 
     out = {"date": datetime.date.today().isoformat(), "machine": f"{platform.node()} ({os.cpu_count()} CPUs, "
            f"{platform.processor() or platform.machine()})", "command": " ".join([Path(sys.argv[0]).as_posix(), *sys.argv[1:]]),
-           "tries": args.tries, "small_alone": stats(alone), "small_beside_three_big": stats(beside),
+           "tries": args.tries, "launch": "before the turns" if args.before else "turns",
+           "small_alone": stats(alone), "small_beside_three_big": stats(beside),
            "big_render_s_median": round(float(np.median(big_s)), 2) if big_s else None, "big_renders": len(big_s)}
     print(json.dumps(out, indent=1))
     if args.json:

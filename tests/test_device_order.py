@@ -2,8 +2,9 @@
 
 PoCL's CPU device runs the commands of all queues in the order they came; big renders are launched in bands that take
 turns on the device, and a render of one band goes before any further band (renderer/frame/render.py: Turns), so a
-small render queued while three big ones are in flight runs after the one band running when it came. The test asserts the order (the small render finishes
-first), not a time; benchmarks/bench_small_render.py measures the wait."""
+small render queued while three big ones are in flight runs after the bands already on the device when it came. The
+test asserts the order (the small render finishes first), not a time; benchmarks/bench_small_render.py measures the
+wait."""
 from __future__ import annotations
 
 import threading

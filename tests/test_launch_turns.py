@@ -1,11 +1,13 @@
 """Launch turns on one device (renderer/frame/render.py: Turns; issue 49, item 4): a small render's commands go
-before any further band of a big render, big renders' bands take turns one at a time, and a stream of small renders
-holds a band back for at most `yield_s`. Order is asserted, never a time."""
+before any further band of a big render, big renders' bands take turns (at most `slots` on the device at once), and
+a stream of small renders holds a band back for at most `yield_s`. Order is asserted, never a time."""
 from __future__ import annotations
 
+import contextlib
 import threading
 
 import numpy as np
+import pytest
 
 import lodcast
 from lodcast.renderer.frame import render as R
@@ -24,8 +26,9 @@ def test_a_band_waits_while_a_small_render_is_under_way() -> None:
     assert order == ["small", "band"]
 
 
-def test_bands_of_big_renders_take_turns_one_at_a_time() -> None:
-    turns = R.Turns()
+@pytest.mark.parametrize("slots", [1, 2])
+def test_bands_of_big_renders_take_turns_at_most_slots_at_once(slots: int) -> None:
+    turns = R.Turns(slots=slots)
     inside, most, lock = [0], [0], threading.Lock()
 
     def one() -> None:
@@ -42,7 +45,23 @@ def test_bands_of_big_renders_take_turns_one_at_a_time() -> None:
         t.start()
     for t in threads:
         t.join(60)
-    assert most[0] == 1
+    assert 1 <= most[0] <= slots
+
+
+@pytest.mark.parametrize("slots", [1, 2])
+def test_a_band_waits_while_slots_bands_are_on_the_device(slots: int) -> None:
+    turns = R.Turns(slots=slots)
+    order: list[str] = []
+    with contextlib.ExitStack() as held:
+        for _ in range(slots):
+            held.enter_context(turns.band())
+        late = threading.Thread(target=lambda: _band(turns, order))
+        late.start()
+        late.join(0.3)
+        assert late.is_alive() and order == []
+        order.append("freed")
+    late.join(60)
+    assert order == ["freed", "band"]
 
 
 def test_small_renders_cannot_hold_a_band_back_for_good() -> None:

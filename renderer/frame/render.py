@@ -55,7 +55,7 @@ __all__ = ["Renderer", "RenderResult", "RenderReport", "StoreLike", "SceneLike",
            "render_progressive", "Ladder", "prepare", "prefetch", "check_cost", "launch", "LOCAL_SIZE"]
 
 LOCAL_SIZE = (8, 8)
-BAND_SAMPLES = 10_000_000  # a launch band: a stop, and a small render (Turns), wait for the band in flight: keep it short
+BAND_SAMPLES = 10_000_000  # a launch band: a stop, and a small render (Turns), wait for the bands on the device
 
 
 def _classification(pr: Prepared) -> str:
@@ -107,22 +107,22 @@ def _priority_report(pr: Prepared, nsamp: np.ndarray) -> PriorityMapReport | Non
 
 class Turns:
     """Who may launch next on one device. A render of one band (a small one) launches at once, and while one is
-    under way no band of a bigger render starts; the bands of bigger renders take turns, one on the device at a
-    time. A CPU device such as PoCL's runs the commands of all queues one after another in the order they came, so
-    without turns a small render's kernel, and then its read-back, would wait behind a band of every big render in
-    flight; with them it waits for the one band running when it came. Turns between big renders cost nothing
-    there (one kernel runs at a time anyway). A band waits for small renders at most `yield_s` seconds, so that a
-    stream of small ones cannot stop a big one for good."""
+    under way no band of a bigger render starts; the bands of bigger renders take turns, at most `slots` of them on
+    the device at once (one running, the next queued behind it, so that the device is not left idle while the next
+    one's thread wakes). A CPU device such as PoCL's runs the commands of all queues one after another in the order
+    they came, so without turns a small render's kernel, and then its read-back, would wait behind a band of every
+    big render in flight; with them it waits for the bands already on the device when it came. A band waits for
+    small renders at most `yield_s` seconds, so that a stream of small ones cannot stop a big one for good."""
 
-    def __init__(self, yield_s: float = 2.0) -> None:
-        self.yield_s = yield_s
+    def __init__(self, yield_s: float = 2.0, slots: int = 2) -> None:
+        self.yield_s, self.slots = yield_s, slots
         self._cv = threading.Condition()
         self._small = 0
-        self._band = False
+        self._bands = 0
 
     @contextlib.contextmanager
     def small(self) -> Iterator[None]:
-        """Held from a small render's first command to its last."""
+        """Held by a small render from its kernel to its read-back."""
         with self._cv:
             self._small += 1
         try:
@@ -134,23 +134,23 @@ class Turns:
 
     @contextlib.contextmanager
     def band(self) -> Iterator[None]:
-        """Held while one band of a big render runs (enqueued and waited for)."""
+        """Held while one band of a big render is on the device (enqueued and waited for)."""
         with self._cv:
             deadline = time.monotonic() + self.yield_s
             while True:
-                if self._band:
+                if self._bands >= self.slots:
                     self._cv.wait()
                     continue
                 left = deadline - time.monotonic()
                 if not self._small or left <= 0:
                     break
                 self._cv.wait(left)
-            self._band = True
+            self._bands += 1
         try:
             yield
         finally:
             with self._cv:
-                self._band = False
+                self._bands -= 1
                 self._cv.notify_all()
 
 
@@ -213,9 +213,8 @@ def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     mf = cl.mem_flags
     W, H = scene.width, scene.height
     dev_turns = turns(dev)
-    # a render of one band goes first on the device, from its first command to its read-back (Turns)
     small = pr.passes is None and bands(pr.estimated_samples) == 1
-    with dev_turns.small() if small else contextlib.nullcontext():
+    with contextlib.ExitStack() as held:
         d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
         d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ext_table(pr))
         n_rays = W * H if pr.screen is None else max(pr.screen.rays, 1)
@@ -239,6 +238,10 @@ def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
             p = pr.params.copy()
             multipass.fill_pass(p, data.region, pr, k == 0)
             walk, p[0]["ess_grid"], leaps = walk_info(pr, data)
+            if k == 0 and small:
+                # first on the device from its kernel to its read-back (Turns), but not while its bricks are
+                # read: a slow store would hold the big renders back for nothing
+                held.enter_context(dev_turns.small())
             if k == 0:  # the program, once the walk's cells are known
                 if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and (walk > 0).all():
                     cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
