@@ -29,12 +29,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from phantoms import head  # noqa: E402
 
 import lodcast  # noqa: E402
-from lodcast.renderer.frame.render import Renderer  # noqa: E402
+from lodcast.renderer.frame.render import Renderer, Turns  # noqa: E402
 
 TF = {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 200, "color": [1, 0.8, 0.6], "opacity": 0.05}]}
 BIG = {"camera": {"azimuth": 30, "elevation": 10, "distance": 2.5}, "width": 768, "height": 768, "tf": TF,
        "quality": "full", "sampling": {"step": 0.1, "early_termination": 1.0}}
 SMALL = {**BIG, "width": 32, "height": 32, "sampling": {"step": 0.5}}
+
+
+class NoTurns(Turns):
+    """--before: a small render holds nothing back."""
+
+    @contextlib.contextmanager
+    def small(self) -> Iterator[None]:
+        yield
 
 
 def main() -> None:
@@ -47,18 +55,14 @@ def main() -> None:
     if args.before:
         import lodcast.renderer.frame.render as R
 
-        class NoTurns(R.Turns):
-            @contextlib.contextmanager
-            def small(self) -> Iterator[None]:
-                yield
-
         R.BAND_SAMPLES = 20_000_000
-        R.turns = lambda device: NoTurns()  # type: ignore[assignment]
         real_launch = R.launch
         R.launch = lambda *a, **k: real_launch(*a, **{**k, "turns": None})  # type: ignore[assignment]
     with tempfile.TemporaryDirectory() as tmp:
         store = lodcast.ingest(head(96), Path(tmp) / "head.zarr", progress=False)
         eng = Renderer()
+        if args.before:
+            eng.turns = NoTurns()
         eng.render(store, BIG)
         alone = []
         for _ in range(args.tries):

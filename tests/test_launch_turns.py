@@ -74,9 +74,9 @@ def test_small_renders_cannot_hold_a_band_back_for_good() -> None:
         assert order == ["band"]
 
 
-def test_the_device_s_turns_are_shared_and_a_banded_render_is_the_same_image(monkeypatch) -> None:
+def test_every_band_of_a_big_render_takes_its_turn_and_the_image_is_the_same(monkeypatch) -> None:
     eng = lodcast.Renderer()
-    assert R.turns(eng.device) is R.turns(eng.device)
+    assert isinstance(eng.turns, R.Turns)
     vol = np.random.default_rng(2).random((24, 24, 24)).astype(np.float32)
     scene = {"tf": {"points": [{"value": 0, "color": [1, 1, 1], "opacity": 0.0},
                                {"value": 1, "color": [1, 0.5, 0.2], "opacity": 0.6}]},

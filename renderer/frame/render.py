@@ -28,7 +28,6 @@ import contextlib
 import math
 import threading
 import time
-import weakref
 from dataclasses import replace
 from typing import Any, Callable, Iterator, Literal
 
@@ -154,19 +153,6 @@ class Turns:
                 self._cv.notify_all()
 
 
-_TURNS: weakref.WeakKeyDictionary[Any, Turns] = weakref.WeakKeyDictionary()
-_TURNS_LOCK = threading.Lock()
-
-
-def turns(device: Any) -> Turns:
-    """The launch turns of `device` (shared by every renderer on it: each has its queues, the device is one)."""
-    with _TURNS_LOCK:
-        t = _TURNS.get(device)
-        if t is None:
-            t = _TURNS[device] = Turns()
-        return t
-
-
 def bands(estimated_samples: int) -> int:
     """How many bands a launch of `estimated_samples` samples is cut into."""
     return max(1, math.ceil(estimated_samples / BAND_SAMPLES))
@@ -201,7 +187,7 @@ def launch(queue: cl.CommandQueue, kern: cl.Kernel, width: int, height: int, *, 
     return events
 
 
-def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
+def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
             levels: np.ndarray | None = None, sample_limit: int | None = None,
             stop: Callable[[], None] | None = None) -> RenderResult:
     t_start = time.perf_counter()
@@ -212,7 +198,7 @@ def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     ctx, queue = dev.context, dev.queue
     mf = cl.mem_flags
     W, H = scene.width, scene.height
-    dev_turns = turns(dev)
+    dev_turns = eng.turns
     small = pr.passes is None and bands(pr.estimated_samples) == 1
     with contextlib.ExitStack() as held:
         d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
@@ -336,7 +322,14 @@ class Renderer(Engine):
     it is made (each keyword overrides its ``LODCAST_*`` variable: `device` LODCAST_DEVICE, `device_budget_mb`
     LODCAST_DEVICE_BUDGET_MB (10⁶ bytes), `brick_cache_mb` LODCAST_BRICK_CACHE_MB and `device_cache_mb`
     LODCAST_DEVICE_CACHE_MB (MiB)). Its verbs are thread-safe; two renderers share nothing but the kernel
-    binaries cached on disk. `lodcast.render` and the other module-level verbs use `default_renderer()`."""
+    binaries cached on disk. `lodcast.render` and the other module-level verbs use `default_renderer()`. `turns`
+    (Turns): who launches next on its device, shared by the threads that render with it."""
+
+    def __init__(self, *, device: str | None = None, device_budget_mb: float | None = None,
+                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> None:
+        super().__init__(device=device, device_budget_mb=device_budget_mb, brick_cache_mb=brick_cache_mb,
+                         device_cache_mb=device_cache_mb)
+        self.turns = Turns()
 
     def render(self, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
                levels: np.ndarray | None = None, sample_limit: int | None = None,
