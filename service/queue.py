@@ -23,6 +23,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from lodcast.errors import LodcastError
 from lodcast.faults import storage_fault
 from lodcast.service.frames import FrameRenderer
 from lodcast.service.ingestproc import run_ingest
@@ -238,7 +239,10 @@ class JobQueue:
                     expect={"state": ("running",), "owner": (owner,)},
                 )
         except Exception as exc:  # the job's own failure, or a storage fault past its retries: recorded
-            log.exception("job %s failed", job_id)
+            if isinstance(exc, LodcastError):  # a refusal whose message says it all (a hostile upload): no traceback
+                log.warning("job %s failed: %s", job_id, _one_line(exc))
+            else:
+                log.exception("job %s failed", job_id)
             self.records.update(job_id, {"state": "failed", "error": self._unplaced(_one_line(exc)), "finished": time.time()},
                                 expect={"state": ("running",), "owner": (owner,)})
         finally:

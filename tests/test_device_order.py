@@ -1,9 +1,10 @@
 """A small render is not served behind big ones on the device (issue 49, item 4).
 
-PoCL's CPU device runs one kernel at a time, whatever queue it came from; each render thread has a queue of its own
-and big renders are launched in bands, each after the one before has finished, so a small render queued while three
-big ones are in flight runs after at most one band of each. The test asserts the order (the small render finishes
-first), not a time; benchmarks/bench_small_render.py measures the wait."""
+PoCL's CPU device runs the commands of all queues in the order they came; big renders are launched in bands that take
+turns on the device, and a render of one band goes before any further band (renderer/frame/render.py: Turns), so a
+small render queued while three big ones are in flight runs after the bands already on the device when it came. The
+test asserts the order (the small render finishes first), not a time; benchmarks/bench_small_render.py measures the
+wait."""
 from __future__ import annotations
 
 import threading

@@ -229,6 +229,24 @@ def test_nifti_uploads_gzipped_or_not(env, tmp_path):
     assert not list((root / ".uploads").glob("*")), "an ingested upload leaves nothing behind"
 
 
+def test_a_refused_upload_is_one_log_line_not_a_traceback(env, caplog):
+    """Every hostile upload's refusal was logged with a full traceback (the 28 refused files of
+    benchmarks/bench_hostile_inputs.py left 28 in the server's log); a refusal of lodcast's own (a LodcastError)
+    is one line naming the job and the reason."""
+    import logging
+
+    client = env[0]
+    body = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 4 2\nencoding: raw\nline skip: 1000000000000\n\n" + bytes(600)
+    with caplog.at_level(logging.INFO, logger="lodcast.service.queue"):
+        r = client.post("/volumes/skips/upload?format=nrrd", content=body)
+        assert r.status_code == 202, r.text
+        st = wait_job(client, r.json()["id"])
+    assert st["state"] == "failed" and "line skip" in st["error"], st
+    mine = [rec for rec in caplog.records if r.json()["id"] in rec.getMessage()]
+    assert len(mine) == 1 and mine[0].levelno == logging.WARNING and mine[0].exc_info is None, mine
+    assert "line skip" in mine[0].getMessage()
+
+
 # --- 5. a job's summed cost -----------------------------------------------------------------------------------------
 
 def test_a_job_s_summed_cost_is_capped_at_submission(tmp_path, monkeypatch):

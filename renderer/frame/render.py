@@ -24,6 +24,7 @@ LOD path also skips loaded blocks whose border-inclusive range is invisible, as 
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -53,7 +54,7 @@ __all__ = ["Renderer", "RenderResult", "RenderReport", "StoreLike", "SceneLike",
            "render_progressive", "Ladder", "prepare", "prefetch", "check_cost", "launch", "LOCAL_SIZE"]
 
 LOCAL_SIZE = (8, 8)
-BAND_SAMPLES = 20_000_000  # a launch band (render(stop=...)): a stop waits for the band in flight, so keep it short
+BAND_SAMPLES = 10_000_000  # a launch band: a stop, and a small render (Turns), wait for the bands on the device
 
 
 def _classification(pr: Prepared) -> str:
@@ -103,18 +104,72 @@ def _priority_report(pr: Prepared, nsamp: np.ndarray) -> PriorityMapReport | Non
             "samples_other": int(nsamp[~m].sum(dtype=np.int64))}
 
 
+class Turns:
+    """Who may launch next on one device. A render of one band (a small one) launches at once, and while one is
+    under way no band of a bigger render starts; the bands of bigger renders take turns, at most `slots` of them on
+    the device at once (one running, the next queued behind it, so that the device is not left idle while the next
+    one's thread wakes). A CPU device such as PoCL's runs the commands of all queues one after another in the order
+    they came, so without turns a small render's kernel, and then its read-back, would wait behind a band of every
+    big render in flight; with them it waits for the bands already on the device when it came. A band waits for
+    small renders at most `yield_s` seconds, so that a stream of small ones cannot stop a big one for good."""
+
+    def __init__(self, yield_s: float = 2.0, slots: int = 2) -> None:
+        self.yield_s, self.slots = yield_s, slots
+        self._cv = threading.Condition()
+        self._small = 0
+        self._bands = 0
+
+    @contextlib.contextmanager
+    def small(self) -> Iterator[None]:
+        """Held by a small render from its kernel to its read-back."""
+        with self._cv:
+            self._small += 1
+        try:
+            yield
+        finally:
+            with self._cv:
+                self._small -= 1
+                self._cv.notify_all()
+
+    @contextlib.contextmanager
+    def band(self) -> Iterator[None]:
+        """Held while one band of a big render is on the device (enqueued and waited for)."""
+        with self._cv:
+            deadline = time.monotonic() + self.yield_s
+            while True:
+                if self._bands >= self.slots:
+                    self._cv.wait()
+                    continue
+                left = deadline - time.monotonic()
+                if not self._small or left <= 0:
+                    break
+                self._cv.wait(left)
+            self._bands += 1
+        try:
+            yield
+        finally:
+            with self._cv:
+                self._bands -= 1
+                self._cv.notify_all()
+
+
+def bands(estimated_samples: int) -> int:
+    """How many bands a launch of `estimated_samples` samples is cut into."""
+    return max(1, math.ceil(estimated_samples / BAND_SAMPLES))
+
+
 def launch(queue: cl.CommandQueue, kern: cl.Kernel, width: int, height: int, *, estimated_samples: int = 0,
-           stop: Callable[[], None] | None = None) -> list[cl.Event]:
+           stop: Callable[[], None] | None = None, turns: Turns | None = None) -> list[cl.Event]:
     """Enqueue the image as bands of rows of about BAND_SAMPLES estimated samples each (one band for most renders),
     each band after the one before has finished, calling `stop()` (if given) between them: it raises to end the
-    render there (a client gone, a deadline), so that no render is beyond reach for longer than one band. Waiting
-    between bands also lets the kernels other threads queued meanwhile run before this render's next band: a CPU
-    device such as PoCL's runs one kernel at a time, whatever queue it came from, so a small render waits for at
-    most one band of each big one. The events of the bands launched."""
+    render there (a client gone, a deadline), so that no render is beyond reach for longer than one band. With
+    `turns` (the device's, see Turns; none for a small render) each band runs in its turn and has finished on
+    return.
+    The events of the bands launched."""
     lx, ly = LOCAL_SIZE
     gx = int(math.ceil(width / lx) * lx)
-    bands = max(1, math.ceil(estimated_samples / BAND_SAMPLES))
-    rows = int(math.ceil(math.ceil(height / bands) / ly) * ly)
+    n = bands(estimated_samples)
+    rows = int(math.ceil(math.ceil(height / n) / ly) * ly)
     events: list[cl.Event] = []
     for y0 in range(0, height, rows):
         if events:
@@ -123,11 +178,16 @@ def launch(queue: cl.CommandQueue, kern: cl.Kernel, width: int, height: int, *, 
                 stop()
         h = int(math.ceil(min(rows, height - y0) / ly) * ly)
         # the offset (0, y0) positionally: pyopencl's binding calls it global_work_offset, its stub global_offset
-        events.append(cl.enqueue_nd_range_kernel(queue, kern, (gx, h), LOCAL_SIZE, (0, y0)))
+        if turns is None:
+            events.append(cl.enqueue_nd_range_kernel(queue, kern, (gx, h), LOCAL_SIZE, (0, y0)))
+            continue
+        with turns.band():
+            events.append(cl.enqueue_nd_range_kernel(queue, kern, (gx, h), LOCAL_SIZE, (0, y0)))
+            events[-1].wait()
     return events
 
 
-def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
+def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
             levels: np.ndarray | None = None, sample_limit: int | None = None,
             stop: Callable[[], None] | None = None) -> RenderResult:
     t_start = time.perf_counter()
@@ -138,56 +198,64 @@ def _render(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     ctx, queue = dev.context, dev.queue
     mf = cl.mem_flags
     W, H = scene.width, scene.height
-    d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
-    d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ext_table(pr))
-    n_rays = W * H if pr.screen is None else max(pr.screen.rays, 1)
-    d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 16)
-    d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 4)
-    spos = pr.screen.positions if pr.screen is not None and pr.screen.rays else np.zeros((1, 2), np.float32)
-    d_spos = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spos)
-    d_dtab, d_ptab = (
-        cl.Buffer(ctx, mf.READ_ONLY, size=16) if t is None else cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=t)
-        for t in (tables(pr, "dist"), tables(pr, "preint"))
-    )
-    prio = pr.priority.tiles if pr.priority is not None else np.ones(16, np.uint8)
-    d_prio = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prio)
-    d_state = cl.Buffer(ctx, mf.READ_WRITE, size=STATE_FLOATS * n_rays * 4 if pr.passes is not None else 4)
-    rows = H if pr.screen is None else -(-n_rays // W)  # LC_SCREEN: the rays in rows of W
-    evs: list[cl.Event] = []
-    stats = multipass.PassStats()
-    for k, data in enumerate(multipass.volume_data(pr, stats)):
-        if k and stop is not None:
-            stop()  # between passes as between bands
-        p = pr.params.copy()
-        multipass.fill_pass(p, data.region, pr, k == 0)
-        walk, p[0]["ess_grid"], leaps = walk_info(pr, data)
-        if k == 0:  # the program, once the walk's cells are known
-            if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and (walk > 0).all():
-                cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
-            options = cfg.build_options()
-            built = dev.program("raycast.cl", options)
-            # (a pass's buffers go as it ends: a kept kernel would hold the last one's)
-            kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else dev.kernel(built, "lc_render")
-        steps, walk, leaps = adaptive_walk(pr, cfg, data, walk, leaps)
-        d_info = dev.read_only(walk)  # (walk, steps and leaps are kept: see walk/info.py)
-        planes, p[0]["leap_planes"] = ((np.zeros(1, np.uint8), 0xFFFFFFFF) if leaps is None or not cfg.leap
-                                       else leaps.for_octants(pr.octants))
-        d_leaps = dev.read_only(planes)
-        d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-        d_steps = dev.read_only(steps)
-        d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
-        kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,
-                      d_ptab, d_prio, d_spos, d_own, d_state, d_leaps)
-        evs += launch(queue, kern, W, rows, estimated_samples=pr.estimated_samples // stats.planned, stop=stop)
-        if pr.passes is not None:
-            evs[-1].wait()  # this pass's data may go before the next is uploaded
-        del data
-    n_read, n_cached, upload_ms = stats.read, stats.cached, stats.upload_ms
-    rgba = np.empty((H, W, 4) if pr.screen is None else (n_rays, 4), np.float32)
-    nsamp = np.empty((H, W) if pr.screen is None else (n_rays,), np.uint32)
-    cl.enqueue_copy(queue, rgba, d_out, wait_for=evs)
-    cl.enqueue_copy(queue, nsamp, d_n, wait_for=evs)
-    queue.finish()
+    dev_turns = eng.turns
+    small = pr.passes is None and bands(pr.estimated_samples) == 1
+    with contextlib.ExitStack() as held:
+        d_lut = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=lut_table(pr))
+        d_ext = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ext_table(pr))
+        n_rays = W * H if pr.screen is None else max(pr.screen.rays, 1)
+        d_out = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 16)
+        d_n = cl.Buffer(ctx, mf.WRITE_ONLY, size=n_rays * 4)
+        spos = pr.screen.positions if pr.screen is not None and pr.screen.rays else np.zeros((1, 2), np.float32)
+        d_spos = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spos)
+        d_dtab, d_ptab = (
+            cl.Buffer(ctx, mf.READ_ONLY, size=16) if t is None else cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=t)
+            for t in (tables(pr, "dist"), tables(pr, "preint"))
+        )
+        prio = pr.priority.tiles if pr.priority is not None else np.ones(16, np.uint8)
+        d_prio = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prio)
+        d_state = cl.Buffer(ctx, mf.READ_WRITE, size=STATE_FLOATS * n_rays * 4 if pr.passes is not None else 4)
+        rows = H if pr.screen is None else -(-n_rays // W)  # LC_SCREEN: the rays in rows of W
+        evs: list[cl.Event] = []
+        stats = multipass.PassStats()
+        for k, data in enumerate(multipass.volume_data(pr, stats)):
+            if k and stop is not None:
+                stop()  # between passes as between bands
+            p = pr.params.copy()
+            multipass.fill_pass(p, data.region, pr, k == 0)
+            walk, p[0]["ess_grid"], leaps = walk_info(pr, data)
+            if k == 0 and small:
+                # first on the device from its kernel to its read-back (Turns), but not while its bricks are
+                # read: a slow store would hold the big renders back for nothing
+                held.enter_context(dev_turns.small())
+            if k == 0:  # the program, once the walk's cells are known
+                if pr.passes is None and cfg.sampler == "full" and cfg.ess and scene.mode == "composite" and (walk > 0).all():
+                    cfg = replace(cfg, ess=False)  # no cell can be skipped: compile the walk out
+                options = cfg.build_options()
+                built = dev.program("raycast.cl", options)
+                # (a pass's buffers go as it ends: a kept kernel would hold the last one's)
+                kern = cl.Kernel(built.program, "lc_render") if pr.passes is not None else dev.kernel(built, "lc_render")
+            steps, walk, leaps = adaptive_walk(pr, cfg, data, walk, leaps)
+            d_info = dev.read_only(walk)  # (walk, steps and leaps are kept: see walk/info.py)
+            planes, p[0]["leap_planes"] = ((np.zeros(1, np.uint8), 0xFFFFFFFF) if leaps is None or not cfg.leap
+                                           else leaps.for_octants(pr.octants))
+            d_leaps = dev.read_only(planes)
+            d_params = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
+            d_steps = dev.read_only(steps)
+            d_own = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data.own)
+            kern.set_args(d_params, data.vol, d_lut, d_ext, d_info, d_out, d_n, data.index, d_steps, data.std, d_dtab,
+                          d_ptab, d_prio, d_spos, d_own, d_state, d_leaps)
+            evs += launch(queue, kern, W, rows, estimated_samples=pr.estimated_samples // stats.planned, stop=stop,
+                          turns=None if small else dev_turns)
+            if pr.passes is not None:
+                evs[-1].wait()  # this pass's data may go before the next is uploaded
+            del data
+        n_read, n_cached, upload_ms = stats.read, stats.cached, stats.upload_ms
+        rgba = np.empty((H, W, 4) if pr.screen is None else (n_rays, 4), np.float32)
+        nsamp = np.empty((H, W) if pr.screen is None else (n_rays,), np.uint32)
+        cl.enqueue_copy(queue, rgba, d_out, wait_for=evs)
+        cl.enqueue_copy(queue, nsamp, d_n, wait_for=evs)
+        queue.finish()
     t_rec = time.perf_counter()
     if pr.screen is not None:  # the mosaic, reconstructed by intertile interpolation
         rgba = screen_space.reconstruct(pr.screen, rgba[: pr.screen.rays]).astype(np.float32)
@@ -254,7 +322,14 @@ class Renderer(Engine):
     it is made (each keyword overrides its ``LODCAST_*`` variable: `device` LODCAST_DEVICE, `device_budget_mb`
     LODCAST_DEVICE_BUDGET_MB (10⁶ bytes), `brick_cache_mb` LODCAST_BRICK_CACHE_MB and `device_cache_mb`
     LODCAST_DEVICE_CACHE_MB (MiB)). Its verbs are thread-safe; two renderers share nothing but the kernel
-    binaries cached on disk. `lodcast.render` and the other module-level verbs use `default_renderer()`."""
+    binaries cached on disk. `lodcast.render` and the other module-level verbs use `default_renderer()`. `turns`
+    (Turns): who launches next on its device, shared by the threads that render with it."""
+
+    def __init__(self, *, device: str | None = None, device_budget_mb: float | None = None,
+                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> None:
+        super().__init__(device=device, device_budget_mb=device_budget_mb, brick_cache_mb=brick_cache_mb,
+                         device_cache_mb=device_cache_mb)
+        self.turns = Turns()
 
     def render(self, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
                levels: np.ndarray | None = None, sample_limit: int | None = None,
