@@ -184,10 +184,10 @@ class Store:
             from lodcast.store.shardio import fast_reader
 
             complete = self.manifest is not None and not path.startswith("blocks")  # levels and std: every chunk
+            digests = None if self.checksums is None else self.checksums.files.get(path, {})
             if "://" in self.location:
-                reader = fast_reader(self._array(path), complete, self.location)
+                reader = fast_reader(self._array(path), complete, self.location, digests=digests)
             else:
-                digests = None if self.checksums is None else self.checksums.files.get(path, {})
                 reader = fast_reader(Path(self.location) / path, complete, digests=digests)
             reader = self._readers[path] = reader or False
         return reader
@@ -482,12 +482,11 @@ def open_store(path_or_url: str | os.PathLike[str]) -> Store:
     for problem in attribute_problems(location, attrs):  # before the attributes are used
         raise problem
     store = Store(location, attrs, group)
-    if is_url:  # the chunk and index checksums are checked as they are read; `verify` checks the rest locally
-        return store
-    manifest = (attrs["lodcast"] or {}).get("manifest")
-    if manifest is not None:
-        _check_manifest(location, manifest)
-    store.checksums = check_metadata(store)
+    if not is_url:  # (on object storage a listing of every file would cost a request per page of a large store)
+        manifest = (attrs["lodcast"] or {}).get("manifest")
+        if manifest is not None:
+            _check_manifest(location, manifest)
+    store.checksums = check_metadata(store, read_url(location) if is_url else read_local(location))
     return store
 
 
@@ -496,11 +495,20 @@ def read_local(location: str) -> Callable[[str], bytes]:
     return lambda rel: (Path(location) / rel).read_bytes()
 
 
-def check_metadata(store: Store) -> Manifest | None:
-    """What opening a local store checks before any voxel is read, once its root attributes are (store/integrity.py):
-    its manifest (format 4) and every array's zarr.json; raises the first StoreCorrupt. Returns the manifest (None
-    for a store written before checksums)."""
-    read = read_local(store.location)
+def read_url(location: str) -> Callable[[str], bytes]:
+    """A reader of the objects of the store at URL `location` by relative path (fsspec; FileNotFoundError where
+    one is missing, as a local reader)."""
+    import fsspec
+
+    fs, root = fsspec.core.url_to_fs(location)
+    return lambda rel: fs.cat_file(f"{root.rstrip('/')}/{rel}")
+
+
+def check_metadata(store: Store, read: Callable[[str], bytes]) -> Manifest | None:
+    """What opening a store checks before any voxel is read, once its root attributes are (store/integrity.py): its
+    manifest (format 4) and every array's zarr.json, read by `read`; raises the first StoreCorrupt. Returns the
+    manifest (None for a store written before checksums): each shard is checked against it when its index is
+    first read, locally and on object storage alike."""
     manifest = load_manifest(store.location, store.attrs, read)
     for problem in array_problems(store.location, store.attrs, store.layout, store.format_version, manifest, read):
         raise problem

@@ -4,6 +4,7 @@ the local store, bit for bit, with few requests: the shard-level reader fetches 
 range request and its needed chunks in spans, where zarr-python would ask once per chunk."""
 from __future__ import annotations
 
+import json
 from collections import Counter
 from pathlib import Path
 
@@ -177,3 +178,29 @@ def test_ingest_publishes_to_s3_with_the_root_metadata_last(eng, s3, monkeypatch
     assert got == want  # the same objects as the local store, nothing left of the failed upload
     # the rewritten store renders its own data: no cache keeps the old version (keys carry the ingest's id)
     assert np.array_equal(eng.render(lodcast.open_store(url), scene).rgba, eng.render(ref, scene).rgba)
+
+
+def test_swapped_shards_and_edited_metadata_on_s3_are_caught(eng, s3):
+    """On object storage as locally: opening checks the manifest and every array's zarr.json (one small request
+    each), and each shard's index against the manifest when it is first read, so two level-0 shards swapped (each
+    passing its own checksums) or a level's zarr.json edited never render."""
+    srv, local, fs = s3
+    fs.copy("lodcast-test/v.zarr", "lodcast-test/swapped.zarr", recursive=True)
+    a, b = sorted(p for p in fs.find("lodcast-test/swapped.zarr/0") if "/c/" in p)[:2]
+    da, db = fs.cat_file(a), fs.cat_file(b)
+    assert da != db
+    fs.pipe_file(a, db)
+    fs.pipe_file(b, da)
+    _fresh(eng)
+    swapped = lodcast.open_store("s3://lodcast-test/swapped.zarr")
+    with pytest.raises(StoreCorrupt, match="swapped or replaced"):
+        eng.render(swapped, {"tf": TF, "width": 16, "height": 16})
+    fs.copy("lodcast-test/v.zarr", "lodcast-test/edited.zarr", recursive=True)
+    meta = json.loads(fs.cat_file("lodcast-test/edited.zarr/0/zarr.json"))
+    meta["attributes"] = {"edited": True}  # valid metadata of the same array, not the bytes ingest wrote
+    fs.pipe_file("lodcast-test/edited.zarr/0/zarr.json", json.dumps(meta).encode())
+    with pytest.raises(StoreCorrupt, match="zarr.json"):
+        lodcast.open_store("s3://lodcast-test/edited.zarr")
+    intact = lodcast.open_store("s3://lodcast-test/v.zarr")
+    np.testing.assert_array_equal(eng.render(intact, {"tf": TF, "width": 16, "height": 16, "format": "npy"}).rgba,
+                                  eng.render(local, {"tf": TF, "width": 16, "height": 16, "format": "npy"}).rgba)
