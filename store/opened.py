@@ -70,6 +70,7 @@ class OpenStores:
         # key -> (stamp, store, when the stamp was last read: time.monotonic())
         self._stores: OrderedDict[Path | str, tuple[tuple, Any, float]] = OrderedDict()
         self._lock = threading.Lock()
+        self._opening: dict[Path | str, list] = {}  # key -> [the lock of its open, the callers using that lock]
         self._max_open = max_open
         self._check_s = float(check_s)
 
@@ -114,20 +115,42 @@ class OpenStores:
                 return kept[1]  # whether it was replaced cannot be asked now: what is kept serves on
             raise
         now = time.monotonic()
+        hit = self._hit(key, st, now)
+        if hit is not None:
+            return hit
+        # one open per store at a time: renders of a volume that arrive together (viewers joining it, a render
+        # and its cost check) share one opened store, so the caches keyed by it compute each table once
+        with self._lock:
+            opening = self._opening.setdefault(key, [threading.Lock(), 0])
+            opening[1] += 1
+        try:
+            with opening[0]:
+                hit = self._hit(key, st, now)
+                if hit is not None:
+                    return hit
+                store = open_store(key)
+                if st is not None:
+                    with self._lock:
+                        self._stores[key] = (st, store, now)
+                        self._stores.move_to_end(key)
+                        while len(self._stores) > self._max_open:
+                            self._stores.popitem(last=False)
+                return store
+        finally:
+            with self._lock:
+                opening[1] -= 1
+                if not opening[1]:
+                    del self._opening[key]
+
+    def _hit(self, key: Path | str, st: tuple | None, now: float) -> Any:
+        """The store kept for `key` if it has stamp `st` (now the most recently used, checked at `now`), else None."""
         with self._lock:
             hit = self._stores.get(key)
-            if hit is not None and st is not None and hit[0] == st:
-                self._stores[key] = (st, hit[1], now)
-                self._stores.move_to_end(key)
-                return hit[1]
-        store = open_store(key)
-        if st is not None:
-            with self._lock:
-                self._stores[key] = (st, store, now)
-                self._stores.move_to_end(key)
-                while len(self._stores) > self._max_open:
-                    self._stores.popitem(last=False)
-        return store
+            if hit is None or st is None or hit[0] != st:
+                return None
+            self._stores[key] = (st, hit[1], now)
+            self._stores.move_to_end(key)
+            return hit[1]
 
     def kept(self, location: str | os.PathLike[str]) -> bool:
         """Whether a store is kept open for `location`."""

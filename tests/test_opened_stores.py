@@ -6,6 +6,7 @@ caches' bytes stay within their bounds whatever the number of volumes."""
 from __future__ import annotations
 
 import shutil
+import threading
 
 import numpy as np
 import pytest
@@ -176,3 +177,39 @@ def test_the_service_keeps_its_opened_stores_in_its_renderer_under_the_same_boun
         again = client.post("/volumes/a/render", json=scene)
         assert again.status_code == 200 and again.content == first.content
         assert [stores.kept(tmp_path / n) for n in "abc"] == [True, False, True]
+
+
+def test_callers_that_ask_for_a_store_together_share_one_open(tmp_path, monkeypatch):
+    """Two renders of a volume arriving together (two viewers joining it): the second waits for the first's open
+    and gets the same store, so that what the renderer keys by the store (its per-TF tables) is computed once."""
+    from lodcast.store import opened
+
+    dest = tmp_path / "v.zarr"
+    lodcast.ingest(_volume(1.0), dest, block_size=8)
+    opens, inside, release, second = [], threading.Event(), threading.Event(), threading.Event()
+    real_open, real_stamp = store_module.open_store, opened.stamp
+
+    def slow_open(location):
+        opens.append(location)
+        inside.set()
+        release.wait(60)
+        return real_open(location)
+
+    def stamp(key):
+        if inside.is_set():
+            second.set()  # the second caller is past its check: next it opens the store, or waits for the first
+        return real_stamp(key)
+
+    monkeypatch.setattr(store_module, "open_store", slow_open)
+    monkeypatch.setattr(opened, "stamp", stamp)
+    kept, got = OpenStores(), [None, None]
+    first = threading.Thread(target=lambda: got.__setitem__(0, kept.get(dest)))
+    first.start()
+    assert inside.wait(60)
+    other = threading.Thread(target=lambda: got.__setitem__(1, kept.get(dest)))
+    other.start()
+    assert second.wait(60)
+    release.set()
+    first.join(60)
+    other.join(60)
+    assert len(opens) == 1 and got[0] is not None and got[0] is got[1]
