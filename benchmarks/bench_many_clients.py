@@ -89,15 +89,17 @@ def cpu_model() -> str:
 
 
 def orbit(url: str, volume: str, client: int, start: float, end: float, size: int, reduction: float,
-          out: dict) -> None:
-    """One viewer: requests one after another until `end`, each frame 3° further round."""
-    lat, bricks, errors, waits = [], [], [], []
+          out: dict, t_zero: float) -> None:
+    """One viewer: from `start`, requests one after another until `end`, each frame 3° further round (each
+    frame's send time kept in seconds since `t_zero`)."""
+    lat, bricks, errors, waits, sent = [], [], [], [], []
     az = 37.0 * client
     with httpx.Client(base_url=url, timeout=600) as c:
         while time.monotonic() < start:
             time.sleep(0.001)
         while time.monotonic() < end:
             t0 = time.perf_counter()
+            at = time.monotonic() - t_zero
             try:
                 r = c.post(f"/volumes/{volume}/render", json=scene(az, size, reduction))
             except httpx.HTTPError as exc:
@@ -109,11 +111,12 @@ def orbit(url: str, volume: str, client: int, start: float, end: float, size: in
                 continue
             rep = json.loads(r.headers["x-lodcast-report"])
             lat.append(dt)
+            sent.append(round(at, 3))
             bricks.append(int(rep.get("bricks_read", 0)))
             waits.append(dt * 1e3 - float(rep.get("wall_ms", 0.0)))  # queueing and HTTP: the latency not rendering
             az += 3.0
     out.update(volume=volume, client=client, latencies_ms=[x * 1e3 for x in lat], bricks_read=bricks,
-               errors=errors, outside_render_ms=waits)
+               errors=errors, outside_render_ms=waits, sent_s=sent)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -129,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device-cache-mb", type=int, default=256)
     ap.add_argument("--open-stores", type=int, default=2)
     ap.add_argument("--render-concurrency", type=int, default=2)
+    ap.add_argument("--join-after", type=float, default=0.0,
+                    help="the second volume's clients join this many seconds after the first's, that volume not "
+                         "rendered before (cold): what its first frames cost the others")
     ap.add_argument("--json", type=Path, default=HERE / "results" / "many_clients.json")
     args = ap.parse_args(argv)
 
@@ -163,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": args.seconds, "size": args.size, "reduction": args.reduction, "volumes": {}, "clients": []}
         try:
             with httpx.Client(base_url=url, timeout=900) as c:
-                for v in volumes:
+                for v in volumes[:1] if args.join_after > 0 else volumes:
                     info = c.get(f"/volumes/{v}").json()
                     t0 = time.perf_counter()
                     r = c.post(f"/volumes/{v}/render", json=scene(0.0, args.size, args.reduction))
@@ -181,8 +187,9 @@ def main(argv: list[str] | None = None) -> int:
             start = time.monotonic() + 0.5
             end = start + args.seconds
             outs: list[dict] = [{} for _ in range(n)]
-            threads = [threading.Thread(target=orbit, args=(url, volumes[i % 2], i, start, end, args.size,
-                                                            args.reduction, outs[i])) for i in range(n)]
+            threads = [threading.Thread(target=orbit, args=(url, volumes[i % 2], i, start + (i % 2) * args.join_after,
+                                                            end, args.size, args.reduction, outs[i], start))
+                       for i in range(n)]
             for t in threads:
                 t.start()
             while any(t.is_alive() for t in threads):
@@ -207,6 +214,13 @@ def main(argv: list[str] | None = None) -> int:
     result["fairness"] = {"worst_p95_over_best": max(p95s) / min(p95s),
                           "frames_min_over_max": min(o["frames"] for o in outs) / max(o["frames"] for o in outs),
                           "holds": max(p95s) <= 2 * min(p95s) and all(o["frames"] > 0 for o in outs)}
+    if args.join_after > 0:  # the cold volume's first frames: from its clients' joining until both have one
+        joined = max(o["sent_s"][0] + o["latencies_ms"][0] / 1e3 for o in outs[1::2] if o["sent_s"])
+        during = {o["client"]: [ms for t, ms in zip(o["sent_s"], o["latencies_ms"])
+                                if t < joined and t + ms / 1e3 > args.join_after] for o in outs[0::2]}
+        result["join"] = {"after_s": args.join_after, "cold_first_frames_ms": [o["latencies_ms"][:1] for o in outs[1::2]],
+                          "until_s": joined, "warm_clients_frames_during": {k: len(v) for k, v in during.items()},
+                          "warm_clients_max_ms_during": {k: max(v, default=float("nan")) for k, v in during.items()}}
     result["memory"] = {"rss_after_warmup_mib": rss_base / 1024, "rss_max_mib": max(v for _, v in rss) / 1024,
                         "rss_first_half_max_mib": max((v for t, v in rss if t < args.seconds / 2), default=0) / 1024,
                         "rss_second_half_max_mib": max(half, default=0) / 1024, "vm_hwm_mib": hwm / 1024,
@@ -233,6 +247,13 @@ def table(res: dict) -> str:
     rows.append(f"server RSS: {m['rss_after_warmup_mib']:.0f} MiB after the first images, max {m['rss_max_mib']:.0f} MiB "
                 f"(first half {m['rss_first_half_max_mib']:.0f}, second half {m['rss_second_half_max_mib']:.0f}), "
                 f"VmHWM {m['vm_hwm_mib']:.0f} MiB; cache bounds {m['cache_bounds_mib']} MiB")
+    j = res.get("join")
+    if j:
+        rows.append(f"the second volume's clients joined at {j['after_s']:g} s, cold: first frames "
+                    f"{', '.join(f'{x[0]:.0f}' for x in j['cold_first_frames_ms'] if x)} ms, both done at "
+                    f"{j['until_s']:.1f} s; meanwhile the first volume's clients got "
+                    f"{', '.join(str(n) for n in j['warm_clients_frames_during'].values())} frames, the slowest "
+                    f"{', '.join(f'{x:.0f}' for x in j['warm_clients_max_ms_during'].values())} ms")
     return "\n".join(rows)
 
 
