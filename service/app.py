@@ -62,7 +62,6 @@ from lodcast.service.rendering import (
 )
 from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.settings import Settings
-from lodcast.service.slots import Slots
 from lodcast.service.volumes import (
     JOB_ID,
     BadId,
@@ -205,15 +204,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.engine = engine
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
 
-    def semaphore(samples: int, volume_id: str) -> Any:
-        # created inside the running loop (one per loop: test clients may run several); waiting renders are served
-        # in arrival order, but for a volume already being rendered (service/slots.py). Renders of at most
-        # small_render_samples (estimated) have a slot of their own, so that a quick one never waits for minutes
-        # behind big ones
+    def semaphore(samples: int) -> asyncio.Semaphore:
+        # created inside the running loop (one per loop: test clients may run several); FIFO, so waiting renders
+        # are served in arrival order. Renders of at most small_render_samples (estimated) have a slot of their
+        # own, so that a quick one never waits for minutes behind big ones
         loop = asyncio.get_running_loop()
         if state["sem"] is None or state["sem"][0] is not loop:
-            state["sem"] = (loop, Slots(settings.render_concurrency), asyncio.Semaphore(1))
-        return state["sem"][2] if samples <= settings.small_render_samples else state["sem"][1].slot(volume_id)
+            state["sem"] = (loop, asyncio.Semaphore(settings.render_concurrency), asyncio.Semaphore(1))
+        return state["sem"][2 if samples <= settings.small_render_samples else 1]
 
     bearer = HTTPBearer(auto_error=False, description="LODCAST_TOKEN, when the service has one")
 
@@ -466,7 +464,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         """`call(stop)` on a worker thread, in a render slot: `stop` (between launch bands) raises _ClientGone once
         the client hangs up or `cancel` is set, HttpError past the render timeout; the renderer's refusals raise
         the HTTP errors that name them."""
-        async with semaphore(samples, volume_id):
+        async with semaphore(samples):
             gone, t0 = cancel or threading.Event(), time.monotonic()
 
             def stop() -> None:  # between launch bands (renderer/frame/render.py: launch)
