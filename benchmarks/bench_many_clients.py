@@ -132,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device-cache-mb", type=int, default=256)
     ap.add_argument("--open-stores", type=int, default=2)
     ap.add_argument("--render-concurrency", type=int, default=2)
+    ap.add_argument("--small-render-samples", type=int, default=None,
+                    help="LODCAST_SMALL_RENDER_SAMPLES for the server (default: its own; 0: every render takes a "
+                         "main slot)")
     ap.add_argument("--join-after", type=float, default=0.0,
                     help="the second volume's clients join this many seconds after the first's, that volume not "
                          "rendered before (cold): what its first frames cost the others")
@@ -153,7 +156,9 @@ def main(argv: list[str] | None = None) -> int:
         env = {"LODCAST_TOKEN": "", "LODCAST_STATE_ROOT": str(tmpd / "state"),
                "LODCAST_BRICK_CACHE_MB": str(args.brick_cache_mb), "LODCAST_DEVICE_CACHE_MB": str(args.device_cache_mb),
                "LODCAST_OPEN_STORES": str(args.open_stores),
-               "LODCAST_RENDER_CONCURRENCY": str(args.render_concurrency)}
+               "LODCAST_RENDER_CONCURRENCY": str(args.render_concurrency),
+               **({} if args.small_render_samples is None
+                  else {"LODCAST_SMALL_RENDER_SAMPLES": str(args.small_render_samples)})}
         port = free_port()
         log = tmpd / "serve.log"
         serve = start_serve(root, port, env=env, log=log, extra=["--workers", "0"])
