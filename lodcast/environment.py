@@ -26,6 +26,7 @@ class Environment:
 
     brick_cache_bytes: int  # LODCAST_BRICK_CACHE_MB (MiB)
     device_cache_bytes: int  # LODCAST_DEVICE_CACHE_MB (MiB)
+    open_stores: int  # LODCAST_OPEN_STORES
     device_budget_bytes: int | None  # LODCAST_DEVICE_BUDGET_MB (MB = 10⁶ bytes, docs/design.md Limits)
     read_threads: int | None  # LODCAST_READ_THREADS; None: the engine decides (renderer/engine.py: read_threads)
     max_samples: int  # LODCAST_MAX_SAMPLES
@@ -43,6 +44,8 @@ VARIABLES: tuple[tuple[str, str, str], ...] = (
     ("LODCAST_BRICK_CACHE_MB", "1024", "host cache of bricks read from stores (MiB; on a CPU device, whose buffers "
      "are host memory, less what the device cache holds, down to an eighth)"),
     ("LODCAST_DEVICE_CACHE_MB", "1024", "device cache of level-0 volumes and atlases (MiB; also bounded by the budget)"),
+    ("LODCAST_OPEN_STORES", "32", "stores a renderer (and so the service) keeps opened, least recently used closed "
+     "first; one closed is opened again when next asked for, and the bricks cached from it serve on"),
     ("LODCAST_DEVICE_BUDGET_MB", "one allocation", "most device memory (10⁶ bytes) of one render's volume data"),
     ("LODCAST_READ_THREADS", "the CPU count less one (at least 1); 8 on object storage", "threads reading shards "
      "(local files: decoding is the work, the calling thread places what they read, and threads beyond the cores "
@@ -98,6 +101,7 @@ def environment() -> Environment:
     return Environment(
         brick_cache_bytes=int(_number("LODCAST_BRICK_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
         device_cache_bytes=int(_number("LODCAST_DEVICE_CACHE_MB", 1024, positive=False) * 2**20),  # type: ignore[operator]
+        open_stores=_count("LODCAST_OPEN_STORES", 32),  # type: ignore[arg-type]
         device_budget_bytes=None if budget is None else int(budget * 1e6),
         read_threads=_count("LODCAST_READ_THREADS", 0, optional=True),
         max_samples=_count("LODCAST_MAX_SAMPLES", 2e9),  # type: ignore[arg-type]

@@ -21,10 +21,7 @@ from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.pool import BrickPool
 from lodcast.store.opened import OpenStores
 
-__all__ = ["Engine", "Settings", "Tables", "OPEN_STORES"]
-
-#: stores named by path or URL kept opened per engine
-OPEN_STORES = 32
+__all__ = ["Engine", "Settings", "Tables"]
 
 
 @dataclass(frozen=True)
@@ -35,6 +32,8 @@ class Settings:
     device_budget_bytes: int | None  # LODCAST_DEVICE_BUDGET_MB; None: one allocation
     brick_cache_bytes: int  # LODCAST_BRICK_CACHE_MB
     device_cache_bytes: int  # LODCAST_DEVICE_CACHE_MB
+    open_stores: int  # LODCAST_OPEN_STORES
+    store_check_s: float  # not a variable: the service's setting (service/settings.py); 0 elsewhere
     max_samples: int  # LODCAST_MAX_SAMPLES
     lossless_zeta: float  # LODCAST_LOSSLESS_ZETA
     significance_numpy: bool  # LODCAST_SIGNIFICANCE_NUMPY
@@ -42,7 +41,8 @@ class Settings:
 
     @classmethod
     def of(cls, env: Environment, *, device: str | None = None, device_budget_mb: float | None = None,
-           brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> "Settings":
+           brick_cache_mb: float | None = None, device_cache_mb: float | None = None,
+           open_stores: int | None = None, store_check_s: float = 0.0) -> "Settings":
         """`env` with the keywords that are given in its place (MB = 10⁶ bytes for the budget, MiB for the
         caches, as the variables)."""
         return cls(
@@ -53,6 +53,8 @@ class Settings:
             else int(_positive("brick_cache_mb", brick_cache_mb, zero=True) * 2**20),
             device_cache_bytes=env.device_cache_bytes if device_cache_mb is None
             else int(_positive("device_cache_mb", device_cache_mb, zero=True) * 2**20),
+            open_stores=env.open_stores if open_stores is None else _at_least_one("open_stores", open_stores),
+            store_check_s=_positive("store_check_s", store_check_s, zero=True, unit="seconds"),
             max_samples=env.max_samples,
             lossless_zeta=env.lossless_zeta,
             significance_numpy=env.significance_numpy,
@@ -66,12 +68,18 @@ class Settings:
         return self.device_cache_bytes if b is None else min(self.device_cache_bytes, b)
 
 
-def _positive(name: str, value: float, zero: bool = False) -> float:
+def _positive(name: str, value: float, zero: bool = False, unit: str = "megabytes") -> float:
     v = float(value)
     if not (v == v and v != float("inf") and (v >= 0 if zero else v > 0)):
-        raise EnvironmentInvalid(f"{name}: must be a {'non-negative' if zero else 'positive'} number of megabytes, "
+        raise EnvironmentInvalid(f"{name}: must be a {'non-negative' if zero else 'positive'} number of {unit}, "
                                  f"got {value!r}")
     return v
+
+
+def _at_least_one(name: str, value: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise EnvironmentInvalid(f"{name}: must be a whole number of at least 1, got {value!r}")
+    return value
 
 
 class Tables:
@@ -100,14 +108,19 @@ class Engine:
     - `selections`, `step_errors`, `steps`, `block_infos`: level-of-detail selections, predicted step errors,
       adaptive step levels and the blocks' walk info of recent scenes; `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
       atlas_cells.py); `last_atlas`: per atlas family the newest atlas, held weakly (atlas.py reuses its bricks);
-    - `tables`: what is derived from a store and TFs (`Tables`); `stores`: stores named by path or URL, opened once.
+    - `tables`: what is derived from a store and TFs (`Tables`); `stores`: stores named by path or URL, opened once,
+      at most `open_stores` of them (LODCAST_OPEN_STORES), least recently used closed first. `store_check_s`: how
+      long a store on object storage is trusted, once opened, before it is asked whether it was replaced (the
+      service's setting; 0, every time, elsewhere).
     """
 
     def __init__(self, *, device: str | None = None, device_budget_mb: float | None = None,
-                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> None:
+                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None,
+                 open_stores: int | None = None, store_check_s: float = 0.0) -> None:
         env = environment()
         self.settings = Settings.of(env, device=device, device_budget_mb=device_budget_mb,
-                                    brick_cache_mb=brick_cache_mb, device_cache_mb=device_cache_mb)
+                                    brick_cache_mb=brick_cache_mb, device_cache_mb=device_cache_mb,
+                                    open_stores=open_stores, store_check_s=store_check_s)
         self.device = Device(self.settings.device, env.cache_dir / "kernels")
         self.device_cache = ByteLru(self.settings.device_cache_bound, keep_last=True)
         self.bricks = BrickPool(self._brick_bound)
@@ -122,7 +135,7 @@ class Engine:
         self.parents = ByteLru(64 << 20, keep_last=True)
         self.cells = ByteLru(256 << 20, keep_last=True)
         self.tables = Tables()
-        self.stores = OpenStores(OPEN_STORES)
+        self.stores = OpenStores(self.settings.open_stores, self.settings.store_check_s)
         self._last_atlas: dict[tuple, weakref.ref[Any]] = {}
         self._lock = threading.Lock()
         self._filling = 0  # bytes of device buffers being filled or used outside the device cache right now

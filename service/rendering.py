@@ -10,7 +10,6 @@ import io
 import math
 import re
 import threading
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -130,19 +129,21 @@ def finite_json(obj: Any) -> Any:
 
 
 class RenderEngine:
-    """The service's renderer (lodcast.Renderer, made on first use with the settings' device budget), addressed by
-    store path: its opened stores are reopened when a store was replaced since (another process ingested it again
-    with --overwrite: a new folder renamed into place, so its root zarr.json has a new inode; on object storage a
-    new root zarr.json)."""
+    """The service's renderer (lodcast.Renderer, made on first use with the settings' device budget, bound on
+    opened stores and store check interval), addressed by store path. Its opened stores (store/opened.py) are the
+    service's only ones: at most `open_stores`, least recently used closed first, and reopened when a store was
+    replaced since (another process ingested it again with --overwrite: a new folder renamed into place, so its
+    root zarr.json has a new inode; on object storage a new root zarr.json, asked at most once per
+    `store_check_s`)."""
 
     def __init__(self, settings: Any = None) -> None:
         from lodcast.service.progressive import Sessions
 
         self._budget = None if settings is None else getattr(settings, "device_budget_mb", None)
+        self._open_stores = None if settings is None else getattr(settings, "open_stores", None)
         self._check_s = 0.0 if settings is None else float(getattr(settings, "store_check_s", 0.0))
         self._renderer: Any = None
         self._lock = threading.Lock()
-        self._checked: dict[str, tuple[float, Any]] = {}  # store path -> (when found and opened, the store)
         self.sessions = Sessions()  # the progressive streams under way, by X-Lodcast-Session
 
     @property
@@ -151,53 +152,36 @@ class RenderEngine:
             if self._renderer is None:
                 from lodcast.renderer.frame.render import Renderer
 
-                self._renderer = Renderer(device_budget_mb=self._budget)
+                self._renderer = Renderer(device_budget_mb=self._budget, open_stores=self._open_stores,
+                                          store_check_s=self._check_s)
             return self._renderer
 
-    def _recent(self, path: Path | str) -> Any:
-        """The store at `path` on object storage when it was found and opened less than `store_check_s` ago, else
-        None (a local store's checks are a stat each, asked every time)."""
-        if not isinstance(path, str):
-            return None
-        with self._lock:
-            hit = self._checked.get(str(path))
-        return hit[1] if hit is not None and time.monotonic() - hit[0] < self._check_s else None
-
     def locate(self, root: Path | str, volume_id: str) -> Path | str:
-        """volume_path (VolumeNotFound where there is none), asked of the storage at most once per `store_check_s`;
-        while the storage has a transient fault, a volume whose store is kept open is taken to be there still."""
+        """volume_path (VolumeNotFound where there is none); a volume whose store the renderer trusts without asking
+        (opened less than `store_check_s` ago) is not looked for again, and while the storage has a transient fault
+        a volume whose store is kept open is taken to be there still."""
         from lodcast.service.volumes import volume_path
 
         url = volume_path(root, volume_id, must_exist=False)
-        if self._recent(url) is not None:
+        if self.renderer.stores.recent(url):
             return url
         try:
             return volume_path(root, volume_id)
         except Exception as exc:
-            if storage_fault(exc) and self._renderer is not None and self._renderer.stores.kept(url):
+            if storage_fault(exc) and self.renderer.stores.kept(url):
                 return url
             raise
 
     def store(self, path: Path | str) -> Any:
         """The opened store at `path` (a folder, or a URL: a str); StoreUnusable (service/volumes.py) where its
-        spacing and origin give no finite world box (a store an older lodcast wrote): no render can use it. Its
-        root metadata is asked again (was it replaced?) at most once per `store_check_s`."""
+        spacing and origin give no finite world box (a store an older lodcast wrote): no render can use it."""
         from lodcast.service.volumes import check_store_geometry
 
-        store = self._recent(path)
-        if store is not None:
-            return store
         store = self.renderer.stores.get(path)
         check_store_geometry(store, str(path).rstrip("/").replace("\\", "/").rsplit("/", 1)[-1])
-        now = time.monotonic()
-        with self._lock:  # entries past their time go, so that this holds no store the renderer dropped for long
-            self._checked = {k: v for k, v in self._checked.items() if now - v[0] < self._check_s}
-            self._checked[str(path)] = (now, store)
         return store
 
     def forget(self, path: Path | str) -> None:
-        with self._lock:
-            self._checked.pop(str(path), None)
         if self._renderer is not None:
             self._renderer.stores.forget(path)
 

@@ -74,6 +74,9 @@ class Settings(BaseSettings):
                                            "render's volume data may use; larger ones render in passes "
                                            "(LODCAST_DEVICE_BUDGET_MB; default: one device allocation)")
 
+    open_stores: int | None = Field(default=None, ge=1, description="stores the service keeps opened, least "
+                                    "recently used closed first (LODCAST_OPEN_STORES; default 32)")
+
     # concurrency
     render_concurrency: int = Field(default=2, ge=1, description="renders running at once; others wait in FIFO order")
     small_render_samples: int = Field(default=50_000_000, ge=0, description="renders estimated at no more samples "

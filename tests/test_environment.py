@@ -27,7 +27,7 @@ def test_defaults_and_units(monkeypatch):
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     eng = Renderer()
     assert eng.read_threads(remote=False) == max(1, cores - 1) and eng.read_threads(remote=True) == 8
-    assert env.significance_numpy is False and env.tmp is None
+    assert env.significance_numpy is False and env.tmp is None and env.open_stores == 32
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # docs/design.md, Limits: MB = 10⁶ bytes
     monkeypatch.setenv("LODCAST_MAX_SAMPLES", "2e7")
     monkeypatch.setenv("LODCAST_SIGNIFICANCE_NUMPY", "1")
@@ -44,7 +44,8 @@ def test_defaults_and_units(monkeypatch):
                                          ("LODCAST_DEVICE_BUDGET_MB", "0"), ("LODCAST_DEVICE_BUDGET_MB", "nan"),
                                          ("LODCAST_READ_THREADS", "1.5"), ("LODCAST_READ_THREADS", "0"),
                                          ("LODCAST_MAX_SAMPLES", "many"), ("LODCAST_MAX_VOXELS", "-5"),
-                                         ("LODCAST_LOSSLESS_ZETA", "inf")])
+                                         ("LODCAST_LOSSLESS_ZETA", "inf"), ("LODCAST_OPEN_STORES", "0"),
+                                         ("LODCAST_OPEN_STORES", "2.5")])
 def test_malformed_values_are_refused_naming_the_variable(monkeypatch, name, value):
     monkeypatch.setenv(name, value)
     with pytest.raises(EnvironmentInvalid, match=name) as err:
