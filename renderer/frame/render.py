@@ -321,14 +321,16 @@ class Renderer(Engine):
     significance and step-error caches, the opened stores, and the settings read from the environment once, when
     it is made (each keyword overrides its ``LODCAST_*`` variable: `device` LODCAST_DEVICE, `device_budget_mb`
     LODCAST_DEVICE_BUDGET_MB (10⁶ bytes), `brick_cache_mb` LODCAST_BRICK_CACHE_MB and `device_cache_mb`
-    LODCAST_DEVICE_CACHE_MB (MiB)). Its verbs are thread-safe; two renderers share nothing but the kernel
+    LODCAST_DEVICE_CACHE_MB (MiB), `open_stores` LODCAST_OPEN_STORES; `store_check_s`: how long a store on object
+    storage is trusted to exist between checks, 0 by default). Its verbs are thread-safe; two renderers share nothing but the kernel
     binaries cached on disk. `lodcast.render` and the other module-level verbs use `default_renderer()`. `turns`
     (Turns): who launches next on its device, shared by the threads that render with it."""
 
     def __init__(self, *, device: str | None = None, device_budget_mb: float | None = None,
-                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None) -> None:
+                 brick_cache_mb: float | None = None, device_cache_mb: float | None = None,
+                 open_stores: int | None = None, store_check_s: float = 0.0) -> None:
         super().__init__(device=device, device_budget_mb=device_budget_mb, brick_cache_mb=brick_cache_mb,
-                         device_cache_mb=device_cache_mb)
+                         device_cache_mb=device_cache_mb, open_stores=open_stores, store_check_s=store_check_s)
         self.turns = Turns()
 
     def render(self, store: StoreLike, scene: SceneLike, *, spacing: Any = None, origin: Any = None,
