@@ -207,11 +207,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def semaphore(samples: int) -> asyncio.Semaphore:
         # created inside the running loop (one per loop: test clients may run several); FIFO, so waiting renders
         # are served in arrival order. Renders of at most small_render_samples (estimated) have a slot of their
-        # own, so that a quick one never waits for minutes behind big ones
+        # own, so that a quick one never waits for minutes behind big ones; they take a main slot while one is
+        # free: when most requests are small (viewers at 256²) they would otherwise queue for the one small slot
+        # with the main ones idle, behind a cold frame that is small by its estimate but reads for seconds
         loop = asyncio.get_running_loop()
         if state["sem"] is None or state["sem"][0] is not loop:
             state["sem"] = (loop, asyncio.Semaphore(settings.render_concurrency), asyncio.Semaphore(1))
-        return state["sem"][2 if samples <= settings.small_render_samples else 1]
+        main, small = state["sem"][1], state["sem"][2]
+        return small if samples <= settings.small_render_samples and main.locked() else main
 
     bearer = HTTPBearer(auto_error=False, description="LODCAST_TOKEN, when the service has one")
 

@@ -82,3 +82,38 @@ def test_waiting_renders_of_four_clients_on_two_volumes_start_in_arrival_order(t
 
     assert asyncio.run(run()) == [200] * (1 + len(clients))
     assert started == [("a", 0.0), *clients]
+
+
+def test_small_renders_take_a_free_main_slot_before_their_own(tmp_path, monkeypatch):
+    """A render small by its estimate runs in a main slot while one is free and in the small slot only when none
+    is: with one main slot, two small renders run together (one in each), and a third waits."""
+    make_volume(tmp_path, "a")
+    app = create_app(Settings(root=tmp_path, workers=0, token=None, render_concurrency=1,
+                              small_render_samples=10**12))
+    engine = app.state.engine
+    running: list[float] = []
+    gate = threading.Event()
+    real = engine.render
+
+    def render(path, scene, *a, **k):
+        running.append(scene.camera.azimuth)
+        gate.wait(120)
+        return real(path, scene, *a, **k)
+
+    monkeypatch.setattr(engine, "render", render)
+
+    async def run() -> list[int]:
+        tasks = [asyncio.create_task(_post(app, "a", tiny_scene(16, camera={"azimuth": az, "elevation": 10})))
+                 for az in (10.0, 20.0, 30.0)]
+        for _ in range(6000):  # a bound for a broken build, not a timing
+            if len(running) >= 2:
+                break
+            await asyncio.sleep(0.01)
+        for _ in range(50):  # the third stays waiting
+            await asyncio.sleep(0.01)
+        assert len(running) == 2, running  # one in the main slot, one in the small slot; the third waits
+        gate.set()
+        return await asyncio.gather(*tasks)
+
+    assert asyncio.run(run()) == [200, 200, 200]
+    assert sorted(running) == [10.0, 20.0, 30.0]
