@@ -147,8 +147,8 @@ class LodSelection:
 
 # --------------------------------------------------------------------------------------------- quality
 def parse_quality(quality: Any, full_bytes: int) -> tuple[str, float | None]:
-    """("full" | "lossless" | "budget", budget in bytes or None). Accepts the scene's strings, dicts and
-    pydantic quality objects."""
+    """("full" | "lossless" | "budget" | "level", budget in bytes or the level, or None). Accepts the scene's
+    strings, dicts and pydantic quality objects."""
     if hasattr(quality, "model_dump"):
         quality = quality.model_dump()
     if isinstance(quality, str):
@@ -166,7 +166,13 @@ def parse_quality(quality: Any, full_bytes: int) -> tuple[str, float | None]:
             if not r >= 1.0:
                 raise ValueError("quality.reduction must be >= 1")
             return "budget", full_bytes / r
-    raise ValueError(f"quality: cannot read {quality!r} (full, lossless, {{budget_mb: x}} or {{reduction: r}})")
+        if "level" in quality:
+            k = quality["level"]
+            if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 0:
+                raise ValueError("quality.level must be a whole number >= 0")
+            return "level", float(k)
+    raise ValueError(f"quality: cannot read {quality!r} (full, lossless, {{budget_mb: x}}, {{reduction: r}} or "
+                     "{level: k})")
 
 
 # --------------------------------------------------------------------------------------------- crop
@@ -478,6 +484,15 @@ def select_from_meta(
             levels = np.where(loaded & (ten >= 0), np.minimum(levels, np.where(ten >= 0, ten, L - 1)), levels)
         elif kind == "lossless":
             levels[refine] = maxlev[refine]
+        elif kind == "level":
+            assert budget is not None  # parse_quality gives the level with kind "level"
+            if int(budget) > L - 1:
+                from lodcast.renderer.scene.scene import SceneError
+
+                raise SceneError(f"quality.level: {int(budget)} is past the store's coarsest level, {L - 1}")
+            # every visible block at the level, even one the TF shows as constant (what the level shows, and what
+            # its prediction counts); a block whose finest allowed level is coarser takes that one
+            levels[loaded] = np.maximum(int(budget), maxlev)[loaded]
         else:
             assert budget is not None  # parse_quality gives one with kind "budget"
             budget_samples = int(budget // BYTES_PER_SAMPLE)
@@ -510,6 +525,8 @@ def select_from_meta(
     return LodSelection(
         levels=levels.astype(np.int8).reshape(meta.grid),
         zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
+        # (a level asked for takes the budgeted qualities' gain: their selections at 10–30:1, from which it was
+        # fitted, are mostly made of level-1 and level-2 blocks)
         predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, weight, opac,
                                                                 IMAGE_GAIN if kind == "lossless" else BUDGET_GAIN),
         bytes=nbytes,

@@ -201,7 +201,15 @@ class QualityBudget(_Model):
     budget_mb: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 
 
-Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget]
+class QualityLevel(_Model):
+    """Every visible block at store level `level` (0 = full resolution, each level halves the resolution along
+    each axis), with its predicted ΔE: the bound any selection of about that reduction starts from
+    (docs/lod.md: What 30:1 can reach). A level the store does not have is refused when it renders."""
+
+    level: Annotated[int, Field(ge=0, le=15, strict=True)]
+
+
+Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget, QualityLevel]
 
 
 class Sampling(_Model):
@@ -348,7 +356,7 @@ def _named_tf(v: Any) -> Any:
 
 class Scene(_Model):
     """What to render: the camera, the image size, the transfer function(s), the quality (`"full"` resolution,
-    `"lossless"` level of detail, `{"reduction": r}` or `{"budget_mb": m}`), sampling, shading, clipping, the
+    `"lossless"` level of detail, `{"reduction": r}`, `{"budget_mb": m}` or `{"level": k}`), sampling, shading, clipping, the
     blend `mode` (`iso` needs `isovalue`), the `background` composited under the image (premultiplied RGBA; a
     transparent one keeps the image's alpha) and the output `format`."""
 
