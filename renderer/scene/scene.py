@@ -246,7 +246,10 @@ class Sampling(_Model):
     `adaptive_screen`: adaptive screen-space sampling (thesis §3.6.3): tiles of `screen_tile`² pixels rendered at
     2×2 up to full resolution, chosen by `screen_statistic` ("max", "average" or "rms") of the block scales along
     their rays, and reconstructed by intertile interpolation; at level 0 everywhere every tile is at full
-    resolution and the image equals the plain render."""
+    resolution and the image equals the plain render.
+    `early_termination`: a ray ends once its opacity reaches it, and what is left of it takes its last colour; for
+    a TF whose colours spread by more than 0.25 in a channel the threshold moves closer to 1 (what is left is
+    (1 − t) · 0.25 / spread), since what the ray leaves unseen may differ from its last colour by that spread."""
 
     step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5
     interpolation: Literal["nearest_block", "interblock"] | None = None
