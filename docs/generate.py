@@ -148,7 +148,7 @@ def reference() -> str:
            "## Scene", "",
            "A scene is one JSON object (Python: a dict, a `lodcast.Scene`, or a JSON file's name). Only `tf` is "
            "required.", "", _model(sc.Scene)]
-    for cls in (sc.OrbitCamera, sc.LookAtCamera, sc.QualityReduction, sc.QualityBudget, sc.Sampling, sc.Shading,
+    for cls in (sc.OrbitCamera, sc.LookAtCamera, sc.QualityReduction, sc.QualityBudget, sc.QualityLevel, sc.Sampling, sc.Shading,
                 sc.Clip, sc.ClipPlane, sc.ClipBox):
         out.append(_model(cls))
     out += ["## Camera conventions", "",

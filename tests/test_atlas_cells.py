@@ -202,6 +202,9 @@ def test_octant_masks_change_nothing_but_the_samples(eng, ribs, monkeypatch, nam
 
     scene = {"tf": BONE, "width": 64, "height": 64, "camera": {"azimuth": 30, "elevation": 20},
              "quality": {"reduction": 4}, **OCTANT_SCENES[name]}
+    if name == "lossless":  # (at its default bounds lossless keeps every block of this phantom the TF shows at level 0)
+        monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "500")
+        eng = Renderer()
     with_octants = eng.render(ribs, scene)
     assert "-DLC_OCTANTS" in with_octants.report["build_options"]
     monkeypatch.setattr(config.KernelConfig, "octants", property(lambda self: False))
@@ -209,7 +212,8 @@ def test_octant_masks_change_nothing_but_the_samples(eng, ribs, monkeypatch, nam
     assert "-DLC_OCTANTS" not in without.report["build_options"]
     np.testing.assert_allclose(with_octants.rgba, without.rgba, rtol=0, atol=1e-5)
     # (interblock's octants near a block face reach into the neighbours' bricks: wider bounds, fewer skipped)
-    bound = 0.97 if name == "interblock" else 0.9
+    # (lossless, held to its 10:1 selection here, keeps more level-0 blocks, whose cells the octants do not split)
+    bound = 0.97 if name == "interblock" else (0.95 if name == "lossless" else 0.9)
     assert with_octants.report["samples"] < bound * without.report["samples"], (with_octants.report["samples"],
                                                                                  without.report["samples"])
 

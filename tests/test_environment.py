@@ -64,7 +64,7 @@ def test_read_when_a_renderer_is_made_not_at_import(monkeypatch, tmp_path):
     monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "0.5")
     before = Renderer()
     tight = before.render(store, scene).report
-    monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "50")
+    monkeypatch.setenv("LODCAST_LOSSLESS_ZETA", "500")
     loose = Renderer().render(store, scene).report
     assert loose["reduction"] > 2 * tight["reduction"], (tight["reduction"], loose["reduction"])
     assert before.render(store, scene).report["reduction"] == tight["reduction"]

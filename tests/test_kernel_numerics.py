@@ -457,10 +457,15 @@ def test_early_termination_bound(store, t: float) -> None:
     T_k = 1 − A_k ≤ 1 − t, that sample's colour c (renderer/kernel/lc_classify.h, LC_BLEND). The exact rest is
     T_k·(C_rest, A_rest) with 0 ≤ C_rest ≤ A_rest ≤ 1, so per pixel the terminated alpha is exactly 1,
     0 ≤ A_ET − A_full ≤ 1 − t and |Δrgb| ≤ T_k ≤ 1 − t; pixels whose full alpha stays below t do not change
-    at all. Float noise allowance 1e-6. The sample count must drop."""
+    at all. Float noise allowance 1e-6. The sample count must drop. (t is the threshold the kernel takes:
+    params.early_stop moves the scene's closer to 1 for a TF of widely differing colours.)"""
+    from lodcast.renderer.kernel.params import early_stop
+    from lodcast.renderer.scene.scene import Scene
+
     st = _sparse(store)
     full, rep_full = kernel(st, SPARSE_SCENE, 0.25, early_termination=1.0)
     et, rep_et = kernel(st, SPARSE_SCENE, 0.25, early_termination=t)
+    t = early_stop(Scene.parse({**SPARSE_SCENE, "sampling": {"early_termination": t}}))
     dA = et[..., 3] - full[..., 3]
     drgb = full[..., :3] - et[..., :3]
     eps = 1e-6

@@ -217,13 +217,14 @@ def test_quality_goes_through_the_selection(eng, store, quality):
     assert rep["bricks_read"] + rep["bricks_cached"] == int((np.asarray(sel.levels) >= 0).sum())
     assert rep["quality"] == quality and "-DLC_SAMPLER_ATLAS" in rep["build_options"]
     assert np.isfinite(r.rgba).all() and r.rgba[..., 3].max() > 0.05
-    if quality == "lossless":  # every block at a level predicted within 0.5 ΔE of level 0: virtually the same
+    if quality == "lossless":  # every block at a level whose predicted error is within the bounds: the same image
         from lodcast.renderer.image.delta_e import delta_e_stats
 
         full = eng.render(store, _scene(CAMERAS[0]))
-        # measured 0.84 on this smooth, translucent field (the significance model sees less of a smooth field's
-        # curvature than the image does), below the 1 ΔE of a just-noticeable difference
-        assert delta_e_stats(r.rgba, full.rgba)["mean"] <= 1.0
+        # on this smooth, translucent field a smooth gradient flattened into coarse samples adds up along every ray
+        # (0.84 mean before lossless bounded each block's worst value and accumulation; issue 45)
+        de = delta_e_stats(r.rgba, full.rgba)
+        assert de["mean"] <= 0.3 and de["max"] <= 3.0, de
 
 
 def test_lod_quality_on_an_array_is_refused(eng):

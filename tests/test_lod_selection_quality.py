@@ -73,17 +73,18 @@ def test_fig_3_4_ordering_on_the_chest_ct_with_the_thesis_block_size(ct16):
 
 
 def test_virtually_lossless_is_virtually_exact(ct16):
-    """Virtually lossless: every block the TF can see, at the coarsest level whose per-voxel significance stays
-    predicted within 0.5 ΔE of level 0 (LODCAST_LOSSLESS_ZETA's default), and nothing else. A block left out has a
-    border-inclusive range where the TF is zero, so its neighbours' facing voxels are transparent too and nothing
-    interpolates across. On the chest CT with the bone preset, measured: 5.1:1 at 16³ blocks, mean ΔE 0.23 against
-    full resolution (every visible block at level 0 gave 4.3:1 and the same image to 1e-4)."""
+    """Virtually lossless: every block the TF can see, at the coarsest level whose predicted error (its values' RMS
+    and its worst value, accumulated along a ray, and what its faces show of its neighbours) stays within the
+    engine's bounds, and nothing else. A block left out has a border-inclusive range where the TF is zero, so its
+    neighbours' facing voxels are transparent too and nothing interpolates across. On the chest CT with the bone
+    preset, measured: 4.3:1 at 16³ blocks, the same image as full resolution to ΔE 0.02 (every visible block at
+    level 0 also gives 4.3:1; tests/test_lossless.py holds the worst pixel on more TFs)."""
     scene = {"camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "width": 128, "height": 128,
              "tf": CT_PRESETS["ct-bone"], "format": "npy", "sampling": {"step": 0.5}}
     full = lodcast.render(ct16, scene)
     lossless = lodcast.render(ct16, {**scene, "quality": "lossless",
                                      "sampling": {"step": 0.5, "interpolation": "interblock"}})
-    assert lossless.report["reduction"] >= 5.0, lossless.report["reduction"]
+    assert lossless.report["reduction"] >= 4.0, lossless.report["reduction"]
     assert lossless.report["bricks_skipped"] > 0.6 * ct16.layout.n_blocks
     assert full.rgba[..., 3].max() > 0.9  # the bone is there to be lost
     de = delta_e_stats(lossless.rgba, full.rgba)

@@ -29,7 +29,16 @@ from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene import clip as clipping
 from lodcast.renderer.scene import cost
 from lodcast.renderer.scene.adaptive_tf import resolve_tfs
-from lodcast.renderer.scene.scene import AdaptiveTF, OrbitCamera, Scene, SceneError, SceneLike, TransferFunction
+from lodcast.renderer.scene.scene import (
+    AdaptiveTF,
+    OrbitCamera,
+    QualityBudget,
+    QualityReduction,
+    Scene,
+    SceneError,
+    SceneLike,
+    TransferFunction,
+)
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.walk.info import block_info
 
@@ -69,7 +78,9 @@ def _view_weighted(scene: Scene, vol: VolumeView) -> bool:
     on = scene.sampling.lod_visibility
     if on is None:
         on = vol.n_voxels <= visibility.AUTO_VOXELS
-    return on and not isinstance(scene.quality, str) and scene.mode == "composite" and scene.tf2 is None
+    # (a level asked for selects by the TF alone: the view would move only its prediction)
+    return on and isinstance(scene.quality, (QualityReduction, QualityBudget)) and scene.mode == "composite" \
+        and scene.tf2 is None
 
 
 def _view_key(scene: Scene, fr: cam.Frame, kbox: tuple) -> str:

@@ -31,7 +31,7 @@ from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.image.output import RenderResult
 from lodcast.renderer.image.report import RenderReport
-from lodcast.renderer.scene.scene import QualityReduction, Scene, SceneLike
+from lodcast.renderer.scene.scene import QualityLevel, QualityReduction, Scene, SceneLike
 
 #: an engine's render (renderer/frame/render.py: Renderer.render), handed in so that this module does not import
 #: the one that imports it
@@ -84,12 +84,12 @@ class Stage:
 def final_reduction(engine: Engine, scene: Scene, vol: VolumeView) -> float:
     """The data reduction of the scene's quality, as far as it is known before rendering: 1 at "full", the asked
     reduction, a budget's share of the whole volume (at most the visible blocks' share: coarse stages then hold
-    less, never more), or at "lossless" its selection's (made here once, the final stage finds it made; infinite
+    less, never more), or at "lossless" and a level its selection's (made here once, the final stage finds it made; infinite
     when nothing is visible)."""
     q = scene.quality
     if isinstance(q, QualityReduction):
         return float(q.reduction)
-    if q == "lossless":
+    if q == "lossless" or isinstance(q, QualityLevel):
         return float(preparing.selection(engine, vol, scene).reduction)
     if isinstance(q, str):
         return 1.0

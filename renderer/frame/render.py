@@ -46,7 +46,7 @@ from lodcast.renderer.image.report import PriorityMapReport, RenderReport, Scree
 from lodcast.renderer.kernel.params import ext_table, lut_table, tables
 from lodcast.renderer.kernel.structs import STATE_FLOATS
 from lodcast.renderer.lod import visibility
-from lodcast.renderer.scene.scene import Scene, SceneLike, TransferFunction
+from lodcast.renderer.scene.scene import QualityLevel, Scene, SceneLike, TransferFunction
 from lodcast.renderer.scene.transfer_function import build_lut, unit_distance
 from lodcast.renderer.walk.info import adaptive_walk, walk_info
 
@@ -289,7 +289,7 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         "build_ms": built.build_ms,
         "upload_ms": upload_ms,
         "quality": quality,
-        "level": 0 if pr.lod is None else None,
+        "level": 0 if pr.lod is None else (scene.quality.level if isinstance(scene.quality, QualityLevel) else None),
         "interpolation": cfg.interpolation,
         "classification": _classification(pr),
         "coarse_cells": _coarse_cells(pr),

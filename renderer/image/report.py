@@ -99,9 +99,10 @@ REPORT_FIELDS: dict[str, str] = {
     "program_cache": "where the compiled kernel came from: memory, disk or a fresh build (built)",
     "build_ms": "kernel build (or cache lookup), milliseconds",
     "upload_ms": "volume data uploaded to the device, milliseconds",
-    "quality": "the quality asked for: full, lossless, {reduction} or {budget_mb}; {level} at a progressive "
-               "render's preview of one coarse level",
-    "level": "the store level rendered when one level was asked for (a progressive render's preview), else null",
+    "quality": "the quality asked for: full, lossless, {reduction}, {budget_mb} or {level}; {level} also at a "
+               "progressive render's preview of one coarse level",
+    "level": "the store level rendered when one level was asked for ({level}, or a progressive render's preview; 0 "
+             "at full), else null",
     "interpolation": "sampling across blocks of different levels: interblock or nearest_block (trilinear at "
                      "quality full)",
     "classification": "how coarse samples were classified: by their distribution, by the mean, or point (level 0)",

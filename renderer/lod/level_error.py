@@ -88,26 +88,29 @@ def _opacity_moments(tf: Any, x: np.ndarray, wq: np.ndarray) -> tuple[np.ndarray
 
 
 def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
-                classification: str = "distribution",
-                tables: Tables | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 2)), float64, 0 for invisible
-    and constant blocks (and ζ(0) = 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
+                classification: str = "distribution", tables: Tables | None = None,
+                worst_values: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 2), the worst value's ζ(k) per
+    block and level (N, L): the largest |T* − T̃| over the values the block holds, where ζ is their RMS; computed
+    where `worst_values` asks, else zeros: it costs half as much again, and only "lossless" needs it), float64,
+    0 for invisible and constant blocks (and at level 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
     they share with the TF's opacities there and the values' table positions (apart, the two repeated that work, a
     good part of a first render). The table lookups run in float32: ζ is a colour difference in CIELUV
     units (0-100) that the selection compares with 0.5."""
     assert classification in ("distribution", "mean")
     n_lv = meta.n_levels
-    out, step = np.zeros((meta.n, n_lv)), np.zeros(meta.n)
+    out, step, worst = np.zeros((meta.n, n_lv)), np.zeros(meta.n), np.zeros((meta.n, n_lv))
     opac = np.zeros((meta.n, 2))
     todo = _evaluated(meta, visible)
     if todo.size == 0:
-        return out, step, opac
+        return out, step, opac, worst
     assert meta.level_std is not None, "block_zetas needs a store with per-level spreads (format >= 2)"
     tf = as_tf(tf)
     t, luv = luv_table(tf, value_range, std_max, tables)
     row0 = t.std_axis(0.0)
     starts = effective_starts(meta)
     level_std = meta.level_std
+    half_range = np.nan_to_num(0.5 * (meta.max_border - meta.min_border))
 
     def chunk(rows: np.ndarray) -> None:
         x, wq = _pieces(meta, starts, rows)
@@ -133,6 +136,20 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
                 shown = t.lerp(luv, _f32(t.mean_axis(mbar + rho * (x - mbar))), row0)
             d2 = ((tstar - shown) ** 2).sum(axis=-1)
             out[rows, k] = np.sqrt(np.maximum((wq * d2).sum(axis=(1, 2)), 0.0) / sheet)
+            if not worst_values:
+                continue
+            # the worst value: seen through the largest spread one level-k voxel of the block can have (the
+            # spreads' RMS is s_k over its n_k voxels, and no set of values in its border-inclusive range spreads
+            # wider than half that range), and in a voxel whose mean lies that far from it: ζ's one spread per
+            # block, centred on each value, averages away the few voxels where a thin structure meets its
+            # surroundings and misses a smooth gradient flattened into one coarse sample
+            sw = np.minimum(s[:, k] * np.sqrt(float((1 << (n_lv - 1 - k)) ** 3)), half_range[rows])[:, None, None]
+            row_w = _f32(t.std_axis(sw))
+            dw = d2
+            for shift in (-sw, 0.0, sw):
+                seen_w = t.lerp(luv, _f32(t.mean_axis(x + shift)), row_w)
+                dw = np.maximum(dw, ((tstar - seen_w) ** 2).sum(axis=-1))
+            worst[rows, k] = np.sqrt(np.where(wq > 0, dw, 0.0).max(axis=(1, 2)))
 
     # the chunks write disjoint rows, and NumPy lets go of the GIL in their array work: on a million blocks (a
     # large volume's first selection) the cores share it
@@ -144,7 +161,7 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     else:
         for rows in chunks:
             chunk(rows)
-    return out, step, opac
+    return out, step, opac, worst
 
 
 def _f32(axis: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -157,7 +174,7 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
                classification: str = "distribution") -> tuple[np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L) float64: 0 at level 0, 0 for invisible and constant blocks; per block the
     mean TF opacity and the mean squared TF opacity over its values (N, 2), 0 for blocks not evaluated)."""
-    z, _, opac = block_zetas(meta, tf, visible, value_range, std_max, classification)
+    z, _, opac, _ = block_zetas(meta, tf, visible, value_range, std_max, classification)
     return z, opac
 
 
@@ -169,5 +186,5 @@ def step_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[
     ½ |T*(v + s_1) − T*(v − s_1)| at every value v of the block. What a ray marcher misses between samples h
     voxels apart grows as h² times this (selection.step_delta_e). 0 for invisible and constant blocks."""
     assert meta.level_std is not None and meta.n_levels > 1, "step_zeta needs per-level spreads (format >= 2)"
-    _, z, opac = block_zetas(meta, tf, visible, value_range, std_max)
+    _, z, opac, _ = block_zetas(meta, tf, visible, value_range, std_max)
     return z, opac

@@ -75,8 +75,14 @@ the picture than its ζ says, so its prediction takes its own gain, BUDGET_GAIN 
 on the budgeted qualities; with IMAGE_GAIN their error was predicted too high).
 
 TF-empty blocks are excluded from the prediction (they show nothing either way), as are blocks outside the crop.
-"lossless" keeps each block at the coarsest level whose ζ · IMAGE_GAIN / ā is at most LODCAST_LOSSLESS_ZETA
-(an engine's setting; LOSSLESS_ZETA, 0.5, unless set).
+"lossless" promises no visible difference from full resolution at the same sampling. It keeps each block at the
+coarsest level where (a) its ζ, (b) its worst value's error (each value seen through the largest spread one of the
+block's level-k voxels can have, from a mean that far off: level_error.block_zetas) and (c) what its faces show of
+values only its neighbours hold (full resolution interpolates across a face, a coarse block cuts it off) stay
+within LODCAST_LOSSLESS_ZETA (a) and LOSSLESS_WORST_RATIO times that (b, c), each accumulated along a ray as far as the block's own
+opacity lets it (IMAGE_GAIN / a, a the block's opacity-weighted mean opacity: a translucent band's small per-slab
+errors add up along every ray through it, which one image-wide ā hid). No block is coarser than the 10:1 selection
+keeps it. Where the TF shows a wide band, this leaves little to drop, and the report's reduction says so.
 """
 from __future__ import annotations
 
@@ -88,6 +94,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from lodcast.renderer.engine import Tables
+from lodcast.renderer.image.delta_e import srgb_to_luv
 from lodcast.renderer.lod.level_error import block_zetas
 from lodcast.renderer.lod.significance import (
     BlockMeta,
@@ -98,6 +105,7 @@ from lodcast.renderer.lod.significance import (
     tf_visible,
 )
 from lodcast.renderer.scene.clip import block_bounds
+from lodcast.renderer.scene.transfer_function import evaluate
 
 __all__ = ["LOSSLESS_ZETA", "LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "step_delta_e",
            "BYTES_PER_SAMPLE", "MB"]
@@ -108,6 +116,9 @@ MB = 1 << 20  # budget_mb counts MiB, as GPU memory is counted
 METHODS = ("tf", "tf_full_hist", "l2", "uniform")
 #: the ΔE per block that "lossless" allows by default (LODCAST_LOSSLESS_ZETA overrides it in an engine)
 LOSSLESS_ZETA = 0.5
+#: the worst value a block holds (its largest |T* − T̃| rather than the RMS over its values) may lose this many
+#: times as much: at the default, 1 ΔE
+LOSSLESS_WORST_RATIO = 2.0
 #: image-space calibration of the predicted ΔE (see module doc), fitted so that the geometric mean of measured /
 #: predicted is 1 over a set of CT renders (docs/measurements/code-notes.md): mean ΔE ≈
 #: IMAGE_GAIN · RMS(ζ) / ā, ā the opacity-weighted mean opacity of the loaded voxels (translucent structures add
@@ -136,8 +147,8 @@ class LodSelection:
 
 # --------------------------------------------------------------------------------------------- quality
 def parse_quality(quality: Any, full_bytes: int) -> tuple[str, float | None]:
-    """("full" | "lossless" | "budget", budget in bytes or None). Accepts the scene's strings, dicts and
-    pydantic quality objects."""
+    """("full" | "lossless" | "budget" | "level", budget in bytes or the level, or None). Accepts the scene's
+    strings, dicts and pydantic quality objects."""
     if hasattr(quality, "model_dump"):
         quality = quality.model_dump()
     if isinstance(quality, str):
@@ -155,7 +166,13 @@ def parse_quality(quality: Any, full_bytes: int) -> tuple[str, float | None]:
             if not r >= 1.0:
                 raise ValueError("quality.reduction must be >= 1")
             return "budget", full_bytes / r
-    raise ValueError(f"quality: cannot read {quality!r} (full, lossless, {{budget_mb: x}} or {{reduction: r}})")
+        if "level" in quality:
+            k = quality["level"]
+            if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 0:
+                raise ValueError("quality.level must be a whole number >= 0")
+            return "level", float(k)
+    raise ValueError(f"quality: cannot read {quality!r} (full, lossless, {{budget_mb: x}}, {{reduction: r}} or "
+                     "{level: k})")
 
 
 # --------------------------------------------------------------------------------------------- crop
@@ -390,7 +407,7 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
     (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
     if meta.level_std is None or meta.n_levels < 2:
         return 0.0
-    _, z, opac, visible = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
+    _, z, opac, visible, _ = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
     loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
     w = np.nan_to_num(meta.count[loaded].astype(np.float64))
     if not loaded.any() or w.sum() <= 0:
@@ -427,9 +444,11 @@ def select_from_meta(
     prof = level_profile(L)
     per_level = meta.level_std is not None and method == "tf"
     opac = None
+    tf_list = [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else list(tfs)
+    if per_level and kind == "lossless" and tables is not None:  # (its tables, with the worst values, serve the drive's below)
+        _max_tables(meta, tf_list, classification, tables, worst=True)
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
-        zeta_tab, opac, visible, drive_base, drive_max = _drive_tables(
-            meta, [tfs] if isinstance(tfs, dict) or hasattr(tfs, "points") else tfs, classification, tables)
+        zeta_tab, opac, visible, drive_base, drive_max = _drive_tables(meta, tf_list, classification, tables)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
@@ -454,17 +473,26 @@ def select_from_meta(
         refine = loaded & (drive > 0) & (maxlev < L - 1)
         base_samples = int(loaded.sum()) * int(nsamp[L - 1])
         if kind == "lossless" and per_level:
-            # the coarsest level each block shows within ζ of its level-0 colours (ζ · IMAGE_GAIN / ā, the predicted
-            # ΔE, at most lossless_zeta)
-            # (levels finer than a block's max level count as fine: they are not allowed anyway)
-            assert opac is not None  # per_level
-            gain = _image_gain(opac, weight, loaded)
-            zeta_w = zeta_tab if seen is None else (zeta_tab * seen[:, None]).astype(np.float32)
-            ok = (zeta_w * gain <= lossless_zeta) | (np.arange(L)[None, :] < maxlev[:, None])
-            first_bad = np.where(ok.all(axis=1), L, ok.argmin(axis=1))
-            levels[refine] = np.maximum(first_bad - 1, maxlev)[refine]
+            # (every loaded block: one of no significance of its own may still border what the TF shows)
+            some = loaded & (maxlev < L - 1)
+            levels[some] = _lossless_levels(meta, tf_list, classification, tables, maxlev, lossless_zeta,
+                                            LOSSLESS_WORST_RATIO * lossless_zeta, block_size)[some]
+            # what 10:1 keeps finer, lossless keeps too (a bound on what the model above can miss)
+            ten = select_from_meta(meta, tf_list, {"reduction": 10.0}, n_voxels=n_voxels, block_size=block_size,
+                                   in_crop=in_crop, max_level=max_level, classification=classification,
+                                   tables=tables).levels.ravel().astype(np.int64)
+            levels = np.where(loaded & (ten >= 0), np.minimum(levels, np.where(ten >= 0, ten, L - 1)), levels)
         elif kind == "lossless":
             levels[refine] = maxlev[refine]
+        elif kind == "level":
+            assert budget is not None  # parse_quality gives the level with kind "level"
+            if int(budget) > L - 1:
+                from lodcast.renderer.scene.scene import SceneError
+
+                raise SceneError(f"quality.level: {int(budget)} is past the store's coarsest level, {L - 1}")
+            # every visible block at the level, even one the TF shows as constant (what the level shows, and what
+            # its prediction counts); a block whose finest allowed level is coarser takes that one
+            levels[loaded] = np.maximum(int(budget), maxlev)[loaded]
         else:
             assert budget is not None  # parse_quality gives one with kind "budget"
             budget_samples = int(budget // BYTES_PER_SAMPLE)
@@ -497,6 +525,8 @@ def select_from_meta(
     return LodSelection(
         levels=levels.astype(np.int8).reshape(meta.grid),
         zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
+        # (a level asked for takes the budgeted qualities' gain: their selections at 10–30:1, from which it was
+        # fitted, are mostly made of level-1 and level-2 blocks)
         predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, weight, opac,
                                                                 IMAGE_GAIN if kind == "lossless" else BUDGET_GAIN),
         bytes=nbytes,
@@ -505,37 +535,95 @@ def select_from_meta(
     )
 
 
-def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | None) -> tuple[np.ndarray, ...]:
-    """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,)) of
-    one TF (level_error.block_zetas). They depend on the store and the TF, not on the view or the budget, and cost
-    a noticeable part of a first render: kept for the last few in `tables` (keyed by the metadata object, which
-    `tables` keeps per store)."""
+def _lossless_levels(meta: BlockMeta, tfs: Sequence[Any], classification: str, tables: Tables | None,
+                     maxlev: np.ndarray, mean_bound: float, worst_bound: float, block_size: int) -> np.ndarray:
+    """Per block the coarsest level (not finer than `maxlev`) at which the block's error, accumulated along a ray
+    as far as the block's own opacity lets it, stays within `mean_bound` for the RMS over its values (ζ) and within
+    `worst_bound` for its worst value. A translucent block's error adds up over the ~1/a unit slabs a ray crosses
+    before its own material hides what follows (a its opacity-weighted mean opacity, at most the volume's
+    diagonal): measured against one image-wide ā, as before, a band at α ≈ 0.006 beside bone passed blocks whose
+    small per-slab errors summed to several ΔE along every ray through the band."""
+    zeta, _, opac, _, worst = _max_tables(meta, tfs, classification, tables, worst=True)
+    n_lv = zeta.shape[1]
+    m1, m2 = opac[:, 0], opac[:, 1]
+    a = np.where(m1 > 0, m2 / np.maximum(m1, 1e-300), 1.0)
+    depth = block_size * float(np.linalg.norm(np.asarray(meta.grid, np.float64)))
+    acc = (IMAGE_GAIN / np.maximum(a, 1.0 / depth))[:, None]
+    # (levels finer than a block's max level count as fine: they are not allowed anyway)
+    ok = ((zeta * acc <= mean_bound) & (worst * acc <= worst_bound)) | (np.arange(n_lv)[None, :] < maxlev[:, None])
+    first_bad = np.where(ok.all(axis=1), n_lv, ok.argmin(axis=1))
+    lv = np.maximum(first_bad - 1, maxlev)
+    if meta.own_min is not None and meta.own_max is not None:
+        # full resolution interpolates across a block's faces, so within half a voxel of them it shows what only
+        # the neighbours hold; a coarse block (and its level-0 neighbour, whose apron then stops at the face)
+        # cuts that off, which ζ, over the block's own spreads, does not see: a surface there moves at the face
+        face = np.zeros(meta.n, np.float64)
+        for t in tfs:
+            face = np.maximum(face, _face_error(t, meta.min_border, meta.own_min, meta.own_min, meta.own_max))
+            face = np.maximum(face, _face_error(t, meta.own_max, meta.max_border, meta.own_min, meta.own_max))
+        lv = np.where(face * acc[:, 0] > worst_bound, maxlev, lv)
+    return lv
+
+
+def _face_error(tf: Any, lo: np.ndarray, hi: np.ndarray, own_lo: np.ndarray, own_hi: np.ndarray) -> np.ndarray:
+    """Per block the largest unit-slab ΔE between the TF anywhere on [lo, hi] (values only its neighbours hold) and
+    at either end of its own range [own_lo, own_hi]; 0 where lo ≥ hi or nothing there is visible."""
+    out = np.zeros(lo.shape, np.float64)
+    rows = np.flatnonzero((lo < hi) & np.isfinite(lo) & np.isfinite(hi) & tf_visible(tf, lo, hi))
+    if rows.size == 0:
+        return out
+    t = as_tf(tf)
+    a, b = lo[rows, None], hi[rows, None]
+    knots = np.array([p.value for p in t.points], np.float64)[None, :]
+    x = np.concatenate([a + (b - a) * np.linspace(0.0, 1.0, 9)[None, :], np.clip(knots, a, b)], axis=1)
+
+    def slab(v: np.ndarray) -> np.ndarray:
+        rgb, op = evaluate(t, v)
+        return srgb_to_luv(op[..., None] * rgb)
+
+    there = slab(x)
+    for own in (own_lo[rows], own_hi[rows]):
+        out[rows] = np.maximum(out[rows], np.linalg.norm(there - slab(own)[:, None, :], axis=-1).max(axis=1))
+    return out
+
+
+def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | None,
+               worst: bool = False) -> tuple[np.ndarray, ...]:
+    """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,), the
+    worst value's ζ(k) (N, L) float32, zeros unless `worst` asks for it) of one TF (level_error.block_zetas). They
+    depend on the store and the TF, not on the view or the budget, and cost a noticeable part of a first render:
+    kept for the last few in `tables` (keyed by the metadata object, which `tables` keeps per store; tables with
+    the worst values serve those without)."""
     key = (id(meta), json.dumps(as_tf(tf).model_dump(mode="json"), sort_keys=True), classification)
-    hit = None if tables is None else tables.tf.get(key)
-    if hit is not None and hit[0]() is meta:
-        return hit[1]
+    for k in ((key + ("worst",),) if worst else (key + ("worst",), key)):
+        hit = None if tables is None else tables.tf.get(k)
+        if hit is not None and hit[0]() is meta:
+            return hit[1]
     visible = tf_visible(tf, meta.min_border, meta.max_border)
     assert meta.value_range is not None  # a store's metadata has it (meta_of_store), and only a store's has spreads
-    zeta, step, opac = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables)
-    out = (zeta.astype(np.float32), step, opac, visible)
+    zeta, step, opac, w = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables,
+                                      worst_values=worst)
+    out = (zeta.astype(np.float32), step, opac, visible, w.astype(np.float32))
     for a in out:
         a.setflags(write=False)
     if tables is not None:
-        tables.tf.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
+        tables.tf.put(key + ("worst",) if worst else key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
     return out
 
 
 def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
-                tables: Tables | None = None) -> tuple[np.ndarray, ...]:
-    """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,)): the elementwise maxima
-    over the TFs of their tables (zeros where no TF gives more)."""
+                tables: Tables | None = None, worst: bool = False) -> tuple[np.ndarray, ...]:
+    """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,), the worst value's ζ(k)
+    (N, L) float32, zeros unless `worst` asks for it): the elementwise maxima over the TFs of their tables (zeros
+    where no TF gives more)."""
     zeta, step = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros(meta.n)
     opac, visible = np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
+    worst_z = np.zeros((meta.n, meta.n_levels), np.float32)
     for t in tfs:
-        z_t, s_t, o_t, vis_t = _tf_tables(meta, t, classification, tables)
+        z_t, s_t, o_t, vis_t, w_t = _tf_tables(meta, t, classification, tables, worst)
         zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
-        opac, visible = np.maximum(opac, o_t), visible | vis_t
-    return zeta, step, opac, visible
+        opac, visible, worst_z = np.maximum(opac, o_t), visible | vis_t, np.maximum(worst_z, w_t)
+    return zeta, step, opac, visible, worst_z
 
 
 def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
@@ -549,7 +637,7 @@ def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
     hit = None if tables is None else tables.tf.get(key)
     if hit is not None and hit[0]() is meta:
         return hit[1]
-    zeta, _, opac, visible = _max_tables(meta, tfs, classification, tables)
+    zeta, _, opac, visible, _ = _max_tables(meta, tfs, classification, tables)
     spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
     spread[:, 0] = 0.0
     drive = np.sqrt(zeta * spread)  # (float64, as the greedy takes it: the selection does not depend on keeping it)

@@ -246,6 +246,8 @@ class BlockMeta:
     level_std: np.ndarray | None = None  # (N, L) RMS spread of each block's level-k voxels; None: format-1 store
     value_range: tuple[float, float] | None = None
     std_max: float = 0.0
+    own_min: np.ndarray | None = None  # (N,) the block's own voxels' range, without the neighbours' border
+    own_max: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -291,6 +293,8 @@ def meta_of_store(store: Any, tables: Any = None) -> BlockMeta:
         level_std=None if getattr(store, "level_std", None) is None else np.asarray(store.level_std, np.float64).reshape(n, -1),
         value_range=(float(store.value_range[0]), float(store.value_range[1])),
         std_max=float(getattr(store, "std_max", 0.0)),
+        own_min=np.asarray(st.min, np.float64).ravel(),
+        own_max=np.asarray(st.max, np.float64).ravel(),
     )
     if kept is not None:
         try:

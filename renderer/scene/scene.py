@@ -201,7 +201,15 @@ class QualityBudget(_Model):
     budget_mb: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 
 
-Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget]
+class QualityLevel(_Model):
+    """Every visible block at store level `level` (0 = full resolution, each level halves the resolution along
+    each axis), with its predicted ΔE: the bound any selection of about that reduction starts from
+    (docs/lod.md: What 30:1 can reach). A level the store does not have is refused when it renders."""
+
+    level: Annotated[int, Field(ge=0, le=15, strict=True)]
+
+
+Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget, QualityLevel]
 
 
 class Sampling(_Model):
@@ -238,7 +246,10 @@ class Sampling(_Model):
     `adaptive_screen`: adaptive screen-space sampling (thesis §3.6.3): tiles of `screen_tile`² pixels rendered at
     2×2 up to full resolution, chosen by `screen_statistic` ("max", "average" or "rms") of the block scales along
     their rays, and reconstructed by intertile interpolation; at level 0 everywhere every tile is at full
-    resolution and the image equals the plain render."""
+    resolution and the image equals the plain render.
+    `early_termination`: a ray ends once its opacity reaches it, and what is left of it takes its last colour; for
+    a TF whose colours spread by more than 0.25 in a channel the threshold moves closer to 1 (what is left is
+    (1 − t) · 0.25 / spread), since what the ray leaves unseen may differ from its last colour by that spread."""
 
     step: Annotated[float, Field(gt=0.0, le=1000.0, allow_inf_nan=False)] = 0.5
     interpolation: Literal["nearest_block", "interblock"] | None = None
@@ -348,7 +359,7 @@ def _named_tf(v: Any) -> Any:
 
 class Scene(_Model):
     """What to render: the camera, the image size, the transfer function(s), the quality (`"full"` resolution,
-    `"lossless"` level of detail, `{"reduction": r}` or `{"budget_mb": m}`), sampling, shading, clipping, the
+    `"lossless"` level of detail, `{"reduction": r}`, `{"budget_mb": m}` or `{"level": k}`), sampling, shading, clipping, the
     blend `mode` (`iso` needs `isovalue`), the `background` composited under the image (premultiplied RGBA; a
     transparent one keeps the image's alpha) and the output `format`."""
 

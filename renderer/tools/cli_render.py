@@ -41,10 +41,13 @@ def _floats(name: str, n: int) -> Callable[[str], tuple[float, ...]]:
 
 
 def _quality(text: str) -> Any:
-    """--quality: "full" | "lossless" | "30" or "30:1" (a reduction) | JSON; the scene validates the value."""
+    """--quality: "full" | "lossless" | "30" or "30:1" (a reduction) | "level1" (every visible block at level 1) |
+    JSON; the scene validates the value."""
     t = text.strip()
     if t in ("full", "lossless"):
         return t
+    if t.startswith("level") and t[5:].isdigit():
+        return {"level": int(t[5:])}
     if t.startswith("{"):
         try:
             return json.loads(t)
@@ -53,7 +56,8 @@ def _quality(text: str) -> Any:
     try:
         return {"reduction": float(t[:-2] if t.endswith(":1") else t)}
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected full, lossless, a reduction such as 30 or 30:1, or JSON "
+        raise argparse.ArgumentTypeError(f"{text!r}: expected full, lossless, a reduction such as 30 or 30:1, a level "
+                                         "such as level1, or JSON "
                                          "such as {\"budget_mb\": 64}") from None
 
 
@@ -105,7 +109,8 @@ def add_scene_options(p: argparse.ArgumentParser, *, sweep: bool = False) -> Non
     p.add_argument("--fov", type=float, help="vertical field of view in degrees")
     if not sweep:
         p.add_argument("--quality", type=_quality, help="full, lossless, a data reduction (30 or 30:1: "
-                       "{\"reduction\": 30}) or a quality as JSON ({\"budget_mb\": 64})")
+                       "{\"reduction\": 30}), every visible block at one store level (level1: {\"level\": 1}) or a "
+                       "quality as JSON ({\"budget_mb\": 64})")
         p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
     p.add_argument("--mode", choices=MODES, help="composite (default), mip, minip, average or iso (with --isovalue)")
     p.add_argument("--isovalue", type=float, help="mode iso: the data value of the surface")
