@@ -1,6 +1,6 @@
 """Scaling with the volume's size (issue 44 item 5): volumes of 1, 8 and 32 GiB at one memory and device budget.
 
-    .venv/bin/python benchmarks/bench_scaling.py [--sizes 1,8,32] [--frames 12] [--size 512]
+    .venv/bin/python benchmarks/bench_scaling.py [--sizes 1,8,32] [--frames 12] [--size 512] [--quality budget_mb=256]
         [--json docs/measurements/scaling.json] [--plot docs/images/scaling.png]
 
 Each volume is uint16, made by benchmarks/bench_large_volume.py's `make` (the chest CT tiled and mirrored, each tile
@@ -9,9 +9,11 @@ peak RSS. Shapes (z, y, x): 1 GiB 512 x 1024 x 1024, 8 GiB 1024 x 2048 x 2048, 3
 written to benchmarks/results/large/ (never committed; a rerun measures the renders only: delete them afterwards).
 
 Then per volume, in a fresh process with the page cache dropped first (said so where it could not be), at a brick
-pool of LODCAST_BRICK_CACHE_MB=1024 and a device budget of LODCAST_DEVICE_BUDGET_MB=512, ct-bone, 30:1, the
-size² image:
-- a progressive render: the first stage's wall time from the request, and the final (30:1) image's;
+pool of LODCAST_BRICK_CACHE_MB=1024 and a device budget of LODCAST_DEVICE_BUDGET_MB=512, ct-bone, the size² image,
+at `--quality`: budget_mb=MB (the default, 256: the selection's data stays the same as the volume grows, so the
+warm frame should stay nearly flat) or reduction=R (30: the data grows with the volume, and past the budgets every
+frame reads and packs again):
+- a progressive render: the first stage's wall time from the request, and the final image's (and its reduction);
 - a turntable of `frames` frames 2° apart after it (the warm frame: nothing read, host work and kernel), median ms
   and the median share of it outside the kernel.
 Prints a table, writes JSON and the table beside it (.md) and plots time against volume size (PNG).
@@ -73,14 +75,22 @@ def ensure(gib: int) -> dict | None:
     return json.loads(meta.read_text()) if meta.exists() else None
 
 
-def render_step(store: str, frames: int, size: int) -> None:
+def _quality(text: str) -> dict:
+    """budget_mb=256 or reduction=30 as the scene's quality."""
+    name, _, value = text.partition("=")
+    if name not in ("budget_mb", "reduction") or not value:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected budget_mb=MB or reduction=R")
+    return {name: float(value)}
+
+
+def render_step(store: str, frames: int, size: int, quality: dict) -> None:
     """Runs in the child, page cache dropped by the parent: one JSON line."""
     t0 = time.perf_counter()
     import lodcast
 
     eng = lodcast.Renderer()
     st = lodcast.open_store(store)
-    scene = {"tf": "ct-bone", "width": size, "height": size, "format": "npy", "quality": {"reduction": 30},
+    scene = {"tf": "ct-bone", "width": size, "height": size, "format": "npy", "quality": quality,
              "camera": {"azimuth": 30, "elevation": 15}}
     stages = []
     for r in eng.render_progressive(st, scene):
@@ -97,9 +107,10 @@ def render_step(store: str, frames: int, size: int) -> None:
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| volume | ingest MB/s | ingest peak RSS (MB) | first stage, cold (s) | 30:1 image, cold (s) | "
-             "warm frame (ms, median) | host share of a warm frame | bricks read, warm | renderer peak RSS (MB) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| volume | ingest MB/s | ingest peak RSS (MB) | first stage, cold (s) | final image, cold (s) | "
+             "its reduction | warm frame (ms, median) | host share of a warm frame | bricks read, warm | "
+             "renderer peak RSS (MB) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ing = r.get("ingest") or {}
         w = r["warm"]
@@ -107,12 +118,12 @@ def table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['gib']} GiB {'x'.join(map(str, r['shape']))} | {ing.get('mb_per_s', float('nan')):.0f} | "
             f"{ing.get('peak_rss_mb', float('nan')):.0f} | {r['stages'][0]['s']:.1f} | {r['stages'][-1]['s']:.1f} | "
-            f"{np.median([f['ms'] for f in w]):.0f} | {host:.0%} | {sum(f['bricks_read'] for f in w)} | "
+            f"{r['stages'][-1]['reduction']:.0f}:1 | {np.median([f['ms'] for f in w]):.0f} | {host:.0%} | {sum(f['bricks_read'] for f in w)} | "
             f"{r['peak_rss_mb']:.0f} |")
     return "\n".join(lines)
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(rows: list[dict], path: Path, quality: dict) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -121,12 +132,13 @@ def plot(rows: list[dict], path: Path) -> None:
     gib = [r["gib"] for r in rows]
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))
     ax[0].plot(gib, [r["stages"][0]["s"] for r in rows], "o-", label="first progressive stage")
-    ax[0].plot(gib, [r["stages"][-1]["s"] for r in rows], "s-", label="30:1 image")
+    ax[0].plot(gib, [r["stages"][-1]["s"] for r in rows], "s-", label="final image")
     ax[0].set(xscale="log", yscale="log", xlabel="volume (GiB)", ylabel="seconds from request, page cache dropped",
               title="cold")
     ax[1].plot(gib, [np.median([f["ms"] for f in r["warm"]]) for r in rows], "o-", label="frame")
     ax[1].plot(gib, [np.median([f["kernel_ms"] for f in r["warm"]]) for r in rows], "s--", label="kernel")
-    ax[1].set(xscale="log", xlabel="volume (GiB)", ylabel="ms", title="warm new view, 30:1", ylim=(0, None))
+    what = ", ".join(f"{k} {v:g}" for k, v in quality.items())
+    ax[1].set(xscale="log", xlabel="volume (GiB)", ylabel="ms", title=f"warm new view, {what}", ylim=(0, None))
     for a in ax:
         a.set_xticks(gib, [str(g) for g in gib])
         a.legend(fontsize=8)
@@ -141,6 +153,7 @@ def main() -> None:
     ap.add_argument("--sizes", default="1,8,32")
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--quality", type=_quality, default={"budget_mb": 256.0})
     ap.add_argument("--make-only", action="store_true", help="make and ingest the volumes, render nothing")
     ap.add_argument("--json", type=Path, default=ROOT / "docs" / "measurements" / "scaling.json")
     ap.add_argument("--plot", type=Path, default=ROOT / "docs" / "images" / "scaling.png")
@@ -150,7 +163,7 @@ def main() -> None:
     if a.ingest_step:
         return ingest_step(*a.ingest_step)
     if a.render_step:
-        return render_step(a.render_step, a.frames, a.size)
+        return render_step(a.render_step, a.frames, a.size, a.quality)
     sizes = [int(s) for s in a.sizes.split(",")]
     ingests = {g: ensure(g) for g in sizes}
     if a.make_only:
@@ -158,8 +171,10 @@ def main() -> None:
     rows = []
     for g in sizes:
         dropped = drop_caches()
+        q = ",".join(f"{k}={v:g}" for k, v in a.quality.items())
         p = subprocess.run([sys.executable, __file__, "--render-step", str(_store(g)[1]), "--frames", str(a.frames),
-                            "--size", str(a.size)], capture_output=True, text=True, env={**os.environ, **ENV})
+                            "--size", str(a.size), "--quality", q], capture_output=True, text=True,
+                           env={**os.environ, **ENV})
         if p.returncode:
             raise SystemExit(p.stderr[-3000:])
         row = {"gib": g, "shape": SHAPES[g], "ingest": ingests[g], "page_cache_dropped": dropped,
@@ -169,12 +184,12 @@ def main() -> None:
     cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                 if ln.startswith("model name")), platform.processor())
     res = {"date": time.strftime("%Y-%m-%d"), "nproc": os.cpu_count(), "cpu": cpu, "command": " ".join(sys.argv),
-           "env": ENV, "rows": rows, "table": table(rows)}
+           "env": ENV, "quality": a.quality, "rows": rows, "table": table(rows)}
     print(res["table"])
     a.json.parent.mkdir(parents=True, exist_ok=True)
     a.json.write_text(json.dumps(res, indent=2))
     a.json.with_suffix(".md").write_text(res["table"] + "\n")
-    plot(rows, a.plot)
+    plot(rows, a.plot, a.quality)
     print(f"wrote {a.json} and {a.plot}")
 
 
