@@ -40,6 +40,16 @@ from lodcast.store.store import FORMAT_VERSION  # noqa: E402
 ENGINE_TF = {"points": [{"value": 150, "color": [1.0, 0.8, 0.5], "opacity": 0.0},
                         {"value": 200, "color": [1.0, 0.9, 0.7], "opacity": 0.8},
                         {"value": 255, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
+#: soft tissue as a faint band (α 0.006 per unit) over most of the body, bone opaque behind it: the translucent TF
+#: of issue 45's lossless, level-bound and early-termination benchmarks
+BAND_OVER_BONE = {"points": [
+    {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
+    {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
+    {"value": 200, "color": [0.9, 0.55, 0.45], "opacity": 0.006},
+    {"value": 250, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
+    {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
+    {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
+    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
 QUALITIES = ["lossless", {"reduction": 5}, {"reduction": 10}, {"reduction": 30}, {"reduction": 100}]
 
 
@@ -50,6 +60,11 @@ def store_of(name: str, source: Path, block: int = 16):
         if st.block_size == block and st.format_version == FORMAT_VERSION:  # else re-ingested in today's format
             return st
     return lodcast.ingest(source, dest, block_size=block, overwrite=True)
+
+
+def chest_store(path: Path | None = None):
+    """The chest CT's store: the one at `path` when given, else ingested once under benchmarks/results/."""
+    return lodcast.open_store(path) if path else store_of("ct_chest", DATA / "ct_chest_dicom")
 
 
 def best(eng, store, scene: dict, repeat: int, levels=None):

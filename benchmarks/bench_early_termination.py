@@ -22,30 +22,22 @@ import math
 import os
 import platform
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-import lodcast
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_consistent_lod import BAND_OVER_BONE, chest_store  # noqa: E402
+
 from lodcast.renderer.frame.render import Renderer
 from lodcast.renderer.image.delta_e import delta_e_stats
 from lodcast.renderer.kernel import params
 from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.scene.transfer_function import CT_PRESETS
 
-BAND = {"points": [
-    {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
-    {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
-    {"value": 200, "color": [0.9, 0.55, 0.45], "opacity": 0.006},
-    {"value": 250, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
-    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
 TFS = {"ct-bone": CT_PRESETS["ct-bone"], "ct-skin": CT_PRESETS["ct-skin"], "ct-skin-bone": CT_PRESETS["ct-skin-bone"],
-       "ct-body": CT_PRESETS["ct-body"], "band+bone": BAND}
+       "ct-body": CT_PRESETS["ct-body"], "band+bone": BAND_OVER_BONE}
 VIEWS = ((30, 15), (200, -20))
-DATA = Path(os.environ.get("LODCAST_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
 LIT = {"ambient": 0.3, "diffuse": 0.7, "specular": 0.2, "shininess": 32, "light": "headlight"}
@@ -67,59 +59,58 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--pairs", type=int, default=20)
-    ap.add_argument("--store", type=Path, default=None, help="the chest CT's store (ingested here when left out)")
+    ap.add_argument("--store", type=Path, default=None, help="the chest CT's store (left out: ingested once under benchmarks/results/)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     rule = params.ET_SPREAD
     errors, costs = [], []
     rng = np.random.default_rng(0)
-    with tempfile.TemporaryDirectory() as tmp:
-        store = lodcast.open_store(a.store) if a.store else lodcast.ingest(DATA / "ct_chest_dicom", Path(tmp) / "ct.zarr", progress=False)
-        eng = Renderer()
-        for name, tf, sh in [(n, t, None) for n, t in TFS.items()] + [("ct-bone lit", TFS["ct-bone"], LIT)]:
-            for view in VIEWS:
-                off = eng.render(store, _scene(tf, view, a.size, 1.0, shading=sh))
-                row: dict = {"tf": name, "view": list(view)}
-                for label, t, spread in (("0.99 as given", 0.99, math.inf), ("0.99 default", 0.99, rule),
-                                         ("0.999 as given", 0.999, math.inf)):
-                    params.ET_SPREAD = spread
-                    r = eng.render(store, _scene(tf, view, a.size, t, shading=sh))
-                    de = delta_e_stats(r.rgba, off.rgba)
-                    row[label] = {"mean": round(de["mean"], 4), "p95": round(de["p95"], 3),
-                                  "samples": round(r.report["samples"] / off.report["samples"], 4)}
-                params.ET_SPREAD = rule
-                print(json.dumps(row), flush=True)
-                errors.append(row)
-        for label, quality, sh in (("ct-bone full", "full", None), ("ct-bone 30:1", {"reduction": 30}, None),
-                                   ("ct-bone lit full", "full", LIT)):
-            tf = TFS["ct-bone"]
-            sc = _scene(tf, VIEWS[0], a.size, 0.99, quality, sh)
-
-            def timed(spread: float) -> dict:
+    store = chest_store(a.store)
+    eng = Renderer()
+    for name, tf, sh in [(n, t, None) for n, t in TFS.items()] + [("ct-bone lit", TFS["ct-bone"], LIT)]:
+        for view in VIEWS:
+            off = eng.render(store, _scene(tf, view, a.size, 1.0, shading=sh))
+            row: dict = {"tf": name, "view": list(view)}
+            for label, t, spread in (("0.99 as given", 0.99, math.inf), ("0.99 default", 0.99, rule),
+                                     ("0.999 as given", 0.999, math.inf)):
                 params.ET_SPREAD = spread
-                try:
-                    return eng.render(store, sc).report
-                finally:
-                    params.ET_SPREAD = rule
-
-            timed(math.inf), timed(rule)  # warm: kernels built, bricks read
-            k, w = [], []
-            for i in range(a.pairs):
-                if i % 2 == 0:
-                    ro, rn = timed(math.inf), timed(rule)
-                else:
-                    rn, ro = timed(rule), timed(math.inf)
-                k.append(rn["kernel_ms"] / ro["kernel_ms"])
-                w.append(rn["wall_ms"] / ro["wall_ms"])
-            kc, wc = _ci(np.array(k), rng), _ci(np.array(w), rng)
-            params.ET_SPREAD = math.inf
-            as_given = params.early_stop(Scene.parse(sc))
+                r = eng.render(store, _scene(tf, view, a.size, t, shading=sh))
+                de = delta_e_stats(r.rgba, off.rgba)
+                row[label] = {"mean": round(de["mean"], 4), "p95": round(de["p95"], 3),
+                              "samples": round(r.report["samples"] / off.report["samples"], 4)}
             params.ET_SPREAD = rule
-            row = {"scene": label, "pairs": a.pairs, "threshold": [as_given, params.early_stop(Scene.parse(sc))],
-                   "kernel_ratio": [round(v, 4) for v in kc], "wall_ratio": [round(v, 4) for v in wc]}
             print(json.dumps(row), flush=True)
-            costs.append(row)
-        eng.close()
+            errors.append(row)
+    for label, quality, sh in (("ct-bone full", "full", None), ("ct-bone 30:1", {"reduction": 30}, None),
+                               ("ct-bone lit full", "full", LIT)):
+        tf = TFS["ct-bone"]
+        sc = _scene(tf, VIEWS[0], a.size, 0.99, quality, sh)
+
+        def timed(spread: float) -> dict:
+            params.ET_SPREAD = spread
+            try:
+                return eng.render(store, sc).report
+            finally:
+                params.ET_SPREAD = rule
+
+        timed(math.inf), timed(rule)  # warm: kernels built, bricks read
+        k, w = [], []
+        for i in range(a.pairs):
+            if i % 2 == 0:
+                ro, rn = timed(math.inf), timed(rule)
+            else:
+                rn, ro = timed(rule), timed(math.inf)
+            k.append(rn["kernel_ms"] / ro["kernel_ms"])
+            w.append(rn["wall_ms"] / ro["wall_ms"])
+        kc, wc = _ci(np.array(k), rng), _ci(np.array(w), rng)
+        params.ET_SPREAD = math.inf
+        as_given = params.early_stop(Scene.parse(sc))
+        params.ET_SPREAD = rule
+        row = {"scene": label, "pairs": a.pairs, "threshold": [as_given, params.early_stop(Scene.parse(sc))],
+               "kernel_ratio": [round(v, 4) for v in kc], "wall_ratio": [round(v, 4) for v in wc]}
+        print(json.dumps(row), flush=True)
+        costs.append(row)
+    eng.close()
     if a.json:
         out = {"date": datetime.date.today().isoformat(),
                "machine": f"{platform.node()} ({os.cpu_count()} CPUs, {platform.machine()})",

@@ -12,51 +12,42 @@ import json
 import os
 import platform
 import sys
-import tempfile
 from pathlib import Path
 
-import lodcast
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_consistent_lod import BAND_OVER_BONE, chest_store  # noqa: E402
+
 from lodcast.renderer.frame.render import Renderer
 from lodcast.renderer.image.delta_e import delta_e_stats
 from lodcast.renderer.scene.transfer_function import CT_PRESETS
 
-BAND = {"points": [
-    {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
-    {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
-    {"value": 200, "color": [0.9, 0.55, 0.45], "opacity": 0.006},
-    {"value": 250, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
-    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
 TFS = {"ct-bone": CT_PRESETS["ct-bone"], "ct-skin": CT_PRESETS["ct-skin"], "ct-skin-bone": CT_PRESETS["ct-skin-bone"],
-       "band+bone": BAND}
-DATA = Path(os.environ.get("LODCAST_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+       "band+bone": BAND_OVER_BONE}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--store", type=Path, default=None, help="the chest CT's store (ingested here when left out)")
+    ap.add_argument("--store", type=Path, default=None, help="the chest CT's store (left out: ingested once under benchmarks/results/)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        store = lodcast.open_store(a.store) if a.store else lodcast.ingest(DATA / "ct_chest_dicom", Path(tmp) / "ct.zarr", progress=False)
-        eng = Renderer()
-        for name, tf in TFS.items():
-            sc = {"camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "width": a.size, "height": a.size,
-                  "tf": tf, "format": "npy"}
-            ref = eng.render(store, {**sc, "sampling": {"step": 0.25}})
-            row: dict = {"tf": name}
-            for label, q in (("level1", {"level": 1}), ("30:1", {"reduction": 30})):
-                r = eng.render(store, {**sc, "quality": q})
-                row[label] = {"reduction": round(r.report["reduction"], 2),
-                              "predicted": round(r.report["predicted_delta_e"], 3),
-                              "measured": round(delta_e_stats(r.rgba, ref.rgba)["mean"], 3)}
-            row["30:1 / bound"] = round(row["30:1"]["measured"] / row["level1"]["measured"], 3)
-            print(json.dumps(row), flush=True)
-            rows.append(row)
-        eng.close()
+    store = chest_store(a.store)
+    eng = Renderer()
+    for name, tf in TFS.items():
+        sc = {"camera": {"azimuth": 30, "elevation": 15, "distance": 1.9}, "width": a.size, "height": a.size,
+              "tf": tf, "format": "npy"}
+        ref = eng.render(store, {**sc, "sampling": {"step": 0.25}})
+        row: dict = {"tf": name}
+        for label, q in (("level1", {"level": 1}), ("30:1", {"reduction": 30})):
+            r = eng.render(store, {**sc, "quality": q})
+            row[label] = {"reduction": round(r.report["reduction"], 2),
+                          "predicted": round(r.report["predicted_delta_e"], 3),
+                          "measured": round(delta_e_stats(r.rgba, ref.rgba)["mean"], 3)}
+        row["30:1 / bound"] = round(row["30:1"]["measured"] / row["level1"]["measured"], 3)
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    eng.close()
     if a.json:
         out = {"date": datetime.date.today().isoformat(),
                "machine": f"{platform.node()} ({os.cpu_count()} CPUs, {platform.machine()})",

@@ -16,57 +16,48 @@ import os
 import platform
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-import lodcast
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_consistent_lod import BAND_OVER_BONE, chest_store  # noqa: E402
+
 from lodcast.renderer.frame.render import Renderer
 from lodcast.renderer.image.delta_e import delta_e_image
 from lodcast.renderer.scene.transfer_function import CT_PRESETS
 
-BAND = {"points": [
-    {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
-    {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
-    {"value": 200, "color": [0.9, 0.55, 0.45], "opacity": 0.006},
-    {"value": 250, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
-    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
-TFS = {"bone": CT_PRESETS["ct-bone"], "soft": CT_PRESETS["ct-body"], "band+bone": BAND,
+TFS = {"bone": CT_PRESETS["ct-bone"], "soft": CT_PRESETS["ct-body"], "band+bone": BAND_OVER_BONE,
        "skin+bone": CT_PRESETS["ct-skin-bone"], "skin": CT_PRESETS["ct-skin"]}
 VIEWS = ((30, 15), (200, -20))
-DATA = Path(os.environ.get("LODCAST_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--store", type=Path, default=None, help="the chest CT's store (ingested here when left out)")
+    ap.add_argument("--store", type=Path, default=None, help="the chest CT's store (left out: ingested once under benchmarks/results/)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        store = lodcast.open_store(a.store) if a.store else lodcast.ingest(DATA / "ct_chest_dicom", Path(tmp) / "ct.zarr", progress=False)
-        eng = Renderer()
-        rows = []
-        for az, el in VIEWS:
-            for name, tf in TFS.items():
-                sc = {"camera": {"azimuth": az, "elevation": el, "distance": 1.9}, "width": a.size, "height": a.size,
-                      "tf": tf, "format": "npy", "sampling": {"step": 0.5}}
-                full = eng.render(store, sc)
-                for q in ("lossless", {"reduction": 10}):
-                    r = eng.render(store, {**sc, "quality": q})
-                    de, fp = delta_e_image(r.rgba, full.rgba)
-                    v = de[fp]
-                    row = {"tf": name, "view": [az, el], "quality": q if isinstance(q, str) else "10:1",
-                           "reduction": round(r.report["reduction"], 2),
-                           "predicted": round(r.report["predicted_delta_e"], 3),
-                           "mean": round(float(v.mean()), 3), "p99.9": round(float(np.percentile(v, 99.9)), 2),
-                           "max": round(float(v.max()), 2)}
-                    print(json.dumps(row), flush=True)
-                    rows.append(row)
-        eng.close()
+    store = chest_store(a.store)
+    eng = Renderer()
+    rows = []
+    for az, el in VIEWS:
+        for name, tf in TFS.items():
+            sc = {"camera": {"azimuth": az, "elevation": el, "distance": 1.9}, "width": a.size, "height": a.size,
+                  "tf": tf, "format": "npy", "sampling": {"step": 0.5}}
+            full = eng.render(store, sc)
+            for q in ("lossless", {"reduction": 10}):
+                r = eng.render(store, {**sc, "quality": q})
+                de, fp = delta_e_image(r.rgba, full.rgba)
+                v = de[fp]
+                row = {"tf": name, "view": [az, el], "quality": q if isinstance(q, str) else "10:1",
+                       "reduction": round(r.report["reduction"], 2),
+                       "predicted": round(r.report["predicted_delta_e"], 3),
+                       "mean": round(float(v.mean()), 3), "p99.9": round(float(np.percentile(v, 99.9)), 2),
+                       "max": round(float(v.max()), 2)}
+                print(json.dumps(row), flush=True)
+                rows.append(row)
+    eng.close()
     if a.json:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent).stdout.strip()
