@@ -40,8 +40,7 @@ import zarr
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from phantoms import dicom_dataset  # noqa: E402
-from pydicom.uid import EnhancedCTImageStorage  # noqa: E402
+from phantoms import multiframe  # noqa: E402
 
 from lodcast.service.testing import free_port, make_volume, running, start_serve, tiny_scene  # noqa: E402
 
@@ -63,19 +62,6 @@ def ome_tiff(path: Path, other: str) -> None:
            f'<UUID FileName="{path.name}">urn:uuid:0000-own</UUID></TiffData><TiffData FirstZ="2" IFD="0" '
            f'PlaneCount="2"><UUID FileName="{other}">urn:uuid:0000-other</UUID></TiffData></Pixels></Image></OME>')
     tifffile.imwrite(path, np.zeros((2, 8, 8), np.uint8), description=xml, metadata=None)
-
-
-def multiframe(path: Path, frames: int, syntax: str | None) -> None:
-    """One 64x64 frame of pixel data under a header declaring `frames` frames."""
-    ds = dicom_dataset(EnhancedCTImageStorage)
-    ds.NumberOfFrames, ds.Rows, ds.Columns = 1, 64, 64
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    ds.PixelData = np.arange(64 * 64, dtype=np.uint16).tobytes()
-    if syntax is not None:
-        ds.compress(syntax)
-    ds.NumberOfFrames = frames
-    ds.save_as(path, enforce_file_format=True)
 
 
 def nrrd_file(path: Path, fields: str, data: bytes, sizes: str = "4 4 2") -> None:

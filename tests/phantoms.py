@@ -29,3 +29,19 @@ def dicom_dataset(sop_class: str) -> Any:
     ds.SOPClassUID, ds.SOPInstanceUID = sop_class, meta.MediaStorageSOPInstanceUID
     ds.Modality = "CT"
     return ds
+
+
+def multiframe(path: Any, frames: int, syntax: str | None = None) -> None:
+    """A multi-frame DICOM holding one 64x64 frame of pixel data whose header declares `frames` frames (`syntax`: a
+    transfer syntax to compress that frame with, else native)."""
+    from pydicom.uid import EnhancedCTImageStorage
+
+    ds = dicom_dataset(EnhancedCTImageStorage)
+    ds.NumberOfFrames, ds.Rows, ds.Columns = 1, 64, 64
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds.PixelData = np.arange(64 * 64, dtype=np.uint16).tobytes()
+    if syntax is not None:
+        ds.compress(syntax)
+    ds.NumberOfFrames = frames
+    ds.save_as(path, enforce_file_format=True)

@@ -20,8 +20,7 @@ import numpy as np
 import pytest
 import tifffile
 import zarr
-from phantoms import dicom_dataset
-from pydicom.uid import EnhancedCTImageStorage
+from phantoms import multiframe
 
 from lodcast.errors import SourceError
 from lodcast.store.ingest import FILES_FLOOR, ingest, store_files
@@ -224,19 +223,6 @@ def test_zarr_source_reads_only_its_own_files(tmp_path: Path) -> None:
 
 
 # --- declared quantities bounded from the header ----------------------------------------------------------------
-
-def multiframe(path: Path, frames: int, syntax: str | None = None) -> None:
-    """A multi-frame DICOM holding one 64x64 frame of pixel data whose header declares `frames` frames."""
-    ds = dicom_dataset(EnhancedCTImageStorage)
-    ds.NumberOfFrames, ds.Rows, ds.Columns = 1, 64, 64
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    ds.PixelData = np.arange(64 * 64, dtype=np.uint16).tobytes()
-    if syntax is not None:
-        ds.compress(syntax)
-    ds.NumberOfFrames = frames
-    ds.save_as(path, enforce_file_format=True)
-
 
 @pytest.mark.parametrize("syntax", [None, "1.2.840.10008.1.2.5"], ids=["native", "rle"])
 def test_dicom_declaring_2_31_frames_is_refused_from_its_header(tmp_path: Path, syntax: str | None) -> None:
