@@ -130,7 +130,7 @@ def _preview_scene(scene: Scene, vol: VolumeView, w: int, h: int) -> Scene:
     update: dict = {"quality": "full", "width": w, "height": h}
     for name in ("tf", "tf2"):
         tf = getattr(scene, name)
-        if tf is not None and getattr(tf, "unit_distance", 0.0) is None:
+        if tf is not None and tf.unit_distance is None:
             update[name] = tf.model_copy(update={"unit_distance": unit})
     return scene.model_copy(update=update)
 
