@@ -84,9 +84,11 @@ def _at_least_one(name: str, value: int) -> int:
 
 class Tables:
     """What is computed from a store and transfer functions alone, not from the view, kept for the recent ones: a
-    turntable or a camera sweep computes each once. Stores are held weakly (an entry goes with its store)."""
+    turntable or a camera sweep computes each once. Stores are held weakly (an entry goes with its store).
+    `device`: where the per-block TF errors are computed (level_error.block_zetas; None: with NumPy on the host)."""
 
-    def __init__(self) -> None:
+    def __init__(self, device: Device | None = None) -> None:
+        self.device = device
         self.meta: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()  # store -> BlockMeta
         self.pre: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()  # BlockMeta -> its TF-free part
         self.half_cells: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()  # store -> 8³ ranges
@@ -134,7 +136,7 @@ class Engine:
         self.adaptive_walks = ByteLru(32 << 20, keep_last=True)
         self.parents = ByteLru(64 << 20, keep_last=True)
         self.cells = ByteLru(256 << 20, keep_last=True)
-        self.tables = Tables()
+        self.tables = Tables(self.device)
         self.stores = OpenStores(self.settings.open_stores, self.settings.store_check_s)
         self._last_atlas: dict[tuple, weakref.ref[Any]] = {}
         self._lock = threading.Lock()
@@ -220,5 +222,5 @@ class Engine:
         for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps, self.walks,
                   self.adaptive_walks, self.parents, self.cells):
             c.clear()
-        self.tables = Tables()
+        self.tables = Tables(self.device)
         self.forget_atlases()

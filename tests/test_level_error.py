@@ -143,3 +143,49 @@ def test_a_full_resolution_report_predicts_its_step_error(tmp_path):
     assert np.all(np.diff(measured) > 0) and np.all(np.diff(predicted) > 0), (measured, predicted)
     ratio = np.asarray(measured) / np.asarray(predicted)
     assert np.all((ratio > 1 / 6) & (ratio < 6.0)), (measured, predicted)
+
+
+BAND_TF = {"points": [{"value": 40, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
+                      {"value": 60, "color": [0.9, 0.5, 0.4], "opacity": 0.008},
+                      {"value": 140, "color": [1.0, 0.8, 0.6], "opacity": 0.008},
+                      {"value": 160, "color": [1, 1, 1], "opacity": 0.9},
+                      {"value": 160, "color": [1, 1, 1], "opacity": 0.9}]}
+RAMP_TF = {"points": [{"value": 80, "color": [1, 0.9, 0.8], "opacity": 0.0},
+                      {"value": 200, "color": [1, 1, 1], "opacity": 0.9}]}
+
+
+@pytest.mark.parametrize("classification", ["distribution", "mean"])
+def test_the_device_computes_the_block_errors_as_numpy_does(eng, shared_data, tmp_path, classification):
+    """level_error.block_zetas on the engine's device (zeta.cl) against its NumPy path on a real volume (the engine
+    CT), under a translucent band over an opaque step (a repeated point: a jump) and an opaque ramp, with the
+    worst values too: every block's every output within 1e-3 ΔE units (float32 table lookups both; the selection
+    compares them with 0.5) and 1e-3 relative where it is above 0.1, and the mean opacities to 1e-5."""
+    from lodcast.renderer.engine import Tables
+    from lodcast.renderer.lod.level_error import block_zetas, luv_table
+    from lodcast.renderer.lod.significance import effective_starts
+    from lodcast.renderer.lod.zeta_kernel import device_zetas
+
+    store = lodcast.ingest(shared_data / "engine.nii.gz", tmp_path / "engine.zarr", progress=False)
+    meta = meta_of_store(store)
+    for tf in (BAND_TF, RAMP_TF):
+        vis = tf_visible(tf, meta.min_border, meta.max_border)
+        assert vis.sum() > 100
+        args = (meta, tf, vis, meta.value_range, meta.std_max, classification)
+        ref = block_zetas(*args, Tables(None), worst_values=True)
+        rows = np.flatnonzero(vis & (meta.max_border > meta.min_border))
+        t, luv = luv_table(tf, meta.value_range, meta.std_max)
+        on_device = device_zetas(eng.device, meta, as_tf(tf), rows, effective_starts(meta), t, luv, classification,
+                                 True)
+        got = block_zetas(*args, Tables(eng.device), worst_values=True)  # the engine's way: on its device
+        for r, d, g in zip(ref, on_device, got):
+            assert np.array_equal(g[rows], d) and not np.delete(g, rows, axis=0).any()
+        for name, r, g in zip(("zeta", "step", "opacity", "worst"), ref, got):
+            assert r.shape == g.shape
+            assert np.abs(r).max() > 0, name  # (the comparison below compares something)
+            tol = 1e-5 if name == "opacity" else 1e-3
+            assert np.abs(g - r).max() <= tol, (name, np.abs(g - r).max())
+            big = np.abs(r) > 0.1
+            assert (np.abs(g - r)[big] / np.abs(r)[big]).max() <= 1e-3, name
+        # without the worst values the same errors, and no worst values
+        z, _, _, w = block_zetas(*args, Tables(eng.device))
+        assert np.abs(z - ref[0]).max() <= 1e-3 and not w.any()

@@ -35,6 +35,7 @@ import numpy as np
 from lodcast.renderer.engine import Tables
 from lodcast.renderer.lod.classification import DistTable, cached_dist_table
 from lodcast.renderer.lod.significance import BlockMeta, as_tf, effective_starts, srgb_to_luv
+from lodcast.renderer.lod.zeta_kernel import device_zetas
 
 __all__ = ["block_zetas", "level_zeta", "luv_table", "step_zeta"]
 
@@ -96,7 +97,9 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     0 for invisible and constant blocks (and at level 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
     they share with the TF's opacities there and the values' table positions (apart, the two repeated that work, a
     good part of a first render). The table lookups run in float32: ζ is a colour difference in CIELUV
-    units (0-100) that the selection compares with 0.5."""
+    units (0-100) that the selection compares with 0.5. With `tables` of an engine (its `device` set) the blocks
+    are evaluated there (zeta_kernel.py: the same arithmetic, a work-item per block); this NumPy path is the
+    reference it is tested against."""
     assert classification in ("distribution", "mean")
     n_lv = meta.n_levels
     out, step, worst = np.zeros((meta.n, n_lv)), np.zeros(meta.n), np.zeros((meta.n, n_lv))
@@ -107,8 +110,13 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     assert meta.level_std is not None, "block_zetas needs a store with per-level spreads (format >= 2)"
     tf = as_tf(tf)
     t, luv = luv_table(tf, value_range, std_max, tables)
-    row0 = t.std_axis(0.0)
     starts = effective_starts(meta)
+    if tables is not None and tables.device is not None:
+        got = device_zetas(tables.device, meta, tf, todo, starts, t, luv, classification, worst_values)
+        for a, b in zip((out, step, opac, worst), got):
+            a[todo] = b
+        return out, step, opac, worst
+    row0 = t.std_axis(0.0)
     level_std = meta.level_std
     half_range = np.nan_to_num(0.5 * (meta.max_border - meta.min_border))
 
