@@ -161,16 +161,17 @@ def plan(vol: VolumeView, fr: Frame, step_voxels: float, levels: np.ndarray | No
 
         single = size * vol.n_voxels
     else:
-        lv = np.asarray(levels).astype(np.int64)
+        lv = np.asarray(levels)
         sig = lod_atlas.deviation_bytes(vol.voxel_dtype) if with_std else 0  # deviations: coarse bricks only
         coarse = sig if sig == 4 else size + sig  # 4: the coarse values live beside their deviations alone
         # the total from the blocks per level first: the per-block sizes and their prefix sums below cost a good
-        # part of a large volume's frame, and most renders fit in one pass
-        count = np.bincount(lv.ravel() + 1)[1:]
-        single = sum(int(n) * int(lod_atlas.brick_elements(np.int64(k), B)) * (coarse if k >= 1 else size)
-                     for k, n in enumerate(count.tolist()))
+        # part of a large volume's frame, and most renders fit in one pass (a comparison per level on the small
+        # type: widening the grid for a bincount cost more than the rest of the plan)
+        single = sum(int(np.count_nonzero(lv == k)) * int(lod_atlas.brick_elements(np.int64(k), B))
+                     * (coarse if k >= 1 else size) for k in range(int(lv.max(initial=-1)) + 1))
         if single <= limit:
             return None
+        lv = lv.astype(np.int64)
         per = lod_atlas.brick_elements(lv, B) * np.where(lv >= 1, coarse, size)
         total, r = _box_sum(per), ring_blocks(step_voxels, B, interpolation)
 
