@@ -189,3 +189,26 @@ def test_the_device_computes_the_block_errors_as_numpy_does(eng, shared_data, tm
         # without the worst values the same errors, and no worst values
         z, _, _, w = block_zetas(*args, Tables(eng.device))
         assert np.abs(z - ref[0]).max() <= 1e-3 and not w.any()
+
+
+def test_the_device_keeps_the_block_errors_of_values_far_from_zero(eng, tmp_path):
+    """Values a billion away from zero (int32 in the store): the device takes them relative to the table's first
+    entry, so float32 keeps their place in the value range, and its errors match the NumPy path's as on CT."""
+    from lodcast.renderer.engine import Tables
+    from lodcast.renderer.lod.level_error import block_zetas
+
+    z, y, x = np.mgrid[0:32, 0:32, 0:32]
+    field = 500 + 400 * np.sin(x / 5.0) * np.cos(y / 7.0) + 10 * z
+    store = lodcast.ingest((1_000_000_000 + np.rint(field)).astype(np.int32), tmp_path / "far.zarr", block_size=B,
+                           progress=False)
+    meta = meta_of_store(store)
+    tf = {"points": [{"value": 1_000_000_300, "color": [1, 0.6, 0.4], "opacity": 0.0},
+                     {"value": 1_000_000_500, "color": [1, 1, 1], "opacity": 0.6},
+                     {"value": 1e300, "color": [1, 1, 1], "opacity": 0.6}]}  # (a point beyond float32)
+    vis = tf_visible(tf, meta.min_border, meta.max_border)
+    args = (meta, tf, vis, meta.value_range, meta.std_max)
+    ref = block_zetas(*args, tables=Tables(None), worst_values=True)
+    got = block_zetas(*args, tables=Tables(eng.device), worst_values=True)
+    assert ref[0].max() > 1.0  # (level 1 of this field loses colour: the comparison compares something)
+    for r, g in zip(ref, got):
+        assert np.abs(g - r).max() <= 1e-3 * max(1.0, float(np.abs(r).max()))

@@ -31,11 +31,16 @@ def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: n
     heights = np.ascontiguousarray(np.asarray(meta.heights)[rows], np.float32)
     spread = np.ascontiguousarray(np.asarray(meta.level_std)[rows], np.float32)
     half_range = 0.5 * (np.asarray(meta.max_border)[rows] - np.asarray(meta.min_border)[rows])
-    mean_hr = np.ascontiguousarray(np.stack([np.asarray(meta.mean)[rows], np.nan_to_num(half_range)], axis=1),
+    # values go to the device relative to the table's first entry, in float64 until then: float32 keeps the
+    # position within the value range whatever its offset (data in [1e9, 1e9 + 1000] included)
+    lo = float(t.lo)
+    mean_hr = np.ascontiguousarray(np.stack([np.asarray(meta.mean)[rows] - lo, np.nan_to_num(half_range)], axis=1),
                                    np.float32)
-    pts = np.array([(p.value, p.opacity) for p in tf.points], np.float32)
+    big = float(np.finfo(np.float32).max)
+    pts = np.array([(min(max(p.value - lo, -big), big), p.opacity) for p in tf.points], np.float32)
+    edges = np.asarray(meta.bins.edges, np.float64) - lo
     table = np.ascontiguousarray(luv, np.float32).ravel()
-    ax = np.array([t.lo, t.scale, t.std_scale, 1.0 / (1 << (n_lv - 1))], np.float32)
+    ax = np.array([0.0, t.scale, t.std_scale, 1.0 / (1 << (n_lv - 1))], np.float32)
     sz = np.array([t.n, t.rows, len(pts), m], np.int32)
     opts = [f"-DLC_K={k_pieces}", f"-DLC_L={n_lv}"]
     opts += ["-DLC_MEAN"] if classification == "mean" else []
@@ -53,7 +58,7 @@ def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: n
     d_out, d_worst = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes), cl.Buffer(ctx, mf.WRITE_ONLY, max(worst.nbytes, 4))
     d_step = cl.Buffer(ctx, mf.WRITE_ONLY, step.nbytes)
     kern = cl.Kernel(device.program("zeta.cl", opts).program, "lc_zeta")
-    kern(queue, (m,), None, ax, sz, src(table), src(pts), src(st), src(np.asarray(meta.bins.edges, np.float32)),
+    kern(queue, (m,), None, ax, sz, src(table), src(pts), src(st), src(edges.astype(np.float32)),
          src(heights), src(spread), src(mean_hr), d_out, d_worst, d_step)
     cl.enqueue_copy(queue, out, d_out)
     cl.enqueue_copy(queue, step, d_step)
