@@ -273,6 +273,9 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         reduction = pr.lod.reduction
         pred = None if pr.lod.predicted_delta_e is None else pr.lod.predicted_delta_e + pr.step_delta_e
         quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
+    asked = scene if pr.chosen is None else pr.chosen[0]
+    if pr.chosen is not None:
+        quality = asked.quality if isinstance(asked.quality, str) else asked.quality.model_dump()
     report: RenderReport = {
         "wall_ms": (time.perf_counter() - t_start) * 1e3,
         "kernel_ms": kernel_ms,
@@ -312,8 +315,9 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         "stage": 0,
         "final": True,
         "image_scale": 1.0,
+        "chosen": None if pr.chosen is None else pr.chosen[1].report(asked.quality),
     }
-    return RenderResult(rgba, report, scene.model_dump(mode="json"))
+    return RenderResult(rgba, report, asked.model_dump(mode="json"))
 
 
 class Renderer(Engine):

@@ -1,0 +1,462 @@
+"""Quality asked for as a target (docs/design.md): `{"max_delta_e": x}` renders the fastest setting whose predicted ΔE
+is at most x, `{"max_ms": t}` the setting of the smallest predicted ΔE predicted to take at most t milliseconds.
+
+The candidates: every step of TARGET_STEPS, at full resolution and at every data setting the store offers
+("lossless" and the reductions of TARGET_REDUCTIONS), the level-of-detail ones with nearest-block and interblock
+interpolation, with adaptive screen-space sampling and without. Each one's predicted ΔE against the reference is
+what a render's report predicts (the selection's own, selection.py, plus the step's, step_delta_e), plus what
+adaptive screen-space sampling adds: SCREEN_GAIN × the share of pixels whose rays it leaves out (fitted on the
+chest CT, docs/measurements/quality_target.md). Interpolation moves no prediction (interblock is continuous
+across block faces for about the same mean ΔE): it is chosen only where it would be faster.
+
+Each one's time comes from the engine's cost model of its device (`CostModel`, measured once by `calibrate`
+with probe renders of a small synthetic store on that device, kept on the engine and on disk under the cache
+folder by the device's name) applied to the samples the candidate would take: the full march's samples over
+the view (cost.estimate_samples) times the share the scene's rays really take (empty space skipped, rays
+terminated early: measured once per store and TFs by a small render of the scene), times adaptive object
+sampling's share at the selection's levels; its rays (adaptive screen sampling's plan for the view); and the
+volume data it uploads every frame when the data exceeds the device budget (renders in passes). The selections
+and step errors are kept per store and TFs in the engine (`targets`): a new view costs a few array operations
+per data setting, a new TF one selection each.
+
+The candidates none of whose rivals is both faster and better form the Pareto front (`Choice.front`, which
+`lodcast report` marks); a target's pick is always on it.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import re
+import tempfile
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import numpy as np
+import pyopencl as cl
+
+from lodcast.renderer.data import passes as multipass
+from lodcast.renderer.data.volume import VolumeView
+from lodcast.renderer.engine import Engine
+from lodcast.renderer.frame import screen as screen_space
+from lodcast.renderer.image.report import ChosenReport, ChosenSetting
+from lodcast.renderer.scene import clip as clipping
+from lodcast.renderer.scene import cost
+from lodcast.renderer.scene.scene import QualityMaxDeltaE, QualityMaxMs, Scene, SceneError
+
+__all__ = ["TARGET_STEPS", "TARGET_REDUCTIONS", "SCREEN_GAIN", "CostModel", "Candidate", "Choice",
+           "is_target", "choose", "candidates", "pareto", "cost_model", "calibrate"]
+
+TARGET_STEPS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+TARGET_REDUCTIONS = (5.0, 10.0, 20.0, 30.0, 60.0)
+#: the mean ΔE adaptive screen-space sampling adds per unit share of pixels whose rays it leaves out (fitted on the
+#: chest CT under bone, soft tissue and a translucent band, docs/measurements/quality_target.md)
+SCREEN_GAIN = 6.0
+SCREEN_PROBE_TILES = 64  # the screen-space pre-pass a candidate's rays are predicted from: at most this many tiles
+PROBE_RAYS = 48  # the scene's own probe (the share of the full march its rays take): rays along the longer side
+COST_VERSION = 1  # a cost model on disk of another version is measured again
+
+
+@dataclass(frozen=True)
+class CostModel:
+    """What a render costs on one device: `frame_ms` per render whatever it draws (host work, launch, read-back),
+    `ray_ns` per ray, `sample_ns` per sample by sampler ("full": trilinear level 0; "nearest_block" and
+    "interblock": the atlas), times `shade_factor` with shading, `pixel_ns` per pixel reconstructed by adaptive
+    screen-space sampling and `byte_ns` per byte of volume data uploaded."""
+
+    device: str
+    frame_ms: float
+    ray_ns: float
+    sample_ns: Mapping[str, float]
+    shade_factor: float
+    pixel_ns: float
+    byte_ns: float
+
+    def ms(self, *, samples: float, rays: float, sampler: str, shaded: bool, pixels: float = 0.0,
+           upload_bytes: float = 0.0, host_ms: float = 0.0) -> float:
+        """A render's milliseconds; `host_ms`: its host work measured on the store at hand, where that is more
+        than `frame_ms` (a large volume's walks and selection)."""
+        per = self.sample_ns[sampler] * (self.shade_factor if shaded else 1.0)
+        return max(self.frame_ms, host_ms) + 1e-6 * (rays * self.ray_ns + samples * per + pixels * self.pixel_ns
+                                       + upload_bytes * self.byte_ns)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One setting: `quality` (full, lossless or a reduction), `step`, `interpolation` (None at full),
+    `adaptive_screen`; its data `reduction` and its predictions."""
+
+    quality: Any
+    step: float
+    interpolation: str | None
+    adaptive_screen: bool
+    reduction: float
+    predicted_delta_e: float
+    predicted_ms: float
+
+    def setting(self) -> ChosenSetting:
+        return {"quality": self.quality, "step": self.step, "interpolation": self.interpolation,
+                "adaptive_screen": self.adaptive_screen, "reduction": self.reduction,
+                "predicted_delta_e": self.predicted_delta_e, "predicted_ms": self.predicted_ms}
+
+    def label(self) -> str:
+        q = self.quality if isinstance(self.quality, str) else f"{self.quality['reduction']:g}:1"
+        extra = "" if self.interpolation is None else f" {self.interpolation}"
+        return f"{q} step {self.step:g}{extra}{' adaptive-screen' if self.adaptive_screen else ''}"
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What a target picked: the scene to render (`scene`, the target replaced by the chosen setting), the
+    chosen candidate, the runner-up, why, every candidate and the Pareto front."""
+
+    scene: Scene
+    chosen: Candidate
+    runner_up: Candidate | None
+    why: str
+    candidates: tuple[Candidate, ...]
+    front: tuple[Candidate, ...]
+    choose_ms: float
+
+    def report(self, target: Any) -> ChosenReport:
+        return {"target": target.model_dump(), "setting": self.chosen.setting(),
+                "runner_up": None if self.runner_up is None else self.runner_up.setting(), "why": self.why,
+                "candidates": len(self.candidates), "front": len(self.front), "choose_ms": self.choose_ms}
+
+
+def is_target(quality: Any) -> bool:
+    return isinstance(quality, (QualityMaxDeltaE, QualityMaxMs))
+
+
+# ------------------------------------------------------------------------------------------------- data settings
+@dataclass(frozen=True)
+class _Data:
+    """A data setting of one store under one set of TFs: its quality, reduction, predicted ΔE (the selection's
+    own), adaptive object sampling's share of a fixed-step march's samples, bytes on the device and levels."""
+
+    quality: Any
+    reduction: float
+    delta_e: float
+    sample_share: float
+    device_bytes: int
+    levels: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class _Table:
+    data: tuple[_Data, ...]
+    step_delta_e: Mapping[float, float]
+
+
+def _key(vol: VolumeView, scene: Scene, keep: np.ndarray | None, *extra: Any) -> tuple:
+    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
+    return (vol.key, json.dumps([t.model_dump(mode="json") for t in tfs], sort_keys=True), scene.mode,
+            scene.sampling.classification, None if keep is None else hashlib.sha1(np.packbits(keep).tobytes()).hexdigest(),
+            *extra)
+
+
+def _table(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> _Table:
+    """The data settings and step errors of `scene`'s store and TFs (kept in the engine: a new view needs none
+    of them again)."""
+    key = _key(vol, scene, keep, eng.settings.lossless_zeta)
+    hit = eng.targets.get(key)
+    if hit is not None:
+        return hit
+    from lodcast.renderer.lod.selection import select_lod, step_delta_e
+    from lodcast.renderer.lod.significance import meta_of_store
+
+    tfs = [scene.tf] + ([scene.tf2] if scene.tf2 is not None else [])
+    meta = meta_of_store(vol.source, eng.tables)
+    count = np.nan_to_num(meta.count.astype(np.float64))
+    B = int(vol.block_size)
+    classification = scene.sampling.classification if scene.mode == "composite" else "mean"
+    per_voxel = 8 if classification == "distribution" and vol.has_distribution and scene.mode == "composite" else 4
+    data = [_Data("full", 1.0, 0.0, 1.0, vol.n_voxels * vol.voxel_dtype.itemsize, None)]
+    for q in ["lossless", *({"reduction": r} for r in TARGET_REDUCTIONS)]:
+        try:
+            sel = select_lod(vol.source, tfs, q, crop=keep, classification=classification,
+                             lossless_zeta=eng.settings.lossless_zeta, tables=eng.tables)
+        except SceneError:
+            continue  # a budget below what every visible block needs at its coarsest level
+        lv = sel.levels.ravel().astype(np.int64)
+        loaded = lv >= 0
+        if not loaded.any() or not math.isfinite(sel.reduction):
+            continue
+        # adaptive steps: step · 2^(k+1) in a level-k block, k ≥ 1 (atlas.step_levels), at most step · B
+        s = np.minimum(np.where(lv > 0, lv + 1, 0), B.bit_length() - 1)[loaded]
+        w = count[loaded]
+        share = float((w * 0.5 ** s).sum() / max(w.sum(), 1.0))
+        data.append(_Data(q, float(sel.reduction), float(sel.predicted_delta_e), share,
+                          sel.bytes * per_voxel // 4, sel.levels))
+    steps = {h: (step_delta_e(meta, tfs, h, keep, eng.tables) if scene.mode == "composite" else 0.0)
+             for h in TARGET_STEPS}
+    table = _Table(tuple(data), steps)
+    eng.targets.put(key, table, 1)
+    return table
+
+
+@dataclass(frozen=True)
+class _Live:
+    """What small renders of the scene measured on this store: the share of a full march's samples its rays take
+    (empty space skipped, rays ended by early termination), its host milliseconds (selection, walks, launch,
+    read-back), nanoseconds per ray (the walk over the volume's cells: on a large volume a good part of a ray's
+    cost, whatever the step) and per sample, and the sampler that took them."""
+
+    share: float
+    host_ms: float
+    ray_ns: float
+    sample_ns: float
+    sampler: str
+
+
+def _live(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None, fits: bool) -> _Live:
+    """What renders of the scene PROBE_RAYS rays across measure (`_Live`: the faster of two, warm, at steps 0.5
+    and 2), at full resolution where that fits the device (else at level 1); kept per store and TFs."""
+    key = _key(vol, scene, keep, "live", fits, scene.sampling.early_termination,
+               scene.sampling.empty_space_skipping, scene.shading is None)
+    hit = eng.targets.get(key)
+    if hit is not None:
+        return hit
+    render = _renders(eng)
+    n = PROBE_RAYS
+    w, h = (n, max(1, round(n * scene.height / scene.width))) if scene.width >= scene.height else \
+        (max(1, round(n * scene.width / scene.height)), n)
+
+    def probe(step: float) -> Any:
+        sampling = scene.sampling.model_copy(update={"step": step, "adaptive_screen": False, "adaptive_object": False,
+                                                     "interpolation": None})
+        sc = Scene.model_validate({**scene.model_dump(), "quality": "full" if fits else {"level": 1}, "width": w,
+                                   "height": h, "sampling": sampling.model_dump(), "format": "npy"})
+        render(vol, sc)
+        return min((render(vol, sc).report for _ in range(2)), key=lambda r: r["kernel_ms"])
+
+    fine, coarse = probe(0.5), probe(2.0)
+    ds = fine["samples"] - coarse["samples"]
+    sample_ns = (fine["kernel_ms"] - coarse["kernel_ms"]) * 1e6 / ds if ds > 0 else 0.0
+    if sample_ns <= 0.0:  # too noisy to part: all of it per sample
+        sample_ns = fine["kernel_ms"] * 1e6 / max(fine["samples"], 1)
+    ray_ns = max((fine["kernel_ms"] * 1e6 - sample_ns * fine["samples"]) / (w * h), 0.0)
+    out = _Live(min(1.0, fine["samples"] / max(fine["estimated_samples"], 1)),
+                max(fine["wall_ms"] - fine["kernel_ms"], 0.0), ray_ns, sample_ns, "full" if fits else "nearest_block")
+    eng.targets.put(key, out, 1)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- choosing
+def candidates(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | None = None) -> list[Candidate]:
+    """Every candidate setting of `scene` (resolved on `vol`: renderer/frame/prepare.py `resolved`) with its
+    predictions on `eng`'s device."""
+    from lodcast.renderer.frame import prepare as preparing
+
+    if not vol.has_levels:
+        raise SceneError(f"quality: a target ({scene.quality!r}) needs a lodcast store (an array has "
+                         "no error tables to predict from)")
+    model = cost_model(eng)
+    _, fr, kbox, _ = preparing.geometry(vol, scene)
+    keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
+    table = _table(eng, vol, scene, keep)
+    limit_bytes, _ = multipass.volume_limit(eng)
+    live = _live(eng, vol, scene, keep, table.data[0].device_bytes <= limit_bytes)
+    shaded = scene.shading is not None and scene.mode in ("composite", "iso")
+    # the device's model is of a small volume; on this store a ray's walk and a sample may cost more (caches,
+    # memory), as the probes measured: the samplers keep the device's ratios, scaled to the probe's
+    probe_ns = model.sample_ns[live.sampler] * (model.shade_factor if shaded else 1.0)
+    model = replace(model, ray_ns=max(model.ray_ns, live.ray_ns),
+                    sample_ns={k: v * live.sample_ns / probe_ns for k, v in model.sample_ns.items()})
+    W, H = scene.width, scene.height
+    march1 = cost.estimate_samples(fr, kbox, W, H, float(min(vol.spacing)))  # the full march at step 1
+    max_samples = eng.settings.max_samples if sample_limit is None else sample_limit
+    out: list[Candidate] = []
+    for d in table.data:
+        upload = d.device_bytes if d.device_bytes > limit_bytes else 0  # in passes: uploaded every frame
+        screens: list[tuple[bool, float]] = [(False, float(W * H))]
+        if d.levels is not None and scene.tf2 is None:  # at full every tile is at full resolution
+            screens.append((True, _screen_rays(fr, vol, d.levels, scene)))
+        for step in TARGET_STEPS:
+            if march1 / step > max_samples:
+                continue
+            samples = march1 / step * live.share * d.sample_share
+            for interp in (None,) if d.levels is None else ("nearest_block", "interblock"):
+                for screen, rays in screens:
+                    share = rays / (W * H)
+                    de = d.delta_e + table.step_delta_e[step] + (SCREEN_GAIN * (1.0 - share) if screen else 0.0)
+                    ms = model.ms(samples=samples * share, rays=rays, sampler=interp or "full", shaded=shaded,
+                                  pixels=W * H if screen else 0.0, upload_bytes=upload, host_ms=live.host_ms)
+                    out.append(Candidate(d.quality, step, interp, screen, d.reduction, de, ms))
+    return out
+
+
+def _screen_rays(fr: Any, vol: VolumeView, levels: np.ndarray, scene: Scene) -> float:
+    """The rays adaptive screen-space sampling would cast at `levels`: its pre-pass (screen.tile_priorities) on
+    tiles grown by a power of two to at most SCREEN_PROBE_TILES of them (the pre-pass costs per tile), each
+    grown tile's resolution standing for the tiles it covers."""
+    s = scene.sampling
+    W, H = scene.width, scene.height
+    grow = 1
+    while -(-W // (s.screen_tile * grow)) * -(-H // (s.screen_tile * grow)) > SCREEN_PROBE_TILES:
+        grow *= 2
+    pri = screen_space.tile_priorities(fr, levels, levels >= 0, vol.shape, vol.spacing, vol.origin, vol.block_size,
+                                       W, H, s.screen_tile * grow, s.screen_statistic)
+    share = (screen_space.resolutions(pri, s.screen_tile).astype(np.float64) / s.screen_tile) ** 2
+    return float(min(share.mean(), 1.0) * W * H)
+
+
+def pareto(cands: list[Candidate]) -> list[Candidate]:
+    """The candidates no other is both at least as fast and at least as good as, and better in one, fastest
+    first."""
+    front: list[Candidate] = []
+    best = math.inf
+    for c in sorted(cands, key=lambda c: (c.predicted_ms, c.predicted_delta_e)):
+        if c.predicted_delta_e < best:
+            front.append(c)
+            best = c.predicted_delta_e
+    return front
+
+
+def choose(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | None = None) -> Choice:
+    """The setting `scene`'s target (its quality, a QualityMaxDeltaE or QualityMaxMs) picks on `vol` (scene
+    resolved on it), and the scene with the target replaced by it."""
+    t0 = time.perf_counter()
+    q = scene.quality
+    cands = candidates(eng, vol, scene, sample_limit)
+    if not cands:
+        raise SceneError("quality: no candidate setting fits the sample limit (LODCAST_MAX_SAMPLES) at this image "
+                         "size; use fewer pixels (width x height)")
+    if isinstance(q, QualityMaxDeltaE):
+        ok = sorted((c for c in cands if c.predicted_delta_e <= q.max_delta_e),
+                    key=lambda c: (c.predicted_ms, c.predicted_delta_e))
+        if ok:
+            why = (f"the fastest of the {len(ok)} of {len(cands)} candidates predicted within ΔE "
+                   f"{q.max_delta_e:g}")
+        else:
+            ok = sorted(cands, key=lambda c: (c.predicted_delta_e, c.predicted_ms))
+            why = (f"no candidate is predicted within ΔE {q.max_delta_e:g}: the one of the smallest predicted ΔE "
+                   f"of {len(cands)}")
+    else:
+        assert isinstance(q, QualityMaxMs)
+        ok = sorted((c for c in cands if c.predicted_ms <= q.max_ms), key=lambda c: (c.predicted_delta_e, c.predicted_ms))
+        if ok:
+            why = f"the smallest predicted ΔE of the {len(ok)} of {len(cands)} candidates predicted within {q.max_ms:g} ms"
+        else:
+            ok = sorted(cands, key=lambda c: (c.predicted_ms, c.predicted_delta_e))
+            why = f"no candidate is predicted within {q.max_ms:g} ms: the fastest of {len(cands)}"
+    chosen, runner = ok[0], (ok[1] if len(ok) > 1 else None)
+    if runner is not None:
+        why += (f"; the runner-up, {runner.label()}, is predicted at ΔE {runner.predicted_delta_e:.3g} in "
+                f"{runner.predicted_ms:.3g} ms against ΔE {chosen.predicted_delta_e:.3g} in "
+                f"{chosen.predicted_ms:.3g} ms")
+    sampling = scene.sampling.model_copy(update={
+        "step": chosen.step, "interpolation": chosen.interpolation, "adaptive_screen": chosen.adaptive_screen,
+        # the selections were predicted without the view's weight; a view-weighted one would select again each view
+        "lod_visibility": scene.sampling.lod_visibility if scene.sampling.lod_visibility is not None else False})
+    picked = Scene.model_validate({**scene.model_dump(), "quality": chosen.quality,
+                                   "sampling": sampling.model_dump()})
+    return Choice(picked, chosen, runner, why, tuple(cands), tuple(pareto(cands)),
+                  (time.perf_counter() - t0) * 1e3)
+
+
+# ------------------------------------------------------------------------------------------------- the cost model
+def cost_model(eng: Engine) -> CostModel:
+    """The engine's cost model of its device: the one set on it (`eng.cost_model`), else the one kept on disk for
+    this device, else measured now (`calibrate`) and kept in both places."""
+    if eng.cost_model is not None:
+        return eng.cost_model
+    with eng.target_lock:
+        if eng.cost_model is None:
+            name = str(eng.device.info()["name"])
+            path = eng.cost_dir / f"{re.sub(r'[^A-Za-z0-9._-]+', '_', name)[:100]}-v{COST_VERSION}.json"
+            model = None
+            with contextlib.suppress(OSError, ValueError, TypeError, KeyError):
+                model = CostModel(**json.loads(path.read_text()))
+            if model is None or model.device != name:
+                model = calibrate(eng)
+                with contextlib.suppress(OSError):
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_suffix(".tmp")
+                    tmp.write_text(json.dumps(asdict(model) | {"sample_ns": dict(model.sample_ns)}))
+                    tmp.replace(path)
+            eng.cost_model = model
+        return eng.cost_model
+
+
+def _probe_volume(n: int = 96) -> np.ndarray:
+    """A ball with a ramp and a shell inside, empty corners: every sampler's work, some space to skip."""
+    z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(np.float32)
+    r = np.sqrt((x - n / 2) ** 2 + (y - n / 2) ** 2 + (z - n / 2) ** 2) / (n / 2)
+    return np.where(r < 0.85, 0.2 + 0.5 * x / n + 0.3 * (np.abs(r - 0.6) < 0.05), 0.0).astype(np.float32)
+
+
+@contextlib.contextmanager
+def _probe_store() -> Iterator[Any]:
+    from lodcast.store.ingest import ingest
+
+    with tempfile.TemporaryDirectory(prefix="lodcast-cost-") as d:
+        yield ingest(_probe_volume(), Path(d) / "probe.zarr", block_size=16, progress=False)
+
+
+def calibrate(eng: Engine, repeat: int = 3) -> CostModel:
+    """Measure `eng`'s device: probe renders of a small synthetic store (a second or a few, plus the kernels'
+    first builds), each the fastest of `repeat` after a warm-up."""
+    render = _renders(eng)
+    tf = {"points": [{"value": 0.15, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
+                     {"value": 0.5, "color": [1.0, 0.9, 0.8], "opacity": 0.05},
+                     {"value": 0.9, "color": [1.0, 1.0, 1.0], "opacity": 0.3}]}
+    n = 96
+    base = {"camera": {"azimuth": 30, "elevation": 20}, "width": n, "height": n, "tf": tf, "format": "npy"}
+
+    def run(extra: dict[str, Any]) -> Any:
+        sc = Scene.parse({**base, **extra})
+        render(store, sc)
+        return min((render(store, sc).report for _ in range(repeat)), key=lambda r: r["kernel_ms"])
+
+    with _probe_store() as store:
+        fine, coarse = run({"sampling": {"step": 0.25}}), run({"sampling": {"step": 1.0}})
+        rays = float(n * n)
+        ds = fine["samples"] - coarse["samples"]
+        full_ns = max((fine["kernel_ms"] - coarse["kernel_ms"]) * 1e6 / ds, 1e-3) if ds > 0 else \
+            fine["kernel_ms"] * 1e6 / max(fine["samples"], 1)
+        ray_ns = max((fine["kernel_ms"] * 1e6 - full_ns * fine["samples"]) / rays, 0.0)
+
+        def per_sample(rep: Any) -> float:
+            return max((rep["kernel_ms"] * 1e6 - ray_ns * rays) / max(rep["samples"], 1), 1e-3)
+
+        fixed: dict[str, Any] = {"step": 0.25, "adaptive_object": False}
+        nb = run({"quality": {"level": 1}, "sampling": fixed})
+        ib = run({"quality": {"level": 1}, "sampling": {**fixed, "interpolation": "interblock"}})
+        shaded = run({"sampling": {"step": 0.25}, "shading": {}})
+        screen = run({"quality": {"level": 2}, "sampling": {"adaptive_screen": True}})
+        tiny = [render(store, Scene.parse({**base, "width": 8, "height": 8})).report for _ in range(repeat + 1)]
+        frame_ms = float(np.median([r["wall_ms"] - r["kernel_ms"] for r in tiny[1:]]))
+        scr = screen["adaptive_screen"]
+        pixel_ns = scr["reconstruct_ms"] * 1e6 / rays if scr else 0.0
+    return CostModel(
+        device=str(eng.device.info()["name"]), frame_ms=max(frame_ms, 0.0), ray_ns=ray_ns,
+        sample_ns={"full": full_ns, "nearest_block": per_sample(nb), "interblock": per_sample(ib)},
+        shade_factor=max(per_sample(shaded) / full_ns, 1.0), pixel_ns=pixel_ns, byte_ns=_byte_ns(eng))
+
+
+def _renders(eng: Engine) -> Callable[[Any, Scene], Any]:
+    """`eng`'s render (the engines that choose are the Renderers that render)."""
+    from lodcast.renderer.frame.render import Renderer
+
+    assert isinstance(eng, Renderer)
+    return eng.render
+
+
+def _byte_ns(eng: Engine, nbytes: int = 32 << 20) -> float:
+    """Nanoseconds per byte of a host-to-device copy on `eng`'s device (the fastest of three)."""
+    ctx = eng.device.context
+    queue = cl.CommandQueue(ctx)
+    host = np.ones(nbytes, np.uint8)
+    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=nbytes)
+    best = math.inf
+    for _ in range(3):
+        t = time.perf_counter()
+        cl.enqueue_copy(queue, buf, host)
+        queue.finish()
+        best = min(best, time.perf_counter() - t)
+    return best * 1e9 / nbytes
+
