@@ -65,7 +65,9 @@ class CostModel:
     """What a render costs on one device: `frame_ms` per render whatever it draws (host work, launch, read-back),
     `ray_ns` per ray, `sample_ns` per sample by sampler ("full": trilinear level 0; "nearest_block" and
     "interblock": the atlas), times `shade_factor` with shading, `pixel_ns` per pixel reconstructed by adaptive
-    screen-space sampling and `byte_ns` per byte of volume data uploaded."""
+    screen-space sampling and `byte_ns` per byte of volume data uploaded. `per_store`: the ray and sample costs
+    are scaled to what small renders of each store measure, and its host time taken where it is more than
+    `frame_ms` (a measured model); off, the figures stand as given (a model given explicitly, e.g. a test's)."""
 
     device: str
     frame_ms: float
@@ -74,6 +76,7 @@ class CostModel:
     shade_factor: float
     pixel_ns: float
     byte_ns: float
+    per_store: bool = True
 
     def ms(self, *, samples: float, rays: float, sampler: str, shaded: bool, pixels: float = 0.0,
            upload_bytes: float = 0.0, host_ms: float = 0.0) -> float:
@@ -264,8 +267,10 @@ def candidates(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | N
     # the device's model is of a small volume; on this store a ray's walk and a sample may cost more (caches,
     # memory), as the probes measured: the samplers keep the device's ratios, scaled to the probe's
     probe_ns = model.sample_ns[live.sampler] * (model.shade_factor if shaded else 1.0)
-    model = replace(model, ray_ns=max(model.ray_ns, live.ray_ns),
-                    sample_ns={k: v * live.sample_ns / probe_ns for k, v in model.sample_ns.items()})
+    host_ms = live.host_ms if model.per_store else 0.0
+    if model.per_store:
+        model = replace(model, ray_ns=max(model.ray_ns, live.ray_ns),
+                        sample_ns={k: v * live.sample_ns / probe_ns for k, v in model.sample_ns.items()})
     W, H = scene.width, scene.height
     march1 = cost.estimate_samples(fr, kbox, W, H, float(min(vol.spacing)))  # the full march at step 1
     max_samples = eng.settings.max_samples if sample_limit is None else sample_limit
@@ -284,7 +289,7 @@ def candidates(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | N
                     share = rays / (W * H)
                     de = d.delta_e + table.step_delta_e[step] + (SCREEN_GAIN * (1.0 - share) if screen else 0.0)
                     ms = model.ms(samples=samples * share, rays=rays, sampler=interp or "full", shaded=shaded,
-                                  pixels=W * H if screen else 0.0, upload_bytes=upload, host_ms=live.host_ms)
+                                  pixels=W * H if screen else 0.0, upload_bytes=upload, host_ms=host_ms)
                     out.append(Candidate(d.quality, step, interp, screen, d.reduction, de, ms))
     return out
 
