@@ -213,3 +213,11 @@ def test_the_chosen_render_meets_x_on_the_chest_ct(eng, shared_data: Path, tmp_p
         ch = r.report["chosen"]
         assert ch["setting"]["predicted_delta_e"] <= x
         assert measured <= 1.5 * x, (x, measured, ch)
+
+
+def test_progressive_ends_at_what_the_target_picks(given, store):
+    stages = list(given.render_progressive(store, {**SCENE, "quality": {"max_delta_e": 1.0}}))
+    plain = given.render(store, {**SCENE, "quality": {"max_delta_e": 1.0}})
+    last = stages[-1]
+    assert last.report["final"] and np.array_equal(last.rgba, plain.rgba)
+    assert last.report["chosen"] == {**plain.report["chosen"], "choose_ms": last.report["chosen"]["choose_ms"]}
