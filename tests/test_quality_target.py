@@ -221,3 +221,23 @@ def test_progressive_ends_at_what_the_target_picks(given, store):
     last = stages[-1]
     assert last.report["final"] and np.array_equal(last.rgba, plain.rgba)
     assert last.report["chosen"] == {**plain.report["chosen"], "choose_ms": last.report["chosen"]["choose_ms"]}
+
+
+def test_lodcast_report_marks_the_front_targets_choose_from(given, store):
+    from lodcast.renderer.tools.quality_report import Variant, run_report, table
+
+    variants = [Variant("full", step=1.0), Variant("full", step=3.0), Variant({"reduction": 10.0}, "nearest_block", "limited", step=1.0),
+                Variant("full", step=1.0, preintegration=True)]
+    res = run_report(store, SCENE, variants, repeat=1, log=lambda m: None, renderer=given)
+    c = _choose(given, store, {"max_ms": 1.0})
+    assert [f["predicted_ms"] for f in res["front"]] == [k.predicted_ms for k in c.front]
+    de = [f["predicted_delta_e"] for f in res["front"]]
+    assert de == sorted(de, reverse=True)  # faster, worse
+    on = {i for i, r in enumerate(res["rows"]) if r.get("on_front")}
+    assert on == {f["row"] for f in res["front"] if f["row"] is not None}
+    assert 3 not in on  # pre-integration is not a candidate
+    for i in on:
+        f = next(f for f in res["front"] if f["row"] == i)
+        r = res["rows"][i]
+        assert (r["step"], r["quality"]) == (f["step"], f["quality"])
+    assert "Pareto front quality targets choose from" in table(res)
