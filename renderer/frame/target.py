@@ -54,10 +54,10 @@ TARGET_STEPS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 TARGET_REDUCTIONS = (5.0, 10.0, 20.0, 30.0, 60.0)
 #: the mean ΔE adaptive screen-space sampling adds per unit share of pixels whose rays it leaves out (fitted on the
 #: chest CT under bone, soft tissue and a translucent band, docs/measurements/quality_target.md)
-SCREEN_GAIN = 6.0
+SCREEN_GAIN = 2.0
 SCREEN_PROBE_TILES = 64  # the screen-space pre-pass a candidate's rays are predicted from: at most this many tiles
-PROBE_RAYS = 48  # the scene's own probe (the share of the full march its rays take): rays along the longer side
-COST_VERSION = 2  # a cost model on disk of another version is measured again
+PROBE_RAYS = 64  # the scene's own probe (the share of the full march its rays take): rays along the longer side
+COST_VERSION = 3  # a cost model on disk of another version is measured again
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ class CostModel:
     """What a render costs on one device: `frame_ms` per render whatever it draws (host work, launch, read-back),
     `ray_ns` per ray, `sample_ns` per sample by sampler ("full": trilinear level 0; "nearest_block" and
     "interblock": the atlas), times `shade_factor` with shading; adaptive screen-space sampling's `pixel_ns` per
-    pixel reconstructed and `tile_step_ns` per tile and half-block step of its pre-pass; `byte_ns` per byte of
+    pixel reconstructed (its pre-pass is timed where it is predicted: `_screen_rays`); `byte_ns` per byte of
     volume data uploaded. `per_store`: the ray and sample costs and the host time are those small renders of each
     store measure, the samplers in the model's ratios (a measured model); off, the figures stand as given (a model
     given explicitly, e.g. a test's)."""
@@ -77,7 +77,6 @@ class CostModel:
     shade_factor: float
     pixel_ns: float
     byte_ns: float
-    tile_step_ns: float = 0.0
     per_store: bool = True
 
 
@@ -197,25 +196,24 @@ def _table(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None) 
 
 @dataclass(frozen=True)
 class _Live:
-    """What small renders of the scene measured on this store. `share`: the share of a full march's samples the
-    rays take at full resolution (empty space skipped, rays ended by early termination); `lod_factor`: the
-    samples a selection's render took against what `share` and adaptive sampling's share predict for it (the
-    atlas path skips more: coarse cells empty at level 0, octant masks); per path ("full", "atlas") the host
-    milliseconds (selection, walks, launch, read-back) and nanoseconds per ray (the walk over the volume's cells:
-    where rays end early, most of a ray's cost whatever the step); `sample_ns`, a full-resolution sample's."""
+    """What small renders of the scene measured on this store, per path ("full": level 0 as one volume; "atlas":
+    a selection, adaptive steps, nearest block): the share of a full march's samples the rays take (empty space
+    skipped, rays ended early; on the atlas path against adaptive sampling's share at the probed selection's
+    levels: it also skips coarse cells empty at level 0 and octants), the host milliseconds (selection, walks,
+    launch, read-back), and the nanoseconds per ray (the walk over the volume's cells: where rays end early, most
+    of a ray's cost whatever the step) and per sample, parted by two steps."""
 
-    share: float
-    lod_factor: float
+    share: Mapping[str, float]
     host_ms: Mapping[str, float]
     ray_ns: Mapping[str, float]
-    sample_ns: float
+    sample_ns: Mapping[str, float]
 
 
 def _live(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None, table: _Table, fits: bool,
           model: CostModel) -> _Live:
-    """What renders of the scene PROBE_RAYS rays across measure (`_Live`; each the faster of two, warm): at full
-    resolution at steps 0.5 and 2 where that fits the device, and at the finest selection of at least 8:1
-    (adaptive steps, nearest block) at step 1; kept per store and TFs."""
+    """What renders of the scene PROBE_RAYS rays across measure (`_Live`; each the fastest of three, warm) at
+    steps 0.5 and 2: at full resolution where that fits the device, and at the finest selection of at least 8:1;
+    a path not probed takes the other's figures in the device model's ratios. Kept per store and TFs."""
     key = _key(vol, scene, keep, "live", fits, scene.sampling.early_termination,
                scene.sampling.empty_space_skipping, scene.shading is None)
     hit = eng.targets.get(key)
@@ -228,43 +226,42 @@ def _live(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None, t
     rays = float(w * h)
     march1 = float(cost.estimate_samples(*_geometry(vol, scene, w, h), w, h, float(min(vol.spacing))))
 
-    def probe(quality: Any, step: float, adaptive: bool | None) -> Any:
-        sampling = scene.sampling.model_copy(update={"step": step, "adaptive_screen": False, "adaptive_object": adaptive,
+    def probe(quality: Any, step: float) -> Any:
+        sampling = scene.sampling.model_copy(update={"step": step, "adaptive_screen": False, "adaptive_object": None,
                                                      "interpolation": None, "lod_visibility": False})
         sc = Scene.model_validate({**scene.model_dump(), "quality": quality, "width": w, "height": h,
                                    "sampling": sampling.model_dump(), "format": "npy"})
         render(vol, sc)
-        return min((render(vol, sc).report for _ in range(2)), key=lambda r: r["kernel_ms"])
+        return min((render(vol, sc).report for _ in range(3)), key=lambda r: r["kernel_ms"])
+
+    def parted(quality: Any, sample_share: float, sampler: str) -> tuple[float, float, float, float]:
+        """(share, host ms, ns per ray, ns per sample) of one path."""
+        fine, coarse = probe(quality, 0.5), probe(quality, 2.0)
+        ds = fine["samples"] - coarse["samples"]
+        per_sample = (fine["kernel_ms"] - coarse["kernel_ms"]) * 1e6 / ds if ds > 0 else 0.0
+        if per_sample <= 0.0:  # too noisy to part: as the device's model parts it
+            part = model.sample_ns[sampler] * fine["samples"]
+            part /= max(part + model.ray_ns * rays, 1e-9)
+            per_sample = fine["kernel_ms"] * 1e6 * part / max(fine["samples"], 1)
+        per_ray = max((fine["kernel_ms"] * 1e6 - per_sample * fine["samples"]) / rays, 0.0)
+        return (min(1.0, fine["samples"] / max(2.0 * march1 * sample_share, 1.0)),
+                max(fine["wall_ms"] - fine["kernel_ms"], 0.0), per_ray, per_sample)
 
     lods = [d for d in table.data if d.levels is not None]
     lod = next((d for d in lods if d.reduction >= 8.0), lods[-1] if lods else None)
-    atlas = None if lod is None else probe(lod.quality, 1.0, None)
+    got = {}
+    if fits or lod is None:
+        got["full"] = parted("full", 1.0, "full")
+    if lod is not None:
+        got["atlas"] = parted(lod.quality, lod.sample_share, "nearest_block")
     ratio = model.sample_ns["nearest_block"] / model.sample_ns["full"]
-    if fits or atlas is None:
-        fine, coarse = probe("full", 0.5, False), probe("full", 2.0, False)
-        ds = fine["samples"] - coarse["samples"]
-        sample_ns = (fine["kernel_ms"] - coarse["kernel_ms"]) * 1e6 / ds if ds > 0 else 0.0
-        if sample_ns <= 0.0:  # too noisy to part: the device's model's share of it per sample
-            per_ray = model.ray_ns + model.sample_ns["full"] * fine["samples"] / rays
-            sample_ns = fine["kernel_ms"] * 1e6 / rays / per_ray * model.sample_ns["full"]
-        full_ray = max((fine["kernel_ms"] * 1e6 - sample_ns * fine["samples"]) / rays, 0.0)
-        share = min(1.0, fine["samples"] / max(2.0 * march1, 1.0))
-        full_host = max(fine["wall_ms"] - fine["kernel_ms"], 0.0)
-    if atlas is None or lod is None:
-        lod_factor, atlas_ray, atlas_host = 1.0, full_ray, full_host
-    else:
-        atlas_host = max(atlas["wall_ms"] - atlas["kernel_ms"], 0.0)
-        if not fits:  # full resolution not probed: the selection's render parted as the device's model parts it
-            per_sample = model.sample_ns["nearest_block"] * atlas["samples"]
-            part = per_sample / max(per_sample + model.ray_ns * rays, 1e-9)
-            sample_ns = atlas["kernel_ms"] * 1e6 * part / max(atlas["samples"], 1) / ratio
-            share = min(1.0, atlas["samples"] / max(march1 * lod.sample_share, 1.0))
-            full_ray = atlas["kernel_ms"] * 1e6 * (1.0 - part) / rays
-            full_host = atlas_host
-        lod_factor = atlas["samples"] / max(march1 * share * lod.sample_share, 1.0)
-        atlas_ray = max((atlas["kernel_ms"] * 1e6 - sample_ns * ratio * atlas["samples"]) / rays, 0.0)
-    out = _Live(share, lod_factor, {"full": full_host, "atlas": atlas_host}, {"full": full_ray, "atlas": atlas_ray},
-                sample_ns)
+    if "full" not in got:
+        sh, host, ray, smp = got["atlas"]
+        got["full"] = (sh, host, ray, smp / ratio)
+    if "atlas" not in got:
+        sh, host, ray, smp = got["full"]
+        got["atlas"] = (sh, host, ray, smp * ratio)
+    out = _Live(*({k: v[i] for k, v in got.items()} for i in range(4)))
     eng.targets.put(key, out, 1)
     return out
 
@@ -293,54 +290,56 @@ def candidates(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | N
     live = _live(eng, vol, scene, keep, table, table.data[0].device_bytes <= limit_bytes, model)
     shaded = scene.shading is not None and scene.mode in ("composite", "iso")
     shade = model.shade_factor if shaded else 1.0
-    if model.per_store:  # this store's costs, the samplers in the device's ratios
+    if model.per_store:  # this store's costs (interblock in the device's ratio to nearest block)
         ray_ns, host_ms = live.ray_ns, live.host_ms
-        sample_ns = {k: v / model.sample_ns["full"] * live.sample_ns for k, v in model.sample_ns.items()}
+        sample_ns = {"full": live.sample_ns["full"], "nearest_block": live.sample_ns["atlas"],
+                     "interblock": live.sample_ns["atlas"] * model.sample_ns["interblock"] / model.sample_ns["nearest_block"]}
     else:  # the model's figures as given
         ray_ns, host_ms = {"full": model.ray_ns, "atlas": model.ray_ns}, {"full": 0.0, "atlas": 0.0}
         sample_ns = {k: v * shade for k, v in model.sample_ns.items()}
     march1 = cost.estimate_samples(fr, kbox, W, H, float(min(vol.spacing)))  # the full march at step 1
     max_samples = eng.settings.max_samples if sample_limit is None else sample_limit
-    diag_steps = float(np.linalg.norm(np.asarray(vol.shape, np.float64) * vol.spacing) / (0.5 * vol.block_size * min(vol.spacing)))
     out: list[Candidate] = []
     for d in table.data:
         path = "full" if d.levels is None else "atlas"
         upload = d.device_bytes if d.device_bytes > limit_bytes else 0  # in passes: uploaded every frame
-        screens: list[tuple[bool, float, float]] = [(False, float(W * H), 0.0)]
+        screens: list[tuple[bool, float, float, float]] = [(False, float(W * H), 0.0, 0.0)]
         if d.levels is not None and scene.tf2 is None:  # at full every tile is at full resolution
             screens.append((True, *_screen_rays(fr, vol, d.levels, scene)))
         for step in TARGET_STEPS:
             if march1 / step > max_samples:
                 continue
-            samples = march1 / step * live.share * d.sample_share * (1.0 if d.levels is None else live.lod_factor)
+            samples = march1 / step * live.share[path] * d.sample_share
             for interp in (None,) if d.levels is None else ("nearest_block", "interblock"):
-                for screen, rays, left_out in screens:
+                for screen, rays, left_out, prepass_ms in screens:
                     de = d.delta_e + table.step_delta_e[step] + SCREEN_GAIN * left_out
                     share = rays / (W * H)
-                    ms = max(model.frame_ms, host_ms[path]) + 1e-6 * (
+                    ms = max(model.frame_ms, host_ms[path]) + (prepass_ms if model.per_store else 0.0) + 1e-6 * (
                         rays * ray_ns[path] + samples * share * sample_ns[interp or "full"] + upload * model.byte_ns
-                        + (W * H * model.pixel_ns + diag_steps * W * H / scene.sampling.screen_tile ** 2 * model.tile_step_ns
-                           if screen else 0.0))
+                        + (W * H * model.pixel_ns if screen else 0.0))
                     out.append(Candidate(d.quality, step, interp, screen, d.reduction, de, ms))
     return out
 
 
-def _screen_rays(fr: Any, vol: VolumeView, levels: np.ndarray, scene: Scene) -> tuple[float, float]:
+def _screen_rays(fr: Any, vol: VolumeView, levels: np.ndarray, scene: Scene) -> tuple[float, float, float]:
     """(the rays adaptive screen-space sampling would cast at `levels`, the share of the pixels of the tiles whose
-    rays meet loaded blocks that it leaves out): its pre-pass (screen.tile_priorities) on tiles grown by a power of
-    two to at most SCREEN_PROBE_TILES of them (the pre-pass costs per tile), each grown tile's resolution standing
-    for the tiles it covers. (Tiles that meet nothing are cast at 2×2 and lose nothing.)"""
+    rays meet loaded blocks that it leaves out, its pre-pass's milliseconds): its pre-pass (screen.tile_priorities)
+    on tiles grown by a power of two to at most SCREEN_PROBE_TILES of them, each grown tile's resolution standing
+    for the tiles it covers; its time, per tile, times the render's tiles. (Tiles that meet nothing are cast at
+    2×2 and lose nothing.)"""
     s = scene.sampling
     W, H = scene.width, scene.height
     grow = 1
     while -(-W // (s.screen_tile * grow)) * -(-H // (s.screen_tile * grow)) > SCREEN_PROBE_TILES:
         grow *= 2
+    t = time.perf_counter()
     pri = screen_space.tile_priorities(fr, levels, levels >= 0, vol.shape, vol.spacing, vol.origin, vol.block_size,
                                        W, H, s.screen_tile * grow, s.screen_statistic)
+    prepass_ms = (time.perf_counter() - t) * 1e3 * (-(-W // s.screen_tile) * -(-H // s.screen_tile)) / pri.size
     kept = (screen_space.resolutions(pri, s.screen_tile).astype(np.float64) / s.screen_tile) ** 2
     covered = pri > 0
     left_out = float(1.0 - kept[covered].mean()) if covered.any() else 0.0
-    return float(min(kept.mean(), 1.0) * W * H), left_out
+    return float(min(kept.mean(), 1.0) * W * H), left_out, prepass_ms
 
 
 def pareto(cands: list[Candidate]) -> list[Candidate]:
@@ -467,20 +466,14 @@ def calibrate(eng: Engine, repeat: int = 3) -> CostModel:
         ib = run({"quality": {"level": 1}, "sampling": {**fixed, "interpolation": "interblock"}})
         shaded = run({"sampling": {"step": 0.25}, "shading": {}})
         screen = run({"quality": {"level": 2}, "sampling": {"adaptive_screen": True}})
-        plain = run({"quality": {"level": 2}})
         tiny = [render(store, Scene.parse({**base, "width": 8, "height": 8})).report for _ in range(repeat + 1)]
         frame_ms = float(np.median([r["wall_ms"] - r["kernel_ms"] for r in tiny[1:]]))
         scr = screen["adaptive_screen"]
         pixel_ns = scr["reconstruct_ms"] * 1e6 / rays if scr else 0.0
-        prepass_ms = (screen["wall_ms"] - screen["kernel_ms"] - (scr["reconstruct_ms"] if scr else 0.0)) - \
-            (plain["wall_ms"] - plain["kernel_ms"])
-        steps = float(np.linalg.norm(store.shape)) / (0.5 * store.block_size)
-        tile_step_ns = max(prepass_ms, 0.0) * 1e6 / ((n / 16) ** 2 * steps)
     return CostModel(
         device=str(eng.device.info()["name"]), frame_ms=max(frame_ms, 0.0), ray_ns=ray_ns,
         sample_ns={"full": full_ns, "nearest_block": per_sample(nb), "interblock": per_sample(ib)},
-        shade_factor=max(per_sample(shaded) / full_ns, 1.0), pixel_ns=pixel_ns, byte_ns=_byte_ns(eng),
-        tile_step_ns=tile_step_ns)
+        shade_factor=max(per_sample(shaded) / full_ns, 1.0), pixel_ns=pixel_ns, byte_ns=_byte_ns(eng))
 
 
 def _renders(eng: Engine) -> Callable[[Any, Scene], Any]:
