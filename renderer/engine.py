@@ -22,7 +22,7 @@ from lodcast.renderer.pool import BrickPool
 from lodcast.store.opened import OpenStores
 
 if TYPE_CHECKING:  # pragma: no cover
-    from lodcast.renderer.frame.target import CostModel
+    from lodcast.renderer.frame.device_cost import CostModel
 
 __all__ = ["Engine", "Settings", "Tables"]
 

@@ -39,6 +39,7 @@ from lodcast.renderer.data.volume import StoreLike, as_volume
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.frame import screen as screen_space
+from lodcast.renderer.frame import target
 from lodcast.renderer.frame.plan import Prepared
 from lodcast.renderer.frame.progressive import Ladder, Progressive
 from lodcast.renderer.image.output import RenderResult
@@ -317,6 +318,9 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         "image_scale": 1.0,
         "chosen": None if pr.chosen is None else pr.chosen[1].report(asked.quality),
     }
+    if pr.chosen is not None:
+        choice = pr.chosen[1]
+        target.observe(eng, vol, scene, choice.chosen, report["wall_ms"] - choice.choose_ms)
     return RenderResult(rgba, report, asked.model_dump(mode="json"))
 
 

@@ -5,50 +5,50 @@ The candidates: every step of TARGET_STEPS, at full resolution and at every data
 ("lossless" and the reductions of TARGET_REDUCTIONS), the level-of-detail ones with nearest-block and interblock
 interpolation, with adaptive screen-space sampling and without. Each one's predicted ΔE against the reference is
 what a render's report predicts (the selection's own, selection.py, plus the step's, step_delta_e), plus what
-adaptive screen-space sampling adds: SCREEN_GAIN × the share of pixels whose rays it leaves out (fitted on the
-chest CT, docs/measurements/quality_target.md). Interpolation moves no prediction (interblock is continuous
-across block faces for about the same mean ΔE): it is chosen only where it would be faster.
+adaptive screen-space sampling adds: SCREEN_GAIN × the share of the pixels of the tiles that meet loaded blocks
+whose rays it leaves out (fitted on the chest CT, docs/measurements/quality_target.md). The selections are the
+view-independent ones (the chosen scene renders with `lod_visibility` off unless the scene set it): a new view
+then selects nothing again. Interpolation moves no prediction (interblock is continuous across block faces for
+about the same mean ΔE): it is chosen only where it would be faster.
 
-Each one's time comes from the engine's cost model of its device (`CostModel`, measured once by `calibrate`
-with probe renders of a small synthetic store on that device, kept on the engine and on disk under the cache
-folder by the device's name) applied to the samples the candidate would take: the full march's samples over
-the view (cost.estimate_samples) times the share the scene's rays really take (empty space skipped, rays
-terminated early: measured once per store and TFs by a small render of the scene), times adaptive object
-sampling's share at the selection's levels; its rays (adaptive screen sampling's plan for the view); and the
-volume data it uploads every frame when the data exceeds the device budget (renders in passes). The selections
-and step errors are kept per store and TFs in the engine (`targets`): a new view costs a few array operations
-per data setting, a new TF one selection each.
+Each one's time: the host's milliseconds, plus its rays times a ray's cost (the walk over the volume's cells;
+where rays end early most of what they cost, whatever the step), plus its samples times a sample's cost of its
+path (full resolution, or the atlas with nearest-block or interblock interpolation), plus adaptive screen
+sampling's pre-pass (timed where its rays are predicted) and reconstruction, plus the volume data uploaded every
+frame where it exceeds the device budget (renders in passes). The samples are the full march's over the view
+(cost.estimate_samples) times the share the scene's rays really take (empty space skipped, rays ended early)
+times adaptive object sampling's share at the selection's levels. The costs are the device's (`CostModel`,
+device_cost.py: measured once per device) scaled to this store by small renders of the scene on each path at
+two steps (`_live`), and by what the renders of targets on this store and TFs then took (`observe`). The
+selections, step errors and probes are kept per store and TFs in the engine (`targets`): a new view costs a few
+array operations per data setting and the screen pre-pass, a new TF its selections and probes.
 
 The candidates none of whose rivals is both faster and better form the Pareto front (`Choice.front`, which
 `lodcast report` marks); a target's pick is always on it.
 """
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import math
-import re
-import tempfile
 import time
-from dataclasses import asdict, dataclass
-from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, Mapping
 
 import numpy as np
-import pyopencl as cl
 
 from lodcast.renderer.data import passes as multipass
 from lodcast.renderer.data.volume import VolumeView
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import screen as screen_space
+from lodcast.renderer.frame.device_cost import CostModel, cost_model, renders
 from lodcast.renderer.image.report import ChosenReport, ChosenSetting
 from lodcast.renderer.scene import clip as clipping
 from lodcast.renderer.scene import cost
 from lodcast.renderer.scene.scene import QualityMaxDeltaE, QualityMaxMs, Scene, SceneError
 
 __all__ = ["TARGET_STEPS", "TARGET_REDUCTIONS", "SCREEN_GAIN", "CostModel", "Candidate", "Choice",
-           "is_target", "choose", "candidates", "pareto", "cost_model", "calibrate"]
+           "is_target", "choose", "candidates", "pareto", "observe", "cost_model"]
 
 TARGET_STEPS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 TARGET_REDUCTIONS = (5.0, 10.0, 20.0, 30.0, 60.0)
@@ -57,27 +57,7 @@ TARGET_REDUCTIONS = (5.0, 10.0, 20.0, 30.0, 60.0)
 SCREEN_GAIN = 2.0
 SCREEN_PROBE_TILES = 64  # the screen-space pre-pass a candidate's rays are predicted from: at most this many tiles
 PROBE_RAYS = 64  # the scene's own probe (the share of the full march its rays take): rays along the longer side
-COST_VERSION = 3  # a cost model on disk of another version is measured again
-
-
-@dataclass(frozen=True)
-class CostModel:
-    """What a render costs on one device: `frame_ms` per render whatever it draws (host work, launch, read-back),
-    `ray_ns` per ray, `sample_ns` per sample by sampler ("full": trilinear level 0; "nearest_block" and
-    "interblock": the atlas), times `shade_factor` with shading; adaptive screen-space sampling's `pixel_ns` per
-    pixel reconstructed (its pre-pass is timed where it is predicted: `_screen_rays`); `byte_ns` per byte of
-    volume data uploaded. `per_store`: the ray and sample costs and the host time are those small renders of each
-    store measure, the samplers in the model's ratios (a measured model); off, the figures stand as given (a model
-    given explicitly, e.g. a test's)."""
-
-    device: str
-    frame_ms: float
-    ray_ns: float
-    sample_ns: Mapping[str, float]
-    shade_factor: float
-    pixel_ns: float
-    byte_ns: float
-    per_store: bool = True
+OBSERVED_RANGE = (0.25, 4.0)  # the most a target's observed renders scale its predicted times
 
 
 @dataclass(frozen=True)
@@ -219,7 +199,7 @@ def _live(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None, t
     hit = eng.targets.get(key)
     if hit is not None:
         return hit
-    render = _renders(eng)
+    render = renders(eng)
     n = PROBE_RAYS
     w, h = (n, max(1, round(n * scene.height / scene.width))) if scene.width >= scene.height else \
         (max(1, round(n * scene.width / scene.height)), n)
@@ -297,6 +277,8 @@ def candidates(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | N
     else:  # the model's figures as given
         ray_ns, host_ms = {"full": model.ray_ns, "atlas": model.ray_ns}, {"full": 0.0, "atlas": 0.0}
         sample_ns = {k: v * shade for k, v in model.sample_ns.items()}
+    seen = eng.targets.get(_key(vol, scene, keep, "seen")) if model.per_store else None
+    factor = 1.0 if seen is None else float(seen)  # what renders of these targets took against their predictions
     march1 = cost.estimate_samples(fr, kbox, W, H, float(min(vol.spacing)))  # the full march at step 1
     max_samples = eng.settings.max_samples if sample_limit is None else sample_limit
     out: list[Candidate] = []
@@ -317,7 +299,7 @@ def candidates(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | N
                     ms = max(model.frame_ms, host_ms[path]) + (prepass_ms if model.per_store else 0.0) + 1e-6 * (
                         rays * ray_ns[path] + samples * share * sample_ns[interp or "full"] + upload * model.byte_ns
                         + (W * H * model.pixel_ns if screen else 0.0))
-                    out.append(Candidate(d.quality, step, interp, screen, d.reduction, de, ms))
+                    out.append(Candidate(d.quality, step, interp, screen, d.reduction, de, ms * factor))
     return out
 
 
@@ -340,6 +322,22 @@ def _screen_rays(fr: Any, vol: VolumeView, levels: np.ndarray, scene: Scene) -> 
     covered = pri > 0
     left_out = float(1.0 - kept[covered].mean()) if covered.any() else 0.0
     return float(min(kept.mean(), 1.0) * W * H), left_out, prepass_ms
+
+
+def observe(eng: Engine, vol: VolumeView, scene: Scene, chosen: Candidate, measured_ms: float) -> None:
+    """Keep what the render of a target's pick took (`measured_ms`, choosing left out) against its prediction: the
+    next predictions for this store and TFs are scaled by the running ratio (half the last ratio's logarithm, half
+    the one before; within OBSERVED_RANGE), so that a machine busier or quieter than the probes found, or a view
+    dearer than the probe's, moves what `max_ms` promises. Not for a model given explicitly."""
+    if not cost_model(eng).per_store or chosen.predicted_ms <= 0.0 or measured_ms <= 0.0:
+        return
+    keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
+    key = _key(vol, scene, keep, "seen")
+    old = eng.targets.get(key)
+    before = 1.0 if old is None else float(old)
+    ratio = measured_ms / (chosen.predicted_ms / before)
+    lo, hi = OBSERVED_RANGE
+    eng.targets.put(key, float(np.clip(math.sqrt(before * ratio), lo, hi)), 1)
 
 
 def pareto(cands: list[Candidate]) -> list[Candidate]:
@@ -375,9 +373,12 @@ def choose(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | None 
                    f"of {len(cands)}")
     else:
         assert isinstance(q, QualityMaxMs)
-        ok = sorted((c for c in cands if c.predicted_ms <= q.max_ms), key=lambda c: (c.predicted_delta_e, c.predicted_ms))
+        # choosing is part of the frame's time (a model given explicitly stands as given: nothing measured)
+        left = q.max_ms - ((time.perf_counter() - t0) * 1e3 if cost_model(eng).per_store else 0.0)
+        ok = sorted((c for c in cands if c.predicted_ms <= left), key=lambda c: (c.predicted_delta_e, c.predicted_ms))
         if ok:
-            why = f"the smallest predicted ΔE of the {len(ok)} of {len(cands)} candidates predicted within {q.max_ms:g} ms"
+            why = (f"the smallest predicted ΔE of the {len(ok)} of {len(cands)} candidates predicted within the "
+                   f"{left:.3g} of {q.max_ms:g} ms left after choosing")
         else:
             ok = sorted(cands, key=lambda c: (c.predicted_ms, c.predicted_delta_e))
             why = f"no candidate is predicted within {q.max_ms:g} ms: the fastest of {len(cands)}"
@@ -394,107 +395,3 @@ def choose(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | None 
                                    "sampling": sampling.model_dump()})
     return Choice(picked, chosen, runner, why, tuple(cands), tuple(pareto(cands)),
                   (time.perf_counter() - t0) * 1e3)
-
-
-# ------------------------------------------------------------------------------------------------- the cost model
-def cost_model(eng: Engine) -> CostModel:
-    """The engine's cost model of its device: the one set on it (`eng.cost_model`), else the one kept on disk for
-    this device, else measured now (`calibrate`) and kept in both places."""
-    if eng.cost_model is not None:
-        return eng.cost_model
-    with eng.target_lock:
-        if eng.cost_model is None:
-            name = str(eng.device.info()["name"])
-            path = eng.cost_dir / f"{re.sub(r'[^A-Za-z0-9._-]+', '_', name)[:100]}-v{COST_VERSION}.json"
-            model = None
-            with contextlib.suppress(OSError, ValueError, TypeError, KeyError):
-                model = CostModel(**json.loads(path.read_text()))
-            if model is None or model.device != name:
-                model = calibrate(eng)
-                with contextlib.suppress(OSError):
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    tmp = path.with_suffix(".tmp")
-                    tmp.write_text(json.dumps(asdict(model) | {"sample_ns": dict(model.sample_ns)}))
-                    tmp.replace(path)
-            eng.cost_model = model
-        return eng.cost_model
-
-
-def _probe_volume(n: int = 96) -> np.ndarray:
-    """A ball with a ramp and a shell inside, empty corners: every sampler's work, some space to skip."""
-    z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(np.float32)
-    r = np.sqrt((x - n / 2) ** 2 + (y - n / 2) ** 2 + (z - n / 2) ** 2) / (n / 2)
-    return np.where(r < 0.85, 0.2 + 0.5 * x / n + 0.3 * (np.abs(r - 0.6) < 0.05), 0.0).astype(np.float32)
-
-
-@contextlib.contextmanager
-def _probe_store() -> Iterator[Any]:
-    from lodcast.store.ingest import ingest
-
-    with tempfile.TemporaryDirectory(prefix="lodcast-cost-") as d:
-        yield ingest(_probe_volume(), Path(d) / "probe.zarr", block_size=16, progress=False)
-
-
-def calibrate(eng: Engine, repeat: int = 3) -> CostModel:
-    """Measure `eng`'s device: probe renders of a small synthetic store (a second or a few, plus the kernels'
-    first builds), each the fastest of `repeat` after a warm-up."""
-    render = _renders(eng)
-    tf = {"points": [{"value": 0.15, "color": [0.9, 0.6, 0.5], "opacity": 0.0},
-                     {"value": 0.5, "color": [1.0, 0.9, 0.8], "opacity": 0.05},
-                     {"value": 0.9, "color": [1.0, 1.0, 1.0], "opacity": 0.3}]}
-    n = 96
-    base = {"camera": {"azimuth": 30, "elevation": 20}, "width": n, "height": n, "tf": tf, "format": "npy"}
-
-    def run(extra: dict[str, Any]) -> Any:
-        sc = Scene.parse({**base, **extra})
-        render(store, sc)
-        return min((render(store, sc).report for _ in range(repeat)), key=lambda r: r["kernel_ms"])
-
-    with _probe_store() as store:
-        fine, coarse = run({"sampling": {"step": 0.25}}), run({"sampling": {"step": 1.0}})
-        rays = float(n * n)
-        ds = fine["samples"] - coarse["samples"]
-        full_ns = max((fine["kernel_ms"] - coarse["kernel_ms"]) * 1e6 / ds, 1e-3) if ds > 0 else \
-            fine["kernel_ms"] * 1e6 / max(fine["samples"], 1)
-        ray_ns = max((fine["kernel_ms"] * 1e6 - full_ns * fine["samples"]) / rays, 0.0)
-
-        def per_sample(rep: Any) -> float:
-            return max((rep["kernel_ms"] * 1e6 - ray_ns * rays) / max(rep["samples"], 1), 1e-3)
-
-        fixed: dict[str, Any] = {"step": 0.25, "adaptive_object": False}
-        nb = run({"quality": {"level": 1}, "sampling": fixed})
-        ib = run({"quality": {"level": 1}, "sampling": {**fixed, "interpolation": "interblock"}})
-        shaded = run({"sampling": {"step": 0.25}, "shading": {}})
-        screen = run({"quality": {"level": 2}, "sampling": {"adaptive_screen": True}})
-        tiny = [render(store, Scene.parse({**base, "width": 8, "height": 8})).report for _ in range(repeat + 1)]
-        frame_ms = float(np.median([r["wall_ms"] - r["kernel_ms"] for r in tiny[1:]]))
-        scr = screen["adaptive_screen"]
-        pixel_ns = scr["reconstruct_ms"] * 1e6 / rays if scr else 0.0
-    return CostModel(
-        device=str(eng.device.info()["name"]), frame_ms=max(frame_ms, 0.0), ray_ns=ray_ns,
-        sample_ns={"full": full_ns, "nearest_block": per_sample(nb), "interblock": per_sample(ib)},
-        shade_factor=max(per_sample(shaded) / full_ns, 1.0), pixel_ns=pixel_ns, byte_ns=_byte_ns(eng))
-
-
-def _renders(eng: Engine) -> Callable[[Any, Scene], Any]:
-    """`eng`'s render (the engines that choose are the Renderers that render)."""
-    from lodcast.renderer.frame.render import Renderer
-
-    assert isinstance(eng, Renderer)
-    return eng.render
-
-
-def _byte_ns(eng: Engine, nbytes: int = 32 << 20) -> float:
-    """Nanoseconds per byte of a host-to-device copy on `eng`'s device (the fastest of three)."""
-    ctx = eng.device.context
-    queue = cl.CommandQueue(ctx)
-    host = np.ones(nbytes, np.uint8)
-    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=nbytes)
-    best = math.inf
-    for _ in range(3):
-        t = time.perf_counter()
-        cl.enqueue_copy(queue, buf, host)
-        queue.finish()
-        best = min(best, time.perf_counter() - t)
-    return best * 1e9 / nbytes
-
