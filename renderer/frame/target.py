@@ -55,7 +55,7 @@ TARGET_REDUCTIONS = (5.0, 10.0, 20.0, 30.0, 60.0)
 #: the mean ΔE adaptive screen-space sampling adds per unit share of pixels whose rays it leaves out (fitted on the
 #: chest CT under bone, soft tissue and a translucent band, docs/measurements/quality_target.md)
 SCREEN_GAIN = 2.0
-SCREEN_PROBE_TILES = 64  # the screen-space pre-pass a candidate's rays are predicted from: at most this many tiles
+SCREEN_PROBE_TILES = 16  # the screen-space pre-pass a candidate's rays are predicted from: at most this many tiles
 PROBE_RAYS = 64  # the scene's own probe (the share of the full march its rays take): rays along the longer side
 OBSERVED_RANGE = (0.25, 4.0)  # the most a target's observed renders scale its predicted times
 
