@@ -3,6 +3,7 @@ predicted within x, `{"max_ms": t}` the best predicted within t ms (renderer/fra
 says what and why."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -241,3 +242,29 @@ def test_lodcast_report_marks_the_front_targets_choose_from(given, store):
         r = res["rows"][i]
         assert (r["step"], r["quality"]) == (f["step"], f["quality"])
     assert "Pareto front quality targets choose from" in table(res)
+
+
+def test_what_renders_took_scales_the_next_predictions(eng, store):
+    """A measured model (per_store): what the render of a pick took against its prediction scales the next
+    predictions for the store and TFs by the running ratio (the square root of the last ratio times the one
+    before), within OBSERVED_RANGE; a model given explicitly is never scaled."""
+    eng.cost_model = dataclasses.replace(MODEL, per_store=True)
+    before = _choose(eng, store, {"max_delta_e": 2.0})
+    sc = resolved(eng, Scene.parse({**SCENE, "quality": {"max_delta_e": 2.0}}), as_volume(store, stores=eng.stores))
+    vol = as_volume(store, stores=eng.stores)
+    target.observe(eng, vol, sc, before.chosen, 4.0 * before.chosen.predicted_ms)
+    after = _choose(eng, store, {"max_delta_e": 2.0})
+    for a, b in zip(before.candidates, after.candidates):
+        if not a.adaptive_screen:  # (the screen pre-pass is timed afresh each time)
+            assert b.predicted_ms == pytest.approx(2.0 * a.predicted_ms, rel=1e-9)
+    target.observe(eng, vol, sc, after.chosen, 1e6 * after.chosen.predicted_ms)
+    capped = _choose(eng, store, {"max_delta_e": 2.0})
+    lo, hi = target.OBSERVED_RANGE
+    for a, b in zip(before.candidates, capped.candidates):
+        if not a.adaptive_screen:
+            assert b.predicted_ms == pytest.approx(hi * a.predicted_ms, rel=1e-9)
+    eng.cost_model = MODEL
+    given = _choose(eng, store, {"max_delta_e": 2.0})
+    target.observe(eng, vol, sc, given.chosen, 4.0 * given.chosen.predicted_ms)
+    assert [k.predicted_ms for k in _choose(eng, store, {"max_delta_e": 2.0}).candidates] == \
+        [k.predicted_ms for k in given.candidates]

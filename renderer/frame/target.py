@@ -47,7 +47,7 @@ from lodcast.renderer.scene import clip as clipping
 from lodcast.renderer.scene import cost
 from lodcast.renderer.scene.scene import QualityMaxDeltaE, QualityMaxMs, Scene, SceneError
 
-__all__ = ["TARGET_STEPS", "TARGET_REDUCTIONS", "SCREEN_GAIN", "CostModel", "Candidate", "Choice",
+__all__ = ["TARGET_STEPS", "TARGET_REDUCTIONS", "SCREEN_GAIN", "OBSERVED_RANGE", "CostModel", "Candidate", "Choice",
            "is_target", "choose", "candidates", "pareto", "observe", "cost_model"]
 
 TARGET_STEPS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
