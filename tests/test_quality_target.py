@@ -192,6 +192,9 @@ def test_cli_http_and_jobs_take_a_target(tmp_path: Path, capsys):
         assert r.status_code == 200, r.text
         got = json.loads(r.headers["X-Lodcast-Report"])["chosen"]
         assert got["target"] == {"max_ms": 1000.0} and got["setting"]["predicted_ms"] <= 1000.0
+        with lodcast.Client("http://testserver", transport=c._transport) as client:  # the Python client
+            got = client.render("ball", {**SCENE, "quality": {"max_delta_e": 2}}).report["chosen"]
+            assert got["target"] == {"max_delta_e": 2.0} and got["setting"]["predicted_delta_e"] <= 2.0
         job = {"kind": "turntable", "volume": "ball", "frames": 2, "scene": {**SCENE, "quality": {"max_delta_e": 2}}}
         r = c.post("/jobs", json=job)
         assert r.status_code == 202, r.text
