@@ -52,8 +52,9 @@ __all__ = ["TARGET_STEPS", "TARGET_REDUCTIONS", "SCREEN_GAIN", "OBSERVED_RANGE",
 
 TARGET_STEPS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 TARGET_REDUCTIONS = (5.0, 10.0, 20.0, 30.0, 60.0)
-#: the mean ΔE adaptive screen-space sampling adds per unit share of pixels whose rays it leaves out (fitted on the
-#: chest CT under bone, soft tissue and a translucent band, docs/measurements/quality_target.md)
+#: the mean ΔE adaptive screen-space sampling adds per unit share of the pixels it leaves out in the tiles whose rays
+#: meet loaded blocks (fitted on the chest CT under bone, soft tissue and a translucent band, 90 pairs with and
+#: without it: docs/measurements/quality_target.md)
 SCREEN_GAIN = 2.0
 SCREEN_PROBE_TILES = 16  # the screen-space pre-pass a candidate's rays are predicted from: at most this many tiles
 PROBE_RAYS = 64  # the scene's own probe (the share of the full march its rays take): rays along the longer side
