@@ -30,7 +30,7 @@ class CostModel:
     """What a render costs on one device: `frame_ms` per render whatever it draws (host work, launch, read-back),
     `ray_ns` per ray, `sample_ns` per sample by sampler ("full": trilinear level 0; "nearest_block" and
     "interblock": the atlas), times `shade_factor` with shading; adaptive screen-space sampling's `pixel_ns` per
-    pixel reconstructed (its pre-pass is timed where it is predicted: `_screen_rays`); `byte_ns` per byte of
+    pixel reconstructed (its pre-pass is timed where it is predicted: target.py `_screen_rays`); `byte_ns` per byte of
     volume data uploaded. `per_store`: the ray and sample costs and the host time are those small renders of each
     store measure, the samplers in the model's ratios (a measured model); off, the figures stand as given (a model
     given explicitly, e.g. a test's)."""
