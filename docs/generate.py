@@ -148,7 +148,8 @@ def reference() -> str:
            "## Scene", "",
            "A scene is one JSON object (Python: a dict, a `lodcast.Scene`, or a JSON file's name). Only `tf` is "
            "required.", "", _model(sc.Scene)]
-    for cls in (sc.OrbitCamera, sc.LookAtCamera, sc.QualityReduction, sc.QualityBudget, sc.QualityLevel, sc.Sampling, sc.Shading,
+    for cls in (sc.OrbitCamera, sc.LookAtCamera, sc.QualityReduction, sc.QualityBudget, sc.QualityLevel,
+                sc.QualityMaxDeltaE, sc.QualityMaxMs, sc.Sampling, sc.Shading,
                 sc.Clip, sc.ClipPlane, sc.ClipBox):
         out.append(_model(cls))
     out += ["## Camera conventions", "",
@@ -184,7 +185,8 @@ def reference() -> str:
             "TypedDict).", "", "| key | type | meaning |", "|---|---|---|"]
     hints = typing.get_type_hints(rp.RenderReport)
     out += [f"| `{k}` | {_type(hints[k])} | {v} |" for k, v in rp.REPORT_FIELDS.items()]
-    out += ["", _typed_dict(rp.PriorityMapReport), "", _typed_dict(rp.ScreenReport)]
+    out += ["", _typed_dict(rp.PriorityMapReport), "", _typed_dict(rp.ScreenReport), "", _typed_dict(rp.ChosenReport),
+            "", _typed_dict(rp.ChosenSetting)]
     out += ["", "## HTTP routes", "", "OpenAPI (with every body and answer typed) at `/openapi.json`; Swagger UI at "
             "`/docs`. With `LODCAST_TOKEN` set, every route but `/healthz` and the docs needs "
             "`Authorization: Bearer TOKEN`. Errors are JSON `{\"detail\": ...}` naming the field.", "",

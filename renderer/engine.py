@@ -13,13 +13,16 @@ import threading
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 from lodcast.environment import Environment, EnvironmentInvalid, environment
 from lodcast.opencl import Device
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.pool import BrickPool
 from lodcast.store.opened import OpenStores
+
+if TYPE_CHECKING:  # pragma: no cover
+    from lodcast.renderer.frame.device_cost import CostModel
 
 __all__ = ["Engine", "Settings", "Tables"]
 
@@ -107,6 +110,7 @@ class Engine:
     - `bricks`: the pool of bricks read from stores, of every level and quality (renderer/pool.py); on a device whose buffers are host memory it gives
       way to what the device cache and the buffers being filled hold, down to an eighth of its size;
     - `device_cache`: level-0 volumes, atlases and coarse levels on the device;
+    - `targets`, `cost_model`: what quality targets choose by (renderer/frame/target.py);
     - `selections`, `step_errors`, `steps`, `block_infos`: level-of-detail selections, predicted step errors,
       adaptive step levels and the blocks' walk info of recent scenes; `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
       atlas_cells.py); `last_atlas`: per atlas family the newest atlas, held weakly (atlas.py reuses its bricks);
@@ -137,6 +141,12 @@ class Engine:
         self.parents = ByteLru(64 << 20, keep_last=True)
         self.cells = ByteLru(256 << 20, keep_last=True)
         self.tables = Tables(self.device)
+        # quality targets (renderer/frame/target.py): per store and TFs the data settings' predictions and the share
+        # of a march the rays take; the device's cost model, measured on first use (kept on disk in `cost_dir`)
+        self.targets = ByteLru(16)
+        self.cost_model: CostModel | None = None
+        self.cost_dir = env.cache_dir / "cost"
+        self.target_lock = threading.Lock()
         self.stores = OpenStores(self.settings.open_stores, self.settings.store_check_s)
         self._last_atlas: dict[tuple, weakref.ref[Any]] = {}
         self._lock = threading.Lock()
@@ -220,7 +230,7 @@ class Engine:
         for pool in pools.values():
             pool.shutdown(wait=False)
         for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps, self.walks,
-                  self.adaptive_walks, self.parents, self.cells):
+                  self.adaptive_walks, self.parents, self.cells, self.targets):
             c.clear()
         self.tables = Tables(self.device)
         self.forget_atlases()

@@ -21,6 +21,7 @@ from lodcast.renderer.scene.transfer_function import Lut
 if TYPE_CHECKING:  # pragma: no cover
     from lodcast.renderer.data import passes as multipass
     from lodcast.renderer.frame import screen as screen_space
+    from lodcast.renderer.frame.target import Choice
     from lodcast.renderer.lod import dual
 
 __all__ = ["Prepared", "LodPlan", "kernel_config", "MAX_SAMPLES_PER_RAY"]
@@ -93,6 +94,7 @@ class Prepared:
     passes: "multipass.PassPlan | None" = None  # volume data beyond the device budget only (LC_PASSES)
     step_delta_e: float = 0.0  # the step's predicted error (selection.step_delta_e), composite renders of a store
     octants: tuple[int, ...] = tuple(range(8))  # the octants of direction the rays go in (camera.ray_octants)
+    chosen: "tuple[Scene, Choice] | None" = None  # a quality target: the scene as asked, and what it picked (`scene`)
 
 
 @dataclass(frozen=True)

@@ -209,10 +209,21 @@ def resolved(eng: Engine, scene: Scene, vol: VolumeView) -> Scene:
     return scene.model_copy(update=update) if update else scene
 
 
+def _target(eng: Engine, vol: VolumeView, scene: Scene, sample_limit: int | None) -> tuple[Scene, Scene, Any]:
+    """(the scene as asked, the scene to render, the Choice of a quality target or None): a target
+    (renderer/frame/target.py) is replaced by the setting it picks."""
+    from lodcast.renderer.frame import target
+
+    if not target.is_target(scene.quality):
+        return scene, scene, None
+    choice = target.choose(eng, vol, scene, sample_limit)
+    return scene, choice.scene, choice
+
+
 def check_cost(eng: Engine, store: StoreLike, scene: SceneLike, sample_limit: int | None = None) -> int:
-    """Renderer.check_cost."""
+    """Renderer.check_cost (of the setting a quality target picks)."""
     vol = as_volume(store, stores=eng.stores)
-    scene = resolved(eng, Scene.parse(scene), vol)
+    scene = _target(eng, vol, resolved(eng, Scene.parse(scene), vol), sample_limit)[1]
     _, fr, kbox, step_world = geometry(vol, scene)
     return _cost(eng, scene, fr, kbox, step_world, sample_limit)
 
@@ -222,6 +233,7 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     """Renderer.prepare."""
     vol = as_volume(store, spacing=spacing, origin=origin, stores=eng.stores)
     scene = resolved(eng, Scene.parse(scene), vol)  # "tf": "auto" takes its control points from this volume
+    asked, scene, choice = _target(eng, vol, scene, sample_limit)
     tf, tf2 = scene.tf, scene.tf2
     assert isinstance(tf, TransferFunction) and not isinstance(tf2, AdaptiveTF)  # resolved() placed adaptive TFs
     box, fr, kbox, step_world = geometry(vol, scene)
@@ -270,7 +282,8 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     if pp is not None:
         cfg = replace(cfg, passes=True)
     pr = Prepared(eng, scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second,
-                  prio, plan, pp, _step_error(eng, vol, scene, keep), cam.ray_octants(fr))
+                  prio, plan, pp, _step_error(eng, vol, scene, keep), cam.ray_octants(fr),
+                  None if choice is None else (asked, choice))
     if second is not None:
         fill_tf2(params, pr)
     return pr

@@ -31,7 +31,14 @@ from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.image.output import RenderResult
 from lodcast.renderer.image.report import RenderReport
-from lodcast.renderer.scene.scene import QualityLevel, QualityReduction, Scene, SceneLike
+from lodcast.renderer.scene.scene import (
+    QualityLevel,
+    QualityMaxDeltaE,
+    QualityMaxMs,
+    QualityReduction,
+    Scene,
+    SceneLike,
+)
 
 #: an engine's render (renderer/frame/render.py: Renderer.render), handed in so that this module does not import
 #: the one that imports it
@@ -87,6 +94,8 @@ def final_reduction(engine: Engine, scene: Scene, vol: VolumeView) -> float:
     less, never more), or at "lossless" and a level its selection's (made here once, the final stage finds it made; infinite
     when nothing is visible)."""
     q = scene.quality
+    if isinstance(q, (QualityMaxDeltaE, QualityMaxMs)):
+        return 1.0  # a target picks its setting when the final stage renders: the ladder starts from full
     if isinstance(q, QualityReduction):
         return float(q.reduction)
     if q == "lossless" or isinstance(q, QualityLevel):

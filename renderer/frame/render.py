@@ -39,6 +39,7 @@ from lodcast.renderer.data.volume import StoreLike, as_volume
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import prepare as preparing
 from lodcast.renderer.frame import screen as screen_space
+from lodcast.renderer.frame import target
 from lodcast.renderer.frame.plan import Prepared
 from lodcast.renderer.frame.progressive import Ladder, Progressive
 from lodcast.renderer.image.output import RenderResult
@@ -273,6 +274,9 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         reduction = pr.lod.reduction
         pred = None if pr.lod.predicted_delta_e is None else pr.lod.predicted_delta_e + pr.step_delta_e
         quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
+    asked = scene if pr.chosen is None else pr.chosen[0]
+    if pr.chosen is not None:
+        quality = asked.quality if isinstance(asked.quality, str) else asked.quality.model_dump()
     report: RenderReport = {
         "wall_ms": (time.perf_counter() - t_start) * 1e3,
         "kernel_ms": kernel_ms,
@@ -312,8 +316,12 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         "stage": 0,
         "final": True,
         "image_scale": 1.0,
+        "chosen": None if pr.chosen is None else pr.chosen[1].report(asked.quality),
     }
-    return RenderResult(rgba, report, scene.model_dump(mode="json"))
+    if pr.chosen is not None:
+        choice = pr.chosen[1]
+        target.observe(eng, vol, scene, choice.chosen, report["wall_ms"] - choice.choose_ms)
+    return RenderResult(rgba, report, asked.model_dump(mode="json"))
 
 
 class Renderer(Engine):

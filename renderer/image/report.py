@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any, Literal, TypedDict
 
-__all__ = ["RenderReport", "PriorityMapReport", "ScreenReport", "REPORT_FIELDS"]
+__all__ = ["RenderReport", "PriorityMapReport", "ScreenReport", "ChosenSetting", "ChosenReport", "REPORT_FIELDS"]
 
 
 class PriorityMapReport(TypedDict):
@@ -32,6 +32,33 @@ class ScreenReport(TypedDict):
     rays_per_pixel: float
     tiles: dict[str, int]
     reconstruct_ms: float
+
+
+class ChosenSetting(TypedDict):
+    """A setting a quality target weighed (renderer/frame/target.py): quality (full, lossless or a reduction), step,
+    interpolation (null at full), adaptive screen-space sampling, the data reduction, and its predicted ΔE and
+    milliseconds (by the engine's cost model of its device)."""
+
+    quality: str | dict[str, float]
+    step: float
+    interpolation: str | None
+    adaptive_screen: bool
+    reduction: float
+    predicted_delta_e: float
+    predicted_ms: float
+
+
+class ChosenReport(TypedDict):
+    """What a quality target picked: the target, the setting and the runner-up's (null when there was none), why,
+    how many candidates there were and how many on their Pareto front, and what choosing took (milliseconds)."""
+
+    target: dict[str, float]
+    setting: ChosenSetting
+    runner_up: ChosenSetting | None
+    why: str
+    candidates: int
+    front: int
+    choose_ms: float
 
 
 class RenderReport(TypedDict):
@@ -76,6 +103,7 @@ class RenderReport(TypedDict):
     stage: int
     final: bool
     image_scale: float
+    chosen: ChosenReport | None
 
 
 #: what each key of a RenderReport means (docs/reference.md's table), in the report's order
@@ -99,8 +127,8 @@ REPORT_FIELDS: dict[str, str] = {
     "program_cache": "where the compiled kernel came from: memory, disk or a fresh build (built)",
     "build_ms": "kernel build (or cache lookup), milliseconds",
     "upload_ms": "volume data uploaded to the device, milliseconds",
-    "quality": "the quality asked for: full, lossless, {reduction}, {budget_mb} or {level}; {level} also at a "
-               "progressive render's preview of one coarse level",
+    "quality": "the quality asked for: full, lossless, {reduction}, {budget_mb}, {level}, or a target, "
+               "{max_delta_e} or {max_ms}; {level} also at a progressive render's preview of one coarse level",
     "level": "the store level rendered when one level was asked for ({level}, or a progressive render's preview; 0 "
              "at full), else null",
     "interpolation": "sampling across blocks of different levels: interblock or nearest_block (trilinear at "
@@ -133,4 +161,8 @@ REPORT_FIELDS: dict[str, str] = {
              "render)",
     "image_scale": "rays per pixel edge: 1, or less at an early progressive stage rendered smaller and scaled up "
                    "to width × height",
+    "chosen": "what a quality target ({max_delta_e} or {max_ms}) picked, else null: the target; the setting "
+              "(quality, step, interpolation, adaptive_screen, reduction, predicted_delta_e, predicted_ms: by the "
+              "engine's cost model of its device) and the runner-up's; why; how many candidates and how many on "
+              "their Pareto front; choose_ms, what choosing took. The other keys describe the chosen setting's render",
 }

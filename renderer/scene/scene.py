@@ -209,7 +209,23 @@ class QualityLevel(_Model):
     level: Annotated[int, Field(ge=0, le=15, strict=True)]
 
 
-Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget, QualityLevel]
+class QualityMaxDeltaE(_Model):
+    """A target: the fastest setting (step, full resolution or a reduction, interpolation, adaptive screen-space
+    sampling) whose predicted ΔE against the reference is at most `max_delta_e`, by the engine's cost model of its
+    device (renderer/frame/target.py); the report's `chosen` says what it picked and why."""
+
+    max_delta_e: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+
+
+class QualityMaxMs(_Model):
+    """A target: the setting of the smallest predicted ΔE whose predicted time on this engine's device is at most
+    `max_ms` milliseconds (renderer/frame/target.py); the report's `chosen` says what it picked and why."""
+
+    max_ms: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+
+
+Quality = Union[Literal["full", "lossless"], QualityReduction, QualityBudget, QualityLevel, QualityMaxDeltaE,
+                QualityMaxMs]
 
 
 class Sampling(_Model):
@@ -359,7 +375,8 @@ def _named_tf(v: Any) -> Any:
 
 class Scene(_Model):
     """What to render: the camera, the image size, the transfer function(s), the quality (`"full"` resolution,
-    `"lossless"` level of detail, `{"reduction": r}`, `{"budget_mb": m}` or `{"level": k}`), sampling, shading, clipping, the
+    `"lossless"` level of detail, `{"reduction": r}`, `{"budget_mb": m}` or `{"level": k}`, or a target:
+    `{"max_delta_e": x}` or `{"max_ms": t}`), sampling, shading, clipping, the
     blend `mode` (`iso` needs `isovalue`), the `background` composited under the image (premultiplied RGBA; a
     transparent one keeps the image's alpha) and the output `format`."""
 

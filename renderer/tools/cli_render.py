@@ -108,9 +108,16 @@ def add_scene_options(p: argparse.ArgumentParser, *, sweep: bool = False) -> Non
     p.add_argument("--distance", type=float, help="orbit camera: multiples of the box's bounding-sphere radius")
     p.add_argument("--fov", type=float, help="vertical field of view in degrees")
     if not sweep:
-        p.add_argument("--quality", type=_quality, help="full, lossless, a data reduction (30 or 30:1: "
-                       "{\"reduction\": 30}), every visible block at one store level (level1: {\"level\": 1}) or a "
-                       "quality as JSON ({\"budget_mb\": 64})")
+        target = p.add_mutually_exclusive_group()
+        target.add_argument("--quality", type=_quality, help="full, lossless, a data reduction (30 or 30:1: "
+                            "{\"reduction\": 30}), every visible block at one store level (level1: {\"level\": 1}) or a "
+                            "quality as JSON ({\"budget_mb\": 64})")
+        target.add_argument("--max-delta-e", type=float, metavar="X", help="a quality target: the fastest setting "
+                            "(step, full resolution or a reduction, interpolation, adaptive screen sampling) whose "
+                            "predicted ΔE is at most X ({\"max_delta_e\": X}; the report's chosen says what it "
+                            "picked)")
+        target.add_argument("--max-ms", type=float, metavar="T", help="a quality target: the best predicted quality "
+                            "predicted to render within T milliseconds on this device ({\"max_ms\": T})")
         p.add_argument("--step", type=float, help="sampling step in voxels of the finest level")
     p.add_argument("--mode", choices=MODES, help="composite (default), mip, minip, average or iso (with --isovalue)")
     p.add_argument("--isovalue", type=float, help="mode iso: the data value of the surface")
@@ -170,6 +177,9 @@ def scene_data(args: argparse.Namespace) -> dict[str, Any]:
     for key in ("width", "height", "mode", "isovalue", "quality"):
         if getattr(args, key, None) is not None:
             data[key] = getattr(args, key)
+    for key in ("max_delta_e", "max_ms"):  # (argparse keeps them and --quality apart)
+        if getattr(args, key, None) is not None:
+            data["quality"] = {key: getattr(args, key)}
     if args.shading is not None:
         data["shading"] = (data.get("shading") or {}) if args.shading else None
     if args.background is not None:

@@ -23,7 +23,7 @@ import numpy as np
 
 from lodcast.renderer.image.delta_e import delta_e_stats
 
-__all__ = ["Variant", "default_variants", "run_report", "write_report"]
+__all__ = ["Variant", "default_variants", "run_report", "write_report", "target_front"]
 
 REDUCTIONS = (5, 10, 20, 30, 60, 100)
 STEPS = (2.0, 1.0, 0.5, 0.25)
@@ -150,9 +150,42 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
                  and not r["preintegration"] and r["priority_map"]), None)
     for r in rows:
         r["speedup_vs_full"] = (full["kernel_ms"] / r["kernel_ms"]) if full and r["kernel_ms"] else None
+    front = target_front(renderer or default_renderer(), store, scene, rows)
     return {"store": str(getattr(store, "location", store)), "scene": scene, "reference_scene": ref_scene,
             "reference_ms": ref.report["wall_ms"], "report_s": time.perf_counter() - t, "rows": rows,
-            "device": ref.report.get("device")}
+            "device": ref.report.get("device"), "front": front}
+
+
+def target_front(eng: Any, store: Any, scene: dict, rows: list[dict]) -> list[dict] | None:
+    """The Pareto front of predicted ΔE against predicted ms that quality targets choose from
+    (renderer/frame/target.py), fastest first, each with the row of the same setting (None where the sweep has
+    none); None where the scene can take no target (an array). Marks each row's `on_front`."""
+    from lodcast.renderer.data.volume import as_volume
+    from lodcast.renderer.frame import target
+    from lodcast.renderer.frame.prepare import resolved
+    from lodcast.renderer.scene.scene import Scene, SceneError
+
+    vol = as_volume(store, stores=eng.stores)
+    try:
+        cands = target.candidates(eng, vol, resolved(eng, Scene.parse({**scene, "quality": {"max_ms": 1.0}}), vol))
+    except SceneError:
+        return None
+    step = float((scene.get("sampling") or {}).get("step", 0.5))
+
+    def same(r: dict, c: Any) -> bool:
+        lod = r["quality"] != "full"
+        return (r["quality"] == c.quality and (r["step"] or step) == c.step and r["adaptive"] == ("limited" if lod else "off")
+                and (r["interpolation"] if lod else None) == c.interpolation and (r["screen"] is not None) == c.adaptive_screen
+                and r["screen"] in (None, "rms") and r["classification"] == "distribution" and not r["preintegration"]
+                and r["priority_map"])
+
+    front = []
+    for c in target.pareto(cands):
+        at = next((i for i, r in enumerate(rows) if same(r, c)), None)
+        front.append({"label": c.label(), **c.setting(), "row": at})
+        if at is not None:
+            rows[at]["on_front"] = True
+    return front
 
 
 def _fmt(x: Any, nd: int = 1) -> str:
@@ -172,7 +205,13 @@ def table(result: dict[str, Any]) -> str:
         f"{_fmt(r['speedup_vs_full'], 2)}x |"
         for r in result["rows"]
     ]
-    return head + "\n".join(lines) + "\n"
+    out = head + "\n".join(lines) + "\n"
+    if result.get("front"):  # what quality targets choose from ({"max_delta_e"}, {"max_ms"}: docs/lod.md)
+        out += ("\nThe Pareto front quality targets choose from (predicted ΔE / predicted ms on this device; ◆ a row "
+                "above):\n\n" + "\n".join(
+                    f"- {'◆ ' if f['row'] is not None else ''}{f['label']}: {f['predicted_delta_e']:.2f} / "
+                    f"{f['predicted_ms']:.0f} ms" for f in result["front"]) + "\n")
+    return out
 
 
 def plot(result: dict[str, Any], path: Path) -> Path:
