@@ -89,10 +89,14 @@ def _opacity_moments(tf: Any, x: np.ndarray, wq: np.ndarray) -> tuple[np.ndarray
 
 def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
                 classification: str = "distribution", tables: Tables | None = None,
-                worst_values: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                worst_values: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 2), the worst value's ζ(k) per
     block and level (N, L): the largest |T* − T̃| over the values the block holds, where ζ is their RMS; computed
-    where `worst_values` asks, else zeros: it costs half as much again, and only "lossless" needs it), float64,
+    where `worst_values` asks, else zeros: it costs half as much again, and only "lossless" needs it; the spread
+    ς(k) per block and level (N, L), prediction.py's, per visible voxel as ζ: the RMS over the block's values v of
+    |T*(v ± s_k) − T*(v)| (what a level-k voxel hides whatever the classification) and, beside it, how far the
+    colour of a normal distribution at the block's mean and spread s_k is from the mean colour of the values the
+    block holds, weighted by k / (L − 1) (0 at level 0, the whole block's at the coarsest)), float64,
     0 for invisible and constant blocks (and at level 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
     they share with the TF's opacities there and the values' table positions (apart, the two repeated that work, a
     good part of a first render). The table lookups run in float32: ζ is a colour difference in CIELUV
@@ -100,10 +104,11 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     assert classification in ("distribution", "mean")
     n_lv = meta.n_levels
     out, step, worst = np.zeros((meta.n, n_lv)), np.zeros(meta.n), np.zeros((meta.n, n_lv))
+    spread = np.zeros((meta.n, n_lv))
     opac = np.zeros((meta.n, 2))
     todo = _evaluated(meta, visible)
     if todo.size == 0:
-        return out, step, opac, worst
+        return out, step, opac, worst, spread
     assert meta.level_std is not None, "block_zetas needs a store with per-level spreads (format >= 2)"
     tf = as_tf(tf)
     t, luv = luv_table(tf, value_range, std_max, tables)
@@ -122,13 +127,27 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
         s = np.asarray(level_std[rows], np.float64)  # (m, L)
         # the step: the colour change over the level-1 spread (½ |T*(v + s_1) − T*(v − s_1)|)
         s1 = s[:, 1][:, None, None]
-        d = t.lerp(luv, _f32(t.mean_axis(x + s1)), row0) - t.lerp(luv, _f32(t.mean_axis(x - s1)), row0)
+        up, dn = t.lerp(luv, _f32(t.mean_axis(x + s1)), row0), t.lerp(luv, _f32(t.mean_axis(x - s1)), row0)
+        d = up - dn
         step[rows] = np.sqrt(np.maximum((wq * (0.25 * (d * d).sum(axis=-1))).sum(axis=(1, 2)), 0.0) / sheet)
         at_x = _f32(t.mean_axis(x))  # the same values at every level: their table position once
         tstar = t.lerp(luv, at_x, row0)
         mbar = meta.mean[rows][:, None, None]
         s_top = np.maximum(s[:, -1], 1e-300)
+        # the block's colours as its histogram holds them, against which a normal distribution at the block's mean
+        # and a level's spread is a model: far off where the block mixes materials the TF shows apart (air and
+        # metal, with a translucent band between them that the model fills)
+        held = (wq[..., None] * tstar).sum(axis=(1, 2))
+        at_mean = _f32(t.mean_axis(meta.mean[rows]))
         for k in range(1, n_lv):
+            # what the level's spread hides: each value against the values a deviation s_k either side of it
+            # (the structure within a level-k voxel, which neither classification keeps; level 1's from the step's)
+            if k > 1:
+                sk = s[:, k][:, None, None]
+                up, dn = t.lerp(luv, _f32(t.mean_axis(x + sk)), row0), t.lerp(luv, _f32(t.mean_axis(x - sk)), row0)
+            dv = 0.5 * (((up - tstar) ** 2).sum(axis=-1) + ((dn - tstar) ** 2).sum(axis=-1))
+            model = ((held - t.lerp(luv, at_mean, _f32(t.std_axis(s[:, k])))) ** 2).sum(axis=-1) * (s[:, k] / s_top) ** 2
+            spread[rows, k] = np.sqrt(np.maximum((wq * dv).sum(axis=(1, 2)) + model, 0.0) / sheet)
             if classification == "distribution":
                 shown = t.lerp(luv, at_x, _f32(t.std_axis(s[:, k][:, None, None])))  # one deviation per block
             else:
@@ -161,7 +180,7 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     else:
         for rows in chunks:
             chunk(rows)
-    return out, step, opac, worst
+    return out, step, opac, worst, spread
 
 
 def _f32(axis: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -174,7 +193,7 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
                classification: str = "distribution") -> tuple[np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L) float64: 0 at level 0, 0 for invisible and constant blocks; per block the
     mean TF opacity and the mean squared TF opacity over its values (N, 2), 0 for blocks not evaluated)."""
-    z, _, opac, _ = block_zetas(meta, tf, visible, value_range, std_max, classification)
+    z, _, opac, _, _ = block_zetas(meta, tf, visible, value_range, std_max, classification)
     return z, opac
 
 
@@ -186,5 +205,5 @@ def step_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[
     ½ |T*(v + s_1) − T*(v − s_1)| at every value v of the block. What a ray marcher misses between samples h
     voxels apart grows as h² times this (selection.step_delta_e). 0 for invisible and constant blocks."""
     assert meta.level_std is not None and meta.n_levels > 1, "step_zeta needs per-level spreads (format >= 2)"
-    _, z, opac, _ = block_zetas(meta, tf, visible, value_range, std_max)
+    _, z, opac, _, _ = block_zetas(meta, tf, visible, value_range, std_max)
     return z, opac
