@@ -95,8 +95,8 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     where `worst_values` asks, else zeros: it costs half as much again, and only "lossless" needs it; the spread
     ς(k) per block and level (N, L), prediction.py's, per visible voxel as ζ: the RMS over the block's values v of
     |T*(v ± s_k) − T*(v)| (what a level-k voxel hides whatever the classification) and, beside it, how far the
-    colour of a normal distribution at the block's mean and spread s_k is from the mean colour of the values the
-    block holds, weighted by k / (L − 1) (0 at level 0, the whole block's at the coarsest)), float64,
+    classification's colour at the block's mean (a normal distribution of spread s_k; the TF at the mean) is from
+    the mean colour of the values the block holds, weighted by (s_k / s_top)²), float64,
     0 for invisible and constant blocks (and at level 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
     they share with the TF's opacities there and the values' table positions (apart, the two repeated that work, a
     good part of a first render). The table lookups run in float32: ζ is a colour difference in CIELUV
@@ -134,9 +134,9 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
         tstar = t.lerp(luv, at_x, row0)
         mbar = meta.mean[rows][:, None, None]
         s_top = np.maximum(s[:, -1], 1e-300)
-        # the block's colours as its histogram holds them, against which a normal distribution at the block's mean
-        # and a level's spread is a model: far off where the block mixes materials the TF shows apart (air and
-        # metal, with a translucent band between them that the model fills)
+        # the block's colours as its histogram holds them, against which the classification's colour at the block's
+        # mean (and a level's spread) is a model: far off where the block mixes materials the TF shows apart (air
+        # and metal, with a translucent band between them that a normal distribution, or the mean, lands in)
         held = (wq[..., None] * tstar).sum(axis=(1, 2))
         at_mean = _f32(t.mean_axis(meta.mean[rows]))
         for k in range(1, n_lv):
@@ -146,7 +146,8 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
                 sk = s[:, k][:, None, None]
                 up, dn = t.lerp(luv, _f32(t.mean_axis(x + sk)), row0), t.lerp(luv, _f32(t.mean_axis(x - sk)), row0)
             dv = 0.5 * (((up - tstar) ** 2).sum(axis=-1) + ((dn - tstar) ** 2).sum(axis=-1))
-            model = ((held - t.lerp(luv, at_mean, _f32(t.std_axis(s[:, k])))) ** 2).sum(axis=-1) * (s[:, k] / s_top) ** 2
+            modelled = t.lerp(luv, at_mean, _f32(t.std_axis(s[:, k])) if classification == "distribution" else row0)
+            model = ((held - modelled) ** 2).sum(axis=-1) * (s[:, k] / s_top) ** 2
             spread[rows, k] = np.sqrt(np.maximum((wq * dv).sum(axis=(1, 2)) + model, 0.0) / sheet)
             if classification == "distribution":
                 shown = t.lerp(luv, at_x, _f32(t.std_axis(s[:, k][:, None, None])))  # one deviation per block

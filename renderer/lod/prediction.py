@@ -6,9 +6,10 @@ sum over the slabs it crosses, each seen through the transmittance in front of i
 
 - the error a level-k voxel makes: its spread ς(k) (level_error.block_zetas): each value against the values one
   level-k deviation either side of it (the structure within a level-k voxel, which neither classification
-  keeps), and how far a normal distribution at the block's mean and spread is from the colours of the values the
-  block holds (what classifying by distribution gets wrong where a voxel mixes materials: air and metal, with a
-  translucent band between them that the normal distribution fills), weighted by (s_k / s_top)², the share of
+  keeps), and how far the classification's colour at the block's mean (a normal distribution of the level's
+  spread; the TF at the mean) is from the colours of the values the block holds (what a model of the voxel's
+  values gets wrong where it mixes materials: air and metal, with a translucent band between them that the normal
+  distribution fills and the mean lands in), weighted by (s_k / s_top)², the share of
   level-k voxels that straddle such a boundary (a sharp boundary: the level-k spreads' RMS is the top spread
   times the root of that share; a smooth ramp's voxels, whose spreads grow as the level's size, count less).
   Under `classification: "mean"` the level's own ζ(k) is added (the TF at the mean is not the mean of the TF):
