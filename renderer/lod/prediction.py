@@ -4,9 +4,9 @@ that cross it (selection._predicted with `rays`; docs/lod.md, "Predicted ΔE").
 A block's table ζ(k) is the colour error of one unit slab (the TF's opacity unit: level_error.py); a ray shows the
 sum over the slabs it crosses, each seen through the transmittance in front of it. Per block and level:
 
-- the error a level-k voxel makes: its spread ς(k) (level_error.block_zetas): each value against the values one
-  level-k deviation either side of it (the structure within a level-k voxel, which neither classification
-  keeps), and how far the classification's colour at the block's mean (a normal distribution of the level's
+- the error a level-k voxel makes: its spread ς(k) (level_error.block_zetas): the colour change over one
+  level-k deviation about each value (ζ_step · s_k / s_1: the structure within a level-k voxel, which neither
+  classification keeps), and how far the classification's colour at the block's mean (a normal distribution of the level's
   spread; the TF at the mean) is from the colours of the values the block holds (what a model of the voxel's
   values gets wrong where it mixes materials: air and metal, with a translucent band between them that the normal
   distribution fills and the mean lands in), weighted by (s_k / s_top)², the share of
@@ -31,7 +31,7 @@ columns along each axis, both ways; with the view's weight, along each axis (the
 result times RAY_GAIN is the prediction. RAY_GAIN is the one fitted constant (the sRGB → CIELUV curve is steeper
 at a picture's colours than at one faint slab's, and a ray's mean |error| is below its RMS): the geometric mean
 of measured ÷ predicted over the chest CT's pairs of benchmarks/bench_prediction.py (five TFs, three views, 5:1 to
-100:1, both classifications), validated on the engine and bonsai CTs, whose own fit would be 1.4× higher
+100:1, both classifications), validated on the engine and bonsai CTs, whose own fit would be 1.5× higher
 (docs/measurements/prediction.md).
 All of it is NumPy over the block grid, O(blocks).
 """
@@ -44,7 +44,7 @@ import numpy as np
 __all__ = ["RAY_GAIN", "RayModel", "ray_delta_e"]
 
 #: fitted on the chest CT alone (module doc); the engine and bonsai CTs validate it
-RAY_GAIN = 0.14
+RAY_GAIN = 0.155
 _FOOTPRINT = 1.0 / 255.0  # docs/design.md: a pixel is in the footprint from alpha 1/255
 
 
