@@ -142,6 +142,9 @@ class LodSelection:
     bytes: int  # atlas bytes of the selection (4 bytes per sample)
     reduction: float  # full-resolution bytes / selection bytes (inf when nothing is loaded)
     blocks_skipped: int  # blocks not loaded (zero significance or outside the crop)
+    # what the prediction took beside the levels (prediction.ray_delta_e(rays, other_levels) predicts another
+    # selection of the same store, TFs and view); None for a format-1 store
+    rays: RayModel | None = None
 
 
 # --------------------------------------------------------------------------------------------- quality
@@ -542,6 +545,7 @@ def select_from_meta(
         bytes=nbytes,
         reduction=(full_bytes / nbytes) if nbytes else float("inf"),
         blocks_skipped=int((~loaded).sum()),
+        rays=rays,
     )
 
 
