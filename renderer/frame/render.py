@@ -273,6 +273,8 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         skipped = int(np.count_nonzero(pr.lod.levels < 0))
         reduction = pr.lod.reduction
         pred = None if pr.lod.predicted_delta_e is None else pr.lod.predicted_delta_e + pr.step_delta_e
+        if pred is not None and pr.screen is not None:
+            pred += screen_space.predicted_delta_e(pr.screen)
         quality = scene.quality if isinstance(scene.quality, str) else scene.quality.model_dump()
     asked = scene if pr.chosen is None else pr.chosen[0]
     if pr.chosen is not None:

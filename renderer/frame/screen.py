@@ -28,10 +28,16 @@ import numpy as np
 
 from lodcast.renderer.scene import camera as cam
 
-__all__ = ["TILE", "STATISTICS", "ScreenPlan", "tile_priorities", "resolutions", "plan", "reconstruct"]
+__all__ = ["TILE", "STATISTICS", "SCREEN_DELTA_E", "ScreenPlan", "tile_priorities", "resolutions", "plan", "reconstruct",
+           "predicted_delta_e"]
 
 TILE = 16
 STATISTICS = ("max", "average", "rms")
+#: the mean ΔE that reconstructing a 256² image's pixels from its tiles' sparse rays adds (what intertile
+#: interpolation smooths away of edges and texture below a tile's ray spacing), per pixel without its own ray:
+#: the geometric mean over the chest CT's pairs (five TFs, three views, 10:1 and 30:1, 256² and 128²), validated on
+#: the engine and bonsai CTs (docs/measurements/prediction.md); it adds to the level of detail's error
+SCREEN_DELTA_E = 2.2
 
 
 @dataclass(frozen=True)
@@ -46,6 +52,14 @@ class ScreenPlan:
     @property
     def rays(self) -> int:
         return int(len(self.positions))
+
+
+def predicted_delta_e(sp: ScreenPlan) -> float:
+    """What the mosaic adds to an image's mean ΔE: SCREEN_DELTA_E times the share of pixels without a ray of their
+    own (0 where every tile is at full resolution), scaled from a 256² image to this one's size: what
+    interpolation smooths away is mostly edges, whose share of the pixels is about the tile's share of the image
+    (a tile of 16 pixels spans twice as much of a 128² picture)."""
+    return SCREEN_DELTA_E * max(0.0, 1.0 - sp.rays / float(sp.width * sp.height)) * 256.0 / np.sqrt(sp.width * sp.height)
 
 
 def _ray_points(fr: cam.Frame, xy: np.ndarray, W: int, H: int, box: tuple, step: float, n: int) -> np.ndarray:

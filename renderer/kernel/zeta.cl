@@ -81,7 +81,8 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
                       __global const float* mean_hr,   /* (n_blocks, 2): mean, half the border-inclusive range */
                       __global float* out,             /* (n_blocks, LC_L) */
                       __global float* out_worst,       /* (n_blocks, LC_L), written with LC_WORST */
-                      __global float* out_step) {      /* (n_blocks, 3): step, mean opacity, mean squared opacity */
+                      __global float* out_step,        /* (n_blocks, 3): step, mean opacity, mean squared opacity */
+                      __global float* out_spread) {    /* (n_blocks, LC_L): the spread ς(k) (prediction.py) */
     const LcZetaTable T = {ax.x, ax.y, ax.z, ax.w, sz.x, sz.y, sz.z, sz.w};
     const int b = get_global_id(0);
     if (b >= T.n_blocks) return;
@@ -96,9 +97,9 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
 
     int rj[LC_L], rj1[LC_L];  /* each level's row position (distribution), or shrink factor (mean) */
     float rw[LC_L];
+    const float s_top = fmax(sb[LC_L - 1], 1e-30f);
 #ifdef LC_MEAN
     float rho[LC_L];
-    const float s_top = fmax(sb[LC_L - 1], 1e-30f);
 #endif
 #ifdef LC_WORST
     float sw[LC_L];
@@ -124,6 +125,7 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
     const float s1 = sb[1];
 #endif
     float a1 = 0.0f, a2 = 0.0f, vis = 0.0f, step = 0.0f;
+    float3 held = (float3)(0.0f);  /* the mean colour of the values the block holds */
     for (int p = 0; p < LC_K; ++p) {
         const float lo = edges[st[p]], hi = edges[st[p + 1]];
         const float wp = (float)(st[p + 1] - st[p]) * hb[p] * inv_total;
@@ -143,6 +145,7 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
             float wi;
             const int i = lc_mean_axis(&T, x, &i1, &wi);
             const float3 tstar = lc_lerp(luv, T.n, i, i1, wi, 0, T.rows > 1, 0.0f);
+            held += wq * tstar;
             for (int k = 1; k < LC_L; ++k) {
 #ifdef LC_MEAN
                 const float3 shown = lc_row0(&T, luv, mbar + rho[k] * (x - mbar));
@@ -172,7 +175,28 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
         out_worst[(size_t)b * LC_L + k] = k == 0 ? 0.0f : sqrt(worst[k]);
 #endif
     }
-    out_step[3 * b] = LC_L > 1 ? sqrt(fmax(step, 0.0f) / sheet) : 0.0f;
+    const float step_b = LC_L > 1 ? sqrt(fmax(step, 0.0f) / sheet) : 0.0f;
+    /* the spread (level_error.py): the step's colour change scaled to the level's deviation, and how far the
+     * classification's colour at the block's mean is from the mean colour of its values, by (s_k / s_top)^2 */
+    int im1;
+    float wim;
+    const int im = lc_mean_axis(&T, mbar, &im1, &wim);
+    for (int k = 0; k < LC_L; ++k) {
+        if (k == 0) {
+            out_spread[(size_t)b * LC_L] = 0.0f;
+            continue;
+        }
+        const float hidden = sb[1] > 0.0f ? step_b * sb[k] / sb[1] : 0.0f;  /* (k >= 1: LC_L > 1) */
+#ifdef LC_MEAN
+        const float3 modelled = lc_lerp(luv, T.n, im, im1, wim, 0, T.rows > 1, 0.0f);
+#else
+        const float3 modelled = lc_lerp(luv, T.n, im, im1, wim, rj[k], rj1[k], rw[k]);
+#endif
+        const float r = sb[k] / s_top;
+        const float model = lc_sq(held - modelled) * r * r;
+        out_spread[(size_t)b * LC_L + k] = sqrt(hidden * hidden + model / sheet);
+    }
+    out_step[3 * b] = step_b;
     out_step[3 * b + 1] = a1;
     out_step[3 * b + 2] = a2;
 }

@@ -90,10 +90,14 @@ def _opacity_moments(tf: Any, x: np.ndarray, wq: np.ndarray) -> tuple[np.ndarray
 
 def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
                 classification: str = "distribution", tables: Tables | None = None,
-                worst_values: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                worst_values: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 2), the worst value's ζ(k) per
     block and level (N, L): the largest |T* − T̃| over the values the block holds, where ζ is their RMS; computed
-    where `worst_values` asks, else zeros: it costs half as much again, and only "lossless" needs it), float64,
+    where `worst_values` asks, else zeros: it costs half as much again, and only "lossless" needs it; the spread
+    ς(k) per block and level (N, L), prediction.py's, per visible voxel as ζ: ζ_step · s_k / s_1, the colour change
+    over a level-k deviation (what a level-k voxel hides whatever the classification) and, beside it, how far the
+    classification's colour at the block's mean (a normal distribution of spread s_k; the TF at the mean) is from
+    the mean colour of the values the block holds, weighted by (s_k / s_top)²), float64,
     0 for invisible and constant blocks (and at level 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
     they share with the TF's opacities there and the values' table positions (apart, the two repeated that work, a
     good part of a first render). The table lookups run in float32: ζ is a colour difference in CIELUV
@@ -103,19 +107,20 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     assert classification in ("distribution", "mean")
     n_lv = meta.n_levels
     out, step, worst = np.zeros((meta.n, n_lv)), np.zeros(meta.n), np.zeros((meta.n, n_lv))
+    spread = np.zeros((meta.n, n_lv))
     opac = np.zeros((meta.n, 2))
     todo = _evaluated(meta, visible)
     if todo.size == 0:
-        return out, step, opac, worst
+        return out, step, opac, worst, spread
     assert meta.level_std is not None, "block_zetas needs a store with per-level spreads (format >= 2)"
     tf = as_tf(tf)
     t, luv = luv_table(tf, value_range, std_max, tables)
     starts = effective_starts(meta)
     if tables is not None and tables.device is not None:
         got = device_zetas(tables.device, meta, tf, todo, starts, t, luv, classification, worst_values)
-        for a, b in zip((out, step, opac, worst), got):
+        for a, b in zip((out, step, opac, worst, spread), got):
             a[todo] = b
-        return out, step, opac, worst
+        return out, step, opac, worst, spread
     row0 = t.std_axis(0.0)
     level_std = meta.level_std
     half_range = np.nan_to_num(0.5 * (meta.max_border - meta.min_border))
@@ -136,7 +141,19 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
         tstar = t.lerp(luv, at_x, row0)
         mbar = meta.mean[rows][:, None, None]
         s_top = np.maximum(s[:, -1], 1e-300)
+        # the block's colours as its histogram holds them, against which the classification's colour at the block's
+        # mean (and a level's spread) is a model: far off where the block mixes materials the TF shows apart (air
+        # and metal, with a translucent band between them that a normal distribution, or the mean, lands in)
+        held = (wq[..., None] * tstar).sum(axis=(1, 2))
+        at_mean = _f32(t.mean_axis(meta.mean[rows]))
         for k in range(1, n_lv):
+            # what the level's spread hides: the colour change over a deviation s_k about each value, the step's
+            # over s_1 scaled by s_k / s_1 (the structure within a level-k voxel, which neither classification keeps;
+            # against the values s_k either side, looked up, it predicted no better and doubled this function's cost)
+            hidden = step[rows] * np.where(s[:, 1] > 0, s[:, k] / np.maximum(s[:, 1], 1e-300), 0.0)
+            modelled = t.lerp(luv, at_mean, _f32(t.std_axis(s[:, k])) if classification == "distribution" else row0)
+            model = ((held - modelled) ** 2).sum(axis=-1) * (s[:, k] / s_top) ** 2
+            spread[rows, k] = np.sqrt(hidden * hidden + model / sheet)
             if classification == "distribution":
                 shown = t.lerp(luv, at_x, _f32(t.std_axis(s[:, k][:, None, None])))  # one deviation per block
             else:
@@ -169,7 +186,7 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     else:
         for rows in chunks:
             chunk(rows)
-    return out, step, opac, worst
+    return out, step, opac, worst, spread
 
 
 def _f32(axis: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -182,7 +199,7 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
                classification: str = "distribution") -> tuple[np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L) float64: 0 at level 0, 0 for invisible and constant blocks; per block the
     mean TF opacity and the mean squared TF opacity over its values (N, 2), 0 for blocks not evaluated)."""
-    z, _, opac, _ = block_zetas(meta, tf, visible, value_range, std_max, classification)
+    z, _, opac, _, _ = block_zetas(meta, tf, visible, value_range, std_max, classification)
     return z, opac
 
 
@@ -194,5 +211,5 @@ def step_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[
     ½ |T*(v + s_1) − T*(v − s_1)| at every value v of the block. What a ray marcher misses between samples h
     voxels apart grows as h² times this (selection.step_delta_e). 0 for invisible and constant blocks."""
     assert meta.level_std is not None and meta.n_levels > 1, "step_zeta needs per-level spreads (format >= 2)"
-    _, z, opac, _ = block_zetas(meta, tf, visible, value_range, std_max)
+    _, z, opac, _, _ = block_zetas(meta, tf, visible, value_range, std_max)
     return z, opac

@@ -41,25 +41,23 @@ Significance per level: with a store of format 2 (per-block, per-level spreads) 
 level_error.py, what level k shows under the classification the kernel will use, and the greedy runs on those
 tables (any shape, not the thesis' linear profile); format-1 stores keep eq. 3.1 spread linearly over the levels.
 
-Predicted ΔE of a selection: the count-weighted RMS over loaded blocks of ζ at the chosen level,
-sqrt(Σ_i n_i ζ_i(γ_i)² / Σ_i n_i), n_i the block's valid voxels, is the RMS per-voxel error in unit-slab colours.
-An image shows a colour made of ~1/ā unit slabs along a ray (ā the opacity-weighted mean TF opacity of the loaded
-voxels: about one slab for an opaque surface, several for a translucent layer), so the selection's predicted ΔE is
-IMAGE_GAIN · RMS / ā, with IMAGE_GAIN fitted once on measured renders of a CT (docs/measurements/code-notes.md).
-It is the level of detail's own error, against full resolution at the same step. A render's
-report adds the step's own error (step_delta_e: against the step-¼ reference, STEP_GAIN · h² · RMS(ζ_step) / ā,
-fitted on two CTs and seven TFs), so that it predicts what docs/design.md measures; at 5:1 and below that is most of
-it. With both, IMAGE_GAIN = 0.72 still gives the smallest worst factor on the fit's rows; what is left is the view:
-a scene can measure well above its prediction from one view and below it from another, and no view-independent
-figure meets both.
+Predicted ΔE of a selection (a store with per-level spreads): renderer/lod/prediction.py, what each block's
+error shows along the rays that cross it (the unit slabs of it a ray takes, the transmittance in front of it,
+errors of different blocks in quadrature; the view's weight where the selection took it). It is the level of
+detail's own error, against full resolution at the same step. A render's report adds the step's own error
+(step_delta_e: against the step-¼ reference, STEP_GAIN · h² · RMS(ζ_step) / ā, fitted on two CTs and seven TFs),
+so that it predicts what docs/design.md measures, and adaptive screen-space sampling's (renderer/frame/screen.py).
+A format-1 store (eq. 3.1 spread linearly over the levels, no spreads) keeps the older image-wide model: the
+count-weighted RMS over loaded blocks of ζ at the chosen level, times IMAGE_GAIN / ā ("lossless") or BUDGET_GAIN /
+ā (the budgeted qualities), ā the opacity-weighted mean opacity of the loaded voxels (docs/measurements/code-notes.md).
 Both are estimates of docs/design.md's measured ΔE, not bounds.
 
 What the camera sees (`visibility`, renderer/lod/visibility.py; a render passes it at the budgeted qualities where
 `sampling.lod_visibility` says so, by default for volumes of up to 2^27 voxels): per block the largest
 transmittance with which a ray of a low-resolution cast of the view enters it. It multiplies ζ where the greedy
-weighs it, and the prediction counts each block's voxels times it (an occluded block's error does not reach the
-picture, and ā is that of what is seen), so a block behind opaque material stays coarse and the budget goes to
-what the image shows. 'lossless' does not take it (it promises the full-resolution image from any view); the "l2"
+weighs it, and the prediction takes it for the transmittance in front of the block (an occluded block's error
+does not reach the picture), so a block behind opaque material stays coarse and the budget goes to what the image
+shows. 'lossless' does not take it (it promises the full-resolution image from any view); the "l2"
 and "uniform" baselines ignore it.
 
 What the greedy weighs: per block and level √(ζ(k) · s_k) (times the view's weight), s_k the store's per-block,
@@ -96,6 +94,7 @@ import numpy as np
 from lodcast.renderer.engine import Tables
 from lodcast.renderer.image.delta_e import srgb_to_luv
 from lodcast.renderer.lod.level_error import block_zetas
+from lodcast.renderer.lod.prediction import RayModel, ray_delta_e
 from lodcast.renderer.lod.significance import (
     BlockMeta,
     as_tf,
@@ -105,7 +104,7 @@ from lodcast.renderer.lod.significance import (
     tf_visible,
 )
 from lodcast.renderer.scene.clip import block_bounds
-from lodcast.renderer.scene.transfer_function import evaluate
+from lodcast.renderer.scene.transfer_function import evaluate, unit_distance
 
 __all__ = ["LOSSLESS_ZETA", "LodSelection", "select_lod", "select_from_meta", "greedy", "parse_quality", "crop_mask", "step_delta_e",
            "BYTES_PER_SAMPLE", "MB"]
@@ -143,6 +142,9 @@ class LodSelection:
     bytes: int  # atlas bytes of the selection (4 bytes per sample)
     reduction: float  # full-resolution bytes / selection bytes (inf when nothing is loaded)
     blocks_skipped: int  # blocks not loaded (zero significance or outside the crop)
+    # what the prediction took beside the levels (prediction.ray_delta_e(rays, other_levels) predicts another
+    # selection of the same store, TFs and view); None for a format-1 store
+    rays: RayModel | None = None
 
 
 # --------------------------------------------------------------------------------------------- quality
@@ -374,10 +376,13 @@ def greedy(
 
 # --------------------------------------------------------------------------------------------- entry
 def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray, opac: np.ndarray | None = None,
-               gain: float = IMAGE_GAIN) -> float:
-    """The selection's predicted image ΔE (see module doc): the count-weighted RMS of ζ at the chosen levels;
-    with the blocks' opacity moments (N, 2) known, times gain / ā, ā the opacity-weighted mean opacity of every
-    loaded voxel."""
+               gain: float = IMAGE_GAIN, rays: RayModel | None = None) -> float:
+    """The selection's predicted image ΔE (see module doc). With `rays` (a store with per-level spreads): what
+    the blocks' errors show along the rays that cross them (prediction.ray_delta_e; `gain` unused). Without (a
+    format-1 store): the count-weighted RMS of ζ at the chosen levels; with the blocks' opacity moments (N, 2)
+    known, times gain / ā, ā the opacity-weighted mean opacity of every loaded voxel."""
+    if rays is not None:
+        return ray_delta_e(rays, levels)
     loaded = levels >= 0
     if not loaded.any():
         return 0.0
@@ -407,7 +412,7 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
     (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
     if meta.level_std is None or meta.n_levels < 2:
         return 0.0
-    _, z, opac, visible, _ = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
+    _, z, opac, visible, _, _ = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
     loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
     w = np.nan_to_num(meta.count[loaded].astype(np.float64))
     if not loaded.any() or w.sum() <= 0:
@@ -430,8 +435,11 @@ def select_from_meta(
     visibility: np.ndarray | None = None,
     lossless_zeta: float = LOSSLESS_ZETA,
     tables: Tables | None = None,
+    path: Sequence[float] | None = None,
 ) -> LodSelection:
-    """select_lod on flattened block metadata (what the benchmarks and tests drive directly)."""
+    """select_lod on flattened block metadata (what the benchmarks and tests drive directly). path: a block's
+    length along z, y, x in the TFs' opacity units (select_lod: from the store's spacing); None: one unit per
+    voxel."""
     if method not in METHODS:
         raise ValueError(f"unknown LOD method {method!r} (one of {', '.join(METHODS)})")
     L = meta.n_levels
@@ -448,7 +456,7 @@ def select_from_meta(
     if per_level and kind == "lossless" and tables is not None:  # (its tables, with the worst values, serve the drive's below)
         _max_tables(meta, tf_list, classification, tables, worst=True)
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
-        zeta_tab, opac, visible, drive_base, drive_max = _drive_tables(meta, tf_list, classification, tables)
+        zeta_tab, opac, visible, drive_base, drive_max, spread = _drive_tables(meta, tf_list, classification, tables)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
@@ -480,7 +488,7 @@ def select_from_meta(
             # what 10:1 keeps finer, lossless keeps too (a bound on what the model above can miss)
             ten = select_from_meta(meta, tf_list, {"reduction": 10.0}, n_voxels=n_voxels, block_size=block_size,
                                    in_crop=in_crop, max_level=max_level, classification=classification,
-                                   tables=tables).levels.ravel().astype(np.int64)
+                                   tables=tables, path=path).levels.ravel().astype(np.int64)
             levels = np.where(loaded & (ten >= 0), np.minimum(levels, np.where(ten >= 0, ten, L - 1)), levels)
         elif kind == "lossless":
             levels[refine] = maxlev[refine]
@@ -522,16 +530,22 @@ def select_from_meta(
     loaded = levels >= 0
     samples = int(nsamp[levels[loaded]].sum())
     nbytes = samples * BYTES_PER_SAMPLE
+    rays = None
+    if per_level and opac is not None:
+        rays = RayModel(tuple(meta.grid), tuple(float(x) for x in (path or (block_size,) * 3)), spread,  # type: ignore[arg-type]
+                        zeta_tab if classification == "mean" else None, opac, seen)
     return LodSelection(
         levels=levels.astype(np.int8).reshape(meta.grid),
         zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
         # (a level asked for takes the budgeted qualities' gain: their selections at 10–30:1, from which it was
         # fitted, are mostly made of level-1 and level-2 blocks)
         predicted_delta_e=0.0 if kind == "full" else _predicted(zeta_tab, levels, weight, opac,
-                                                                IMAGE_GAIN if kind == "lossless" else BUDGET_GAIN),
+                                                                IMAGE_GAIN if kind == "lossless" else BUDGET_GAIN,
+                                                                rays),
         bytes=nbytes,
         reduction=(full_bytes / nbytes) if nbytes else float("inf"),
         blocks_skipped=int((~loaded).sum()),
+        rays=rays,
     )
 
 
@@ -543,7 +557,7 @@ def _lossless_levels(meta: BlockMeta, tfs: Sequence[Any], classification: str, t
     before its own material hides what follows (a its opacity-weighted mean opacity, at most the volume's
     diagonal): measured against one image-wide ā, as before, a band at α ≈ 0.006 beside bone passed blocks whose
     small per-slab errors summed to several ΔE along every ray through the band."""
-    zeta, _, opac, _, worst = _max_tables(meta, tfs, classification, tables, worst=True)
+    zeta, _, opac, _, worst, _ = _max_tables(meta, tfs, classification, tables, worst=True)
     n_lv = zeta.shape[1]
     m1, m2 = opac[:, 0], opac[:, 1]
     a = np.where(m1 > 0, m2 / np.maximum(m1, 1e-300), 1.0)
@@ -590,7 +604,8 @@ def _face_error(tf: Any, lo: np.ndarray, hi: np.ndarray, own_lo: np.ndarray, own
 def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | None,
                worst: bool = False) -> tuple[np.ndarray, ...]:
     """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,), the
-    worst value's ζ(k) (N, L) float32, zeros unless `worst` asks for it) of one TF (level_error.block_zetas). They
+    worst value's ζ(k) (N, L) float32, zeros unless `worst` asks for it, the spread table ς(k) (N, L) float32 of
+    prediction.py) of one TF (level_error.block_zetas). They
     depend on the store and the TF, not on the view or the budget, and cost a noticeable part of a first render:
     kept for the last few in `tables` (keyed by the metadata object, which `tables` keeps per store; tables with
     the worst values serve those without)."""
@@ -601,9 +616,9 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | N
             return hit[1]
     visible = tf_visible(tf, meta.min_border, meta.max_border)
     assert meta.value_range is not None  # a store's metadata has it (meta_of_store), and only a store's has spreads
-    zeta, step, opac, w = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables,
-                                      worst_values=worst)
-    out = (zeta.astype(np.float32), step, opac, visible, w.astype(np.float32))
+    zeta, step, opac, w, spread = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification,
+                                              tables, worst_values=worst)
+    out = (zeta.astype(np.float32), step, opac, visible, w.astype(np.float32), spread.astype(np.float32))
     for a in out:
         a.setflags(write=False)
     if tables is not None:
@@ -614,34 +629,37 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | N
 def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
                 tables: Tables | None = None, worst: bool = False) -> tuple[np.ndarray, ...]:
     """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,), the worst value's ζ(k)
-    (N, L) float32, zeros unless `worst` asks for it): the elementwise maxima over the TFs of their tables (zeros
-    where no TF gives more)."""
+    (N, L) float32, zeros unless `worst` asks for it, the spread table ς(k) (N, L) float32): the elementwise maxima
+    over the TFs of their tables (zeros where no TF gives more)."""
     zeta, step = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros(meta.n)
     opac, visible = np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
     worst_z = np.zeros((meta.n, meta.n_levels), np.float32)
+    spread = np.zeros((meta.n, meta.n_levels), np.float32)
     for t in tfs:
-        z_t, s_t, o_t, vis_t, w_t = _tf_tables(meta, t, classification, tables, worst)
+        z_t, s_t, o_t, vis_t, w_t, sp_t = _tf_tables(meta, t, classification, tables, worst)
         zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
         opac, visible, worst_z = np.maximum(opac, o_t), visible | vis_t, np.maximum(worst_z, w_t)
-    return zeta, step, opac, visible, worst_z
+        spread = np.maximum(spread, sp_t)
+    return zeta, step, opac, visible, worst_z, spread
 
 
 def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
                   tables: Tables | None = None) -> tuple[np.ndarray, ...]:
     """(ζ(k) (N, L) float32, opacity moments (N, 2), TF-visible blocks (N,), what drives the greedy
     √(ζ(k) · spread(k)) (N, L) float64 (module doc: "What the greedy weighs"; level 0 drives nothing), its maximum
-    per block (N,)): `_max_tables` and what follows from them and the store alone, kept in `tables` beside them (a
-    new view of a large volume selects again, and these are most of the arithmetic over a million blocks)."""
+    per block (N,), the spread table ς(k) (N, L) float32 that the prediction takes): `_max_tables` and what follows
+    from them and the store alone, kept in `tables` beside them (a new view of a large volume selects again, and
+    these are most of the arithmetic over a million blocks)."""
     key = ("drive", id(meta), json.dumps([as_tf(t).model_dump(mode="json") for t in tfs], sort_keys=True),
            classification)
     hit = None if tables is None else tables.tf.get(key)
     if hit is not None and hit[0]() is meta:
         return hit[1]
-    zeta, _, opac, visible, _ = _max_tables(meta, tfs, classification, tables)
+    zeta, _, opac, visible, _, spread_z = _max_tables(meta, tfs, classification, tables)
     spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
     spread[:, 0] = 0.0
     drive = np.sqrt(zeta * spread)  # (float64, as the greedy takes it: the selection does not depend on keeping it)
-    out = (zeta, opac, visible, drive, drive.max(axis=1))
+    out = (zeta, opac, visible, drive, drive.max(axis=1), spread_z)
     for a in out:
         a.setflags(write=False)
     if tables is not None:
@@ -678,6 +696,9 @@ def select_lod(store: Any, tfs: Any, quality: Any, crop: Any = None, method: str
         in_crop = crop_mask(store.grid, store.shape, store.spacing, store.origin, store.block_size, crop)
     if isinstance(tfs, dict) or hasattr(tfs, "points"):
         tfs = [tfs]
+    # a block's length along each axis in opacity units (the finest TF's, where two differ)
+    unit = min(unit_distance(as_tf(t), store.spacing) for t in tfs)
+    path = tuple(store.block_size * float(sp) / unit for sp in store.spacing)
     return select_from_meta(
         meta,
         tfs,
@@ -691,4 +712,5 @@ def select_lod(store: Any, tfs: Any, quality: Any, crop: Any = None, method: str
         visibility=visibility,
         lossless_zeta=lossless_zeta,
         tables=tables,
+        path=path,
     )

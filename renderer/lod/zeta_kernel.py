@@ -21,15 +21,15 @@ __all__ = ["device_zetas"]
 def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: np.ndarray, t: Any, luv: np.ndarray,
                  classification: str, worst_values: bool) -> tuple[np.ndarray, ...]:
     """(ζ(k) (m, L), ζ_step (m,), opacity moments (m, 2), the worst value's ζ(k) (m, L), zeros unless
-    `worst_values`) of the blocks `rows` of `meta`, float32, as level_error.block_zetas computes them: `tf` a
-    TransferFunction, `starts` the effective starts (N, K + 1), `t` and `luv` the distribution table and its
-    CIELUV colours (level_error.luv_table)."""
+    `worst_values`, the spread ς(k) (m, L)) of the blocks `rows` of `meta`, float32, as level_error.block_zetas
+    computes them: `tf` a TransferFunction, `starts` the effective starts (N, K + 1), `t` and `luv` the distribution
+    table and its CIELUV colours (level_error.luv_table)."""
     m, n_lv = rows.size, int(meta.n_levels)
     k_pieces = int(starts.shape[1]) - 1
     assert meta.level_std is not None
     st = np.ascontiguousarray(starts[rows], np.int32)
     heights = np.ascontiguousarray(np.asarray(meta.heights)[rows], np.float32)
-    spread = np.ascontiguousarray(np.asarray(meta.level_std)[rows], np.float32)
+    level_std = np.ascontiguousarray(np.asarray(meta.level_std)[rows], np.float32)
     half_range = 0.5 * (np.asarray(meta.max_border)[rows] - np.asarray(meta.min_border)[rows])
     # values go to the device relative to the table's first entry, in float64 until then: float32 keeps the
     # position within the value range whatever its offset (data in [1e9, 1e9 + 1000] included)
@@ -55,14 +55,16 @@ def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: n
     out = np.empty((m, n_lv), np.float32)
     worst = np.zeros((m, n_lv), np.float32)
     step = np.empty((m, 3), np.float32)
+    spreads = np.empty((m, n_lv), np.float32)
     d_out, d_worst = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes), cl.Buffer(ctx, mf.WRITE_ONLY, max(worst.nbytes, 4))
-    d_step = cl.Buffer(ctx, mf.WRITE_ONLY, step.nbytes)
+    d_step, d_spread = cl.Buffer(ctx, mf.WRITE_ONLY, step.nbytes), cl.Buffer(ctx, mf.WRITE_ONLY, spreads.nbytes)
     kern = cl.Kernel(device.program("zeta.cl", opts).program, "lc_zeta")
     kern(queue, (m,), None, ax, sz, src(table), src(pts), src(st), src(edges.astype(np.float32)),
-         src(heights), src(spread), src(mean_hr), d_out, d_worst, d_step)
+         src(heights), src(level_std), src(mean_hr), d_out, d_worst, d_step, d_spread)
     cl.enqueue_copy(queue, out, d_out)
     cl.enqueue_copy(queue, step, d_step)
+    cl.enqueue_copy(queue, spreads, d_spread)
     if worst_values:
         cl.enqueue_copy(queue, worst, d_worst)
     queue.finish()
-    return out, step[:, 0], step[:, 1:], worst
+    return out, step[:, 0], step[:, 1:], worst, spreads

@@ -1,0 +1,109 @@
+"""The picture's error from a selection's per-block errors: how a block's error reaches the image along the rays
+that cross it (selection._predicted with `rays`; docs/lod.md, "Predicted ΔE").
+
+A block's table ζ(k) is the colour error of one unit slab (the TF's opacity unit: level_error.py); a ray shows the
+sum over the slabs it crosses, each seen through the transmittance in front of it. Per block and level:
+
+- the error a level-k voxel makes: its spread ς(k) (level_error.block_zetas): the colour change over one
+  level-k deviation about each value (ζ_step · s_k / s_1: the structure within a level-k voxel, which neither
+  classification keeps), and how far the classification's colour at the block's mean (a normal distribution of the level's
+  spread; the TF at the mean) is from the colours of the values the block holds (what a model of the voxel's
+  values gets wrong where it mixes materials: air and metal, with a translucent band between them that the normal
+  distribution fills and the mean lands in), weighted by (s_k / s_top)², the share of
+  level-k voxels that straddle such a boundary (a sharp boundary: the level-k spreads' RMS is the top spread
+  times the root of that share; a smooth ramp's voxels, whose spreads grow as the level's size, count less).
+  Under `classification: "mean"` the level's own ζ(k) is added (the TF at the mean is not the mean of the TF):
+  e(k)² = ς(k)² + ζ(k)²;
+- how many unit slabs of it a ray takes: a ray crossing the block travels λ = ℓ · max(f, 1/B) units through what
+  the TF shows (ℓ the block's length in units along the ray, f its visible share, m₁²/m₂ from the opacity moments,
+  at least a one-voxel sheet, as ζ's own normalisation), and a slab at depth t within it is seen through (1 − a)^t
+  of the block in front of it (a = m₂/m₁, the opacity-weighted mean opacity): n = Σ_t (1 − a)^t =
+  (1 − (1 − a)^λ) / a unit slabs, λ for a faint band, 1/a for an opaque surface. The errors of one block add
+  along the ray (the structure a level hides runs across the block); those of different blocks are independent
+  and add in quadrature;
+- what is in front of it: the block's transmittance (1 − a)^λ multiplies along the ray; where the selection was
+  weighted by the camera's view (visibility.py), that weight (the largest transmittance with which a ray of the
+  view enters the block) stands for it.
+
+A pixel's error is then √(Σ_b (T_b · n_b · e_b)²) over the blocks b on its ray, and the image's mean ΔE the mean
+over the pixels its footprint covers (accumulated opacity ≥ 1/255). Without a view, the rays are the block grid's
+columns along each axis, both ways; with the view's weight, along each axis (the weight is direction-free). The
+result times RAY_GAIN is the prediction. RAY_GAIN is the one fitted constant (the sRGB → CIELUV curve is steeper
+at a picture's colours than at one faint slab's, and a ray's mean |error| is below its RMS): the geometric mean
+of measured ÷ predicted over the chest CT's pairs of benchmarks/bench_prediction.py (five TFs, three views, 5:1 to
+100:1, both classifications), validated on the engine and bonsai CTs, whose own fit would be 1.5× higher
+(docs/measurements/prediction.md).
+All of it is NumPy over the block grid, O(blocks).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["RAY_GAIN", "RayModel", "ray_delta_e"]
+
+#: fitted on the chest CT alone (module doc); the engine and bonsai CTs validate it
+RAY_GAIN = 0.155
+_FOOTPRINT = 1.0 / 255.0  # docs/design.md: a pixel is in the footprint from alpha 1/255
+
+
+@dataclass(frozen=True)
+class RayModel:
+    """What the ray model needs beside a selection's levels: the grid, each block's length along each axis in TF
+    opacity units, and per block (flattened in C order) the spread table ς (N, L), the classification's own ζ (N, L)
+    where it adds a bias ("mean"; None for "distribution"), the opacity moments (N, 2) and the view's weight (N,) or
+    None."""
+
+    grid: tuple[int, int, int]
+    path: tuple[float, float, float]  # units per block along z, y, x
+    spread: np.ndarray
+    bias: np.ndarray | None
+    opac: np.ndarray
+    seen: np.ndarray | None = None
+
+
+def ray_delta_e(model: RayModel, levels: np.ndarray, gain: float = RAY_GAIN) -> float:
+    """The predicted mean ΔE of the image of a selection (`levels` (N,), −1 not loaded), module doc."""
+    lv = np.asarray(levels, np.int64).ravel()
+    loaded = lv >= 0
+    if not loaded.any():
+        return 0.0
+    rows = np.flatnonzero(loaded)
+    k = lv[rows]
+    e2 = np.zeros(lv.size)
+    e2[rows] = np.asarray(model.spread, np.float64)[rows, k] ** 2
+    if model.bias is not None:
+        e2[rows] += np.asarray(model.bias, np.float64)[rows, k] ** 2
+    m1 = np.where(loaded, model.opac[:, 0], 0.0)
+    m2 = np.where(loaded, model.opac[:, 1], 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(m1 > 0, m2 / m1, 0.0)
+        f = np.where(m2 > 0, m1 * m1 / m2, 0.0)
+    a = np.minimum(a, 1.0 - 1e-6)
+    block = 1 << max(int(np.asarray(model.spread).shape[1]) - 1, 0)  # B: the coarsest level holds one voxel
+    grid = tuple(model.grid)
+    seen = None if model.seen is None else np.clip(np.asarray(model.seen, np.float64), 0.0, 1.0).reshape(grid)
+    out = []
+    for ax in range(3):
+        lam = model.path[ax] * np.maximum(f, 1.0 / block)
+        tau = np.where(a > 0, np.exp(lam * np.log1p(-a)), 1.0)
+        n_slabs = np.where(a > 1e-12, -np.expm1(lam * np.log1p(-a)) / np.maximum(a, 1e-12), lam)
+        x2 = np.moveaxis((n_slabs * n_slabs * e2).reshape(grid), ax, 0)
+        t = np.moveaxis(tau.reshape(grid), ax, 0)
+        footprint = (1.0 - np.prod(t, axis=0)) >= _FOOTPRINT
+        if not footprint.any():
+            continue
+        ways = ((np.moveaxis(seen, ax, 0), x2),) if seen is not None else \
+            ((_in_front(t), x2), (_in_front(t[::-1]), x2[::-1]))
+        for front, xx in ways:
+            err = np.sqrt((front * front * xx).sum(axis=0))
+            out.append(float(err[footprint].mean()))
+    return gain * float(np.mean(out)) if out else 0.0
+
+
+def _in_front(tau: np.ndarray) -> np.ndarray:
+    """The transmittance in front of each block along axis 0 (1 for the first)."""
+    front = np.ones_like(tau)
+    np.cumprod(tau[:-1], axis=0, out=front[1:])
+    return front
