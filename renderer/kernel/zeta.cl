@@ -133,7 +133,7 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
         const float mid = 0.5f * (lo + hi), width = 0.5f * (hi - lo);
         for (int q = 0; q < 3; ++q) {
             const float x = mid + width * (float)(q - 1) * NODE;
-            const float wq = wp * (q == 1 ? 8.0f / 9.0f : 5.0f / 9.0f);  /* level_error.py: _WEIGHTS * 2 */
+            const float wq = wp * (q == 1 ? 8.0f / 18.0f : 5.0f / 18.0f);  /* level_error.py: _WEIGHTS */
             const float a = lc_tf_opacity(pts, T.n_points, x);
             a1 += wq * a;
             a2 += wq * a * a;

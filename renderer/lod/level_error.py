@@ -72,7 +72,7 @@ def _pieces(meta: BlockMeta, starts: np.ndarray, rows: np.ndarray) -> tuple[np.n
     w = (st[:, 1:] - st[:, :-1]) * meta.heights[rows].astype(np.float64)  # voxels in each piece
     total = w.sum(axis=1)
     x = 0.5 * (lo + hi)[..., None] + 0.5 * (hi - lo)[..., None] * _NODES
-    return x, (w[..., None] * _WEIGHTS * 2.0) / np.maximum(total, 1e-300)[:, None, None]
+    return x, (w[..., None] * _WEIGHTS) / np.maximum(total, 1e-300)[:, None, None]
 
 
 def _evaluated(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:

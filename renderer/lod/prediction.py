@@ -44,7 +44,7 @@ import numpy as np
 __all__ = ["RAY_GAIN", "RayModel", "ray_delta_e"]
 
 #: fitted on the chest CT alone (module doc); the engine and bonsai CTs validate it
-RAY_GAIN = 0.155
+RAY_GAIN = 0.234
 _FOOTPRINT = 1.0 / 255.0  # docs/design.md: a pixel is in the footprint from alpha 1/255
 
 
