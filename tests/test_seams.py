@@ -151,3 +151,25 @@ def test_lit_sphere_across_level_changes_everywhere(renderer, sphere):
         assert seams.ratio is not None and seams.ratio <= 1.5, (interp, seams)
         assert de.mean() <= 2.2 and de.max() <= 60.0, (interp, de.mean(), de.max())
 
+
+def test_the_report_has_the_seam_measure(renderer, sphere, tmp_path):
+    """`lodcast report`'s level-of-detail rows carry the seam measure of their image against the report's reference,
+    and the table shows it below the main one; full resolution has none."""
+    from lodcast.renderer.tools.quality_report import Variant, run_report, write_report
+
+    scene = {**SCENE, "width": 96, "height": 96}
+    scene.pop("format")
+    result = run_report(sphere, scene, [Variant("full"), Variant({"reduction": 30}, "nearest_block")], repeat=1,
+                        log=lambda m: None, renderer=renderer)
+    full, lod = result["rows"]
+    assert "seam_ratio" not in full
+    ref = renderer.render(sphere, {**scene, "quality": "full", "sampling": {"step": 0.25}, "format": "npy"}).rgba
+    img = renderer.render(sphere, Variant({"reduction": 30}, "nearest_block").apply(scene)).rgba
+    levels = renderer.prepare(sphere, Variant({"reduction": 30}, "nearest_block").apply(scene)).lod.levels
+    cross = crossings_of(renderer.prepare(sphere, Variant({"reduction": 30}, "nearest_block").apply(scene)))
+    want = seam_stats(img, ref, cross.mask(levels))
+    assert lod["seam_pixels"] == want.seam_pixels and lod["rest_pixels"] == want.rest_pixels
+    assert lod["rest_delta_e"] == pytest.approx(want.rest_mean, rel=1e-9)
+    assert lod["coarse_face_ratio"] == pytest.approx(seam_stats(img, ref, cross.mask(levels, "coarse")).ratio)
+    table = write_report(result, tmp_path / "rep")["table"].read_text()
+    assert "| ΔE crossing a level change |" in table and "| reduction 30, nearest block |" in table
