@@ -93,7 +93,7 @@ static LC_HOT float2 lc_sampler_at(LcSampler* s, const float3 q) {
 /* the field at q for shading gradients (lc_shade.h): the atlas's interblock field whatever the interpolation, so
  * that a normal near a face between blocks takes both blocks' data (eq. 3.6 is C0 across level changes) instead
  * of the difference between one block's clamped samples and the next block's */
-static LC_HOT float lc_sampler_grad_at(LcSampler* s, const float3 q) {
+static LC_COLD float lc_sampler_grad_at(LcSampler* s, const float3 q) {
 #if defined(LC_SAMPLER_ATLAS)
     return lc_sample_ii_h(s->vol, s->sig, s->imap, s->geom, &s->hood, q).x;
 #else

@@ -51,7 +51,7 @@ static LC_HOT float3 lc_lit(const LcShade* sh, const float3 col, const float3 g)
 }
 
 /* the field's gradient at q, world units, continuous across blocks (lc_sampler_grad_at): lc_sampler_diff where it
- * applies, else six interblock samples, called in a loop rather than inlined six times (six inlined copies of the
+ * applies, else six interblock samples, called in a loop from one out-of-line copy (six inlined copies of the
  * interblock sampler make the first build much longer) */
 static LC_HOT float3 lc_gradient(LcSampler* s, const LcShade* sh, const float3 q) {
     float3 g;
