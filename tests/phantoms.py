@@ -1,4 +1,4 @@
-"""Small test data several test files write: a head phantom and a DICOM dataset's common header."""
+"""Small test data several test files write: a head phantom, a smooth sphere and a DICOM dataset's common header."""
 from __future__ import annotations
 
 from typing import Any
@@ -13,6 +13,21 @@ def head(n: int) -> np.ndarray:
     vol = np.where(r < 1.0, 90.0, 4.0) + np.random.default_rng(3).normal(0, 3, r.shape)
     vol[(r > 0.88) & (r < 1.0)] = 160.0
     return np.clip(vol, 0, 255).astype(np.uint8)
+
+
+#: a TF that shows sphere_ramp's surface as an opaque shell whose colour follows the values inside
+SPHERE_TF = {"points": [{"value": -100, "color": [0.9, 0.6, 0.4], "opacity": 0.0},
+                        {"value": 100, "color": [0.9, 0.7, 0.5], "opacity": 0.9},
+                        {"value": 1000, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
+
+
+def sphere_ramp(n: int = 128) -> np.ndarray:
+    """A smooth float32 volume, n³: a sphere of radius 0.31 n as a radial ramp (25 per voxel, 0 on the surface,
+    positive inside) plus a linear ramp along x (3 per voxel), off the block grid's centre so that its surface
+    crosses block faces at every angle."""
+    zz, yy, xx = np.mgrid[:n, :n, :n].astype(np.float32)
+    r = np.sqrt((xx - 0.496 * n) ** 2 + (yy - 0.469 * n) ** 2 + (zz - 0.516 * n) ** 2)
+    return ((0.3125 * n - r) * 25.0 + 3.0 * (xx - n / 2)).astype(np.float32)
 
 
 def dicom_dataset(sop_class: str) -> Any:

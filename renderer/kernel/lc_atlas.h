@@ -213,7 +213,6 @@ static inline float2 lc_hood_sample(__global const lc_voxel* atlas, __global con
     return acc / wsum;
 }
 
-#ifdef LC_INTERP_II
 /* A sample of block (bx, by, bz) (NB sample a, half-sample width ho) in the blend zone of one face only, along x
  * (in_x), y (in_y) or else z, o level-0 voxels from the block's lower face on that axis. Every block of the cell but
  * the own one and its neighbour across that face has weight 0 (the fast path's argument, below), and these two take
@@ -234,45 +233,117 @@ static LC_HOT float2 lc_face_blend(__global const lc_voxel* atlas, __global cons
     const float2 v = lc_nb(atlas, sig, nb, nx, ny, nz, g, q);
     return a + (v - a) * w;
 }
-#endif
+
+/* eq. 3.6 at q in block (bx, by, bz) (index entry own != 0), through the interior fast path (the thesis' II two-pass
+ * idea: NB inside the sample boundaries) and the one-face blend where they apply. A block b other than the own one
+ * differs from it along some axis a; its weight has the factor of the a-edge joining b to the block b' of the cell
+ * that shares the own block's a-coordinate, and that factor is 0 once the sample is at least b''s half-sample
+ * width from the a-face (e = 0 for x <= -delta_L, 1 for x >= delta_U, the side of b' being the own side). b' lies
+ * in the own block's slice across a, so at least hm_a (the largest half-sample width of that 3x3 slice) from both
+ * a-faces on every axis, only the own block carries weight and phi is its NB sample. Nearest-block builds take
+ * their shading gradients from it (lc_shade.h), so that normals across a level change come from both blocks. */
+static LC_HOT float2 lc_sample_ii(__global const lc_voxel* atlas, __global const lc_sig* sig,
+                                  __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const ulong own,
+                                  const int bx, const int by, const int bz, const float3 q) {
+    const float hx = lc_hw(own, 4), hy = lc_hw(own, 8), hz = lc_hw(own, 12);
+    const float ox = q.x + 0.5f - (float)bx * g.B, oy = q.y + 0.5f - (float)by * g.B;
+    const float oz = q.z + 0.5f - (float)bz * g.B;
+    const int in_x = !(ox >= hx && g.B - ox >= hx), in_y = !(oy >= hy && g.B - oy >= hy);
+    const int in_z = !(oz >= hz && g.B - oz >= hz);
+    if (!(in_x | in_y | in_z)) return lc_nb(atlas, sig, own, bx, by, bz, g, q);
+    if (in_x + in_y + in_z == 1)
+        return lc_face_blend(atlas, sig, imap, g, lc_nb(atlas, sig, own, bx, by, bz, g, q), lc_half(own), bx, by, bz,
+                             in_x, in_y, in_x ? ox : (in_y ? oy : oz), q);
+    /* p >= 0 (the caller's clamp to the box): (int) is floor */
+    const float3 p = (q + 0.5f) * (1.0f / g.B);
+    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
+    if (cx != hd->cx || cy != hd->cy || cz != hd->cz) lc_hood(hd, imap, g, cx, cy, cz);
+    return lc_hood_sample(atlas, sig, g, hd, q);
+}
+
+/* the block of q and its index entry (0: not loaded) */
+static LC_HOT ulong lc_own(__global const ulong* imap, const LcAtlasGeom g, const float3 q, int* bx, int* by, int* bz) {
+    /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
+     * PoCL's out-of-line floor() */
+    const float3 p = (q + 0.5f) * (1.0f / g.B);
+    *bx = lc_clampi((int)p.x, g.gx - 1);
+    *by = lc_clampi((int)p.y, g.gy - 1);
+    *bz = lc_clampi((int)p.z, g.gz - 1);
+    return lc_imap(imap, g, *bx, *by, *bz);
+}
+
+/* Central differences of eq. 3.6 one level-0 voxel either side of q along each axis (the samples ahead minus those
+ * behind), all six points in the neighbourhood's cell: one set of edge weights per coordinate (q's and q's +-1 on
+ * each axis) and an NB sample only where a block's weight is non-zero, instead of six separate interblock samples.
+ * A point whose own block is missing is NaN, as lc_sample_atlas_h gives it. */
+static LC_HOT float3 lc_hood_diff(__global const lc_voxel* atlas, __global const lc_sig* sig, const LcAtlasGeom g,
+                                  const LcHood* hd, const float3 q) {
+    const float3 c = q + 0.5f - (float3)((float)hd->cx, (float)hd->cy, (float)hd->cz) * g.B;
+    float ex[3][4], ey[3][4], ez[3][4]; /* [0]: at the coordinate - 1, [1]: + 1, [2]: at q */
+    for (int k = 0; k < 4; ++k) {
+        const int sx = 2 * k, sy = (k & 1) | ((k & 2) << 1), sz = k;
+        for (int m = 0; m < 3; ++m) {
+            const float o = m == 2 ? 0.0f : (m ? 1.0f : -1.0f);
+            ex[m][k] = lc_edge_r(c.x + o, hd->h[sx], hd->rx[k]);
+            ey[m][k] = lc_edge_r(c.y + o, hd->h[sy], hd->ry[k]);
+            ez[m][k] = lc_edge_r(c.z + o, hd->h[sz], hd->rz[k]);
+        }
+    }
+    float acc[6] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f}, ws[6] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    for (int s = 0; s < 8; ++s) {
+        if (!hd->E[s]) continue;
+        const int sx = s & 1, sy = (s >> 1) & 1, sz = s >> 2;
+        float fx[3], fy[3], fz[3];
+        for (int m = 0; m < 3; ++m) {
+            fx[m] = sx ? ex[m][s >> 1] : 1.0f - ex[m][s >> 1];
+            fy[m] = sy ? ey[m][sx + 2 * sz] : 1.0f - ey[m][sx + 2 * sz];
+            fz[m] = sz ? ez[m][sx + 2 * sy] : 1.0f - ez[m][sx + 2 * sy];
+        }
+#pragma unroll 1
+        for (int k = 0; k < 6; ++k) { /* point k: axis k >> 1, - (k even) or + (k odd) */
+            const int a = k >> 1, m = k & 1;
+            const float w = (a == 0 ? fx[m] : fx[2]) * (a == 1 ? fy[m] : fy[2]) * (a == 2 ? fz[m] : fz[2]);
+            if (w > 0.0f) {
+                const float o = m ? 1.0f : -1.0f;
+                const float3 qk = q + (float3)(a == 0 ? o : 0.0f, a == 1 ? o : 0.0f, a == 2 ? o : 0.0f);
+                acc[k] += w * lc_nb(atlas, sig, hd->E[s], hd->X[sx], hd->Y[sy], hd->Z[sz], g, qk).x;
+                ws[k] += w;
+            }
+        }
+    }
+    float v[6];
+    for (int k = 0; k < 6; ++k) {
+        /* the block that holds point k: the cell's block on its side of the blocks' common corner, per axis */
+        const int a = k >> 1;
+        const float o = (k & 1) ? 1.0f : -1.0f;
+        const int own = (c.x + (a == 0 ? o : 0.0f) >= 0.0f ? 1 : 0) | (c.y + (a == 1 ? o : 0.0f) >= 0.0f ? 2 : 0) |
+                        (c.z + (a == 2 ? o : 0.0f) >= 0.0f ? 4 : 0);
+        v[k] = hd->E[own] ? acc[k] / ws[k] : NAN;
+    }
+    return (float3)(v[1] - v[0], v[3] - v[2], v[5] - v[4]);
+}
 
 /* The multiresolution field at q. hd: the last interblock neighbourhood this ray set up (cx = -1: none), reused
  * while the ray's samples stay in it */
 static LC_HOT float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global const lc_sig* sig,
                                        __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q) {
-    /* p >= 0 inside the box (up to rounding, where truncation and the clamp agree): (int) is floor, without
-     * PoCL's out-of-line floor() */
-    const float3 p = (q + 0.5f) * (1.0f / g.B);
-    const int bx = lc_clampi((int)p.x, g.gx - 1);
-    const int by = lc_clampi((int)p.y, g.gy - 1);
-    const int bz = lc_clampi((int)p.z, g.gz - 1);
-    const ulong own = lc_imap(imap, g, bx, by, bz);
+    int bx, by, bz;
+    const ulong own = lc_own(imap, g, q, &bx, &by, &bz);
     if (!own) return (float2)(NAN, 0.0f);
 #ifndef LC_INTERP_II
     return lc_nb_in(atlas, sig, own, bx, by, bz, g, q, 1);
 #else
-    {
-        /* interior fast path (the thesis' II two-pass idea: NB inside the sample boundaries). A block b other than
-         * the own one differs from it along some axis a; its weight has the factor of the a-edge joining b to the
-         * block b' of the cell that shares the own block's a-coordinate, and that factor is 0 once the sample is at
-         * least b''s half-sample width from the a-face (e = 0 for x <= -delta_L, 1 for x >= delta_U, the side
-         * of b' being the own side). b' lies in the own block's slice across a, so at least hm_a (the largest
-         * half-sample width of that 3x3 slice) from both a-faces on every axis, only the own block carries
-         * weight and phi is its NB sample. */
-        const float hx = lc_hw(own, 4), hy = lc_hw(own, 8), hz = lc_hw(own, 12);
-        const float ox = q.x + 0.5f - (float)bx * g.B, oy = q.y + 0.5f - (float)by * g.B;
-        const float oz = q.z + 0.5f - (float)bz * g.B;
-        const int in_x = !(ox >= hx && g.B - ox >= hx), in_y = !(oy >= hy && g.B - oy >= hy);
-        const int in_z = !(oz >= hz && g.B - oz >= hz);
-        if (!(in_x | in_y | in_z)) return lc_nb(atlas, sig, own, bx, by, bz, g, q);
-        if (in_x + in_y + in_z == 1)
-            return lc_face_blend(atlas, sig, imap, g, lc_nb(atlas, sig, own, bx, by, bz, g, q), lc_half(own), bx, by, bz,
-                                 in_x, in_y, in_x ? ox : (in_y ? oy : oz), q);
-    }
-    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
-    if (cx != hd->cx || cy != hd->cy || cz != hd->cz) lc_hood(hd, imap, g, cx, cy, cz);
-    return lc_hood_sample(atlas, sig, g, hd, q);
+    return lc_sample_ii(atlas, sig, imap, g, hd, own, bx, by, bz, q);
 #endif
+}
+
+/* The interblock field at q whatever the build's interpolation (NaN in a missing block) */
+static LC_HOT float2 lc_sample_ii_h(__global const lc_voxel* atlas, __global const lc_sig* sig,
+                                    __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q) {
+    int bx, by, bz;
+    const ulong own = lc_own(imap, g, q, &bx, &by, &bz);
+    if (!own) return (float2)(NAN, 0.0f);
+    return lc_sample_ii(atlas, sig, imap, g, hd, own, bx, by, bz, q);
 }
 
 static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global const lc_sig* sig,
@@ -297,6 +368,8 @@ typedef struct LcBlk {
     float3 c;
     int bx, by, bz; /* the block */
     float ho;       /* its half-sample width (level-0 voxels) */
+    float3 glo, ghi; /* where a shading gradient's stencil (one level-0 voxel either side) sees this block only:
+                      * eq. 3.6's interior fast window, one level-0 voxel in from it (empty: n = 0) */
 } LcBlk;
 
 static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, const int bx, const int by, const int bz) {
@@ -307,6 +380,7 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.off = 0;
     b.s = 1.0f; b.lo = (float3)(0.0f); b.hi = (float3)(-1.0f);
     b.c = (float3)(0.0f);
+    b.glo = b.lo; b.ghi = b.hi;
     if (!ent) return b;
     const int lvl = (int)(ent & 15UL) - 1;
     b.off = ent >> 16;
@@ -316,8 +390,10 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.c = ((float3)(0.5f) - (float3)((float)bx, (float)by, (float)bz) * g.B) * b.s - 0.5f;
     b.bx = bx; b.by = by; b.bz = bz;
     b.ho = 0.5f / b.s;
-#ifdef LC_INTERP_II
     const float3 hm = (float3)(lc_hw(ent, 4), lc_hw(ent, 8), lc_hw(ent, 12));
+    b.glo = (hm + 1.0f) * b.s - 0.5f;
+    b.ghi = (float)b.n - 0.5f - (hm + 1.0f) * b.s;
+#ifdef LC_INTERP_II
     b.lo = hm * b.s - 0.5f;
     b.hi = (float)b.n - 0.5f - hm * b.s;
 #else

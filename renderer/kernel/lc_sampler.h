@@ -54,6 +54,8 @@ static inline LcSampler lc_sampler_make(__constant const LcParams* P, __global c
     s.blk.lo = (float3)(0.0f);
     s.blk.hi = (float3)(-1.0f);
     s.blk.c = (float3)(0.0f);
+    s.blk.glo = s.blk.lo;
+    s.blk.ghi = s.blk.hi;
     s.hood.cx = -1;
 #endif
 #if defined(LC_PASSES) && defined(LC_SAMPLER_FULL)
@@ -85,6 +87,57 @@ static LC_HOT float2 lc_sampler_at(LcSampler* s, const float3 q) {
     return (float2)(lc_sample_pass(s->vol, s->pdims, s->pmax, s->qmax, s->poff, q), 0.0f);
 #else
     return (float2)(lc_sample(s->vol, s->dims, s->qmax, q), 0.0f);
+#endif
+}
+
+/* the field at q for shading gradients (lc_shade.h): the atlas's interblock field whatever the interpolation, so
+ * that a normal near a face between blocks takes both blocks' data (eq. 3.6 is C0 across level changes) instead
+ * of the difference between one block's clamped samples and the next block's */
+static LC_COLD float lc_sampler_grad_at(LcSampler* s, const float3 q) {
+#if defined(LC_SAMPLER_ATLAS)
+    return lc_sample_ii_h(s->vol, s->sig, s->imap, s->geom, &s->hood, q).x;
+#else
+    return lc_sampler_at(s, q).x;
+#endif
+}
+
+/* The central differences of lc_sampler_grad_at at q (x, y, z: the samples ahead minus those behind, one level-0
+ * voxel away) where that is cheaper than six samples: where the stencil lies in the fast window of the block the walk
+ * is in (there the interblock field is that block's own trilinear field: six reads of its brick, no index map), or
+ * else in one interblock cell (lc_hood_diff); 0 where neither holds (the caller samples six times). */
+static LC_HOT int lc_sampler_diff(LcSampler* s, const float3 q, float3* d) {
+#if defined(LC_SAMPLER_ATLAS)
+    const LcBlk* b = &s->blk;
+    const float3 l = q * b->s + b->c;
+    if (l.x >= b->glo.x && l.x <= b->ghi.x && l.y >= b->glo.y && l.y <= b->ghi.y && l.z >= b->glo.z &&
+        l.z <= b->ghi.z) {
+        float3 g = (float3)(0.0f);
+#pragma unroll 1
+        for (int k = 0; k < 6; ++k) {
+            const float o = (k & 1) ? -1.0f : 1.0f;
+            const int a = k >> 1;
+            const float3 e = (float3)(a == 0 ? o : 0.0f, a == 1 ? o : 0.0f, a == 2 ? o : 0.0f);
+            const float3 m = l + e * b->s; /* one level-0 voxel in brick coordinates */
+            g += e * lc_brick(s->vol, s->sig, b->off, b->n, b->coarse, m.x, m.y, m.z).x;
+        }
+        *d = g;
+        return 1;
+    }
+    const LcAtlasGeom g = s->geom;
+    /* q's interblock cell (corner c, q >= -1/2 in the box: (int) is floor) and q's coordinate in it */
+    const float3 p = (q + 0.5f) * (1.0f / g.B);
+    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
+    const float3 c = q + 0.5f - (float3)((float)cx, (float)cy, (float)cz) * g.B;
+    const float hb = 0.5f * g.B - 1.0f; /* the stencil stays in the cell: |c +- 1| within half a block */
+    if (!(c.x >= -hb && c.x < hb && c.y >= -hb && c.y < hb && c.z >= -hb && c.z < hb)) return 0;
+    if (cx != s->hood.cx || cy != s->hood.cy || cz != s->hood.cz) lc_hood(&s->hood, s->imap, g, cx, cy, cz);
+    *d = lc_hood_diff(s->vol, s->sig, g, &s->hood, q);
+    return 1;
+#else
+    d->x = lc_sampler_at(s, q + (float3)(1.0f, 0.0f, 0.0f)).x - lc_sampler_at(s, q - (float3)(1.0f, 0.0f, 0.0f)).x;
+    d->y = lc_sampler_at(s, q + (float3)(0.0f, 1.0f, 0.0f)).x - lc_sampler_at(s, q - (float3)(0.0f, 1.0f, 0.0f)).x;
+    d->z = lc_sampler_at(s, q + (float3)(0.0f, 0.0f, 1.0f)).x - lc_sampler_at(s, q - (float3)(0.0f, 0.0f, 1.0f)).x;
+    return 1;
 #endif
 }
 

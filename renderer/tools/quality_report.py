@@ -7,7 +7,10 @@ and each image is compared with the scene's reference — its full-resolution re
 the smallest spacing and no LOD or adaptive sampling (docs/design.md) — by ΔE (mean, p95, max over the footprint).
 Each configuration is rendered once to warm the brick cache and the program cache, then timed `repeat` times
 (the fastest run counts: the machine is shared). Output: a Markdown table, JSON, and a PNG plot of ΔE against
-milliseconds with the report's predicted ΔE (level of detail plus step) beside the measured one.
+milliseconds with the report's predicted ΔE (level of detail plus step) beside the measured one. Each level-of-detail
+row also has the seam measure (renderer/image/seams.py): mean ΔE on the pixels whose rays cross a level change
+against the rest, and the same over every face where a coarse block meets another (DESIGN.md's "no block grid":
+≤ 1.5×), in the seam table below the main one.
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ from typing import Any, Callable
 import numpy as np
 
 from lodcast.renderer.image.delta_e import delta_e_stats
+from lodcast.renderer.image.seams import Crossings, crossings_of, seam_stats
 
 __all__ = ["Variant", "default_variants", "run_report", "write_report", "target_front"]
 
@@ -115,7 +119,8 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
     given) on `renderer` (default: lodcast.render's); return rows of error and time."""
     from lodcast.renderer.frame.render import default_renderer
 
-    render = (renderer or default_renderer()).render
+    eng = renderer or default_renderer()
+    render = eng.render
 
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     variants = list(variants if variants is not None else default_variants())
@@ -124,6 +129,7 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
     ref = reference if reference is not None else render(store, ref_scene)
     log(f"reference: step {ref_scene['sampling']['step']} voxel, {ref.report['wall_ms']:.0f} ms")
     rows = []
+    crossings: Crossings | None = None
     for i, v in enumerate(variants, 1):
         vs = v.apply(scene)
         first = render(store, vs)  # warms the program and brick caches
@@ -144,6 +150,13 @@ def run_report(store: Any, scene: dict, variants: Iterable[Variant] | None = Non
             "wall_ms": rep["wall_ms"], "kernel_ms": rep["kernel_ms"], "samples": rep.get("samples"),
             "bricks_read_first": first.report.get("bricks_read"), "bricks_skipped": rep.get("bricks_skipped"),
         })
+        lod = None if v.quality == "full" else eng.prepare(store, vs).lod
+        if lod is not None:
+            if crossings is None:  # the march depends on the camera, level 0 and the TF only: once per report
+                crossings = crossings_of(eng.prepare(store, vs))
+            rows[-1].update(seam_stats(best.rgba, ref.rgba, crossings.mask(lod.levels)).as_dict())
+            rows[-1]["coarse_face_ratio"] = seam_stats(best.rgba, ref.rgba,
+                                                       crossings.mask(lod.levels, "coarse")).ratio
         log(f"[{i}/{len(variants)}] {v.label}: ΔE mean {de['mean']:.2f} p95 {de['p95']:.2f}, "
             f"{rep['kernel_ms']:.0f} ms kernel, reduction {_fmt(rep.get('reduction'))}")
     full = next((r for r in rows if r["quality"] == "full" and r["adaptive"] == "off" and r["step"] is None
@@ -205,13 +218,25 @@ def table(result: dict[str, Any]) -> str:
         f"{_fmt(r['speedup_vs_full'], 2)}x |"
         for r in result["rows"]
     ]
-    out = head + "\n".join(lines) + "\n"
+    out = head + "\n".join(lines) + "\n" + seams_table(result)
     if result.get("front"):  # what quality targets choose from ({"max_delta_e"}, {"max_ms"}: docs/lod.md)
         out += ("\nThe Pareto front quality targets choose from (predicted ΔE / predicted ms on this device; ◆ a row "
                 "above):\n\n" + "\n".join(
                     f"- {'◆ ' if f['row'] is not None else ''}{f['label']}: {f['predicted_delta_e']:.2f} / "
                     f"{f['predicted_ms']:.0f} ms" for f in result["front"]) + "\n")
     return out
+
+
+def seams_table(result: dict[str, Any]) -> str:
+    """The level-of-detail rows' seam measure (renderer/image/seams.py), below the main table."""
+    rows = [r for r in result["rows"] if r.get("seam_pixels") is not None]
+    if not rows:
+        return ""
+    head = ("\n| configuration | ΔE crossing a level change | ΔE elsewhere | ratio | pixels crossing | coarse faces ratio |\n"
+            "|---|---|---|---|---|---|\n")
+    return head + "\n".join(
+        f"| {r['label']} | {_fmt(r['seam_delta_e'], 2)} | {_fmt(r['rest_delta_e'], 2)} | {_fmt(r['seam_ratio'], 2)} | "
+        f"{r['seam_pixels']} | {_fmt(r['coarse_face_ratio'], 2)} |" for r in rows) + "\n"
 
 
 def plot(result: dict[str, Any], path: Path) -> Path:
