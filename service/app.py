@@ -2,7 +2,8 @@
 
 Routes (docs/design.md "Interfaces"): ``GET /healthz``, ``GET /readyz``; ``GET/POST /volumes``, ``GET/DELETE /volumes/{id}``,
 ``POST /volumes/{id}/upload``; ``POST /volumes/{id}/render``; ``GET/POST /jobs``, ``GET/DELETE /jobs/{id}``,
-``GET /jobs/{id}/results/{n}``, ``GET /jobs/{id}/animation``; OpenAPI at ``/docs``.
+``GET /jobs/{id}/results/{n}``, ``GET /jobs/{id}/animation``; OpenAPI at ``/docs``; the web viewer's ``GET /``,
+``GET /volumes/{id}/view`` and ``GET /volumes/{id}/histogram`` (service/viewer.py).
 Every bad request is a 4xx whose JSON ``detail`` names the field (FastAPI's 422 list shape for bodies).
 """
 from __future__ import annotations
@@ -62,6 +63,7 @@ from lodcast.service.rendering import (
 )
 from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.settings import Settings
+from lodcast.service.viewer import add_viewer
 from lodcast.service.volumes import (
     JOB_ID,
     BadId,
@@ -641,5 +643,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 return found
         raise HttpError(404, f"animation: job {job_id} has no animation (state {rec['state']})")
 
+    # --- the web viewer -----------------------------------------------------------------------------------------
+    def opened(volume_id: str) -> Any:
+        """A volume's opened store; the HTTP errors of one that cannot be used (as the render route's)."""
+        try:
+            path = engine.locate(settings.root, volume_id)
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
+        try:
+            return engine.store(path)
+        except (StoreNotFound, StoreInvalid) as exc:
+            raise failure(volume_id, path, exc) from None
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
 
+    add_viewer(app, auth=auth, opened=opened, renderer=lambda: engine.renderer)
     return app
