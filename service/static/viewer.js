@@ -311,7 +311,8 @@ function wireControls() {
     views.append(b);
   }
   document.addEventListener("keydown", (e) => {
-    if (e.target.closest("input, select, textarea, dialog") || e.ctrlKey || e.metaKey || e.altKey) return;
+    const typing = e.target instanceof Element && e.target.closest("input, select, textarea, dialog");
+    if (typing || e.ctrlKey || e.metaKey || e.altKey) return;
     const k = e.key.toLowerCase();
     if (k in KEYS) namedView(KEYS[k]);
     else if (k === "f") {
