@@ -8,7 +8,6 @@ from __future__ import annotations
 import base64
 import io
 import json
-import shutil
 import subprocess
 import sys
 import time
@@ -20,22 +19,29 @@ import pytest
 from PIL import Image
 
 from lodcast.renderer.image.delta_e import delta_e_stats
-from lodcast.service.testing import free_port, in_ci, make_volume, running, start_serve
+from lodcast.service.testing import (
+    CHROMEDRIVER,
+    CHROMIUM,
+    chromium,
+    free_port,
+    in_ci,
+    make_volume,
+    page_wait,
+    pointer_drag,
+    running,
+    start_serve,
+)
 
-CHROMIUM, DRIVER = shutil.which("chromium") or "/usr/bin/chromium", shutil.which("chromedriver") or "/usr/bin/chromedriver"
 ARTEFACTS = Path(__file__).resolve().parents[1] / "out" / "viewer-tests"
 TOKEN = "browser-token"
 SIZE = 256
 
 try:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-    from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
 except ImportError:  # the `test` extra installs it
-    webdriver = None
+    By = None
 
-if webdriver is None or not (Path(CHROMIUM).exists() and Path(DRIVER).exists()):
+if By is None or not (Path(CHROMIUM).exists() and Path(CHROMEDRIVER).exists()):
     why = "the viewer's browser tests need selenium, chromium and chromium-driver (.ci/run installs them)"
     if in_ci():
         raise RuntimeError(why)
@@ -61,31 +67,11 @@ def server(root: Path, tmp_path_factory: pytest.TempPathFactory):
 
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory: pytest.TempPathFactory):
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1280,900"):
-        opts.add_argument(arg)
-    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    driver = webdriver.Chrome(service=Service(DRIVER), options=opts)
     downloads = tmp_path_factory.mktemp("downloads")
-    driver.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
-    driver.downloads = downloads
     ARTEFACTS.mkdir(parents=True, exist_ok=True)
-    try:
+    with chromium(downloads) as driver:
+        driver.downloads = downloads
         yield driver
-    finally:
-        driver.quit()
-
-
-def wait(driver: Any, script: str, timeout: float = 60.0) -> Any:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        got = driver.execute_script(script)
-        if got:
-            return got
-        time.sleep(0.05)
-    status = driver.execute_script("return document.getElementById('status') && document.getElementById('status').textContent")
-    raise AssertionError(f"timed out waiting for: {script} (status: {status})")
 
 
 def finals(driver: Any) -> int:
@@ -94,12 +80,12 @@ def finals(driver: Any) -> int:
 
 def open_viewer(driver: Any, url: str) -> None:
     driver.get(url)
-    wait(driver, "return window.lodcastViewer && window.lodcastViewer.ready && window.lodcastViewer.final")
+    page_wait(driver, "return window.lodcastViewer && window.lodcastViewer.ready && window.lodcastViewer.final")
     if driver.execute_script("return window.lodcastViewer.state.size") != SIZE:  # a quick picture for the tests
         n = finals(driver)
         driver.execute_script(f"const s = document.getElementById('size'); s.value = '{SIZE}'; "
                               "s.dispatchEvent(new Event('change'))")
-        wait(driver, f"return window.lodcastViewer.log.filter(e => e.final && e.kind === 'refine').length > {n}")
+        page_wait(driver, f"return window.lodcastViewer.log.filter(e => e.final && e.kind === 'refine').length > {n}")
 
 
 def final_image(driver: Any) -> np.ndarray:
@@ -108,7 +94,7 @@ def final_image(driver: Any) -> np.ndarray:
 
 
 def new_final(driver: Any, before: int, timeout: float = 60.0) -> np.ndarray:
-    wait(driver, f"return window.lodcastViewer.log.filter(e => e.final && e.kind === 'refine').length > {before} "
+    page_wait(driver, f"return window.lodcastViewer.log.filter(e => e.final && e.kind === 'refine').length > {before} "
                  "&& !document.getElementById('status').textContent.startsWith('refining')", timeout)
     return final_image(driver)
 
@@ -117,25 +103,9 @@ def severe(driver: Any) -> list[dict]:
     return [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
 
-def drag(driver: Any, element: Any, start: tuple[float, float], moves: list[tuple[int, int]],
-         hold: str | None = None) -> None:
-    """Press at `start` (pixels from the element's top left), move by each step with a pause, and release once the
-    script `hold` is true (the user keeps the button down until then)."""
-    rect = element.rect
-    chain = ActionChains(driver, duration=0)
-    chain.move_to_element_with_offset(element, int(start[0] - rect["width"] / 2), int(start[1] - rect["height"] / 2))
-    chain.click_and_hold()
-    for dx, dy in moves:
-        chain.move_by_offset(dx, dy).pause(0.05)
-    chain.perform()
-    if hold:
-        wait(driver, hold)
-    ActionChains(driver, duration=0).release().perform()
-
-
 def test_the_page_loads_with_no_console_errors(browser, server):
     browser.get(server + "/")
-    links = wait(browser, "const a = [...document.querySelectorAll('#volumes a')]; return a.length && a.map(x => x.getAttribute('href'))")
+    links = page_wait(browser, "const a = [...document.querySelectorAll('#volumes a')]; return a.length && a.map(x => x.getAttribute('href'))")
     assert links == ["/volumes/a/view", "/volumes/b/view"]
     browser.save_screenshot(str(ARTEFACTS / "index.png"))
     open_viewer(browser, server + "/volumes/a/view")
@@ -169,8 +139,8 @@ def test_an_orbit_drag_shows_previews_then_a_different_refined_image(browser, se
     start = len(browser.execute_script("return window.lodcastViewer.log"))
     view = browser.find_element(By.ID, "view")
     # the button held until a preview is on screen: a drag that ends sooner asks for the refined image at once
-    drag(browser, view, (200, 200), [(12, 3)] * 10,
-         hold=f"return window.lodcastViewer.log.slice({start}).some(e => e.kind === 'preview')")
+    pointer_drag(browser, view, (200, 200), [(12, 3)] * 10,
+                 hold=f"return window.lodcastViewer.log.slice({start}).some(e => e.kind === 'preview')")
     after = new_final(browser, n)
     browser.save_screenshot(str(ARTEFACTS / "orbit.png"))
     log = browser.execute_script("return window.lodcastViewer.log")[start:]
@@ -190,7 +160,7 @@ def test_a_tf_point_drag_changes_the_image(browser, server):
     n = finals(browser)
     tf = browser.find_element(By.ID, "tf")
     pos = browser.execute_script("return window.lodcastViewer.editor.pointPosition(1)")
-    drag(browser, tf, (pos["x"], pos["y"]), [(0, 12)] * 4)  # the opaque point dragged down: less opacity
+    pointer_drag(browser, tf, (pos["x"], pos["y"]), [(0, 12)] * 4)  # the opaque point dragged down: less opacity
     faint = new_final(browser, n)
     browser.save_screenshot(str(ARTEFACTS / "tf-drag.png"))
     points = browser.execute_script("return window.lodcastViewer.final.scene.tf.points")
@@ -252,17 +222,17 @@ def test_with_a_token_a_page_gets_no_image_until_given_it(browser, root, tmp_pat
     with running(start_serve(root, port, env={"LODCAST_TOKEN": TOKEN}, log=tmp_path / "serve.log")):
         browser.execute_script("sessionStorage.clear()")
         browser.get(f"http://127.0.0.1:{port}/volumes/a/view")
-        wait(browser, "return document.getElementById('token-dialog').open")
+        page_wait(browser, "return document.getElementById('token-dialog').open")
         browser.save_screenshot(str(ARTEFACTS / "token-asked.png"))
         browser.find_element(By.CSS_SELECTOR, "#token-dialog button[value=cancel]").click()
-        wait(browser, "return document.getElementById('status').classList.contains('error')")
+        page_wait(browser, "return document.getElementById('status').classList.contains('error')")
         assert browser.execute_script("return window.lodcastViewer.log.length") == 0
         assert "401" in browser.find_element(By.ID, "status").text
         browser.get(f"http://127.0.0.1:{port}/volumes/a/view")
-        wait(browser, "return document.getElementById('token-dialog').open")
+        page_wait(browser, "return document.getElementById('token-dialog').open")
         browser.find_element(By.ID, "token-input").send_keys(TOKEN)
         browser.find_element(By.ID, "token-ok").click()
-        wait(browser, "return window.lodcastViewer.final")
+        page_wait(browser, "return window.lodcastViewer.final")
         assert browser.execute_script("return window.lodcastViewer.log.length") >= 1
         browser.save_screenshot(str(ARTEFACTS / "token-given.png"))
         browser.execute_script("sessionStorage.clear()")

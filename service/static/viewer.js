@@ -22,7 +22,7 @@ const state = {
 };
 // what tests and benchmarks read: every image shown, and the scene and image of the last final stage
 const log = [];
-window.lodcastViewer = { log, state, ready: false, final: null, PREVIEW };
+window.lodcastViewer = { log, state, ready: false, final: null, PREVIEW, changed: (dragging) => changed(dragging) };
 
 let orbit = null;
 let box = null;
