@@ -50,6 +50,7 @@ from lodcast.service.models import (
     errors,
 )
 from lodcast.service.objectstorage import bound_object_storage, s3_limits
+from lodcast.service.params import JobId, VolumeId
 from lodcast.service.progressive import stream as progressive_stream
 from lodcast.service.records import status_json
 from lodcast.service.rendering import (
@@ -77,15 +78,6 @@ from lodcast.service.volumes import (
 )
 
 __all__ = ["create_app"]
-
-# the id rules in the schema, so that generated clients and schemathesis send ids the server takes; checked by the
-# routes themselves (check_volume_id: 400 naming the id; a job id that is not one: 404)
-VolumeId = Annotated[str, PathParam(description="volume id: the store's folder name under the root (a letter or "
-                                                "digit, then up to 127 letters, digits, '.', '_' or '-')",
-                                    json_schema_extra={"pattern": "^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$",
-                                                       "minLength": 1, "maxLength": 128})]
-JobId = Annotated[str, PathParam(description="job id (32 hex digits)", max_length=200,
-                                 json_schema_extra={"pattern": "^[0-9a-f]{32}$", "minLength": 32, "maxLength": 32})]
 
 
 EXAMPLE_SCENE = {
@@ -521,6 +513,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                   examples=[EXAMPLE_SCENE])],
                      progressive: Annotated[bool, Query(description="stream the render's stages, coarse to fine, "
                                                                     "as NDJSON (docs/serving.md)")] = False,
+                     stages: Annotated[int | None, Query(ge=1, le=64, description="progressive: render at most this "
+                                                         "many stages, coarsest first (a viewer's preview while the "
+                                                         "user drags asks for 1); default all")] = None,
                      session: Annotated[str | None, Header(alias=SESSION_HEADER.lower(), max_length=128,
                                                            description="progressive: a newer stream of the same "
                                                                        "session cancels this one's stages to come")]
@@ -543,7 +538,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         except Exception as exc:
             raise (unavailable(settings, exc, volume_id) or exc) from None
         if progressive:
-            return await progressive_response(request, volume_id, path, sc, samples, session, started)
+            return await progressive_response(request, volume_id, path, sc, samples, session, started, stages)
         try:
             result = await rendered(request, volume_id, path, samples,
                                     lambda stop: eng.render(path, sc, settings.max_samples, stop))
@@ -554,9 +549,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return Response(content=data, media_type=media, headers={"X-Lodcast-Report": report})
 
     async def progressive_response(request: Request, volume_id: str, path: Any, sc: Scene, samples: int,
-                                   session: str | None, started: float) -> Response:
+                                   session: str | None, started: float, most: int | None) -> Response:
         """service/progressive.py: the first stage rendered here (its refusals are the plain route's), the others
-        as the client reads the stream."""
+        as the client reads the stream; `most` of them at most (a preview that wants the first stage alone leaves
+        no later stage running after it hangs up)."""
         cancel = engine.sessions.begin(session)  # the session's older stream renders no more stages
 
         def first(stop: Callable[[], None]) -> tuple[Any, Any]:
@@ -575,7 +571,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             return await rendered(request, volume_id, path, samples,
                                   lambda stop: prog.render(k, settings.max_samples, stop), cancel)
 
-        lines = progressive_stream(result, len(prog.stages), sc, stage, cancel,
+        lines = progressive_stream(result, min(len(prog.stages), most or len(prog.stages)), sc, stage, cancel,
                                    lambda: engine.sessions.end(session, cancel))
         return StreamingResponse(lines, media_type=NDJSON)
 

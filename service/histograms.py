@@ -24,10 +24,12 @@ import numpy as np
 
 from lodcast.renderer.scene.adaptive_tf import ALPHA, alpha_histogram
 
-__all__ = ["ALPHA", "MIN_PROMINENCE", "Peak", "find_peaks", "block_histograms", "volume_histogram"]
+__all__ = ["ALPHA", "MIN_PROMINENCE", "SUGGESTED_OPACITY", "Peak", "find_peaks", "block_histograms", "volume_histogram"]
 
 #: decades the smoothed α-histogram must fall on both sides of a maximum before it counts as a peak: a factor 2
 MIN_PROMINENCE = 0.3
+#: the opacity a suggested TF accumulates across its tissue's typical extent (_suggestion)
+SUGGESTED_OPACITY = 0.6
 #: decades below the histogram's maximum where peak detection stops looking
 FLOOR = 3.0
 #: blocks per step of the α-sum: bounds the float64 working set for stores of millions of blocks
@@ -114,9 +116,14 @@ def block_histograms(hist: np.ndarray, alpha: float) -> tuple[np.ndarray, np.nda
     return plain, ha * (float(plain.sum()) / total if total > 0 else 0.0)
 
 
-def _suggestion(peak: Peak, colour: tuple[float, float, float], opacity: float) -> dict[str, Any]:
+def _suggestion(peak: Peak, colour: tuple[float, float, float], voxels: int) -> dict[str, Any]:
     """A TF that shows the peak's range and nothing else: a tent from `lo` to `hi` around the peak's value,
-    transparent at its feet (half a range beyond them, so that the tissue's own values are all in it)."""
+    transparent at its feet (half a range beyond them, so that the tissue's own values are all in it). Its opacity
+    (per unit distance, about a voxel) makes a ray that crosses the tissue's typical extent, (share × voxels)^(1/3)
+    voxels, keep SUGGESTED_OPACITY of it: a tissue that fills a fifth of a body is seen into, a small one stands out
+    as a surface."""
+    extent = max(1.0, (peak.weight * voxels) ** (1.0 / 3.0))
+    opacity = round(1.0 - (1.0 - SUGGESTED_OPACITY) ** (1.0 / extent), 4)
     below = peak.lo - 0.5 * max(peak.value - peak.lo, 1e-9)
     above = peak.hi + 0.5 * max(peak.hi - peak.value, 1e-9)
     rgb = [round(c, 3) for c in colour]
@@ -125,8 +132,7 @@ def _suggestion(peak: Peak, colour: tuple[float, float, float], opacity: float) 
                        {"value": round(above, 6), "color": rgb, "opacity": 0.0}]}
 
 
-def volume_histogram(store: Any, alpha: float = ALPHA, min_prominence: float = MIN_PROMINENCE,
-                     opacity: float = 0.5) -> dict[str, Any]:
+def volume_histogram(store: Any, alpha: float = ALPHA, min_prominence: float = MIN_PROMINENCE) -> dict[str, Any]:
     """The histogram response of one store (without `adapted`, which needs the renderer): bin edges, plain and
     α-histogram counts, the background (the plain histogram's most common value) and the α-histogram's peaks with
     their suggested TFs (the background's peak last, with no suggestion: it is what a TF hides)."""
@@ -141,7 +147,7 @@ def volume_histogram(store: Any, alpha: float = ALPHA, min_prominence: float = M
         entry: dict[str, Any] = {"value": p.value, "lo": p.lo, "hi": p.hi, "prominence": round(p.prominence, 4),
                                  "weight": p.weight, "background": is_bg, "tf": None}
         if not is_bg:
-            entry["tf"] = _suggestion(p, _PALETTE[k % len(_PALETTE)], opacity)
+            entry["tf"] = _suggestion(p, _PALETTE[k % len(_PALETTE)], int(np.prod(store.shape, dtype=np.int64)))
             k += 1
         listed.append(entry)
     listed.sort(key=lambda e: e["background"])  # stable: by prominence within each group

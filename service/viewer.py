@@ -9,6 +9,7 @@ page asks for the token on a 401 and sends it as `Authorization: Bearer` from th
 """
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
@@ -18,8 +19,10 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field
 
+from lodcast.renderer.cache import ByteLru
 from lodcast.service.histograms import ALPHA, MIN_PROMINENCE, volume_histogram
 from lodcast.service.models import errors
+from lodcast.service.params import VolumeId
 from lodcast.service.volumes import check_volume_id
 
 __all__ = ["STATIC", "Histogram", "HistogramPeak", "add_viewer"]
@@ -62,6 +65,15 @@ class Histogram(_Out):
                                                            "volume's α-histogram peaks")
 
 
+class _Static(StaticFiles):
+    """The viewer's files, revalidated on every load (as its pages)."""
+
+    async def get_response(self, path: str, scope: Any) -> Any:
+        response = await super().get_response(path, scope)
+        response.headers["Cache-Control"] = "no-cache"
+        return response
+
+
 def _page(name: str) -> FileResponse:
     # revalidated on every load: a server upgraded under an open browser serves the new page, not a cached one
     return FileResponse(STATIC / name, media_type="text/html", headers={"Cache-Control": "no-cache"})
@@ -72,13 +84,10 @@ def add_viewer(app: FastAPI, *, auth: list[Any], opened: Callable[[str], Any], r
     volume's opened store (raising the HTTP errors of one that cannot be used), `renderer()` the service's engine
     (whose cache keeps each store's tissue peaks)."""
 
-    class _Static(StaticFiles):
-        async def get_response(self, path: str, scope: Any) -> Any:
-            response = await super().get_response(path, scope)
-            response.headers["Cache-Control"] = "no-cache"
-            return response
-
     app.mount("/viewer", _Static(directory=STATIC), name="viewer")
+    # per store (its identity changes when it is ingested again), α and prominence: a page load of a large store
+    # reads its block histograms once, not once per tab
+    kept = ByteLru(16 << 20)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:
@@ -92,7 +101,7 @@ def add_viewer(app: FastAPI, *, auth: list[Any], opened: Callable[[str], Any], r
     @app.get("/volumes/{volume_id}/histogram", tags=["volumes"], dependencies=auth, response_model=Histogram,
              summary="The volume's plain and α-histograms and their peaks, from its block histograms",
              responses=errors(400, 401, 404, 409, 422, 503))
-    def histogram(volume_id: str,
+    def histogram(volume_id: VolumeId,
                   alpha: Annotated[float, Query(ge=1.0, le=64.0, description="the α of eq. 3.4: 1 is the plain "
                                                 "histogram's shape; larger lifts tissues that fill a few blocks, "
                                                 "and the noise")] = ALPHA,
@@ -106,8 +115,12 @@ def add_viewer(app: FastAPI, *, auth: list[Any], opened: Callable[[str], Any], r
 
         check_volume_id(volume_id, "volume")
         store = opened(volume_id)
-        out = volume_histogram(store, alpha, min_prominence)
-        eng = renderer()
         vol = as_volume(store)
-        out["adapted"] = {name: adaptive_tf(name, vol, None, eng.tables.peaks) for name in ADAPTIVE}
+        key = None if vol.key is None else (vol.key, alpha, min_prominence)
+        out = None if key is None else kept.get(key)
+        if out is None:
+            out = volume_histogram(store, alpha, min_prominence)
+            out["adapted"] = {name: adaptive_tf(name, vol, None, renderer().tables.peaks) for name in ADAPTIVE}
+            if key is not None:
+                kept.put(key, out, len(json.dumps(out)))
         return {"volume": volume_id, **out}

@@ -103,6 +103,16 @@ def severe(driver: Any) -> list[dict]:
     return [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
 
+def downloaded(folder: Path, name: str, timeout: float = 20.0) -> Path:
+    """The file once the browser has finished writing it (Chromium writes NAME.crdownload and renames it)."""
+    path, end = folder / name, time.monotonic() + timeout
+    while time.monotonic() < end:
+        if path.exists() and path.stat().st_size > 0 and not list(folder.glob("*.crdownload")):
+            return path
+        time.sleep(0.05)
+    raise AssertionError(f"{name} was not downloaded")
+
+
 def test_the_page_loads_with_no_console_errors(browser, server):
     browser.get(server + "/")
     links = page_wait(browser, "const a = [...document.querySelectorAll('#volumes a')]; return a.length && a.map(x => x.getAttribute('href'))")
@@ -179,12 +189,12 @@ def test_the_saved_scene_reproduces_the_view_through_lodcast_render(browser, ser
     for f in browser.downloads.glob("*"):
         f.unlink()
     browser.find_element(By.ID, "save-scene").click()
-    saved = browser.downloads / "a-scene.json"
-    end = time.monotonic() + 20
-    while not saved.exists() and time.monotonic() < end:
-        time.sleep(0.05)
+    saved = downloaded(browser.downloads, "a-scene.json")
     scene = json.loads(saved.read_text())
     assert scene["camera"]["azimuth"] == 90 and scene["quality"] == "lossless"
+    browser.find_element(By.ID, "save-png").click()  # the image on screen, as the server sent it
+    png = downloaded(browser.downloads, "a.png")
+    assert png.read_bytes() == base64.b64decode(browser.execute_script("return window.lodcastViewer.final.image"))
     command = browser.find_element(By.ID, "command").get_attribute("value")
     assert json.loads(command.split("\n")[1]) == scene  # the command line carries the same scene
     out = tmp_path / "cli.png"

@@ -19,7 +19,7 @@ with warnings.catch_warnings():
 import lodcast
 import lodcast.service.histograms as histograms
 from lodcast.service.app import create_app
-from lodcast.service.histograms import find_peaks
+from lodcast.service.histograms import SUGGESTED_OPACITY, find_peaks
 from lodcast.service.settings import Settings
 from lodcast.service.viewer import STATIC
 from lodcast.store.store import open_store
@@ -84,10 +84,15 @@ def test_the_alpha_histogram_reveals_the_small_tissue_the_plain_one_hides(client
     assert near([vars(p) for p in find_peaks(plain, centres)], BIG, 15.0)
     bump = near([vars(p) for p in find_peaks(plain, centres, min_prominence=0.0)], SMALL, 50.0)
     assert all(b["prominence"] < suggested[0]["prominence"] / 5 for b in bump), (bump, suggested[0])
-    # its suggested TF shows the small tissue's values and hides the large one's mean and the background
+    # its suggested TF shows the small tissue's values and hides the large one's mean and the background; a ray
+    # across the tissue's typical extent ((share × voxels)^(1/3) voxels) keeps SUGGESTED_OPACITY of it
     pts = small["tf"]["points"]
     tf = lambda v: np.interp(v, [p["value"] for p in pts], [p["opacity"] for p in pts])  # noqa: E731
-    assert tf(SMALL) >= 0.4 and tf(BIG) == 0.0 and tf(0.0) == 0.0
+    assert tf(BIG) == 0.0 and tf(0.0) == 0.0 and tf(small["value"]) == pytest.approx(max(p["opacity"] for p in pts))
+    extent = (small["weight"] * N**3) ** (1 / 3)
+    assert 1 - (1 - tf(small["value"])) ** extent == pytest.approx(SUGGESTED_OPACITY, abs=1e-3)
+    big = near(suggested, BIG, 15.0)[0]
+    assert big["tf"]["points"][1]["opacity"] < tf(small["value"]) / 2  # the large tissue: seen into
     # the adaptive presets, placed on this volume
     assert set(h["adapted"]) == {"auto", "mr-soft"} and all(tf["points"] for tf in h["adapted"].values())
 
@@ -108,6 +113,18 @@ def test_counts_are_the_block_histograms_and_eq_3_4_in_float64(client, root, mon
         want = (dist**alpha).sum(axis=0) ** (1 / alpha)
         want *= counts.sum() / want.sum()
         np.testing.assert_allclose(h["alpha_counts"], want, rtol=1e-9, atol=1e-9 * want.max())
+
+
+def test_a_store_ingested_again_is_not_answered_from_the_cache(client, root):
+    """The route keeps each store's answer; a store replaced under the same id (ingest --overwrite) is read anew."""
+    make = lambda v: lodcast.ingest(np.full((16, 16, 16), v, np.float32), root / "again", block_size=B,  # noqa: E731
+                                    overwrite=True)
+    make(100.0)
+    first = client.get("/volumes/again/histogram").json()
+    assert client.get("/volumes/again/histogram").json() == first
+    make(300.0)
+    second = client.get("/volumes/again/histogram").json()
+    assert first["value_range"] == [100.0, 100.0] and second["value_range"] == [300.0, 300.0]
 
 
 def test_bad_requests_name_the_field(client):

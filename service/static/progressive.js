@@ -23,16 +23,17 @@ export class Stream {
     this.controller = null;
   }
 
-  // Render `scene`; onStage(line) for each stage line while this is the newest request; resolves when the stream
-  // ends (false when superseded or aborted), rejects with ApiError on a refusal or an error line.
-  async run(scene, onStage) {
+  // Render `scene` (at most `stages` of its stages: a preview asks for the first alone, so that no later stage
+  // keeps a render slot after it); onStage(line) for each stage line while this is the newest request; resolves
+  // when the stream ends (false when superseded or aborted), rejects with ApiError on a refusal or an error line.
+  async run(scene, onStage, stages = null) {
     this.abort();
     const controller = new AbortController();
     this.controller = controller;
     const serial = ++this.serial;
     const current = () => serial === this.serial && !controller.signal.aborted;
     try {
-      const r = await apiFetch(this.url, {
+      const r = await apiFetch(stages ? `${this.url}&stages=${stages}` : this.url, {
         method: "POST",
         body: JSON.stringify(scene),
         headers: { "Content-Type": "application/json", "X-Lodcast-Session": this.session },

@@ -7,8 +7,9 @@ import { Stream } from "./progressive.js";
 import { TfEditor } from "./tfeditor.js";
 
 // What a preview (asked for while the user drags) trades for speed, in one place: the image edge against the
-// requested one, and the quality and sampling of its scene (the scene model's `quality` and `sampling`).
-export const PREVIEW = { scale: 0.5, quality: { reduction: 32 }, sampling: { step: 1.0 } };
+// requested one, and the quality and sampling of its scene (the scene model's `quality` and `sampling`); of that
+// scene's progressive render only the first, coarsest stage is asked for (`stages=1`).
+export const PREVIEW = { scale: 0.5, quality: { reduction: 8 }, sampling: { step: 1.0 } };
 const SHADING = { ambient: 0.3, diffuse: 0.7, specular: 0.2, shininess: 32, light: "headlight" };
 const KEYS = { a: "anterior", p: "posterior", l: "left", r: "right", s: "superior", i: "inferior" };
 
@@ -22,7 +23,8 @@ const state = {
 };
 // what tests and benchmarks read: every image shown, and the scene and image of the last final stage
 const log = [];
-window.lodcastViewer = { log, state, ready: false, final: null, PREVIEW, changed: (dragging) => changed(dragging) };
+window.lodcastViewer = { log, state, ready: false, final: null, PREVIEW,
+                        changed: (dragging) => changed(dragging), lastInput: () => tInput };
 
 let orbit = null;
 let box = null;
@@ -114,7 +116,7 @@ async function sendPreview() {
   const sc = scene(true);
   const serial = stream.serial + 1; // the serial run() is about to take
   try {
-    await stream.run(sc, (line) => show(line, "preview", t0, sc, serial));
+    await stream.run(sc, (line) => show(line, "preview", t0, sc, serial), 1);
   } catch (e) {
     failed(e);
   } finally {
@@ -168,11 +170,15 @@ function commandLine() {
 }
 
 // --- controls -------------------------------------------------------------------------------------------------
+let presetShown = false; // while a preset is being put into the editor: the preset field keeps its name
+
 function setPreset(name) {
   const tf = name in (histogram ? histogram.adapted : {}) ? histogram.adapted[name] : window.lodcastViewer.presets[name];
   if (!tf || !tf.points) return;
   state[state.editing] = { points: tf.points.map((p) => ({ ...p })) };
+  presetShown = true;
   editor.setPoints(state[state.editing].points);
+  presetShown = false;
 }
 
 function listPeaks() {
@@ -213,6 +219,7 @@ function selectPoint(p) {
 function wireControls() {
   editor = new TfEditor($("tf"), (tf, dragging) => {
     state[state.editing] = tf;
+    if (!presetShown) $("preset").value = ""; // edited: no longer the preset it started from
     changed(dragging);
   });
   editor.onSelect = selectPoint;
@@ -386,6 +393,7 @@ async function main() {
     window.lodcastViewer.presets = presets;
     await loadHistogram();
     const sel = $("preset");
+    sel.append(new Option("(edited)", ""));
     for (const name of Object.keys(presets)) {
       const o = document.createElement("option");
       o.value = name;
