@@ -181,6 +181,32 @@ def test_a_tf_point_drag_changes_the_image(browser, server):
     assert severe(browser) == []
 
 
+def test_the_panel_sets_the_scene(browser, server):
+    """Shading, a clipping plane, the crop box, a second TF and a blend mode, each set in the panel as a user does,
+    reach the scene of the next refined image (and change the picture)."""
+    open_viewer(browser, server + "/volumes/a/view")
+    base = set_tf(browser, TRANSLUCENT)
+
+    def act(script: str) -> dict:
+        n = finals(browser)
+        browser.execute_script(script)
+        new_final(browser, n)
+        return browser.execute_script("return window.lodcastViewer.final.scene")
+
+    click = "document.getElementById('{}').click()"
+    assert act(click.format("shading"))["shading"]["light"] == "headlight"
+    sc = act(click.format("plane-on"))
+    assert sc["clip"]["planes"][0]["normal"] == [1, 0, 0] and changed(final_image(browser), base) > 0.05
+    sc = act("const r = document.getElementById('crop-z-max'); r.value = '0.5'; r.dispatchEvent(new Event('input')); "
+             "r.dispatchEvent(new Event('change'))")
+    # the volume's box runs from -0.5 to 63.5 on each axis (64 voxels of 1, origin 0): z cropped at half
+    assert sc["clip"]["box"] == {"min": [-0.5, -0.5, -0.5], "max": [63.5, 63.5, 31.5]}
+    assert act(click.format("tf2on"))["tf2"]["points"]
+    sc = act("const m = document.getElementById('mode'); m.value = 'mip'; m.dispatchEvent(new Event('change'))")
+    assert sc["mode"] == "mip" and "tf2" not in sc  # a second TF composites: not with MIP
+    assert severe(browser) == []
+
+
 def test_the_saved_scene_reproduces_the_view_through_lodcast_render(browser, server, root, tmp_path):
     open_viewer(browser, server + "/volumes/a/view")
     n = finals(browser)

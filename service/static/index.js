@@ -28,7 +28,8 @@ async function main() {
         tr.append(td);
       } else {
         const mb = (v.bytes_on_disk / 1e6).toFixed(1);
-        tr.append(cell(v.shape.join(" × ")), cell(v.dtype), cell(v.value_range.map((x) => (x === null ? "–" : String(Number(x.toPrecision(5))))).join(" … ")), cell(`${mb} MB`));
+        const range = v.value_range.map((x) => (x === null ? "–" : String(Number(x.toPrecision(5)))));
+        tr.append(cell(v.shape.join(" × ")), cell(v.dtype), cell(range.join(" … ")), cell(`${mb} MB`));
       }
       body.append(tr);
     }

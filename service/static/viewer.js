@@ -125,12 +125,22 @@ async function sendPreview() {
   if (previewWanted) sendPreview();
 }
 
-async function refine() {
+async function refine(attempt = 0) {
   const t0 = tInput;
   const sc = scene(false);
   const serial = stream.serial + 1;
+  let final = false;
   try {
-    await stream.run(sc, (line) => show(line, "refine", t0, sc, serial));
+    const whole = await stream.run(sc, (line) => {
+      final = final || line.final;
+      return show(line, "refine", t0, sc, serial);
+    });
+    if (whole && !final) {
+      // cancelled by a request of this page that the server saw after it: a preview aborted here but overtaken on
+      // its own connection, whose session header ended this stream. Still the newest request: asked again
+      if (attempt < 2) return refine(attempt + 1);
+      status("the server ended the stream before its final stage (restarted, or the session taken over)", true);
+    }
   } catch (e) {
     failed(e);
   }
