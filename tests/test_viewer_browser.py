@@ -164,6 +164,49 @@ def test_an_orbit_drag_shows_previews_then_a_different_refined_image(browser, se
     assert severe(browser) == []
 
 
+def test_touch_turns_and_pinch_zooms(browser, server):
+    """One finger orbits, two fingers spreading apart zoom in (a smaller orbit distance)."""
+    from selenium.webdriver.common.actions import interaction
+    from selenium.webdriver.common.actions.action_builder import ActionBuilder
+
+    open_viewer(browser, server + "/volumes/a/view")
+    view = browser.find_element(By.ID, "view")
+    rect = view.rect
+    cx, cy = int(rect["x"] + rect["width"] / 2), int(rect["y"] + rect["height"] / 2)
+    n = finals(browser)
+    act = ActionBuilder(browser)
+    finger = act.add_pointer_input(interaction.POINTER_TOUCH, "finger")
+    finger.create_pointer_move(x=cx, y=cy)
+    finger.create_pointer_down()
+    for k in range(1, 9):
+        finger.create_pointer_move(x=cx - 10 * k, y=cy, duration=40)
+    finger.create_pointer_up(0)
+    act.perform()
+    new_final(browser, n)
+    cam = browser.execute_script("return window.lodcastViewer.final.scene.camera")
+    assert cam["azimuth"] == pytest.approx(32.0, abs=4.0) and cam["elevation"] == 0, cam  # 80 px at 0.4°/px
+    n, before = finals(browser), cam["distance"]
+    act = ActionBuilder(browser)
+    fingers = [act.add_pointer_input(interaction.POINTER_TOUCH, f"f{i}") for i in range(2)]
+    for i, f in enumerate(fingers):
+        f.create_pointer_move(x=cx + (20 if i else -20), y=cy)
+        f.create_pointer_down()
+    for k in range(1, 7):
+        for i, f in enumerate(fingers):
+            f.create_pointer_move(x=cx + (1 if i else -1) * (20 + 15 * k), y=cy, duration=30)
+    for f in fingers:
+        f.create_pointer_up(0)
+    act.perform()
+    new_final(browser, n)
+    cam = browser.execute_script("return window.lodcastViewer.final.scene.camera")
+    # the pinch's midpoint stays put but each finger's move pans by half of it at the zoom of that moment: a
+    # pan of rounding size turns the camera to the look-at form; its distance in bounding-sphere radii (64³ box)
+    radius = 64 * np.sqrt(3) / 2
+    after = cam.get("distance") or float(np.linalg.norm(np.subtract(cam["eye"], cam["target"]))) / radius
+    assert after < 0.6 * before, (before, cam)
+    assert severe(browser) == []
+
+
 def test_a_tf_point_drag_changes_the_image(browser, server):
     open_viewer(browser, server + "/volumes/a/view")
     opaque = set_tf(browser, TRANSLUCENT)
