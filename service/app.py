@@ -2,7 +2,8 @@
 
 Routes (docs/design.md "Interfaces"): ``GET /healthz``, ``GET /readyz``; ``GET/POST /volumes``, ``GET/DELETE /volumes/{id}``,
 ``POST /volumes/{id}/upload``; ``POST /volumes/{id}/render``; ``GET/POST /jobs``, ``GET/DELETE /jobs/{id}``,
-``GET /jobs/{id}/results/{n}``, ``GET /jobs/{id}/animation``; OpenAPI at ``/docs``.
+``GET /jobs/{id}/results/{n}``, ``GET /jobs/{id}/animation``; OpenAPI at ``/docs``; the web viewer's ``GET /``,
+``GET /volumes/{id}/view`` and ``GET /volumes/{id}/histogram`` (service/viewer.py).
 Every bad request is a 4xx whose JSON ``detail`` names the field (FastAPI's 422 list shape for bodies).
 """
 from __future__ import annotations
@@ -49,6 +50,7 @@ from lodcast.service.models import (
     errors,
 )
 from lodcast.service.objectstorage import bound_object_storage, s3_limits
+from lodcast.service.params import JobId, VolumeId
 from lodcast.service.progressive import stream as progressive_stream
 from lodcast.service.records import status_json
 from lodcast.service.rendering import (
@@ -62,6 +64,7 @@ from lodcast.service.rendering import (
 )
 from lodcast.service.results import JobFiles, frame_name, park_upload
 from lodcast.service.settings import Settings
+from lodcast.service.viewer import add_viewer
 from lodcast.service.volumes import (
     JOB_ID,
     BadId,
@@ -75,15 +78,6 @@ from lodcast.service.volumes import (
 )
 
 __all__ = ["create_app"]
-
-# the id rules in the schema, so that generated clients and schemathesis send ids the server takes; checked by the
-# routes themselves (check_volume_id: 400 naming the id; a job id that is not one: 404)
-VolumeId = Annotated[str, PathParam(description="volume id: the store's folder name under the root (a letter or "
-                                                "digit, then up to 127 letters, digits, '.', '_' or '-')",
-                                    json_schema_extra={"pattern": "^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$",
-                                                       "minLength": 1, "maxLength": 128})]
-JobId = Annotated[str, PathParam(description="job id (32 hex digits)", max_length=200,
-                                 json_schema_extra={"pattern": "^[0-9a-f]{32}$", "minLength": 32, "maxLength": 32})]
 
 
 EXAMPLE_SCENE = {
@@ -519,6 +513,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                   examples=[EXAMPLE_SCENE])],
                      progressive: Annotated[bool, Query(description="stream the render's stages, coarse to fine, "
                                                                     "as NDJSON (docs/serving.md)")] = False,
+                     stages: Annotated[int | None, Query(ge=1, le=64, description="progressive: render at most this "
+                                                         "many stages, coarsest first (a viewer's preview while the "
+                                                         "user drags asks for 1); default all")] = None,
                      session: Annotated[str | None, Header(alias=SESSION_HEADER.lower(), max_length=128,
                                                            description="progressive: a newer stream of the same "
                                                                        "session cancels this one's stages to come")]
@@ -541,7 +538,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         except Exception as exc:
             raise (unavailable(settings, exc, volume_id) or exc) from None
         if progressive:
-            return await progressive_response(request, volume_id, path, sc, samples, session, started)
+            return await progressive_response(request, volume_id, path, sc, samples, session, started, stages)
         try:
             result = await rendered(request, volume_id, path, samples,
                                     lambda stop: eng.render(path, sc, settings.max_samples, stop))
@@ -552,9 +549,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return Response(content=data, media_type=media, headers={"X-Lodcast-Report": report})
 
     async def progressive_response(request: Request, volume_id: str, path: Any, sc: Scene, samples: int,
-                                   session: str | None, started: float) -> Response:
+                                   session: str | None, started: float, most: int | None) -> Response:
         """service/progressive.py: the first stage rendered here (its refusals are the plain route's), the others
-        as the client reads the stream."""
+        as the client reads the stream; `most` of them at most (a preview that wants the first stage alone leaves
+        no later stage running after it hangs up)."""
         cancel = engine.sessions.begin(session)  # the session's older stream renders no more stages
 
         def first(stop: Callable[[], None]) -> tuple[Any, Any]:
@@ -573,7 +571,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             return await rendered(request, volume_id, path, samples,
                                   lambda stop: prog.render(k, settings.max_samples, stop), cancel)
 
-        lines = progressive_stream(result, len(prog.stages), sc, stage, cancel,
+        lines = progressive_stream(result, min(len(prog.stages), most or len(prog.stages)), sc, stage, cancel,
                                    lambda: engine.sessions.end(session, cancel))
         return StreamingResponse(lines, media_type=NDJSON)
 
@@ -641,5 +639,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 return found
         raise HttpError(404, f"animation: job {job_id} has no animation (state {rec['state']})")
 
+    # --- the web viewer -----------------------------------------------------------------------------------------
+    def opened(volume_id: str) -> Any:
+        """A volume's opened store; the HTTP errors of one that cannot be used (as the render route's)."""
+        try:
+            path = engine.locate(settings.root, volume_id)
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
+        try:
+            return engine.store(path)
+        except (StoreNotFound, StoreInvalid) as exc:
+            raise failure(volume_id, path, exc) from None
+        except Exception as exc:
+            raise (unavailable(settings, exc, volume_id) or exc) from None
 
+    add_viewer(app, auth=auth, opened=opened, renderer=lambda: engine.renderer)
     return app

@@ -157,7 +157,7 @@ def serve_forever(settings: Any = None, *, host: str = "127.0.0.1", port: int = 
                                           {"value": m, "color": [0.95, 0.75, 0.55], "opacity": 0.3},
                                           {"value": b, "color": [1.0, 1.0, 0.95], "opacity": 0.8}]}})
     auth = ' -H "Authorization: Bearer $LODCAST_TOKEN"' if settings.token else ""
-    print(f"lodcast: serving {len(vols)} volume(s) from {settings.root} at {url}   (API docs {url}/docs; Ctrl-C stops)", flush=True)
+    print(f"lodcast: serving {len(vols)} volume(s) from {settings.root} at {url}   (viewer {url}/, API docs {url}/docs; Ctrl-C stops)", flush=True)
     print(f"  curl -s{auth} -X POST {url}/volumes/{example}/render -H 'Content-Type: application/json' \\\n"
           f"       -d '{scene}' -o {example}.png", flush=True)
     print(f"  {sys.executable} - <<'EOF'\nimport lodcast\nc = lodcast.Client('{url}')\nr = c.render('{example}', {scene})\n"

@@ -1,6 +1,7 @@
 """Helpers for the tests, benchmarks and smoke script: a tiny volume, a real redis-server, a real S3-compatible
 server (moto's server mode, behind a counting proxy), a live `lodcast serve` / `lodcast worker` on loopback (each in
-its own process group, stopped by group)."""
+its own process group, stopped by group), and the system's headless Chromium driven through selenium (the web
+viewer's tests and benchmark)."""
 from __future__ import annotations
 
 import contextlib
@@ -32,7 +33,15 @@ __all__ = [
     "start_serve",
     "start_worker",
     "in_ci",
+    "CHROMIUM",
+    "CHROMEDRIVER",
+    "chromium",
+    "page_wait",
+    "pointer_drag",
 ]
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
 
 TINY_TF = {"points": [{"value": 0, "color": [0.2, 0.4, 1.0], "opacity": 0.0},
                       {"value": 1000, "color": [1.0, 0.9, 0.8], "opacity": 0.6}]}
@@ -315,3 +324,56 @@ def running(*procs: Proc) -> Iterator[None]:
     finally:
         for p in procs:
             p.stop()
+
+
+@contextlib.contextmanager
+def chromium(downloads: Path | None = None, size: tuple[int, int] = (1280, 900)) -> Iterator[Any]:
+    """Debian's headless Chromium through its chromedriver (selenium; `chromium` and `chromium-driver` from apt),
+    its console log kept (driver.get_log("browser")), downloads into `downloads` when given."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                f"--window-size={size[0]},{size[1]}"):
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    try:
+        if downloads is not None:
+            driver.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
+        yield driver
+    finally:
+        driver.quit()
+
+
+def page_wait(driver: Any, script: str, timeout: float = 60.0) -> Any:
+    """Polls the page until `script` (JavaScript, with a `return`) gives a true value, and returns it; TimeoutError
+    with the viewer's status line after `timeout` s."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        got = driver.execute_script(script)
+        if got:
+            return got
+        time.sleep(0.02)
+    status = driver.execute_script("const s = document.getElementById('status'); return s && s.textContent")
+    raise TimeoutError(f"timed out waiting for: {script} (status: {status})")
+
+
+def pointer_drag(driver: Any, element: Any, start: tuple[float, float], moves: list[tuple[int, int]],
+                 pause: float = 0.05, hold: str | None = None, timeout: float = 60.0) -> None:
+    """A mouse drag: press at `start` (CSS pixels from the element's top left), move by each step with `pause` s
+    between, and release once the script `hold` is true (the user keeps the button down until then)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    rect = element.rect
+    chain = ActionChains(driver, duration=0)
+    chain.move_to_element_with_offset(element, int(start[0] - rect["width"] / 2), int(start[1] - rect["height"] / 2))
+    chain.click_and_hold()
+    for dx, dy in moves:
+        chain.move_by_offset(dx, dy).pause(pause)
+    chain.perform()
+    if hold:
+        page_wait(driver, hold, timeout)
+    ActionChains(driver, duration=0).release().perform()

@@ -109,7 +109,10 @@ def test_list_and_show_volumes(env):
 def test_bad_volume_ids_refused(env, vid):
     client = env[0]
     r = client.get(f"/volumes/{vid}")
-    assert 400 <= r.status_code < 500, (vid, r.status_code, r.text)
+    if r.url.path == "/":  # the client resolved "/volumes/.." to "/": the viewer's list page, which names no volume
+        assert r.headers["content-type"].startswith("text/html") and "secret" not in r.text
+    else:
+        assert 400 <= r.status_code < 500, (vid, r.status_code, r.text)
     r = client.post(f"/volumes/{vid}/render", json=tiny_scene())
     assert 400 <= r.status_code < 500
     if r.status_code != 404 or r.json().get("detail") != "Not Found":  # the router's own 404 names no field

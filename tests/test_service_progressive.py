@@ -118,6 +118,18 @@ def test_a_dropped_connection_cancels_its_stages(client, monkeypatch):
     assert len(client.app.state.engine.sessions) == 0  # type: ignore[attr-defined]
 
 
+def test_stages_bounds_the_stream(client, monkeypatch):
+    """?stages=k: the first k stages and no more rendered (a viewer's preview asks for 1)."""
+    seen = record_renders(monkeypatch, client.app.state.engine.renderer)  # type: ignore[attr-defined]
+    got = lines(client.post(URL, params={**PROGRESSIVE, "stages": 1}, json=scene(format="npy")).text)
+    assert [g["stage"] for g in got] == [0] and not got[0]["final"] and len(seen) == 1, seen
+    got = lines(client.post(URL, params={**PROGRESSIVE, "stages": 2}, json=scene(format="npy")).text)
+    assert [g["stage"] for g in got] == [0, 1] and len(seen) == 3
+    assert [g["stage"] for g in lines(client.post(URL, params={**PROGRESSIVE, "stages": 9}, json=scene()).text)] == [0, 1, 2]
+    r = client.post(URL, params={**PROGRESSIVE, "stages": 0}, json=scene())
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "stages"]
+
+
 def test_refusals_come_before_the_stream_and_failures_as_its_last_line(client, monkeypatch):
     assert client.post(URL, params=PROGRESSIVE, json=scene(), headers={"Authorization": ""}).status_code == 401
     r = client.post(URL, params=PROGRESSIVE, json=scene(), headers={"X-Lodcast-Session": "x" * 129})
