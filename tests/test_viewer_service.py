@@ -157,7 +157,8 @@ def test_the_shell_is_open_and_names_no_volume(client):
 def test_the_static_files_are_package_data():
     """Every file the viewer serves is matched by the package-data globs, so that `pip install .` ships it."""
     cfg = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
-    globs = cfg["tool"]["setuptools"]["package-data"]["lodcast.service"]
-    files = [p.relative_to(STATIC.parent).as_posix() for p in STATIC.rglob("*") if p.is_file()]
-    assert {"static/index.html", "static/viewer.html", "static/viewer.js"} <= set(files)
+    assert cfg["tool"]["setuptools"]["package-dir"]["lodcast.service.static"] == "service/static"
+    globs = cfg["tool"]["setuptools"]["package-data"]["lodcast.service.static"]
+    files = [p.relative_to(STATIC).as_posix() for p in STATIC.rglob("*") if p.is_file()]
+    assert {"index.html", "viewer.html", "viewer.js"} <= set(files)
     assert all(any(fnmatch.fnmatch(f, g) for g in globs) for f in files), (files, globs)
