@@ -16,6 +16,17 @@ def head(n: int) -> np.ndarray:
 
 
 #: a TF that shows sphere_ramp's surface as an opaque shell whose colour follows the values inside
+# soft tissue as a faint band (α 0.006 per unit over 300 HU) over most of a CT's body, bone opaque behind it: the
+# translucent case of the level of detail's lossless and predicted error (tests/test_lossless.py, test_prediction.py)
+BAND_BONE = {"points": [
+    {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
+    {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
+    {"value": 200, "color": [0.9, 0.55, 0.45], "opacity": 0.006},
+    {"value": 250, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
+    {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
+    {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
+    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
+
 SPHERE_TF = {"points": [{"value": -100, "color": [0.9, 0.6, 0.4], "opacity": 0.0},
                         {"value": 100, "color": [0.9, 0.7, 0.5], "opacity": 0.9},
                         {"value": 1000, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}

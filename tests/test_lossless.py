@@ -8,22 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from phantoms import BAND_BONE
 
 import lodcast
 from lodcast.renderer.image.delta_e import delta_e_image
 from lodcast.renderer.lod.selection import select_lod
 from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.scene.transfer_function import CT_PRESETS
-
-# soft tissue as a faint band (α ≈ 0.006 per unit) over most of the body, bone opaque behind it
-BAND_BONE = {"points": [
-    {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
-    {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
-    {"value": 200, "color": [0.9, 0.55, 0.45], "opacity": 0.006},
-    {"value": 250, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
-    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
 
 MEAN, P999 = 0.3, 3.0
 
