@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The renderer's tests and the GPU-relevant benchmarks on a machine without network access and without lodcast
-# installed, such as a borrowed GPU box (benchmarks/measured/README.md says how the H200 run went).
+# installed, such as a borrowed GPU box (benchmarks/offline_gpu.md says how the H200 run went).
 #
 #   bash benchmarks/offline_gpu.sh [--quick] WHEELS DATA OUT
 #
