@@ -13,16 +13,13 @@ import threading
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import Any, Iterator
 
 from lodcast.environment import Environment, EnvironmentInvalid, environment
 from lodcast.opencl import Device
 from lodcast.renderer.cache import ByteLru
 from lodcast.renderer.pool import BrickPool
 from lodcast.store.opened import OpenStores
-
-if TYPE_CHECKING:  # pragma: no cover
-    from lodcast.renderer.frame.device_cost import CostModel
 
 __all__ = ["Engine", "Settings", "Tables"]
 
@@ -144,7 +141,7 @@ class Engine:
         # quality targets (renderer/frame/target.py): per store and TFs the data settings' predictions and the share
         # of a march the rays take; the device's cost model, measured on first use (kept on disk in `cost_dir`)
         self.targets = ByteLru(16)
-        self.cost_model: CostModel | None = None
+        self.cost_model: Any = None  # renderer/frame/device_cost.CostModel (imported there: no import loop)
         self.cost_dir = env.cache_dir / "cost"
         self.target_lock = threading.Lock()
         self.stores = OpenStores(self.settings.open_stores, self.settings.store_check_s)

@@ -9,11 +9,12 @@ from scipy.ndimage import map_coordinates
 
 import lodcast
 from lodcast.renderer.data.volume import as_volume
-from lodcast.renderer.frame.prepare import geometry, resolved
+from lodcast.renderer.frame.prepare import resolved
 from lodcast.renderer.image.delta_e import delta_e_stats
 from lodcast.renderer.lod import visibility
 from lodcast.renderer.lod.selection import select_lod
 from lodcast.renderer.scene import camera as cam
+from lodcast.renderer.scene.camera import geometry
 from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.scene.transfer_function import evaluate, unit_distance
 

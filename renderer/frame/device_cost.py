@@ -125,11 +125,12 @@ def calibrate(eng: Engine, repeat: int = 3) -> CostModel:
 
 
 def renders(eng: Engine) -> Callable[[Any, Scene], Any]:
-    """`eng`'s render (the engines that choose are the Renderers that render)."""
-    from lodcast.renderer.frame.render import Renderer
-
-    assert isinstance(eng, Renderer)
-    return eng.render
+    """`eng`'s render: the engines that choose are the Renderers that render (renderer/frame/render.py, which
+    imports this module through prepare and target, so it is not imported here)."""
+    render = getattr(eng, "render", None)
+    if render is None:
+        raise TypeError(f"{type(eng).__name__} cannot render: quality targets need a lodcast.Renderer")
+    return render
 
 
 def _byte_ns(eng: Engine, nbytes: int = 32 << 20) -> float:

@@ -42,7 +42,7 @@ from lodcast.renderer.scene.scene import (
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.walk.info import block_info
 
-__all__ = ["prepare", "check_cost", "prefetch", "resolved", "geometry", "selection"]
+__all__ = ["prepare", "check_cost", "prefetch", "resolved", "selection"]
 
 
 def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tuple[list, tuple]:
@@ -181,17 +181,6 @@ def _block_info(eng: Engine, vol: VolumeView, scene: Scene, lut: Lut, lut2: Lut 
     return hit
 
 
-def geometry(vol: VolumeView, scene: Scene) -> tuple[tuple, cam.Frame, tuple, float]:
-    """(the volume's world box, the camera frame, the box the rays integrate (crop box applied), the step in world
-    units)."""
-    box = cam.box_world(vol.shape, vol.spacing, vol.origin) if vol.frame_box is None else vol.frame_box
-    fr = cam.frame(scene.camera, scene.width, scene.height, *box)  # the camera frames the whole volume
-    kbox = clipping.clipped_box(box, scene.clip)
-    if np.any(kbox[0] >= kbox[1]):  # the crop box misses the volume: a degenerate box no ray enters
-        kbox = (kbox[0], kbox[0].copy())
-    return box, fr, kbox, scene.sampling.step * float(min(vol.spacing))
-
-
 def _cost(eng: Engine, scene: Scene, fr: cam.Frame, kbox: tuple, step_world: float,
           sample_limit: int | None) -> int:
     estimated = cost.estimate_samples(fr, kbox, scene.width, scene.height, step_world)
@@ -224,7 +213,7 @@ def check_cost(eng: Engine, store: StoreLike, scene: SceneLike, sample_limit: in
     """Renderer.check_cost (of the setting a quality target picks)."""
     vol = as_volume(store, stores=eng.stores)
     scene = _target(eng, vol, resolved(eng, Scene.parse(scene), vol), sample_limit)[1]
-    _, fr, kbox, step_world = geometry(vol, scene)
+    _, fr, kbox, step_world = cam.geometry(vol, scene)
     return _cost(eng, scene, fr, kbox, step_world, sample_limit)
 
 
@@ -236,7 +225,7 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     asked, scene, choice = _target(eng, vol, scene, sample_limit)
     tf, tf2 = scene.tf, scene.tf2
     assert isinstance(tf, TransferFunction) and not isinstance(tf2, AdaptiveTF)  # resolved() placed adaptive TFs
-    box, fr, kbox, step_world = geometry(vol, scene)
+    box, fr, kbox, step_world = cam.geometry(vol, scene)
     estimated = _cost(eng, scene, fr, kbox, step_world, sample_limit)
     unit = unit_distance(tf, vol.spacing)
     diag = float(np.linalg.norm(box[1] - box[0]))
@@ -341,7 +330,7 @@ def selection(eng: Engine, vol: VolumeView, scene: Scene) -> Any:
     kept where prepare finds it: asking first costs a render of the scene nothing."""
     scene = resolved(eng, scene, vol)
     assert isinstance(scene.tf, TransferFunction)  # resolved() put an adaptive TF's control points in its place
-    _, fr, kbox, _ = geometry(vol, scene)
+    _, fr, kbox, _ = cam.geometry(vol, scene)
     keep = clipping.block_mask(vol.grid, vol.shape, vol.spacing, vol.origin, vol.block_size, scene.clip)
     view = None
     if _view_weighted(scene, vol):

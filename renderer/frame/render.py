@@ -47,6 +47,7 @@ from lodcast.renderer.image.report import PriorityMapReport, RenderReport, Scree
 from lodcast.renderer.kernel.params import ext_table, lut_table, tables
 from lodcast.renderer.kernel.structs import STATE_FLOATS
 from lodcast.renderer.lod import visibility
+from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene.scene import QualityLevel, Scene, SceneLike, TransferFunction
 from lodcast.renderer.scene.transfer_function import build_lut, unit_distance
 from lodcast.renderer.walk.info import adaptive_walk, walk_info
@@ -393,7 +394,7 @@ class Renderer(Engine):
         `visibility`)."""
         vol = as_volume(store, stores=self.stores)
         sc = preparing.resolved(self, Scene.parse(scene), vol)
-        _, fr, kbox, _ = preparing.geometry(vol, sc)
+        _, fr, kbox, _ = cam.geometry(vol, sc)
         assert isinstance(sc.tf, TransferFunction)  # resolved() put an adaptive TF's control points in its place
         return visibility.block_visibility(self, vol, sc, fr, kbox, build_lut(sc.tf, vol.value_range),
                                            unit_distance(sc.tf, vol.spacing))

@@ -43,6 +43,7 @@ from lodcast.renderer.engine import Engine
 from lodcast.renderer.frame import screen as screen_space
 from lodcast.renderer.frame.device_cost import CostModel, cost_model, renders
 from lodcast.renderer.image.report import ChosenReport, ChosenSetting
+from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene import clip as clipping
 from lodcast.renderer.scene import cost
 from lodcast.renderer.scene.scene import QualityMaxDeltaE, QualityMaxMs, Scene, SceneError
@@ -249,9 +250,7 @@ def _live(eng: Engine, vol: VolumeView, scene: Scene, keep: np.ndarray | None, t
 
 def _geometry(vol: VolumeView, scene: Scene, width: int, height: int) -> tuple[Any, Any]:
     """(the camera frame at `width` × `height`, the box the rays integrate) of `scene` on `vol`."""
-    from lodcast.renderer.frame import prepare as preparing
-
-    _, fr, kbox, _ = preparing.geometry(vol, scene.model_copy(update={"width": width, "height": height}))
+    _, fr, kbox, _ = cam.geometry(vol, scene.model_copy(update={"width": width, "height": height}))
     return fr, kbox
 
 

@@ -154,10 +154,8 @@ def crossings(level0: np.ndarray, spacing: Any, origin: Any, block_size: int, lu
 def crossings_of(prepared: Any) -> Crossings:
     """`crossings` for a render as prepared (renderer.prepare(store, scene)): its volume, first TF, camera and
     the box its rays integrate."""
-    from lodcast.renderer.frame.prepare import geometry
-
     vol, scene = prepared.volume, prepared.scene
-    _, fr, kbox, _ = geometry(vol, scene)
+    _, fr, kbox, _ = cam.geometry(vol, scene)
     levels = int(math.log2(vol.block_size)) + 1
     return crossings(vol.read_level0(), vol.spacing, vol.origin, vol.block_size, prepared.lut, prepared.unit, fr,
                      kbox, scene.width, scene.height, early_termination=scene.sampling.early_termination,

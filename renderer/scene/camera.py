@@ -15,13 +15,15 @@ never a picture of the volume.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from lodcast.renderer.scene.scene import MAX_RADII, VIEW_HEIGHT_RADII, LookAtCamera, OrbitCamera, SceneError
+from lodcast.renderer.scene.clip import clipped_box
+from lodcast.renderer.scene.scene import MAX_RADII, VIEW_HEIGHT_RADII, LookAtCamera, OrbitCamera, Scene, SceneError
 
-__all__ = ["Frame", "box_world", "fit_distance", "frame", "look_at", "orbit_eye", "pixel_rays", "ray_box", "ray_octants",
+__all__ = ["Frame", "box_world", "fit_distance", "frame", "geometry", "look_at", "orbit_eye", "pixel_rays", "ray_box", "ray_octants",
            "rays_at", "resolve_view"]
 
 
@@ -219,3 +221,14 @@ def ray_box(o: np.ndarray, d: np.ndarray, lo: ArrayLike, hi: ArrayLike) -> tuple
         ta, tb = (lo - o) / d, (hi - o) / d
     t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=-1), 0.0)
     return t0, np.nanmin(np.maximum(ta, tb), axis=-1)
+
+
+def geometry(vol: Any, scene: Scene) -> tuple[tuple, Frame, tuple, float]:
+    """(the volume's world box, the camera frame, the box the rays integrate (crop box applied), the step in world
+    units) of `scene` on `vol` (a VolumeView: its shape, spacing, origin and frame box)."""
+    box = box_world(vol.shape, vol.spacing, vol.origin) if vol.frame_box is None else vol.frame_box
+    fr = frame(scene.camera, scene.width, scene.height, *box)  # the camera frames the whole volume
+    kbox = clipped_box(box, scene.clip)
+    if np.any(kbox[0] >= kbox[1]):  # the crop box misses the volume: a degenerate box no ray enters
+        kbox = (kbox[0], kbox[0].copy())
+    return box, fr, kbox, scene.sampling.step * float(min(vol.spacing))
