@@ -37,19 +37,14 @@ from lodcast.renderer.lod.selection import select_lod  # noqa: E402
 from lodcast.renderer.scene.transfer_function import CT_PRESETS  # noqa: E402
 from lodcast.store.store import FORMAT_VERSION  # noqa: E402
 
+sys.path.insert(0, str(HERE.parent / "tests"))
+from phantoms import BAND_BONE  # noqa: E402
+
 ENGINE_TF = {"points": [{"value": 150, "color": [1.0, 0.8, 0.5], "opacity": 0.0},
                         {"value": 200, "color": [1.0, 0.9, 0.7], "opacity": 0.8},
                         {"value": 255, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
-#: soft tissue as a faint band (α 0.006 per unit) over most of the body, bone opaque behind it: the translucent TF
-#: of issue 45's lossless, level-bound and early-termination benchmarks
-BAND_OVER_BONE = {"points": [
-    {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
-    {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
-    {"value": 200, "color": [0.9, 0.55, 0.45], "opacity": 0.006},
-    {"value": 250, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 300, "color": [1.0, 1.0, 0.9], "opacity": 0.0},
-    {"value": 700, "color": [1.0, 1.0, 0.95], "opacity": 0.6},
-    {"value": 1500, "color": [1.0, 1.0, 1.0], "opacity": 0.9}]}
+#: the translucent TF of issue 45's lossless, level-bound and early-termination benchmarks: the tests' band over bone
+BAND_OVER_BONE = BAND_BONE
 QUALITIES = ["lossless", {"reduction": 5}, {"reduction": 10}, {"reduction": 30}, {"reduction": 100}]
 
 

@@ -17,7 +17,8 @@ def head(n: int) -> np.ndarray:
 
 #: a TF that shows sphere_ramp's surface as an opaque shell whose colour follows the values inside
 # soft tissue as a faint band (α 0.006 per unit over 300 HU) over most of a CT's body, bone opaque behind it: the
-# translucent case of the level of detail's lossless and predicted error (tests/test_lossless.py, test_prediction.py)
+# translucent case of the level of detail's lossless and predicted error (tests/test_lossless.py, test_prediction.py,
+# and the benchmarks' BAND_OVER_BONE: benchmarks/bench_consistent_lod.py)
 BAND_BONE = {"points": [
     {"value": -150, "color": [0.9, 0.5, 0.4], "opacity": 0.0},
     {"value": -100, "color": [0.9, 0.5, 0.4], "opacity": 0.006},
