@@ -181,15 +181,16 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
     int im1;
     float wim;
     const int im = lc_mean_axis(&T, mbar, &im1, &wim);
+#ifdef LC_MEAN
+    const float3 modelled = lc_lerp(luv, T.n, im, im1, wim, 0, T.rows > 1, 0.0f);  /* the TF at the mean */
+#endif
     for (int k = 0; k < LC_L; ++k) {
         if (k == 0) {
             out_spread[(size_t)b * LC_L] = 0.0f;
             continue;
         }
         const float hidden = sb[1] > 0.0f ? step_b * sb[k] / sb[1] : 0.0f;  /* (k >= 1: LC_L > 1) */
-#ifdef LC_MEAN
-        const float3 modelled = lc_lerp(luv, T.n, im, im1, wim, 0, T.rows > 1, 0.0f);
-#else
+#ifndef LC_MEAN
         const float3 modelled = lc_lerp(luv, T.n, im, im1, wim, rj[k], rj1[k], rw[k]);
 #endif
         const float r = sb[k] / s_top;
