@@ -31,6 +31,9 @@ class FrameRenderer:
         self.job_id, self.plan, self.files, self.names = job_id, plan, files, names
         self.eng = eng
         self.ahead = Prefetch(self.eng, settings)
+        # the first frame renders alone: a read ahead beside it would read most of the same bricks at the same
+        # time (the next frame's are told from the newest atlas, which the first frame has not made yet)
+        self.rendered = False
 
     def render(self, i: int, owner: str, nxt: int | None) -> bool:
         """Render frame i if its lease can be had; whether it was rendered here."""
@@ -53,9 +56,10 @@ class FrameRenderer:
                 return False
             vid, scene_dict = self.plan[i]
             scene = parse_scene(scene_dict, st, ("scene",))
-            if nxt is not None:
+            if nxt is not None and self.rendered:
                 self.ahead.next(self.plan[nxt])
             result = self.eng.render(volume_path(st.root, vid), scene, st.max_samples)
+            self.rendered = True
             data, _ = encode(result, scene)
             self.files.write(self.names[i], data)
         finally:
@@ -70,30 +74,34 @@ class FrameRenderer:
 
 class Prefetch:
     """Reads the next frame's bricks into the brick cache while the current frame renders (a TF sweep or a scenes
-    job changes the selection from frame to frame; a turntable's stays, so after its first frame this finds
-    everything cached). One frame ahead, on one thread; a failure only costs the prefetch (the render reads the
-    bricks itself and reports any error)."""
-
-    _pool = None
-    _lock = threading.Lock()
+    job changes the selection from frame to frame). One frame ahead, on one thread: a request made while a read
+    ahead runs replaces any that is still waiting, so frames that outpace the reads never queue work behind them.
+    A failure only costs the prefetch (the render reads the bricks itself and reports any error)."""
 
     def __init__(self, eng: Any, settings: Any):
         self.eng, self.settings = eng, settings
-
-    @classmethod
-    def _executor(cls) -> Any:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with cls._lock:
-            if cls._pool is None:
-                cls._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lodcast-prefetch")
-            return cls._pool
+        self._lock = threading.Lock()
+        self._waiting: tuple[str, Any] | None = None
+        self._running = False
 
     def next(self, item: tuple[str, Any] | None) -> None:
         if item is None:
             return
-        vid, scene_dict = item
-        self._executor().submit(self._run, vid, scene_dict)
+        with self._lock:
+            self._waiting = item
+            if self._running:
+                return
+            self._running = True
+        threading.Thread(target=self._drain, daemon=True, name="lodcast-prefetch").start()
+
+    def _drain(self) -> None:
+        while True:
+            with self._lock:
+                item, self._waiting = self._waiting, None
+                if item is None:
+                    self._running = False
+                    return
+            self._run(*item)
 
     def _run(self, vid: str, scene_dict: Any) -> None:
         try:

@@ -141,6 +141,29 @@ def test_only_the_bricks_of_blocks_whose_level_changed_are_read(store, eng):
     assert (da.read, da.cached) == (new, int((levels >= 0).sum()) - new)
 
 
+def test_a_read_ahead_asks_only_for_what_the_newest_atlas_lacks(store, eng):
+    """unplaced: the bricks the next atlas would take from the pool or the store, not the ones it copies from the
+    newest atlas, so a read ahead beside a turntable reads nothing although the pool has let its bricks go."""
+    vol = as_volume(store)
+    rng = np.random.default_rng(12)
+    first = rng.integers(-1, store.n_levels, size=vol.grid).astype(np.int8)
+    levels = _changed(first, rng, 0.25, store.n_levels - 1)
+    _forget(eng)
+    np.testing.assert_array_equal(lod_atlas.unplaced(eng, vol, levels, True), levels)  # no atlas: all of them
+    kept = lod_atlas.device_atlas(eng, vol, first, with_std=True, cache=BrickPool(1 << 30))
+    todo = lod_atlas.unplaced(eng, vol, levels, True)
+    np.testing.assert_array_equal(todo, np.where((levels == first) & (levels >= 0), -1, levels))
+    np.testing.assert_array_equal(lod_atlas.unplaced(eng, vol, levels, False), levels)  # another family
+    scene = {"tf": BONE, "quality": {"reduction": 20}, "width": 32, "height": 32,
+             "sampling": {"lod_visibility": False}}  # one selection for every view, as a large volume's default
+    _forget(eng)
+    eng.render(store, scene)
+    eng.bricks.clear()  # a pool smaller than the atlas: its bricks are gone, the atlas's are on the device
+    assert eng.prefetch(store, {**scene, "camera": {"azimuth": 40}}) == 0
+    assert eng.render(store, {**scene, "camera": {"azimuth": 40}}).report["bricks_read"] == 0
+    del kept
+
+
 def test_the_last_atlas_is_held_weakly(store, eng):
     """Reuse never keeps an atlas's device memory alive: once the device cache lets it go, it is gone."""
     vol = as_volume(store)

@@ -37,7 +37,7 @@ from lodcast.renderer.data.volume import voxel_options
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.pool import BrickPool
 
-__all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "step_levels", "skipped", "NEAR_LEVEL0",
+__all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "unplaced", "step_levels", "skipped", "NEAR_LEVEL0",
            "device_atlas", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
            "neighbourhood_max", "pair_reduce", "per_cell", "copy_kept", "dirty_blocks"]
 
@@ -371,6 +371,32 @@ class DeviceAtlas:
     base_levels: np.ndarray | None = None  # that atlas's selection (flat int64)
 
 
+def _family(vol: Any, levels: np.ndarray, with_std: bool) -> tuple | None:
+    """The atlases a new one of `levels` may take bricks from (store key, grid, with deviations, voxel type)."""
+    return None if vol.key is None else (vol.key, levels.shape, with_std, str(vol.voxel_dtype))
+
+
+def _last(eng: Engine, family: tuple | None, levels: np.ndarray) -> tuple[Any, np.ndarray | None]:
+    """The newest atlas of `family` and which of `levels`' bricks it holds at the same level (flat), or None."""
+    base = None if family is None else eng.last_atlas(family)
+    if base is None:
+        return None, None
+    flat = levels.ravel()
+    return base, (base.levels == flat) & (flat >= 0)
+
+
+def _unkept(levels: np.ndarray, kept: np.ndarray | None) -> np.ndarray:
+    return levels if kept is None else np.where(kept.reshape(levels.shape), -1, levels).astype(np.int8)
+
+
+def unplaced(eng: Engine, vol: Any, levels: np.ndarray, with_std: bool) -> np.ndarray:
+    """`levels` less the bricks the next device_atlas of them copies from the newest atlas (-1 there): what it
+    would take from the brick pool or the store. A read ahead asks for these only (the pool need not hold what
+    the atlas on the device already has)."""
+    levels = np.ascontiguousarray(levels, dtype=np.int8)
+    return _unkept(levels, _last(eng, _family(vol, levels, with_std), levels)[1])
+
+
 def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = False, max_bytes: int | None = None,
                  cache: BrickPool | None = None, slices: np.ndarray | None = None,
                  keep: bool = True) -> DeviceAtlas:
@@ -384,7 +410,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
            if vol.key is not None and keep else None)
     n_sel = int(np.count_nonzero(levels >= 0))
     hit = eng.device_cache.get(key) if key is not None else None
-    family = None if key is None else (vol.key, levels.shape, with_std, str(vol.voxel_dtype))
+    family = None if key is None else _family(vol, levels, with_std)
     if hit is not None:
         assert family is not None  # a hit needs a key, which comes with a family
         eng.remember_atlas(family, hit)  # the next selection starts from the latest one shown
@@ -403,9 +429,8 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
         total -= n_coarse
         _check_alloc(n_coarse * sig_type.itemsize, max_bytes, "coarse bricks' buffer")
     index = _index(levels, offsets, slices)
-    base = None if family is None else eng.last_atlas(family)
+    base, kept = _last(eng, family, levels)
     flat = levels.ravel().astype(np.int64)
-    kept = None if base is None else (base.levels == flat) & (flat >= 0)
     ctx, queue = eng.device.context, eng.device.queue
     st = BrickStats()
     n_std = max(n_coarse, 1)
@@ -413,7 +438,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
     # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
     # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already); a brick of the
     # last atlas of this store at the same level is copied from there (reuse, below)
-    todo = levels if kept is None else np.where(kept.reshape(levels.shape), -1, levels).astype(np.int8)
+    todo = _unkept(levels, kept)
     L = int(flat.max(initial=0)) + 1
     with eng.holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
         d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)

@@ -344,9 +344,10 @@ def prefetch(eng: Engine, store: StoreLike, scene: SceneLike) -> int:
     if pr.lod is None or pr.volume.key is None:
         return 0
     n = 0
+    todo = lod_atlas.unplaced(eng, pr.volume, pr.lod.levels, pr.config.distribution)
     for what in ("mean", "std") if pr.config.distribution else ("mean",):
         st = bricks.BrickStats()
-        for _ in bricks.brick_batches(eng, pr.volume, pr.lod.levels, what=what, stats=st):
+        for _ in bricks.brick_batches(eng, pr.volume, todo, what=what, stats=st):
             pass  # into the brick pool only: holding them all here would cost the selection's size
         n += st.read
     return n

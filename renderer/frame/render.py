@@ -379,8 +379,9 @@ class Renderer(Engine):
         """Read the bricks a render of `scene` will need (its level-of-detail selection, and the distributions
         behind coarse bricks) into the brick cache, without touching the device but for the small cast that weighs
         the selection by the view (visibility.py, on a queue of its own): a job calls it for its next frame while
-        the current one renders. The bricks read from the store (0: all cached already, or a scene at quality
-        "full", whose level 0 goes to the device whole)."""
+        the current one renders. Bricks the newest atlas of the store already holds at their level are left out:
+        the render copies those on the device. The bricks read from the store (0: all cached or on the device
+        already, or a scene at quality "full", whose level 0 goes to the device whole)."""
         return preparing.prefetch(self, store, scene)
 
     def check_cost(self, store: StoreLike, scene: SceneLike, sample_limit: int | None = None) -> int:

@@ -45,11 +45,18 @@ def format_for(path: str | Path, format: str | None = None) -> str:
 
 def to_straight_rgba8(rgba: np.ndarray) -> np.ndarray:
     """Premultiplied float RGBA -> straight-alpha uint8 (colour = C / A where A > 0, rounded to nearest)."""
-    a = np.clip(rgba[..., 3:4].astype(np.float64), 0.0, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        c = np.where(a > 0, rgba[..., :3] / np.where(a > 0, a, 1.0), 0.0)
-    out = np.concatenate([np.clip(c, 0.0, 1.0), a], axis=-1)
-    return np.round(np.nan_to_num(out) * 255.0).astype(np.uint8)
+    rgba = np.asarray(rgba)
+    # one float64 buffer worked in place: every interactive frame pays for this conversion before its PNG
+    out = np.empty(rgba.shape, np.float64)
+    alpha = out[..., 3]
+    np.clip(rgba[..., 3], 0.0, 1.0, out=alpha)
+    out[..., :3] = 0.0
+    np.divide(rgba[..., :3], alpha[..., None], out=out[..., :3], where=(alpha > 0)[..., None])
+    np.clip(out, 0.0, 1.0, out=out)
+    np.nan_to_num(out, copy=False)
+    out *= 255.0
+    np.rint(out, out=out)
+    return out.astype(np.uint8)
 
 
 def png_bytes(rgba: np.ndarray, text: dict[str, Any] | None = None) -> bytes:
