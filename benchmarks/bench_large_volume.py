@@ -4,8 +4,9 @@
 
 The volume: the chest CT (../shared/data/ct_chest_dicom, via its 16³ store) tiled 4x4 across and ~3.7x in depth,
 every tile mirrored and shifted in intensity by its own amount, with a little noise, as uint16 (HU + 1024):
-1024 x 2048 x 2048 voxels, 2^32 of them (past 32-bit addressing), 8 GiB raw. It is written to
-benchmarks/results/large/ (never committed; delete it afterwards) slab by slab.
+1024 x 2048 x 2048 voxels, 2^32 of them (past 32-bit addressing), 8 GiB raw. It is generated slab by slab straight
+into ingest (`Body`, a store source: no raw copy on disk); the store goes to benchmarks/results/large/ (never
+committed; delete it afterwards).
 
 Measured, each step in its own process (peak RSS: that process's VmHWM, /proc/self/status):
 - ingest: MB/s and peak RSS;
@@ -29,40 +30,45 @@ from pathlib import Path
 
 import numpy as np
 
+from lodcast.store.source import SourceInfo, VolumeSource
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 LARGE = RESULTS / "large"
 TF = "ct-bone"
+SPACING = (1.0, 0.78125, 0.78125)  # z, y, x: the chest CT's own
 
 
-def make(raw: Path, shape: tuple[int, int, int]) -> None:
-    sys.path.insert(0, str(HERE))
-    from bench_consistent_lod import DATA, store_of
+class Body(VolumeSource):
+    """The volume as a store source, generated slice by slice as ingest asks for slabs: no raw copy on disk,
+    whatever its size. A slice depends on its index alone (its noise is seeded by it), so a slab read twice is the
+    same."""
 
-    chest = store_of("ct_chest", DATA / "ct_chest_dicom").read_level(0).astype(np.int32) + 1024  # z, y, x
-    cz, cy, cx = chest.shape
-    rng = np.random.default_rng(7)
-    out = np.lib.format.open_memmap(raw.with_suffix(".tmp.npy"), mode="w+", dtype=np.uint16, shape=shape)
-    ty, tx = -(-shape[1] // cy), -(-shape[2] // cx)
-    shift = rng.integers(-40, 40, size=(-(-shape[0] // cz), ty, tx))
-    for z0 in range(0, shape[0], 16):
-        z1 = min(shape[0], z0 + 16)
-        slab = np.empty((z1 - z0, ty * cy, tx * cx), np.int32)
+    def __init__(self, shape: tuple[int, int, int]) -> None:
+        sys.path.insert(0, str(HERE))
+        from bench_consistent_lod import DATA, store_of
+
+        self.chest = store_of("ct_chest", DATA / "ct_chest_dicom").read_level(0).astype(np.int32) + 1024  # z, y, x
+        cz, cy, cx = self.chest.shape
+        self.tiles = (-(-shape[1] // cy), -(-shape[2] // cx))
+        self.shift = np.random.default_rng(7).integers(-40, 40, size=(-(-shape[0] // cz), *self.tiles))
+        self.info = SourceInfo(shape=shape, dtype=np.dtype(np.uint16), spacing=SPACING, format="generated",
+                               provenance={"generator": "benchmarks/bench_large_volume.py: Body"})
+
+    def read(self, z0: int, z1: int) -> np.ndarray:
+        (_, Y, X), (cz, cy, cx), (ty, tx) = self.info.shape, self.chest.shape, self.tiles
+        out = np.empty((z1 - z0, Y, X), np.uint16)
+        row = np.empty((ty * cy, tx * cx), np.int32)
         for z in range(z0, z1):
             tz, zz = divmod(z, cz)
-            src = chest[zz if tz % 2 == 0 else cz - 1 - zz]
+            src = self.chest[zz if tz % 2 == 0 else cz - 1 - zz]
             for j in range(ty):
                 for i in range(tx):
                     t = src[:, ::-1] if (i + j) % 2 else src
-                    slab[z - z0, j * cy:(j + 1) * cy, i * cx:(i + 1) * cx] = t + shift[tz, j, i]
-        slab = slab[:, : shape[1], : shape[2]]
-        slab += rng.integers(-8, 9, size=slab.shape, dtype=np.int32)
-        out[z0:z1] = np.clip(slab, 0, 65535).astype(np.uint16)
-        print(f"\rmaking {raw.name}: {z1}/{shape[0]}", end="", file=sys.stderr, flush=True)
-    out.flush()
-    del out
-    raw.with_suffix(".tmp.npy").rename(raw)
-    print(file=sys.stderr)
+                    row[j * cy:(j + 1) * cy, i * cx:(i + 1) * cx] = t + self.shift[tz, j, i]
+            noise = np.random.default_rng((7, z)).integers(-8, 9, size=(Y, X), dtype=np.int32)
+            out[z - z0] = np.clip(row[:Y, :X] + noise, 0, 65535)
+        return out
 
 
 def peak_rss() -> int:
@@ -84,12 +90,13 @@ def child(args: list[str], env: dict | None = None) -> tuple[float, dict]:
     return dt, json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def ingest_step(raw: str, store: str) -> None:
-    """Runs in the child: ingest as `lodcast ingest` does, then its peak RSS."""
-    from lodcast.service.cli import main
+def ingest_step(shape: str, store: str) -> None:
+    """Runs in the child: the volume of `shape` ("z,y,x") generated straight into ingest (Body), then its peak RSS."""
+    import lodcast
 
-    rc = main(["ingest", raw, store, "--spacing", "1.0,0.78125,0.78125", "--no-progress"])
-    print(json.dumps({"rc": rc, "peak_rss": peak_rss()}))
+    with Body(tuple(int(v) for v in shape.split(","))) as src:
+        lodcast.ingest(src, store, progress=False)
+    print(json.dumps({"peak_rss": peak_rss()}))
 
 
 def drop_caches() -> bool:
@@ -227,15 +234,12 @@ def main() -> None:
         return ingest_step(*a.ingest_step)
     shape = tuple(int(s) for s in a.shape.split(","))
     LARGE.mkdir(parents=True, exist_ok=True)
-    raw = LARGE / f"body_{'x'.join(map(str, shape))}.npy"
     size = int(np.prod(shape)) * 2  # uint16 voxels
     store = LARGE / f"body_{'x'.join(map(str, shape))}.zarr"
     res: dict = {"shape": shape, "voxels": int(np.prod(shape)), "raw_bytes": size}
     ingest_json = store.with_suffix(".ingest.json")  # kept beside the store: a rerun measures the renders only
     if not store.exists():
-        if not raw.exists():  # (the raw volume is needed for ingest only: it may be deleted afterwards)
-            make(raw, shape)
-        dt, got = child([sys.executable, __file__, "--ingest-step", str(raw), str(store)])
+        dt, got = child([sys.executable, __file__, "--ingest-step", a.shape, str(store)])
         ingest_json.write_text(json.dumps({"s": dt, "mb_per_s": size / 1e6 / dt, "peak_rss_mb": got["peak_rss"] / 1e6}))
     if ingest_json.exists():
         res["ingest"] = json.loads(ingest_json.read_text())
