@@ -39,7 +39,7 @@ def _host_visibility(eng, store, scene):
     box, fr, kbox, _ = geometry(vol, sc)
     k = visibility.visibility_level(vol)
     coarse = store.read_region(k).astype(np.float64)
-    n = visibility.VIS_RAYS
+    n = visibility.cast_rays(vol.grid, sc.width, sc.height)
     w, h = (n, max(1, round(n * sc.height / sc.width))) if sc.width >= sc.height else (max(1, round(n * sc.width / sc.height)), n)
     y, x = np.mgrid[:h, :w] + 0.5
     o, d = cam.rays_at(fr, x, y, w, h)
@@ -72,6 +72,16 @@ def wall(tmp_path_factory):
     v = (0.3 * rng.random((B, B, 7 * B))).astype(np.float32)
     v[:, :, 3 * B:4 * B] = 1.0
     return lodcast.ingest(v, tmp_path_factory.mktemp("vis") / "wall.zarr", block_size=B, progress=False)
+
+
+def test_every_block_of_a_wide_grid_is_entered_by_some_ray(eng, tmp_path):
+    """A grid of more blocks across than VIS_RAYS: a transparent volume is still seen whole (a cast of VIS_RAYS
+    rays leaves every other block column without a ray, weighing nothing in the selection)."""
+    st = lodcast.ingest(np.zeros((B, 128 * 4, 128 * 4), np.float32), tmp_path / "w.zarr", block_size=4,
+                        progress=False)
+    assert visibility.cast_rays(as_volume(st).grid, 512, 512) > 2 * visibility.VIS_RAYS
+    vis = eng.visibility(st, {"tf": WALL, "width": 512, "height": 512, "camera": _ortho(st.shape, (0.05, 0.05, 1))})
+    np.testing.assert_array_equal(vis, 1.0)
 
 
 def test_a_transparent_volume_is_seen_whole(eng, tmp_path):

@@ -174,7 +174,8 @@ def _place_batches(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, bat
             run[rows] = bricks
 
 
-def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int) -> None:
+def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+                 only: np.ndarray | None = None) -> None:
     """The aprons of the level-0 bricks in `out` (placed by `_place`). The apron sample beyond a face, edge or
     corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves the grid,
     d is 0 there and the sample repeats the brick's edge (the volume's clamp to edge). It is the sample of block
@@ -182,7 +183,9 @@ def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block
     of level-0 blocks trilinear interpolation within a padded brick is then trilinear interpolation of level 0
     across the blocks' faces, clamped at the volume's faces as full resolution is (lc_atlas.h). Coarse bricks have
     no apron: theirs would take 1.95x (8³ of a 16³ block) to 27x (1³) their samples, and at high reductions, where
-    most bricks are coarse, the atlas would grow by about as much as the apron-less one holds."""
+    most bricks are coarse, the atlas would grow by about as much as the apron-less one holds. `only` (grid-shaped
+    bool): fill the aprons of these blocks' bricks alone (an atlas built from the last one copies the others'
+    aprons with their bricks); an apron reads its neighbours' interiors only, so the rest may be filled already."""
     lv = np.asarray(levels).astype(np.int64)
     G = np.array(lv.shape)
     flat_off = offsets.reshape(lv.shape)
@@ -195,22 +198,33 @@ def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block
     start = int(flat_off[where].min())
     A = out[start:start + cnt * m**3].reshape(cnt, m, m, m)
     assert int(flat_off[where].max()) == start + (cnt - 1) * m**3, "bricks of a level lie together"
-    # clamp to edge: x faces, then y (whole rows, x apron included), then z
-    A[:, 1:-1, 1:-1, 0], A[:, 1:-1, 1:-1, -1] = A[:, 1:-1, 1:-1, 1], A[:, 1:-1, 1:-1, -2]
-    A[:, 1:-1, 0, :], A[:, 1:-1, -1, :] = A[:, 1:-1, 1, :], A[:, 1:-1, -2, :]
-    A[:, 0], A[:, -1] = A[:, 1], A[:, -2]
     rank = np.full(lv.shape, -1, np.int64)  # a brick's place in A; -1: not at level 0
     rank[where] = np.arange(cnt)
-    pos = np.stack(np.nonzero(where), axis=1)  # (cnt, 3) z, y, x in C order: the ranks 0 ... cnt - 1
+    fill = where if only is None else where & np.asarray(only, bool).reshape(lv.shape)
+    pos = np.stack(np.nonzero(fill), axis=1)  # (k, 3) z, y, x in C order
+    ranks = rank[fill]  # their places in A
+    if not ranks.size:
+        return
+    # clamp to edge: x faces, then y (whole rows, x apron included), then z
+    if only is None:  # (in place: a gather and a scatter of every brick would double the traffic)
+        A[:, 1:-1, 1:-1, 0], A[:, 1:-1, 1:-1, -1] = A[:, 1:-1, 1:-1, 1], A[:, 1:-1, 1:-1, -2]
+        A[:, 1:-1, 0, :], A[:, 1:-1, -1, :] = A[:, 1:-1, 1, :], A[:, 1:-1, -2, :]
+        A[:, 0], A[:, -1] = A[:, 1], A[:, -2]
+    else:
+        B = A[ranks]
+        B[:, 1:-1, 1:-1, 0], B[:, 1:-1, 1:-1, -1] = B[:, 1:-1, 1:-1, 1], B[:, 1:-1, 1:-1, -2]
+        B[:, 1:-1, 0, :], B[:, 1:-1, -1, :] = B[:, 1:-1, 1, :], B[:, 1:-1, -2, :]
+        B[:, 0], B[:, -1] = B[:, 1], B[:, -2]
+        A[ranks] = B
     for d0 in np.ndindex(3, 3, 3):
         d = np.array(d0) - 1
         if not d.any():
             continue
         to = pos + d
-        folded = (to < 0) | (to >= G)  # (cnt, 3): off the grid along that axis
+        folded = (to < 0) | (to >= G)  # (k, 3): off the grid along that axis
         dd = np.where(folded, 0, d)  # the direction that stays on the grid
         moved = dd.any(axis=1)
-        nb = np.full(cnt, -1, np.int64)
+        nb = np.full(len(pos), -1, np.int64)
         t = pos[moved] + dd[moved]
         nb[moved] = rank[t[:, 0], t[:, 1], t[:, 2]]
         fold_code = folded @ np.array([4, 2, 1])  # which axes fold, per brick: they take different source slices
@@ -221,7 +235,7 @@ def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block
             # along a folded axis the neighbour's edge sample on the own side (it shares the own coordinate)
             src = tuple(slice(1, n + 1) if e == 0 else ((1 if e < 0 else n) if f else (n if e < 0 else 1))
                         for e, f in zip(d, fold))
-            A[(own,) + dst] = A[(nb[own],) + src]
+            A[(ranks[own],) + dst] = A[(nb[own],) + src]
 
 
 def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
@@ -457,7 +471,11 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
             reuse = None if old is None or base is None or kept is None else (
                 lambda host: copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
                                                    range(0, 1 if packed else L), B))
-            d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse)
+            # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0 status
+            # changed: the blocks whose cells can change under nearest block are the ones to fill again
+            aprons = None if reuse is None or base is None else dirty_blocks(
+                base.levels.reshape(levels.shape), levels, "nearest_block")
+            d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse, aprons)
             if with_std:
                 assert deviations is not None  # sig or its high halves, with_std
                 _place_batches(deviations, levels, offsets, brick_batches(eng, vol, todo, cache, what="std"))
@@ -510,16 +528,16 @@ def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.nda
 
 
 def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
-            items: Any, reuse: Any = None) -> cl.Buffer:
+            items: Any, reuse: Any = None, aprons: np.ndarray | None = None) -> cl.Buffer:
     """A device buffer of n elements with every brick of `items` (batches: bricks.brick_batches; and those `reuse`
-    copies into the host mapping) placed at its offset and the level-0 bricks' aprons filled, written through a
-    host mapping."""
+    copies into the host mapping) placed at its offset and the level-0 bricks' aprons filled (`aprons`: those of
+    these blocks only, the others' came with their bricks), written through a host mapping."""
     buf, host = _mapped(ctx, queue, n, dtype)
     try:
         if reuse is not None:
             reuse(host)
         _place_batches(host, levels, offsets, items)
-        _fill_aprons(host, levels, offsets, block_size)
+        _fill_aprons(host, levels, offsets, block_size, aprons)
     finally:
         cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
     return buf

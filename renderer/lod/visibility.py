@@ -7,7 +7,7 @@ camera sees. Combining a data or TF error with view-dependent measures is the li
 (Ljung's thesis §2.3.1: distance to viewer and projected size, used to weight a data error measure); the measure
 here is occlusion.
 
-`block_visibility` casts a low-resolution set of the scene's own rays (VIS_RAYS along the image's longer side, the
+`block_visibility` casts a low-resolution set of the scene's own rays (`cast_rays` along the image's longer side, the
 same camera, box and clip planes) front to back through a coarse level of the store (the finest with at most
 VIS_VOXELS voxels: level 1 of a 512²×275 CT, level 3 of a 1024×2048² body), each sample classified by the TF at
 its value, and records per block the largest transmittance with which any ray of the cast enters it
@@ -33,10 +33,14 @@ from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene.scene import Scene
 from lodcast.renderer.scene.transfer_function import Lut
 
-__all__ = ["AUTO_VOXELS", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "quiet_blocks",
-           "visibility_level"]
+__all__ = ["AUTO_VOXELS", "RAYS_PER_BLOCK", "VIS_RAYS", "VIS_VOXELS", "block_visibility", "cast_rays",
+           "quiet_blocks", "visibility_level"]
 
-VIS_RAYS = 96  # rays along the longer side of the image
+VIS_RAYS = 96  # rays along the longer side of the image, at least
+#: and at least this many per block along the grid's longest extent (up to the image's own rays): a block that no
+#: ray of the cast enters weighs nothing in the selection, so rays sparser than the blocks drop surface blocks from
+#: the picture's budget by chance, and a new view a degree away drops others
+RAYS_PER_BLOCK = 3
 #: sampling.lod_visibility left out is on for volumes of at most this many voxels: beyond, a new view's selection
 #: and atlas cost many times the picture (even with its atlas built from the last one's)
 AUTO_VOXELS = 1 << 27
@@ -73,7 +77,7 @@ def block_visibility(eng: Engine, vol: VolumeView, scene: Scene, fr: cam.Frame, 
     module doc). `kbox`: the box the rays integrate (crop box applied); the scene's clip planes cut the rays."""
     k = visibility_level(vol)
     buf, kdims = _coarse(eng, vol, k)
-    n_long = VIS_RAYS
+    n_long = cast_rays(vol.grid, scene.width, scene.height)
     w, h = (n_long, max(1, round(n_long * scene.height / scene.width))) if scene.width >= scene.height else \
         (max(1, round(n_long * scene.width / scene.height)), n_long)
     step_world = float(1 << k) * float(min(vol.spacing))
@@ -96,6 +100,12 @@ def block_visibility(eng: Engine, vol: VolumeView, scene: Scene, fr: cam.Frame, 
     cl.enqueue_copy(queue, vis, d_v)
     queue.finish()
     return (vis.astype(np.float64) / _ONE).astype(np.float32)
+
+
+def cast_rays(grid: tuple[int, ...], width: int, height: int) -> int:
+    """Rays of the cast along the image's longer side: VIS_RAYS, or RAYS_PER_BLOCK per block along the grid's
+    longest extent where that is more, but not more than the image has."""
+    return max(VIS_RAYS, min(RAYS_PER_BLOCK * max(grid), max(width, height)))
 
 
 def quiet_blocks(vol: VolumeView, lut: Lut, k: int) -> np.ndarray:
