@@ -47,8 +47,7 @@ def sweep(eng: RenderEngine, jq: JobQueue, job, ahead: bool) -> list[float]:
         t = time.perf_counter()
         frames.render(i, "bench", i + 1 if ahead and i + 1 < len(plan) else None)
         ms.append((time.perf_counter() - t) * 1e3)
-    while frames.ahead._running:  # (its last read ahead, if any, before the next run empties the caches)
-        time.sleep(0.01)
+    frames.ahead.wait()  # (its last read ahead, if any, before the next run empties the caches)
     jq.cancel(jid)
     return ms
 

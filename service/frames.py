@@ -81,6 +81,7 @@ class Prefetch:
     def __init__(self, eng: Any, settings: Any):
         self.eng, self.settings = eng, settings
         self._lock = threading.Lock()
+        self._idle = threading.Condition(self._lock)
         self._waiting: tuple[str, Any] | None = None
         self._running = False
 
@@ -100,8 +101,14 @@ class Prefetch:
                 item, self._waiting = self._waiting, None
                 if item is None:
                     self._running = False
+                    self._idle.notify_all()
                     return
             self._run(*item)
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Until no read ahead runs or waits (False: `timeout` seconds passed first)."""
+        with self._idle:
+            return self._idle.wait_for(lambda: not self._running, timeout)
 
     def _run(self, vid: str, scene_dict: Any) -> None:
         try:

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import threading
-import time
 
 from lodcast.service.frames import Prefetch
 from lodcast.service.settings import Settings
@@ -35,13 +34,10 @@ def test_a_read_ahead_replaces_the_ones_still_waiting(tmp_path):
     for v in "bcd":  # frames rendered while the first read-ahead still runs
         ahead.next((v, SCENE))
     eng.go.set()
-    deadline = time.monotonic() + 10
-    while (ahead._running or len(eng.calls) < 2) and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert ahead.wait(10)
     assert eng.calls == ["a", "d"]  # b and c were stale before they could start
     ahead.next(("b", SCENE))  # an idle prefetch starts again
-    while len(eng.calls) < 3 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert ahead.wait(10)
     assert eng.calls == ["a", "d", "b"]
 
 
@@ -79,8 +75,6 @@ def test_a_turntable_reads_ahead_only_what_its_atlas_lacks(tmp_path):
     frames = FrameRenderer(settings, jq.records, jid, plan, jq.files(jid), names, eng)
     for i in range(len(plan)):
         assert frames.render(i, "me", i + 1 if i + 1 < len(plan) else None)
-    deadline = time.monotonic() + 30
-    while frames.ahead._running and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert frames.ahead.wait(30)
     assert reads == [0, 0]  # frames 2 and 3, read ahead beside frames 1 and 2: all on the device already
     assert sorted(jq.files(jid).names()) == names
