@@ -65,6 +65,11 @@ EXAMPLES = {
                "{\"value\": 120, \"opacity\": 0.6}]}'\n"
                "lodcast render head.zarr -o lod.png --scene examples/head-lod.scene.json --report report.json   # 30:1, shading\n"
                "lodcast render chest.zarr -o chest.png --tf ct-bone --progressive   # chest-stage0.png, chest-stage1.png, then chest.png"),
+    "kernels": ("build the kernel programs a store's usual scenes need (full resolution, lossless, 30:1 with "
+                "nearest-block and interblock interpolation, unlit and lit; --scene adds others), so that no first "
+                "picture waits for a compiler: builds stay on disk for every later process",
+                "lodcast kernels chest.zarr\n"
+                "lodcast kernels chest.zarr --scene examples/head-lod.scene.json"),
     "serve": ("serve the HTTP API (OpenAPI at /docs) over the stores under a root, with a job queue and a worker",
               "lodcast serve --root stores/ --port 8000\n"
               "LODCAST_TOKEN=secret lodcast serve --root stores/ --host 0.0.0.0 --queue redis://localhost:6379/0\n"
@@ -398,12 +403,24 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def _add_kernels(sub: argparse._SubParsersAction) -> None:
+    from lodcast.renderer.tools.cli_kernels import add_parser
+
+    add_parser(sub, _cmd_kernels)
+
+
+def _cmd_kernels(args: argparse.Namespace) -> int:
+    from lodcast.renderer.tools.cli_kernels import run
+
+    return run(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="lodcast", description="Render large scalar volumes with transfer-function-driven level of detail.")
     parser.add_argument("--version", action="version", version=f"lodcast {__import__('lodcast').__version__}")
     parser.set_defaults(log_level="warning")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_ingest, _add_info, _add_verify, _add_upgrade, _add_render, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo, _add_presets):
+    for add in (_add_ingest, _add_info, _add_verify, _add_upgrade, _add_render, _add_kernels, _add_serve, _add_worker, _add_submit, _add_jobs, _add_report, _add_demo, _add_presets):
         add(sub)
     for name, command in sub.choices.items():
         command.description, examples = EXAMPLES[name]

@@ -42,7 +42,7 @@ from lodcast.renderer.scene.scene import (
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.walk.info import block_info
 
-__all__ = ["prepare", "check_cost", "prefetch", "resolved", "selection"]
+__all__ = ["prepare", "check_cost", "prefetch", "resolved", "selection", "lod_config", "samples_per_ray"]
 
 
 def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tuple[list, tuple]:
@@ -122,16 +122,31 @@ def _select(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | Non
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
 
 
+def samples_per_ray(box: tuple, step_world: float) -> int:
+    """The most samples a ray through the world box `box` takes at `step_world`."""
+    return int(math.ceil(float(np.linalg.norm(box[1] - box[0])) / step_world)) + 2
+
+
+def lod_config(cfg: KernelConfig, scene: Scene, vol: VolumeView, coarse: bool) -> KernelConfig:
+    """The kernel configuration of a level-of-detail render once its selection is known: `coarse`, whether any
+    block is coarser than level 0."""
+    if not coarse:
+        if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive:
+            cfg = replace(cfg, adaptive=False, lattice=False)  # the default: all level 0 leaves nothing to step over
+        return replace(cfg, distribution=False)  # nothing to classify by distribution either
+    if scene.mode == "composite" and vol.has_cell_ranges:
+        cfg = replace(cfg, ess=True)  # the walk leaves out coarse cells empty at level 0 (walk.py: _cell_info), always
+    return cfg
+
+
 def _lod_plan(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | None, info: np.ndarray, cfg: KernelConfig,
               mode: str, keep: np.ndarray | None,
               view: tuple | None = None) -> tuple[LodPlan, np.ndarray, int, KernelConfig]:
     """The selection (blocks outside the clip region `keep` not loaded; weighted by what the camera sees when
     `view` is given, see _select), the block info with unloaded blocks marked empty, the number of empty blocks,
-    and the kernel configuration (the default adaptive sampling is dropped when every block is at level 0)."""
+    and the kernel configuration (`lod_config`)."""
     lv, sel = _select(eng, vol, scene, levels, keep, view)
-    if cfg.adaptive and scene.sampling.adaptive_object is None and not scene.sampling.adaptive_naive and not (lv > 0).any():
-        # the default: every block at level 0 leaves nothing to step over
-        cfg = replace(cfg, adaptive=False, lattice=False)
+    cfg = lod_config(cfg, scene, vol, bool((lv > 0).any()))
     B = vol.block_size
     if sel is not None:
         reduction, pred = (float(sel.reduction) if math.isfinite(sel.reduction) else None), float(sel.predicted_delta_e)  # None: nothing loaded (JSON has no inf)
@@ -228,8 +243,7 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     box, fr, kbox, step_world = cam.geometry(vol, scene)
     estimated = _cost(eng, scene, fr, kbox, step_world, sample_limit)
     unit = unit_distance(tf, vol.spacing)
-    diag = float(np.linalg.norm(box[1] - box[0]))
-    max_samples = int(math.ceil(diag / step_world)) + 2
+    max_samples = samples_per_ray(box, step_world)
     if max_samples > MAX_SAMPLES_PER_RAY:
         raise SceneError(
             f"sampling.step: {scene.sampling.step} voxels is too small for this volume "
@@ -251,10 +265,6 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     if use_lod:
         view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene, vol) else None
         lod, info, n_empty, cfg = _lod_plan(eng, vol, scene, levels, info, cfg, scene.mode, keep, view)
-        if scene.mode == "composite" and vol.has_cell_ranges and (lod.levels >= 1).any():
-            cfg = replace(cfg, ess=True)  # the walk leaves out coarse cells empty at level 0 (walk.py: _cell_info), always
-        if cfg.distribution and not (lod.levels > 0).any():
-            cfg = replace(cfg, distribution=False)  # all level 0: nothing to classify by distribution
     dist, pre = _classification_tables(eng, tf, lut, unit, cfg, vol, step_world)
     params = fill_params(vol, scene, fr, kbox, lut, step_world, unit, max_samples, dist, pre)
     prio = None

@@ -384,6 +384,15 @@ class Renderer(Engine):
         already, or a scene at quality "full", whose level 0 goes to the device whole)."""
         return preparing.prefetch(self, store, scene)
 
+    def build_ahead(self, store: StoreLike, scenes: Any = None, progress: Any = None) -> list:
+        """Build the kernel programs `scenes` (default ahead.AHEAD: full resolution, lossless and 30:1 with either
+        interpolation, unlit and lit) need on `store`, without reading a voxel: renders that follow find them
+        compiled, and later processes on disk. A list of ahead.AheadBuild (scene, options, where the program came
+        from, ms); `progress` is called with each."""
+        from lodcast.renderer.frame import ahead
+
+        return ahead.build_ahead(self, store, ahead.AHEAD if scenes is None else scenes, progress)
+
     def check_cost(self, store: StoreLike, scene: SceneLike, sample_limit: int | None = None) -> int:
         """The samples `scene` of `store` would take (renderer/scene/cost.py), before anything is loaded or built;
         raises CostError naming the field when that is above `sample_limit` (default LODCAST_MAX_SAMPLES)."""
