@@ -139,8 +139,10 @@ def child(python: str, args: list[str]) -> dict:
 def table(res: dict) -> str:
     pairs = res["pairs"]
     b = res["bound"]
-    lines = [f"Cold 30:1 first image, 512², ct-bone, {res['store']}, page cache dropped before each process; "
-             f"from process start (s)", "",
+    lines = [f"Cold 30:1 first image, 512², ct-bone, {res['store']}, "
+             f"{'page cache dropped before each process' if res['page_cache_dropped'] else 'page cache NOT dropped'}; "
+             f"seconds from the process's start. {res['date']}, {res['nproc']} x {res['cpu']} (kernel "
+             f"{res['kernel']}), base {res['base']} against this tree {res['tree']}; `{res['command']}`", "",
              "| pair | order | base s | this tree s | ratio | base prepare / atlas s | this prepare / atlas s | "
              "base / this minor faults | load avg (1 min) |", "|---|---|---|---|---|---|---|---|---|"]
     for i, p in enumerate(pairs):
@@ -211,7 +213,7 @@ def main() -> None:
     base_rev = None
     if a.base:
         base_root = subprocess.run([a.base, "-c", "import lodcast, pathlib; print(pathlib.Path(lodcast.__file__)"
-                                    ".resolve().parent.parent)"], capture_output=True, text=True).stdout.strip()
+                                    ".resolve().parent.parent)"], capture_output=True, text=True, cwd="/").stdout.strip()
         base_rev = subprocess.run(["git", "-C", base_root, "rev-parse", "--short", "HEAD"], capture_output=True,
                                   text=True).stdout.strip()
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
