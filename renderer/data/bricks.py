@@ -4,7 +4,9 @@ The **brick pool** is shared by every render of an engine (`Engine.bricks`, rend
 ``LODCAST_BRICK_CACHE_MB``, default 1024, less what a CPU device's buffers hold): only missing bricks are read, in
 parallel (a thread pool, one task per shard: the bricks of one shard are read together, from the chunks that hold
 them, since the number of requests dominates I/O), so a camera change reads nothing and a TF change reads only the
-bricks whose level changed. renderer/data/atlas.py packs them.
+bricks whose level changed. renderer/data/atlas.py packs them: the readers themselves place what they read into the
+atlas (`place_bricks`), so that a cold atlas's placing and pool books run on every core beside the decoding, rather
+than on the calling thread while the readers wait for it.
 """
 from __future__ import annotations
 
