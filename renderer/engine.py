@@ -174,17 +174,18 @@ class Engine:
             with self._lock:
                 self._filling -= nbytes
 
-    def read_threads(self, remote: bool) -> int:
+    def read_threads(self, remote: bool, caller_waits: bool = False) -> int:
         """Threads reading shards: LODCAST_READ_THREADS, else one less than the CPU count for local files (at
-        least one: the calling thread places what they read) and 8 for object storage (requests wait on the
-        network)."""
+        least one: the calling thread places what they read), one more than the CPU count where the readers place
+        what they read themselves and the caller only waits (`caller_waits`: a reader waiting on the disk leaves its
+        core to the spare one), and 8 for object storage (requests wait on the network)."""
         n = self.settings.read_threads
         if n is not None:
             return n
         if remote:
             return 8
         cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        return max(1, cpus - 1)
+        return cpus + 1 if caller_waits else max(1, cpus - 1)
 
     def read_pool(self, threads: int) -> ThreadPoolExecutor:
         """The engine's pool of `threads` shard readers (made on first use)."""

@@ -55,7 +55,7 @@ class _Arena:
         live = np.array([s is not None for s in self.slabs], bool)
         # (a pool filling up has no free row in its live slabs: looking for them among all rows at every insertion
         # made a large volume's first image quadratic in its bricks)
-        free = np.flatnonzero(self.owner < 0) if self.free_rows else np.zeros(0, np.int64)
+        free = np.flatnonzero(self.owner[:live.size * self.per] < 0) if self.free_rows else np.zeros(0, np.int64)
         free = free[live[free // self.per]]
         if free.size >= n:
             self.free_rows = free.size > n
@@ -67,10 +67,13 @@ class _Arena:
             i = empty.pop(0) if empty else len(self.slabs)
             if i == len(self.slabs):
                 self.slabs.append(None)
-                self.owner = np.concatenate([self.owner, np.full(self.per, -1, np.int64)])
-                self.stamp = np.concatenate([self.stamp, np.zeros(self.per, np.int64)])
-            self.slabs[i] = np.empty((self.per, *self.shape), self.dtype)
             new.append(i)
+        if self.owner.size < len(self.slabs) * self.per:  # the books grow by half at a time, not a slab at a time
+            grow = max(len(self.slabs) * self.per, self.owner.size * 3 // 2) - self.owner.size
+            self.owner = np.concatenate([self.owner, np.full(grow, -1, np.int64)])
+            self.stamp = np.concatenate([self.stamp, np.zeros(grow, np.int64)])
+        for i in new:
+            self.slabs[i] = np.empty((self.per, *self.shape), self.dtype)
         extra = np.concatenate([np.arange(i * self.per, (i + 1) * self.per) for i in new])
         self.free_rows = free.size + extra.size > n
         return np.concatenate([free, extra])[:n]
@@ -86,6 +89,11 @@ class _Arena:
         return out
 
     def scatter(self, rows: np.ndarray, bricks: np.ndarray) -> None:
+        if rows.size and int(rows[-1]) - int(rows[0]) == rows.size - 1 and rows[0] // self.per == rows[-1] // self.per:
+            # (rows in one run of one slab, as a filling arena hands them out: a plain copy)
+            lo = int(rows[0]) % self.per
+            self.slabs[int(rows[0]) // self.per][lo:lo + rows.size] = bricks
+            return
         slab = rows // self.per
         order = np.argsort(slab, kind="stable")
         bounds = np.flatnonzero(np.diff(slab[order])) + 1
@@ -157,7 +165,8 @@ class BrickPool(ByteBound):
                 per = max(1, SLAB_BYTES // max(1, int(np.prod(bricks.shape[1:])) * bricks.dtype.itemsize))
                 a = self._arenas[family] = _Arena(bricks.shape[1:], bricks.dtype, per, np.full(n_blocks, -1, np.int32))
             new = a.slot[blocks] < 0
-            blocks, bricks = blocks[new], bricks[new]
+            if not new.all():  # (a batch's bricks are copied once more only where some are held already)
+                blocks, bricks = blocks[new], bricks[new]
             cost = a.brick_bytes + ROW_BYTES
             bound = self.max_bytes
             keep = min(blocks.size, bound // cost)

@@ -41,6 +41,10 @@ _EMPTY = np.uint64(2**64 - 1)
 INDEX_CACHE_MAX = 2048
 
 
+#: the largest local shard file read whole at once (`ShardedReader._whole`)
+WHOLE_SHARD_BYTES = 16 << 20
+
+
 def _workers() -> int:
     return min(32, os.cpu_count() or 1)
 
@@ -403,7 +407,8 @@ class ShardedReader(_Reader):
         except FileNotFoundError:
             fd = None
         try:
-            entries = None if fd is None else self._entries(fd, name, key, coords)
+            whole = None if fd is None else self._whole(fd, len(coords))
+            entries = None if fd is None else self._entries(fd, name, key, coords, whole)
             if entries is None:  # no shard file (remote: found on its first read)
                 if self.complete:
                     raise StoreCorrupt(f"{name}: shard file missing (ingest wrote it): the store is damaged, "
@@ -414,7 +419,7 @@ class ShardedReader(_Reader):
                 if self.complete and not full.all():
                     raise StoreCorrupt(f"{name}: {int((~full).sum())} chunks missing from the shard "
                                        f"(ingest wrote them all): the store is damaged, re-ingest it")
-                self._decode(fd, entries, full, box, name, coords)
+                self._decode(fd, entries, full, box, name, coords, whole)
         except (ValueError, RuntimeError) as exc:  # a truncated or overwritten shard, a chunk blosc rejects
             if isinstance(exc, StoreCorrupt):
                 raise
@@ -446,17 +451,29 @@ class ShardedReader(_Reader):
             grid = grid.reshape(tuple(k * c for k, c in zip(counts, self.chunk)))
             out[dst] = grid[tuple(slice(max(a, s) - s, min(h, e) - s) for a, h, s, e in zip(lo, hi, start, ends))]
 
-    def _entries(self, fd: Any, name: str, key: str, coords: np.ndarray) -> np.ndarray | None:
+    def _whole(self, fd: Any, wanted: int) -> bytes | None:
+        """The whole shard file in one read, where it is local, at most WHOLE_SHARD_BYTES and at least half of its
+        chunks are `wanted`: its index at the end and its chunks at the start were two requests (on a cold disk,
+        two seeks per shard), for bytes that are mostly wanted anyway. None otherwise."""
+        if self._files.remote or 2 * wanted < self._n_index:
+            return None
+        size, _ = self._files.stamp(fd)
+        if size is None or size > WHOLE_SHARD_BYTES:
+            return None
+        return self._files.pread(fd, size, 0)
+
+    def _entries(self, fd: Any, name: str, key: str, coords: np.ndarray,
+                 whole: bytes | None = None) -> np.ndarray | None:
         """The index entries of the chunks `coords` (n, ndim), in their order (None: the shard object does not
-        exist)."""
+        exist); `whole`: the shard's bytes, read already."""
         try:
-            index = self._index(fd, name, key)
+            index = self._index(fd, name, key, whole)
         except FileNotFoundError:
             return None
         return index[np.ravel_multi_index(tuple((coords % np.array(self._per_shard)).T), self._per_shard)]
 
     def _decode(self, fd: Any, entries: np.ndarray, full: np.ndarray, box: np.ndarray, name: str,
-                coords: np.ndarray) -> None:
+                coords: np.ndarray, whole: bytes | None = None) -> None:
         if not full.all():
             box[~full] = self.fill_value
         idx = np.flatnonzero(full)
@@ -467,7 +484,9 @@ class ShardedReader(_Reader):
         pread = self._files.pread
         # one span when the gaps are small; on object storage always (a request costs more than the bytes between)
         one = last - first <= 2 * int(sizes.sum()) + 65536 or self._files.remote
-        span = pread(fd, last - first, first) if one else None
+        span = pread(fd, last - first, first) if one and whole is None else None
+        if whole is not None:  # (the file from its first byte)
+            span, first = whole, 0
         for i, off, n in zip(idx.tolist(), offsets.tolist(), sizes.tolist()):
             raw = memoryview(span)[off - first:off - first + n] if span is not None else pread(fd, n, off)
             if len(raw) != n:
@@ -483,9 +502,10 @@ class ShardedReader(_Reader):
             else:
                 box[i] = np.frombuffer(raw, self._chunk_dtype).reshape(self.chunk)
 
-    def _index(self, fd: Any, path: str, chunk_key: str) -> np.ndarray:
+    def _index(self, fd: Any, path: str, chunk_key: str, whole: bytes | None = None) -> np.ndarray:
         """The shard's (offset, nbytes) table, shape (n, 2) uint64, from this reader's cache keyed by (path, size,
-        mtime or ETag); checked against the manifest's entry for `chunk_key` when the reader has one."""
+        mtime or ETag), else read (from `whole`, the shard's bytes, where given); checked against the manifest's
+        entry for `chunk_key` when the reader has one."""
         size, version = self._files.stamp(fd)
         key = (path, size, version)
         with self._lock:
@@ -495,7 +515,9 @@ class ShardedReader(_Reader):
         n = self._index_bytes
         if size is not None and size < n:
             raise ValueError(f"{path}: shard shorter than its index")
-        if size is None and self._index_at_end:
+        if whole is not None and len(whole) == size and size >= n:
+            raw = whole[size - n:] if self._index_at_end else whole[:n]
+        elif size is None and self._index_at_end:
             raw = self._files.suffix(fd, n)
         else:
             raw = self._files.pread(fd, n, size - n if self._index_at_end else 0)

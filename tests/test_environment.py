@@ -27,6 +27,7 @@ def test_defaults_and_units(monkeypatch):
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     eng = Renderer()
     assert eng.read_threads(remote=False) == max(1, cores - 1) and eng.read_threads(remote=True) == 8
+    assert eng.read_threads(remote=False, caller_waits=True) == cores + 1  # readers that place what they read
     assert env.significance_numpy is False and env.tmp is None and env.open_stores == 32
     monkeypatch.setenv("LODCAST_DEVICE_BUDGET_MB", "64")  # docs/design.md, Limits: MB = 10⁶ bytes
     monkeypatch.setenv("LODCAST_MAX_SAMPLES", "2e7")

@@ -335,3 +335,24 @@ def test_scattered_chunks_read_no_other_chunk(tmp_path):
     with pytest.raises(AssertionError, match="more than one shard"):
         _array(tmp_path, "e", (8, 16, 16), "uint16", (4, 4, 4), (8, 8, 8))
         fast_reader(zarr.open_group(tmp_path, mode="r")["e"]).read_chunks(np.array([[0, 0, 0], [0, 3, 3]]))
+
+
+def test_a_shard_mostly_wanted_is_read_in_one_request(tmp_path, monkeypatch):
+    """Half a shard's chunks or more: the file is read whole, once (its index from its tail), and the chunks are
+    those read with the index and the chunks' span as two requests; fewer: no whole read."""
+    arr = _array(tmp_path, "w", (16, 16, 16), "uint16", (4, 4, 4), (8, 16, 16))
+    every = np.array(list(np.ndindex(2, 4, 4)))
+    for wanted, requests in ((every, 1), (every[::2], 1), (every[:5], 2)):
+        reads = []
+        reader = fast_reader(arr)  # (a fresh reader: no index cached)
+        pread = reader._files.pread
+        monkeypatch.setattr(reader._files, "pread", lambda fd, n, off: reads.append(n) or pread(fd, n, off))
+        got = reader.read_chunks(wanted)
+        assert len(reads) == requests
+        monkeypatch.setattr(shardio, "WHOLE_SHARD_BYTES", 0)
+        apart = fast_reader(arr).read_chunks(wanted)
+        monkeypatch.undo()
+        assert np.array_equal(got, apart)
+        want = _data((16, 16, 16), "uint16")
+        for g, co in zip(got, wanted):
+            assert np.array_equal(g, want[tuple(slice(c * 4, c * 4 + 4) for c in co)])

@@ -21,7 +21,9 @@ cache (the engine's `device_cache`: same store and levels, nothing is packed or 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import hashlib
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -32,7 +34,7 @@ import pyopencl as cl
 from numpy.typing import ArrayLike
 
 from lodcast.opencl import DeviceError
-from lodcast.renderer.data.bricks import BrickStats, brick_batches
+from lodcast.renderer.data.bricks import BrickStats, Sink, place_bricks
 from lodcast.renderer.data.volume import voxel_options
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.pool import BrickPool
@@ -154,20 +156,29 @@ def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> Non
             out[o:o + a.size] = a.ravel()
 
 
-def _place_batches(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, batches: Any) -> None:
-    """Write each (level, blocks, bricks) batch of `batches` (bricks.brick_batches) at its blocks' offsets in `out`
-    (cast to out's type), as `_place` does brick by brick: the bricks of a level lie together in C order of the
-    grid, each the same size, so a batch is one assignment into the level's run of bricks."""
-    flat = np.asarray(levels).ravel()
-    runs: dict[int, tuple[int, np.ndarray]] = {}
-    for k, blocks, bricks in batches:
-        if k not in runs:
-            at = offsets[flat == k]
-            runs[k] = int(at.min()), at
-        o0, at = runs[k]
-        m = bricks.shape[1] + 2 * (k == 0)
-        run = out[o0:o0 + at.size * m**3].reshape(at.size, m, m, m)
-        rows = (offsets[blocks] - o0) // m**3
+class _Placer:
+    """Writes (level, blocks, bricks) batches (bricks.brick_batches) at their blocks' offsets in `out` (cast to
+    out's type), as `_place` does brick by brick: the bricks of a level lie together in C order of the grid, each
+    the same size, so a batch is one assignment into the level's run of bricks. Safe to call from several threads
+    at once with batches of different blocks (they write different elements); `bits`: coarse bricks go in as their
+    16 bits (the low halves of the deviations' buffer, lc_sig: two's complement for signed types, 8-bit types
+    widened as the kernel narrows them back, lc_common.h: LC_SIG_VALUE)."""
+
+    def __init__(self, out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+                 bits: bool = False) -> None:
+        flat = np.asarray(levels).ravel()
+        self.out, self.offsets, self.bits = out, offsets.ravel(), bits
+        self.runs: dict[int, tuple[int, int, int]] = {}  # level -> (first element, bricks, brick edge with apron)
+        for k in np.unique(flat[flat >= 0]).tolist():
+            at = self.offsets[flat == k]
+            self.runs[k] = int(at.min()), at.size, (block_size >> k) + 2 * (k == 0)
+
+    def __call__(self, k: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
+        if self.bits:
+            bricks = (bricks if bricks.dtype.itemsize == 2 else bricks.astype(np.int16)).view(np.uint16)
+        o0, n, m = self.runs[k]
+        run = self.out[o0:o0 + n * m**3].reshape(n, m, m, m)
+        rows = (self.offsets[blocks] - o0) // m**3
         if k == 0:
             run[rows, 1:-1, 1:-1, 1:-1] = bricks
         else:
@@ -176,8 +187,8 @@ def _place_batches(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, bat
 
 def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int,
                  only: np.ndarray | None = None) -> None:
-    """The aprons of the level-0 bricks in `out` (placed by `_place`). The apron sample beyond a face, edge or
-    corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves the grid,
+    """The aprons of the level-0 bricks in `out` (placed by `_place` or `_Placer`). The apron sample beyond a face,
+    edge or corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves the grid,
     d is 0 there and the sample repeats the brick's edge (the volume's clamp to edge). It is the sample of block
     own + d when that block is at level 0 too, else the brick's own nearest sample (clamp to edge). Inside a region
     of level-0 blocks trilinear interpolation within a padded brick is then trilinear interpolation of level 0
@@ -449,39 +460,35 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
     st = BrickStats()
     n_std = max(n_coarse, 1)
     nbytes = max(total, 1) * dtype.itemsize + (sig_type.itemsize * n_std if with_std else 0)
-    # bricks go straight into the mapped device buffers as they are read: no packed copy on the host, and no
-    # brick beyond what the brick cache keeps (a CPU device's buffers are host memory already); a brick of the
-    # last atlas of this store at the same level is copied from there (reuse, below)
+    # bricks go straight into the mapped device buffers as they are read, by the reader threads that read them:
+    # no packed copy on the host, no brick beyond what the brick cache keeps (a CPU device's buffers are host
+    # memory already), and no placing left to this thread; a brick of the last atlas of this store at the same
+    # level is copied from there (reuse, below)
     todo = _unkept(levels, kept)
     L = int(flat.max(initial=0)) + 1
     with eng.holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
         d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
         try:
-            if old is not None and with_std:  # (packed: the coarse values ride along with their deviations)
-                # old maps base (with deviations: with_std is part of its family), and kept compares with it
-                assert base is not None and kept is not None and sig is not None and old[1] is not None
-                copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
-            items = brick_batches(eng, vol, todo, cache, stats=st)
-            deviations = sig
-            if packed:  # the coarse values' 16 bits below each deviation, level 0 into the atlas
-                assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
-                assert sig is not None  # packed needs with_std
-                halves = sig.view(np.uint16)
-                items, deviations = _coarse_bits(items, halves[0::2], levels, offsets), halves[1::2]
-            reuse = None if old is None or base is None or kept is None else (
-                lambda host: copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
-                                                   range(0, 1 if packed else L), B))
-            # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0 status
-            # changed: the blocks whose cells can change under nearest block are the ones to fill again
-            aprons = None if reuse is None or base is None else dirty_blocks(
-                base.levels.reshape(levels.shape), levels, "nearest_block")
-            d_atlas = _filled(ctx, queue, max(total, 1), dtype, levels, offsets, B, items, reuse, aprons)
-            if with_std:
-                assert deviations is not None  # sig or its high halves, with_std
-                _place_batches(deviations, levels, offsets, brick_batches(eng, vol, todo, cache, what="std"))
+            d_atlas, host = _mapped(ctx, queue, max(total, 1), dtype)
+            try:
+                aprons = None
+                if old is not None:  # kept compares with base, which old maps
+                    assert base is not None and kept is not None
+                    if with_std:  # (packed: the coarse values ride along with their deviations)
+                        assert sig is not None and old[1] is not None  # with_std is part of base's family
+                        copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
+                    copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
+                              range(0, 1 if packed else L), B)
+                    # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0
+                    # status changed: the blocks whose cells can change under nearest block are the ones to fill
+                    aprons = dirty_blocks(base.levels.reshape(levels.shape), levels, "nearest_block")
+                place_bricks(eng, vol, todo, _sinks(host, sig, levels, offsets, B, packed), cache, st)
+                _fill_aprons(host, levels, offsets, B, aprons)
+            finally:
+                cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
         finally:
             if sig is not None:
-                cast(cl.MemoryMap, sig.base).release(queue)  # a mapped array's base is its mapping
+                cast(cl.MemoryMap, sig.base).release(queue)
     if kept is not None:
         st.cached += int(kept.sum())
         st.skipped = int(np.count_nonzero(levels < 0))
@@ -521,38 +528,45 @@ def _reading(queue: Any, da: "DeviceAtlas | None", dtype: Any,
 
 
 def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.ndarray]:
-    """A device buffer of n elements and its host mapping for writing (the caller releases it)."""
+    """A device buffer of n elements and its host mapping for writing (the caller releases it), advised into huge
+    pages (`_huge_pages`)."""
     buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
     host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
+    _huge_pages(host)
     return buf, host
 
 
-def _filled(ctx: Any, queue: Any, n: int, dtype: Any, levels: np.ndarray, offsets: np.ndarray, block_size: int,
-            items: Any, reuse: Any = None, aprons: np.ndarray | None = None) -> cl.Buffer:
-    """A device buffer of n elements with every brick of `items` (batches: bricks.brick_batches; and those `reuse`
-    copies into the host mapping) placed at its offset and the level-0 bricks' aprons filled (`aprons`: those of
-    these blocks only, the others' came with their bricks), written through a host mapping."""
-    buf, host = _mapped(ctx, queue, n, dtype)
-    try:
-        if reuse is not None:
-            reuse(host)
-        _place_batches(host, levels, offsets, items)
-        _fill_aprons(host, levels, offsets, block_size, aprons)
-    finally:
-        cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
-    return buf
+def _huge_pages(host: np.ndarray) -> None:
+    """Ask Linux for transparent huge pages under `host` before it is first written: a cold atlas is hundreds of
+    MB written once, and faulting it in 4 KiB pages took a large part of the time spent placing its bricks. The
+    whole 2 MiB pages inside it only; elsewhere, or where it is refused, nothing changes."""
+    if not sys.platform.startswith("linux"):
+        return
+    huge = 2 << 20
+    lo = -(-host.ctypes.data // huge) * huge
+    hi = (host.ctypes.data + host.nbytes) // huge * huge
+    if hi > lo:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.madvise(ctypes.c_void_p(lo), ctypes.c_size_t(hi - lo), ctypes.c_int(14))  # MADV_HUGEPAGE
 
 
-def _coarse_bits(items: Any, low: np.ndarray, levels: np.ndarray, offsets: np.ndarray) -> Any:
-    """The level-0 batches of `items` (bricks.brick_batches); each coarse batch's values go, as their 16 bits, into
-    `low` (the low halves of the deviations' buffer, lc_sig) instead: two's complement for signed types, 8-bit
-    types widened as the kernel narrows them back (lc_common.h: LC_SIG_VALUE)."""
-    for k, blocks, bricks in items:
-        if k >= 1:
-            bits = (bricks if bricks.dtype.itemsize == 2 else bricks.astype(np.int16)).view(np.uint16)
-            _place_batches(low, levels, offsets, [(k, blocks, bits)])
-        else:
-            yield k, blocks, bricks
+def _sinks(host: np.ndarray, sig: np.ndarray | None, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+           packed: bool) -> dict[str, Sink]:
+    """bricks.place_bricks' sinks of an atlas (`host`) and, where it has them, the deviations beside it (`sig`):
+    packed (integer voxels), the coarse values' 16 bits go below each deviation and level 0 into the atlas."""
+    if sig is None:
+        return {"mean": _Placer(host, levels, offsets, block_size)}
+    if not packed:
+        return {"mean": _Placer(host, levels, offsets, block_size), "std": _Placer(sig, levels, offsets, block_size)}
+    assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
+    halves = sig.view(np.uint16)
+    level0, coarse = _Placer(host, levels, offsets, block_size), _Placer(halves[0::2], levels, offsets, block_size,
+                                                                          bits=True)
+
+    def values(k: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
+        (coarse if k >= 1 else level0)(k, blocks, bricks)
+
+    return {"mean": values, "std": _Placer(halves[1::2], levels, offsets, block_size)}
 
 
 # --- reuse: a new selection's atlas from the last one ------------------------------------------------------------
