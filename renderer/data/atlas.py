@@ -4,7 +4,7 @@ A level selection (grid-shaped int8: the store level of every block, -1 = not lo
 
 - the **atlas**: one buffer (of `volume.device_dtype`) holding the selected bricks one after another, the bricks
   of a level together, each the block's (B >> level)³ samples in C order (z, y, x), a level-0 brick inside a
-  one-sample apron of its level-0 neighbours' samples (`_fill_aprons`: nearest block reads one brick and is still
+  one-sample apron of its level-0 neighbours' samples (`aprons.py`: nearest block reads one brick and is still
   trilinear across faces between level-0 blocks; on PoCL trilinear sampling from a plain buffer is faster than
   from a 3D image). One allocation: it must fit CL_DEVICE_MAX_MEM_ALLOC_SIZE, else `DeviceError` says how
   much it needs and what the device allows;
@@ -34,6 +34,7 @@ import pyopencl as cl
 from numpy.typing import ArrayLike
 
 from lodcast.opencl import DeviceError
+from lodcast.renderer.data import aprons
 from lodcast.renderer.data.bricks import BrickStats, Sink, place_bricks
 from lodcast.renderer.data.volume import voxel_options
 from lodcast.renderer.engine import Engine
@@ -111,7 +112,7 @@ def brick_elements(levels: ArrayLike, block_size: int) -> np.ndarray:
 def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
     """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks). The
     bricks of one level lie together, in C order of the grid within it, the coarsest level first and level 0 last:
-    the aprons of level 0 are filled with whole-array operations (`_fill_aprons`), and the deviations beside the
+    the host's reference fills level 0's aprons as one array (`aprons.fill_aprons`), and the deviations beside the
     atlas need a buffer as long as the coarse bricks only (`coarse_elements`)."""
     lv = np.asarray(levels).astype(np.int64).ravel()
     sizes = brick_elements(lv, block_size)
@@ -146,7 +147,7 @@ def _check_alloc(nbytes: int, max_bytes: int | None, what: str) -> None:
 
 def _place(out: np.ndarray, grid: tuple, offsets: np.ndarray, items: Any) -> None:
     """Write each ((level, bz, by, bx), brick) of `items` at its block's offset in `out` (cast to out's type): a
-    level-0 brick inside its apron, which `_fill_aprons` fills."""
+    level-0 brick inside its apron, which `aprons.py` fills."""
     for (k, z, y, x), a in items:
         o = int(offsets[(z * grid[1] + y) * grid[2] + x])
         if k == 0:
@@ -185,70 +186,6 @@ class _Placer:
             run[rows] = bricks
 
 
-def _fill_aprons(out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int,
-                 only: np.ndarray | None = None) -> None:
-    """The aprons of the level-0 bricks in `out` (placed by `_place` or `_Placer`). The apron sample beyond a face,
-    edge or corner of a brick lies towards the neighbouring block in direction d; along an axis where that leaves the grid,
-    d is 0 there and the sample repeats the brick's edge (the volume's clamp to edge). It is the sample of block
-    own + d when that block is at level 0 too, else the brick's own nearest sample (clamp to edge). Inside a region
-    of level-0 blocks trilinear interpolation within a padded brick is then trilinear interpolation of level 0
-    across the blocks' faces, clamped at the volume's faces as full resolution is (lc_atlas.h). Coarse bricks have
-    no apron: theirs would take 1.95x (8³ of a 16³ block) to 27x (1³) their samples, and at high reductions, where
-    most bricks are coarse, the atlas would grow by about as much as the apron-less one holds. `only` (grid-shaped
-    bool): fill the aprons of these blocks' bricks alone (an atlas built from the last one copies the others'
-    aprons with their bricks); an apron reads its neighbours' interiors only, so the rest may be filled already."""
-    lv = np.asarray(levels).astype(np.int64)
-    G = np.array(lv.shape)
-    flat_off = offsets.reshape(lv.shape)
-    where = lv == 0
-    cnt = int(where.sum())
-    if not cnt:
-        return
-    n = block_size
-    m = n + 2
-    start = int(flat_off[where].min())
-    A = out[start:start + cnt * m**3].reshape(cnt, m, m, m)
-    assert int(flat_off[where].max()) == start + (cnt - 1) * m**3, "bricks of a level lie together"
-    rank = np.full(lv.shape, -1, np.int64)  # a brick's place in A; -1: not at level 0
-    rank[where] = np.arange(cnt)
-    fill = where if only is None else where & np.asarray(only, bool).reshape(lv.shape)
-    pos = np.stack(np.nonzero(fill), axis=1)  # (k, 3) z, y, x in C order
-    ranks = rank[fill]  # their places in A
-    if not ranks.size:
-        return
-    # clamp to edge: x faces, then y (whole rows, x apron included), then z
-    if only is None:  # (in place: a gather and a scatter of every brick would double the traffic)
-        A[:, 1:-1, 1:-1, 0], A[:, 1:-1, 1:-1, -1] = A[:, 1:-1, 1:-1, 1], A[:, 1:-1, 1:-1, -2]
-        A[:, 1:-1, 0, :], A[:, 1:-1, -1, :] = A[:, 1:-1, 1, :], A[:, 1:-1, -2, :]
-        A[:, 0], A[:, -1] = A[:, 1], A[:, -2]
-    else:
-        B = A[ranks]
-        B[:, 1:-1, 1:-1, 0], B[:, 1:-1, 1:-1, -1] = B[:, 1:-1, 1:-1, 1], B[:, 1:-1, 1:-1, -2]
-        B[:, 1:-1, 0, :], B[:, 1:-1, -1, :] = B[:, 1:-1, 1, :], B[:, 1:-1, -2, :]
-        B[:, 0], B[:, -1] = B[:, 1], B[:, -2]
-        A[ranks] = B
-    for d0 in np.ndindex(3, 3, 3):
-        d = np.array(d0) - 1
-        if not d.any():
-            continue
-        to = pos + d
-        folded = (to < 0) | (to >= G)  # (k, 3): off the grid along that axis
-        dd = np.where(folded, 0, d)  # the direction that stays on the grid
-        moved = dd.any(axis=1)
-        nb = np.full(len(pos), -1, np.int64)
-        t = pos[moved] + dd[moved]
-        nb[moved] = rank[t[:, 0], t[:, 1], t[:, 2]]
-        fold_code = folded @ np.array([4, 2, 1])  # which axes fold, per brick: they take different source slices
-        for code in np.unique(fold_code[nb >= 0]):
-            fold = [(int(code) >> (2 - a)) & 1 for a in range(3)]
-            own = np.nonzero((nb >= 0) & (fold_code == code))[0]
-            dst = tuple(slice(1, n + 1) if e == 0 else (0 if e < 0 else n + 1) for e in d)
-            # along a folded axis the neighbour's edge sample on the own side (it shares the own coordinate)
-            src = tuple(slice(1, n + 1) if e == 0 else ((1 if e < 0 else n) if f else (n if e < 0 else 1))
-                        for e, f in zip(d, fold))
-            A[(ranks[own],) + dst] = A[(nb[own],) + src]
-
-
 def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | None = None,
          slices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(atlas float32 1D, index map uint64 grid-shaped), on the host (tests, references; renders use
@@ -260,7 +197,7 @@ def pack(levels: np.ndarray, bricks: dict, block_size: int, max_bytes: int | Non
     offsets, total = _checked_offsets(levels, block_size, max_bytes)
     atlas = np.empty(max(total, 1), np.float32)
     _place(atlas, levels.shape, offsets, bricks.items())
-    _fill_aprons(atlas, levels, offsets, block_size)
+    aprons.fill_aprons(atlas, levels, offsets, block_size)
     return atlas, _index(levels, offsets, slices)
 
 
@@ -471,7 +408,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
         try:
             d_atlas, host = _mapped(ctx, queue, max(total, 1), dtype)
             try:
-                aprons = None
+                dirty = None
                 if old is not None:  # kept compares with base, which old maps
                     assert base is not None and kept is not None
                     if with_std:  # (packed: the coarse values ride along with their deviations)
@@ -481,11 +418,11 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
                               range(0, 1 if packed else L), B)
                     # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0
                     # status changed: the blocks whose cells can change under nearest block are the ones to fill
-                    aprons = dirty_blocks(base.levels.reshape(levels.shape), levels, "nearest_block")
+                    dirty = dirty_blocks(base.levels.reshape(levels.shape), levels, "nearest_block")
                 place_bricks(eng, vol, todo, _sinks(host, sig, levels, offsets, B, packed), cache, st)
-                _fill_aprons(host, levels, offsets, B, aprons)
             finally:
                 cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
+            aprons.device_aprons(eng.device, d_atlas, dtype, levels, offsets, B, dirty)
         finally:
             if sig is not None:
                 cast(cl.MemoryMap, sig.base).release(queue)

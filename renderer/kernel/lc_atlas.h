@@ -4,7 +4,7 @@
  * another; the brick of a level-k block holds its n = B >> k samples per edge in C order (z, y, x); a level-0 brick
  * sits inside a one-sample apron, m = n + 2 per edge, sample (i, j, l) of the block at ((l + 1) m + j + 1) m + i + 1.
  * The apron sample beyond a face, edge or corner is the neighbouring block's sample there when that block is at
- * level 0 too, else the brick's own nearest sample (renderer/data/atlas.py: _fill_aprons). Index map: one ulong per block
+ * level 0 too, else the brick's own nearest sample (renderer/data/aprons.py). Index map: one ulong per block
  * of the grid (C order z, y, x): 0 = block not loaded (level -1: empty space), else
  * (offset << 16) | ((sz + 1) << 12) | ((sy + 1) << 8) | ((sx + 1) << 4) | (level + 1), offset the brick's first
  * element in the atlas (48 bits), s_a the coarsest level among the 3x3 blocks of the block's own slice across axis
