@@ -83,7 +83,7 @@ def test_the_ray_model_adds_a_column_of_faint_blocks_in_quadrature_behind_their_
     levels = np.ones(m, np.int64)
     spread = np.zeros((m, 5))
     spread[:, 1] = e
-    opac = np.tile([a, a * a], (m, 1))  # every voxel at opacity a: visible share m1²/m2 = 1
+    opac = np.tile([a, a * a, 1.0, a], (m, 1))  # every voxel at opacity a: visible share m1²/m2 = 1
     model = RayModel((m, 1, 1), (16.0, 16.0, 16.0), spread, None, opac)
     tau = (1 - a) ** block
     n = (1 - tau) / a
@@ -94,3 +94,21 @@ def test_the_ray_model_adds_a_column_of_faint_blocks_in_quadrature_behind_their_
     bias = RayModel((m, 1, 1), (16.0, 16.0, 16.0), spread, spread * 0.75, opac)
     assert ray_delta_e(bias, levels) == pytest.approx(1.25 * want, rel=1e-9)
     assert ray_delta_e(model, np.full(m, -1)) == 0.0
+
+
+def test_the_ray_model_counts_the_error_where_it_sits_not_where_the_opacity_is():
+    """A block of faint band (opacity a_f over nine tenths of its values) with an opaque tenth (a_o) whose error
+    sits in the band (opacity moments column 4: the opacity of the values carrying it, a_f): a ray takes
+    (1 − (1 − a_f)^λ_e) / a_f unit slabs of it over λ_e = ℓ · (visible share) units, while the block's
+    transmittance stays (1 − a)^λ with a = m₂/m₁ and λ = ℓ · m₁²/m₂ (the opaque tenth hides what is behind it).
+    Counted at the opaque tenth's opacity, as before, the band's error over the whole block was ~7× too small."""
+    a_f, a_o, e, block = 0.01, 0.6, 0.5, 16
+    m1, m2 = 0.9 * a_f + 0.1 * a_o, 0.9 * a_f ** 2 + 0.1 * a_o ** 2
+    spread = np.zeros((1, 5))
+    spread[:, 1] = e
+    model = RayModel((1, 1, 1), (16.0, 16.0, 16.0), spread, None, np.array([[m1, m2, 1.0, a_f]]))
+    n = (1 - (1 - a_f) ** block) / a_f
+    assert ray_delta_e(model, np.ones(1, np.int64)) == pytest.approx(RAY_GAIN * n * e, rel=1e-9)
+    a, lam = m2 / m1, block * m1 * m1 / m2
+    old = (1 - (1 - a) ** lam) / a  # the block's own opacity and visible share
+    assert n / old > 5
