@@ -412,7 +412,7 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
     (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
     if meta.level_std is None or meta.n_levels < 2:
         return 0.0
-    _, z, opac, visible, _, _ = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
+    _, z, opac, visible, _ = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
     loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
     w = np.nan_to_num(meta.count[loaded].astype(np.float64))
     if not loaded.any() or w.sum() <= 0:
@@ -558,7 +558,7 @@ def _lossless_levels(meta: BlockMeta, tfs: Sequence[Any], classification: str, t
     before its own material hides what follows (a its opacity-weighted mean opacity, at most the volume's
     diagonal): measured against one image-wide ā, as before, a band at α ≈ 0.006 beside bone passed blocks whose
     small per-slab errors summed to several ΔE along every ray through the band."""
-    zeta, _, opac, _, worst, _ = _max_tables(meta, tfs, classification, tables, worst=True)
+    zeta, _, opac, _, worst = _max_tables(meta, tfs, classification, tables, worst=True)
     n_lv = zeta.shape[1]
     m1, m2 = opac[:, 0], opac[:, 1]
     a = np.where(m1 > 0, m2 / np.maximum(m1, 1e-300), 1.0)
@@ -605,8 +605,7 @@ def _face_error(tf: Any, lo: np.ndarray, hi: np.ndarray, own_lo: np.ndarray, own
 def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | None,
                worst: bool = False) -> tuple[np.ndarray, ...]:
     """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 4), TF-visible blocks (N,), the
-    worst value's ζ(k) (N, L) float32, zeros unless `worst` asks for it, the spread table ς(k) (N, L) float32 of
-    prediction.py) of one TF (level_error.block_zetas). They
+    worst value's ζ(k) (N, L) float32, zeros unless `worst` asks for it) of one TF (level_error.block_zetas). They
     depend on the store and the TF, not on the view or the budget, and cost a noticeable part of a first render:
     kept for the last few in `tables` (keyed by the metadata object, which `tables` keeps per store; tables with
     the worst values serve those without)."""
@@ -617,9 +616,9 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | N
             return hit[1]
     visible = tf_visible(tf, meta.min_border, meta.max_border)
     assert meta.value_range is not None  # a store's metadata has it (meta_of_store), and only a store's has spreads
-    zeta, step, opac, w, spread = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification,
-                                              tables, worst_values=worst)
-    out = (zeta.astype(np.float32), step, opac, visible, w.astype(np.float32), spread.astype(np.float32))
+    zeta, step, opac, w, _ = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables,
+                                         worst_values=worst)
+    out = (zeta.astype(np.float32), step, opac, visible, w.astype(np.float32))
     for a in out:
         a.setflags(write=False)
     if tables is not None:
@@ -630,18 +629,16 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | N
 def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
                 tables: Tables | None = None, worst: bool = False) -> tuple[np.ndarray, ...]:
     """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 4), TF-visible blocks (N,), the worst value's ζ(k)
-    (N, L) float32, zeros unless `worst` asks for it, the spread table ς(k) (N, L) float32): the elementwise maxima
-    over the TFs of their tables (zeros where no TF gives more)."""
+    (N, L) float32, zeros unless `worst` asks for it): the elementwise maxima over the TFs of their tables (zeros
+    where no TF gives more)."""
     zeta, step = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros(meta.n)
     opac, visible = np.zeros((meta.n, 4)), np.zeros(meta.n, bool)
     worst_z = np.zeros((meta.n, meta.n_levels), np.float32)
-    spread = np.zeros((meta.n, meta.n_levels), np.float32)
     for t in tfs:
-        z_t, s_t, o_t, vis_t, w_t, sp_t = _tf_tables(meta, t, classification, tables, worst)
+        z_t, s_t, o_t, vis_t, w_t = _tf_tables(meta, t, classification, tables, worst)
         zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
         opac, visible, worst_z = np.maximum(opac, o_t), visible | vis_t, np.maximum(worst_z, w_t)
-        spread = np.maximum(spread, sp_t)
-    return zeta, step, opac, visible, worst_z, spread
+    return zeta, step, opac, visible, worst_z
 
 
 def _picture_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
@@ -675,7 +672,7 @@ def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
     hit = None if tables is None else tables.tf.get(key)
     if hit is not None and hit[0]() is meta:
         return hit[1]
-    zeta, _, opac, visible, _, _ = _max_tables(meta, tfs, classification, tables)
+    zeta, _, opac, visible, _ = _max_tables(meta, tfs, classification, tables)
     spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
     spread[:, 0] = 0.0
     drive = np.sqrt(zeta * spread)  # (float64, as the greedy takes it: the selection does not depend on keeping it)
