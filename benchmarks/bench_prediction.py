@@ -42,16 +42,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_consistent_lod import BAND_OVER_BONE, DATA, ENGINE_TF, chest_store, store_of  # noqa: E402
+from phantoms import ENGINE_BAND  # noqa: E402  (tests/: bench_consistent_lod puts it on the path)
 
 from lodcast.renderer.frame.render import Renderer  # noqa: E402
 from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 from lodcast.renderer.scene.transfer_function import CT_PRESETS  # noqa: E402
 
-#: the engine's block as a faint band over most of its metal, the translucent case on a second volume
-ENGINE_BAND = {"points": [{"value": 60, "color": [0.8, 0.85, 0.9], "opacity": 0.0},
-                          {"value": 90, "color": [0.8, 0.85, 0.9], "opacity": 0.01},
-                          {"value": 180, "color": [0.9, 0.8, 0.6], "opacity": 0.01},
-                          {"value": 230, "color": [1.0, 0.6, 0.3], "opacity": 0.3}]}
 BONSAI_TF = {"points": [{"value": 30, "color": [0.3, 0.7, 0.2], "opacity": 0.0},
                         {"value": 60, "color": [0.4, 0.8, 0.3], "opacity": 0.05},
                         {"value": 120, "color": [0.6, 0.4, 0.2], "opacity": 0.3},
