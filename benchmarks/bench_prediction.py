@@ -17,6 +17,14 @@ render's report gives alone). A pair "holds" where predicted ÷ measured is with
 |predicted − measured| ≤ 0.15 below that (DESIGN.md). Prints one line per pair, then the pooled Spearman rank
 correlation over the pairs at reductions ≥ 5:1, the worst factor and how many pairs hold. Stores are ingested
 once under benchmarks/results/ (bench_consistent_lod.store_of); the image errors are deterministic.
+
+Two checks that take the prediction apart (docs/measurements/prediction.md, "Where the misses come from"):
+`--levels` renders every visible block at level 1, 2 and 3 (`"quality": {"level": k}`, no selection) and prints
+measured ÷ predicted per scene; `--truth` compares each block's table as the prediction takes it, ς(k) (and
+√(ς(k)² + ζ(k)²) for "mean"), in the picture's CIELUV, with the block's error measured on the volume itself: the
+RMS over its visible level-0 voxels of the unit-slab colour difference (the same colours) between the TF at the
+voxel's value and the classification of the level-k voxel holding it (nearest, as the table assumes),
+normalised as ζ is (level_error.py).
 """
 from __future__ import annotations
 
@@ -34,16 +42,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_consistent_lod import BAND_OVER_BONE, DATA, ENGINE_TF, chest_store, store_of  # noqa: E402
+from phantoms import ENGINE_BAND  # noqa: E402  (tests/: bench_consistent_lod puts it on the path)
 
 from lodcast.renderer.frame.render import Renderer  # noqa: E402
 from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
 from lodcast.renderer.scene.transfer_function import CT_PRESETS  # noqa: E402
 
-#: the engine's block as a faint band over most of its metal, the translucent case on a second volume
-ENGINE_BAND = {"points": [{"value": 60, "color": [0.8, 0.85, 0.9], "opacity": 0.0},
-                          {"value": 90, "color": [0.8, 0.85, 0.9], "opacity": 0.01},
-                          {"value": 180, "color": [0.9, 0.8, 0.6], "opacity": 0.01},
-                          {"value": 230, "color": [1.0, 0.6, 0.3], "opacity": 0.3}]}
 BONSAI_TF = {"points": [{"value": 30, "color": [0.3, 0.7, 0.2], "opacity": 0.0},
                         {"value": 60, "color": [0.4, 0.8, 0.3], "opacity": 0.05},
                         {"value": 120, "color": [0.6, 0.4, 0.2], "opacity": 0.3},
@@ -133,13 +137,93 @@ def summary(rows: list[dict]) -> dict:
             "worst": {k: worst[k] for k in ("volume", "tf", "setting", "quality", "predicted", "measured")}}
 
 
+def levels_check(eng: Renderer, size: int, only: str | None = None) -> list[dict]:
+    """Measured ÷ predicted with every visible block at one level (module doc, `--levels`)."""
+    vols = stores()
+    rows = []
+    for vname, tname, fields in CASES:
+        if (only and only not in f"{vname} {tname}") or "tf2" in fields:
+            continue
+        for view in (VIEWS[0], VIEWS[2]):
+            base = {"camera": view, "width": size, "height": size, "format": "npy", **fields}
+            full = eng.render(vols[vname], base)
+            step_pred = float(full.report["predicted_delta_e"] or 0.0)
+            for k in (1, 2, 3):
+                r = eng.render(vols[vname], {**base, "quality": {"level": k}})
+                meas = delta_e_stats(r.rgba, full.rgba)["mean"]
+                pred = float(r.report["predicted_delta_e"]) - step_pred
+                rows.append({"volume": vname, "tf": tname, "view": [view["azimuth"], view["elevation"]], "level": k,
+                             "predicted": round(pred, 3), "measured": round(float(meas), 3),
+                             "ratio": round(meas / pred, 3) if pred > 0 else None})
+                print(f"{vname:7s} {tname:10s} {view['azimuth']:3d} level {k}  predicted {pred:6.2f}  measured {meas:6.2f}"
+                      f"  measured/predicted {meas / max(pred, 1e-9):5.2f}", flush=True)
+    return rows
+
+
+def truth_check(only: str | None = None) -> list[dict]:
+    """Each block's table against its error measured on the volume (module doc, `--truth`): per scene, level and
+    classification the ratio of the RMS over blocks, measured ÷ table."""
+    from lodcast.renderer.lod.level_error import picture_table
+    from lodcast.renderer.lod.selection import _picture_tables
+    from lodcast.renderer.lod.significance import as_tf, meta_of_store
+    from lodcast.renderer.scene.transfer_function import evaluate
+
+    vols = stores()
+    rows = []
+    for vname, tname, fields in CASES:
+        if (only and only not in f"{vname} {tname}") or "tf2" in fields:
+            continue
+        st, tf = vols[vname], as_tf(fields["tf"])
+        meta, B = meta_of_store(st), int(st.block_size)
+        t, luv = picture_table(tf, meta.value_range, meta.std_max)
+        row0 = t.std_axis(0.0)
+        v0 = np.asarray(st.read_level(0), np.float32)
+        g = tuple(meta.grid)
+        for k in (1, 2, 3):
+            m_k, s_k = np.asarray(st.read_level(k), np.float32), np.asarray(st.read_std_region(k), np.float32)
+            for cls in ("distribution", "mean"):
+                zeta, spread, _ = _picture_tables(meta, [tf], cls, None)
+                table = np.sqrt(spread[:, k].astype(np.float64) ** 2 + (zeta[:, k] ** 2 if cls == "mean" else 0.0))
+                err2, n_vis = np.zeros(g), np.zeros(g)
+                for bz in range(g[0]):  # a slab of blocks at a time (the volume's CIELUV in float64 would not fit)
+                    v = v0[bz * B:(bz + 1) * B]
+                    z0, z1 = (bz * B) >> k, -(-((bz + 1) * B) // (1 << k))
+                    up = [np.repeat(np.repeat(np.repeat(a[z0:z1], 1 << k, 0), 1 << k, 1), 1 << k, 2)
+                          [:v.shape[0], :v.shape[1], :v.shape[2]] for a in (m_k, s_k)]
+                    shown = t.lerp(luv, t.mean_axis(up[0]), t.std_axis(up[1]) if cls == "distribution" else row0)
+                    d2 = ((t.lerp(luv, t.mean_axis(v), row0) - shown) ** 2).sum(-1)
+                    pad = [(0, B - v.shape[0]), (0, g[1] * B - v.shape[1]), (0, g[2] * B - v.shape[2])]
+                    for out, a in ((err2, d2), (n_vis, evaluate(tf, v)[1] > 0)):
+                        out[bz] = np.pad(a.astype(np.float64), pad).reshape(B, g[1], B, g[2], B).sum(axis=(0, 2, 4))
+                truth = np.sqrt(err2.ravel() / np.maximum(n_vis.ravel(), B * B))  # ζ's floor: a one-voxel sheet
+                some = (table > 0) | (truth > 0)
+                ratio = float(np.sqrt((truth[some] ** 2).sum() / max((table[some] ** 2).sum(), 1e-300)))
+                rows.append({"volume": vname, "tf": tname, "level": k, "classification": cls, "ratio": round(ratio, 3)})
+                print(f"{vname:7s} {tname:10s} level {k} {cls:12s} measured/table (RMS over blocks) {ratio:5.2f}", flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--only", default=None, help="only the cases whose 'volume tf' contains this")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--levels", action="store_true", help="uniform levels 1-3 instead of the sweep (module doc)")
+    ap.add_argument("--truth", action="store_true", help="the blocks' tables against the volume (module doc)")
     a = ap.parse_args()
     t0 = time.perf_counter()
+    if a.levels or a.truth:
+        eng = Renderer()
+        try:
+            out = {"levels": levels_check(eng, a.size, a.only) if a.levels else None,
+                   "truth": truth_check(a.only) if a.truth else None}
+        finally:
+            eng.close()
+        if a.json:
+            a.json.write_text(json.dumps({"date": datetime.date.today().isoformat(), "machine": platform.node(),
+                                          "command": "benchmarks/bench_prediction.py " + " ".join(sys.argv[1:]),
+                                          **out}, indent=1) + "\n")
+        return
     eng = Renderer()
     try:
         rows = sweep(eng, a.size, a.only)

@@ -15,6 +15,14 @@ def head(n: int) -> np.ndarray:
     return np.clip(vol, 0, 255).astype(np.uint8)
 
 
+# the engine CT's metal as a faint band (α 0.01 per unit over most of its values) beside opaque plates: a block's
+# error sits in the band while the plates set its opacity (tests/test_prediction.py, benchmarks/bench_prediction.py)
+ENGINE_BAND = {"points": [{"value": 60, "color": [0.8, 0.85, 0.9], "opacity": 0.0},
+                          {"value": 90, "color": [0.8, 0.85, 0.9], "opacity": 0.01},
+                          {"value": 180, "color": [0.9, 0.8, 0.6], "opacity": 0.01},
+                          {"value": 230, "color": [1.0, 0.6, 0.3], "opacity": 0.3}]}
+
+
 #: a TF that shows sphere_ramp's surface as an opaque shell whose colour follows the values inside
 # soft tissue as a faint band (α 0.006 per unit over 300 HU) over most of a CT's body, bone opaque behind it: the
 # translucent case of the level of detail's lossless and predicted error (tests/test_lossless.py, test_prediction.py,

@@ -81,7 +81,8 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
                       __global const float* mean_hr,   /* (n_blocks, 2): mean, half the border-inclusive range */
                       __global float* out,             /* (n_blocks, LC_L) */
                       __global float* out_worst,       /* (n_blocks, LC_L), written with LC_WORST */
-                      __global float* out_step,        /* (n_blocks, 3): step, mean opacity, mean squared opacity */
+                      __global float* out_step,        /* (n_blocks, 5): step, mean opacity, mean squared opacity,
+                                                        * visible share, the step's error-weighted opacity */
                       __global float* out_spread) {    /* (n_blocks, LC_L): the spread ς(k) (prediction.py) */
     const LcZetaTable T = {ax.x, ax.y, ax.z, ax.w, sz.x, sz.y, sz.z, sz.w};
     const int b = get_global_id(0);
@@ -124,7 +125,7 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
 #if LC_L > 1
     const float s1 = sb[1];
 #endif
-    float a1 = 0.0f, a2 = 0.0f, vis = 0.0f, step = 0.0f;
+    float a1 = 0.0f, a2 = 0.0f, vis = 0.0f, step = 0.0f, step_a = 0.0f;
     float3 held = (float3)(0.0f);  /* the mean colour of the values the block holds */
     for (int p = 0; p < LC_K; ++p) {
         const float lo = edges[st[p]], hi = edges[st[p + 1]];
@@ -141,6 +142,7 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
 #if LC_L > 1
             const float3 d = lc_row0(&T, luv, x + s1) - lc_row0(&T, luv, x - s1);
             step += wq * 0.25f * lc_sq(d);
+            step_a += wq * 0.25f * lc_sq(d) * a;
             int i1;
             float wi;
             const int i = lc_mean_axis(&T, x, &i1, &wi);
@@ -197,7 +199,9 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
         const float model = lc_sq(held - modelled) * r * r;
         out_spread[(size_t)b * LC_L + k] = sqrt(hidden * hidden + model / sheet);
     }
-    out_step[3 * b] = step_b;
-    out_step[3 * b + 1] = a1;
-    out_step[3 * b + 2] = a2;
+    out_step[5 * b] = step_b;
+    out_step[5 * b + 1] = a1;
+    out_step[5 * b + 2] = a2;
+    out_step[5 * b + 3] = vis;
+    out_step[5 * b + 4] = step > 0.0f ? step_a / step : 0.0f;
 }

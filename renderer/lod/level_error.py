@@ -37,7 +37,7 @@ from lodcast.renderer.lod.classification import DistTable, cached_dist_table
 from lodcast.renderer.lod.significance import BlockMeta, as_tf, effective_starts, srgb_to_luv
 from lodcast.renderer.lod.zeta_kernel import device_zetas
 
-__all__ = ["block_zetas", "level_zeta", "luv_table", "step_zeta"]
+__all__ = ["block_zetas", "level_zeta", "luv_table", "picture_table", "step_zeta"]
 
 _NODES = np.array([-np.sqrt(3 / 5), 0.0, np.sqrt(3 / 5)])
 _WEIGHTS = np.array([5 / 9, 8 / 9, 5 / 9]) / 2.0  # on [−1, 1], normalised to the piece width
@@ -50,16 +50,50 @@ def _luv(table: DistTable) -> np.ndarray:
     return srgb_to_luv(alpha[..., None] * table.colour()).astype(np.float32)
 
 
+def _picture(table: DistTable) -> np.ndarray:
+    """The unit-slab colour (rows, n, 3) of a distribution table as the picture's CIELUV sees it, float32: the
+    premultiplied colour times the Jacobian of CIELUV at the TF's own colour (the mean of its colours weighted by
+    their opacities), so that differences are ΔE at the colour the picture shows rather than at the faint colour
+    of one slab.
+
+    Why: a ray composites premultiplied colour linearly, so a slab's colour error reaches the picture unchanged
+    in those units (times the transmittance in front) and only then becomes a ΔE, at the picture's colour. A
+    slab of opacity a has a colour about a times as bright, where CIELUV's lightness is in its linear segment and
+    its chroma (u*, v* ∝ L*) nearly vanishes: a difference there (`_luv`) weighs a change of hue by the slab's
+    L*, not the picture's. On a translucent TF whose colours change hue (leaves over a trunk) that is most of the
+    error (docs/measurements/prediction.md)."""
+    alpha = -np.expm1(-table.ext)
+    a0 = alpha[0]
+    c0 = (a0[:, None] * table.rgb).sum(axis=0) / max(float(a0.sum()), 1e-300)
+    h = 1e-4
+    c0 = np.clip(c0, h, 1.0 - h)  # (the differences stay within the gamut)
+    jac = np.stack([(srgb_to_luv(c0 + d) - srgb_to_luv(c0 - d)) / (2 * h) for d in np.eye(3) * h], axis=1)
+    return ((alpha[..., None] * table.colour()) @ jac.T).astype(np.float32)
+
+
 def luv_table(tf: Any, value_range: tuple[float, float], std_max: float,
               tables: Tables | None = None) -> tuple[DistTable, np.ndarray]:
     """The distribution table of `tf` and its unit-slab colours in CIELUV (kept in `tables` when given)."""
+    return _colour_table(tf, value_range, std_max, tables, _luv)
+
+
+def picture_table(tf: Any, value_range: tuple[float, float], std_max: float,
+                  tables: Tables | None = None) -> tuple[DistTable, np.ndarray]:
+    """The distribution table of `tf` and its unit-slab colours in the picture's CIELUV (`_picture`; kept in
+    `tables` when given)."""
+    return _colour_table(tf, value_range, std_max, tables, _picture)
+
+
+def _colour_table(tf: Any, value_range: tuple[float, float], std_max: float, tables: Tables | None,
+                  colours: Any) -> tuple[DistTable, np.ndarray]:
     t = cached_dist_table(as_tf(tf), value_range, std_max, None if tables is None else tables.dist)
-    luv = None if tables is None else tables.luv.get(id(t))
-    if luv is None or luv[0] is not t:
-        luv = (t, _luv(t))
+    key = (colours.__name__, id(t))
+    hit = None if tables is None else tables.luv.get(key)
+    if hit is None or hit[0] is not t:
+        hit = (t, colours(t))
         if tables is not None:
-            tables.luv.put(id(t), luv, 1)  # (the table held beside it keeps its id from being reused)
-    return t, luv[1]
+            tables.luv.put(key, hit, 1)  # (the table held beside it keeps its id from being reused)
+    return t, hit[1]
 
 
 def _pieces(meta: BlockMeta, starts: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -80,18 +114,23 @@ def _evaluated(meta: BlockMeta, visible: np.ndarray) -> np.ndarray:
     return np.flatnonzero(visible & (meta.max_border > meta.min_border) & np.isfinite(meta.mean))
 
 
-def _opacity_moments(tf: Any, x: np.ndarray, wq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per block the mean TF opacity and mean squared TF opacity over its values, and its visible share."""
+def _opacity_moments(tf: Any, x: np.ndarray,
+                     wq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per block the mean TF opacity and mean squared TF opacity over its values and its visible share; the TF
+    opacity at each value."""
     from lodcast.renderer.scene.transfer_function import evaluate
 
     a = evaluate(tf, x)[1]
-    return (wq * a).sum(axis=(1, 2)), (wq * a * a).sum(axis=(1, 2)), (wq * (a > 0)).sum(axis=(1, 2))
+    return (wq * a).sum(axis=(1, 2)), (wq * a * a).sum(axis=(1, 2)), (wq * (a > 0)).sum(axis=(1, 2)), a
 
 
 def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
                 classification: str = "distribution", tables: Tables | None = None,
-                worst_values: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 2), the worst value's ζ(k) per
+                worst_values: bool = False,
+                picture: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 4: the mean TF opacity over
+    the block's values, the mean squared opacity, the visible share, and the opacity of the values that carry the
+    step's error, weighted by it: what prediction.py takes), the worst value's ζ(k) per
     block and level (N, L): the largest |T* − T̃| over the values the block holds, where ζ is their RMS; computed
     where `worst_values` asks, else zeros: it costs half as much again, and only "lossless" needs it; the spread
     ς(k) per block and level (N, L), prediction.py's, per visible voxel as ζ: ζ_step · s_k / s_1, the colour change
@@ -101,20 +140,21 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     0 for invisible and constant blocks (and at level 0): `level_zeta` and `step_zeta` in one pass over the blocks' quadrature, which
     they share with the TF's opacities there and the values' table positions (apart, the two repeated that work, a
     good part of a first render). The table lookups run in float32: ζ is a colour difference in CIELUV
-    units (0-100) that the selection compares with 0.5. With `tables` of an engine (its `device` set) the blocks
+    units (0-100) that the selection compares with 0.5. `picture`: the colours differ in the picture's CIELUV
+    (`_picture`: what prediction.py takes) instead of each slab's own. With `tables` of an engine (its `device` set) the blocks
     are evaluated there (zeta_kernel.py: the same arithmetic, a work-item per block); this NumPy path is the
     reference it is tested against."""
     assert classification in ("distribution", "mean")
     n_lv = meta.n_levels
     out, step, worst = np.zeros((meta.n, n_lv)), np.zeros(meta.n), np.zeros((meta.n, n_lv))
     spread = np.zeros((meta.n, n_lv))
-    opac = np.zeros((meta.n, 2))
+    opac = np.zeros((meta.n, 4))
     todo = _evaluated(meta, visible)
     if todo.size == 0:
         return out, step, opac, worst, spread
     assert meta.level_std is not None, "block_zetas needs a store with per-level spreads (format >= 2)"
     tf = as_tf(tf)
-    t, luv = luv_table(tf, value_range, std_max, tables)
+    t, luv = (picture_table if picture else luv_table)(tf, value_range, std_max, tables)
     starts = effective_starts(meta)
     if tables is not None and tables.device is not None:
         got = device_zetas(tables.device, meta, tf, todo, starts, t, luv, classification, worst_values)
@@ -127,7 +167,8 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
 
     def chunk(rows: np.ndarray) -> None:
         x, wq = _pieces(meta, starts, rows)
-        opac[rows, 0], opac[rows, 1], vis_frac = _opacity_moments(tf, x, wq)
+        opac[rows, 0], opac[rows, 1], vis_frac, alpha = _opacity_moments(tf, x, wq)
+        opac[rows, 2] = vis_frac
         wq = wq.astype(np.float32)
         sheet = np.maximum(vis_frac, 1.0 / (1 << (n_lv - 1)))  # n_vis / n, at least a one-voxel sheet
         if n_lv == 1:
@@ -136,7 +177,11 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
         # the step: the colour change over the level-1 spread (½ |T*(v + s_1) − T*(v − s_1)|)
         s1 = s[:, 1][:, None, None]
         d = t.lerp(luv, _f32(t.mean_axis(x + s1)), row0) - t.lerp(luv, _f32(t.mean_axis(x - s1)), row0)
-        step[rows] = np.sqrt(np.maximum((wq * (0.25 * (d * d).sum(axis=-1))).sum(axis=(1, 2)), 0.0) / sheet)
+        d2s = wq * (0.25 * (d * d).sum(axis=-1))
+        step2 = d2s.sum(axis=(1, 2))
+        step[rows] = np.sqrt(np.maximum(step2, 0.0) / sheet)
+        # the opacity of the values that carry the step's error (prediction.py: how many of its slabs a ray sees)
+        opac[rows, 3] = np.where(step2 > 0, (d2s * alpha).sum(axis=(1, 2)) / np.where(step2 > 0, step2, 1.0), 0.0)
         at_x = _f32(t.mean_axis(x))  # the same values at every level: their table position once
         tstar = t.lerp(luv, at_x, row0)
         mbar = meta.mean[rows][:, None, None]
@@ -200,7 +245,7 @@ def level_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple
     """(ζ(k) per block and level (N, L) float64: 0 at level 0, 0 for invisible and constant blocks; per block the
     mean TF opacity and the mean squared TF opacity over its values (N, 2), 0 for blocks not evaluated)."""
     z, _, opac, _, _ = block_zetas(meta, tf, visible, value_range, std_max, classification)
-    return z, opac
+    return z, opac[:, :2]
 
 
 def step_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float],
@@ -212,4 +257,4 @@ def step_zeta(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[
     voxels apart grows as h² times this (selection.step_delta_e). 0 for invisible and constant blocks."""
     assert meta.level_std is not None and meta.n_levels > 1, "step_zeta needs per-level spreads (format >= 2)"
     _, z, opac, _, _ = block_zetas(meta, tf, visible, value_range, std_max)
-    return z, opac
+    return z, opac[:, :2]

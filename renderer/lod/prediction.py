@@ -14,25 +14,34 @@ sum over the slabs it crosses, each seen through the transmittance in front of i
   times the root of that share; a smooth ramp's voxels, whose spreads grow as the level's size, count less).
   Under `classification: "mean"` the level's own ζ(k) is added (the TF at the mean is not the mean of the TF):
   e(k)² = ς(k)² + ζ(k)²;
-- how many unit slabs of it a ray takes: a ray crossing the block travels λ = ℓ · max(f, 1/B) units through what
-  the TF shows (ℓ the block's length in units along the ray, f its visible share, m₁²/m₂ from the opacity moments,
-  at least a one-voxel sheet, as ζ's own normalisation), and a slab at depth t within it is seen through (1 − a)^t
-  of the block in front of it (a = m₂/m₁, the opacity-weighted mean opacity): n = Σ_t (1 − a)^t =
-  (1 − (1 − a)^λ) / a unit slabs, λ for a faint band, 1/a for an opaque surface. The errors of one block add
-  along the ray (the structure a level hides runs across the block); those of different blocks are independent
-  and add in quadrature;
-- what is in front of it: the block's transmittance (1 − a)^λ multiplies along the ray; where the selection was
+- in which colours: the tables compare colours in the picture's CIELUV (level_error.picture_table: the
+  premultiplied colour times CIELUV's Jacobian at the TF's own colour), not in each slab's. A ray composites
+  premultiplied colour linearly, so a slab's error reaches the picture in those units and becomes a ΔE only at
+  the picture's colour; a faint slab's own CIELUV (its lightness in the linear segment, its chroma scaled by that
+  lightness) all but drops a change of hue, which on a translucent TF of changing colour is most of the error.
+  The selection keeps its own ζ in each slab's CIELUV ("lossless" was set against it);
+- how many unit slabs of it a ray takes: the error is spread over the block's visible voxels (the share of its
+  values the TF shows, s, at least a one-voxel sheet: ζ's own normalisation), so a ray crossing the block meets
+  λ_e = ℓ · max(s, 1/B) units of it (ℓ the block's length in units along the ray), and a slab at depth t is seen
+  through (1 − a_e)^t of it, a_e the opacity of the values that carry the error (those of the step's colour
+  change, weighted by it): n = Σ_t (1 − a_e)^t = (1 − (1 − a_e)^λ_e) / a_e unit slabs, λ_e for a faint band,
+  1/a_e for an opaque surface. A block whose error sits in a faint band beside an opaque part (a band over bone,
+  the engine's faint metal beside its plates) would, counted at the block's own opacity, show a few slabs of it.
+  The errors of one block add along the ray (the structure a level hides runs across the block); those of
+  different blocks are independent and add in quadrature;
+- what is in front of it: the block's transmittance (1 − a)^λ multiplies along the ray (a = m₂/m₁, the
+  opacity-weighted mean opacity, λ = ℓ · max(f, 1/B), f = m₁²/m₂ its visible share by the opacity moments: where
+  the opaque part hides what is behind); where the selection was
   weighted by the camera's view (visibility.py), that weight (the largest transmittance with which a ray of the
   view enters the block) stands for it.
 
 A pixel's error is then √(Σ_b (T_b · n_b · e_b)²) over the blocks b on its ray, and the image's mean ΔE the mean
 over the pixels its footprint covers (accumulated opacity ≥ 1/255). Without a view, the rays are the block grid's
 columns along each axis, both ways; with the view's weight, along each axis (the weight is direction-free). The
-result times RAY_GAIN is the prediction. RAY_GAIN is the one fitted constant (the sRGB → CIELUV curve is steeper
-at a picture's colours than at one faint slab's, and a ray's mean |error| is below its RMS): the geometric mean
-of measured ÷ predicted over the chest CT's pairs of benchmarks/bench_prediction.py (five TFs, three views, 5:1 to
-100:1, both classifications), validated on the engine and bonsai CTs, whose own fit would be 1.5× higher
-(docs/measurements/prediction.md).
+result times RAY_GAIN is the prediction. RAY_GAIN is the one fitted constant (a ray's mean |error| is below its
+RMS, and where an opaque surface only moves in depth an unlit picture does not show it): the geometric mean of
+measured ÷ predicted over the chest CT's pairs of benchmarks/bench_prediction.py (five TFs, three views, 5:1 to
+100:1, both classifications), validated on the engine and bonsai CTs (docs/measurements/prediction.md).
 All of it is NumPy over the block grid, O(blocks).
 """
 from __future__ import annotations
@@ -44,7 +53,7 @@ import numpy as np
 __all__ = ["RAY_GAIN", "RayModel", "ray_delta_e"]
 
 #: fitted on the chest CT alone (module doc); the engine and bonsai CTs validate it
-RAY_GAIN = 0.234
+RAY_GAIN = 0.196
 _FOOTPRINT = 1.0 / 255.0  # docs/design.md: a pixel is in the footprint from alpha 1/255
 
 
@@ -52,8 +61,8 @@ _FOOTPRINT = 1.0 / 255.0  # docs/design.md: a pixel is in the footprint from alp
 class RayModel:
     """What the ray model needs beside a selection's levels: the grid, each block's length along each axis in TF
     opacity units, and per block (flattened in C order) the spread table ς (N, L), the classification's own ζ (N, L)
-    where it adds a bias ("mean"; None for "distribution"), the opacity moments (N, 2) and the view's weight (N,) or
-    None."""
+    where it adds a bias ("mean"; None for "distribution"), both in the picture's CIELUV, the opacity moments (N, 4:
+    level_error.block_zetas) and the view's weight (N,) or None."""
 
     grid: tuple[int, int, int]
     path: tuple[float, float, float]  # units per block along z, y, x
@@ -75,20 +84,26 @@ def ray_delta_e(model: RayModel, levels: np.ndarray, gain: float = RAY_GAIN) -> 
     e2[rows] = np.asarray(model.spread, np.float64)[rows, k] ** 2
     if model.bias is not None:
         e2[rows] += np.asarray(model.bias, np.float64)[rows, k] ** 2
-    m1 = np.where(loaded, model.opac[:, 0], 0.0)
-    m2 = np.where(loaded, model.opac[:, 1], 0.0)
+    opac = np.asarray(model.opac, np.float64)
+    m1 = np.where(loaded, opac[:, 0], 0.0)
+    m2 = np.where(loaded, opac[:, 1], 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         a = np.where(m1 > 0, m2 / m1, 0.0)
         f = np.where(m2 > 0, m1 * m1 / m2, 0.0)
     a = np.minimum(a, 1.0 - 1e-6)
     block = 1 << max(int(np.asarray(model.spread).shape[1]) - 1, 0)  # B: the coarsest level holds one voxel
+    # the error's own slabs: spread over the visible share (ζ's normalisation), at the opacity of the values that
+    # carry it (a block's error may sit in its faint part while its opaque part sets its transmittance)
+    share = np.where(loaded, opac[:, 2], 0.0)
+    a_err = np.minimum(np.where(loaded & (opac[:, 3] > 0), opac[:, 3], a), 1.0 - 1e-6)
     grid = tuple(model.grid)
     seen = None if model.seen is None else np.clip(np.asarray(model.seen, np.float64), 0.0, 1.0).reshape(grid)
     out = []
     for ax in range(3):
         lam = model.path[ax] * np.maximum(f, 1.0 / block)
         tau = np.where(a > 0, np.exp(lam * np.log1p(-a)), 1.0)
-        n_slabs = np.where(a > 1e-12, -np.expm1(lam * np.log1p(-a)) / np.maximum(a, 1e-12), lam)
+        lam_e = model.path[ax] * np.maximum(share, 1.0 / block)
+        n_slabs = np.where(a_err > 1e-12, -np.expm1(lam_e * np.log1p(-a_err)) / np.maximum(a_err, 1e-12), lam_e)
         x2 = np.moveaxis((n_slabs * n_slabs * e2).reshape(grid), ax, 0)
         t = np.moveaxis(tau.reshape(grid), ax, 0)
         footprint = (1.0 - np.prod(t, axis=0)) >= _FOOTPRINT

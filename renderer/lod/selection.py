@@ -398,7 +398,7 @@ def _image_gain(opac: np.ndarray, count: np.ndarray, loaded: np.ndarray, gain: f
     """gain / ā, ā the opacity-weighted mean TF opacity over the voxels of the `loaded` blocks (from the
     blocks' opacity moments (N, 2))."""
     w = np.nan_to_num(count[loaded].astype(np.float64))
-    m1, m2 = (w[:, None] * opac[loaded]).sum(axis=0)
+    m1, m2 = (w[:, None] * opac[loaded][:, :2]).sum(axis=0)
     return gain / max(m2 / m1 if m1 > 0 else 1.0, MIN_OPACITY)
 
 
@@ -412,7 +412,7 @@ def step_delta_e(meta: BlockMeta, tfs: Sequence[Any], step: float, in_crop: np.n
     (format 1) or with one level. The unshaded point-sampled integral: lighting and pre-integration change it."""
     if meta.level_std is None or meta.n_levels < 2:
         return 0.0
-    _, z, opac, visible, _, _ = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
+    _, z, opac, visible, _ = _max_tables(meta, tfs, "distribution", tables)  # ζ_step: the same under either classification
     loaded = visible if in_crop is None else visible & np.asarray(in_crop, bool).ravel()
     w = np.nan_to_num(meta.count[loaded].astype(np.float64))
     if not loaded.any() or w.sum() <= 0:
@@ -456,7 +456,8 @@ def select_from_meta(
     if per_level and kind == "lossless" and tables is not None:  # (its tables, with the worst values, serve the drive's below)
         _max_tables(meta, tf_list, classification, tables, worst=True)
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
-        zeta_tab, opac, visible, drive_base, drive_max, spread = _drive_tables(meta, tf_list, classification, tables)
+        zeta_tab, opac, visible, drive_base, drive_max, spread, zeta_pic, opac_pic = _drive_tables(
+            meta, tf_list, classification, tables)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
@@ -533,7 +534,7 @@ def select_from_meta(
     rays = None
     if per_level and opac is not None:
         rays = RayModel(tuple(meta.grid), tuple(float(x) for x in (path or (block_size,) * 3)), spread,  # type: ignore[arg-type]
-                        zeta_tab if classification == "mean" else None, opac, seen)
+                        zeta_pic if classification == "mean" else None, opac_pic, seen)
     return LodSelection(
         levels=levels.astype(np.int8).reshape(meta.grid),
         zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
@@ -557,7 +558,7 @@ def _lossless_levels(meta: BlockMeta, tfs: Sequence[Any], classification: str, t
     before its own material hides what follows (a its opacity-weighted mean opacity, at most the volume's
     diagonal): measured against one image-wide ā, as before, a band at α ≈ 0.006 beside bone passed blocks whose
     small per-slab errors summed to several ΔE along every ray through the band."""
-    zeta, _, opac, _, worst, _ = _max_tables(meta, tfs, classification, tables, worst=True)
+    zeta, _, opac, _, worst = _max_tables(meta, tfs, classification, tables, worst=True)
     n_lv = zeta.shape[1]
     m1, m2 = opac[:, 0], opac[:, 1]
     a = np.where(m1 > 0, m2 / np.maximum(m1, 1e-300), 1.0)
@@ -603,9 +604,8 @@ def _face_error(tf: Any, lo: np.ndarray, hi: np.ndarray, own_lo: np.ndarray, own
 
 def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | None,
                worst: bool = False) -> tuple[np.ndarray, ...]:
-    """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,), the
-    worst value's ζ(k) (N, L) float32, zeros unless `worst` asks for it, the spread table ς(k) (N, L) float32 of
-    prediction.py) of one TF (level_error.block_zetas). They
+    """(ζ(k) per block and level (N, L) float32, ζ_step (N,), opacity moments (N, 4), TF-visible blocks (N,), the
+    worst value's ζ(k) (N, L) float32, zeros unless `worst` asks for it) of one TF (level_error.block_zetas). They
     depend on the store and the TF, not on the view or the budget, and cost a noticeable part of a first render:
     kept for the last few in `tables` (keyed by the metadata object, which `tables` keeps per store; tables with
     the worst values serve those without)."""
@@ -616,9 +616,9 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | N
             return hit[1]
     visible = tf_visible(tf, meta.min_border, meta.max_border)
     assert meta.value_range is not None  # a store's metadata has it (meta_of_store), and only a store's has spreads
-    zeta, step, opac, w, spread = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification,
-                                              tables, worst_values=worst)
-    out = (zeta.astype(np.float32), step, opac, visible, w.astype(np.float32), spread.astype(np.float32))
+    zeta, step, opac, w, _ = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables,
+                                         worst_values=worst)
+    out = (zeta.astype(np.float32), step, opac, visible, w.astype(np.float32))
     for a in out:
         a.setflags(write=False)
     if tables is not None:
@@ -628,26 +628,43 @@ def _tf_tables(meta: BlockMeta, tf: Any, classification: str, tables: Tables | N
 
 def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
                 tables: Tables | None = None, worst: bool = False) -> tuple[np.ndarray, ...]:
-    """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 2), TF-visible blocks (N,), the worst value's ζ(k)
-    (N, L) float32, zeros unless `worst` asks for it, the spread table ς(k) (N, L) float32): the elementwise maxima
-    over the TFs of their tables (zeros where no TF gives more)."""
+    """(ζ(k) (N, L) float32, ζ_step (N,), opacity moments (N, 4), TF-visible blocks (N,), the worst value's ζ(k)
+    (N, L) float32, zeros unless `worst` asks for it): the elementwise maxima over the TFs of their tables (zeros
+    where no TF gives more)."""
     zeta, step = np.zeros((meta.n, meta.n_levels), np.float32), np.zeros(meta.n)
-    opac, visible = np.zeros((meta.n, 2)), np.zeros(meta.n, bool)
+    opac, visible = np.zeros((meta.n, 4)), np.zeros(meta.n, bool)
     worst_z = np.zeros((meta.n, meta.n_levels), np.float32)
-    spread = np.zeros((meta.n, meta.n_levels), np.float32)
     for t in tfs:
-        z_t, s_t, o_t, vis_t, w_t, sp_t = _tf_tables(meta, t, classification, tables, worst)
+        z_t, s_t, o_t, vis_t, w_t = _tf_tables(meta, t, classification, tables, worst)
         zeta, step = np.maximum(zeta, z_t), np.maximum(step, s_t)
         opac, visible, worst_z = np.maximum(opac, o_t), visible | vis_t, np.maximum(worst_z, w_t)
-        spread = np.maximum(spread, sp_t)
-    return zeta, step, opac, visible, worst_z, spread
+    return zeta, step, opac, visible, worst_z
+
+
+def _picture_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
+                    tables: Tables | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ζ(k), the spread ς(k)) (N, L) float32 with colours compared in the picture's CIELUV
+    (level_error.block_zetas with `picture`) and the opacity moments (N, 4) that go with them: what the
+    prediction takes (prediction.py), the elementwise maxima over the TFs. The selection's own ζ stays in each
+    slab's CIELUV, as "lossless" was set against it."""
+    zeta = np.zeros((meta.n, meta.n_levels), np.float32)
+    spread = np.zeros((meta.n, meta.n_levels), np.float32)
+    opac = np.zeros((meta.n, 4))
+    for tf in tfs:
+        visible = tf_visible(tf, meta.min_border, meta.max_border)
+        assert meta.value_range is not None  # (as in _tf_tables)
+        z, _, o, _, sp = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables,
+                                     picture=True)
+        zeta, spread, opac = np.maximum(zeta, z), np.maximum(spread, sp), np.maximum(opac, o)
+    return zeta, spread, opac
 
 
 def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
                   tables: Tables | None = None) -> tuple[np.ndarray, ...]:
     """(ζ(k) (N, L) float32, opacity moments (N, 2), TF-visible blocks (N,), what drives the greedy
     √(ζ(k) · spread(k)) (N, L) float64 (module doc: "What the greedy weighs"; level 0 drives nothing), its maximum
-    per block (N,), the spread table ς(k) (N, L) float32 that the prediction takes): `_max_tables` and what follows
+    per block (N,), the spread table ς(k) and ζ(k) (N, L) float32 in the picture's CIELUV and their opacity
+    moments (N, 4), which the prediction takes (_picture_tables)): `_max_tables` and what follows
     from them and the store alone, kept in `tables` beside them (a new view of a large volume selects again, and
     these are most of the arithmetic over a million blocks)."""
     key = ("drive", id(meta), json.dumps([as_tf(t).model_dump(mode="json") for t in tfs], sort_keys=True),
@@ -655,11 +672,12 @@ def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
     hit = None if tables is None else tables.tf.get(key)
     if hit is not None and hit[0]() is meta:
         return hit[1]
-    zeta, _, opac, visible, _, spread_z = _max_tables(meta, tfs, classification, tables)
+    zeta, _, opac, visible, _ = _max_tables(meta, tfs, classification, tables)
     spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
     spread[:, 0] = 0.0
     drive = np.sqrt(zeta * spread)  # (float64, as the greedy takes it: the selection does not depend on keeping it)
-    out = (zeta, opac, visible, drive, drive.max(axis=1), spread_z)
+    zeta_p, spread_p, opac_p = _picture_tables(meta, tfs, classification, tables)
+    out = (zeta, opac, visible, drive, drive.max(axis=1), spread_p, zeta_p, opac_p)
     for a in out:
         a.setflags(write=False)
     if tables is not None:

@@ -20,7 +20,7 @@ __all__ = ["device_zetas"]
 
 def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: np.ndarray, t: Any, luv: np.ndarray,
                  classification: str, worst_values: bool) -> tuple[np.ndarray, ...]:
-    """(ζ(k) (m, L), ζ_step (m,), opacity moments (m, 2), the worst value's ζ(k) (m, L), zeros unless
+    """(ζ(k) (m, L), ζ_step (m,), opacity moments (m, 4: level_error.block_zetas), the worst value's ζ(k) (m, L), zeros unless
     `worst_values`, the spread ς(k) (m, L)) of the blocks `rows` of `meta`, float32, as level_error.block_zetas
     computes them: `tf` a TransferFunction, `starts` the effective starts (N, K + 1), `t` and `luv` the distribution
     table and its CIELUV colours (level_error.luv_table)."""
@@ -54,7 +54,7 @@ def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: n
 
     out = np.empty((m, n_lv), np.float32)
     worst = np.zeros((m, n_lv), np.float32)
-    step = np.empty((m, 3), np.float32)
+    step = np.empty((m, 5), np.float32)
     spreads = np.empty((m, n_lv), np.float32)
     d_out, d_worst = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes), cl.Buffer(ctx, mf.WRITE_ONLY, max(worst.nbytes, 4))
     d_step, d_spread = cl.Buffer(ctx, mf.WRITE_ONLY, step.nbytes), cl.Buffer(ctx, mf.WRITE_ONLY, spreads.nbytes)
