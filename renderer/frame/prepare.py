@@ -258,6 +258,9 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     if keep is not None:  # blocks outside the clip region are empty space
         info = np.where(keep, info, -np.inf if scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
         n_empty = int(np.count_nonzero(info == 0.0)) if scene.mode == "composite" else 0
+    # before the selection: on a large volume the selection's tables push the TF's own out of their cache, and
+    # the step's error would compute them again
+    step_error = _step_error(eng, vol, scene, keep)
     lod = None
     use_lod = levels is not None or scene.quality != "full"
     cfg = kernel_config(scene, max_samples, lod=use_lod, distribution=vol.has_distribution,
@@ -281,7 +284,7 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     if pp is not None:
         cfg = replace(cfg, passes=True)
     pr = Prepared(eng, scene, vol, lut, cfg, params, info, n_empty, step_world, unit, lod, dist, pre, estimated, second,
-                  prio, plan, pp, _step_error(eng, vol, scene, keep), cam.ray_octants(fr),
+                  prio, plan, pp, step_error, cam.ray_octants(fr),
                   None if choice is None else (asked, choice))
     if second is not None:
         fill_tf2(params, pr)
