@@ -25,6 +25,7 @@ import re
 import socket
 import uuid
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -421,15 +422,33 @@ def parse_temp_name(name: str) -> tuple[str, str, str | None, int] | None:
 def data_manifest(root: Path) -> dict[str, list[int]]:
     """Per array of the store (its path in the group, e.g. "0", "std/1", "blocks/hist"): [number of chunk or shard
     files, their total bytes] — what ingest wrote, recorded in its attributes and checked by open_store."""
-    out: dict[str, list[int]] = {}
     root = Path(root)
-    for dirpath, _, files in os.walk(root):
-        parts = Path(dirpath).relative_to(root).parts
-        if "c" not in parts or not files:
-            continue
-        entry = out.setdefault("/".join(parts[: parts.index("c")]), [0, 0])
-        entry[0] += len(files)
-        entry[1] += sum(os.stat(os.path.join(dirpath, f)).st_size for f in files)
+
+    def scan(folder: str) -> tuple[str, int, int, list[str]]:
+        n = size = 0
+        folders = []
+        with os.scandir(folder) as entries:
+            for e in entries:
+                if e.is_dir(follow_symlinks=False):
+                    folders.append(e.path)
+                elif not e.is_dir():  # (a link to a folder is neither followed nor counted, as os.walk does)
+                    n, size = n + 1, size + e.stat().st_size
+        return folder, n, size, folders
+
+    out: dict[str, list[int]] = {}
+    # folders on a thread pool: a large store has tens of thousands of files, whose stats from a cold disk one by
+    # one took seconds of a first picture (waiting on the disk, not the CPU)
+    with ThreadPoolExecutor(16, thread_name_prefix="lodcast-manifest") as pool:
+        pending = [pool.submit(scan, str(root))]
+        while pending:
+            folder, n, size, folders = pending.pop().result()
+            pending += [pool.submit(scan, f) for f in folders]
+            parts = Path(folder).relative_to(root).parts
+            if "c" not in parts or not n:
+                continue
+            entry = out.setdefault("/".join(parts[: parts.index("c")]), [0, 0])
+            entry[0] += n
+            entry[1] += size
     return out
 
 
