@@ -1,7 +1,7 @@
 """The cold 30:1 first image of a large volume against DESIGN.md's bound (issue 44 item 3), old and new alternating.
 
     .venv/bin/python benchmarks/bench_cold_first.py [--store benchmarks/results/large/body_1024x2048x2048.zarr]
-        [--base /work/main/.venv/bin/python] [--pairs 5] [--json docs/measurements/cold_first.json]
+        [--base OTHER/.venv/bin/python] [--pairs 5] [--json docs/measurements/cold_first.json]
 
 Per pair, each run in a fresh process with the page cache dropped just before it (the order alternates: the base
 first in even pairs, this tree first in odd ones): the time from the process's start to the 30:1 image (ct-bone,
