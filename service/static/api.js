@@ -23,6 +23,21 @@ function withToken(headers) {
   return h;
 }
 
+// The token dialog, one markup for every page that imports this module (added to the page as it loads).
+const DIALOG = `<form method="dialog">
+    <p>This server needs its access token (LODCAST_TOKEN).</p>
+    <p id="token-wrong" class="error" hidden>That token was not accepted.</p>
+    <input type="password" id="token-input" autocomplete="off" aria-label="token">
+    <button value="ok" id="token-ok">use token</button>
+    <button value="cancel" formnovalidate>cancel</button>
+  </form>`;
+if (!document.getElementById("token-dialog")) {
+  const dialog = document.createElement("dialog");
+  dialog.id = "token-dialog";
+  dialog.innerHTML = DIALOG;
+  document.body.append(dialog);
+}
+
 function askToken(wrong) {
   if (asking) return asking;
   const dialog = document.getElementById("token-dialog");
