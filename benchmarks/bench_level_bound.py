@@ -8,15 +8,13 @@ reduction. Writes JSON with the date, machine and command.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_consistent_lod import BAND_OVER_BONE, chest_store  # noqa: E402
+from record import provenance  # noqa: E402
 
 from lodcast.renderer.frame.render import Renderer
 from lodcast.renderer.image.delta_e import delta_e_stats
@@ -54,9 +52,7 @@ def main() -> None:
         rows.append(row)
     eng.close()
     if a.json:
-        out = {"date": datetime.date.today().isoformat(),
-               "machine": f"{platform.node()} ({os.cpu_count()} CPUs, {platform.machine()})",
-               "command": "benchmarks/bench_level_bound.py " + " ".join(sys.argv[1:]), "size": a.size, "rows": rows}
+        out = {**provenance("bench_level_bound.py"), "size": a.size, "rows": rows}
         a.json.write_text(json.dumps(out, indent=1) + "\n")
 
 

@@ -10,11 +10,7 @@ JSON with the date, machine and command; run it on the commit before a change fo
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
-import subprocess
 import sys
 from pathlib import Path
 
@@ -22,6 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_consistent_lod import BAND_OVER_BONE, chest_store  # noqa: E402
+from record import provenance  # noqa: E402
 
 from lodcast.renderer.frame.render import Renderer
 from lodcast.renderer.image.delta_e import delta_e_image
@@ -59,12 +56,7 @@ def main() -> None:
                 rows.append(row)
     eng.close()
     if a.json:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip()
-        out = {"date": datetime.date.today().isoformat(),
-               "machine": f"{platform.node()} ({os.cpu_count()} CPUs, {platform.machine()})",
-               "command": "benchmarks/bench_lossless.py " + " ".join(sys.argv[1:]), "commit": commit,
-               "size": a.size, "rows": rows}
+        out = {**provenance("bench_lossless.py"), "size": a.size, "rows": rows}
         a.json.write_text(json.dumps(out, indent=1) + "\n")
 
 

@@ -29,11 +29,7 @@ normalised as ζ is (level_error.py).
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -43,6 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_consistent_lod import BAND_OVER_BONE, DATA, ENGINE_TF, chest_store, store_of  # noqa: E402
 from phantoms import ENGINE_BAND  # noqa: E402  (tests/: bench_consistent_lod puts it on the path)
+from record import provenance  # noqa: E402
 
 from lodcast.renderer.frame.render import Renderer  # noqa: E402
 from lodcast.renderer.image.delta_e import delta_e_stats  # noqa: E402
@@ -220,9 +217,7 @@ def main() -> None:
         finally:
             eng.close()
         if a.json:
-            a.json.write_text(json.dumps({"date": datetime.date.today().isoformat(), "machine": platform.node(),
-                                          "command": "benchmarks/bench_prediction.py " + " ".join(sys.argv[1:]),
-                                          **out}, indent=1) + "\n")
+            a.json.write_text(json.dumps({**provenance("bench_prediction.py"), **out}, indent=1) + "\n")
         return
     eng = Renderer()
     try:
@@ -233,12 +228,7 @@ def main() -> None:
     print(f"\npairs at >= 5:1: {s['pairs']}, holding {s['holding']}; Spearman {s['spearman']:.3f}; "
           f"worst factor {s['worst_factor']:.2f} ({s['worst']}); {time.perf_counter() - t0:.0f} s")
     if a.json:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip()
-        out = {"date": datetime.date.today().isoformat(),
-               "machine": f"{platform.node()} ({os.cpu_count()} CPUs, {platform.machine()})",
-               "command": "benchmarks/bench_prediction.py " + " ".join(sys.argv[1:]), "commit": commit,
-               "size": a.size, "summary": s, "rows": rows}
+        out = {**provenance("bench_prediction.py"), "size": a.size, "summary": s, "rows": rows}
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(out, indent=1) + "\n")
 
