@@ -14,10 +14,9 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 
-from lodcast.renderer.data.volume import VOXEL_CTYPES, StoreLike, as_volume
+from lodcast.renderer.data.volume import StoreLike, as_volume
 from lodcast.renderer.engine import Engine
-from lodcast.renderer.frame.plan import kernel_config
-from lodcast.renderer.frame.prepare import lod_config, samples_per_ray
+from lodcast.renderer.frame.prepare import lod_config, samples_per_ray, volume_config
 from lodcast.renderer.scene import camera as cam
 from lodcast.renderer.scene.scene import Scene, SceneLike
 
@@ -50,8 +49,7 @@ def _options(eng: Engine, store: StoreLike, scene: SceneLike) -> list[tuple[str,
     sc = Scene.parse(scene)
     box, _, _, step_world = cam.geometry(vol, sc)
     lod = sc.quality != "full"
-    cfg = kernel_config(sc, samples_per_ray(box, step_world), lod=lod, distribution=vol.has_distribution,
-                        voxel=VOXEL_CTYPES[vol.voxel_dtype], block_size=int(vol.block_size), n_blocks=vol.n_blocks)
+    cfg = volume_config(sc, vol, samples_per_ray(box, step_world), lod)
     if lod:  # a budget keeps coarse blocks; "lossless" under a TF that shows every value may keep none
         coarse = (True, False) if sc.quality == "lossless" else (True,)
         return [lod_config(cfg, sc, vol, c).build_options() for c in coarse]

@@ -42,7 +42,7 @@ from lodcast.renderer.scene.scene import (
 from lodcast.renderer.scene.transfer_function import Lut, build_lut, unit_distance
 from lodcast.renderer.walk.info import block_info
 
-__all__ = ["prepare", "check_cost", "prefetch", "resolved", "selection", "lod_config", "samples_per_ray"]
+__all__ = ["prepare", "check_cost", "prefetch", "resolved", "selection", "lod_config", "samples_per_ray", "volume_config"]
 
 
 def _tfs_and_key(vol: VolumeView, scene: Scene, keep: np.ndarray | None) -> tuple[list, tuple]:
@@ -125,6 +125,12 @@ def _select(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | Non
 def samples_per_ray(box: tuple, step_world: float) -> int:
     """The most samples a ray through the world box `box` takes at `step_world`."""
     return int(math.ceil(float(np.linalg.norm(box[1] - box[0])) / step_world)) + 2
+
+
+def volume_config(scene: Scene, vol: VolumeView, max_samples: int, lod: bool) -> KernelConfig:
+    """plan.kernel_config of `scene` on `vol` (its voxel type, blocks and distributions), before any selection."""
+    return kernel_config(scene, max_samples, lod=lod, distribution=vol.has_distribution,
+                         voxel=VOXEL_CTYPES[vol.voxel_dtype], block_size=int(vol.block_size), n_blocks=vol.n_blocks)
 
 
 def lod_config(cfg: KernelConfig, scene: Scene, vol: VolumeView, coarse: bool) -> KernelConfig:
@@ -263,8 +269,7 @@ def prepare(eng: Engine, store: StoreLike, scene: SceneLike, *, spacing: Any = N
     step_error = _step_error(eng, vol, scene, keep)
     lod = None
     use_lod = levels is not None or scene.quality != "full"
-    cfg = kernel_config(scene, max_samples, lod=use_lod, distribution=vol.has_distribution,
-                        voxel=VOXEL_CTYPES[vol.voxel_dtype], block_size=int(vol.block_size), n_blocks=vol.n_blocks)
+    cfg = volume_config(scene, vol, max_samples, use_lod)
     if use_lod:
         view = (fr, kbox, lut, unit) if levels is None and _view_weighted(scene, vol) else None
         lod, info, n_empty, cfg = _lod_plan(eng, vol, scene, levels, info, cfg, scene.mode, keep, view)
