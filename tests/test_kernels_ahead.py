@@ -45,3 +45,10 @@ def test_the_command_names_each_program_and_refuses_a_missing_store(store, tmp_p
     assert all("-DLC_SAMPLER_" in line for line in lines)
     assert main(["kernels", str(tmp_path / "nothing.zarr")]) == 2
     assert "nothing.zarr" in capsys.readouterr().err
+    assert main(["kernels", str(store), "--scene", str(tmp_path / "absent.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--scene" in err[0] and "absent.json" in err[0]
+    (tmp_path / "bad.json").write_text('{"quality": "sharp"}')
+    assert main(["kernels", str(store), "--scene", str(tmp_path / "bad.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "quality" in err[0]
