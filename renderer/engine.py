@@ -8,12 +8,15 @@ once, when the engine is made; its keywords override the variables.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import threading
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Iterator
+
+import numpy as np
 
 from lodcast.environment import Environment, EnvironmentInvalid, environment
 from lodcast.opencl import Device
@@ -108,8 +111,9 @@ class Engine:
       way to what the device cache and the buffers being filled hold, down to an eighth of its size;
     - `device_cache`: level-0 volumes, atlases and coarse levels on the device;
     - `targets`, `cost_model`: what quality targets choose by (renderer/frame/target.py);
-    - `selections`, `step_errors`, `steps`, `block_infos`: level-of-detail selections, predicted step errors,
-      adaptive step levels and the blocks' walk info of recent scenes; `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
+    - `selections`, `step_errors`, `steps`, `block_infos`, `lod_plans`: level-of-detail selections, predicted step
+      errors, adaptive step levels, the blocks' walk info of recent scenes and, per selection, that info with its
+      unloaded blocks marked; `digests`: the digests of read-only grids (`digest`); `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
       atlas_cells.py); `last_atlas`: per atlas family the newest atlas, held weakly (atlas.py reuses its bricks);
     - `tables`: what is derived from a store and TFs (`Tables`); `stores`: stores named by path or URL, opened once,
       at most `open_stores` of them (LODCAST_OPEN_STORES), least recently used closed first. `store_check_s`: how
@@ -133,6 +137,8 @@ class Engine:
         # the newest walk stays whatever its size: a large volume's walk alone may pass the bound, and computing
         # it again every frame of a turntable costs several times the kernel
         self.steps = ByteLru(64 << 20, keep_last=True)
+        self.lod_plans = ByteLru(64 << 20, keep_last=True)
+        self.digests = ByteLru(16)  # one unit each: id of a read-only array -> (the array, its digest)
         self.walks = ByteLru(64 << 20, keep_last=True)
         self.adaptive_walks = ByteLru(32 << 20, keep_last=True)
         self.parents = ByteLru(64 << 20, keep_last=True)
@@ -155,6 +161,19 @@ class Engine:
         return (f"{type(self).__name__}(device={s.device or 'default'!r}, device_budget_mb="
                 f"{None if s.device_budget_bytes is None else s.device_budget_bytes / 1e6}, "
                 f"brick_cache_mb={s.brick_cache_bytes / 2**20:g}, device_cache_mb={s.device_cache_bytes / 2**20:g})")
+
+    def digest(self, a: np.ndarray) -> bytes:
+        """A digest of `a`'s bytes for cache keys, kept per array while `a` is read-only: a turntable keys its
+        walk, step levels and atlas on the same grids every frame, and hashing a large volume's grids again each
+        time was a good part of its frames' host work. (The entry holds `a`, so its id stays its own.)"""
+        if a.flags.writeable:
+            return _digest(a)
+        hit = self.digests.get(id(a))
+        if hit is not None and hit[0] is a:
+            return hit[1]
+        d = _digest(a)
+        self.digests.put(id(a), (a, d), 1)
+        return d
 
     def _brick_bound(self) -> int:
         cap = self.settings.brick_cache_bytes
@@ -232,3 +251,7 @@ class Engine:
             c.clear()
         self.tables = Tables(self.device)
         self.forget_atlases()
+
+
+def _digest(a: np.ndarray) -> bytes:
+    return hashlib.blake2b(np.ascontiguousarray(a).tobytes(), digest_size=16).digest()

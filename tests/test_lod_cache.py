@@ -344,3 +344,36 @@ def test_pool_reuses_the_rows_eviction_frees():
     arena = c._arenas[fam]
     live = sum(slab is not None for slab in arena.slabs)  # memory the pool holds beyond what it counts: none
     assert live <= 3 and arena.owner.size <= 16 and c.nbytes <= c.max_bytes and len(c) <= 8, (live, len(c))
+
+
+def test_a_turntable_derives_its_selection_s_walk_info_once(store, eng, monkeypatch):
+    """A kept selection comes back as the same read-only grid each frame, so what is derived from it (the block info
+    with unloaded blocks marked, its digest for the walk's and the atlas's keys) is derived once: the frames after
+    the first hash no grid. The marked info is the block info with unloaded blocks empty, and a caller's `levels`
+    that change between renders are taken as they are each time."""
+    import hashlib
+
+    from lodcast.renderer import engine as engine_module
+
+    scene = {**_scene(0), "quality": {"reduction": 4}, "sampling": {"lod_visibility": False}}
+    pr = eng.prepare(store, scene)
+    assert not pr.lod.levels.flags.writeable and not pr.block_info.flags.writeable
+    base = eng.prepare(store, {**scene, "quality": "full"}).block_info
+    want = np.where(pr.lod.levels >= 0, base, 0.0)
+    np.testing.assert_array_equal(pr.block_info, want)
+    hashed = []
+    monkeypatch.setattr(engine_module, "_digest", lambda a: (hashed.append(a.shape), hashlib.blake2b(a.tobytes()).digest())[1])
+    first = eng.render(store, scene).report
+    n_first = len(hashed)
+    for az in (10, 20, 30):
+        r = eng.render(store, {**scene, "camera": {"azimuth": az, "elevation": 15}}).report
+        assert r["bricks_read"] == 0 and r["reduction"] == first["reduction"]
+        assert eng.prepare(store, {**scene, "camera": {"azimuth": az, "elevation": 15}}).block_info is pr.block_info
+    assert pr.lod.levels.shape in hashed[:n_first] and pr.lod.levels.shape not in hashed[n_first:]  # a grid: once
+    # explicit levels, changed in place between renders: each render takes them as they are now
+    lv = np.asarray(pr.lod.levels).copy()
+    a = eng.render(store, scene, levels=lv).rgba
+    lv[lv >= 0] = 0
+    b = eng.render(store, scene, levels=lv).rgba
+    np.testing.assert_array_equal(b, eng.render(store, scene, levels=lv.copy()).rgba)
+    assert not np.array_equal(a, b)

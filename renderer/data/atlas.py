@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import hashlib
 import sys
 import time
 from collections.abc import Iterator
@@ -368,7 +367,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
     gives its part of the selection with the whole one's `slices` (see `pack`) and `keep=False` (its atlas is
     not kept on the device after the pass)."""
     levels = np.ascontiguousarray(levels, dtype=np.int8)
-    key = (("atlas", vol.key, levels.shape, hashlib.sha1(levels.tobytes()).hexdigest(), with_std)
+    key = (("atlas", vol.key, levels.shape, eng.digest(levels), with_std)
            if vol.key is not None and keep else None)
     n_sel = int(np.count_nonzero(levels >= 0))
     hit = eng.device_cache.get(key) if key is not None else None

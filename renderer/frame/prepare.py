@@ -97,7 +97,7 @@ def _select(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | Non
     """The level per block: `levels` as given, or the selection for the scene's TFs and quality, weighted by the
     blocks' visibility from the camera when `view` = (frame, ray box, LUT, unit distance) is given."""
     if levels is not None:
-        lv = np.ascontiguousarray(levels, dtype=np.int8)
+        lv = np.array(levels, dtype=np.int8, order="C")  # a copy: the caller's array may change between renders
         if lv.shape != vol.grid:
             raise SceneError(f"levels: shape {lv.shape} is not the block grid {vol.grid}")
         return lv, None
@@ -117,6 +117,7 @@ def _select(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | Non
         seen = None if view is None else visibility.block_visibility(eng, vol, scene, *view)
         sel = select_lod(vol.source, tfs, quality, crop=keep, classification=classification, visibility=seen,
                          lossless_zeta=eng.settings.lossless_zeta, tables=eng.tables)
+        sel.levels.flags.writeable = False  # kept: what is derived from it is kept by its identity (_lod_plan)
         if key is not None:
             eng.selections.put(key, sel, 1)
     return np.ascontiguousarray(sel.levels, dtype=np.int8), sel
@@ -159,6 +160,23 @@ def _lod_plan(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | N
     else:
         chosen = int(np.where(lv >= 0, (B >> np.maximum(lv.astype(np.int64), 0)) ** 3, 0).sum())
         reduction, pred = (vol.n_blocks * B**3 / chosen if chosen else None), None
+    skip = cfg.adaptive and mode == "composite" and scene.sampling.empty_space_skipping
+    # a kept selection's grid is read-only and comes back as the same array: a turntable derives the same each frame
+    key = (id(lv), id(info), mode, cfg.interpolation, scene.tf2 is None, cfg.adaptive, skip, int(B))
+    hit = None if lv.flags.writeable else eng.lod_plans.get(key)
+    if hit is not None and hit[0] is lv and hit[1] is info:
+        marked, n_empty, steps = hit[2:]
+    else:
+        marked, n_empty, steps = _marked_info(eng, scene, lv, info, cfg, mode, skip, int(B))
+        if not lv.flags.writeable:
+            eng.lod_plans.put(key, (lv, info, marked, n_empty, steps), marked.nbytes + (0 if steps is None else steps.nbytes))
+    return LodPlan(lv, reduction, pred, steps, sel, view is not None), marked, n_empty, cfg
+
+
+def _marked_info(eng: Engine, scene: Scene, lv: np.ndarray, info: np.ndarray, cfg: KernelConfig, mode: str,
+                 skip: bool, B: int) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """(the block info of the selection `lv` with its unloaded blocks marked empty, read-only; the number of empty
+    blocks; the adaptive walk's step levels, or None)."""
     info = info.copy()
     missing = lv < 0
     info[missing] = -np.inf if mode in EXTREMUM_MODES else 0.0
@@ -169,19 +187,16 @@ def _lod_plan(eng: Engine, vol: VolumeView, scene: Scene, levels: np.ndarray | N
     if near_coarse is not None and near_coarse.any():  # nearest block: half a level-0 voxel, at most
         spread = lod_atlas.neighbourhood_max(info) if scene.tf2 is None else dual.dilate_bits(info, lod_atlas.neighbourhood_max)
         info = np.where(near_coarse, spread, info).astype(np.float32)
+    info.flags.writeable = False
     n_empty = int(np.count_nonzero(info == 0.0)) if mode == "composite" else int(missing.sum())
-    steps = None
-    if cfg.adaptive:
-        skip = (info == 0.0) if (mode == "composite" and scene.sampling.empty_space_skipping) else None
-        steps = _step_levels(eng, lv, int(B), skip)
-    return LodPlan(lv, reduction, pred, steps, sel, view is not None), info, n_empty, cfg
+    steps = _step_levels(eng, lv, B, (info == 0.0) if skip else None) if cfg.adaptive else None
+    return info, n_empty, steps
 
 
 def _step_levels(eng: Engine, lv: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
     """atlas.step_levels, kept for the last few (levels, skip) pairs: a turntable asks for the same each frame, and
     on a large grid it costs a good part of a frame."""
-    key = (block_size, hashlib.sha1(lv.tobytes()).hexdigest(), lv.shape,
-           None if skip is None else hashlib.sha1(np.packbits(skip).tobytes()).hexdigest())
+    key = (block_size, eng.digest(lv), lv.shape, None if skip is None else eng.digest(np.packbits(skip)))
     hit = eng.steps.get(key)
     if hit is None:
         hit = lod_atlas.step_levels(lv, block_size, skip)

@@ -6,7 +6,6 @@ needs of a scene is computed on the host per volume or selection, TF and clip, a
 scene, or change only what the walk does not depend on, reuse it)."""
 from __future__ import annotations
 
-import hashlib
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -98,7 +97,7 @@ def _walk_key(pr: "Prepared", data: "multipass.PassData", leap: bool) -> tuple |
         return None
     if data.cells is None and data.cell_min is None:
         return None
-    digest = lambda a: hashlib.blake2b(np.ascontiguousarray(a).tobytes(), digest_size=16).digest()  # noqa: E731
+    digest = pr.engine.digest
     tfs = tuple((t.lut.lo, t.lut.scale, t.lut.n, digest(t.lut.opacity > 0),
                  None if t.dist is None else (t.dist.lo, t.dist.scale, t.dist.rows, t.dist.std_max,
                                               digest(t.dist.kernel_table[-1])))
