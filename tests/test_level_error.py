@@ -192,6 +192,13 @@ def test_the_device_computes_the_block_errors_as_numpy_does(eng, shared_data, tm
         # without the worst values the same errors, and no worst values
         z, _, _, w, _ = block_zetas(*args, Tables(eng.device))
         assert np.abs(z - ref[0]).max() <= 1e-3 and not w.any()
+        # without the level errors (the prediction's pass under distribution classification): no ζ(k), and the
+        # same step, opacities and spread as the whole pass, on the device (the same float32 sums) and in NumPy
+        for tables, whole in ((Tables(eng.device), got), (Tables(None), ref)):
+            z, st, op, w, sp = block_zetas(*args, tables, level_errors=False)
+            assert not z.any() and not w.any()
+            for a, b in ((st, whole[1]), (op, whole[2]), (sp, whole[4])):
+                np.testing.assert_array_equal(a, b)
 
 
 def test_the_device_keeps_the_block_errors_of_values_far_from_zero(eng, tmp_path):

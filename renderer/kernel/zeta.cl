@@ -9,7 +9,8 @@
  * path is the reference this reproduces (tests/test_level_error.py compares them); the float32 arithmetic is
  * the same as its table lookups', whose results the selection compares with 0.5 ΔE.
  *
- * LC_K: pieces per block; LC_L: levels; LC_WORST: also the worst value's error per level. */
+ * LC_K: pieces per block; LC_L: levels; LC_WORST: also the worst value's error per level; LC_NO_LEVEL_ERRORS: not
+ * the level errors (out stays 0), the rest alike (the prediction's pass under distribution classification). */
 
 typedef struct {
     float lo, scale, std_scale, sheet_floor;
@@ -148,6 +149,7 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
             const int i = lc_mean_axis(&T, x, &i1, &wi);
             const float3 tstar = lc_lerp(luv, T.n, i, i1, wi, 0, T.rows > 1, 0.0f);
             held += wq * tstar;
+#ifndef LC_NO_LEVEL_ERRORS
             for (int k = 1; k < LC_L; ++k) {
 #ifdef LC_MEAN
                 const float3 shown = lc_row0(&T, luv, mbar + rho[k] * (x - mbar));
@@ -167,6 +169,7 @@ __kernel void lc_zeta(const float4 ax, const int4 sz, __global const float* luv,
                 worst[k] = fmax(worst[k], dw);
 #endif
             }
+#endif
 #endif
         }
     }

@@ -126,8 +126,8 @@ def _opacity_moments(tf: Any, x: np.ndarray,
 
 def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tuple[float, float], std_max: float,
                 classification: str = "distribution", tables: Tables | None = None,
-                worst_values: bool = False,
-                picture: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                worst_values: bool = False, picture: bool = False,
+                level_errors: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(ζ(k) per block and level (N, L), ζ_step per block (N,), opacity moments (N, 4: the mean TF opacity over
     the block's values, the mean squared opacity, the visible share, and the opacity of the values that carry the
     step's error, weighted by it: what prediction.py takes), the worst value's ζ(k) per
@@ -141,10 +141,12 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     they share with the TF's opacities there and the values' table positions (apart, the two repeated that work, a
     good part of a first render). The table lookups run in float32: ζ is a colour difference in CIELUV
     units (0-100) that the selection compares with 0.5. `picture`: the colours differ in the picture's CIELUV
-    (`_picture`: what prediction.py takes) instead of each slab's own. With `tables` of an engine (its `device` set) the blocks
+    (`_picture`: what prediction.py takes) instead of each slab's own. `level_errors` False: ζ(k) (and the worst
+    values) stay zeros, the rest as with it: what the prediction takes under distribution classification, where
+    ζ(k)'s lookups, one per level and value, would be most of the pass. With `tables` of an engine (its `device` set) the blocks
     are evaluated there (zeta_kernel.py: the same arithmetic, a work-item per block); this NumPy path is the
     reference it is tested against."""
-    assert classification in ("distribution", "mean")
+    assert classification in ("distribution", "mean") and (level_errors or not worst_values)
     n_lv = meta.n_levels
     out, step, worst = np.zeros((meta.n, n_lv)), np.zeros(meta.n), np.zeros((meta.n, n_lv))
     spread = np.zeros((meta.n, n_lv))
@@ -157,7 +159,8 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     t, luv = (picture_table if picture else luv_table)(tf, value_range, std_max, tables)
     starts = effective_starts(meta)
     if tables is not None and tables.device is not None:
-        got = device_zetas(tables.device, meta, tf, todo, starts, t, luv, classification, worst_values)
+        got = device_zetas(tables.device, meta, tf, todo, starts, t, luv, classification, worst_values,
+                           level_errors)
         for a, b in zip((out, step, opac, worst, spread), got):
             a[todo] = b
         return out, step, opac, worst, spread
@@ -199,6 +202,8 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
             modelled = t.lerp(luv, at_mean, _f32(t.std_axis(s[:, k])) if classification == "distribution" else row0)
             model = ((held - modelled) ** 2).sum(axis=-1) * (s[:, k] / s_top) ** 2
             spread[rows, k] = np.sqrt(hidden * hidden + model / sheet)
+            if not level_errors:
+                continue
             if classification == "distribution":
                 shown = t.lerp(luv, at_x, _f32(t.std_axis(s[:, k][:, None, None])))  # one deviation per block
             else:

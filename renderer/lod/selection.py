@@ -645,7 +645,8 @@ def _picture_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
                     tables: Tables | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ζ(k), the spread ς(k)) (N, L) float32 with colours compared in the picture's CIELUV
     (level_error.block_zetas with `picture`) and the opacity moments (N, 4) that go with them: what the
-    prediction takes (prediction.py), the elementwise maxima over the TFs. The selection's own ζ stays in each
+    prediction takes (prediction.py), the elementwise maxima over the TFs. ζ(k) only under "mean" classification
+    (the prediction's bias; zeros else): the level errors are most of the pass. The selection's own ζ stays in each
     slab's CIELUV, as "lossless" was set against it."""
     zeta = np.zeros((meta.n, meta.n_levels), np.float32)
     spread = np.zeros((meta.n, meta.n_levels), np.float32)
@@ -654,7 +655,7 @@ def _picture_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
         visible = tf_visible(tf, meta.min_border, meta.max_border)
         assert meta.value_range is not None  # (as in _tf_tables)
         z, _, o, _, sp = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables,
-                                     picture=True)
+                                     picture=True, level_errors=classification == "mean")
         zeta, spread, opac = np.maximum(zeta, z), np.maximum(spread, sp), np.maximum(opac, o)
     return zeta, spread, opac
 

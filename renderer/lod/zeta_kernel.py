@@ -19,10 +19,10 @@ __all__ = ["device_zetas"]
 
 
 def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: np.ndarray, t: Any, luv: np.ndarray,
-                 classification: str, worst_values: bool) -> tuple[np.ndarray, ...]:
+                 classification: str, worst_values: bool, level_errors: bool = True) -> tuple[np.ndarray, ...]:
     """(ζ(k) (m, L), ζ_step (m,), opacity moments (m, 4: level_error.block_zetas), the worst value's ζ(k) (m, L), zeros unless
-    `worst_values`, the spread ς(k) (m, L)) of the blocks `rows` of `meta`, float32, as level_error.block_zetas
-    computes them: `tf` a TransferFunction, `starts` the effective starts (N, K + 1), `t` and `luv` the distribution
+    `worst_values`, the spread ς(k) (m, L); ζ(k) zeros unless `level_errors`) of the blocks `rows` of `meta`,
+    float32, as level_error.block_zetas computes them: `tf` a TransferFunction, `starts` the effective starts (N, K + 1), `t` and `luv` the distribution
     table and its CIELUV colours (level_error.luv_table)."""
     m, n_lv = rows.size, int(meta.n_levels)
     k_pieces = int(starts.shape[1]) - 1
@@ -45,6 +45,7 @@ def device_zetas(device: Device, meta: Any, tf: Any, rows: np.ndarray, starts: n
     opts = [f"-DLC_K={k_pieces}", f"-DLC_L={n_lv}"]
     opts += ["-DLC_MEAN"] if classification == "mean" else []
     opts += ["-DLC_WORST"] if worst_values else []
+    opts += [] if level_errors else ["-DLC_NO_LEVEL_ERRORS"]
     ctx = device.context
     queue = cl.CommandQueue(ctx)  # its own: a selection may run beside a render on the engine's queue
     mf = cl.mem_flags
