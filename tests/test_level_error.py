@@ -170,6 +170,8 @@ def test_the_device_computes_the_block_errors_as_numpy_does(eng, shared_data, tm
 
     store = lodcast.ingest(shared_data / "engine.nii.gz", tmp_path / "engine.zarr", progress=False)
     meta = meta_of_store(store)
+    assert meta.effective is meta.effective  # computed once per metadata object
+    np.testing.assert_array_equal(meta.effective, effective_starts(meta))
     for tf in (BAND_TF, RAMP_TF):
         vis = tf_visible(tf, meta.min_border, meta.max_border)
         assert vis.sum() > 100

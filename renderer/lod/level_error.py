@@ -34,7 +34,7 @@ import numpy as np
 
 from lodcast.renderer.engine import Tables
 from lodcast.renderer.lod.classification import DistTable, cached_dist_table
-from lodcast.renderer.lod.significance import BlockMeta, as_tf, effective_starts, srgb_to_luv
+from lodcast.renderer.lod.significance import BlockMeta, as_tf, srgb_to_luv
 from lodcast.renderer.lod.zeta_kernel import device_zetas
 
 __all__ = ["block_zetas", "level_zeta", "luv_table", "picture_table", "step_zeta"]
@@ -157,7 +157,7 @@ def block_zetas(meta: BlockMeta, tf: Any, visible: np.ndarray, value_range: tupl
     assert meta.level_std is not None, "block_zetas needs a store with per-level spreads (format >= 2)"
     tf = as_tf(tf)
     t, luv = (picture_table if picture else luv_table)(tf, value_range, std_max, tables)
-    starts = effective_starts(meta)
+    starts = meta.effective
     if tables is not None and tables.device is not None:
         got = device_zetas(tables.device, meta, tf, todo, starts, t, luv, classification, worst_values,
                            level_errors)

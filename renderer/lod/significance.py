@@ -260,6 +260,14 @@ class BlockMeta:
         return np.asarray(h).reshape(self.n, -1)
 
     @functools.cached_property
+    def effective(self) -> np.ndarray:
+        """effective_starts, computed once per metadata object: every TF's block errors (both of a selection's
+        passes, and each TF change) take it, and on a million blocks it cost a good part of a pass."""
+        starts = effective_starts(self)
+        starts.flags.writeable = False
+        return starts
+
+    @functools.cached_property
     def pre(self) -> "_Pre":
         """The TF-independent part of eq. 3.1's O(K) evaluation, computed once per metadata object."""
         return _precompute(self)
@@ -346,7 +354,7 @@ def effective_starts(meta: BlockMeta) -> np.ndarray:
 
 
 def _precompute(meta: BlockMeta) -> _Pre:
-    starts = effective_starts(meta)
+    starts = meta.effective
     h = np.asarray(meta.heights, np.float64)
     n = h.shape[0]
     hp = np.concatenate([np.zeros((n, 1)), h, np.zeros((n, 1))], axis=1)
