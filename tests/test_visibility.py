@@ -31,9 +31,10 @@ def _ortho(shape, f, height=None):
             "view_height": height or 1.5 * max(shape)}
 
 
-def _host_visibility(eng, store, scene):
+def _host_visibility(eng, store, scene, entry=True):
     """The float64 host mirror of visibility.cl: the same rays (camera.rays_at at the cast's pixel centres), steps
-    and coarse level, trilinear by scipy, the TF by transfer_function.evaluate."""
+    and coarse level, trilinear by scipy, the TF by transfer_function.evaluate; with `entry`, transmittance 1 where
+    the image's own rays enter the box (lc_visibility_entry)."""
     vol = as_volume(store)
     sc = resolved(eng, Scene.parse(scene), vol)
     box, fr, kbox, _ = geometry(vol, sc)
@@ -59,10 +60,26 @@ def _host_visibility(eng, store, scene):
         alpha = 1 - (1 - np.minimum(a, 1.0)) ** (dt / unit)
         T = np.concatenate([[1.0], np.cumprod(1 - alpha)])[:-1]
         T_back = np.concatenate([[1.0], T[:-1]])
-        b = np.clip(((q[:, ::-1] + 0.5) // B).astype(int), 0, G - 1)
+        b = np.clip(((q[:, ::-1] + 0.5) // vol.block_size).astype(int), 0, G - 1)
         for (bz, by, bx), tb in zip(b, T_back):
             vis[bz, by, bx] = max(vis[bz, by, bx], tb)
+    if entry:
+        vis[_entry_blocks(vol, sc, fr, kbox)] = 1.0
     return vis
+
+
+def _entry_blocks(vol, sc, fr, kbox):
+    """Where the image's own rays enter the box (float64): the blocks of those points, a hundredth of the way in."""
+    y, x = np.mgrid[:sc.height, :sc.width] + 0.5
+    o, d = cam.rays_at(fr, x, y, sc.width, sc.height)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    t0, t1 = cam.ray_box(o, d, *kbox)
+    hit = t1 > np.maximum(t0, 0.0)
+    t0 = np.maximum(t0, 0.0)
+    sp, org = np.array(vol.spacing[::-1], float), np.array(vol.origin[::-1], float)
+    q = (o[hit] + d[hit] * (t0[hit] + 0.01 * (t1[hit] - t0[hit]))[:, None] - org) / sp
+    b = np.clip(((q[:, ::-1] + 0.5) // vol.block_size).astype(int), 0, np.array(vol.grid) - 1)
+    return tuple(b.T)
 
 
 @pytest.fixture(scope="module")
@@ -116,6 +133,31 @@ def test_visibility_matches_a_float64_host_cast(eng, tmp_path, seed):
     assert 0.05 < ref[ref > 0].min() < 0.9  # the field attenuates: the test compares more than ones
     assert np.abs(got - ref).max() < 0.04
     assert np.mean(np.abs(got - ref) < 1e-4) > 0.9
+
+
+def test_a_thin_last_layer_seen_at_a_grazing_angle_is_seen_where_the_image_enters_it(eng, tmp_path):
+    """A volume whose last layer of blocks is 1 voxel thick (a CT's slices rarely fill the last block), seen from
+    just above its top face: a ray of the cast crosses the layer along a path as long as the layer is thick over the
+    sine of the angle, and its neighbour enters the face its spacing over that sine further on, so where the layer
+    is thinner than the cast's ray spacing the cast leaves blocks between them unseen, and the selection put them
+    (cut bone on a CT's top slice) at the coarsest level.
+    Every block where a ray of the image enters the box is seen with transmittance 1, as a float64 host
+    computation of the entry points gives them; elsewhere the cast's own figure stands."""
+    v = np.full((3 * 4 + 1, 160, 160), 0.3, np.float32)  # a faint haze: the cast records every block it samples
+    st = lodcast.ingest(v, tmp_path / "thin.zarr", block_size=4, progress=False)
+    haze = {"points": [{"value": 0.0, "color": [1, 1, 1], "opacity": 0.0}, {"value": 1.0, "color": [1, 1, 1], "opacity": 0.002}]}
+    scene = {"tf": haze, "width": 512, "height": 512, "camera": _ortho(st.shape, (1, 0.3, -0.1))}
+    vol = as_volume(st)
+    sc = resolved(eng, Scene.parse(scene), vol)
+    _, fr, kbox, _ = geometry(vol, sc)
+    entry = np.zeros(vol.grid, bool)
+    entry[_entry_blocks(vol, sc, fr, kbox)] = True
+    top = entry[-1]
+    cast_only = _host_visibility(eng, st, scene, entry=False)
+    assert top.sum() >= 100 and (cast_only[-1][top] == 0).sum() >= top.sum() // 4  # the cast alone misses many
+    got = eng.visibility(st, scene)
+    np.testing.assert_array_equal(got[entry], 1.0)
+    np.testing.assert_allclose(got[~entry], cast_only[~entry], atol=0.04)
 
 
 @pytest.mark.parametrize("f", [(1, 0.4, 0.3), (-1, 0.2, -0.5)])

@@ -11,7 +11,13 @@
  * first opaque sample falls just in front of its face: the interpolated surface moves by up to a coarse voxel,
  * and the block holds the values that draw it. Rays end once that is below 2^-10. NaN samples are transparent.
  * A sample in a block that `quiet` marks is not taken: its alpha is exactly 0 (renderer/lod/visibility.py: quiet_blocks),
- * so the cast records what it would cell by cell, at a fraction of a sample's cost where the TF shows nothing. */
+ * so the cast records what it would cell by cell, at a fraction of a sample's cost where the TF shows nothing.
+ *
+ * lc_visibility_entry: the block where each ray of the image itself (n_rays.x x n_rays.y) enters the box (or the
+ * clip region) gets transmittance 1: nothing lies in front of it. The cast's rays are fewer than the image's, and
+ * where a face of the box is seen at a grazing angle (a cut through the data, a partial last layer of blocks a few
+ * voxels thick) its blocks project thinner than the cast's ray spacing: the cast skips rows of them, which the
+ * image then shows at the coarsest level. */
 #define LC_SAMPLER_FULL
 #include "lc_common.h"
 
@@ -51,4 +57,21 @@ __kernel void lc_visibility(__constant const LcParams* P, __global const float* 
             T *= 1.0f - (alpha[i0] + (alpha[i0 + 1] - alpha[i0]) * (f - (float)i0));
         }
     }
+}
+
+__kernel void lc_visibility_entry(__constant const LcParams* P, const int2 n_rays, __global uint* vis) {
+    const int j = get_global_id(0), i = get_global_id(1);
+    if (j >= n_rays.x || i >= n_rays.y) return;
+    float3 o, d;
+    float t0, t1;
+    /* pixel (j, i) of the image in the cast's pixel units (P->width x P->height) */
+    lc_pixel_ray(P, ((float)j + 0.5f) * (float)P->width / (float)n_rays.x,
+                 ((float)i + 0.5f) * (float)P->height / (float)n_rays.y, &o, &d);
+    if (!lc_hit_box(P, o, d, &t0, &t1)) return;
+    /* a hundredth of the way in: inside the box and its block on the ray's side of a face it enters at */
+    const float3 q = (o + (t0 + 0.01f * (t1 - t0)) * d - P->origin.xyz) * P->inv_spacing.xyz;
+    const float B = (float)P->grid.w;
+    const int bx = lc_clampi((int)((q.x + 0.5f) / B), P->grid.x - 1), by = lc_clampi((int)((q.y + 0.5f) / B), P->grid.y - 1);
+    const int bz = lc_clampi((int)((q.z + 0.5f) / B), P->grid.z - 1);
+    atomic_max(&vis[(bz * P->grid.y + by) * P->grid.x + bx], 16777216u);
 }

@@ -11,7 +11,8 @@ here is occlusion.
 same camera, box and clip planes) front to back through a coarse level of the store (the finest with at most
 VIS_VOXELS voxels: level 1 of a 512²×275 CT, level 3 of a 1024×2048² body), each sample classified by the TF at
 its value, and records per block the largest transmittance with which any ray of the cast enters it
-(visibility.cl). Classifying coarse means thins small opaque structures rather than thickening them, so the
+(visibility.cl); the blocks where the image's own rays enter the box (or the clip region) get 1, which a cast
+sparser than the image misses where a face is seen at a grazing angle. Classifying coarse means thins small opaque structures rather than thickening them, so the
 estimate errs towards calling a block visible. Blocks no ray reaches (outside the picture, or behind what the
 cast saw as opaque) get 0. Where a block and its neighbours hold nothing the TF shows (`quiet_blocks`) the cast
 takes no sample, only the block's entry: the same result in less time.
@@ -95,8 +96,11 @@ def block_visibility(eng: Engine, vol: VolumeView, scene: Scene, fr: cam.Frame, 
     d_q = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=quiet)
     vis = np.zeros(vol.grid, np.uint32)
     d_v = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=vis)
-    kern = cl.Kernel(dev.program("visibility.cl", opts).program, "lc_visibility")
-    kern(queue, (w, h), None, d_p, buf, np.array([*kdims, 0], np.int32), np.int32(k), d_a, d_q, d_v)
+    prog = dev.program("visibility.cl", opts).program
+    cl.Kernel(prog, "lc_visibility")(queue, (w, h), None, d_p, buf, np.array([*kdims, 0], np.int32), np.int32(k),
+                                     d_a, d_q, d_v)
+    cl.Kernel(prog, "lc_visibility_entry")(queue, (scene.width, scene.height), None, d_p,
+                                           np.array([scene.width, scene.height], np.int32), d_v)
     cl.enqueue_copy(queue, vis, d_v)
     queue.finish()
     return (vis.astype(np.float64) / _ONE).astype(np.float32)
