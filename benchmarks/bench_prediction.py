@@ -179,7 +179,7 @@ def truth_check(only: str | None = None) -> list[dict]:
         for k in (1, 2, 3):
             m_k, s_k = np.asarray(st.read_level(k), np.float32), np.asarray(st.read_std_region(k), np.float32)
             for cls in ("distribution", "mean"):
-                zeta, spread, _ = _picture_tables(meta, [tf], cls, None)
+                ((zeta, spread, _),) = _picture_tables(meta, [tf], cls, None)
                 table = np.sqrt(spread[:, k].astype(np.float64) ** 2 + (zeta[:, k] ** 2 if cls == "mean" else 0.0))
                 err2, n_vis = np.zeros(g), np.zeros(g)
                 for bz in range(g[0]):  # a slab of blocks at a time (the volume's CIELUV in float64 would not fit)

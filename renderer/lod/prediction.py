@@ -36,7 +36,10 @@ sum over the slabs it crosses, each seen through the transmittance in front of i
   view enters the block) stands for it.
 
 A pixel's error is then √(Σ_b (T_b · n_b · e_b)²) over the blocks b on its ray, and the image's mean ΔE the mean
-over the pixels its footprint covers (accumulated opacity ≥ 1/255). Without a view, the rays are the block grid's
+over the pixels its footprint covers (accumulated opacity ≥ 1/255). A dual-TF composite shows two integrals, the
+second over the first, and the second is not attenuated by what the first shows: each TF's errors go along the
+rays through its own opacities, and a pixel's add in quadrature (one set of tables with the TFs' maxima counted
+the second TF's blocks as hidden behind the first's). Without a view, the rays are the block grid's
 columns along each axis, both ways; with the view's weight, along each axis (the weight is direction-free). The
 result times RAY_GAIN is the prediction. RAY_GAIN is the one fitted constant (a ray's mean |error| is below its
 RMS, and where an opaque surface only moves in depth an unlit picture does not show it): the geometric mean of
@@ -46,6 +49,7 @@ All of it is NumPy over the block grid, O(blocks).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,12 +76,29 @@ class RayModel:
     seen: np.ndarray | None = None
 
 
-def ray_delta_e(model: RayModel, levels: np.ndarray, gain: float = RAY_GAIN) -> float:
-    """The predicted mean ΔE of the image of a selection (`levels` (N,), −1 not loaded), module doc."""
+def ray_delta_e(model: RayModel | Sequence[RayModel], levels: np.ndarray, gain: float = RAY_GAIN) -> float:
+    """The predicted mean ΔE of the image of a selection (`levels` (N,), −1 not loaded), module doc. A sequence of
+    models: the integrals of a dual-TF composite, one per TF, each through its own opacities (the second TF's is
+    not attenuated by what the first shows: that is what the composite is for); a pixel's errors from them add in
+    quadrature, over the pixels either covers."""
+    models = [model] if isinstance(model, RayModel) else list(model)
     lv = np.asarray(levels, np.int64).ravel()
-    loaded = lv >= 0
-    if not loaded.any():
+    if not (lv >= 0).any() or not models:
         return 0.0
+    parts = [_ray_columns(m, lv) for m in models]
+    out = []
+    for cols in zip(*parts):  # the same axes and ways in every model: one grid
+        err2 = sum(e * e for e, _ in cols)
+        footprint = np.logical_or.reduce([f for _, f in cols])
+        if footprint.any():
+            out.append(float(np.sqrt(err2[footprint]).mean()))
+    return gain * float(np.mean(out)) if out else 0.0
+
+
+def _ray_columns(model: RayModel, lv: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per axis and way along it (module doc), the error of each ray column of the grid (√Σ_b (T_b · n_b · e_b)²)
+    and whether the column is in the footprint."""
+    loaded = lv >= 0
     rows = np.flatnonzero(loaded)
     k = lv[rows]
     e2 = np.zeros(lv.size)
@@ -107,14 +128,11 @@ def ray_delta_e(model: RayModel, levels: np.ndarray, gain: float = RAY_GAIN) -> 
         x2 = np.moveaxis((n_slabs * n_slabs * e2).reshape(grid), ax, 0)
         t = np.moveaxis(tau.reshape(grid), ax, 0)
         footprint = (1.0 - np.prod(t, axis=0)) >= _FOOTPRINT
-        if not footprint.any():
-            continue
         ways = ((np.moveaxis(seen, ax, 0), x2),) if seen is not None else \
             ((_in_front(t), x2), (_in_front(t[::-1]), x2[::-1]))
         for front, xx in ways:
-            err = np.sqrt((front * front * xx).sum(axis=0))
-            out.append(float(err[footprint].mean()))
-    return gain * float(np.mean(out)) if out else 0.0
+            out.append((np.sqrt((front * front * xx).sum(axis=0)), footprint))
+    return out
 
 
 def _in_front(tau: np.ndarray) -> np.ndarray:

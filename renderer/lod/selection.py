@@ -144,7 +144,7 @@ class LodSelection:
     blocks_skipped: int  # blocks not loaded (zero significance or outside the crop)
     # what the prediction took beside the levels (prediction.ray_delta_e(rays, other_levels) predicts another
     # selection of the same store, TFs and view); None for a format-1 store
-    rays: RayModel | None = None
+    rays: tuple[RayModel, ...] | None = None  # one per TF (a dual-TF composite's two integrals)
 
 
 # --------------------------------------------------------------------------------------------- quality
@@ -376,7 +376,7 @@ def greedy(
 
 # --------------------------------------------------------------------------------------------- entry
 def _predicted(zeta_tab: np.ndarray, levels: np.ndarray, count: np.ndarray, opac: np.ndarray | None = None,
-               gain: float = IMAGE_GAIN, rays: RayModel | None = None) -> float:
+               gain: float = IMAGE_GAIN, rays: Sequence[RayModel] | None = None) -> float:
     """The selection's predicted image ΔE (see module doc). With `rays` (a store with per-level spreads): what
     the blocks' errors show along the rays that cross them (prediction.ray_delta_e; `gain` unused). Without (a
     format-1 store): the count-weighted RMS of ζ at the chosen levels; with the blocks' opacity moments (N, 2)
@@ -456,8 +456,7 @@ def select_from_meta(
     if per_level and kind == "lossless" and tables is not None:  # (its tables, with the worst values, serve the drive's below)
         _max_tables(meta, tf_list, classification, tables, worst=True)
     if per_level:  # what each level will show under the kernel's classification (level_error.py); eq. 3.1 unused
-        zeta_tab, opac, visible, drive_base, drive_max, spread, zeta_pic, opac_pic = _drive_tables(
-            meta, tf_list, classification, tables)
+        zeta_tab, opac, visible, drive_base, drive_max, picture = _drive_tables(meta, tf_list, classification, tables)
     else:
         z0, visible = block_significance(meta, tfs, "tf_full_hist" if method == "tf_full_hist" else "tf")
         zeta_tab = (z0[:, None] * prof[None, :]).astype(np.float32)
@@ -533,8 +532,9 @@ def select_from_meta(
     nbytes = samples * BYTES_PER_SAMPLE
     rays = None
     if per_level and opac is not None:
-        rays = RayModel(tuple(meta.grid), tuple(float(x) for x in (path or (block_size,) * 3)), spread,  # type: ignore[arg-type]
-                        zeta_pic if classification == "mean" else None, opac_pic, seen)
+        block_path = tuple(float(x) for x in (path or (block_size,) * 3))
+        rays = tuple(RayModel(tuple(meta.grid), block_path, spread_t, zeta_t if classification == "mean" else None,  # type: ignore[arg-type]
+                              opac_t, seen) for zeta_t, spread_t, opac_t in picture)
     return LodSelection(
         levels=levels.astype(np.int8).reshape(meta.grid),
         zeta=zeta_tab.reshape(tuple(meta.grid) + (L,)),
@@ -642,29 +642,27 @@ def _max_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
 
 
 def _picture_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
-                    tables: Tables | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ζ(k), the spread ς(k)) (N, L) float32 with colours compared in the picture's CIELUV
+                    tables: Tables | None = None) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
+    """Per TF, (ζ(k), the spread ς(k)) (N, L) float32 with colours compared in the picture's CIELUV
     (level_error.block_zetas with `picture`) and the opacity moments (N, 4) that go with them: what the
-    prediction takes (prediction.py), the elementwise maxima over the TFs. ζ(k) only under "mean" classification
-    (the prediction's bias; zeros else): the level errors are most of the pass. The selection's own ζ stays in each
-    slab's CIELUV, as "lossless" was set against it."""
-    zeta = np.zeros((meta.n, meta.n_levels), np.float32)
-    spread = np.zeros((meta.n, meta.n_levels), np.float32)
-    opac = np.zeros((meta.n, 4))
+    prediction takes (prediction.py: a dual-TF composite's two integrals each through their own opacities). ζ(k)
+    only under "mean" classification (the prediction's bias; zeros else): the level errors are most of the pass.
+    The selection's own ζ stays in each slab's CIELUV, as "lossless" was set against it."""
+    out = []
     for tf in tfs:
         visible = tf_visible(tf, meta.min_border, meta.max_border)
         assert meta.value_range is not None  # (as in _tf_tables)
         z, _, o, _, sp = block_zetas(meta, tf, visible, meta.value_range, meta.std_max, classification, tables,
                                      picture=True, level_errors=classification == "mean")
-        zeta, spread, opac = np.maximum(zeta, z), np.maximum(spread, sp), np.maximum(opac, o)
-    return zeta, spread, opac
+        out.append((z.astype(np.float32), sp.astype(np.float32), o))
+    return tuple(out)
 
 
 def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
-                  tables: Tables | None = None) -> tuple[np.ndarray, ...]:
+                  tables: Tables | None = None) -> tuple[Any, ...]:
     """(ζ(k) (N, L) float32, opacity moments (N, 2), TF-visible blocks (N,), what drives the greedy
     √(ζ(k) · spread(k)) (N, L) float64 (module doc: "What the greedy weighs"; level 0 drives nothing), its maximum
-    per block (N,), the spread table ς(k) and ζ(k) (N, L) float32 in the picture's CIELUV and their opacity
+    per block (N,), per TF the ζ(k) and spread ς(k) (N, L) float32 in the picture's CIELUV and their opacity
     moments (N, 4), which the prediction takes (_picture_tables)): `_max_tables` and what follows
     from them and the store alone, kept in `tables` beside them (a new view of a large volume selects again, and
     these are most of the arithmetic over a million blocks)."""
@@ -677,12 +675,13 @@ def _drive_tables(meta: BlockMeta, tfs: Sequence[Any], classification: str,
     spread = np.nan_to_num(np.asarray(meta.level_std, np.float64))
     spread[:, 0] = 0.0
     drive = np.sqrt(zeta * spread)  # (float64, as the greedy takes it: the selection does not depend on keeping it)
-    zeta_p, spread_p, opac_p = _picture_tables(meta, tfs, classification, tables)
-    out = (zeta, opac, visible, drive, drive.max(axis=1), spread_p, zeta_p, opac_p)
-    for a in out:
+    picture = _picture_tables(meta, tfs, classification, tables)
+    arrays = [zeta, opac, visible, drive, drive.max(axis=1), *(a for t in picture for a in t)]
+    for a in arrays:
         a.setflags(write=False)
+    out = (*arrays[:5], picture)
     if tables is not None:
-        tables.tf.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in out))
+        tables.tf.put(key, (weakref.ref(meta), out), sum(a.nbytes for a in arrays))
     return out
 
 
