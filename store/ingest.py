@@ -471,7 +471,9 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     dtype = np.dtype(info.dtype)
     gz, gy, gx = lay.grid
     group = zarr.open_group(str(root), mode="w", zarr_format=3)
-    compressor = BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.bitshuffle if dtype.itemsize > 1 else BloscShuffle.shuffle)
+    # the bricks' codec: blosc's lz4 decodes a 16³ chunk about five times faster than zstd for a tenth more bytes,
+    # and reading a selection's bricks is mostly decoding them (a cold image, a new view, a pass past the budget)
+    compressor = BloscCodec(cname="lz4", clevel=9, shuffle=BloscShuffle.bitshuffle if dtype.itemsize > 1 else BloscShuffle.shuffle)
     writers = []
     for k in range(lay.n_levels):
         arr = group.create_array(
@@ -487,7 +489,7 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
     for k in range(1, lay.n_levels):
         arr = std_group.create_array(
             str(k), shape=lay.level_shape(k), dtype=sdtype, chunks=lay.chunk_shape(k), shards=lay.shard_shape(k),
-            compressors=BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle), fill_value=0,
+            compressors=BloscCodec(cname="lz4", clevel=9, shuffle=BloscShuffle.bitshuffle), fill_value=0,
             dimension_names=("z", "y", "x"), config=COMPLETE,
         )
         std_writers.append(_LevelWriter(arr, root / "std" / str(k), lay.shard_shape(k)[0], root / f".rows-std-{k}"))
@@ -549,7 +551,8 @@ def _write(src: VolumeSource, root: Path, lay: Layout, n_bins: int, segments: in
         seg = min(segments, bins.count)
         overall = np.zeros(bins.count)  # the volume's histogram (borders counted twice): the omero window
         hist_arr = blocks.create_array("hist", shape=lay.grid + (bins.count,), dtype=np.uint32,
-                                       chunks=(1, gy, gx, bins.count), compressors=compressor, fill_value=0)
+                                       chunks=(1, gy, gx, bins.count), fill_value=0,
+                                       compressors=BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.bitshuffle))
         # pass 2: level 0 again, in z order (from the source when that is cheap, else read back from the store).
         # Each piece is counted alone: into its own row of blocks, and a row's first and last slices also into the
         # borders of the rows below and above. A row is complete once the first piece of the next one is counted,
