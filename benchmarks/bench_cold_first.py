@@ -1,13 +1,15 @@
 """The cold 30:1 first image of a large volume against DESIGN.md's bound (issue 44 item 3), old and new alternating.
 
     .venv/bin/python benchmarks/bench_cold_first.py [--store benchmarks/results/large/body_1024x2048x2048.zarr]
-        [--base OTHER/.venv/bin/python] [--pairs 5] [--json docs/measurements/cold_first.json]
+        [--base OTHER/.venv/bin/python] [--base-store STORE] [--pairs 5] [--json docs/measurements/cold_first.json]
 
 Per pair, each run in a fresh process with the page cache dropped just before it (the order alternates: the base
 first in even pairs, this tree first in odd ones): the time from the process's start to the 30:1 image (ct-bone,
 512², default brick pool and device), with its selection (prepare) and atlas (device_atlas) seconds, the process's
 page faults and the load average. `--base` is a Python whose `lodcast` is the code to compare with (another
-checkout's virtual environment); without it only this tree runs.
+checkout's virtual environment); without it only this tree runs. `--base-store`: the base reads that store instead
+(the same volume written by the base's ingest, where the change is in how a store is written); the bound is this
+tree's store's.
 
 In the same run, once: the read rate of the files the image reads (levels 1-4 of the values and of their
 deviations, whole files: `cat` after a drop) and the decoding alone (the image's bricks, values and deviations,
@@ -142,7 +144,9 @@ def table(res: dict) -> str:
     lines = [f"Cold 30:1 first image, 512², ct-bone, {res['store']}, "
              f"{'page cache dropped before each process' if res['page_cache_dropped'] else 'page cache NOT dropped'}; "
              f"seconds from the process's start. {res['date']}, {res['nproc']} x {res['cpu']} (kernel "
-             f"{res['kernel']}), base {res['base']} against this tree {res['tree']}; `{res['command']}`", "",
+             f"{res['kernel']}), base {res['base']}"
+             f"{' reading ' + res['base_store'] if res.get('base_store') else ''} against this tree {res['tree']}; "
+             f"`{res['command']}`", "",
              "| pair | order | base s | this tree s | ratio | base prepare / atlas s | this prepare / atlas s | "
              "base / this minor faults | load avg (1 min) |", "|---|---|---|---|---|---|---|---|---|"]
     for i, p in enumerate(pairs):
@@ -170,6 +174,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", type=Path, default=LARGE / "body_1024x2048x2048.zarr")
     ap.add_argument("--base", help="a Python whose lodcast is the code to compare with")
+    ap.add_argument("--base-store", type=Path, help="the store the base reads (default: --store)")
     ap.add_argument("--pairs", type=int, default=5)
     ap.add_argument("--json", type=Path, default=ROOT / "docs" / "measurements" / "cold_first.json")
     ap.add_argument("--render-step", help=argparse.SUPPRESS)
@@ -203,8 +208,9 @@ def main() -> None:
                 continue
             dropped = drop_caches() and dropped
             loads.append(os.getloadavg()[0])
+            where = (a.base_store or store).resolve() if who == "base" else store
             got[who] = child(a.base if who == "base" else sys.executable,
-                             ["--render-step", str(store), "--started", repr(time.time())])
+                             ["--render-step", str(where), "--started", repr(time.time())])
         got["load"] = float(np.mean(loads))
         pairs.append(got)
         print(json.dumps(got), flush=True)
@@ -220,7 +226,8 @@ def main() -> None:
                           text=True).stdout.strip()
     res = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "nproc": os.cpu_count(), "cpu": cpu,
            "kernel": platform.release(), "command": " ".join(sys.argv), "store": store.name,
-           "page_cache_dropped": dropped, "base": base_rev, "tree": head, "bound": bound, "pairs": pairs}
+           "page_cache_dropped": dropped, "base": base_rev, "tree": head, "bound": bound, "pairs": pairs,
+           "base_store": None if a.base_store is None else a.base_store.resolve().name}
     res["table"] = table(res)
     print(res["table"])
     a.json.parent.mkdir(parents=True, exist_ok=True)
