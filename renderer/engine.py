@@ -246,8 +246,8 @@ class Engine:
             pools, self._pools = self._pools, {}
         for pool in pools.values():
             pool.shutdown(wait=False)
-        for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps, self.walks,
-                  self.adaptive_walks, self.parents, self.cells, self.targets):
+        for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps,
+                  self.lod_plans, self.digests, self.walks, self.adaptive_walks, self.parents, self.cells, self.targets):
             c.clear()
         self.tables = Tables(self.device)
         self.forget_atlases()

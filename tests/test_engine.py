@@ -92,8 +92,10 @@ def test_two_renderers_keep_their_state_apart(tmp_path):
     assert rb.report["bricks_read"] == ra.report["bricks_read"] and rb.report["passes"] > ra.report["passes"] == 1
     np.testing.assert_array_equal(ra.rgba, rb.rgba)
     assert a.stores.get(str(path)) is not b.stores.get(str(path))
+    assert len(a.lod_plans) == 1 and len(a.digests) > 0
     a.close()
-    assert len(a.bricks) == len(a.selections) == 0 and len(b.selections) == 1 and len(b.bricks) > 0
+    assert len(a.bricks) == len(a.selections) == len(a.lod_plans) == len(a.digests) == 0
+    assert len(b.selections) == 1 and len(b.bricks) > 0
     again = b.render(str(path), scene).report
     assert again["bricks_read"] == 0
     assert default_renderer() is default_renderer() and default_renderer() not in (a, b)
