@@ -30,6 +30,9 @@ import numpy as np
 import lodcast
 from lodcast.store import ingest as ingest_module
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from record import bootstrap  # noqa: E402
+
 DATA = Path(os.environ.get("LODCAST_SHARED_DATA", "/work/shared/data"))
 SCENE = {"camera": {"azimuth": 30, "elevation": 20}, "width": 256, "height": 256, "quality": "full", "format": "npy",
          "tf": {"points": [{"value": 40, "color": [0.3, 0.7, 0.2], "opacity": 0.0},
@@ -63,12 +66,6 @@ def drop_cache(root: Path) -> str:
                 finally:
                     os.close(fd)
         return "fadvise"
-
-
-def bootstrap(ratios: np.ndarray, n: int = 4000, seed: int = 0) -> tuple[float, float]:
-    rng = np.random.default_rng(seed)
-    meds = np.median(rng.choice(ratios, (n, ratios.size), replace=True), axis=1)
-    return float(np.quantile(meds, 0.025)), float(np.quantile(meds, 0.975))
 
 
 def pairs(run: Callable[[bool], tuple[float, float]], n: int) -> dict[str, Any]:

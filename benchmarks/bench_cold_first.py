@@ -35,6 +35,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
 from bench_large_volume import LARGE, drop_caches  # noqa: E402
+from record import alternating, base_revision, write_result  # noqa: E402
 
 SCENE = {"tf": "ct-bone", "width": 512, "height": 512, "format": "npy", "quality": {"reduction": 30},
          "camera": {"azimuth": 30, "elevation": 15}}
@@ -198,42 +199,26 @@ def main() -> None:
     bound = {"read_mb": sum(p.stat().st_size for p in files) / 1e6, "read_s": read_s, "decode": dec,
              "decode_s": dec_s, "bound_s": max(2 * read_s, dec_s) + 2}
     print(json.dumps(bound), flush=True)
-    pairs = []
-    for i in range(a.pairs):
-        order = ["base", "new"] if i % 2 == 0 else ["new", "base"]
-        got: dict = {"order": "/".join(order)}
-        loads = []
-        for who in order:
-            if who == "base" and not a.base:
-                continue
-            dropped = drop_caches() and dropped
-            loads.append(os.getloadavg()[0])
-            where = (a.base_store or store).resolve() if who == "base" else store
-            got[who] = child(a.base if who == "base" else sys.executable,
-                             ["--render-step", str(where), "--started", repr(time.time())])
-        got["load"] = float(np.mean(loads))
-        pairs.append(got)
-        print(json.dumps(got), flush=True)
+    all_dropped = [dropped]
+
+    def run(who: str) -> dict:
+        all_dropped.append(drop_caches())
+        where = (a.base_store or store).resolve() if who == "base" else store
+        return child(a.base if who == "base" else sys.executable,
+                     ["--render-step", str(where), "--started", repr(time.time())])
+
+    pairs = alternating(a.pairs, run, bool(a.base))
+    dropped = all(all_dropped)
     cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                 if ln.startswith("model name")), platform.processor())
-    base_rev = None
-    if a.base:
-        base_root = subprocess.run([a.base, "-c", "import lodcast, pathlib; print(pathlib.Path(lodcast.__file__)"
-                                    ".resolve().parent.parent)"], capture_output=True, text=True, cwd="/").stdout.strip()
-        base_rev = subprocess.run(["git", "-C", base_root, "rev-parse", "--short", "HEAD"], capture_output=True,
-                                  text=True).stdout.strip()
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                           text=True).stdout.strip()
     res = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "nproc": os.cpu_count(), "cpu": cpu,
            "kernel": platform.release(), "command": " ".join(sys.argv), "store": store.name,
-           "page_cache_dropped": dropped, "base": base_rev, "tree": head, "bound": bound, "pairs": pairs,
+           "page_cache_dropped": dropped, "base": base_revision(a.base), "tree": head, "bound": bound, "pairs": pairs,
            "base_store": None if a.base_store is None else a.base_store.resolve().name}
     res["table"] = table(res)
-    print(res["table"])
-    a.json.parent.mkdir(parents=True, exist_ok=True)
-    a.json.write_text(json.dumps(res, indent=2))
-    a.json.with_suffix(".md").write_text(res["table"] + "\n")
-    print(f"wrote {a.json}")
+    write_result(a.json, res)
 
 
 if __name__ == "__main__":

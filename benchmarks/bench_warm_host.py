@@ -29,7 +29,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
 from bench_large_volume import LARGE  # noqa: E402
-from record import provenance  # noqa: E402
+from record import alternating, base_revision, bootstrap, provenance, write_result  # noqa: E402
 
 ENV = {"LODCAST_BRICK_CACHE_MB": "1024", "LODCAST_DEVICE_BUDGET_MB": "512"}
 SCENE = {"tf": "ct-bone", "width": 512, "height": 512, "format": "npy", "quality": {"budget_mb": 256}}
@@ -53,13 +53,6 @@ def frames_step(store: str, frames: int) -> None:
     w, k = np.array(wall), np.array(kernel)
     print(json.dumps({"wall_ms": float(np.median(w)), "kernel_ms": float(np.median(k)),
                       "host_ms": float(np.median(w - k)), "host_share": float(np.median((w - k) / w))}))
-
-
-def bootstrap(ratios: np.ndarray, n: int = 4000, seed: int = 0) -> tuple[float, float]:
-    """The 95 % interval of the median of `ratios`, resampled with replacement."""
-    rng = np.random.default_rng(seed)
-    meds = np.median(rng.choice(ratios, (n, ratios.size)), axis=1)
-    return float(np.percentile(meds, 2.5)), float(np.percentile(meds, 97.5))
 
 
 def child(python: str, store: Path, frames: int) -> dict:
@@ -111,33 +104,12 @@ def main() -> None:
     store = a.store.resolve()
     if not store.exists():
         raise SystemExit(f"{store}: no such store (make it with benchmarks/bench_scaling.py)")
-    pairs = []
-    for i in range(a.pairs):
-        order = ["base", "new"] if i % 2 == 0 else ["new", "base"]
-        got: dict = {"order": "/".join(order)}
-        loads = []
-        for who in order:
-            if who == "base" and not a.base:
-                continue
-            loads.append(os.getloadavg()[0])
-            got[who] = child(a.base if who == "base" else sys.executable, store, a.frames)
-        got["load"] = float(np.mean(loads))
-        pairs.append(got)
-        print(json.dumps(got), flush=True)
-    base_rev = None
-    if a.base:
-        base_root = subprocess.run([a.base, "-c", "import lodcast, pathlib; print(pathlib.Path(lodcast.__file__)"
-                                    ".resolve().parent.parent)"], capture_output=True, text=True, cwd="/").stdout.strip()
-        base_rev = subprocess.run(["git", "-C", base_root, "rev-parse", "--short", "HEAD"], capture_output=True,
-                                  text=True).stdout.strip()
-    res = {**provenance("bench_warm_host.py"), "store": store.name, "frames": a.frames, "base": base_rev,
-           "pairs": pairs}
+    pairs = alternating(a.pairs, lambda who: child(a.base if who == "base" else sys.executable, store, a.frames),
+                        bool(a.base))
+    res = {**provenance("bench_warm_host.py"), "store": store.name, "frames": a.frames,
+           "base": base_revision(a.base), "pairs": pairs}
     res["table"] = table(res)
-    print(res["table"])
-    a.json.parent.mkdir(parents=True, exist_ok=True)
-    a.json.write_text(json.dumps(res, indent=2))
-    a.json.with_suffix(".md").write_text(res["table"] + "\n")
-    print(f"wrote {a.json}")
+    write_result(a.json, res)
 
 
 if __name__ == "__main__":
