@@ -253,21 +253,27 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
     along the face's normal: along the normal the field there holds no finer detail than the coarse field (at
     most twice as steep); what a coarse step can miss is the neighbour's detail across the face, met by oblique
     rays. The finest-of-eight rule took more samples for the same image error (benchmarks/bench_lod_sweep.py)."""
-    lv = np.asarray(levels).astype(np.int64)
+    lv = np.asarray(levels)
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
-    out = np.maximum(lv, 0)
-    np.add(out, 1, out=out, where=out >= 1)
-    np.minimum(out, int(block_size).bit_length() - 1, out=out)
-    s = half_cells(out)
+    code = np.maximum(lv.astype(np.int8), 0)  # (levels fit 4 bits: pack_index)
+    np.add(code, 1, out=code, where=code >= 1)
+    np.minimum(code, int(block_size).bit_length() - 1, out=code)
     # NEAR_LEVEL0: a coarse cell with a level-0 cell across a face, where the kernel looks at the cell the ray
-    # enters next (its last step ends on full resolution's lattice there); elsewhere it need not read it
-    fine = np.pad(s == 0, 1)
-    near = np.zeros(s.shape, bool)
-    for ax in range(3):
-        for d in (0, 2):
-            near |= fine[tuple(slice(d, d + n) if a == ax else slice(1, 1 + n) for a, n in enumerate(s.shape))]
-    s = np.where((s > 0) & near, s | NEAR_LEVEL0, s)
-    return skipped(s, half_cells(off))
+    # enters next (its last step ends on full resolution's lattice there); elsewhere it need not read it. A cell's
+    # neighbour across a face inside its block has its own code, so only the blocks across its outer faces count:
+    # each of the eight cells of every block (octant o) at once, from the blocks' codes, rather than over the
+    # cells' grid with eight times the work
+    fine = np.pad(code == 0, 1)
+    G = code.shape
+    out = np.empty((G[0], 2, G[1], 2, G[2], 2), np.int8)
+    inner = tuple(slice(1, 1 + n) for n in G)
+    for o in np.ndindex(2, 2, 2):
+        near = np.zeros(G, bool)
+        for ax in range(3):  # the block before along ax for the lower cell, the one after for the upper
+            near |= fine[tuple(slice(2 * o[a], 2 * o[a] + n) if a == ax else inner[a] for a, n in enumerate(G))]
+        c = np.where((code > 0) & near, code | np.int8(NEAR_LEVEL0), code)
+        out[:, o[0], :, o[1], :, o[2]] = np.where(off, -c - np.int8(1), c)
+    return out.reshape(2 * G[0], 2 * G[1], 2 * G[2])
 
 
 #: step_levels' flag of a coarse cell next to a level-0 one (the step level is the code's low three bits)
