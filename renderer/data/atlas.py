@@ -50,37 +50,31 @@ def neighbourhood_max(levels: np.ndarray) -> np.ndarray:
     """Per block: the largest value over its 3x3x3 neighbourhood (itself included). Levels: unloaded blocks
     (-1) count as 0; float arrays (block infos) are taken as they are."""
     levels = np.asarray(levels)
-    lv = np.maximum(levels.astype(np.int64), 0) if levels.dtype.kind in "iu" else levels
-    pad = np.pad(lv, 1, mode="edge")
-    out = lv.copy()
-    G = lv.shape
-    for dz in range(3):
-        for dy in range(3):
-            for dx in range(3):
-                np.maximum(out, pad[dz:dz + G[0], dy:dy + G[1], dx:dx + G[2]], out=out)
+    if levels.dtype.kind in "iu":  # (in the levels' own type: a pass over int64 costs eight times the bytes)
+        return _spread_max(np.maximum(levels, 0), (0, 1, 2)).astype(np.int64)
+    return _spread_max(levels, (0, 1, 2))
+
+
+def _spread_max(a: np.ndarray, axes: tuple[int, ...]) -> np.ndarray:
+    """Per element: the largest value over its 3-neighbourhood along each of `axes` in turn, edges repeated (a
+    3x3x3 or 3x3 neighbourhood's maximum as one pass per axis, the order of a maximum's terms being free)."""
+    out = a
+    for ax in axes:
+        src, out = out, out.copy()
+        lo, hi = ([slice(None)] * a.ndim for _ in range(2))
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        np.maximum(out[tuple(hi)], src[tuple(lo)], out=out[tuple(hi)])
+        np.maximum(out[tuple(lo)], src[tuple(hi)], out=out[tuple(lo)])
     return out
 
 
 def slice_max(levels: np.ndarray) -> np.ndarray:
     """(grid + (3,)): per block and axis a (x, y, z), the largest level among the 3x3 blocks of its own slice
     across a (itself and the 8 neighbours that share its a-coordinate; unloaded blocks count as 0)."""
-    lv = np.maximum(np.asarray(levels).astype(np.int64), 0)
-    pad = np.pad(lv, 1, mode="edge")
-    G = lv.shape
-    out = np.empty(G + (3,), np.int64)
+    lv = np.maximum(np.asarray(levels), 0)
+    out = np.empty(lv.shape + (3,), np.int64)
     for a, ax in enumerate((2, 1, 0)):  # x, y, z: the slice keeps array axis ax fixed
-        m = lv.copy()
-        for d1 in range(3):
-            for d2 in range(3):
-                off = [d1, d2]
-                idx = [slice(1, 1 + G[i]) if i == ax else None for i in range(3)]
-                k = 0
-                for i in range(3):
-                    if i != ax:
-                        idx[i] = slice(off[k], off[k] + G[i])
-                        k += 1
-                np.maximum(m, pad[tuple(idx)], out=m)
-        out[..., a] = m
+        out[..., a] = _spread_max(lv, tuple(i for i in range(3) if i != ax))
     return out
 
 
