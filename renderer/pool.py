@@ -108,6 +108,28 @@ class _Arena:
             self.slabs[i] = None
 
 
+def _least_recent(stamps: np.ndarray, costs: np.ndarray, nbytes: int) -> np.ndarray:
+    """The places (in no order) of the entries a stable sort by `stamps` puts first, as few as make their `costs`
+    reach `nbytes` (all of them when the total falls short): the entries older than the stamp where the running
+    total reaches it, and the first ones of that stamp in place order. Counted per stamp rather than sorted: a
+    pool holds a million bricks, and a new view's reads pass its bound several times."""
+    if not stamps.size:
+        return np.zeros(0, np.int64)
+    lo = int(stamps.min())
+    span = int(stamps.max()) - lo + 1
+    if span > 4 * stamps.size + (1 << 20):  # (stamps too sparse to count per stamp)
+        order = np.argsort(stamps, kind="stable")
+        return order[:int(np.searchsorted(np.cumsum(costs[order]), nbytes)) + 1]
+    total = np.cumsum(np.bincount(stamps - lo, weights=costs, minlength=span))  # (exact: bytes below 2^53)
+    t = int(np.searchsorted(total, nbytes))
+    if t >= span:
+        return np.arange(stamps.size)
+    tie = np.flatnonzero(stamps == lo + t)
+    before = float(total[t - 1]) if t else 0.0
+    m = int(np.searchsorted(np.cumsum(costs[tie]), nbytes - before)) + 1
+    return np.concatenate([np.flatnonzero(stamps < lo + t), tie[:m]])
+
+
 class BrickPool(ByteBound):
     """Bricks keyed by (kind, store key, level) and the block's flat index in the block grid; bounded by the bytes
     of the bricks it holds (each brick's samples plus ROW_BYTES; `max_bytes` a number, or a function asked at every
@@ -252,9 +274,7 @@ class BrickPool(ByteBound):
         costs = np.concatenate([np.full(h.size, self._arenas[f].brick_bytes + ROW_BYTES, np.int64)
                                 for f, h in zip(fams, held)]
                                + [np.array([self._whole[w][0].nbytes + ROW_BYTES for w in wholes], np.int64)])
-        order = np.argsort(stamps, kind="stable")
-        n = int(np.searchsorted(np.cumsum(costs[order]), nbytes)) + 1
-        gone = order[:n]
+        gone = _least_recent(stamps, costs, nbytes)
         for i in (-1 - which[gone[which[gone] < 0]]).tolist():
             self._forget(wholes[i])
         gone = gone[which[gone] >= 0]

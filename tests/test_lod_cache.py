@@ -99,6 +99,24 @@ def test_reads_are_grouped_by_shard_and_run_in_parallel(store, eng):
     assert (again.read, again.cached, again.shards) == (0, lv.size, 0)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_eviction_takes_what_a_stable_sort_by_stamp_puts_first(seed):
+    """The entries eviction takes, counted per stamp, are those a stable sort by stamp puts first until their
+    costs reach the bytes to free: ties at the threshold in place order, all when the total falls short, and
+    stamps too sparse to count per stamp."""
+    from lodcast.renderer.pool import _least_recent
+
+    rng = np.random.default_rng(seed)
+    for n, span in ((1, 1), (50, 5), (2000, 40), (3000, 10**9)):
+        stamps = rng.integers(7, 7 + span, size=n).astype(np.int64)
+        costs = rng.choice([16 + 2, 16 + 1024, 16 + 8192], size=n).astype(np.int64)
+        order = np.argsort(stamps, kind="stable")
+        cum = np.cumsum(costs[order])
+        for nbytes in (1, int(costs[0]), int(cum[-1]) // 3, int(cum[-1]) - 1, int(cum[-1]), int(cum[-1]) + 5):
+            want = order[:int(np.searchsorted(cum, nbytes)) + 1]
+            assert sorted(_least_recent(stamps, costs, nbytes).tolist()) == sorted(want.tolist())
+
+
 def test_pool_is_an_lru_bounded_by_bytes():
     """Bricks of one arena (kind, store, level) by block index; eviction takes the least recently used bricks of the
     whole pool down to EVICT_TO of its bound once the bound is passed, a brick asked for counts as used, and what
