@@ -6,8 +6,9 @@ a move of 2° changes the level of a few thousand blocks, whose bricks are read 
 
 One renderer in this process (its settings from the LODCAST_* environment): a first view at azimuth 30° (cold for
 the process, not counted), then `views` new views 2° apart, elevation 20°, ct-bone, `{"reduction": R}`, `size`²,
-`"sampling": {"lod_visibility": true}`. Per view: the wall time of `Renderer.render` and the report's own
-figures (wall, kernel, upload and build ms, bricks read and cached). `--profile FILE`: the new views run under
+`"sampling": {"lod_visibility": true}`. Per view: the wall time of `Renderer.render`, the process's CPU time over
+it (every thread's, the device's included on a CPU device: on a busy machine steadier than the wall time) and
+the report's own figures (wall, kernel, upload and build ms, bricks read and cached). `--profile FILE`: the new views run under
 cProfile, whose statistics go to FILE (and the top of them, by cumulative time, to stdout); the times printed
 then include the profiler's overhead. Prints the medians and writes JSON.
 """
@@ -49,13 +50,14 @@ def new_views(store: Path, views: int, size: int, reduction: float, profile: Pat
     rows = []
     for i in range(1, views + 1):
         sc = scene(AZ0 + STEP * i, size, reduction)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         if prof is not None:
             prof.enable()
         r = eng.render(str(store), sc)
         if prof is not None:
             prof.disable()
-        rows.append({"ms": (time.perf_counter() - t0) * 1e3, **{k: r.report[k] for k in REPORTED}})
+        rows.append({"ms": (time.perf_counter() - t0) * 1e3, "cpu_ms": (time.process_time() - c0) * 1e3,
+                     **{k: r.report[k] for k in REPORTED}})
     eng.close()
     if prof is not None:
         assert profile is not None
@@ -63,6 +65,7 @@ def new_views(store: Path, views: int, size: int, reduction: float, profile: Pat
         pstats.Stats(str(profile)).sort_stats("cumulative").print_stats(45)
     return {"first_ms": first, "views": rows,
             "median_ms": float(np.median([r["ms"] for r in rows])),
+            "median_cpu_ms": float(np.median([r["cpu_ms"] for r in rows])),
             "median_host_ms": float(np.median([r["wall_ms"] - r["kernel_ms"] for r in rows])),
             "median_kernel_ms": float(np.median([r["kernel_ms"] for r in rows])),
             "median_bricks_read": float(np.median([r["bricks_read"] for r in rows]))}
@@ -87,13 +90,13 @@ def main(argv: list[str] | None = None) -> int:
     res["load_after"] = os.getloadavg()
     print(f"\n{a.store.name}, {a.size}², reduction {a.reduction:g}, lod_visibility on, {a.views} new views "
           f"{STEP:g}° apart (load {res['load'][0]:.2f} -> {res['load_after'][0]:.2f})\n")
-    print("| view | ms | kernel ms | upload ms | bricks read | bricks cached |")
-    print("|---|---|---|---|---|---|")
+    print("| view | ms | CPU ms | kernel ms | upload ms | bricks read | bricks cached |")
+    print("|---|---|---|---|---|---|---|")
     for i, r in enumerate(res["views"], 1):
-        print(f"| {i} | {r['ms']:.0f} | {r['kernel_ms']:.0f} | {r['upload_ms']:.0f} | {r['bricks_read']} | "
-              f"{r['bricks_cached']} |")
-    print(f"\nfirst view {res['first_ms']:.0f} ms; new view median {res['median_ms']:.0f} ms "
-          f"(host {res['median_host_ms']:.0f}, kernel {res['median_kernel_ms']:.0f})")
+        print(f"| {i} | {r['ms']:.0f} | {r['cpu_ms']:.0f} | {r['kernel_ms']:.0f} | {r['upload_ms']:.0f} | "
+              f"{r['bricks_read']} | {r['bricks_cached']} |")
+    print(f"\nfirst view {res['first_ms']:.0f} ms; new view median {res['median_ms']:.0f} ms, CPU "
+          f"{res['median_cpu_ms']:.0f} ms (host {res['median_host_ms']:.0f}, kernel {res['median_kernel_ms']:.0f})")
     a.json.parent.mkdir(parents=True, exist_ok=True)
     a.json.write_text(json.dumps(res, indent=1))
     print(f"wrote {a.json}")

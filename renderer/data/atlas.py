@@ -20,6 +20,7 @@ cache (the engine's `device_cache`: same store and levels, nothing is packed or 
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import ctypes
 import sys
@@ -408,17 +409,21 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
             d_atlas, host = _mapped(ctx, queue, max(total, 1), dtype)
             try:
                 dirty = None
-                if old is not None:  # kept compares with base, which old maps
-                    assert base is not None and kept is not None
-                    if with_std:  # (packed: the coarse values ride along with their deviations)
-                        assert sig is not None and old[1] is not None  # with_std is part of base's family
-                        copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
-                    copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
-                              range(0, 1 if packed else L), B)
-                    # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0
-                    # status changed: the blocks whose cells can change under nearest block are the ones to fill
-                    dirty = dirty_blocks(base.levels.reshape(levels.shape), levels, "nearest_block")
-                place_bricks(eng, vol, todo, _sinks(host, sig, levels, offsets, B, packed), cache, st)
+                # the kept bricks are copied beside the reads, on a thread of their own: they are other blocks'
+                # bricks, and the copy (most of it first touches of the new buffer's pages) runs without the
+                # interpreter lock, which the readers spend most of their time holding
+                with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lodcast-kept") as beside:
+                    copied = None
+                    if old is not None:  # kept compares with base, which old maps
+                        assert base is not None and kept is not None
+                        copied = beside.submit(_copy_kept_all, host, sig, old, flat, offsets, base, kept, L, B,
+                                               packed)
+                        # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0
+                        # status changed: the blocks whose cells can change under nearest block are the ones to fill
+                        dirty = dirty_blocks(base.levels.reshape(levels.shape), levels, "nearest_block")
+                    place_bricks(eng, vol, todo, _sinks(host, sig, levels, offsets, B, packed), cache, st)
+                    if copied is not None:
+                        copied.result()
             finally:
                 cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
             aprons.device_aprons(eng.device, d_atlas, dtype, levels, offsets, B, dirty)
@@ -544,6 +549,19 @@ def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.
             dv[a:a + n] = sv[o:o + n]
         copied += rows.size
     return copied
+
+
+def _copy_kept_all(host: np.ndarray, sig: np.ndarray | None, old: tuple, levels: np.ndarray, offsets: np.ndarray,
+                   base: "DeviceAtlas", kept: np.ndarray, n_levels: int, block_size: int, packed: bool) -> None:
+    """copy_kept of every buffer of a new atlas (`host`, and `sig` with deviations) from the mappings `old` of
+    `base`'s: the deviations' buffer holds the coarse levels (packed: the coarse values ride along with their
+    deviations), the atlas level 0 and, unpacked, the coarse values too."""
+    assert base.levels is not None and base.offsets is not None  # an atlas built from holds its selection
+    if sig is not None:
+        assert old[1] is not None  # with_std is part of base's family
+        copy_kept(sig, old[1], levels, offsets, base.levels, base.offsets, kept, range(1, n_levels), block_size)
+    copy_kept(host, old[0], levels, offsets, base.levels, base.offsets, kept, range(0, 1 if packed else n_levels),
+              block_size)
 
 
 def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str) -> np.ndarray:
