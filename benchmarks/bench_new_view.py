@@ -3,6 +3,7 @@ a move of 2° changes the level of a few thousand blocks, whose bricks are read 
 
     .venv/bin/python benchmarks/bench_new_view.py [--store benchmarks/results/large/body_1024x2048x2048.zarr]
         [--views 6] [--size 512] [--reduction 30] [--profile new_view.prof] [--json results/new_view.json]
+        [--against ../base-worktree --pairs 5]
 
 One renderer in this process (its settings from the LODCAST_* environment): a first view at azimuth 30° (cold for
 the process, not counted), then `views` new views 2° apart, elevation 20°, ct-bone, `{"reduction": R}`, `size`²,
@@ -11,6 +12,11 @@ it (every thread's, the device's included on a CPU device: on a busy machine ste
 the report's own figures (wall, kernel, upload and build ms, bricks read and cached). `--profile FILE`: the new views run under
 cProfile, whose statistics go to FILE (and the top of them, by cumulative time, to stdout); the times printed
 then include the profiler's overhead. Prints the medians and writes JSON.
+
+`--against DIR` (a worktree of another commit, with its own .venv): A/B instead, `pairs` interleaved pairs of
+processes, this checkout's and DIR's, the order alternating between pairs, each process this benchmark (this
+file, run by the other's interpreter, imports the other's lodcast); per process the median new view (wall and
+CPU), and the ratios this / other: their median and a bootstrap 95 % interval.
 """
 from __future__ import annotations
 
@@ -19,7 +25,9 @@ import cProfile
 import json
 import os
 import pstats
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -71,6 +79,41 @@ def new_views(store: Path, views: int, size: int, reduction: float, profile: Pat
             "median_bricks_read": float(np.median([r["bricks_read"] for r in rows]))}
 
 
+def bootstrap(ratios: np.ndarray, n: int = 4000, seed: int = 0) -> tuple[float, float]:
+    rng = np.random.default_rng(seed)
+    meds = np.median(rng.choice(ratios, (n, ratios.size), replace=True), axis=1)
+    return float(np.quantile(meds, 0.025)), float(np.quantile(meds, 0.975))
+
+
+def one_process(python: Path, args: list[str]) -> dict:
+    """This benchmark run once by `python` (its lodcast, that of the checkout whose .venv it is), its JSON."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "run.json"
+        subprocess.run([str(python), str(Path(__file__).resolve()), *args, "--json", str(out)], check=True,
+                       stdout=subprocess.DEVNULL)
+        return json.loads(out.read_text())
+
+
+def ab(other: Path, pairs: int, args: list[str]) -> dict:
+    """`pairs` interleaved pairs (this checkout, `other`), the order alternating; ratios this / other."""
+    pythons = {"this": Path(sys.executable), "other": other / ".venv" / "bin" / "python"}
+    runs: dict[str, list[dict]] = {"this": [], "other": []}
+    for i in range(pairs):
+        for who in (("other", "this") if i % 2 == 0 else ("this", "other")):
+            r = one_process(pythons[who], args)
+            runs[who].append({k: r[k] for k in ("median_ms", "median_cpu_ms", "median_kernel_ms", "load",
+                                                "load_after", "first_ms")})
+            print(f"pair {i + 1} {who}: median {r['median_ms']:.0f} ms, CPU {r['median_cpu_ms']:.0f} ms "
+                  f"(load {r['load'][0]:.2f})", flush=True)
+    res: dict = {"runs": runs}
+    for what in ("median_ms", "median_cpu_ms"):
+        ratio = np.array([a[what] / b[what] for a, b in zip(runs["this"], runs["other"])])
+        res[what] = {"this": float(np.median([r[what] for r in runs["this"]])),
+                     "other": float(np.median([r[what] for r in runs["other"]])),
+                     "ratio_median": float(np.median(ratio)), "ratio_ci95": bootstrap(ratio), "ratios": ratio.tolist()}
+    return res
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--store", type=Path, default=HERE / "results" / "large" / "body_1024x2048x2048.zarr")
@@ -79,10 +122,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reduction", type=float, default=30.0)
     ap.add_argument("--profile", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=HERE / "results" / "new_view.json")
+    ap.add_argument("--against", type=Path, default=None)
+    ap.add_argument("--pairs", type=int, default=5)
     a = ap.parse_args(argv)
     if not a.store.is_dir():
         print(f"--store: {a.store} is not a store (make one with benchmarks/bench_large_volume.py)", file=sys.stderr)
         return 2
+    if a.against is not None:
+        args = ["--store", str(a.store.resolve()), "--views", str(a.views), "--size", str(a.size),
+                "--reduction", str(a.reduction)]
+        res = {**provenance("bench_new_view.py"), "load": os.getloadavg(), "against": str(a.against),
+               "store": a.store.name, "views": a.views, "size": a.size, "reduction": a.reduction,
+               **ab(a.against, a.pairs, args), "load_after": os.getloadavg()}
+        for what in ("median_ms", "median_cpu_ms"):
+            r = res[what]
+            print(f"{what}: this {r['this']:.0f}, other {r['other']:.0f}, ratio {r['ratio_median']:.3f} "
+                  f"[{r['ratio_ci95'][0]:.3f}, {r['ratio_ci95'][1]:.3f}]")
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps(res, indent=1))
+        print(f"wrote {a.json}")
+        return 0
     res = {**provenance("bench_new_view.py"), "load": os.getloadavg(), "store": a.store.name, "size": a.size,
            "reduction": a.reduction, "step_deg": STEP, "profiled": a.profile is not None,
            "env": {k: v for k, v in os.environ.items() if k.startswith("LODCAST_")}}
