@@ -344,6 +344,34 @@ def test_full_resolution_passes_keep_their_voxels_whole(store, monkeypatch):
     np.testing.assert_array_equal(r.rgba, first.rgba)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_the_free_rows_kept_between_insertions_are_those_a_scan_finds(seed):
+    """The free rows an arena keeps from one insertion to the next (reset by eviction) are the ones a scan of its
+    rows finds: a pool fed a random stream of insertions, look-ups and evictions, in two arenas, places every brick
+    in the same row as one that scans at every insertion, and every brick found is its own block's."""
+    rng = np.random.default_rng(seed)
+    shape = (16, 16, 16)  # 16 KiB: 256 to a slab
+    cost = int(np.prod(shape)) * 4 + ROW_BYTES
+    pools = [BrickPool(700 * cost), BrickPool(700 * cost)]
+    for step in range(120):
+        fam = ("s", "key", int(rng.integers(0, 2)))
+        blocks = np.unique(rng.integers(0, 5000, size=int(rng.integers(1, 90))))
+        bricks = np.broadcast_to(blocks[:, None, None, None].astype(np.float32), (blocks.size, *shape))
+        touch = rng.integers(0, 5000, size=40)
+        for i, c in enumerate(pools):
+            c.put(fam, 5000, blocks, np.ascontiguousarray(bricks))
+            c.find(fam, 5000, touch)
+            if i == 1:  # the reference: no rows kept, a scan at every insertion
+                for a in c._arenas.values():
+                    a.spare = None
+        assert pools[0]._arenas.keys() == pools[1]._arenas.keys()
+        for f in pools[0]._arenas:
+            np.testing.assert_array_equal(pools[0]._arenas[f].slot, pools[1]._arenas[f].slot)
+        for c in pools:
+            held, got = c.get(fam, 5000, blocks)
+            assert got is not None and (got[:, 0, 0, 0] == blocks[held]).all()
+
+
 def test_pool_reuses_the_rows_eviction_frees():
     """Rows freed by eviction are filled again before any new slab is taken, and every brick found is its own
     block's: a long stream of insertions through a small pool keeps its first slabs."""
