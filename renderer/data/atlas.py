@@ -159,14 +159,20 @@ class _Placer:
     16 bits (the low halves of the deviations' buffer, lc_sig: two's complement for signed types, 8-bit types
     widened as the kernel narrows them back, lc_common.h: LC_SIG_VALUE)."""
 
-    def __init__(self, out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+    def __init__(self, out: np.ndarray, offsets: np.ndarray, runs: dict[int, tuple[int, int, int]],
                  bits: bool = False) -> None:
-        flat = np.asarray(levels).ravel()
-        self.out, self.offsets, self.bits = out, offsets.ravel(), bits
-        self.runs: dict[int, tuple[int, int, int]] = {}  # level -> (first element, bricks, brick edge with apron)
-        for k in np.unique(flat[flat >= 0]).tolist():
-            at = self.offsets[flat == k]
-            self.runs[k] = int(at.min()), at.size, (block_size >> k) + 2 * (k == 0)
+        self.out, self.offsets, self.runs, self.bits = out, offsets.ravel(), runs, bits
+
+    @staticmethod
+    def runs_of(levels: np.ndarray, offsets: np.ndarray, block_size: int) -> dict[int, tuple[int, int, int]]:
+        """Per level: (its run's first element, its bricks, their edge with the apron), the same for every buffer
+        of an atlas (its placers share them)."""
+        flat, at = np.asarray(levels).ravel(), offsets.ravel()
+        runs = {}
+        for k in np.flatnonzero(np.bincount(flat[flat >= 0].astype(np.int64))).tolist():
+            mine = at[flat == k]
+            runs[k] = int(mine.min()), mine.size, (block_size >> k) + 2 * (k == 0)
+        return runs
 
     def __call__(self, k: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
         if self.bits:
@@ -495,19 +501,19 @@ def _sinks(host: np.ndarray, sig: np.ndarray | None, levels: np.ndarray, offsets
            packed: bool) -> dict[str, Sink]:
     """bricks.place_bricks' sinks of an atlas (`host`) and, where it has them, the deviations beside it (`sig`):
     packed (integer voxels), the coarse values' 16 bits go below each deviation and level 0 into the atlas."""
+    runs = _Placer.runs_of(levels, offsets, block_size)
     if sig is None:
-        return {"mean": _Placer(host, levels, offsets, block_size)}
+        return {"mean": _Placer(host, offsets, runs)}
     if not packed:
-        return {"mean": _Placer(host, levels, offsets, block_size), "std": _Placer(sig, levels, offsets, block_size)}
+        return {"mean": _Placer(host, offsets, runs), "std": _Placer(sig, offsets, runs)}
     assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
     halves = sig.view(np.uint16)
-    level0, coarse = _Placer(host, levels, offsets, block_size), _Placer(halves[0::2], levels, offsets, block_size,
-                                                                          bits=True)
+    level0, coarse = _Placer(host, offsets, runs), _Placer(halves[0::2], offsets, runs, bits=True)
 
     def values(k: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
         (coarse if k >= 1 else level0)(k, blocks, bricks)
 
-    return {"mean": values, "std": _Placer(halves[1::2], levels, offsets, block_size)}
+    return {"mean": values, "std": _Placer(halves[1::2], offsets, runs)}
 
 
 # --- reuse: a new selection's atlas from the last one ------------------------------------------------------------
