@@ -83,6 +83,24 @@ def _same_atlas(eng: Renderer, a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtla
             np.testing.assert_array_equal(_read(eng, x, np.uint8), _read(eng, y, np.uint8))
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_the_atlas_layout_is_a_stable_sort_by_level(seed):
+    """_offsets, level by level: every brick where a stable sort of the blocks by level, the coarsest first,
+    unloaded blocks last, puts it, its predecessors' sizes summed (grids one block, all unloaded, one level)."""
+    rng = np.random.default_rng(seed)
+    for g in ((1, 1, 1), (2, 3, 4), (5, 6, 7)):
+        for lo, hi in ((-1, -1), (-1, 0), (0, 0), (-1, 4), (2, 3), (0, 4)):
+            lv = rng.integers(lo, hi + 1, size=g).astype(np.int8)
+            flat = lv.astype(np.int64).ravel()
+            sizes = lod_atlas.brick_elements(flat, 8)
+            order = np.lexsort((np.arange(flat.size), -flat))
+            want = np.zeros(flat.size, np.int64)
+            want[order[1:]] = np.cumsum(sizes[order])[:-1]
+            got_sizes, got = lod_atlas._offsets(lv, 8)
+            np.testing.assert_array_equal(got_sizes, sizes)
+            np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_copy_kept_moves_each_kept_brick_to_its_new_place(seed):
     """The runs of kept bricks copied as slices land where a brick-by-brick copy puts them, over changes from a

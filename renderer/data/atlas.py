@@ -108,11 +108,17 @@ def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarra
     bricks of one level lie together, in C order of the grid within it, the coarsest level first and level 0 last:
     the host's reference fills level 0's aprons as one array (`aprons.fill_aprons`), and the deviations beside the
     atlas need a buffer as long as the coarse bricks only (`coarse_elements`)."""
-    lv = np.asarray(levels).astype(np.int64).ravel()
+    lv = np.asarray(levels).ravel()
     sizes = brick_elements(lv, block_size)
-    order = np.lexsort((np.arange(lv.size), -lv))  # stable: C order within a level
     offsets = np.zeros(sizes.size, np.int64)
-    offsets[order[1:]] = np.cumsum(sizes[order])[:-1]
+    start = 0
+    for k in sorted(np.flatnonzero(np.bincount(lv[lv >= 0].astype(np.int64))).tolist(), reverse=True):
+        mine = np.flatnonzero(lv == k)  # (C order: each level's rank among its own, no sort of the grid)
+        size = int(brick_elements(np.int64(k), block_size))
+        offsets[mine] = start + size * np.arange(mine.size, dtype=np.int64)
+        start += size * mine.size
+    if start and (lv < 0).any():  # unloaded blocks take the end, as they would sort last
+        offsets[lv < 0] = start
     return sizes, offsets
 
 
