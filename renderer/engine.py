@@ -113,8 +113,9 @@ class Engine:
     - `targets`, `cost_model`: what quality targets choose by (renderer/frame/target.py);
     - `selections`, `step_errors`, `steps`, `block_infos`, `lod_plans`: level-of-detail selections, predicted step
       errors, adaptive step levels, the blocks' walk info of recent scenes and, per selection, that info with its
-      unloaded blocks marked; `digests`: the digests of read-only grids (`digest`); `walks`, `adaptive_walks`, `parents`, `cells`: what the walks need (walk.py,
-      atlas_cells.py); `last_atlas`: per atlas family the newest atlas, held weakly (atlas.py reuses its bricks);
+      unloaded blocks marked; `digests`: the digests of read-only grids (`digest`); `walks`, `adaptive_walks`,
+      `parents`, `cells`, `cell_infos`: what the walks need (walk.py, atlas_cells.py); `last_atlas`: per atlas family
+      the newest atlas, held weakly (atlas.py reuses its bricks);
     - `tables`: what is derived from a store and TFs (`Tables`); `stores`: stores named by path or URL, opened once,
       at most `open_stores` of them (LODCAST_OPEN_STORES), least recently used closed first. `store_check_s`: how
       long a store on object storage is trusted, once opened, before it is asked whether it was replaced (the
@@ -143,6 +144,9 @@ class Engine:
         self.adaptive_walks = ByteLru(32 << 20, keep_last=True)
         self.parents = ByteLru(64 << 20, keep_last=True)
         self.cells = ByteLru(256 << 20, keep_last=True)
+        # per scene family the newest atlas walk info, whose cells the next selection's classifies again only where
+        # they changed (walk/info.py: atlas_cell_info)
+        self.cell_infos = ByteLru(64 << 20, keep_last=True)
         self.tables = Tables(self.device)
         # quality targets (renderer/frame/target.py): per store and TFs the data settings' predictions and the share
         # of a march the rays take; the device's cost model, measured on first use (kept on disk in `cost_dir`)
@@ -239,6 +243,7 @@ class Engine:
         self.walks.clear()
         self.adaptive_walks.clear()
         self.cells.clear()
+        self.cell_infos.clear()
 
     def close(self) -> None:
         """Let the reader threads go and drop every cache (the engine stays usable: they fill again)."""
@@ -247,7 +252,8 @@ class Engine:
         for pool in pools.values():
             pool.shutdown(wait=False)
         for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps,
-                  self.lod_plans, self.digests, self.walks, self.adaptive_walks, self.parents, self.cells, self.targets):
+                  self.lod_plans, self.digests, self.walks, self.adaptive_walks, self.parents, self.cells,
+                  self.cell_infos, self.targets):
             c.clear()
         self.tables = Tables(self.device)
         self.forget_atlases()

@@ -44,6 +44,8 @@ class _Arena:
     owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per row: its block, -1 free
     stamp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per row: last use
     free_rows: bool = False  # whether a live slab may hold a free row (none while the arena only fills)
+    #: the free rows of the live slabs, ascending, where known (None: look for them): what the last `rows` left
+    spare: np.ndarray | None = None
 
     @property
     def brick_bytes(self) -> int:
@@ -54,11 +56,16 @@ class _Arena:
         adding slabs as needed."""
         live = np.array([s is not None for s in self.slabs], bool)
         # (a pool filling up has no free row in its live slabs: looking for them among all rows at every insertion
-        # made a large volume's first image quadratic in its bricks)
-        free = np.flatnonzero(self.owner[:live.size * self.per] < 0) if self.free_rows else np.zeros(0, np.int64)
-        free = free[live[free // self.per]]
+        # made a large volume's first image quadratic in its bricks; a full pool's, after each eviction, kept
+        # from one insertion to the next, costs a new view's reads as much)
+        free = np.zeros(0, np.int64)
+        if self.free_rows and self.spare is not None:
+            free = self.spare
+        elif self.free_rows:
+            free = np.flatnonzero(self.owner[:live.size * self.per] < 0)
+            free = free[live[free // self.per]]
         if free.size >= n:
-            self.free_rows = free.size > n
+            self.free_rows, self.spare = free.size > n, free[n:]
             return free[:n]
         more = -(-(n - free.size) // self.per)
         empty = [i for i, s in enumerate(self.slabs) if s is None]
@@ -75,8 +82,9 @@ class _Arena:
         for i in new:
             self.slabs[i] = np.empty((self.per, *self.shape), self.dtype)
         extra = np.concatenate([np.arange(i * self.per, (i + 1) * self.per) for i in new])
-        self.free_rows = free.size + extra.size > n
-        return np.concatenate([free, extra])[:n]
+        rows = np.concatenate([free, extra])
+        self.free_rows, self.spare = rows.size > n, np.sort(rows[n:])
+        return rows[:n]
 
     def gather(self, rows: np.ndarray) -> np.ndarray:
         """The bricks of `rows`, (n, *shape): one gather per slab they lie in."""
@@ -102,10 +110,32 @@ class _Arena:
 
     def give_back(self) -> None:
         """Drop the slabs that no longer hold a brick."""
-        used = np.zeros(len(self.slabs), bool)
-        used[np.unique(np.flatnonzero(self.owner >= 0) // self.per)] = True
+        used = np.bincount(np.flatnonzero(self.owner >= 0) // self.per, minlength=len(self.slabs)) > 0
         for i in np.flatnonzero(~used).tolist():
             self.slabs[i] = None
+        self.spare = None
+
+
+def _least_recent(stamps: np.ndarray, costs: np.ndarray, nbytes: int) -> np.ndarray:
+    """The places (in no order) of the entries a stable sort by `stamps` puts first, as few as make their `costs`
+    reach `nbytes` (all of them when the total falls short): the entries older than the stamp where the running
+    total reaches it, and the first ones of that stamp in place order. Counted per stamp rather than sorted: a
+    pool holds a million bricks, and a new view's reads pass its bound several times."""
+    if not stamps.size:
+        return np.zeros(0, np.int64)
+    lo = int(stamps.min())
+    span = int(stamps.max()) - lo + 1
+    if span > 4 * stamps.size + (1 << 20):  # (stamps too sparse to count per stamp)
+        order = np.argsort(stamps, kind="stable")
+        return order[:int(np.searchsorted(np.cumsum(costs[order]), nbytes)) + 1]
+    total = np.cumsum(np.bincount(stamps - lo, weights=costs, minlength=span))  # (exact: bytes below 2^53)
+    t = int(np.searchsorted(total, nbytes))
+    if t >= span:
+        return np.arange(stamps.size)
+    tie = np.flatnonzero(stamps == lo + t)
+    before = float(total[t - 1]) if t else 0.0
+    m = int(np.searchsorted(np.cumsum(costs[tie]), nbytes - before)) + 1
+    return np.concatenate([np.flatnonzero(stamps < lo + t), tie[:m]])
 
 
 class BrickPool(ByteBound):
@@ -252,9 +282,7 @@ class BrickPool(ByteBound):
         costs = np.concatenate([np.full(h.size, self._arenas[f].brick_bytes + ROW_BYTES, np.int64)
                                 for f, h in zip(fams, held)]
                                + [np.array([self._whole[w][0].nbytes + ROW_BYTES for w in wholes], np.int64)])
-        order = np.argsort(stamps, kind="stable")
-        n = int(np.searchsorted(np.cumsum(costs[order]), nbytes)) + 1
-        gone = order[:n]
+        gone = _least_recent(stamps, costs, nbytes)
         for i in (-1 - which[gone[which[gone] < 0]]).tolist():
             self._forget(wholes[i])
         gone = gone[which[gone] >= 0]
@@ -265,7 +293,7 @@ class BrickPool(ByteBound):
                 continue
             a.slot[a.owner[r]] = -1
             a.owner[r] = -1
-            a.free_rows = True
+            a.free_rows, a.spare = True, None
             a.give_back()
             if not (a.owner >= 0).any():  # its block table is as large as the grid: not kept for nothing
                 del self._arenas[f]

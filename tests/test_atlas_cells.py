@@ -294,3 +294,54 @@ def test_octant_masks_change_nothing_on_random_volumes_and_views(eng, tmp_path, 
     assert on.rgba[..., 3].max() > 0.2  # something shows
     np.testing.assert_allclose(on.rgba, off.rgba, rtol=0, atol=1e-5)
     assert on.report["samples"] <= off.report["samples"]
+
+
+@pytest.mark.parametrize("scene", [{}, {"sampling": {"classification": "mean"}},
+                                   {"sampling": {"empty_space_skipping": False}},
+                                   {"tf2": {"points": [{"value": 40, "color": [1, 0, 0], "opacity": 0.0},
+                                                       {"value": 80, "color": [1, 0, 0], "opacity": 0.3}]}}])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_walk_info_from_the_last_one_is_the_one_computed_from_nothing(eng, ribs, monkeypatch, scene, seed):
+    """atlas_cell_info from the newest info of its scene (a new view's selection) classifies again only the cells
+    whose bounds, block info or coarseness changed, and gives, bit for bit, the info computed from nothing: over
+    random changes of levels (block info spread near coarse blocks, coarse cells against the level-0 ranges) and
+    of some cells' bounds (NaN among them), with distribution classification and without, without empty-space
+    skipping and with a second TF."""
+    from lodcast.renderer.frame.prepare import prepare
+    from lodcast.renderer.walk import info as R
+
+    classified = []
+    orig = R._composite_cells
+    monkeypatch.setattr(R, "_composite_cells", lambda pr, up, *a: classified.append(up.size) or orig(pr, up, *a))
+    rng = np.random.default_rng(seed)
+    vol = as_volume(ribs)
+    g = vol.grid
+    top = ribs.n_levels - 1
+    sc = {"width": 32, "height": 32, "tf": BONE, **scene}
+    last = ("test", seed)
+
+    def cells_of(old: atlas_cells.AtlasCells | None, frac: float) -> atlas_cells.AtlasCells:
+        shape = tuple(2 * n for n in g)
+        new = [rng.uniform(0, 1200, shape).astype(np.float32) for _ in range(2)]
+        lo, hi = np.minimum(*new), np.maximum(*new)
+        lo[rng.random(shape) < 0.05] = np.nan
+        sd = rng.uniform(0, 60, shape).astype(np.float32) * (rng.random(shape) < 0.5)
+        if old is None:
+            return atlas_cells.AtlasCells(lo, hi, sd)
+        m = rng.random(shape) < frac
+        return atlas_cells.AtlasCells(*(np.where(m, a, b) for a, b in ((lo, old.vmin), (hi, old.vmax),
+                                                                        (sd, old.std))))
+
+    levels = rng.integers(-1, top + 1, size=g).astype(np.int8)
+    cells = cells_of(None, 1.0)
+    R.atlas_cell_info(prepare(eng, ribs, sc, levels=levels), cells, last)
+    for frac in (0.02, 0.2):
+        levels = levels.copy()
+        m = rng.random(g) < frac
+        levels[m] = rng.integers(-1, top + 1, size=int(m.sum()))
+        cells = cells_of(cells, frac)
+        pr = prepare(eng, ribs, sc, levels=levels)
+        classified.clear()
+        got = R.atlas_cell_info(pr, cells, last)
+        assert 0 < sum(classified) < cells.vmin.size  # classified again in part
+        np.testing.assert_array_equal(got, R.atlas_cell_info(pr, cells))

@@ -83,6 +83,46 @@ def _same_atlas(eng: Renderer, a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtla
             np.testing.assert_array_equal(_read(eng, x, np.uint8), _read(eng, y, np.uint8))
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_the_atlas_layout_is_a_stable_sort_by_level(seed):
+    """_offsets, level by level: every brick where a stable sort of the blocks by level, the coarsest first,
+    unloaded blocks last, puts it, its predecessors' sizes summed (grids one block, all unloaded, one level)."""
+    rng = np.random.default_rng(seed)
+    for g in ((1, 1, 1), (2, 3, 4), (5, 6, 7)):
+        for lo, hi in ((-1, -1), (-1, 0), (0, 0), (-1, 4), (2, 3), (0, 4)):
+            lv = rng.integers(lo, hi + 1, size=g).astype(np.int8)
+            flat = lv.astype(np.int64).ravel()
+            sizes = lod_atlas.brick_elements(flat, 8)
+            order = np.lexsort((np.arange(flat.size), -flat))
+            want = np.zeros(flat.size, np.int64)
+            want[order[1:]] = np.cumsum(sizes[order])[:-1]
+            got_sizes, got = lod_atlas._offsets(lv, 8)
+            np.testing.assert_array_equal(got_sizes, sizes)
+            np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_copy_kept_moves_each_kept_brick_to_its_new_place(seed):
+    """The runs of kept bricks copied as slices land where a brick-by-brick copy puts them, over changes from a
+    few blocks (long runs) to most (runs of one), with bricks added and dropped before, between and after them;
+    nothing else of the new buffer is written."""
+    rng = np.random.default_rng(seed)
+    B, grid = 4, (5, 6, 7)
+    old = rng.integers(-1, 3, size=grid).astype(np.int64).ravel()
+    new = _changed(old.reshape(grid), rng, (0.02, 0.1, 0.5, 0.9, 0.3, 1.0)[seed], 2).astype(np.int64).ravel()
+    old_sizes, old_off = lod_atlas._offsets(old.reshape(grid), B)
+    sizes, off = lod_atlas._offsets(new.reshape(grid), B)
+    src = rng.integers(0, 60000, size=int(old_sizes.sum())).astype(np.uint16)
+    dst = np.zeros(int(sizes.sum()), np.uint16)
+    kept = (old == new) & (new >= 0)
+    n = lod_atlas.copy_kept(dst, src, new, off, old, old_off, kept, range(0, 3), B)
+    want = np.zeros_like(dst)
+    for b in np.flatnonzero(kept):
+        want[off[b]:off[b] + sizes[b]] = src[old_off[b]:old_off[b] + old_sizes[b]]
+    assert n == int(kept.sum())
+    np.testing.assert_array_equal(dst, want)
+
+
 @pytest.mark.parametrize("with_std", [True, False])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_an_atlas_built_from_the_last_one_is_the_atlas_packed_from_nothing(store, eng, with_std, seed):

@@ -73,7 +73,7 @@ def test_bricks_placed_by_the_readers_equal_the_serial_placement(store, monkeypa
             callers: set[int] = set()
 
             def sink(what):
-                place = lod_atlas._Placer(out[what], levels, offsets, B)
+                place = lod_atlas._Placer(out[what], offsets, lod_atlas._Placer.runs_of(levels, offsets, B))
 
                 def f(k, blocks, got):
                     callers.add(threading.get_ident())
@@ -115,7 +115,7 @@ def test_a_failed_read_stops_the_placing_before_it_raises(store, monkeypatch):
 
         monkeypatch.setattr(bricks, "_read_group", failing)
         offsets, out = _buffers(vol, levels)
-        placers = {w: lod_atlas._Placer(out[w], levels, offsets, B) for w in out}
+        placers = {w: lod_atlas._Placer(out[w], offsets, lod_atlas._Placer.runs_of(levels, offsets, B)) for w in out}
         sinks = {w: (lambda k, b, g, w=w: (calls.append(w), placers[w](k, b, g))) for w in out}
         with pytest.raises(OSError, match="disk gone"):
             bricks.place_bricks(eng, vol, levels, sinks, cache=BrickPool(1 << 30))

@@ -196,6 +196,38 @@ def test_step_levels_one_sample_per_coarse_voxel(eng):
     assert skipped(st, np.ones(st.shape, bool))[0, 0, ::2].tolist() == [-5, -5, -1, -11, -4, -1, -12]
 
 
+def _cellwise_step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
+    """step_levels as its docstring states it, over the half-block cells themselves: every cell's code from its
+    block, NEAR_LEVEL0 from its six face neighbours' codes, skipped cells -(code + 1)."""
+    from lodcast.renderer.data.atlas import NEAR_LEVEL0, half_cells
+
+    lv = levels.astype(np.int64)
+    off = half_cells((lv < 0) | (False if skip is None else skip))
+    s = half_cells(np.minimum(np.where(lv >= 1, lv + 1, np.maximum(lv, 0)), int(block_size).bit_length() - 1))
+    fine = np.pad(s == 0, 1)
+    near = np.zeros(s.shape, bool)
+    for ax in range(3):
+        for d in (0, 2):
+            near |= fine[tuple(slice(d, d + n) if a == ax else slice(1, 1 + n) for a, n in enumerate(s.shape))]
+    s = np.where((s > 0) & near, s | NEAR_LEVEL0, s)
+    return np.where(off, -s - 1, s).astype(np.int8)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_step_levels_from_the_blocks_are_the_cells_own(seed):
+    """step_levels works per block and octant: the same codes as computed cell by cell, on random grids (one
+    block thick, odd sizes, every level, unloaded and skipped blocks)."""
+    from lodcast.renderer.data.atlas import step_levels
+
+    rng = np.random.default_rng(seed)
+    for g in ((1, 1, 7), (3, 4, 5), (6, 1, 9), (7, 8, 9)):
+        lv = rng.integers(-1, 6, size=g).astype(np.int8)
+        skip = rng.random(g) < 0.3
+        for B in (8, 16, 32):
+            for sk in (None, skip):
+                np.testing.assert_array_equal(step_levels(lv, B, sk), _cellwise_step_levels(lv, B, sk))
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_level_zero_steps_lie_on_full_resolutions_lattice(eng, tmp_path, monkeypatch, seed):
     """Every block at level 0 and adaptive steps on: the walk over half-block cells takes full resolution's samples

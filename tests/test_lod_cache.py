@@ -99,6 +99,24 @@ def test_reads_are_grouped_by_shard_and_run_in_parallel(store, eng):
     assert (again.read, again.cached, again.shards) == (0, lv.size, 0)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_eviction_takes_what_a_stable_sort_by_stamp_puts_first(seed):
+    """The entries eviction takes, counted per stamp, are those a stable sort by stamp puts first until their
+    costs reach the bytes to free: ties at the threshold in place order, all when the total falls short, and
+    stamps too sparse to count per stamp."""
+    from lodcast.renderer.pool import _least_recent
+
+    rng = np.random.default_rng(seed)
+    for n, span in ((1, 1), (50, 5), (2000, 40), (3000, 10**9)):
+        stamps = rng.integers(7, 7 + span, size=n).astype(np.int64)
+        costs = rng.choice([16 + 2, 16 + 1024, 16 + 8192], size=n).astype(np.int64)
+        order = np.argsort(stamps, kind="stable")
+        cum = np.cumsum(costs[order])
+        for nbytes in (1, int(costs[0]), int(cum[-1]) // 3, int(cum[-1]) - 1, int(cum[-1]), int(cum[-1]) + 5):
+            want = order[:int(np.searchsorted(cum, nbytes)) + 1]
+            assert sorted(_least_recent(stamps, costs, nbytes).tolist()) == sorted(want.tolist())
+
+
 def test_pool_is_an_lru_bounded_by_bytes():
     """Bricks of one arena (kind, store, level) by block index; eviction takes the least recently used bricks of the
     whole pool down to EVICT_TO of its bound once the bound is passed, a brick asked for counts as used, and what
@@ -324,6 +342,34 @@ def test_full_resolution_passes_keep_their_voxels_whole(store, monkeypatch):
         r = again.render(store, {**_scene(30), "quality": "full"})
     assert r.report["bricks_read"] == 0
     np.testing.assert_array_equal(r.rgba, first.rgba)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_free_rows_kept_between_insertions_are_those_a_scan_finds(seed):
+    """The free rows an arena keeps from one insertion to the next (reset by eviction) are the ones a scan of its
+    rows finds: a pool fed a random stream of insertions, look-ups and evictions, in two arenas, places every brick
+    in the same row as one that scans at every insertion, and every brick found is its own block's."""
+    rng = np.random.default_rng(seed)
+    shape = (16, 16, 16)  # 16 KiB: 256 to a slab
+    cost = int(np.prod(shape)) * 4 + ROW_BYTES
+    pools = [BrickPool(700 * cost), BrickPool(700 * cost)]
+    for step in range(120):
+        fam = ("s", "key", int(rng.integers(0, 2)))
+        blocks = np.unique(rng.integers(0, 5000, size=int(rng.integers(1, 90))))
+        bricks = np.broadcast_to(blocks[:, None, None, None].astype(np.float32), (blocks.size, *shape))
+        touch = rng.integers(0, 5000, size=40)
+        for i, c in enumerate(pools):
+            c.put(fam, 5000, blocks, np.ascontiguousarray(bricks))
+            c.find(fam, 5000, touch)
+            if i == 1:  # the reference: no rows kept, a scan at every insertion
+                for a in c._arenas.values():
+                    a.spare = None
+        assert pools[0]._arenas.keys() == pools[1]._arenas.keys()
+        for f in pools[0]._arenas:
+            np.testing.assert_array_equal(pools[0]._arenas[f].slot, pools[1]._arenas[f].slot)
+        for c in pools:
+            held, got = c.get(fam, 5000, blocks)
+            assert got is not None and (got[:, 0, 0, 0] == blocks[held]).all()
 
 
 def test_pool_reuses_the_rows_eviction_frees():

@@ -151,3 +151,30 @@ def test_one_sample_blocks_and_missing_neighbours():
     inside = np.all((pts + 0.5 >= B) & (pts + 0.5 < 2 * B), axis=1)
     assert inside.any() and np.isnan(got[inside]).all()
     assert np.nanmax(got[~inside]) <= 1.0 and not np.isnan(got[~inside]).any()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_neighbourhood_and_slice_maxima_are_those_of_every_neighbour(seed):
+    """neighbourhood_max and slice_max (one pass per axis) against the maximum over every block of the 3x3x3
+    neighbourhood, or of the 3x3 slice across each axis, edges repeated: levels (unloaded as 0) and float infos
+    (-inf and NaN among them)."""
+    from lodcast.renderer.data.atlas import neighbourhood_max, slice_max
+
+    rng = np.random.default_rng(seed)
+    for g in ((1, 1, 1), (1, 3, 7), (4, 5, 6), (9, 2, 3)):
+        lv = rng.integers(-1, 6, size=g).astype(np.int8)
+        info = rng.random(g).astype(np.float32)
+        info[rng.random(g) < 0.2], info[rng.random(g) < 0.1] = -np.inf, np.nan
+        for a, to in ((lv, np.maximum(lv.astype(np.int64), 0)), (info, info)):
+            pad = np.pad(to, 1, mode="edge")
+            want = np.max([pad[dz:dz + g[0], dy:dy + g[1], dx:dx + g[2]]
+                           for dz in range(3) for dy in range(3) for dx in range(3)], axis=0)
+            got = neighbourhood_max(a)
+            assert got.dtype == to.dtype
+            np.testing.assert_array_equal(got, want)
+        pad = np.pad(np.maximum(lv.astype(np.int64), 0), 1, mode="edge")
+        sl = slice_max(lv)
+        for a, ax in enumerate((2, 1, 0)):
+            want = np.max([pad[tuple(slice(1, 1 + g[i]) if i == ax else slice(d[i], d[i] + g[i]) for i in range(3))]
+                           for d in np.ndindex(3, 3, 3)], axis=0)
+            np.testing.assert_array_equal(sl[..., a], want)

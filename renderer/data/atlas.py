@@ -20,6 +20,7 @@ cache (the engine's `device_cache`: same store and levels, nothing is packed or 
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import ctypes
 import sys
@@ -50,37 +51,31 @@ def neighbourhood_max(levels: np.ndarray) -> np.ndarray:
     """Per block: the largest value over its 3x3x3 neighbourhood (itself included). Levels: unloaded blocks
     (-1) count as 0; float arrays (block infos) are taken as they are."""
     levels = np.asarray(levels)
-    lv = np.maximum(levels.astype(np.int64), 0) if levels.dtype.kind in "iu" else levels
-    pad = np.pad(lv, 1, mode="edge")
-    out = lv.copy()
-    G = lv.shape
-    for dz in range(3):
-        for dy in range(3):
-            for dx in range(3):
-                np.maximum(out, pad[dz:dz + G[0], dy:dy + G[1], dx:dx + G[2]], out=out)
+    if levels.dtype.kind in "iu":  # (in the levels' own type: a pass over int64 costs eight times the bytes)
+        return _spread_max(np.maximum(levels, 0), (0, 1, 2)).astype(np.int64)
+    return _spread_max(levels, (0, 1, 2))
+
+
+def _spread_max(a: np.ndarray, axes: tuple[int, ...]) -> np.ndarray:
+    """Per element: the largest value over its 3-neighbourhood along each of `axes` in turn, edges repeated (a
+    3x3x3 or 3x3 neighbourhood's maximum as one pass per axis, the order of a maximum's terms being free)."""
+    out = a
+    for ax in axes:
+        src, out = out, out.copy()
+        lo, hi = ([slice(None)] * a.ndim for _ in range(2))
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        np.maximum(out[tuple(hi)], src[tuple(lo)], out=out[tuple(hi)])
+        np.maximum(out[tuple(lo)], src[tuple(hi)], out=out[tuple(lo)])
     return out
 
 
 def slice_max(levels: np.ndarray) -> np.ndarray:
     """(grid + (3,)): per block and axis a (x, y, z), the largest level among the 3x3 blocks of its own slice
     across a (itself and the 8 neighbours that share its a-coordinate; unloaded blocks count as 0)."""
-    lv = np.maximum(np.asarray(levels).astype(np.int64), 0)
-    pad = np.pad(lv, 1, mode="edge")
-    G = lv.shape
-    out = np.empty(G + (3,), np.int64)
+    lv = np.maximum(np.asarray(levels), 0)
+    out = np.empty(lv.shape + (3,), np.int64)
     for a, ax in enumerate((2, 1, 0)):  # x, y, z: the slice keeps array axis ax fixed
-        m = lv.copy()
-        for d1 in range(3):
-            for d2 in range(3):
-                off = [d1, d2]
-                idx = [slice(1, 1 + G[i]) if i == ax else None for i in range(3)]
-                k = 0
-                for i in range(3):
-                    if i != ax:
-                        idx[i] = slice(off[k], off[k] + G[i])
-                        k += 1
-                np.maximum(m, pad[tuple(idx)], out=m)
-        out[..., a] = m
+        out[..., a] = _spread_max(lv, tuple(i for i in range(3) if i != ax))
     return out
 
 
@@ -113,11 +108,17 @@ def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarra
     bricks of one level lie together, in C order of the grid within it, the coarsest level first and level 0 last:
     the host's reference fills level 0's aprons as one array (`aprons.fill_aprons`), and the deviations beside the
     atlas need a buffer as long as the coarse bricks only (`coarse_elements`)."""
-    lv = np.asarray(levels).astype(np.int64).ravel()
+    lv = np.asarray(levels).ravel()
     sizes = brick_elements(lv, block_size)
-    order = np.lexsort((np.arange(lv.size), -lv))  # stable: C order within a level
     offsets = np.zeros(sizes.size, np.int64)
-    offsets[order[1:]] = np.cumsum(sizes[order])[:-1]
+    start = 0
+    for k in sorted(np.flatnonzero(np.bincount(lv[lv >= 0].astype(np.int64))).tolist(), reverse=True):
+        mine = np.flatnonzero(lv == k)  # (C order: each level's rank among its own, no sort of the grid)
+        size = int(brick_elements(np.int64(k), block_size))
+        offsets[mine] = start + size * np.arange(mine.size, dtype=np.int64)
+        start += size * mine.size
+    if start and (lv < 0).any():  # unloaded blocks take the end, as they would sort last
+        offsets[lv < 0] = start
     return sizes, offsets
 
 
@@ -164,14 +165,20 @@ class _Placer:
     16 bits (the low halves of the deviations' buffer, lc_sig: two's complement for signed types, 8-bit types
     widened as the kernel narrows them back, lc_common.h: LC_SIG_VALUE)."""
 
-    def __init__(self, out: np.ndarray, levels: np.ndarray, offsets: np.ndarray, block_size: int,
+    def __init__(self, out: np.ndarray, offsets: np.ndarray, runs: dict[int, tuple[int, int, int]],
                  bits: bool = False) -> None:
-        flat = np.asarray(levels).ravel()
-        self.out, self.offsets, self.bits = out, offsets.ravel(), bits
-        self.runs: dict[int, tuple[int, int, int]] = {}  # level -> (first element, bricks, brick edge with apron)
-        for k in np.unique(flat[flat >= 0]).tolist():
-            at = self.offsets[flat == k]
-            self.runs[k] = int(at.min()), at.size, (block_size >> k) + 2 * (k == 0)
+        self.out, self.offsets, self.runs, self.bits = out, offsets.ravel(), runs, bits
+
+    @staticmethod
+    def runs_of(levels: np.ndarray, offsets: np.ndarray, block_size: int) -> dict[int, tuple[int, int, int]]:
+        """Per level: (its run's first element, its bricks, their edge with the apron), the same for every buffer
+        of an atlas (its placers share them)."""
+        flat, at = np.asarray(levels).ravel(), offsets.ravel()
+        runs = {}
+        for k in np.flatnonzero(np.bincount(flat[flat >= 0].astype(np.int64))).tolist():
+            mine = at[flat == k]
+            runs[k] = int(mine.min()), mine.size, (block_size >> k) + 2 * (k == 0)
+        return runs
 
     def __call__(self, k: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
         if self.bits:
@@ -253,21 +260,27 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
     along the face's normal: along the normal the field there holds no finer detail than the coarse field (at
     most twice as steep); what a coarse step can miss is the neighbour's detail across the face, met by oblique
     rays. The finest-of-eight rule took more samples for the same image error (benchmarks/bench_lod_sweep.py)."""
-    lv = np.asarray(levels).astype(np.int64)
+    lv = np.asarray(levels)
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
-    out = np.maximum(lv, 0)
-    np.add(out, 1, out=out, where=out >= 1)
-    np.minimum(out, int(block_size).bit_length() - 1, out=out)
-    s = half_cells(out)
+    code = np.maximum(lv.astype(np.int8), 0)  # (levels fit 4 bits: pack_index)
+    np.add(code, 1, out=code, where=code >= 1)
+    np.minimum(code, int(block_size).bit_length() - 1, out=code)
     # NEAR_LEVEL0: a coarse cell with a level-0 cell across a face, where the kernel looks at the cell the ray
-    # enters next (its last step ends on full resolution's lattice there); elsewhere it need not read it
-    fine = np.pad(s == 0, 1)
-    near = np.zeros(s.shape, bool)
-    for ax in range(3):
-        for d in (0, 2):
-            near |= fine[tuple(slice(d, d + n) if a == ax else slice(1, 1 + n) for a, n in enumerate(s.shape))]
-    s = np.where((s > 0) & near, s | NEAR_LEVEL0, s)
-    return skipped(s, half_cells(off))
+    # enters next (its last step ends on full resolution's lattice there); elsewhere it need not read it. A cell's
+    # neighbour across a face inside its block has its own code, so only the blocks across its outer faces count:
+    # each of the eight cells of every block (octant o) at once, from the blocks' codes, rather than over the
+    # cells' grid with eight times the work
+    fine = np.pad(code == 0, 1)
+    G = code.shape
+    out = np.empty((G[0], 2, G[1], 2, G[2], 2), np.int8)
+    inner = tuple(slice(1, 1 + n) for n in G)
+    for o in np.ndindex(2, 2, 2):
+        near = np.zeros(G, bool)
+        for ax in range(3):  # the block before along ax for the lower cell, the one after for the upper
+            near |= fine[tuple(slice(2 * o[a], 2 * o[a] + n) if a == ax else inner[a] for a, n in enumerate(G))]
+        c = np.where((code > 0) & near, code | np.int8(NEAR_LEVEL0), code)
+        out[:, o[0], :, o[1], :, o[2]] = np.where(off, -c - np.int8(1), c)
+    return out.reshape(2 * G[0], 2 * G[1], 2 * G[2])
 
 
 #: step_levels' flag of a coarse cell next to a level-0 one (the step level is the code's low three bits)
@@ -408,17 +421,21 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
             d_atlas, host = _mapped(ctx, queue, max(total, 1), dtype)
             try:
                 dirty = None
-                if old is not None:  # kept compares with base, which old maps
-                    assert base is not None and kept is not None
-                    if with_std:  # (packed: the coarse values ride along with their deviations)
-                        assert sig is not None and old[1] is not None  # with_std is part of base's family
-                        copy_kept(sig, old[1], flat, offsets, base.levels, base.offsets, kept, range(1, L), B)
-                    copy_kept(host, old[0], flat, offsets, base.levels, base.offsets, kept,
-                              range(0, 1 if packed else L), B)
-                    # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0
-                    # status changed: the blocks whose cells can change under nearest block are the ones to fill
-                    dirty = dirty_blocks(base.levels.reshape(levels.shape), levels, "nearest_block")
-                place_bricks(eng, vol, todo, _sinks(host, sig, levels, offsets, B, packed), cache, st)
+                # the kept bricks are copied beside the reads, on a thread of their own: they are other blocks'
+                # bricks, and the copy (most of it first touches of the new buffer's pages) runs without the
+                # interpreter lock, which the readers spend most of their time holding
+                with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lodcast-kept") as beside:
+                    copied = None
+                    if old is not None:  # kept compares with base, which old maps
+                        assert base is not None and kept is not None
+                        copied = beside.submit(_copy_kept_all, host, sig, old, flat, offsets, base, kept, L, B,
+                                               packed)
+                        # a kept level-0 brick's apron came with it, and still holds unless a neighbour's level-0
+                        # status changed: the blocks whose cells can change under nearest block are the ones to fill
+                        dirty = dirty_blocks(base.levels.reshape(levels.shape), levels, "nearest_block")
+                    place_bricks(eng, vol, todo, _sinks(host, sig, levels, offsets, B, packed), cache, st)
+                    if copied is not None:
+                        copied.result()
             finally:
                 cast(cl.MemoryMap, host.base).release(queue)  # a mapped array's base is its mapping
             aprons.device_aprons(eng.device, d_atlas, dtype, levels, offsets, B, dirty)
@@ -490,19 +507,19 @@ def _sinks(host: np.ndarray, sig: np.ndarray | None, levels: np.ndarray, offsets
            packed: bool) -> dict[str, Sink]:
     """bricks.place_bricks' sinks of an atlas (`host`) and, where it has them, the deviations beside it (`sig`):
     packed (integer voxels), the coarse values' 16 bits go below each deviation and level 0 into the atlas."""
+    runs = _Placer.runs_of(levels, offsets, block_size)
     if sig is None:
-        return {"mean": _Placer(host, levels, offsets, block_size)}
+        return {"mean": _Placer(host, offsets, runs)}
     if not packed:
-        return {"mean": _Placer(host, levels, offsets, block_size), "std": _Placer(sig, levels, offsets, block_size)}
+        return {"mean": _Placer(host, offsets, runs), "std": _Placer(sig, offsets, runs)}
     assert np.little_endian, "lc_sig packs the value into the low half: a little-endian host"
     halves = sig.view(np.uint16)
-    level0, coarse = _Placer(host, levels, offsets, block_size), _Placer(halves[0::2], levels, offsets, block_size,
-                                                                          bits=True)
+    level0, coarse = _Placer(host, offsets, runs), _Placer(halves[0::2], offsets, runs, bits=True)
 
     def values(k: int, blocks: np.ndarray, bricks: np.ndarray) -> None:
         (coarse if k >= 1 else level0)(k, blocks, bricks)
 
-    return {"mean": values, "std": _Placer(halves[1::2], levels, offsets, block_size)}
+    return {"mean": values, "std": _Placer(halves[1::2], offsets, runs)}
 
 
 # --- reuse: a new selection's atlas from the last one ------------------------------------------------------------
@@ -522,8 +539,11 @@ def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.
               old_offsets: np.ndarray, kept: np.ndarray, which: range, block_size: int) -> int:
     """Copy into buffer `dst` (the new atlas's elements at `offsets`) from `src` (the old one's at `old_offsets`)
     the bricks of the blocks `kept` (same level in both) whose level lies in `which` (the levels the buffer
-    holds). Flat per-block arrays; a level's bricks lie together in C order of the grid in both buffers, so each
-    level is one gather of whole bricks. Returns the number of bricks copied."""
+    holds). Flat per-block arrays; a level's bricks lie together in C order of the grid in both buffers, so the
+    kept bricks of a level run in the same order in both, and each stretch of them with no brick added or dropped
+    between is one slice copy (a small change of levels leaves a few thousand such runs over hundreds of MB,
+    where a gather of every brick went through a temporary as large as the atlas). Returns the number of bricks
+    copied."""
     copied = 0
     for k in which:
         sel = kept & (levels == k)
@@ -534,9 +554,26 @@ def copy_kept(dst: np.ndarray, src: np.ndarray, levels: np.ndarray, offsets: np.
         n0, o0 = int(new_at.min()), int(old_at.min())
         dv = dst[n0:n0 + new_at.size * size].reshape(new_at.size, size)
         sv = src[o0:o0 + old_at.size * size].reshape(old_at.size, size)
-        dv[(offsets[sel] - n0) // size] = sv[(old_offsets[sel] - o0) // size]
-        copied += int(sel.sum())
+        rows, old_rows = (offsets[sel] - n0) // size, (old_offsets[sel] - o0) // size
+        cut = np.flatnonzero((np.diff(rows) != 1) | (np.diff(old_rows) != 1)) + 1
+        starts, ends = np.r_[0, cut], np.r_[cut, rows.size]
+        for a, n, o in zip(rows[starts].tolist(), (ends - starts).tolist(), old_rows[starts].tolist()):
+            dv[a:a + n] = sv[o:o + n]
+        copied += rows.size
     return copied
+
+
+def _copy_kept_all(host: np.ndarray, sig: np.ndarray | None, old: tuple, levels: np.ndarray, offsets: np.ndarray,
+                   base: "DeviceAtlas", kept: np.ndarray, n_levels: int, block_size: int, packed: bool) -> None:
+    """copy_kept of every buffer of a new atlas (`host`, and `sig` with deviations) from the mappings `old` of
+    `base`'s: the deviations' buffer holds the coarse levels (packed: the coarse values ride along with their
+    deviations), the atlas level 0 and, unpacked, the coarse values too."""
+    assert base.levels is not None and base.offsets is not None  # an atlas built from holds its selection
+    if sig is not None:
+        assert old[1] is not None  # with_std is part of base's family
+        copy_kept(sig, old[1], levels, offsets, base.levels, base.offsets, kept, range(1, n_levels), block_size)
+    copy_kept(host, old[0], levels, offsets, base.levels, base.offsets, kept, range(0, 1 if packed else n_levels),
+              block_size)
 
 
 def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str) -> np.ndarray:

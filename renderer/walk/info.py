@@ -72,7 +72,8 @@ def walk_info(pr: "Prepared", data: "multipass.PassData") -> tuple[np.ndarray, t
     vol = pr.volume
     B = int(vol.block_size)
     if data.cells is not None:
-        info, C = atlas_cell_info(pr, data.cells), B // 2
+        last = None if key is None else (vol.key, *key[3:])  # (what the cells' info depends on, less the cells)
+        info, C = atlas_cell_info(pr, data.cells, last), B // 2
     elif data.cell_min is None or not pr.config.ess:
         info, C = pr.block_info, B
     else:
@@ -164,21 +165,33 @@ def _clipped(pr: "Prepared", info: np.ndarray, C: int) -> np.ndarray:
     return np.where(keep, info, -np.inf if pr.scene.mode in EXTREMUM_MODES else 0.0).astype(np.float32)
 
 
-def atlas_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells") -> np.ndarray:
+def atlas_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", last: tuple | None = None) -> np.ndarray:
     """The walk's info over the atlas's half-block cells: the selection's block info (pr.block_info) where the
     field sampled in the cell can be visible, empty (0; MIP: its largest value, MinIP: minus its smallest) where
     it cannot: every value there is invisible under the point classification and, with distribution
     classification, under the TF's distribution table for deviations up to the cell's largest. Where the block
     info already says empty it stays so, so the image is the block walk's: only samples that add nothing are
     left out (tests/test_atlas_cells.py). Cells of a pass's blocks only (cells.blocks): the rest are empty, the
-    pass samples nothing there."""
+    pass samples nothing there. `last`: the key of what this depends on besides the cells' bounds, the block
+    info and the levels (`_walk_key`'s): the newest info of that key is kept (`eng.cell_infos`), and the next one
+    computed again only in the cells whose inputs changed (`_updated_cell_info`)."""
     mode = pr.scene.mode
+    if cells.blocks is None and last is not None and mode == "composite":
+        return _updated_cell_info(pr, cells, last)
     part = _cell_info(pr, cells, pr.block_info if cells.blocks is None else pr.block_info[cells.blocks])
     if cells.blocks is None:
         return part
     out = np.full(tuple(2 * g for g in pr.block_info.shape), -np.inf if mode in EXTREMUM_MODES else 0.0, np.float32)
     out[cells.at] = part
     return out
+
+
+def _coarse_blocks(pr: "Prepared") -> np.ndarray | None:
+    """The blocks (grid-shaped bool) whose coarse cells the level-0 ranges may leave out (`_composite_cells`), or
+    None where the store keeps no level-0 cell ranges."""
+    if pr.lod is None or pr.volume.half_cell_ranges(pr.engine.tables.half_cells) is None:
+        return None
+    return np.asarray(pr.lod.levels >= 1)
 
 
 def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.ndarray) -> np.ndarray:
@@ -188,7 +201,21 @@ def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.n
         ext = cells.vmax if mode == "mip" else -cells.vmin.astype(np.float64)
         ext = np.where(np.isfinite(ext), ext, -np.inf)
         return np.ascontiguousarray(np.minimum(up, ext), dtype=np.float32)
+    level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells) if pr.lod is not None else None
+    coarse = lo0 = hi0 = None
+    if level0 is not None:
+        assert pr.lod is not None
+        coarse = lod_atlas.half_cells(pr.lod.levels >= 1)[cells.at].reshape(-1)
+        lo0, hi0 = (a[cells.at].reshape(-1) for a in level0)
+    return _composite_cells(pr, up.reshape(-1), cells.vmin.reshape(-1), cells.vmax.reshape(-1),
+                            cells.std.reshape(-1), coarse, lo0, hi0).reshape(up.shape)
 
+
+def _composite_cells(pr: "Prepared", up: np.ndarray, lo: np.ndarray, hi: np.ndarray, sd: np.ndarray,
+                     coarse: np.ndarray | None, lo0: np.ndarray | None, hi0: np.ndarray | None) -> np.ndarray:
+    """The composite walk info of cells given as flat arrays (each cell on its own: the info of any subset of
+    cells is the same as theirs among all): `up` their blocks' info, [lo, hi] and `sd` their field's bounds,
+    `coarse` whether their block is coarse and [lo0, hi0] their level-0 ranges (None: the store keeps none)."""
     # A coarse cell (its block at level >= 1) whose level-0 voxels, one-voxel border included, the TF shows nothing
     # of is not sampled (the store's cell ranges), however its coarse field classifies: full resolution skips that
     # cell too, and what the coarse field shows there is its blur of the neighbouring cells or a Gaussian's tail
@@ -196,26 +223,21 @@ def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.n
     # error (benchmarks/bench_lod_sweep.py). Without the border it saved more but clipped silhouettes that end at a
     # cell's face, which full resolution shows a voxel further.
     # Without empty-space skipping (the walk then runs for this alone, prepare()) every other cell is sampled.
-    level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells) if pr.lod is not None else None
-    if level0 is not None:
-        assert pr.lod is not None
-        coarse = lod_atlas.half_cells(pr.lod.levels >= 1)[cells.at]
-        lo0, hi0 = (a[cells.at] for a in level0)
     skip_empty = pr.scene.sampling.empty_space_skipping
     if not skip_empty:
         up = np.full(up.shape, 1.0 if pr.second is None else 3.0, np.float32)  # (tf2: both TFs' bits)
 
     def seen(lut: Lut, dist: DistTable | None) -> np.ndarray:
         # in pieces: the tests make float64 temporaries, ~60 bytes per cell (8M cells of a 1024 x 2048² volume)
-        out = np.empty(cells.vmin.shape, bool)
-        flat, lo, hi, sd = (a.reshape(-1) for a in (out, cells.vmin, cells.vmax, cells.std))
-        for i in range(0, flat.size, _CELL_CHUNK):
+        out = np.empty(lo.shape, bool)
+        for i in range(0, out.size, _CELL_CHUNK):
             part = slice(i, i + _CELL_CHUNK)
-            flat[part] = _shows(lut, dist, lo[part], hi[part], sd[part]) if skip_empty else True
-            if level0 is not None:  # only where a coarse cell is still visible (8M cells of the 8 GiB volume)
-                sub = flat[part]
-                idx = np.flatnonzero(sub & coarse.reshape(-1)[part])
-                sub[idx] = lut.visible(lo0.reshape(-1)[part][idx], hi0.reshape(-1)[part][idx])
+            out[part] = _shows(lut, dist, lo[part], hi[part], sd[part]) if skip_empty else True
+            if coarse is not None:  # only where a coarse cell is still visible (8M cells of the 8 GiB volume)
+                assert lo0 is not None and hi0 is not None
+                sub = out[part]
+                idx = np.flatnonzero(sub & coarse[part])
+                sub[idx] = lut.visible(lo0[part][idx], hi0[part][idx])
         return out
 
     vis = seen(pr.lut, pr.dist)
@@ -223,6 +245,51 @@ def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.n
         vis = dual.visibility_bits(vis, seen(pr.second.lut, pr.second.dist))
         return np.ascontiguousarray(np.bitwise_and(up.astype(np.int64), vis.astype(np.int64)), dtype=np.float32)
     return np.ascontiguousarray(np.where(vis, up, np.float32(0.0)), dtype=np.float32)
+
+
+def _bits_differ(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | bool:
+    """Where two arrays of the same shape differ bit for bit (NaN equal to the same NaN); True where either is
+    None and the other not."""
+    if a is None or b is None:
+        return (a is None) != (b is None)
+    if a is b:
+        return False
+    return a.view(np.dtype(f"u{a.dtype.itemsize}")) != b.view(np.dtype(f"u{b.dtype.itemsize}"))
+
+
+def _updated_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", last: tuple) -> np.ndarray:
+    """atlas_cell_info of the whole composite atlas, from the newest one of `last` (the same TFs, mode, clip and
+    store): a new view's selection changes the level of a few thousand blocks, and so the bounds of their cells
+    and their neighbours', the block info near them and which blocks are coarse, while classifying every cell
+    again was a good part of a new view's host time on a large volume. Cells whose block's info or coarseness or
+    whose own bounds changed (bit for bit) are classified again, the others keep their info: each cell's info is a
+    function of these alone (`_composite_cells`), so the result is the one computed from nothing."""
+    eng = pr.engine
+    info = np.ascontiguousarray(pr.block_info, dtype=np.float32)
+    coarse = _coarse_blocks(pr)
+    prev = eng.cell_infos.get(last)
+    g = info.shape
+    if prev is None or prev[0].vmin.shape != cells.vmin.shape or prev[1].shape != g:
+        out = _cell_info(pr, cells, info)
+    else:
+        old_cells, old_info, old_coarse, old_out = prev
+        per_block = _bits_differ(info, old_info) | _bits_differ(coarse, old_coarse)
+        redo = lod_atlas.half_cells(np.broadcast_to(per_block, g))
+        for a, b in ((cells.vmin, old_cells.vmin), (cells.vmax, old_cells.vmax), (cells.std, old_cells.std)):
+            redo |= _bits_differ(a, b)
+        at = np.flatnonzero(redo)
+        out = old_out.copy()
+        if at.size:
+            z, y, x = np.unravel_index(at, redo.shape)
+            block = np.ravel_multi_index((z >> 1, y >> 1, x >> 1), g)
+            level0 = pr.volume.half_cell_ranges(eng.tables.half_cells) if coarse is not None else None
+            lo0, hi0 = (None, None) if level0 is None else (level0[0].reshape(-1)[at], level0[1].reshape(-1)[at])
+            out.reshape(-1)[at] = _composite_cells(
+                pr, info.reshape(-1)[block], cells.vmin.reshape(-1)[at], cells.vmax.reshape(-1)[at],
+                cells.std.reshape(-1)[at], None if coarse is None else coarse.reshape(-1)[block], lo0, hi0)
+    out.flags.writeable = False
+    eng.cell_infos.put(last, (cells, info.copy(), None if coarse is None else coarse.copy(), out), out.nbytes + info.nbytes)
+    return out
 
 
 def _shows(lut: Lut, dist: DistTable | None, lo: np.ndarray, hi: np.ndarray, sd: np.ndarray) -> np.ndarray:
