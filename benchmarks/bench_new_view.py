@@ -35,7 +35,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from record import provenance  # noqa: E402
+from record import bootstrap, provenance  # noqa: E402
 
 import lodcast  # noqa: E402
 
@@ -77,12 +77,6 @@ def new_views(store: Path, views: int, size: int, reduction: float, profile: Pat
             "median_host_ms": float(np.median([r["wall_ms"] - r["kernel_ms"] for r in rows])),
             "median_kernel_ms": float(np.median([r["kernel_ms"] for r in rows])),
             "median_bricks_read": float(np.median([r["bricks_read"] for r in rows]))}
-
-
-def bootstrap(ratios: np.ndarray, n: int = 4000, seed: int = 0) -> tuple[float, float]:
-    rng = np.random.default_rng(seed)
-    meds = np.median(rng.choice(ratios, (n, ratios.size), replace=True), axis=1)
-    return float(np.quantile(meds, 0.025)), float(np.quantile(meds, 0.975))
 
 
 def one_process(python: Path, args: list[str]) -> dict:
