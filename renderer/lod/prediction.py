@@ -119,17 +119,25 @@ def _ray_columns(model: RayModel, lv: np.ndarray) -> list[tuple[np.ndarray, np.n
     a_err = np.minimum(np.where(loaded & (opac[:, 3] > 0), opac[:, 3], a), 1.0 - 1e-6)
     grid = tuple(model.grid)
     seen = None if model.seen is None else np.clip(np.asarray(model.seen, np.float64), 0.0, 1.0).reshape(grid)
+    # per unit of path: the block's log transmittance, and its error's slabs' (on the loaded blocks, which alone
+    # have an error); each axis scales them by its path (the transcendental functions once, not once per axis)
+    log_tau = np.where(a > 0, np.maximum(f, 1.0 / block) * np.log1p(-a), 0.0)
+    ae, lam_e = a_err[rows], np.maximum(share[rows], 1.0 / block)
+    log_e = lam_e * np.log1p(-ae)
     out = []
     for ax in range(3):
-        lam = model.path[ax] * np.maximum(f, 1.0 / block)
-        tau = np.where(a > 0, np.exp(lam * np.log1p(-a)), 1.0)
-        lam_e = model.path[ax] * np.maximum(share, 1.0 / block)
-        n_slabs = np.where(a_err > 1e-12, -np.expm1(lam_e * np.log1p(-a_err)) / np.maximum(a_err, 1e-12), lam_e)
-        x2 = np.moveaxis((n_slabs * n_slabs * e2).reshape(grid), ax, 0)
-        t = np.moveaxis(tau.reshape(grid), ax, 0)
-        footprint = (1.0 - np.prod(t, axis=0)) >= _FOOTPRINT
-        ways = ((np.moveaxis(seen, ax, 0), x2),) if seen is not None else \
-            ((_in_front(t), x2), (_in_front(t[::-1]), x2[::-1]))
+        p = model.path[ax]
+        n_slabs = np.where(ae > 1e-12, -np.expm1(p * log_e) / np.maximum(ae, 1e-12), p * lam_e)
+        flat = np.zeros(lv.size)
+        flat[rows] = n_slabs * n_slabs * e2[rows]
+        x2 = np.moveaxis(flat.reshape(grid), ax, 0)
+        lt = np.moveaxis(log_tau.reshape(grid), ax, 0)
+        footprint = -np.expm1(p * lt.sum(axis=0)) >= _FOOTPRINT
+        if seen is not None:
+            ways: tuple[tuple[np.ndarray, np.ndarray], ...] = ((np.moveaxis(seen, ax, 0), x2),)
+        else:
+            t = np.exp(p * lt)
+            ways = ((_in_front(t), x2), (_in_front(t[::-1]), x2[::-1]))
         for front, xx in ways:
             out.append((np.sqrt((front * front * xx).sum(axis=0)), footprint))
     return out
