@@ -2,7 +2,7 @@
 each of lc_gradient's paths, counted by a copy of this checkout's kernel sources with counters patched in (never
 the product kernel: the copy lives in a temporary folder).
 
-    .venv/bin/python benchmarks/grad_paths.py [--size 256] [--chest-size 512]
+    .venv/bin/python benchmarks/grad_paths.py [--rev REV] [--size 256] [--chest-size 512]
 
 Each counter is one render whose `nsamples` output holds that counter per ray instead of the samples taken
 (`-DLC_COUNT_WHAT=k`), so the report's sample total is the counter's total. The counters are named in COUNTERS; a
@@ -22,7 +22,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from bench_seams import lod, scenes  # noqa: E402
-from kernel_gate import kernels_from  # noqa: E402
+from kernel_gate import kernels_from, old_sources  # noqa: E402
 
 from lodcast import opencl  # noqa: E402
 from lodcast.renderer.frame.render import Renderer  # noqa: E402
@@ -60,10 +60,9 @@ COUNTERS: dict[str, list[tuple[str, str, str]]] = {
 }
 
 
-def patched(dest: Path, which: str, k: int) -> bool:
-    """This checkout's kernel sources in dest with counter `which` (index k) patched in; False if an anchor is
+def patched(src: Path, dest: Path, which: str, k: int) -> bool:
+    """The kernel sources of src in dest with counter `which` (index k) patched in; False if an anchor is
     missing."""
-    src = opencl.renderer_folder()
     for f in src.iterdir():
         if f.suffix in (".cl", ".h"):
             shutil.copy(f, dest / f.name)
@@ -84,10 +83,12 @@ def patched(dest: Path, which: str, k: int) -> bool:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rev", default=None, help="count in this git revision's kernel sources (default: this checkout's)")
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--chest-size", type=int, default=512)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
+    src = old_sources(args.rev, Path(tempfile.mkdtemp())) if args.rev else opencl.renderer_folder()
     eng = Renderer()
     out: dict[str, dict[str, int]] = {}
     for name, (store, base) in scenes(args.size, ["sphere", "chest"]).items():
@@ -97,7 +98,7 @@ def main() -> int:
         row: dict[str, int] = {"samples": eng.render(store, sc).report["samples"]}
         for k, which in enumerate(COUNTERS):
             folder = Path(tempfile.mkdtemp(prefix="lodcast-count-"))
-            if not patched(folder, which, k):
+            if not patched(src, folder, which, k):
                 print(f"{name}: {which}: no such path in this checkout", flush=True)
                 continue
             with kernels_from(folder):

@@ -1,7 +1,7 @@
 """Shading gradients on the atlas (renderer/kernel/lc_sampler.h: lc_sampler_diff) take the interblock field
 (eq. 3.6) in every build, through the walk's block: its brick inside eq. 3.6's window, the blocks of a point's blend
-zone (lc_atlas.h: lc_blk_zone) near a face, edge or corner, the general interblock sampler outside the walk's
-blocks. Checked against float64 evaluations of eq. 3.6 at the six stencil points, and a lit nearest-block image
+zone near a face (lc_atlas.h: lc_face_blend), edge or corner (lc_hood_zone), the ray's interblock neighbourhood
+outside the walk's blocks. Checked against float64 evaluations of eq. 3.6 at the six stencil points, and a lit nearest-block image
 against the same kernel whose gradients take six general interblock samples each."""
 from __future__ import annotations
 
@@ -94,9 +94,11 @@ def test_differences_match_float64_eq36_on_random_levels(interp):
 
 
 #: lc_sampler_diff's dispatch of a stencil point, and what reference kernels put there instead
-DISPATCH = "        if (!b->n) v = lc_hood_zone(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e, 7);"
-GENERAL = "        if (1) v = lc_sample_ii_h(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e).x;"  # eq. 3.6 as II samples it
-NEAREST = "        if (1) v = lc_sampler_at(s, q + e).x;"  # the build's own field: nearest block's clamped samples
+DISPATCH = "        float v;\n        if (b->n && (f & (f - 1)) == 0) {"
+#: eq. 3.6 as II samples it
+GENERAL = "        float v;\n        if (1) v = lc_sample_ii_h(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e).x;\n        else if (0) {"
+#: the build's own field: nearest block's clamped samples
+NEAREST = "        float v;\n        if (1) v = lc_sampler_at(s, q + e).x;\n        else if (0) {"
 
 
 def _kernels(src: Path, dest: Path, line: str) -> Path:

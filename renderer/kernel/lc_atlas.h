@@ -313,9 +313,9 @@ static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global co
 
 /* A block the ray marches through (raycast.cl sets it up once per block/cell of its DDA): brick coordinates are
  * l = q s + c there; NB clamps l to [lo, hi] = [0, n - 1] ([-1, n] at level 0: the apron); eq. 3.6 (II's samples,
- * and every build's shading gradients: lc_blk_ii) is the brick itself where l lies in the window [wlo, whi] (the
- * interior fast path above: every edge weight saturated, or a level-0 octant's apron), one face's blend in the
- * zone of one face, and the interblock sum elsewhere. n = 0: no block (the general sampler; an empty window).
+ * and every build's shading gradients: lc_sampler.h's lc_sampler_diff) is the brick itself where l lies in the
+ * window [wlo, whi] (the interior fast path above: every edge weight saturated, or a level-0 octant's apron), one
+ * face's blend in the zone of one face, and the interblock sum elsewhere. n = 0: no block (the general sampler; an empty window).
  * Samples come out as lc_sample_atlas gives them (NB: up to which of two blocks a sample within rounding of their
  * common face is assigned to; II in a level-0 octant: up to float rounding, trilinear interpolation computed once
  * from the apron, once as eq. 3.6's weighted sum). */
@@ -441,11 +441,11 @@ static LC_HOT void lc_blk_ready(__global const ulong* imap, const LcAtlasGeom g,
 #endif
 }
 
-/* The axes (bit a: axis a) on which brick coordinate l of block b lies outside eq. 3.6's window: those of
- * lc_blk_zone's sum, which needs the others' blocks to weigh 0. Where the window is a level-0 octant's apron (there
- * the neighbours weigh, as trilinear interpolation), or where l lies outside it on an axis across the block's middle
- * from the cell that set the window (lc_blk_cell: another neighbourhood), the axes outside lc_blk's window for the
- * whole block instead, the 3x3 slices' bound (exact anywhere in the block). */
+/* The axes (bit a: axis a) on which brick coordinate l of block b lies outside eq. 3.6's window: those of a blend
+ * zone's sum (lc_face_blend, lc_hood_zone), which needs the other axes' blocks to weigh 0. Where the window is a
+ * level-0 octant's apron (there the neighbours weigh, as trilinear interpolation), or where l lies outside it on an
+ * axis across the block's middle from the cell that set the window (lc_blk_cell: another neighbourhood), the axes
+ * outside lc_blk's window for the whole block instead, the 3x3 slices' bound (exact anywhere in the block). */
 static LC_HOT int lc_blk_out(const LcBlk* b, const float3 l) {
     const int f = (l.x >= b->wlo.x && l.x <= b->whi.x ? 0 : 1) | (l.y >= b->wlo.y && l.y <= b->whi.y ? 0 : 2) |
                   (l.z >= b->wlo.z && l.z <= b->whi.z ? 0 : 4);
@@ -464,8 +464,9 @@ static LC_HOT int lc_blk_out(const LcBlk* b, const float3 l) {
  * neighbourhood of q's cell (the walk's cell is one, so it is set up once per cell, with its edges' reciprocals). A
  * block of the cell that differs from q's own on an axis outside f weighs 0 (the fast path's argument: its edge
  * factor there is 0, and the own side's is 1), so only the 2^|f| blocks that differ on f's axes are summed, each
- * with the edge factors of those axes: lc_hood_sample's terms. NaN where q's own block is missing. */
-static LC_HOT float lc_hood_zone(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
+ * with the edge factors of those axes: lc_hood_sample's terms. NaN where q's own block is missing. Out of line
+ * (LC_COLD): inlined into the march it makes the lit nearest-block kernel's first build a fifth longer. */
+static LC_COLD float lc_hood_zone(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
                                  const LcAtlasGeom g, LcHood* hd, const float3 q, const int f) {
     const float3 p = (q + 0.5f) * (1.0f / g.B); /* q + 1/2 > -B/2: (int) is floor */
     const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);

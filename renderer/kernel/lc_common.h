@@ -44,6 +44,15 @@ typedef ushort lc_sig;
 #define LC_HOT inline
 #endif
 
+/* For a large body on a path that is not the common one (a shading gradient's point by an edge or corner of the
+ * walk's block: lc_hood_zone): kept out of line, so that the first build stays short. Other compilers keep their own
+ * judgement. */
+#ifdef __clang__
+#define LC_COLD __attribute__((noinline))
+#else
+#define LC_COLD
+#endif
+
 /* v clamped to [0, hi] */
 static inline int lc_clampi(const int v, const int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
 /* ceil(x) for x > -1 (conversion truncates towards zero), without PoCL's out-of-line ceil() */

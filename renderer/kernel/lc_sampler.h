@@ -110,15 +110,16 @@ static LC_HOT float3 lc_sampler_diff(LcSampler* s, const float3 q) {
         const float3 l = (q + e) * b->s + b->c;
         const int f = lc_blk_out(b, l);
         float v;
-        if (!b->n) v = lc_hood_zone(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e, 7);
-        else if (!f) v = lc_brick(s->vol, s->sig, b->off, b->n, b->coarse, l.x, l.y, l.z).x; /* in [-1, n] */
-        else if (f == 1 || f == 2 || f == 4) { /* one face: eq. 3.5's own sample and the neighbour's */
-            const float n1 = (float)(b->n - 1);
-            const float2 own = lc_brick(s->vol, s->sig, b->off, b->n, b->coarse, l.x > 0.0f ? (l.x < n1 ? l.x : n1) : 0.0f,
-                                        l.y > 0.0f ? (l.y < n1 ? l.y : n1) : 0.0f, l.z > 0.0f ? (l.z < n1 ? l.z : n1) : 0.0f);
-            v = lc_face_blend(s->vol, s->sig, s->imap, s->geom, own, b->ho, b->bx, b->by, b->bz, f == 1, f == 2,
-                              ((f == 1 ? l.x : (f == 2 ? l.y : l.z)) + 0.5f) / b->s, q + e, 1).x;
-        } else v = lc_hood_zone(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e, f);
+        if (b->n && (f & (f - 1)) == 0) {
+            /* inside the window l lies in [-1, n] (a level-0 octant's apron) or [0, n - 1]; by one face the own sample
+             * is eq. 3.5's, [0, n - 1], blended with the neighbour's */
+            const float lo = f ? 0.0f : -1.0f, hi = (float)(f ? b->n - 1 : b->n);
+            v = lc_brick(s->vol, s->sig, b->off, b->n, b->coarse, l.x > lo ? (l.x < hi ? l.x : hi) : lo,
+                         l.y > lo ? (l.y < hi ? l.y : hi) : lo, l.z > lo ? (l.z < hi ? l.z : hi) : lo).x;
+            if (f)
+                v = lc_face_blend(s->vol, s->sig, s->imap, s->geom, (float2)(v, 0.0f), b->ho, b->bx, b->by, b->bz, f == 1,
+                                  f == 2, ((f == 1 ? l.x : (f == 2 ? l.y : l.z)) + 0.5f) / b->s, q + e, 1).x;
+        } else v = lc_hood_zone(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e, b->n ? f : 7);
         d += e * v; /* + the sample ahead, - the one behind, on axis a */
     }
     return d;
