@@ -239,7 +239,7 @@ static LC_HOT float2 lc_face_blend(__global const lc_voxel* atlas, __global cons
     const int nx = bx + (in_x ? d : 0), ny = by + (in_y ? d : 0), nz = bz + (in_x | in_y ? 0 : d);
     if (nx < 0 || ny < 0 || nz < 0 || nx >= g.gx || ny >= g.gy || nz >= g.gz) return a; /* the cell folds onto own */
     const ulong nb = lc_imap(imap, g, nx, ny, nz);
-    if (!nb) return beyond && (o < 0.0f || o >= g.B) ? (float2)(NAN, 0.0f) : a; /* a missing neighbour weighs 0 */
+    if (!nb) return beyond && (o < 0.0f || o >= g.B) ? (float2)(NAN, 0.0f) : a; /* a missing one weighs 0 */
     const float hn = lc_half(nb);
     /* e: the weight of the upper block of the edge, the interblock coordinate measured from the face */
     const float w = up ? lc_edge(o - g.B, ho, hn) : 1.0f - lc_edge(o, hn, ho);
@@ -315,7 +315,8 @@ static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global co
  * l = q s + c there; NB clamps l to [lo, hi] = [0, n - 1] ([-1, n] at level 0: the apron); eq. 3.6 (II's samples,
  * and every build's shading gradients: lc_sampler.h's lc_sampler_diff) is the brick itself where l lies in the
  * window [wlo, whi] (the interior fast path above: every edge weight saturated, or a level-0 octant's apron), one
- * face's blend in the zone of one face, and the interblock sum elsewhere. n = 0: no block (the general sampler; an empty window).
+ * face's blend in the zone of one face, and the interblock sum elsewhere. n = 0: no block (the general sampler; an
+ * empty window).
  * Samples come out as lc_sample_atlas gives them (NB: up to which of two blocks a sample within rounding of their
  * common face is assigned to; II in a level-0 octant: up to float rounding, trilinear interpolation computed once
  * from the apron, once as eq. 3.6's weighted sum). */
@@ -456,7 +457,8 @@ static LC_HOT int lc_blk_out(const LcBlk* b, const float3 l) {
     if (!(f & across) && !(b->side & 8)) return f;
     const float3 hm = (float3)(lc_hw(b->ent, 4), lc_hw(b->ent, 8), lc_hw(b->ent, 12));
     const float3 lo = hm * b->s - 0.5f, hi = (float)b->n - 0.5f - hm * b->s;
-    return (l.x >= lo.x && l.x <= hi.x ? 0 : 1) | (l.y >= lo.y && l.y <= hi.y ? 0 : 2) | (l.z >= lo.z && l.z <= hi.z ? 0 : 4);
+    return (l.x >= lo.x && l.x <= hi.x ? 0 : 1) | (l.y >= lo.y && l.y <= hi.y ? 0 : 2) |
+           (l.z >= lo.z && l.z <= hi.z ? 0 : 4);
 }
 
 /* Eq. 3.6 at q, up to one level-0 voxel from the walk's block, whose brick coordinate lies outside that block's
@@ -464,10 +466,12 @@ static LC_HOT int lc_blk_out(const LcBlk* b, const float3 l) {
  * neighbourhood of q's cell (the walk's cell is one, so it is set up once per cell, with its edges' reciprocals). A
  * block of the cell that differs from q's own on an axis outside f weighs 0 (the fast path's argument: its edge
  * factor there is 0, and the own side's is 1), so only the 2^|f| blocks that differ on f's axes are summed, each
- * with the edge factors of those axes: lc_hood_sample's terms. NaN where q's own block is missing. Out of line
- * (LC_COLD): inlined into the march it makes the lit nearest-block kernel's first build a fifth longer. */
-static LC_COLD float lc_hood_zone(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
-                                 const LcAtlasGeom g, LcHood* hd, const float3 q, const int f) {
+ * with the edge factors of those axes: lc_hood_sample's terms (f = 7: all of them, for a point outside the walk's
+ * blocks). NaN where q's own block is missing. Out of line (LC_COLD): inlined into the march it makes the lit
+ * nearest-block kernel's first build much longer. */
+static LC_COLD float lc_hood_zone(__global const lc_voxel* atlas, __global const lc_sig* sig,
+                                  __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q,
+                                  const int f) {
     const float3 p = (q + 0.5f) * (1.0f / g.B); /* q + 1/2 > -B/2: (int) is floor */
     const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
     if (cx != hd->cx || cy != hd->cy || cz != hd->cz) lc_hood(hd, imap, g, cx, cy, cz);
