@@ -113,13 +113,16 @@ def _kernels(src: Path, dest: Path, line: str) -> Path:
     return dest
 
 
-def test_lit_nearest_block_image_is_the_interblock_fields(tmp_path, monkeypatch):
+@pytest.mark.parametrize("steps", [{}, {"adaptive_naive": True}])
+def test_lit_nearest_block_image_is_the_interblock_fields(tmp_path, monkeypatch, steps):
     """The lit smooth sphere at 30:1, nearest block (the default): the same image, up to float32 rounding, as a
     kernel whose every gradient point is a general interblock sample (lc_sample_ii_h); gradients from nearest
-    block's own clamped samples would change it visibly (the block grid issue 45 removed)."""
+    block's own clamped samples would change it visibly (the block grid issue 45 removed). Also with naive adaptive
+    steps, whose walk enters no cell: the sampler's block is then none (it read a window from uninitialised
+    fields and crashed the process)."""
     store = lodcast.ingest(sphere_ramp(128), tmp_path / "sphere.zarr", block_size=16, progress=False)
     scene = {"camera": {"azimuth": 30, "elevation": 20}, "width": 128, "height": 128, "tf": SPHERE_TF, "shading": {},
-             "format": "npy", "quality": {"reduction": 30}, "sampling": {"interpolation": "nearest_block"}}
+             "format": "npy", "quality": {"reduction": 30}, "sampling": {"interpolation": "nearest_block", **steps}}
     img = lodcast.render(store, scene).rgba
     out, src = {}, opencl.renderer_folder()
     for name, line in (("general", GENERAL), ("nearest", NEAREST)):

@@ -56,6 +56,11 @@ static inline LcSampler lc_sampler_make(__constant const LcParams* P, __global c
     s.blk.c = (float3)(0.0f);
     s.blk.wlo = s.blk.lo;
     s.blk.whi = s.blk.hi;
+    s.blk.coarse = 0;
+    s.blk.bx = s.blk.by = s.blk.bz = 0;
+    s.blk.ho = 0.5f;
+    s.blk.ent = 0UL;
+    s.blk.side = -1; /* no block: nothing for lc_blk_ready to narrow (a walk that enters no cell keeps it) */
     s.hood.cx = -1;
 #endif
 #if defined(LC_PASSES) && defined(LC_SAMPLER_FULL)
@@ -135,7 +140,10 @@ static LC_HOT float3 lc_sampler_diff(LcSampler* s, const float3 q) {
 static LC_HOT void lc_sampler_enter(LcSampler* s, const int4 cell) {
 #ifdef LC_SAMPLER_ATLAS
     if (cell.w) s->blk = lc_blk_cell(s->imap, s->geom, cell.x, cell.y, cell.z, cell.w);
-    else s->blk.n = 0;
+    else {
+        s->blk.n = 0;
+        s->blk.side = -1;
+    }
 #endif
 }
 
