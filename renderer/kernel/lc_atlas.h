@@ -213,20 +213,33 @@ static inline float2 lc_hood_sample(__global const lc_voxel* atlas, __global con
     return acc / wsum;
 }
 
+/* eq. 3.6 at q through the neighbourhood of q's cell, set up unless it is the last one (q + 1/2 > -B/2: (int) is
+ * floor) */
+static LC_HOT float2 lc_hood_at(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
+                                const LcAtlasGeom g, LcHood* hd, const float3 q) {
+    const float3 p = (q + 0.5f) * (1.0f / g.B);
+    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
+    if (cx != hd->cx || cy != hd->cy || cz != hd->cz) lc_hood(hd, imap, g, cx, cy, cz);
+    return lc_hood_sample(atlas, sig, g, hd, q);
+}
+
 /* A sample of block (bx, by, bz) (NB sample a, half-sample width ho) in the blend zone of one face only, along x
  * (in_x), y (in_y) or else z, o level-0 voxels from the block's lower face on that axis. Every block of the cell but
  * the own one and its neighbour across that face has weight 0 (the fast path's argument, below), and these two take
  * (1 - e, e) of the face's edge weight (the other axes' factors saturate to 1 for both): two NB samples instead of
- * the cell's eight. */
+ * the cell's eight. That holds up to the neighbour's centre, so q may lie beyond the face (a shading gradient's
+ * stencil, `beyond`: there q belongs to the neighbour, and a missing neighbour makes it NaN, as lc_sample_atlas_h
+ * gives it). */
 static LC_HOT float2 lc_face_blend(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const float2 a, const float ho, const int bx, const int by,
-                                   const int bz, const int in_x, const int in_y, const float o, const float3 q) {
+                                   const int bz, const int in_x, const int in_y, const float o, const float3 q,
+                                   const int beyond) {
     const int up = o > 0.5f * g.B; /* the face above the own block along that axis */
     const int d = up ? 1 : -1;
     const int nx = bx + (in_x ? d : 0), ny = by + (in_y ? d : 0), nz = bz + (in_x | in_y ? 0 : d);
     if (nx < 0 || ny < 0 || nz < 0 || nx >= g.gx || ny >= g.gy || nz >= g.gz) return a; /* the cell folds onto own */
     const ulong nb = lc_imap(imap, g, nx, ny, nz);
-    if (!nb) return a; /* a missing neighbour weighs 0 */
+    if (!nb) return beyond && (o < 0.0f || o >= g.B) ? (float2)(NAN, 0.0f) : a; /* a missing one weighs 0 */
     const float hn = lc_half(nb);
     /* e: the weight of the upper block of the edge, the interblock coordinate measured from the face */
     const float w = up ? lc_edge(o - g.B, ho, hn) : 1.0f - lc_edge(o, hn, ho);
@@ -253,12 +266,8 @@ static LC_HOT float2 lc_sample_ii(__global const lc_voxel* atlas, __global const
     if (!(in_x | in_y | in_z)) return lc_nb(atlas, sig, own, bx, by, bz, g, q);
     if (in_x + in_y + in_z == 1)
         return lc_face_blend(atlas, sig, imap, g, lc_nb(atlas, sig, own, bx, by, bz, g, q), lc_half(own), bx, by, bz,
-                             in_x, in_y, in_x ? ox : (in_y ? oy : oz), q);
-    /* p >= 0 (the caller's clamp to the box): (int) is floor */
-    const float3 p = (q + 0.5f) * (1.0f / g.B);
-    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
-    if (cx != hd->cx || cy != hd->cy || cz != hd->cz) lc_hood(hd, imap, g, cx, cy, cz);
-    return lc_hood_sample(atlas, sig, g, hd, q);
+                             in_x, in_y, in_x ? ox : (in_y ? oy : oz), q, 0);
+    return lc_hood_at(atlas, sig, imap, g, hd, q);
 }
 
 /* the block of q and its index entry (0: not loaded) */
@@ -270,57 +279,6 @@ static LC_HOT ulong lc_own(__global const ulong* imap, const LcAtlasGeom g, cons
     *by = lc_clampi((int)p.y, g.gy - 1);
     *bz = lc_clampi((int)p.z, g.gz - 1);
     return lc_imap(imap, g, *bx, *by, *bz);
-}
-
-/* Central differences of eq. 3.6 one level-0 voxel either side of q along each axis (the samples ahead minus those
- * behind), all six points in the neighbourhood's cell: one set of edge weights per coordinate (q's and q's +-1 on
- * each axis) and an NB sample only where a block's weight is non-zero, instead of six separate interblock samples.
- * A point whose own block is missing is NaN, as lc_sample_atlas_h gives it. */
-static LC_HOT float3 lc_hood_diff(__global const lc_voxel* atlas, __global const lc_sig* sig, const LcAtlasGeom g,
-                                  const LcHood* hd, const float3 q) {
-    const float3 c = q + 0.5f - (float3)((float)hd->cx, (float)hd->cy, (float)hd->cz) * g.B;
-    float ex[3][4], ey[3][4], ez[3][4]; /* [0]: at the coordinate - 1, [1]: + 1, [2]: at q */
-    for (int k = 0; k < 4; ++k) {
-        const int sx = 2 * k, sy = (k & 1) | ((k & 2) << 1), sz = k;
-        for (int m = 0; m < 3; ++m) {
-            const float o = m == 2 ? 0.0f : (m ? 1.0f : -1.0f);
-            ex[m][k] = lc_edge_r(c.x + o, hd->h[sx], hd->rx[k]);
-            ey[m][k] = lc_edge_r(c.y + o, hd->h[sy], hd->ry[k]);
-            ez[m][k] = lc_edge_r(c.z + o, hd->h[sz], hd->rz[k]);
-        }
-    }
-    float acc[6] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f}, ws[6] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-    for (int s = 0; s < 8; ++s) {
-        if (!hd->E[s]) continue;
-        const int sx = s & 1, sy = (s >> 1) & 1, sz = s >> 2;
-        float fx[3], fy[3], fz[3];
-        for (int m = 0; m < 3; ++m) {
-            fx[m] = sx ? ex[m][s >> 1] : 1.0f - ex[m][s >> 1];
-            fy[m] = sy ? ey[m][sx + 2 * sz] : 1.0f - ey[m][sx + 2 * sz];
-            fz[m] = sz ? ez[m][sx + 2 * sy] : 1.0f - ez[m][sx + 2 * sy];
-        }
-#pragma unroll 1
-        for (int k = 0; k < 6; ++k) { /* point k: axis k >> 1, - (k even) or + (k odd) */
-            const int a = k >> 1, m = k & 1;
-            const float w = (a == 0 ? fx[m] : fx[2]) * (a == 1 ? fy[m] : fy[2]) * (a == 2 ? fz[m] : fz[2]);
-            if (w > 0.0f) {
-                const float o = m ? 1.0f : -1.0f;
-                const float3 qk = q + (float3)(a == 0 ? o : 0.0f, a == 1 ? o : 0.0f, a == 2 ? o : 0.0f);
-                acc[k] += w * lc_nb(atlas, sig, hd->E[s], hd->X[sx], hd->Y[sy], hd->Z[sz], g, qk).x;
-                ws[k] += w;
-            }
-        }
-    }
-    float v[6];
-    for (int k = 0; k < 6; ++k) {
-        /* the block that holds point k: the cell's block on its side of the blocks' common corner, per axis */
-        const int a = k >> 1;
-        const float o = (k & 1) ? 1.0f : -1.0f;
-        const int own = (c.x + (a == 0 ? o : 0.0f) >= 0.0f ? 1 : 0) | (c.y + (a == 1 ? o : 0.0f) >= 0.0f ? 2 : 0) |
-                        (c.z + (a == 2 ? o : 0.0f) >= 0.0f ? 4 : 0);
-        v[k] = hd->E[own] ? acc[k] / ws[k] : NAN;
-    }
-    return (float3)(v[1] - v[0], v[3] - v[2], v[5] - v[4]);
 }
 
 /* The multiresolution field at q. hd: the last interblock neighbourhood this ray set up (cx = -1: none), reused
@@ -354,22 +312,28 @@ static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global co
 }
 
 /* A block the ray marches through (raycast.cl sets it up once per block/cell of its DDA): brick coordinates are
- * l = q s + c there; NB clamps l to [0, n - 1] ([-1, n] at level 0: the apron); II takes the brick directly where
- * l lies in [lo, hi] (the interior fast path above: every edge weight saturated, or a level-0 octant's apron) and
- * the interblock sum elsewhere. n = 0: no block (the general sampler). Samples come out as lc_sample_atlas gives them (NB: up to
- * which of two blocks a sample within rounding of their common face is assigned to; II in a level-0 octant: up
- * to float rounding, trilinear interpolation computed once from the apron, once as eq. 3.6's weighted sum). */
+ * l = q s + c there; NB clamps l to [lo, hi] = [0, n - 1] ([-1, n] at level 0: the apron); eq. 3.6 (II's samples,
+ * and every build's shading gradients: lc_sampler.h's lc_sampler_diff) is the brick itself where l lies in the
+ * window [wlo, whi] (the interior fast path above: every edge weight saturated, or a level-0 octant's apron), one
+ * face's blend in the zone of one face, and the interblock sum elsewhere. n = 0: no block (the general sampler; an
+ * empty window).
+ * Samples come out as lc_sample_atlas gives them (NB: up to which of two blocks a sample within rounding of their
+ * common face is assigned to; II in a level-0 octant: up to float rounding, trilinear interpolation computed once
+ * from the apron, once as eq. 3.6's weighted sum). */
 typedef struct LcBlk {
     ulong off;
     int n;
     int coarse; /* level >= 1: has standard deviations */
     float s;
-    float3 lo, hi;
+    float3 lo, hi;   /* NB's clamp */
+    float3 wlo, whi; /* eq. 3.6's window */
     float3 c;
     int bx, by, bz; /* the block */
     float ho;       /* its half-sample width (level-0 voxels) */
-    float3 glo, ghi; /* where a shading gradient's stencil (one level-0 voxel either side) sees this block only:
-                      * eq. 3.6's interior fast window, one level-0 voxel in from it (empty: n = 0) */
+    ulong ent;      /* its index entry */
+    int side;       /* the window as lc_blk_cell set it for the cell's neighbourhood: the cell's half of the block
+                     * per axis (bit a: the upper half), | 8 where it is a level-0 octant's apron, | 16 while it is
+                     * still lc_blk's (lc_blk_ready); -1: lc_blk's window, for the whole block */
 } LcBlk;
 
 static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, const int bx, const int by, const int bz) {
@@ -380,7 +344,9 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.off = 0;
     b.s = 1.0f; b.lo = (float3)(0.0f); b.hi = (float3)(-1.0f);
     b.c = (float3)(0.0f);
-    b.glo = b.lo; b.ghi = b.hi;
+    b.wlo = b.lo; b.whi = b.hi;
+    b.ent = ent;
+    b.side = -1;
     if (!ent) return b;
     const int lvl = (int)(ent & 15UL) - 1;
     b.off = ent >> 16;
@@ -391,19 +357,19 @@ static inline LcBlk lc_blk(__global const ulong* imap, const LcAtlasGeom g, cons
     b.bx = bx; b.by = by; b.bz = bz;
     b.ho = 0.5f / b.s;
     const float3 hm = (float3)(lc_hw(ent, 4), lc_hw(ent, 8), lc_hw(ent, 12));
-    b.glo = (hm + 1.0f) * b.s - 0.5f;
-    b.ghi = (float)b.n - 0.5f - (hm + 1.0f) * b.s;
-#ifdef LC_INTERP_II
-    b.lo = hm * b.s - 0.5f;
-    b.hi = (float)b.n - 0.5f - hm * b.s;
-#else
+    b.wlo = hm * b.s - 0.5f;
+    b.whi = (float)b.n - 0.5f - hm * b.s;
     b.lo = (float3)(lvl ? 0.0f : -1.0f); /* level 0: the apron */
     b.hi = (float3)((float)(lvl ? b.n - 1 : b.n));
-#endif
     return b;
 }
 
-#ifdef LC_INTERP_II
+/* builds that take eq. 3.6 in the walk's cells: interblock's samples, and any build's gradients (lc_shade.h) */
+#if defined(LC_INTERP_II) || defined(LC_SHADE) || defined(LC_GRADIENT_OPACITY)
+#define LC_II_CELLS
+#endif
+
+#ifdef LC_II_CELLS
 /* the largest of four (no fmax: PoCL calls builtins out of line) */
 static inline float lc_max4(const float a, const float b, const float c, const float d) {
     const float ab = a > b ? a : b, cd = c > d ? c : d;
@@ -411,55 +377,142 @@ static inline float lc_max4(const float a, const float b, const float c, const f
 }
 #endif
 
-/* lc_blk for the samples of cell (x, y, z) of a walk with cpb cells per block edge. With II and half-block cells
- * (cpb 2) the cell lies in one interblock neighbourhood (its block's octant towards the cell's side on every
+/* lc_blk for the samples of cell (x, y, z) of a walk with cpb cells per block edge. With half-block cells (cpb 2)
+ * the cell lies in one interblock neighbourhood (its block's octant towards the cell's side on every
  * axis). Where all eight blocks of that neighbourhood are at level 0, phi is trilinear interpolation of level 0,
- * which the padded brick holds for the whole octant (its apron is the neighbours' samples): the window becomes the
- * apron on the near side. Else on the near side of each axis a the fast window needs only the
+ * which the padded brick holds for the whole octant (its apron is the neighbours' samples): eq. 3.6's window becomes
+ * the apron on the near side. Else on the near side of each axis a the window needs only the
  * half-sample widths of the four blocks of that neighbourhood that share the block's a-coordinate (the argument
  * above, restricted to the cell's own neighbourhood), not the largest of the 3x3 slice: the window widens wherever a
- * coarser block of the slice lies on the far side. The far side keeps lc_blk's bound (a sample rounded into the
- * next cell is still sampled exactly). Seven more index reads per cell. */
-static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g, const int x, const int y,
-                                const int z, const int cpb) {
-    const int bx = x / cpb, by = y / cpb, bz = z / cpb;
-    LcBlk b = lc_blk(imap, g, bx, by, bz);
-#ifdef LC_INTERP_II
-    if (cpb != 2 || !b.n) return b;
+ * coarser block of the slice lies on the far side. The far side keeps lc_blk's bound, so that a point in the window
+ * across the block's middle on some axes (a sample rounded into the next cell, a gradient's stencil) is still the
+ * own sample: a block of its neighbourhood that differs from the own one across such an axis weighs 0 by the far
+ * side's bound on that axis, and the others, which share the own block's coordinate there, lie in this cell's
+ * neighbourhood. A point across the middle and outside the window on such an axis is not covered (lc_blk_out).
+ * Seven more index reads per cell (lc_blk_narrow), only in builds that take eq. 3.6 (LC_II_CELLS), and in
+ * nearest-block builds only in the cells where a gradient is taken. */
+#ifdef LC_II_CELLS
+static inline void lc_blk_narrow(__global const ulong* imap, const LcAtlasGeom g, LcBlk* b, const int side) {
+    const int bx = b->bx, by = b->by, bz = b->bz;
     /* the neighbours towards the cell's side (off the grid: the neighbourhood folds onto the block, and the apron
      * there repeats the brick's edge, as the fold does) */
-    const int sx = (x & 1) ? 1 : -1, sy = (y & 1) ? 1 : -1, sz = (z & 1) ? 1 : -1;
-    const int nx = lc_clampi(bx + sx, g.gx - 1), ny = lc_clampi(by + sy, g.gy - 1), nz = lc_clampi(bz + sz, g.gz - 1);
+    const int nx = lc_clampi(bx + (side & 1 ? 1 : -1), g.gx - 1), ny = lc_clampi(by + (side & 2 ? 1 : -1), g.gy - 1);
+    const int nz = lc_clampi(bz + (side & 4 ? 1 : -1), g.gz - 1);
     const ulong eX = lc_imap(imap, g, nx, by, bz), eY = lc_imap(imap, g, bx, ny, bz), eZ = lc_imap(imap, g, bx, by, nz);
     const ulong eXY = lc_imap(imap, g, nx, ny, bz), eXZ = lc_imap(imap, g, nx, by, nz), eYZ = lc_imap(imap, g, bx, ny, nz);
     const ulong eXYZ = lc_imap(imap, g, nx, ny, nz);
-    if (!b.coarse && (eX & 15UL) == 1UL && (eY & 15UL) == 1UL && (eZ & 15UL) == 1UL && (eXY & 15UL) == 1UL &&
+    if (!b->coarse && (eX & 15UL) == 1UL && (eY & 15UL) == 1UL && (eZ & 15UL) == 1UL && (eXY & 15UL) == 1UL &&
         (eXZ & 15UL) == 1UL && (eYZ & 15UL) == 1UL && (eXYZ & 15UL) == 1UL) { /* all eight at level 0 */
-        if (x & 1) b.hi.x = (float)b.n; else b.lo.x = -1.0f;
-        if (y & 1) b.hi.y = (float)b.n; else b.lo.y = -1.0f;
-        if (z & 1) b.hi.z = (float)b.n; else b.lo.z = -1.0f;
-        return b;
+        b->side = side | 8;
+        if (side & 1) b->whi.x = (float)b->n; else b->wlo.x = -1.0f;
+        if (side & 2) b->whi.y = (float)b->n; else b->wlo.y = -1.0f;
+        if (side & 4) b->whi.z = (float)b->n; else b->wlo.z = -1.0f;
+        return;
     }
     const float hX = lc_half(eX), hY = lc_half(eY), hZ = lc_half(eZ);
     const float hXY = lc_half(eXY), hXZ = lc_half(eXZ), hYZ = lc_half(eYZ);
-    const float3 hm = (float3)(lc_max4(b.ho, hY, hZ, hYZ), lc_max4(b.ho, hX, hZ, hXZ), lc_max4(b.ho, hX, hY, hXY));
-    const float3 lo = hm * b.s - 0.5f, hi = (float)b.n - 0.5f - hm * b.s;
-    if (x & 1) b.hi.x = hi.x; else b.lo.x = lo.x;
-    if (y & 1) b.hi.y = hi.y; else b.lo.y = lo.y;
-    if (z & 1) b.hi.z = hi.z; else b.lo.z = lo.z;
+    const float3 hm = (float3)(lc_max4(b->ho, hY, hZ, hYZ), lc_max4(b->ho, hX, hZ, hXZ), lc_max4(b->ho, hX, hY, hXY));
+    const float3 lo = hm * b->s - 0.5f, hi = (float)b->n - 0.5f - hm * b->s;
+    b->side = side;
+    if (side & 1) b->whi.x = hi.x; else b->wlo.x = lo.x;
+    if (side & 2) b->whi.y = hi.y; else b->wlo.y = lo.y;
+    if (side & 4) b->whi.z = hi.z; else b->wlo.z = lo.z;
+}
+#endif
+
+static inline LcBlk lc_blk_cell(__global const ulong* imap, const LcAtlasGeom g, const int x, const int y,
+                                const int z, const int cpb) {
+    LcBlk b = lc_blk(imap, g, x / cpb, y / cpb, z / cpb);
+#ifdef LC_II_CELLS
+    if (cpb != 2 || !b.n) return b;
+    const int side = (x & 1) | (y & 1) << 1 | (z & 1) << 2;
+#ifdef LC_INTERP_II
+    lc_blk_narrow(imap, g, &b, side);
+#else
+    b.side = side | 16; /* only gradients take eq. 3.6: narrowed where a sample of the cell takes one (lc_blk_ready) */
+#endif
 #endif
     return b;
+}
+
+/* the window of the walk's cell, narrowed if it is not yet */
+static LC_HOT void lc_blk_ready(__global const ulong* imap, const LcAtlasGeom g, LcBlk* b) {
+#ifdef LC_II_CELLS
+    if (b->side >= 16) lc_blk_narrow(imap, g, b, b->side & 7);
+#endif
+}
+
+/* The axes (bit a: axis a) on which brick coordinate l of block b lies outside eq. 3.6's window: those of a blend
+ * zone's sum (lc_face_blend, lc_hood_zone), which needs the other axes' blocks to weigh 0. Where the window is a
+ * level-0 octant's apron (there the neighbours weigh, as trilinear interpolation), or where l lies outside it on an
+ * axis across the block's middle from the cell that set the window (lc_blk_cell: another neighbourhood), the axes
+ * outside lc_blk's window for the whole block instead, the 3x3 slices' bound (exact anywhere in the block). */
+static LC_HOT int lc_blk_out(const LcBlk* b, const float3 l) {
+    const int f = (l.x >= b->wlo.x && l.x <= b->whi.x ? 0 : 1) | (l.y >= b->wlo.y && l.y <= b->whi.y ? 0 : 2) |
+                  (l.z >= b->wlo.z && l.z <= b->whi.z ? 0 : 4);
+    if (!f || b->side < 0) return f;
+    const float mid = 0.5f * (float)b->n - 0.5f;
+    const int across = ((l.x > mid) != (b->side & 1) ? 1 : 0) | ((l.y > mid) != ((b->side >> 1) & 1) ? 2 : 0) |
+                       ((l.z > mid) != ((b->side >> 2) & 1) ? 4 : 0);
+    if (!(f & across) && !(b->side & 8)) return f;
+    const float3 hm = (float3)(lc_hw(b->ent, 4), lc_hw(b->ent, 8), lc_hw(b->ent, 12));
+    const float3 lo = hm * b->s - 0.5f, hi = (float)b->n - 0.5f - hm * b->s;
+    return (l.x >= lo.x && l.x <= hi.x ? 0 : 1) | (l.y >= lo.y && l.y <= hi.y ? 0 : 2) |
+           (l.z >= lo.z && l.z <= hi.z ? 0 : 4);
+}
+
+/* Eq. 3.6 at q, up to one level-0 voxel from the walk's block, whose brick coordinate lies outside that block's
+ * window on the axes of mask f = lc_blk_out (bit a: axis a) and inside it on the others: through the ray's
+ * neighbourhood of q's cell (the walk's cell is one, so it is set up once per cell, with its edges' reciprocals). A
+ * block of the cell that differs from q's own on an axis outside f weighs 0 (the fast path's argument: its edge
+ * factor there is 0, and the own side's is 1), so only the 2^|f| blocks that differ on f's axes are summed, each
+ * with the edge factors of those axes: lc_hood_sample's terms (f = 7: all of them, for a point outside the walk's
+ * blocks). NaN where q's own block is missing. Out of line (LC_COLD): inlined into the march it makes the lit
+ * nearest-block kernel's first build much longer. */
+static LC_COLD float lc_hood_zone(__global const lc_voxel* atlas, __global const lc_sig* sig,
+                                  __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q,
+                                  const int f) {
+    const float3 p = (q + 0.5f) * (1.0f / g.B); /* q + 1/2 > -B/2: (int) is floor */
+    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
+    if (cx != hd->cx || cy != hd->cy || cz != hd->cz) lc_hood(hd, imap, g, cx, cy, cz);
+    const float3 c = q + 0.5f - (float3)((float)cx, (float)cy, (float)cz) * g.B;
+    const int own = (c.x >= 0.0f ? 1 : 0) | (c.y >= 0.0f ? 2 : 0) | (c.z >= 0.0f ? 4 : 0);
+    if (!hd->E[own]) return NAN;
+    float acc = 0.0f, wsum = 0.0f;
+#pragma unroll 1
+    for (int s = 0; s < 8; ++s) {
+        if (((s ^ own) & ~f) || !hd->E[s]) continue;
+        const int sx = s & 1, sy = (s >> 1) & 1, sz = s >> 2;
+        float w = 1.0f;
+        if (f & 1) { /* x-edge index (sy, sz), its lower block s without x */
+            const float e = lc_edge_r(c.x, hd->h[s & 6], hd->rx[s >> 1]);
+            w *= sx ? e : 1.0f - e;
+        }
+        if (f & 2) {
+            const float e = lc_edge_r(c.y, hd->h[s & 5], hd->ry[sx + 2 * sz]);
+            w *= sy ? e : 1.0f - e;
+        }
+        if (f & 4) {
+            const float e = lc_edge_r(c.z, hd->h[s & 3], hd->rz[sx + 2 * sy]);
+            w *= sz ? e : 1.0f - e;
+        }
+        if (w > 0.0f) {
+            acc += w * lc_nb(atlas, sig, hd->E[s], hd->X[sx], hd->Y[sy], hd->Z[sz], g, q).x;
+            wsum += w;
+        }
+    }
+    return acc / wsum;
 }
 
 static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
                                    const LcAtlasGeom g, const LcBlk b, LcHood* hd, const float3 q) {
     float3 l = q * b.s + b.c;
 #ifdef LC_INTERP_II
-    /* the own NB sample always (inside the fast window it is the answer), the face neighbour's only in a one-face
+    /* the own NB sample always (inside the window it is the answer), the face neighbour's only in a one-face
      * blend zone, the general interblock sum only near an edge or corner: on a SIMD device lanes in the blend
      * zones then add one NB sample to the others' work, not a whole second path */
-    const int in_x = !(l.x >= b.lo.x && l.x <= b.hi.x), in_y = !(l.y >= b.lo.y && l.y <= b.hi.y);
-    const int in_z = !(l.z >= b.lo.z && l.z <= b.hi.z);
+    const int in_x = !(l.x >= b.wlo.x && l.x <= b.whi.x), in_y = !(l.y >= b.wlo.y && l.y <= b.whi.y);
+    const int in_z = !(l.z >= b.wlo.z && l.z <= b.whi.z);
     if (!b.n || in_x + in_y + in_z > 1) return lc_sample_atlas_h(atlas, sig, imap, g, hd, q);
     /* inside the window l lies in [0, n - 1], or in the apron of a level-0 octant, [-1, n]; in a blend zone the
      * own sample is eq. 3.5's, [0, n - 1] */
@@ -470,7 +523,7 @@ static LC_HOT float2 lc_sample_blk(__global const lc_voxel* atlas, __global cons
     const float2 a = lc_brick(atlas, sig, b.off, b.n, b.coarse, cx, cy, cz);
     if (inside) return a;
     return lc_face_blend(atlas, sig, imap, g, a, b.ho, b.bx, b.by, b.bz, in_x, in_y,
-                         ((in_x ? l.x : (in_y ? l.y : l.z)) + 0.5f) / b.s, q);
+                         ((in_x ? l.x : (in_y ? l.y : l.z)) + 0.5f) / b.s, q, 0);
 #else
     if (!b.n) return lc_sample_atlas_h(atlas, sig, imap, g, hd, q);
     l.x = l.x > b.lo.x ? (l.x < b.hi.x ? l.x : b.hi.x) : b.lo.x;

@@ -44,9 +44,9 @@ typedef ushort lc_sig;
 #define LC_HOT inline
 #endif
 
-/* For a large body on a path that is not the common one (a shading gradient's interblock samples where its stencil
- * leaves one interblock cell): kept out of line, one copy of the interblock sampler for all its callers, so that the
- * first build stays short. Other compilers keep their own judgement. */
+/* For a large body on a path that is not the common one (a shading gradient's point by an edge or corner of the
+ * walk's block: lc_hood_zone): kept out of line, so that the first build stays short. Other compilers keep their own
+ * judgement. */
 #ifdef __clang__
 #define LC_COLD __attribute__((noinline))
 #else

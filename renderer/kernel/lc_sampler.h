@@ -54,8 +54,13 @@ static inline LcSampler lc_sampler_make(__constant const LcParams* P, __global c
     s.blk.lo = (float3)(0.0f);
     s.blk.hi = (float3)(-1.0f);
     s.blk.c = (float3)(0.0f);
-    s.blk.glo = s.blk.lo;
-    s.blk.ghi = s.blk.hi;
+    s.blk.wlo = s.blk.lo;
+    s.blk.whi = s.blk.hi;
+    s.blk.coarse = 0;
+    s.blk.bx = s.blk.by = s.blk.bz = 0;
+    s.blk.ho = 0.5f;
+    s.blk.ent = 0UL;
+    s.blk.side = -1; /* no block: nothing for lc_blk_ready to narrow (a walk that enters no cell keeps it) */
     s.hood.cx = -1;
 #endif
 #if defined(LC_PASSES) && defined(LC_SAMPLER_FULL)
@@ -90,54 +95,43 @@ static LC_HOT float2 lc_sampler_at(LcSampler* s, const float3 q) {
 #endif
 }
 
-/* the field at q for shading gradients (lc_shade.h): the atlas's interblock field whatever the interpolation, so
- * that a normal near a face between blocks takes both blocks' data (eq. 3.6 is C0 across level changes) instead
- * of the difference between one block's clamped samples and the next block's */
-static LC_COLD float lc_sampler_grad_at(LcSampler* s, const float3 q) {
+/* The central differences of the field for shading gradients (lc_shade.h) at q: x, y, z, the samples ahead minus
+ * those behind, one level-0 voxel away. On the atlas that field is the interblock one whatever the interpolation,
+ * so that a normal near a face between blocks takes both blocks' data (eq. 3.6 is C0 across level changes) instead
+ * of the difference between one block's clamped samples and the next block's. Each of the six points through the
+ * block the walk is in: a read of its brick inside eq. 3.6's window, two NB samples in the blend zone of one face
+ * (lc_face_blend), four by an edge and eight by a corner, or anywhere outside the walk's blocks, from the ray's
+ * interblock neighbourhood (lc_hood_zone). */
+static LC_HOT float3 lc_sampler_diff(LcSampler* s, const float3 q) {
 #if defined(LC_SAMPLER_ATLAS)
-    return lc_sample_ii_h(s->vol, s->sig, s->imap, s->geom, &s->hood, q).x;
-#else
-    return lc_sampler_at(s, q).x;
-#endif
-}
-
-/* The central differences of lc_sampler_grad_at at q (x, y, z: the samples ahead minus those behind, one level-0
- * voxel away) where that is cheaper than six samples: where the stencil lies in the fast window of the block the walk
- * is in (there the interblock field is that block's own trilinear field: six reads of its brick, no index map), or
- * else in one interblock cell (lc_hood_diff); 0 where neither holds (the caller samples six times). */
-static LC_HOT int lc_sampler_diff(LcSampler* s, const float3 q, float3* d) {
-#if defined(LC_SAMPLER_ATLAS)
-    const LcBlk* b = &s->blk;
-    const float3 l = q * b->s + b->c;
-    if (l.x >= b->glo.x && l.x <= b->ghi.x && l.y >= b->glo.y && l.y <= b->ghi.y && l.z >= b->glo.z &&
-        l.z <= b->ghi.z) {
-        float3 g = (float3)(0.0f);
+    lc_blk_ready(s->imap, s->geom, &s->blk);
+    float3 d = (float3)(0.0f);
 #pragma unroll 1
-        for (int k = 0; k < 6; ++k) {
-            const float o = (k & 1) ? -1.0f : 1.0f;
-            const int a = k >> 1;
-            const float3 e = (float3)(a == 0 ? o : 0.0f, a == 1 ? o : 0.0f, a == 2 ? o : 0.0f);
-            const float3 m = l + e * b->s; /* one level-0 voxel in brick coordinates */
-            g += e * lc_brick(s->vol, s->sig, b->off, b->n, b->coarse, m.x, m.y, m.z).x;
-        }
-        *d = g;
-        return 1;
+    for (int k = 0; k < 6; ++k) {
+        const float o = (k & 1) ? -1.0f : 1.0f;
+        const int a = k >> 1;
+        const float3 e = (float3)(a == 0 ? o : 0.0f, a == 1 ? o : 0.0f, a == 2 ? o : 0.0f);
+        const LcBlk* b = &s->blk;
+        const float3 l = (q + e) * b->s + b->c;
+        const int f = lc_blk_out(b, l);
+        float v;
+        if (b->n && (f & (f - 1)) == 0) {
+            /* inside the window l lies in [-1, n] (a level-0 octant's apron) or [0, n - 1]; by one face the own sample
+             * is eq. 3.5's, [0, n - 1], blended with the neighbour's */
+            const float lo = f ? 0.0f : -1.0f, hi = (float)(f ? b->n - 1 : b->n);
+            v = lc_brick(s->vol, s->sig, b->off, b->n, b->coarse, l.x > lo ? (l.x < hi ? l.x : hi) : lo,
+                         l.y > lo ? (l.y < hi ? l.y : hi) : lo, l.z > lo ? (l.z < hi ? l.z : hi) : lo).x;
+            if (f)
+                v = lc_face_blend(s->vol, s->sig, s->imap, s->geom, (float2)(v, 0.0f), b->ho, b->bx, b->by, b->bz, f == 1,
+                                  f == 2, ((f == 1 ? l.x : (f == 2 ? l.y : l.z)) + 0.5f) / b->s, q + e, 1).x;
+        } else v = lc_hood_zone(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e, b->n ? f : 7);
+        d += e * v; /* + the sample ahead, - the one behind, on axis a */
     }
-    const LcAtlasGeom g = s->geom;
-    /* q's interblock cell (corner c, q >= -1/2 in the box: (int) is floor) and q's coordinate in it */
-    const float3 p = (q + 0.5f) * (1.0f / g.B);
-    const int cx = (int)(p.x + 0.5f), cy = (int)(p.y + 0.5f), cz = (int)(p.z + 0.5f);
-    const float3 c = q + 0.5f - (float3)((float)cx, (float)cy, (float)cz) * g.B;
-    const float hb = 0.5f * g.B - 1.0f; /* the stencil stays in the cell: |c +- 1| within half a block */
-    if (!(c.x >= -hb && c.x < hb && c.y >= -hb && c.y < hb && c.z >= -hb && c.z < hb)) return 0;
-    if (cx != s->hood.cx || cy != s->hood.cy || cz != s->hood.cz) lc_hood(&s->hood, s->imap, g, cx, cy, cz);
-    *d = lc_hood_diff(s->vol, s->sig, g, &s->hood, q);
-    return 1;
+    return d;
 #else
-    d->x = lc_sampler_at(s, q + (float3)(1.0f, 0.0f, 0.0f)).x - lc_sampler_at(s, q - (float3)(1.0f, 0.0f, 0.0f)).x;
-    d->y = lc_sampler_at(s, q + (float3)(0.0f, 1.0f, 0.0f)).x - lc_sampler_at(s, q - (float3)(0.0f, 1.0f, 0.0f)).x;
-    d->z = lc_sampler_at(s, q + (float3)(0.0f, 0.0f, 1.0f)).x - lc_sampler_at(s, q - (float3)(0.0f, 0.0f, 1.0f)).x;
-    return 1;
+    return (float3)(lc_sampler_at(s, q + (float3)(1.0f, 0.0f, 0.0f)).x - lc_sampler_at(s, q - (float3)(1.0f, 0.0f, 0.0f)).x,
+                    lc_sampler_at(s, q + (float3)(0.0f, 1.0f, 0.0f)).x - lc_sampler_at(s, q - (float3)(0.0f, 1.0f, 0.0f)).x,
+                    lc_sampler_at(s, q + (float3)(0.0f, 0.0f, 1.0f)).x - lc_sampler_at(s, q - (float3)(0.0f, 0.0f, 1.0f)).x);
 #endif
 }
 
@@ -146,7 +140,10 @@ static LC_HOT int lc_sampler_diff(LcSampler* s, const float3 q, float3* d) {
 static LC_HOT void lc_sampler_enter(LcSampler* s, const int4 cell) {
 #ifdef LC_SAMPLER_ATLAS
     if (cell.w) s->blk = lc_blk_cell(s->imap, s->geom, cell.x, cell.y, cell.z, cell.w);
-    else s->blk.n = 0;
+    else {
+        s->blk.n = 0;
+        s->blk.side = -1;
+    }
 #endif
 }
 

@@ -50,22 +50,8 @@ static LC_HOT float3 lc_lit(const LcShade* sh, const float3 col, const float3 g)
     return unlit + (lit - unlit) * (gm / sh->gref); /* weighted by gradient magnitude: noise in flat tissue stays unlit */
 }
 
-/* the field's gradient at q, world units, continuous across blocks (lc_sampler_grad_at): lc_sampler_diff where it
- * applies, else six interblock samples, called in a loop from one out-of-line copy (six inlined copies of the
- * interblock sampler make the first build much longer) */
-static LC_HOT float3 lc_gradient(LcSampler* s, const LcShade* sh, const float3 q) {
-    float3 g;
-    if (lc_sampler_diff(s, q, &g)) return g * sh->gs;
-    g = (float3)(0.0f);
-#pragma unroll 1
-    for (int k = 0; k < 6; ++k) {
-        const float o = (k & 1) ? -1.0f : 1.0f;
-        const int a = k >> 1;
-        const float3 e = (float3)(a == 0 ? o : 0.0f, a == 1 ? o : 0.0f, a == 2 ? o : 0.0f);
-        g += e * lc_sampler_grad_at(s, q + e); /* + the sample ahead, - the one behind, on axis a */
-    }
-    return g * sh->gs;
-}
+/* the field's gradient at q, world units, continuous across blocks (lc_sampler_diff) */
+static LC_HOT float3 lc_gradient(LcSampler* s, const LcShade* sh, const float3 q) { return lc_sampler_diff(s, q) * sh->gs; }
 
 /* the colour col of a sample at q as lit (LC_SHADE), or as it is */
 static LC_HOT float3 lc_shade(LcSampler* s, const LcShade* sh, const float3 col, const float3 q) {
