@@ -201,11 +201,12 @@ def _cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", block_info: np.n
         ext = cells.vmax if mode == "mip" else -cells.vmin.astype(np.float64)
         ext = np.where(np.isfinite(ext), ext, -np.inf)
         return np.ascontiguousarray(np.minimum(up, ext), dtype=np.float32)
-    level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells) if pr.lod is not None else None
+    coarse_blocks = _coarse_blocks(pr)
     coarse = lo0 = hi0 = None
-    if level0 is not None:
-        assert pr.lod is not None
-        coarse = lod_atlas.half_cells(pr.lod.levels >= 1)[cells.at].reshape(-1)
+    if coarse_blocks is not None:
+        level0 = pr.volume.half_cell_ranges(pr.engine.tables.half_cells)
+        assert level0 is not None  # (_coarse_blocks: the store keeps them)
+        coarse = lod_atlas.half_cells(coarse_blocks)[cells.at].reshape(-1)
         lo0, hi0 = (a[cells.at].reshape(-1) for a in level0)
     return _composite_cells(pr, up.reshape(-1), cells.vmin.reshape(-1), cells.vmax.reshape(-1),
                             cells.std.reshape(-1), coarse, lo0, hi0).reshape(up.shape)
