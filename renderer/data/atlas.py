@@ -103,6 +103,11 @@ def brick_elements(levels: ArrayLike, block_size: int) -> np.ndarray:
     return np.where(lv >= 0, (n + 2 * (lv == 0)) ** 3, 0)
 
 
+def _levels_in(flat: np.ndarray) -> list[int]:
+    """The levels a flat selection loads, ascending (counted, not np.unique's sort of the grid)."""
+    return np.flatnonzero(np.bincount(flat[flat >= 0].astype(np.int64))).tolist()
+
+
 def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarray]:
     """(sizes, offsets) of every block's brick in the atlas, C order of the grid (0 for unloaded blocks). The
     bricks of one level lie together, in C order of the grid within it, the coarsest level first and level 0 last:
@@ -112,7 +117,7 @@ def _offsets(levels: np.ndarray, block_size: int) -> tuple[np.ndarray, np.ndarra
     sizes = brick_elements(lv, block_size)
     offsets = np.zeros(sizes.size, np.int64)
     start = 0
-    for k in sorted(np.flatnonzero(np.bincount(lv[lv >= 0].astype(np.int64))).tolist(), reverse=True):
+    for k in reversed(_levels_in(lv)):
         mine = np.flatnonzero(lv == k)  # (C order: each level's rank among its own, no sort of the grid)
         size = int(brick_elements(np.int64(k), block_size))
         offsets[mine] = start + size * np.arange(mine.size, dtype=np.int64)
@@ -175,7 +180,7 @@ class _Placer:
         of an atlas (its placers share them)."""
         flat, at = np.asarray(levels).ravel(), offsets.ravel()
         runs = {}
-        for k in np.flatnonzero(np.bincount(flat[flat >= 0].astype(np.int64))).tolist():
+        for k in _levels_in(flat):
             mine = at[flat == k]
             runs[k] = int(mine.min()), mine.size, (block_size >> k) + 2 * (k == 0)
         return runs
