@@ -35,7 +35,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from record import bootstrap, provenance  # noqa: E402
+from record import bootstrap, provenance, write_result  # noqa: E402
 
 import lodcast  # noqa: E402
 
@@ -132,9 +132,7 @@ def main(argv: list[str] | None = None) -> int:
             r = res[what]
             print(f"{what}: this {r['this']:.0f}, other {r['other']:.0f}, ratio {r['ratio_median']:.3f} "
                   f"[{r['ratio_ci95'][0]:.3f}, {r['ratio_ci95'][1]:.3f}]")
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(res, indent=1))
-        print(f"wrote {a.json}")
+        write_result(a.json, res, indent=1)
         return 0
     res = {**provenance("bench_new_view.py"), "load": os.getloadavg(), "store": a.store.name, "size": a.size,
            "reduction": a.reduction, "step_deg": STEP, "profiled": a.profile is not None,
@@ -150,9 +148,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['bricks_read']} | {r['bricks_cached']} |")
     print(f"\nfirst view {res['first_ms']:.0f} ms; new view median {res['median_ms']:.0f} ms, CPU "
           f"{res['median_cpu_ms']:.0f} ms (host {res['median_host_ms']:.0f}, kernel {res['median_kernel_ms']:.0f})")
-    a.json.parent.mkdir(parents=True, exist_ok=True)
-    a.json.write_text(json.dumps(res, indent=1))
-    print(f"wrote {a.json}")
+    write_result(a.json, res, indent=1)
     return 0
 
 

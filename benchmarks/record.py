@@ -42,12 +42,14 @@ def bootstrap(ratios: np.ndarray, n: int = 4000, seed: int = 0) -> tuple[float, 
     return float(np.percentile(meds, 2.5)), float(np.percentile(meds, 97.5))
 
 
-def write_result(path: Path, res: dict) -> None:
-    """`res` as JSON at `path` and its "table" beside it (.md), printed first."""
-    print(res["table"])
+def write_result(path: Path, res: dict, indent: int = 2) -> None:
+    """`res` as JSON at `path` and, where it has one, its "table" beside it (.md), printed first."""
+    if "table" in res:
+        print(res["table"])
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(res, indent=2))
-    path.with_suffix(".md").write_text(res["table"] + "\n")
+    path.write_text(json.dumps(res, indent=indent))
+    if "table" in res:
+        path.with_suffix(".md").write_text(res["table"] + "\n")
     print(f"wrote {path}")
 
 
