@@ -95,8 +95,11 @@ def test_differences_match_float64_eq36_on_random_levels(interp):
 
 #: lc_sampler_diff's dispatch of a stencil point, and what reference kernels put there instead
 DISPATCH = "        float v;\n        if (b->n && (f & (f - 1)) == 0) {"
-#: eq. 3.6 as II samples it
-GENERAL = "        float v;\n        if (1) v = lc_sample_ii_h(s->vol, s->sig, s->imap, s->geom, &s->hood, q + e).x;\n        else if (0) {"
+#: eq. 3.6 as II samples it, at the point's own block (NaN in a missing one)
+GENERAL = ("        float v;\n        int bx, by, bz;\n"
+           "        const ulong own = lc_own(s->imap, s->geom, q + e, &bx, &by, &bz);\n"
+           "        if (1) v = own ? lc_sample_ii(s->vol, s->sig, s->imap, s->geom, &s->hood, own, bx, by, bz, q + e).x"
+           " : NAN;\n        else if (0) {")
 #: the build's own field: nearest block's clamped samples
 NEAREST = "        float v;\n        if (1) v = lc_sampler_at(s, q + e).x;\n        else if (0) {"
 
@@ -116,7 +119,7 @@ def _kernels(src: Path, dest: Path, line: str) -> Path:
 @pytest.mark.parametrize("steps", [{}, {"adaptive_naive": True}])
 def test_lit_nearest_block_image_is_the_interblock_fields(tmp_path, monkeypatch, steps):
     """The lit smooth sphere at 30:1, nearest block (the default): the same image, up to float32 rounding, as a
-    kernel whose every gradient point is a general interblock sample (lc_sample_ii_h); gradients from nearest
+    kernel whose every gradient point is a general interblock sample (lc_sample_ii); gradients from nearest
     block's own clamped samples would change it visibly (the block grid issue 45 removed). Also with naive adaptive
     steps, whose walk enters no cell: the sampler's block is then none (it read a window from uninitialised
     fields and crashed the process)."""

@@ -295,15 +295,6 @@ static LC_HOT float2 lc_sample_atlas_h(__global const lc_voxel* atlas, __global 
 #endif
 }
 
-/* The interblock field at q whatever the build's interpolation (NaN in a missing block) */
-static LC_HOT float2 lc_sample_ii_h(__global const lc_voxel* atlas, __global const lc_sig* sig,
-                                    __global const ulong* imap, const LcAtlasGeom g, LcHood* hd, const float3 q) {
-    int bx, by, bz;
-    const ulong own = lc_own(imap, g, q, &bx, &by, &bz);
-    if (!own) return (float2)(NAN, 0.0f);
-    return lc_sample_ii(atlas, sig, imap, g, hd, own, bx, by, bz, q);
-}
-
 static inline float2 lc_sample_atlas(__global const lc_voxel* atlas, __global const lc_sig* sig,
                                      __global const ulong* imap, const LcAtlasGeom g, const float3 q) {
     LcHood hd;
