@@ -20,7 +20,7 @@ import numpy as np
 
 from lodcast.environment import Environment, EnvironmentInvalid, environment
 from lodcast.opencl import Device
-from lodcast.renderer.cache import ByteLru
+from lodcast.renderer.cache import ByteLru, Spares
 from lodcast.renderer.pool import BrickPool
 from lodcast.store.opened import OpenStores
 
@@ -109,7 +109,9 @@ class Engine:
     Caches, each an LRU bounded by bytes or entries:
     - `bricks`: the pool of bricks read from stores, of every level and quality (renderer/pool.py); on a device whose buffers are host memory it gives
       way to what the device cache and the buffers being filled hold, down to an eighth of its size;
-    - `device_cache`: level-0 volumes, atlases and coarse levels on the device;
+    - `device_cache`: level-0 volumes, atlases and coarse levels on the device; `spares`: in the room it leaves,
+      the buffers of atlases no render holds any more, which the next atlas of about their size takes instead of
+      new memory (renderer/data/atlas.py);
     - `targets`, `cost_model`: what quality targets choose by (renderer/frame/target.py);
     - `selections`, `step_errors`, `steps`, `block_infos`, `lod_plans`: level-of-detail selections, predicted step
       errors, adaptive step levels, the blocks' walk info of recent scenes and, per selection, that info with its
@@ -131,6 +133,7 @@ class Engine:
                                     open_stores=open_stores, store_check_s=store_check_s)
         self.device = Device(self.settings.device, env.cache_dir / "kernels")
         self.device_cache = ByteLru(self.settings.device_cache_bound, keep_last=True)
+        self.spares = Spares(lambda: max(0, self.settings.device_cache_bound - self.device_cache.nbytes))
         self.bricks = BrickPool(self._brick_bound)
         self.selections = ByteLru(4)  # one unit each: (store, TFs, quality, classification, crop, view)
         self.step_errors = ByteLru(8)  # one unit each: (store, TFs, step, crop)
@@ -183,7 +186,7 @@ class Engine:
         cap = self.settings.brick_cache_bytes
         if not self.device.memory_is_host:
             return cap
-        return max(cap // 8, cap - self.device_cache.nbytes - self._filling)
+        return max(cap // 8, cap - self.device_cache.nbytes - self.spares.nbytes - self._filling)
 
     @contextlib.contextmanager
     def holding(self, nbytes: int) -> Iterator[None]:
@@ -240,6 +243,7 @@ class Engine:
         """Drop what a render in passes cannot keep: the device cache's buffers and what was kept beside them
         (the walks and cells of their selections)."""
         self.device_cache.clear()
+        self.spares.clear()
         self.walks.clear()
         self.adaptive_walks.clear()
         self.cells.clear()
@@ -251,7 +255,7 @@ class Engine:
             pools, self._pools = self._pools, {}
         for pool in pools.values():
             pool.shutdown(wait=False)
-        for c in (self.device_cache, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps,
+        for c in (self.device_cache, self.spares, self.bricks, self.selections, self.step_errors, self.block_infos, self.steps,
                   self.lod_plans, self.digests, self.walks, self.adaptive_walks, self.parents, self.cells,
                   self.cell_infos, self.targets):
             c.clear()

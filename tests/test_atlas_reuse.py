@@ -15,7 +15,7 @@ import pytest
 import lodcast
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import atlas_cells
-from lodcast.renderer.data.volume import as_volume
+from lodcast.renderer.data.volume import as_volume, device_dtype
 from lodcast.renderer.frame.render import Renderer
 from lodcast.renderer.pool import BrickPool
 
@@ -68,19 +68,24 @@ def _read(eng: Renderer, buf, dtype) -> np.ndarray:
     return out
 
 
-def _same_atlas(eng: Renderer, a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtlas, vol) -> None:
-    """Index and buffers equal, bit for bit (NaN included); a buffer with nothing in it holds one element that
-    nothing reads or writes."""
+def _same_atlas(eng: Renderer, a: lod_atlas.DeviceAtlas, b: lod_atlas.DeviceAtlas, vol,
+                eng_b: Renderer | None = None) -> None:
+    """Index and buffers equal, bit for bit (NaN included), over the elements the index reaches (a buffer may be
+    a little larger: atlas.py `_mapped`); a buffer with nothing in it holds one element that nothing reads or
+    writes."""
     np.testing.assert_array_equal(a.index_host, b.index_host)
     B = int(vol.block_size)
     levels = a.levels
     coarse = lod_atlas.coarse_elements(levels, B)
     packed = a.std is not None and lod_atlas.deviation_bytes(vol.voxel_dtype) == 4  # coarse values beside deviations
     held = int(lod_atlas.brick_elements(levels, B).sum()) - (coarse if packed else 0)
-    for x, y, used in ((a.atlas, b.atlas, held), (a.std, b.std, coarse)):
+    sizes = (device_dtype(vol.voxel_dtype).itemsize, lod_atlas.deviation_bytes(vol.voxel_dtype))
+    for x, y, used, size in ((a.atlas, b.atlas, held, sizes[0]), (a.std, b.std, coarse, sizes[1])):
         assert (x is None) == (y is None)
         if x is not None and used:
-            np.testing.assert_array_equal(_read(eng, x, np.uint8), _read(eng, y, np.uint8))
+            assert min(x.size, y.size) >= used * size
+            np.testing.assert_array_equal(_read(eng, x, np.uint8)[:used * size],
+                                          _read(eng_b or eng, y, np.uint8)[:used * size])
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -247,3 +252,47 @@ def test_edge_selections_build_from_each_other(store, eng, first, then):
     assert new.base_key is not None
     _forget(eng)
     _same_atlas(eng, new, lod_atlas.device_atlas(eng, vol, b, with_std=True), vol)
+
+
+def test_a_new_atlas_takes_the_buffers_of_the_one_its_put_evicts(store):
+    """With room for two atlases in the device cache, each new selection's atlas goes into the buffers of the one
+    it is going to evict (renderer/cache.py: Spares): from the third on no new memory, and every atlas still the
+    one packed from nothing. An atlas somebody still holds (a render that has it) keeps its buffers: the next
+    one gets new memory, and the held one's bricks stay as they were."""
+    vol = as_volume(store)
+    rng = np.random.default_rng(21)
+    top = store.n_levels - 1
+    first = rng.integers(0, top + 1, size=vol.grid).astype(np.int8)
+    probe = Renderer()
+    one = lod_atlas.device_atlas(probe, vol, first, with_std=True)
+    size = probe.device_cache.nbytes  # an atlas of about this selection's size, as the cache counts it
+    probe.close()
+    del one
+    eng = Renderer(device_cache_mb=2.5 * size / 2**20)
+    levels = [first]
+    for _ in range(4):  # blocks trading levels: the same bricks' sizes, so that each atlas fits the last's buffers
+        lv = levels[-1].copy().ravel()
+        pick = rng.choice(lv.size, size=2 * max(1, lv.size // 20), replace=False)
+        lv[pick] = lv[pick[::-1]]
+        levels.append(lv.reshape(vol.grid))
+    ptrs = []
+    for lv in levels:
+        da = lod_atlas.device_atlas(eng, vol, lv, with_std=True)
+        ptrs.append((da.atlas.int_ptr, da.std.int_ptr))
+        assert eng.device_cache.nbytes + eng.spares.nbytes <= eng.settings.device_cache_bound
+        fresh = Renderer()
+        _same_atlas(eng, da, lod_atlas.device_atlas(fresh, vol, lv, with_std=True), vol, fresh)
+        fresh.close()
+        del da
+    assert ptrs[2] == ptrs[0] and ptrs[3] == ptrs[1] and ptrs[4] == ptrs[2]
+
+    lod_atlas.device_atlas(eng, vol, levels[1], with_std=True)
+    held = lod_atlas.device_atlas(eng, vol, levels[1], with_std=True)  # the cache's hit: a copy, with its lease
+    assert held.reused
+    before = _read(eng, held.atlas, np.uint8), _read(eng, held.std, np.uint8)
+    eng.device_cache.clear()
+    got = lod_atlas.device_atlas(eng, vol, _changed(levels[1], rng, 0.3, top), with_std=True)
+    assert {got.atlas.int_ptr, got.std.int_ptr}.isdisjoint({held.atlas.int_ptr, held.std.int_ptr})
+    np.testing.assert_array_equal(_read(eng, held.atlas, np.uint8), before[0])
+    np.testing.assert_array_equal(_read(eng, held.std, np.uint8), before[1])
+    eng.close()

@@ -17,7 +17,7 @@ PACKAGES = ("lodcast", "renderer", "store", "service")
 #: the one module-level object the package keeps on purpose: lodcast.render's default renderer, made on first use
 ALLOWED = {("renderer/frame/render.py", "_DEFAULT"), ("renderer/frame/render.py", "_DEFAULT_LOCK")}
 #: what makes a module-level value a place where state accumulates
-MUTABLE_CALLS = {"dict", "list", "set", "OrderedDict", "defaultdict", "deque", "ByteLru", "BrickPool",
+MUTABLE_CALLS = {"dict", "list", "set", "OrderedDict", "defaultdict", "deque", "ByteLru", "Spares", "BrickPool",
                  "WeakKeyDictionary", "WeakValueDictionary", "ThreadPoolExecutor", "local", "count", "Lock",
                  "RLock", "OpenStores", "Renderer", "Engine", "Device"}
 CACHE_DECORATORS = {"cache", "lru_cache"}

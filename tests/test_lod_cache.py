@@ -7,7 +7,7 @@ import pytest
 
 import lodcast
 from lodcast.environment import EnvironmentInvalid, environment
-from lodcast.renderer.cache import ByteLru
+from lodcast.renderer.cache import ByteLru, Spares
 from lodcast.renderer.data import atlas as lod_atlas
 from lodcast.renderer.data import bricks
 from lodcast.renderer.data.volume import as_volume
@@ -423,3 +423,35 @@ def test_a_turntable_derives_its_selection_s_walk_info_once(store, eng, monkeypa
     b = eng.render(store, scene, levels=lv).rgba
     np.testing.assert_array_equal(b, eng.render(store, scene, levels=lv.copy()).rgba)
     assert not np.array_equal(a, b)
+
+
+def test_spares_hand_over_the_smallest_buffer_that_fits_within_the_room_left():
+    """Spares (renderer/cache.py): `take` gives the smallest buffer of at least the bytes asked and at most slack
+    times them, once; the newest are kept, at most `most`, within a bound that is asked each time (the room a
+    device cache leaves); ByteLru.make_room evicts, oldest first, what an entry of that size would."""
+    room = [100]
+    sp = Spares(lambda: room[0], most=3, slack=1.25)
+    for name, n in (("a", 40), ("b", 30), ("c", 20)):
+        sp.give(name, n)
+    assert (len(sp), sp.nbytes) == (3, 90)
+    assert sp.take(50) is None and sp.take(10) is None  # nothing large enough; c (20) is over 1.25 × 10
+    assert sp.take(25) == "b" and sp.take(25) is None  # b (30) fits 25..31.25, once; a (40) does not
+    sp.give("d", 50)  # 40 + 20 + 50 > 100: the oldest goes
+    assert (len(sp), sp.nbytes) == (2, 70) and sp.take(39) is None and sp.take(18) == "c"
+    room[0] = 10
+    sp.trim()
+    assert (len(sp), sp.nbytes) == (0, 0)
+    sp = Spares(1000, most=1)
+    sp.give("a", 1)
+    sp.give("b", 1)
+    assert len(sp) == 1 and sp.take(1) == "b"
+
+    lru = ByteLru(100)
+    for k, n in (("x", 30), ("y", 30), ("z", 30)):
+        lru.put(k, k, n)
+    lru.make_room(50)  # 90 + 50 > 100: x and y go, z stays
+    assert (lru.get("x"), lru.get("y"), lru.get("z"), lru.nbytes) == (None, None, "z", 30)
+    lru.make_room(70)
+    assert lru.get("z") == "z"
+    lru.make_room(71)
+    assert len(lru) == 0

@@ -25,6 +25,7 @@ import contextlib
 import ctypes
 import sys
 import time
+import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import Any, Callable, cast
@@ -348,6 +349,7 @@ class DeviceAtlas:
     offsets: np.ndarray | None = None  # every brick's first element in its buffer (flat int64, the index's)
     base_key: tuple | None = None  # the device-cache key of the atlas this one was built from (reuse, below)
     base_levels: np.ndarray | None = None  # that atlas's selection (flat int64)
+    lease: Any = None  # its buffers' `_Lease`: while any copy of this atlas lives, they are nobody's spares
 
 
 def _family(vol: Any, levels: np.ndarray, with_std: bool) -> tuple | None:
@@ -420,10 +422,12 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
     # level is copied from there (reuse, below)
     todo = _unkept(levels, kept)
     L = int(flat.max(initial=0)) + 1
+    if key is not None:  # what putting this atlas would evict goes now: its buffers are the spares it takes
+        eng.device_cache.make_room(nbytes + index.nbytes)
     with eng.holding(nbytes), _reading(queue, base, dtype, sig_type) as old:
-        d_std, sig = _mapped(ctx, queue, n_std, sig_type) if with_std else (None, None)
+        d_std, sig = _mapped(eng, n_std, sig_type, max_bytes) if with_std else (None, None)
         try:
-            d_atlas, host = _mapped(ctx, queue, max(total, 1), dtype)
+            d_atlas, host = _mapped(eng, max(total, 1), dtype, max_bytes)
             try:
                 dirty = None
                 # the kept bricks are copied beside the reads, on a thread of their own: they are other blocks'
@@ -456,10 +460,12 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
     da = DeviceAtlas(d_atlas, d_std, d_index, index, nbytes, n_sel, st.read, st.cached, st.skipped,
                      (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype),
                      flat if family is not None else None, offsets.ravel() if family is not None else None,
-                     None if base is None else base.key, None if base is None else base.levels)
+                     None if base is None else base.key, None if base is None else base.levels,
+                     _lease(eng, d_atlas, d_std))
     if key is not None:
         assert family is not None
-        eng.device_cache.put(key, da, nbytes + index.nbytes)
+        eng.device_cache.put(key, da, d_atlas.size + (0 if d_std is None else d_std.size) + index.nbytes)
+        eng.spares.trim()
         eng.remember_atlas(family, da)
     cache.trim()  # its bound may follow the device cache's bytes
     return da
@@ -485,13 +491,41 @@ def _reading(queue: Any, da: "DeviceAtlas | None", dtype: Any,
                 m.base.release(queue)
 
 
-def _mapped(ctx: Any, queue: Any, n: int, dtype: Any) -> tuple[cl.Buffer, np.ndarray]:
-    """A device buffer of n elements and its host mapping for writing (the caller releases it), advised into huge
-    pages (`_huge_pages`)."""
-    buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY, size=n * np.dtype(dtype).itemsize)
-    host, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
+def _mapped(eng: Engine, n: int, dtype: Any, max_bytes: int) -> tuple[cl.Buffer, np.ndarray]:
+    """A device buffer of at least n elements and its host mapping of n for writing (the caller releases it): one of
+    the engine's spares that fits (renderer/cache.py: Spares; its pages are resident already), else a new one, a
+    little larger than asked (within `max_bytes`) so that the next atlas of about this size fits it too, advised
+    into huge pages (`_huge_pages`)."""
+    nbytes = n * np.dtype(dtype).itemsize
+    buf = eng.spares.take(nbytes)
+    if buf is None:
+        room = min(-(-(nbytes + nbytes // 32) // 64) * 64, max(nbytes, max_bytes))
+        buf = cl.Buffer(eng.device.context, cl.mem_flags.READ_ONLY, size=room)
+    host, _ = cl.enqueue_map_buffer(eng.device.queue, buf, cl.map_flags.WRITE_INVALIDATE_REGION, 0, (n,), dtype)
     _huge_pages(host)
     return buf, host
+
+
+class _Lease:
+    """An atlas's buffers, held for as long as any DeviceAtlas of them lives (copies share it: a device-cache hit
+    is one) or a render's pass data (renderer/data/passes.py keeps it until the image is read back); then they
+    become the engine's spares, for the next atlas of about their size (`_mapped`)."""
+
+    __slots__ = ("__weakref__",)
+
+
+def _lease(eng: Engine, *bufs: cl.Buffer | None) -> _Lease:
+    lease = _Lease()
+    f = weakref.finalize(lease, _spare, weakref.ref(eng.spares), [b for b in bufs if b is not None])
+    f.atexit = False
+    return lease
+
+
+def _spare(spares: "weakref.ref[Any]", bufs: list) -> None:
+    held = spares()
+    if held is not None:  # (an engine closed since keeps none)
+        for b in bufs:
+            held.give(b, b.size)
 
 
 def _huge_pages(host: np.ndarray) -> None:

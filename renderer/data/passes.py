@@ -245,6 +245,7 @@ class PassData:
     cell: int = 0  # their edge in voxels
     cells: "atlas_cells.AtlasCells | None" = None  # the atlas: its half-block cells (with empty-space skipping)
     octants: "atlas_cells.AtlasCells | None" = None  # and their octants (the adaptive walk's masks: config.octants)
+    owner: Any = None  # what holds `vol`'s buffers (an atlas): held until the pass's kernel has finished
 
 
 def _empty_region(levels: np.ndarray | None) -> Region:
@@ -277,7 +278,8 @@ def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
             cells = _cells(pr, da)
             yield PassData(None, da.atlas, da.index, da.std if cfg.distribution else placeholder, steps,
                            np.ones(1, np.uint8), cells=cells,
-                           octants=_cells_and_octants(pr, da)[1] if cfg.octants and cells is not None else None)
+                           octants=_cells_and_octants(pr, da)[1] if cfg.octants and cells is not None else None,
+                           owner=da)
         return
     # a render beyond the budget has the device to itself, and the host what was kept beside the atlases it drops
     # (their cells and walks, which grow with the selection: on a large volume, a good part of its size)
@@ -311,7 +313,7 @@ def volume_data(pr: Any, stats: PassStats) -> Iterator[PassData]:
                 nbytes = da.nbytes
                 data = PassData(reg, da.atlas, da.index, da.std if cfg.distribution else placeholder,
                                 pass_steps(steps, own) if cfg.adaptive else steps, own,
-                                cells=_cells(pr, da, reg.blocks))
+                                cells=_cells(pr, da, reg.blocks), owner=da)
             stats.passes += 1
             stats.device_bytes = max(stats.device_bytes, nbytes)
             yield data

@@ -219,6 +219,7 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         d_state = cl.Buffer(ctx, mf.READ_WRITE, size=STATE_FLOATS * n_rays * 4 if pr.passes is not None else 4)
         rows = H if pr.screen is None else -(-n_rays // W)  # LC_SCREEN: the rays in rows of W
         evs: list[cl.Event] = []
+        owners: list[Any] = []
         stats = multipass.PassStats()
         for k, data in enumerate(multipass.volume_data(pr, stats)):
             if k and stop is not None:
@@ -251,6 +252,8 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
                           turns=None if small else dev_turns)
             if pr.passes is not None:
                 evs[-1].wait()  # this pass's data may go before the next is uploaded
+            else:  # its atlas's buffers must stay its own until the image is read back (atlas.py: _Lease)
+                owners.append(data.owner)
             del data
         n_read, n_cached, upload_ms = stats.read, stats.cached, stats.upload_ms
         rgba = np.empty((H, W, 4) if pr.screen is None else (n_rays, 4), np.float32)
@@ -258,6 +261,7 @@ def _render(eng: Renderer, store: StoreLike, scene: SceneLike, *, spacing: Any =
         cl.enqueue_copy(queue, rgba, d_out, wait_for=evs)
         cl.enqueue_copy(queue, nsamp, d_n, wait_for=evs)
         queue.finish()
+        owners.clear()
     t_rec = time.perf_counter()
     if pr.screen is not None:  # the mosaic, reconstructed by intertile interpolation
         rgba = screen_space.reconstruct(pr.screen, rgba[: pr.screen.rays]).astype(np.float32)
