@@ -60,12 +60,13 @@ class _LocalFiles:
 
     def __init__(self, root: Path):
         self.root = root
+        self._prefix = os.path.join(str(root), "")  # (joined as strings: a pathlib join per shard read shows)
 
     def name(self, key: str) -> str:
-        return str(self.root / key)
+        return self._prefix + key
 
     def open(self, key: str) -> int:
-        return os.open(self.root / key, os.O_RDONLY)
+        return os.open(self._prefix + key, os.O_RDONLY)
 
     def close(self, fd: int) -> None:
         os.close(fd)

@@ -215,26 +215,31 @@ class Store:
     def read_level(self, k: int) -> np.ndarray:
         return self.read_region(k)
 
-    def read_chunks(self, k: int, chunks: Any, std: bool = False) -> list[np.ndarray]:
+    def read_chunks(self, k: int, chunks: Any, std: bool = False) -> np.ndarray:
         """The inner chunks of level k (std: of its standard deviations, `read_std_region`'s array) at chunk
-        coordinates `chunks` (n, 3), all in one shard, each cut to the level's shape: what a brick loader needs
-        when the bricks it wants lie scattered over a shard, without the rest of their bounding box."""
-        self.layout._check_level(k)
+        coordinates `chunks` (n, 3), all in one shard, as one (n, *chunk) array in the array's own type: each the
+        level's region under it and, past the level's end, that region's last samples repeated (as a brick is
+        padded). What a brick loader needs when the bricks it wants lie scattered over a shard, without the rest
+        of their bounding box."""
+        c = self.layout.chunk_shape(k)  # (checks k)
+        shape = self.layout.level_shape(k)
         coords = np.asarray(chunks, np.int64).reshape(-1, 3)
-        c = np.array(self.layout.chunk_shape(k))
-        shape = np.array(self.layout.level_shape(k))
-        ext = np.minimum(c, shape - coords * c)  # each chunk's extent inside the level
-        whole = (ext == c).all(axis=1).tolist()
-        cut = [None if w else tuple(slice(0, int(n)) for n in e) for w, e in zip(whole, ext)]
         if std and (k == 0 or not self.has_distribution):
-            return [np.zeros(tuple(int(n) for n in e), np.float32) for e in ext]
+            return np.zeros((len(coords), *c), np.float32)
         path = f"std/{k}" if std else str(k)
         reader = self._reader(path)
         if reader is not False:
-            box = reader.read_chunks(coords).astype(reader.dtype, copy=False)  # the array's (native) type
-            return [box[i] if sl is None else box[i][sl] for i, sl in enumerate(cut)]
-        return [self._read(path, tuple(slice(int(a), int(a) + int(n)) for a, n in zip(co * c, e)))
-                for co, e in zip(coords, ext)]
+            box = reader.read_chunks(coords).astype(reader.dtype, copy=False)
+        else:
+            parts = [self._read(path, tuple(slice(a, min(a + n, s)) for a, n, s in zip(co, c, shape)))
+                     for co in (coords * c).tolist()]
+            box = np.empty((len(coords), *c), parts[0].dtype if parts else np.float32)
+            for b, a in zip(box, parts):
+                b[tuple(slice(0, n) for n in a.shape)] = a
+        for i in np.flatnonzero(((coords + 1) * c > shape).any(axis=1)).tolist():  # a chunk the level ends inside
+            e = [min(n, s - a * n) for a, n, s in zip(coords[i].tolist(), c, shape)]
+            box[i] = np.pad(box[i][:e[0], :e[1], :e[2]], [(0, n - m) for n, m in zip(c, e)], mode="edge")
+        return box
 
     @cached_property
     def generation(self) -> str | None:

@@ -66,24 +66,21 @@ def _read_group(vol: Any, lay: Layout, level: int, blocks: np.ndarray, what: str
     operations: the bricks of a chunk are a view of it."""
     e = lay.block_edge(level)
     c = lay.chunk_shape(level)[0]
-    shape = np.array(lay.level_shape(level))
     start = np.asarray(blocks, np.int64).reshape(-1, 3) * e  # the bricks' first samples in the level
     where = start // c
-    # chunks by their flat index in the level's chunk grid (np.unique along an axis sorts rows as records, slowly)
-    flat = np.ravel_multi_index(tuple(where.T), tuple(-(-shape // c)))
-    first, which = np.unique(flat, return_index=True, return_inverse=True)[1:]
-    chunks = vol.read_chunks(level, where[first], std=what != "mean")
-    # a chunk the level ends inside comes cut to it: its samples repeat the last one, as each brick's padding does
-    box = np.stack([a if a.shape == (c, c, c) else np.pad(a, [(0, c - n) for n in a.shape], mode="edge")
-                    for a in chunks])
     q = c // e
-    if q == 1:
-        sub = box[which.ravel()]
+    if q == 1:  # a chunk per brick: the blocks' own chunks, in their order (a shard's blocks are distinct)
+        sub = vol.read_chunks(level, where, std=what != "mean")
     else:  # a cube of q³ bricks per chunk: (m, q, e, q, e, q, e), each brick picked by its place in the chunk
+        # chunks by their flat index in the level's chunk grid (np.unique along an axis sorts rows as records, slowly)
+        shape = np.array(lay.level_shape(level))
+        flat = np.ravel_multi_index(tuple(where.T), tuple(-(-shape // c)))
+        first, which = np.unique(flat, return_index=True, return_inverse=True)[1:]
+        box = vol.read_chunks(level, where[first], std=what != "mean")
         at = (start - where * c) // e
         sub = box.reshape(-1, q, e, q, e, q, e)[which.ravel(), at[:, 0], :, at[:, 1], :, at[:, 2], :]
     if what == "mean":  # the type the atlas holds (volume.device_dtype): the store's own up to 16-bit integers
-        return np.ascontiguousarray(sub, dtype=device_dtype(box.dtype))
+        return np.ascontiguousarray(sub, dtype=device_dtype(sub.dtype))
     if table is not None and sub.dtype == np.float16:
         return table[sub.view(np.uint16)]
     return _std_units(sub, vol)

@@ -150,9 +150,10 @@ class VolumeView:
         row of the classification table above zero (std_max / 63²), whatever the data's unit."""
         return self.std_max / 65535.0 if self.std_max > 0 else 1.0
 
-    def read_chunks(self, level: int, chunks: Any, std: bool = False) -> list[np.ndarray]:
-        """The store's inner chunks `chunks` (n, 3) of level `level`, all in one shard, each cut to the level's
-        shape (std: the standard deviations behind them): the brick loader's only read."""
+    def read_chunks(self, level: int, chunks: Any, std: bool = False) -> np.ndarray:
+        """The store's inner chunks `chunks` (n, 3) of level `level`, all in one shard, as one (n, *chunk) array
+        padded past the level's end as a brick is (std: the standard deviations behind them): the brick loader's
+        only read."""
         if not self.has_levels:
             raise ValueError("level-of-detail rendering needs a lodcast store (an array has no coarser levels)")
         return self.source.read_chunks(level, chunks, std)
