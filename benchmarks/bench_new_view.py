@@ -9,19 +9,22 @@ One renderer in this process (its settings from the LODCAST_* environment): a fi
 the process, not counted), then `views` new views 2° apart, elevation 20°, ct-bone, `{"reduction": R}`, `size`²,
 `"sampling": {"lod_visibility": true}`. Per view: the wall time of `Renderer.render`, the process's CPU time over
 it (every thread's, the device's included on a CPU device: on a busy machine steadier than the wall time) and
-the report's own figures (wall, kernel, upload and build ms, bricks read and cached). `--profile FILE`: the new views run under
+the report's own figures (wall, kernel, upload and build ms, bricks read and cached), and every view's image
+(SHA-1 of its RGBA bytes, the first view's too). `--profile FILE`: the new views run under
 cProfile, whose statistics go to FILE (and the top of them, by cumulative time, to stdout); the times printed
 then include the profiler's overhead. Prints the medians and writes JSON.
 
 `--against DIR` (a worktree of another commit, with its own .venv): A/B instead, `pairs` interleaved pairs of
 processes, this checkout's and DIR's, the order alternating between pairs, each process this benchmark (this
 file, run by the other's interpreter, imports the other's lodcast); per process the median new view (wall and
-CPU), and the ratios this / other: their median and a bootstrap 95 % interval.
+CPU), and the ratios this / other: their median and a bootstrap 95 % interval; whether every process rendered the
+same images.
 """
 from __future__ import annotations
 
 import argparse
 import cProfile
+import hashlib
 import json
 import os
 import pstats
@@ -52,8 +55,9 @@ def new_views(store: Path, views: int, size: int, reduction: float, profile: Pat
     """The first view's time and, per new view, the wall time and the report's figures."""
     eng = lodcast.Renderer()
     t0 = time.perf_counter()
-    eng.render(str(store), scene(AZ0, size, reduction))
+    r = eng.render(str(store), scene(AZ0, size, reduction))
     first = (time.perf_counter() - t0) * 1e3
+    hashes = [hashlib.sha1(r.rgba.tobytes()).hexdigest()]
     prof = cProfile.Profile() if profile is not None else None
     rows = []
     for i in range(1, views + 1):
@@ -66,12 +70,13 @@ def new_views(store: Path, views: int, size: int, reduction: float, profile: Pat
             prof.disable()
         rows.append({"ms": (time.perf_counter() - t0) * 1e3, "cpu_ms": (time.process_time() - c0) * 1e3,
                      **{k: r.report[k] for k in REPORTED}})
+        hashes.append(hashlib.sha1(r.rgba.tobytes()).hexdigest())
     eng.close()
     if prof is not None:
         assert profile is not None
         prof.dump_stats(str(profile))
         pstats.Stats(str(profile)).sort_stats("cumulative").print_stats(45)
-    return {"first_ms": first, "views": rows,
+    return {"first_ms": first, "views": rows, "rgba_sha1": hashes,
             "median_ms": float(np.median([r["ms"] for r in rows])),
             "median_cpu_ms": float(np.median([r["cpu_ms"] for r in rows])),
             "median_host_ms": float(np.median([r["wall_ms"] - r["kernel_ms"] for r in rows])),
@@ -96,10 +101,10 @@ def ab(other: Path, pairs: int, args: list[str]) -> dict:
         for who in (("other", "this") if i % 2 == 0 else ("this", "other")):
             r = one_process(pythons[who], args)
             runs[who].append({k: r[k] for k in ("median_ms", "median_cpu_ms", "median_kernel_ms", "load",
-                                                "load_after", "first_ms")})
+                                                "load_after", "first_ms", "rgba_sha1")})
             print(f"pair {i + 1} {who}: median {r['median_ms']:.0f} ms, CPU {r['median_cpu_ms']:.0f} ms "
                   f"(load {r['load'][0]:.2f})", flush=True)
-    res: dict = {"runs": runs}
+    res: dict = {"runs": runs, "images_identical": len({tuple(r["rgba_sha1"]) for rs in runs.values() for r in rs}) == 1}
     for what in ("median_ms", "median_cpu_ms"):
         ratio = np.array([a[what] / b[what] for a, b in zip(runs["this"], runs["other"])])
         res[what] = {"this": float(np.median([r[what] for r in runs["this"]])),
@@ -132,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
             r = res[what]
             print(f"{what}: this {r['this']:.0f}, other {r['other']:.0f}, ratio {r['ratio_median']:.3f} "
                   f"[{r['ratio_ci95'][0]:.3f}, {r['ratio_ci95'][1]:.3f}]")
+        print(f"images identical in every process: {res['images_identical']}")
         write_result(a.json, res, indent=1)
         return 0
     res = {**provenance("bench_new_view.py"), "load": os.getloadavg(), "store": a.store.name, "size": a.size,

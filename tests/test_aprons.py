@@ -67,3 +67,35 @@ def test_a_single_block_and_a_grid_without_level_0(eng):
         want = atlas.copy()
         aprons.fill_aprons(want, levels, offsets, 4)
         np.testing.assert_array_equal(_on_device(eng, atlas, levels, offsets, 4), want)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_only_the_apron_samples_towards_the_named_blocks_are_filled(eng, seed):
+    """`only` as dirty_blocks gives it, bits of directions per block: of each named level-0 brick exactly the apron
+    samples whose direction, folded at the grid's faces, has its bit (all of them with bit 13) are filled; every
+    other sample keeps what it held."""
+    rng = np.random.default_rng(seed)
+    B, m = 4, 6
+    levels = rng.choice([-1, 0, 0, 0, 1], size=(4, 5, 6)).astype(np.int8)
+    atlas, offsets = _atlas(levels, B, np.float32, rng)
+    want = atlas.copy()
+    aprons.fill_aprons(want, levels, offsets, B)
+    bits = rng.random((*levels.shape, 27)) < rng.choice([0.05, 0.3])
+    bits[rng.random(levels.shape) < 0.1, 13] = True
+    bits[rng.random(levels.shape) < 0.2] = False
+    only = (bits.astype(np.uint32) << np.arange(27, dtype=np.uint32)).sum(axis=-1).astype(np.uint32)
+    got = _on_device(eng, atlas, levels, offsets, B, only)
+    expect = atlas.copy()
+    G = levels.shape
+    for b in zip(*np.nonzero((levels == 0) & (only != 0))):
+        o = int(offsets.reshape(G)[b])
+        for s in np.ndindex(m, m, m):
+            e = [(-1 if c == 0 else 1 if c == m - 1 else 0) for c in s]
+            if not any(e):
+                continue
+            f = [0 if not 0 <= p + d < g else d for p, d, g in zip(b, e, G)]  # folded at the grid's faces
+            if bits[b][13] or bits[b][9 * (f[0] + 1) + 3 * (f[1] + 1) + f[2] + 1]:
+                i = o + (s[0] * m + s[1]) * m + s[2]
+                expect[i] = want[i]
+    assert not np.array_equal(expect, atlas) and not np.array_equal(expect, want)
+    np.testing.assert_array_equal(got, expect)

@@ -4,6 +4,8 @@ in it, for random mixes of levels, nearest block and interblock; and renders wit
 block walk's images with fewer samples."""
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import pyopencl as cl
 import pytest
@@ -301,12 +303,15 @@ def test_octant_masks_change_nothing_on_random_volumes_and_views(eng, tmp_path, 
                                    {"tf2": {"points": [{"value": 40, "color": [1, 0, 0], "opacity": 0.0},
                                                        {"value": 80, "color": [1, 0, 0], "opacity": 0.3}]}}])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_a_walk_info_from_the_last_one_is_the_one_computed_from_nothing(eng, ribs, monkeypatch, scene, seed):
+@pytest.mark.parametrize("derived", [False, True])
+def test_a_walk_info_from_the_last_one_is_the_one_computed_from_nothing(eng, ribs, monkeypatch, scene, seed, derived):
     """atlas_cell_info from the newest info of its scene (a new view's selection) classifies again only the cells
     whose bounds, block info or coarseness changed, and gives, bit for bit, the info computed from nothing: over
     random changes of levels (block info spread near coarse blocks, coarse cells against the level-0 ranges) and
     of some cells' bounds (NaN among them), with distribution classification and without, without empty-space
-    skipping and with a second TF."""
+    skipping and with a second TF. `derived`: the cells say they were computed from the last ones and which
+    were computed again (some of those unchanged), as an atlas built from the last one gives them; then no cell
+    is compared."""
     from lodcast.renderer.frame.prepare import prepare
     from lodcast.renderer.walk import info as R
 
@@ -329,8 +334,16 @@ def test_a_walk_info_from_the_last_one_is_the_one_computed_from_nothing(eng, rib
         if old is None:
             return atlas_cells.AtlasCells(lo, hi, sd)
         m = rng.random(shape) < frac
-        return atlas_cells.AtlasCells(*(np.where(m, a, b) for a, b in ((lo, old.vmin), (hi, old.vmax),
-                                                                        (sd, old.std))))
+        arrays = [np.where(m, a, b) for a, b in ((lo, old.vmin), (hi, old.vmax), (sd, old.std))]
+        if not derived:
+            return atlas_cells.AtlasCells(*arrays)
+        redone = np.flatnonzero(m | (rng.random(shape) < frac))
+        return atlas_cells.AtlasCells(*arrays, base=weakref.ref(old), redone=redone)
+
+    orig_differ, shape = R._bits_differ, tuple(2 * n for n in g)
+
+    def forbid(a, b):
+        raise AssertionError("derived cells compared")
 
     levels = rng.integers(-1, top + 1, size=g).astype(np.int8)
     cells = cells_of(None, 1.0)
@@ -342,6 +355,10 @@ def test_a_walk_info_from_the_last_one_is_the_one_computed_from_nothing(eng, rib
         cells = cells_of(cells, frac)
         pr = prepare(eng, ribs, sc, levels=levels)
         classified.clear()
+        if derived:
+            monkeypatch.setattr(R, "_bits_differ", lambda a, b: forbid(a, b) if a is not None and a.shape == shape
+                                else orig_differ(a, b))
         got = R.atlas_cell_info(pr, cells, last)
+        monkeypatch.setattr(R, "_bits_differ", orig_differ)
         assert 0 < sum(classified) < cells.vmin.size  # classified again in part
         np.testing.assert_array_equal(got, R.atlas_cell_info(pr, cells))

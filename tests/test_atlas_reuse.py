@@ -165,12 +165,41 @@ def test_cells_of_an_atlas_built_from_the_last_one_are_computed_where_they_chang
         da = lod_atlas.device_atlas(eng, vol, levels, with_std=True)
         assert da.base_key is not None
         dirty = lod_atlas.dirty_blocks(da.base_levels.reshape(G), levels, interp)
-        assert dirty.sum() < dirty.size or frac > 0.5  # some blocks are copied, not computed
+        assert np.count_nonzero(dirty) < dirty.size or frac > 0.5  # some blocks are copied, not computed
         got = atlas_cells.atlas_cells(eng, da, G, B, interp, vol.std_unit, cpb=cpb)
+        assert got.redone is not None
+        if interp == "nearest_block":  # beside a change of level 0 only the cells towards it
+            assert got.redone.size < np.count_nonzero(dirty) * cpb**3
         ref = atlas_cells._device_cells(eng.device, da, G, B, interp, vol.std_unit, None, cpb)
         for g, r in ((got.vmin, ref.vmin), (got.vmax, ref.vmax), (got.std, ref.std)):
             np.testing.assert_array_equal(g, r)
         first = levels
+
+
+@pytest.mark.parametrize("interp", ["nearest_block", "interblock"])
+@pytest.mark.parametrize("seed", range(3))
+def test_dirty_blocks_name_the_blocks_whose_change_reaches_them(interp, seed):
+    """Block by block and direction by direction: interblock, each neighbour (itself included) whose level
+    changed; nearest block, its own change, and at level 0 each neighbour that became or stopped being level 0."""
+    rng = np.random.default_rng(seed)
+    G = (4, 5, 6)
+    old = rng.integers(-1, 3, size=G).astype(np.int8)
+    old[rng.random(G) < 0.4] = 0
+    new = _changed(old, rng, 0.15, 2)
+    want = np.zeros(G, np.uint32)
+    for b in np.ndindex(*G):
+        for bit, d in enumerate(np.ndindex(3, 3, 3)):
+            n = tuple(i + e - 1 for i, e in zip(b, d))
+            if not all(0 <= i < g for i, g in zip(n, G)):
+                continue
+            if interp == "interblock" or n == b:
+                hit = old[n] != new[n]
+            else:
+                hit = new[b] == 0 and (old[n] == 0) != (new[n] == 0)
+            want[b] |= np.uint32(hit) << np.uint32(bit)
+    got = lod_atlas.dirty_blocks(old, new, interp)
+    assert got.dtype == np.uint32 and (want != 0).any() and (want == 0).any()
+    np.testing.assert_array_equal(got, want)
 
 
 def test_only_the_bricks_of_blocks_whose_level_changed_are_read(store, eng):

@@ -53,6 +53,25 @@ def test_octant_radii_are_the_largest_empty_forward_cubes(eng, seed):
         np.testing.assert_array_equal(got[o], want, err_msg=f"octant {o}")
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_octant_radii_across_words_of_cells(eng, seed):
+    """Rows longer than a word of cells (64 along x, the map's bits): the radii at cells beside the words' bounds
+    and at random ones are the brute force's, for every octant, with empty runs that cross the bounds."""
+    rng = np.random.default_rng(seed)
+    shape = (int(rng.integers(2, 9)), int(rng.integers(2, 9)), int(rng.choice([65, 128, 150, 193])))
+    empty = rng.random(shape) > rng.choice([0.02, 0.1, 0.4])
+    empty[:, :, 50:80] = True  # a run across the first bound
+    if shape[2] >= 135:  # and across the second, with a few cells in the way
+        empty[:, :, 120:135] = rng.random((shape[0], shape[1], 15)) > 0.03
+    got = octant_radii(empty)
+    xs = [x for x in (0, 62, 63, 64, 65, 126, 127, 128, 129, shape[2] - 1) if x < shape[2]]
+    cells = [(int(rng.integers(shape[0])), int(rng.integers(shape[1])), x) for x in xs for _ in range(3)]
+    cells += [tuple(int(rng.integers(n)) for n in shape) for _ in range(20)]
+    for o in range(OCTANTS):
+        for c in cells:
+            assert got[o][c] == _forward_cube(empty, c, o, LEAP_MAX), (o, c)
+
+
 def test_octant_radii_look_only_ahead(eng):
     """A wall behind the ray does not hold it back: beside a full plane every octant facing away from it leaps as
     far as the cap allows, those facing it only up to the wall."""

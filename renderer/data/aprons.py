@@ -83,31 +83,43 @@ def neighbours(levels: np.ndarray, offsets: np.ndarray, only: np.ndarray | None 
     offsets of their 27 neighbours' bricks (k, 27; z, y, x of the direction in C order, -1 where that block is off
     the grid or not at level 0) and their block positions (k, 4) int32 x, y, z, 0 (aprons.cl)."""
     lv = np.asarray(levels)
-    fill = lv == 0 if only is None else (lv == 0) & np.asarray(only, bool).reshape(lv.shape)
-    pos = np.stack(np.nonzero(fill), axis=1)  # (k, 3) z, y, x
-    at = np.asarray(offsets, np.int64).reshape(lv.shape)
-    zero = np.pad(lv == 0, 1)  # off the grid: not at level 0
-    nbr = np.full((len(pos), 27), -1, np.int64)
-    G = np.array(lv.shape)
+    G = lv.shape
+    zero = (lv == 0).reshape(-1)
+    # by flat index: a few thousand bricks of a million blocks, each pass over the grid a good part of the cost
+    fill = np.flatnonzero(zero if only is None else zero & (np.asarray(only).reshape(-1) != 0))
+    at = np.asarray(offsets, np.int64).reshape(-1)
+    pos = np.unravel_index(fill, G)  # z, y, x
+    strides = np.cumprod((1, *G[:0:-1]))[::-1]
+    nbr = np.full((fill.size, 27), -1, np.int64)
     for i, d in enumerate(np.ndindex(3, 3, 3)):
-        t = pos + np.array(d) - 1
-        there = zero[t[:, 0] + 1, t[:, 1] + 1, t[:, 2] + 1]
-        c = np.clip(t, 0, G - 1)
-        nbr[there, i] = at[c[there, 0], c[there, 1], c[there, 2]]
-    xyz = np.zeros((len(pos), 4), np.int32)
-    xyz[:, :3] = pos[:, ::-1]
-    return at[fill].astype(np.int64), nbr, xyz
+        inside = np.ones(fill.size, bool)
+        for p, e, n in zip(pos, d, G):
+            inside &= (p + e - 1 >= 0) & (p + e - 1 < n)
+        rows = np.flatnonzero(inside)
+        t = fill[rows] + int(np.dot(np.array(d) - 1, strides))
+        there = zero[t]
+        nbr[rows[there], i] = at[t[there]]
+    xyz = np.zeros((fill.size, 4), np.int32)
+    xyz[:, 0], xyz[:, 1], xyz[:, 2] = pos[2], pos[1], pos[0]
+    return at[fill], nbr, xyz
 
 
 def device_aprons(dev: Device, atlas: cl.Buffer, dtype: np.dtype, levels: np.ndarray, offsets: np.ndarray,
                   block_size: int, only: np.ndarray | None = None) -> None:
-    """fill_aprons on the device, in the atlas buffer `atlas` (voxels of `dtype`, bricks at `offsets`), waited for."""
+    """fill_aprons on the device, in the atlas buffer `atlas` (voxels of `dtype`, bricks at `offsets`), waited for.
+    `only` of an unsigned integer type (atlas.dirty_blocks): of these bricks only the apron samples towards the
+    blocks whose bits it holds, all of them with bit 13 (the others hold already: aprons.cl)."""
     own, nbr, pos = neighbours(levels, offsets, only)
     if not len(own):
         return
+    if only is not None and np.asarray(only).dtype.kind == "u":
+        dirs = np.asarray(only, np.uint32)[pos[:, 2], pos[:, 1], pos[:, 0]]
+    else:
+        dirs = np.full(len(own), 1 << 13, np.uint32)
     ctx, queue = dev.context, dev.queue
     mf = cl.mem_flags
-    bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a)) for a in (own, nbr, pos)]
+    bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a))
+            for a in (own, nbr, pos, dirs)]
     grid = np.array([*np.asarray(levels).shape[::-1], 0], np.int32)
     m = block_size + 2
     prg = dev.program("aprons.cl", (f"-DLC_ELEM={_ELEM[np.dtype(dtype).itemsize]}",)).program

@@ -616,14 +616,32 @@ def _copy_kept_all(host: np.ndarray, sig: np.ndarray | None, old: tuple, levels:
 
 
 def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str) -> np.ndarray:
-    """The blocks (grid-shaped bool) whose cells' bounds (atlas_cells.cl) a change of levels from `old_levels`
-    to `levels` can change. Nearest block reads a block's own brick, and a level-0 brick's apron, which holds
-    the neighbours' samples where they are at level 0 too: a block whose level changed, or a level-0 block next
-    to (26-neighbourhood) one that became or stopped being level 0. Interblock reads the neighbourhood's bricks:
-    every block next to one whose level changed."""
+    """The blocks whose cells' bounds (atlas_cells.cl) a change of levels from `old_levels` to `levels` can
+    change, and through which blocks: a grid of uint32, 0 where nothing can change, else bit
+    9 (dz + 1) + 3 (dy + 1) + (dx + 1) set for each block (own + d) whose change reaches it, bit 13 (d = 0) where
+    the block's own level changed. Nearest block reads a block's own brick, and a level-0 brick's apron, which
+    holds the neighbours' samples where they are at level 0 too: a block whose level changed, and a level-0 block
+    next to (26-neighbourhood) one that became or stopped being level 0, through that one (only its cells and
+    apron samples towards it can change). Interblock reads the neighbourhood's bricks: every block next to one
+    whose level changed, through each such one. Nonzero is the set of blocks whose cells are computed again."""
     old_levels, levels = np.asarray(old_levels), np.asarray(levels)
-    changed = old_levels != levels
-    if interpolation == "interblock":
-        return neighbourhood_max(changed.astype(np.int8)) > 0
-    zero_changed = (old_levels == 0) != (levels == 0)
-    return changed | ((levels == 0) & (neighbourhood_max(zero_changed.astype(np.int8)) > 0))
+    changed = (old_levels != levels).ravel()
+    nearest = interpolation != "interblock"
+    source = (((old_levels == 0) != (levels == 0)).ravel()) if nearest else changed
+    out = np.zeros(levels.size, np.uint32)
+    # a few thousand blocks: each direction's blocks by index, not a pass over the grid
+    at = np.flatnonzero(source)
+    pos = np.unravel_index(at, levels.shape)
+    strides = np.cumprod((1, *levels.shape[:0:-1]))[::-1]  # flat index steps of z, y, x
+    zero = levels.ravel() == 0 if nearest else None
+    for bit, d in enumerate(np.ndindex(3, 3, 3)):
+        inside = np.ones(at.size, bool)  # the block at source - d lies in the grid
+        for p, e, n in zip(pos, d, levels.shape):
+            inside &= (p >= e - 1) & (p < n + e - 1)
+        b = at[inside] - int(np.dot(np.array(d) - 1, strides))
+        if zero is not None:
+            b = b[zero[b]]  # only level-0 bricks have aprons
+        out[b] |= np.uint32(1 << bit)  # (each block once per direction)
+    if nearest:
+        out[np.flatnonzero(changed)] |= np.uint32(1 << 13)
+    return out.reshape(levels.shape)

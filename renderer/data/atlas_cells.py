@@ -5,7 +5,9 @@ blocks the change of levels can reach. Empty-space skipping on the atlas walks t
 masks their octants (renderer/walk/info.py)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import weakref
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import pyopencl as cl
@@ -30,6 +32,17 @@ class AtlasCells:
     std: np.ndarray
     blocks: tuple[slice, slice, slice] | None = None
     cpb: int = 2  # cells per block edge: 2, half-block cells; 4, their octants (quarter-block cells)
+    #: computed from other cells (an atlas built from the last one): those (weakly: None once they are gone), and
+    #: the flat indices of the cells computed again; every other cell is theirs, bit for bit
+    base: "weakref.ref[AtlasCells] | None" = field(default=None, compare=False, repr=False)
+    redone: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    def derived_from(self, other: "AtlasCells") -> np.ndarray | None:
+        """The flat indices of the cells that may differ from `other`'s where these were computed from `other`,
+        else None."""
+        if self.base is None or self.base() is not other:
+            return None
+        return self.redone
 
     @property
     def at(self) -> tuple[slice, ...]:
@@ -62,11 +75,12 @@ def atlas_cells(eng: Engine, da: DeviceAtlas, grid: tuple[int, int, int], block_
     return cells
 
 
-def _bounds(dev: Device, da: DeviceAtlas, interpolation: str, cpb: int, entry: str, size: tuple[int, int, int],
+def _bounds(dev: Device, da: DeviceAtlas, interpolation: str, cpb: int, entry: str, size: tuple[int, ...],
             grid: tuple[int, int, int], block_size: int, where: tuple, shape: tuple[int, ...],
-            std_unit: float) -> list[np.ndarray]:
+            std_unit: float, beside: Callable[[], object] | None = None) -> list[np.ndarray]:
     """(min, max, largest deviation in the data's units) of the cells that atlas_cells.cl's `entry` bounds over the
-    global size `size`, given `where` it works (its box or its list of blocks), as arrays of `shape`."""
+    global size `size`, given `where` it works (its box or its list of cells), as arrays of `shape`. `beside`:
+    called while the device works."""
     ctx, queue = dev.context, dev.queue
     n = int(np.prod(shape))
     d_out = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(4, 4 * n)) for _ in range(3)]
@@ -82,8 +96,10 @@ def _bounds(dev: Device, da: DeviceAtlas, interpolation: str, cpb: int, entry: s
         cl.Kernel(dev.program("atlas_cells.cl", opts).program, entry)(queue, size, None, da.atlas, std, da.index, g4,
                                                                      *where, *d_out)
         for h, d in zip(out, d_out):
-            cl.enqueue_copy(queue, h, d)
-        queue.finish()
+            cl.enqueue_copy(queue, h, d, is_blocking=False)
+    if beside is not None:
+        beside()
+    queue.finish()
     out[2] *= np.float32(std_unit)
     return out
 
@@ -101,22 +117,49 @@ def _device_cells(dev: Device, da: DeviceAtlas, grid: tuple[int, int, int], bloc
 
 def _updated_cells(dev: Device, da: DeviceAtlas, base: AtlasCells, grid: tuple[int, int, int], block_size: int,
                    interpolation: str, std_unit: float, cpb: int) -> AtlasCells:
-    """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from: those of the blocks the
-    change of levels can reach (atlas.dirty_blocks) computed on the device, the others copied."""
+    """atlas_cells of atlas `da` from `base`, the cells of the atlas it was built from: the cells the change of
+    levels can reach computed on the device, the others copied. A dirty block (atlas.dirty_blocks) names the
+    blocks through which its cells can change; a cell reads its own block and the blocks on its own sides only
+    (`_reach`), so a level-0 block beside one that became or stopped being level 0 computes again only the cells
+    along the face, edge or corner they share."""
     assert da.base_levels is not None and da.levels is not None  # set on an atlas built from another (base_key)
-    dirty = dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation)
-    out = [a.copy() for a in (base.vmin, base.vmax, base.std)]
-    zyx = np.argwhere(dirty)
-    if len(zyx):
-        lst = np.zeros((len(zyx), 4), np.int32)
-        lst[:, :3] = zyx[:, ::-1]
-        d_list = cl.Buffer(dev.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=lst)
-        got = _bounds(dev, da, interpolation, cpb, "lc_atlas_cells_of", (cpb, cpb, cpb * len(zyx)), grid, block_size,
-                      (d_list,), (len(zyx), cpb, cpb, cpb), std_unit)
-        for a, g in zip(out, got):  # (gz, c, gy, c, gx, c) -> (gz, gy, gx, c, c, c): a view, written through
-            per_block = a.reshape(grid[0], cpb, grid[1], cpb, grid[2], cpb).transpose(0, 2, 4, 1, 3, 5)
-            per_block[zyx[:, 0], zyx[:, 1], zyx[:, 2]] = g
-    return AtlasCells(out[0], out[1], out[2], None, cpb)
+    dirty = dirty_blocks(da.base_levels.reshape(grid), da.levels.reshape(grid), interpolation).reshape(-1)
+    out: list[np.ndarray] = []
+    blocks = np.flatnonzero(dirty)
+    b, c = np.nonzero((dirty[blocks, None] & _reach(cpb, interpolation)[None, :]) != 0)
+    zyx = [np.asarray(bi, np.int64) * cpb + ci for bi, ci in zip(np.unravel_index(blocks[b], grid),
+                                                                  np.unravel_index(c, (cpb,) * 3))]
+    flat = np.ravel_multi_index(zyx, base.vmin.shape)
+    lst = np.zeros((max(flat.size, 1), 4), np.int32)
+    lst[:flat.size, 0], lst[:flat.size, 1], lst[:flat.size, 2] = zyx[2], zyx[1], zyx[0]
+    d_list = cl.Buffer(dev.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=lst)
+    size = (-(-flat.size // 64) * 64,)
+    # the copies of the others (most of them first touches of new pages) while the device computes these
+    got = _bounds(dev, da, interpolation, cpb, "lc_atlas_cells_at", size, grid, block_size,
+                  (d_list, np.int32(flat.size)), (flat.size,), std_unit,
+                  lambda: out.extend(a.copy() for a in (base.vmin, base.vmax, base.std)))
+    for a, g in zip(out, got):
+        a.reshape(-1)[flat] = g
+    return AtlasCells(out[0], out[1], out[2], None, cpb, weakref.ref(base), flat)
+
+
+def _reach(cpb: int, interpolation: str) -> np.ndarray:
+    """Per cell of a block (C order, cpb³): dirty_blocks' bits of the blocks its bounds read (atlas_cells.cl), its
+    own and those on its sides. Nearest block: a cell on a block's face reads the apron there, which holds the
+    samples of the blocks across it (an inner cell, cpb 4, none along that axis). Interblock: a cell reads the
+    neighbourhood of its half-block cell, the blocks on that half's side along each axis."""
+    side = np.zeros(cpb, np.int64)
+    if interpolation == "interblock":
+        side[:] = np.where(np.arange(cpb) < cpb // 2, -1, 1)
+    else:
+        side[0], side[-1] = -1, 1
+    out = np.zeros((cpb,) * 3, np.uint32)
+    for c in np.ndindex(*out.shape):
+        s = [int(side[i]) for i in c]
+        for d in np.ndindex(*(2 if e else 1 for e in s)):  # per axis 0, or 0 and the side
+            dz, dy, dx = (k * e for k, e in zip(d, s))
+            out[c] |= np.uint32(1 << (9 * (dz + 1) + 3 * (dy + 1) + dx + 1))
+    return out.reshape(-1)
 
 
 def cells_and_octants(eng: Engine, da: DeviceAtlas, grid: tuple[int, int, int], block_size: int, interpolation: str,

@@ -4,7 +4,10 @@
  * It is a sample of the neighbouring brick in the folded direction when that block is at level 0 too (`nbr`, -1
  * otherwise): along an axis of d the neighbour's edge sample next to this brick, along a folded one its edge on
  * this brick's side, elsewhere the same coordinate; else this brick's own nearest sample (clamp to edge). Reads
- * interiors only and writes aprons only, so the work-items may run in any order. LC_ELEM: an unsigned type of the
+ * interiors only and writes aprons only, so the work-items may run in any order. Only the samples whose folded
+ * direction has its bit 9 (dz + 1) + 3 (dy + 1) + (dx + 1) in the brick's `dirs` are written, all of them where
+ * bit 13 (the brick itself) is set: a brick copied from the last atlas with its apron keeps the samples towards
+ * blocks whose level-0 status held (renderer/data/atlas.py: dirty_blocks). LC_ELEM: an unsigned type of the
  * voxels' size (the samples are copied, not read). */
 #ifndef LC_ELEM
 #define LC_ELEM uint
@@ -13,7 +16,8 @@
 /* One work-item per row (y, z) of a brick: a row inside the brick has its two ends in the apron, a row in the apron
  * all of its samples. */
 __kernel void lc_aprons(__global LC_ELEM* atlas, __global const long* own, __global const long* nbr,
-                        __global const int4* pos, const int4 grid, const int n, const int k) {
+                        __global const int4* pos, __global const uint* dirs, const int4 grid, const int n,
+                        const int k) {
     const int b = get_global_id(1);
     const int m = n + 2;
     const int r = get_global_id(0);
@@ -26,11 +30,13 @@ __kernel void lc_aprons(__global LC_ELEM* atlas, __global const long* own, __glo
     const int fz = dz && (p.z + dz < 0 || p.z + dz >= grid.z);
     const int ey = fy ? 0 : dy, ez = fz ? 0 : dz;
     const long at = own[b];
+    const uint want = dirs[b] & 0x7ffffffu;
     const int step = (dy || dz) ? 1 : m - 1;  /* an inner row: its two ends only */
     for (int x = 0; x < m; x += step) {
         const int dx = x == 0 ? -1 : (x == m - 1 ? 1 : 0);
         const int fx = dx && (p.x + dx < 0 || p.x + dx >= grid.x);
         const int ex = fx ? 0 : dx;
+        if (!(want & ((1u << 13) | (1u << ((ez + 1) * 9 + (ey + 1) * 3 + (ex + 1)))))) continue;
         long src = -1;
         int sx = clamp(x, 1, n), sy = clamp(y, 1, n), sz = clamp(z, 1, n);
         if (ex || ey || ez) {

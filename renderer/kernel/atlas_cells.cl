@@ -12,7 +12,7 @@
  *
  * Per cell of the grid LC_CPB G (below): out_min/out_max the extrema of the values (NaN ignored; no finite value, or
  * the own block not loaded: NaN, nothing to see), out_sd the largest deviation in the sig buffer's units; over a box
- * of cells (lc_atlas_cells) or over the cells of a list of blocks (lc_atlas_cells_of). */
+ * of cells (lc_atlas_cells) or over a list of cells (lc_atlas_cells_at). */
 #include "lc_common.h"
 #include "lc_atlas.h"
 
@@ -110,17 +110,16 @@ __kernel void lc_atlas_cells(__global const lc_voxel* atlas, __global const lc_s
     out_sd[o] = r.z;
 }
 
-/* the LC_CPB³ cells of each block of `blocks` (x, y, z): work-item (i, j, b LC_CPB + k) is cell (i, j, k) of block b,
- * written at ((b LC_CPB + k) LC_CPB + j) LC_CPB + i (renderer/data/atlas.py (reuse): the blocks a new selection changed) */
-__kernel void lc_atlas_cells_of(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
-                                const int4 grid, __global const int4* blocks, __global float* out_min,
+/* the `n` cells at `cells` (x, y, z of the grid LC_CPB G), written in the list's order (renderer/data/atlas_cells.py:
+ * an atlas built from the last one, the cells a new selection's change of levels can reach) */
+__kernel void lc_atlas_cells_at(__global const lc_voxel* atlas, __global const lc_sig* sig, __global const ulong* imap,
+                                const int4 grid, __global const int4* cells, const int n, __global float* out_min,
                                 __global float* out_max, __global float* out_sd) {
-    const int i = get_global_id(0), j = get_global_id(1), bk = get_global_id(2);
-    const int4 b = blocks[bk / LC_CPB];
-    const float3 r = lc_cell_bounds(atlas, sig, imap, grid, b.x * LC_CPB + i, b.y * LC_CPB + j,
-                                    b.z * LC_CPB + bk % LC_CPB);
-    const uint o = ((uint)bk * LC_CPB + (uint)j) * LC_CPB + (uint)i;
-    out_min[o] = r.x;
-    out_max[o] = r.y;
-    out_sd[o] = r.z;
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const int4 c = cells[i];
+    const float3 r = lc_cell_bounds(atlas, sig, imap, grid, c.x, c.y, c.z);
+    out_min[i] = r.x;
+    out_max[i] = r.y;
+    out_sd[i] = r.z;
 }

@@ -264,7 +264,9 @@ def _updated_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", last: tu
     and their neighbours', the block info near them and which blocks are coarse, while classifying every cell
     again was a good part of a new view's host time on a large volume. Cells whose block's info or coarseness or
     whose own bounds changed (bit for bit) are classified again, the others keep their info: each cell's info is a
-    function of these alone (`_composite_cells`), so the result is the one computed from nothing."""
+    function of these alone (`_composite_cells`), so the result is the one computed from nothing. Cells computed
+    from the last ones (AtlasCells.derived_from) can differ only where they were computed again: no comparison of
+    every cell then."""
     eng = pr.engine
     info = np.ascontiguousarray(pr.block_info, dtype=np.float32)
     coarse = _coarse_blocks(pr)
@@ -275,9 +277,16 @@ def _updated_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", last: tu
     else:
         old_cells, old_info, old_coarse, old_out = prev
         per_block = _bits_differ(info, old_info) | _bits_differ(coarse, old_coarse)
-        redo = lod_atlas.half_cells(np.broadcast_to(per_block, g))
-        for a, b in ((cells.vmin, old_cells.vmin), (cells.vmax, old_cells.vmax), (cells.std, old_cells.std)):
-            redo |= _bits_differ(a, b)
+        redone = cells.derived_from(old_cells)
+        if redone is None:
+            redo = lod_atlas.half_cells(np.broadcast_to(per_block, g))
+            for a, b in ((cells.vmin, old_cells.vmin), (cells.vmax, old_cells.vmax), (cells.std, old_cells.std)):
+                redo |= _bits_differ(a, b)
+        else:  # the cells computed from the last ones: only those computed again can differ
+            redo = np.zeros(cells.vmin.shape, bool)
+            redo.reshape(-1)[redone] = True
+            bz, by, bx = np.nonzero(np.broadcast_to(per_block, g))
+            redo.reshape(g[0], 2, g[1], 2, g[2], 2)[bz, :, by, :, bx, :] = True
         at = np.flatnonzero(redo)
         out = old_out.copy()
         if at.size:

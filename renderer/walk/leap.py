@@ -61,32 +61,61 @@ def _grid(empty: np.ndarray) -> np.ndarray:
 
 
 def _octant(empty: np.ndarray, o: int, cap: int) -> np.ndarray:
-    """octant_radii's plane o: the grid turned so that the octant's directions run forward, and back."""
-    view = tuple(slice(None) if o >> bit & 1 else slice(None, None, -1) for bit in (2, 1, 0))  # (z, y, x)
-    out = np.empty(empty.shape, np.uint8)
-    out[view] = _forward_radii(np.ascontiguousarray(empty[view]), cap)
-    return out
-
-
-def _forward_radii(empty: np.ndarray, cap: int) -> np.ndarray:
-    """octant_radii of the octant (+, +, +). The cube of edge k + 1 at c is the union of the eight cubes of edge k
-    at c + s, s in {0, 1}^3, so "holds a non-empty cell" grows from edge k to k + 1 by an OR with the next cell
-    along each axis in turn, in place (ascending, each cell reads its successor before that one is updated)."""
-    full = ~empty  # the cube of edge k at the cell holds a non-empty cell
-    r = empty.astype(np.uint8)
-    for _ in range(2, cap + 1):
-        for ax in range(3):
-            n = full.shape[ax]
+    """octant_radii's plane o. The cube of edge k + 1 at c is the union of the eight cubes of edge k at c + s, s in
+    {0, 1}^3 forward in the octant's directions, so "holds a non-empty cell" grows from edge k to k + 1 by an OR
+    with the next cell forward along each axis in turn; r counts the edges whose cube holds none. On bits, 64 cells
+    of a row along x to a word (the words first, so that each axis's OR runs over whole planes of words): a pass
+    over the grid moves an eighth of the bytes a pass over bools did. The count, a sum of nested sets (a cube
+    without a non-empty cell of edge k has none at every smaller edge), is kept as its binary digits: digit j is
+    the parity of how many multiples of 2^j are at most r."""
+    Z, Y, X = empty.shape
+    fwd = [bool(o >> bit & 1) for bit in (2, 1, 0)]  # z, y, x: axes 1, 2 of the words, then along the words
+    W = (X + 63) // 64
+    full = np.zeros((Z, Y, 64 * W), bool)  # cells past the grid count as empty
+    np.logical_not(empty, out=full[..., :X])
+    bits = np.ascontiguousarray(np.packbits(full, axis=2, bitorder="little").view("<u8").transpose(2, 0, 1))
+    del full
+    last = np.packbits(np.arange(64 * (W - 1), 64 * W) < X, bitorder="little").view("<u8")[0]  # the last word's cells
+    digits = [np.zeros_like(bits) for _ in range(cap.bit_length())]
+    free = ~bits
+    free[-1] &= last
+    digits[0] ^= free
+    t = np.empty_like(bits)
+    one, top = np.uint64(1), np.uint64(63)
+    for k in range(2, cap + 1):
+        if X > 1:  # bit b of word w takes bit b + 1 forward, b - 1 backward, across the words
+            if fwd[2]:
+                np.right_shift(bits, one, out=t)
+                t[:-1] |= bits[1:] << top
+            else:
+                np.left_shift(bits, one, out=t)
+                t[1:] |= bits[:-1] >> top
+            bits |= t
+        for ax, n in ((1, Z), (2, Y)):
             if n < 2:
                 continue
             lo, hi = [slice(None)] * 3, [slice(None)] * 3
             lo[ax], hi[ax] = slice(0, n - 1), slice(1, n)
-            full[tuple(lo)] |= full[tuple(hi)]
-        free = ~full
+            if fwd[ax - 1]:
+                bits[tuple(lo)] |= bits[tuple(hi)]
+            else:
+                bits[tuple(hi)] |= bits[tuple(lo)]
+        np.invert(bits, out=free)
+        free[-1] &= last
         if not free.any():
             break
-        r += free
-    return r
+        j = 0
+        while k % (1 << j) == 0:
+            digits[j] ^= free
+            j += 1
+    out = np.zeros((Z, Y, X), np.uint8)
+    for j, d in enumerate(digits):
+        u = np.unpackbits(np.ascontiguousarray(d.transpose(1, 2, 0)).view(np.uint8), axis=2,
+                          bitorder="little")[..., :X]
+        if j:
+            u <<= np.uint8(j)
+        out |= u
+    return out
 
 
 #: LcParams.leap_planes' code of an octant with no plane: its rays walk cell by cell
