@@ -324,4 +324,9 @@ def test_a_new_atlas_takes_the_buffers_of_the_one_its_put_evicts(store):
     assert {got.atlas.int_ptr, got.std.int_ptr}.isdisjoint({held.atlas.int_ptr, held.std.int_ptr})
     np.testing.assert_array_equal(_read(eng, held.atlas, np.uint8), before[0])
     np.testing.assert_array_equal(_read(eng, held.std, np.uint8), before[1])
+    # a pass's atlas (not kept) leaves no spare: beside the next pass's buffers it would pass the budget
+    n = len(eng.spares)
+    lod_atlas.device_atlas(eng, vol, levels[2], with_std=True, keep=False)
+    gc.collect()
+    assert len(eng.spares) == n
     eng.close()

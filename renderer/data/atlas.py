@@ -461,7 +461,7 @@ def device_atlas(eng: Engine, vol: Any, levels: np.ndarray, *, with_std: bool = 
                      (t - t_read) * 1e3, (time.perf_counter() - t) * 1e3, False, key, voxel_options(dtype),
                      flat if family is not None else None, offsets.ravel() if family is not None else None,
                      None if base is None else base.key, None if base is None else base.levels,
-                     _lease(eng, d_atlas, d_std))
+                     _lease(eng, d_atlas, d_std) if key is not None else None)
     if key is not None:
         assert family is not None
         eng.device_cache.put(key, da, d_atlas.size + (0 if d_std is None else d_std.size) + index.nbytes)
@@ -507,9 +507,11 @@ def _mapped(eng: Engine, n: int, dtype: Any, max_bytes: int) -> tuple[cl.Buffer,
 
 
 class _Lease:
-    """An atlas's buffers, held for as long as any DeviceAtlas of them lives (copies share it: a device-cache hit
-    is one) or a render's pass data (renderer/data/passes.py keeps it until the image is read back); then they
-    become the engine's spares, for the next atlas of about their size (`_mapped`)."""
+    """A kept atlas's buffers, held for as long as any DeviceAtlas of them lives (copies share it: a device-cache
+    hit is one) or a render's pass data (renderer/data/passes.py keeps it until the image is read back); then they
+    become the engine's spares, for the next atlas of about their size (`_mapped`). The atlases of a render in
+    passes have none: theirs go as they did, since a spare beside the next pass's buffers would be device memory
+    beyond the budget."""
 
     __slots__ = ("__weakref__",)
 
