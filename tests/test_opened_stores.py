@@ -129,7 +129,7 @@ def test_cache_bytes_stay_within_their_bounds_across_volumes(tmp_path):
     from lodcast.renderer.frame.render import Renderer
 
     paths = _stores(tmp_path, 4)
-    eng = Renderer(open_stores=2, brick_cache_mb=0.5, device_cache_mb=0.25)
+    eng = Renderer(open_stores=2, brick_cache_mb=0.4, device_cache_mb=0.25)  # (the pool: room for two volumes)
     s = eng.settings
     for p in [*paths, *paths]:
         report = eng.render(p, REDUCED).report
