@@ -9,6 +9,7 @@ import pytest
 
 import lodcast
 from lodcast.renderer.data import passes, sampler
+from lodcast.renderer.frame.render import Renderer
 from lodcast.store.layout import cell_edge
 
 B = 16
@@ -226,6 +227,41 @@ def test_step_levels_from_the_blocks_are_the_cells_own(seed):
         for B in (8, 16, 32):
             for sk in (None, skip):
                 np.testing.assert_array_equal(step_levels(lv, B, sk), _cellwise_step_levels(lv, B, sk))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_step_levels_of_a_new_selection_from_the_last_one_are_step_levels(monkeypatch, seed):
+    """A new selection's step levels computed from the newest ones of the same grid (frame/prepare.py), only for
+    the blocks whose level, skip or a face neighbour's level-0 status changed, are step_levels over the
+    whole grid: a run of random changes (levels, unloaded blocks, skips; blocks at the grid's faces), with and
+    without skips, each from the one before."""
+    from lodcast.renderer.data import atlas
+    from lodcast.renderer.frame import prepare
+
+    grids = []
+    orig = atlas.step_levels
+    monkeypatch.setattr(atlas, "step_levels", lambda lv, *a: grids.append(lv.shape) or orig(lv, *a))
+    rng = np.random.default_rng(seed)
+    g = (20, 21, 22)
+    for B, with_skip in ((16, False), (8, True)):
+        engine = Renderer()
+        try:
+            lv = rng.integers(-1, 6, size=g).astype(np.int8)
+            skip = rng.random(g) < 0.3 if with_skip else None
+            for frac in (0.002, 0.004, 0.001, 0.6, 0.003):
+                lv = lv.copy()
+                m = rng.random(g) < frac
+                m[0, 0, 0] = m[-1, -1, -1] = m[0, -1, 5] = True
+                lv[m] = rng.integers(-1, 6, size=int(m.sum()))
+                if skip is not None:
+                    skip = skip ^ (rng.random(g) < frac / 2)
+                grids.clear()
+                got = prepare._step_levels(engine, lv, B, skip)
+                # block by block, no pass over the grid (the first has none to start from; 0.6 changes most blocks)
+                assert (grids == []) == (frac not in (0.002, 0.6))
+                np.testing.assert_array_equal(got, orig(lv, B, skip))
+        finally:
+            engine.close()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -643,7 +643,7 @@ def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str)
         b = at[inside] - int(np.dot(np.array(d) - 1, strides))
         if zero is not None:
             b = b[zero[b]]  # only level-0 bricks have aprons
-        out[b] |= np.uint32(1 << bit)  # (each block once per direction)
+        out[b] |= np.uint32(1 << bit)  # (a block at most once per direction: no index repeats)
     if nearest:
         out[np.flatnonzero(changed)] |= np.uint32(1 << 13)
     return out.reshape(levels.shape)

@@ -1,7 +1,7 @@
 """What the multiresolution field sampled from an atlas can take in each of its half-block cells, or in their
 octants (quarter-block cells): computed on the device where the atlas is (atlas_cells.cl), kept beside the atlas,
 and, for an atlas built from the last one of its store (renderer/data/atlas.py: reuse), computed again only for the
-blocks the change of levels can reach. Empty-space skipping on the atlas walks these cells and the adaptive walk
+cells the change of levels can reach. Empty-space skipping on the atlas walks these cells and the adaptive walk
 masks their octants (renderer/walk/info.py)."""
 from __future__ import annotations
 

@@ -30,7 +30,8 @@ __kernel void lc_aprons(__global LC_ELEM* atlas, __global const long* own, __glo
     const int fz = dz && (p.z + dz < 0 || p.z + dz >= grid.z);
     const int ey = fy ? 0 : dy, ez = fz ? 0 : dz;
     const long at = own[b];
-    const uint want = dirs[b] & 0x7ffffffu;
+    const uint want = dirs[b];
+    if (!(want & ((1u << 13) | (7u << ((ez + 1) * 9 + (ey + 1) * 3))))) return; /* no direction of this row */
     const int step = (dy || dz) ? 1 : m - 1;  /* an inner row: its two ends only */
     for (int x = 0; x < m; x += step) {
         const int dx = x == 0 ? -1 : (x == m - 1 ? 1 : 0);

@@ -298,7 +298,9 @@ def _updated_cell_info(pr: "Prepared", cells: "atlas_cells.AtlasCells", last: tu
                 pr, info.reshape(-1)[block], cells.vmin.reshape(-1)[at], cells.vmax.reshape(-1)[at],
                 cells.std.reshape(-1)[at], None if coarse is None else coarse.reshape(-1)[block], lo0, hi0)
     out.flags.writeable = False
-    eng.cell_infos.put(last, (cells, info.copy(), None if coarse is None else coarse.copy(), out), out.nbytes + info.nbytes)
+    # kept as they are where nothing writes them: the block info read-only, `coarse` made here
+    kept = info if not info.flags.writeable else info.copy()
+    eng.cell_infos.put(last, (cells, kept, coarse, out), out.nbytes + info.nbytes)
     return out
 
 
