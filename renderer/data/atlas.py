@@ -570,9 +570,11 @@ def _sinks(host: np.ndarray, sig: np.ndarray | None, levels: np.ndarray, offsets
 # brick and bounding every octant again was most of a new view's host time. So `device_atlas` builds a new atlas
 # from the engine's `last_atlas` of the same store, TF-independent layout and buffers: a block at the same level
 # keeps its brick (one array copy per level: the bricks of a level lie together in C order of the grid), only the
-# others are read from the brick cache, and level 0's aprons are filled again (a neighbour's level may have
-# changed). The octants' bounds (atlas_cells.py) are copied for every block whose bounds cannot have changed and
-# computed on the device for the others (`dirty_blocks`). The result is the same atlas, index map and cells,
+# others are read from the brick cache, and level 0's aprons are filled again towards a neighbour whose level-0
+# status changed. The cells' bounds (atlas_cells.py) are copied for every cell that reads no changed block and
+# computed on the device for the others (`dirty_blocks` names, per block, the directions a change reaches it
+# from). Its buffers are those of the atlas it evicts from the device cache, where no render holds that one any
+# more (`_mapped`, `_Lease`). The result is the same atlas, index map and cells,
 # element for element, as one packed from nothing (tests/test_atlas_reuse.py).
 
 
