@@ -70,18 +70,15 @@ class ByteLru(ByteBound):
         size is going to evict goes before the memory for it is taken (device buffers: renderer/engine.py's
         spares take what is freed)."""
         with self._lock:
-            bound = self.max_bytes
-            while self._d and self._bytes + nbytes > bound:
-                _, (_, n) = self._d.popitem(last=False)
-                self._bytes -= n
+            self._evict(self.max_bytes - nbytes, floor=0)
 
     def clear(self) -> None:
         with self._lock:
             self._d.clear()
             self._bytes = 0
 
-    def _evict(self, bound: int) -> None:
-        floor = 1 if self.keep_last else 0
+    def _evict(self, bound: int, floor: int | None = None) -> None:
+        floor = (1 if self.keep_last else 0) if floor is None else floor
         while self._bytes > bound and len(self._d) > floor:
             _, (_, n) = self._d.popitem(last=False)
             self._bytes -= n
