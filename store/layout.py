@@ -14,7 +14,7 @@ from math import ceil, log2
 
 import numpy as np
 
-__all__ = ["Layout", "MIN_CHUNK_EDGE", "SHARD_BLOCKS_YX", "cell_edge"]
+__all__ = ["Layout", "MIN_CHUNK_EDGE", "SHARD_BLOCKS_YX", "beside", "cell_edge"]
 
 #: Below this many voxels per edge, a level's inner chunk holds a group of blocks rather than one: tiny chunks
 #: multiply read requests, which dominate I/O cost (thesis §3.4, group-of-blocks).
@@ -28,6 +28,20 @@ def cell_edge(block_size: int) -> int:
     ranges the store keeps: 8, or the block itself when it is not a multiple of 8 (cells of 8³ leave clearly less
     of a CT to sample under a bone TF at full resolution than cells of 16³)."""
     return 8 if block_size % 8 == 0 else block_size
+
+
+def beside(at: np.ndarray, pos: tuple[np.ndarray, ...], shape: tuple[int, ...],
+           d: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Of the blocks at flat indices `at` (C order of a grid of `shape`; `pos` = np.unravel_index(at, shape)), those
+    whose neighbour offset by `d` (one step per axis, -1, 0 or 1) lies in the grid: (their places in `at`, the
+    neighbours' flat indices). By index, not over the grid: a change of levels touches a few thousand of a
+    million blocks."""
+    inside = np.ones(len(at), bool)
+    for p, e, n in zip(pos, d, shape):
+        inside &= (p + e >= 0) & (p + e < n)
+    rows = np.flatnonzero(inside)
+    step = int(np.dot(d, np.cumprod((1, *shape[:0:-1]))[::-1]))
+    return rows, np.asarray(at)[rows] + step
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ import numpy as np
 import pyopencl as cl
 
 from lodcast.opencl import Device
+from lodcast.store.layout import beside
 
 __all__ = ["fill_aprons", "device_aprons", "neighbours"]
 
@@ -89,14 +90,9 @@ def neighbours(levels: np.ndarray, offsets: np.ndarray, only: np.ndarray | None 
     fill = np.flatnonzero(zero if only is None else zero & (np.asarray(only).reshape(-1) != 0))
     at = np.asarray(offsets, np.int64).reshape(-1)
     pos = np.unravel_index(fill, G)  # z, y, x
-    strides = np.cumprod((1, *G[:0:-1]))[::-1]
     nbr = np.full((fill.size, 27), -1, np.int64)
     for i, d in enumerate(np.ndindex(3, 3, 3)):
-        inside = np.ones(fill.size, bool)
-        for p, e, n in zip(pos, d, G):
-            inside &= (p + e - 1 >= 0) & (p + e - 1 < n)
-        rows = np.flatnonzero(inside)
-        t = fill[rows] + int(np.dot(np.array(d) - 1, strides))
+        rows, t = beside(fill, pos, G, tuple(e - 1 for e in d))
         there = zero[t]
         nbr[rows[there], i] = at[t[there]]
     xyz = np.zeros((fill.size, 4), np.int32)

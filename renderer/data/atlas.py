@@ -40,10 +40,11 @@ from lodcast.renderer.data.bricks import BrickStats, Sink, place_bricks
 from lodcast.renderer.data.volume import voxel_options
 from lodcast.renderer.engine import Engine
 from lodcast.renderer.pool import BrickPool
+from lodcast.store.layout import beside
 
 __all__ = ["DeviceAtlas", "pack", "pack_index", "slice_max", "pack_std", "unplaced", "step_levels", "skipped", "NEAR_LEVEL0",
            "device_atlas", "half_cells", "brick_elements", "coarse_elements", "deviation_bytes",
-           "neighbourhood_max", "pair_reduce", "per_cell", "copy_kept", "dirty_blocks"]
+           "neighbourhood_max", "pair_reduce", "per_cell", "copy_kept", "dirty_blocks", "step_levels_from"]
 
 MISSING = 0
 
@@ -268,9 +269,7 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
     rays. The finest-of-eight rule took more samples for the same image error (benchmarks/bench_lod_sweep.py)."""
     lv = np.asarray(levels)
     off = lv < 0 if skip is None else (lv < 0) | np.asarray(skip, bool)
-    code = np.maximum(lv.astype(np.int8), 0)  # (levels fit 4 bits: pack_index)
-    np.add(code, 1, out=code, where=code >= 1)
-    np.minimum(code, int(block_size).bit_length() - 1, out=code)
+    code = _step_code(lv, block_size)
     # NEAR_LEVEL0: a coarse cell with a level-0 cell across a face, where the kernel looks at the cell the ray
     # enters next (its last step ends on full resolution's lattice there); elsewhere it need not read it. A cell's
     # neighbour across a face inside its block has its own code, so only the blocks across its outer faces count:
@@ -284,9 +283,69 @@ def step_levels(levels: np.ndarray, block_size: int, skip: np.ndarray | None = N
         near = np.zeros(G, bool)
         for ax in range(3):  # the block before along ax for the lower cell, the one after for the upper
             near |= fine[tuple(slice(2 * o[a], 2 * o[a] + n) if a == ax else inner[a] for a, n in enumerate(G))]
-        c = np.where((code > 0) & near, code | np.int8(NEAR_LEVEL0), code)
-        out[:, o[0], :, o[1], :, o[2]] = np.where(off, -c - np.int8(1), c)
+        out[:, o[0], :, o[1], :, o[2]] = _cell_code(code, near, off)
     return out.reshape(2 * G[0], 2 * G[1], 2 * G[2])
+
+
+def step_levels_from(last: tuple | None, levels: np.ndarray, block_size: int,
+                     skip: np.ndarray | None = None) -> np.ndarray:
+    """step_levels of (levels, skip) from `last`, the (levels, skip, step levels) of another selection of the same
+    grid: a block's eight cells depend on its own level and skip and on whether its six face neighbours are at
+    level 0 (or unloaded, stepped as level 0), so only the blocks where one of these changed are computed again
+    (tests/test_lod_adaptive.py holds the two equal). A change of most blocks, or none to start from: step_levels
+    over the grid."""
+    lv = np.asarray(levels)
+    if last is None:
+        return step_levels(lv, block_size, skip)
+    old_lv, old_skip, old_steps = last
+    changed = old_lv != lv
+    if skip is not None:
+        changed |= old_skip != np.asarray(skip, bool)
+    fine = (old_lv <= 0) != (lv <= 0)  # a neighbour's NEAR_LEVEL0 follows its level-0 status
+    for ax in range(3):
+        lo, hi = [slice(None)] * 3, [slice(None)] * 3
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        changed[tuple(lo)] |= fine[tuple(hi)]
+        changed[tuple(hi)] |= fine[tuple(lo)]
+    at = np.flatnonzero(changed)
+    if 8 * at.size > lv.size:  # most of the grid: the whole-grid passes cost less than the gathers
+        return step_levels(lv, block_size, skip)
+    G = lv.shape
+    flat = lv.reshape(-1)
+    own = flat[at]
+    code = _step_code(own, block_size)
+    off = own < 0
+    if skip is not None:
+        off |= np.asarray(skip, bool).reshape(-1)[at]
+    pos = np.unravel_index(at, G)
+    fine_at = {}  # (axis, side): the face neighbour there is in the grid and at level 0 or unloaded
+    for ax in range(3):
+        for side in (-1, 1):
+            rows, nb = beside(at, pos, G, tuple(side if a == ax else 0 for a in range(3)))
+            fine_at[ax, side] = np.zeros(at.size, bool)
+            fine_at[ax, side][rows] = flat[nb] <= 0
+    cells = np.empty((at.size, 2, 2, 2), np.int8)
+    for o in np.ndindex(2, 2, 2):  # the lower cell along an axis looks at the block before, the upper after
+        near = fine_at[0, 2 * o[0] - 1] | fine_at[1, 2 * o[1] - 1] | fine_at[2, 2 * o[2] - 1]
+        cells[:, o[0], o[1], o[2]] = _cell_code(code, near, off)
+    out = old_steps.copy()
+    out.reshape(G[0], 2, G[1], 2, G[2], 2)[pos[0], :, pos[1], :, pos[2], :] = cells
+    return out
+
+
+def _step_code(levels: np.ndarray, block_size: int) -> np.ndarray:
+    """step_levels' s of each block's level (unloaded: 0), int8 (levels fit 4 bits: pack_index)."""
+    code = np.maximum(np.asarray(levels).astype(np.int8), 0)
+    np.add(code, 1, out=code, where=code >= 1)
+    np.minimum(code, int(block_size).bit_length() - 1, out=code)
+    return code
+
+
+def _cell_code(code: np.ndarray, near: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """A cell's step level from its block's s, whether a level-0 cell lies across its outer faces, and whether it
+    is skipped (step_levels)."""
+    c = np.where((code > 0) & near, code | np.int8(NEAR_LEVEL0), code)
+    return np.where(off, -c - np.int8(1), c)
 
 
 #: step_levels' flag of a coarse cell next to a level-0 one (the step level is the code's low three bits)
@@ -633,16 +692,11 @@ def dirty_blocks(old_levels: np.ndarray, levels: np.ndarray, interpolation: str)
     nearest = interpolation != "interblock"
     source = (((old_levels == 0) != (levels == 0)).ravel()) if nearest else changed
     out = np.zeros(levels.size, np.uint32)
-    # a few thousand blocks: each direction's blocks by index, not a pass over the grid
     at = np.flatnonzero(source)
     pos = np.unravel_index(at, levels.shape)
-    strides = np.cumprod((1, *levels.shape[:0:-1]))[::-1]  # flat index steps of z, y, x
     zero = levels.ravel() == 0 if nearest else None
     for bit, d in enumerate(np.ndindex(3, 3, 3)):
-        inside = np.ones(at.size, bool)  # the block at source - d lies in the grid
-        for p, e, n in zip(pos, d, levels.shape):
-            inside &= (p >= e - 1) & (p < n + e - 1)
-        b = at[inside] - int(np.dot(np.array(d) - 1, strides))
+        b = beside(at, pos, levels.shape, tuple(1 - e for e in d))[1]  # the block at source - d reaches it
         if zero is not None:
             b = b[zero[b]]  # only level-0 bricks have aprons
         out[b] |= np.uint32(1 << bit)  # (a block at most once per direction: no index repeats)

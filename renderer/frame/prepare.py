@@ -196,65 +196,17 @@ def _marked_info(eng: Engine, scene: Scene, lv: np.ndarray, info: np.ndarray, cf
 def _step_levels(eng: Engine, lv: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
     """atlas.step_levels, kept for the last few (levels, skip) pairs: a turntable asks for the same each frame, and
     on a large grid it costs a good part of a frame. A new pair (a new view's selection) starts from the newest
-    one of the same grid (`_steps_from`)."""
+    one of the same grid (atlas.step_levels_from)."""
     key = (block_size, eng.digest(lv), lv.shape, None if skip is None else eng.digest(np.packbits(skip)))
     hit = eng.steps.get(key)
     if hit is None:
         newest = ("newest", block_size, lv.shape, skip is None)
         last = eng.steps.get(newest)
-        hit = _steps_from(last, lv, block_size, skip)
+        hit = lod_atlas.step_levels_from(last, lv, block_size, skip)
         eng.steps.put(key, hit, hit.nbytes)
         own = (lv.copy(), None if skip is None else np.array(skip, bool), hit)
         eng.steps.put(newest, own, own[0].nbytes + hit.nbytes + (0 if skip is None else lv.size))
     return hit
-
-
-def _steps_from(last: tuple | None, lv: np.ndarray, block_size: int, skip: np.ndarray | None) -> np.ndarray:
-    """atlas.step_levels of (lv, skip) from `last`, the (levels, skip, step levels) of another selection of the
-    same grid: a block's eight cells depend on its own level and skip and on whether its six face neighbours are
-    at level 0 (or unloaded, stepped as level 0), so only the blocks where one of these changed are computed
-    again, by step_levels' rule block by block (tests/test_lod_adaptive.py holds the two equal). A change of most
-    blocks, or none to start from: step_levels over the grid."""
-    if last is None:
-        return lod_atlas.step_levels(lv, block_size, skip)
-    old_lv, old_skip, old_steps = last
-    changed = old_lv != lv
-    if skip is not None:
-        changed |= old_skip != np.asarray(skip, bool)
-    fine = (old_lv <= 0) != (lv <= 0)  # a neighbour's NEAR_LEVEL0 follows its level-0 status
-    for ax in range(3):
-        lo, hi = [slice(None)] * 3, [slice(None)] * 3
-        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
-        changed[tuple(lo)] |= fine[tuple(hi)]
-        changed[tuple(hi)] |= fine[tuple(lo)]
-    at = np.flatnonzero(changed)
-    if 8 * at.size > lv.size:  # most of the grid: the whole-grid passes cost less than the gathers
-        return lod_atlas.step_levels(lv, block_size, skip)
-    G = lv.shape
-    flat = lv.reshape(-1)
-    own = flat[at]
-    code = np.maximum(own.astype(np.int8), 0)
-    np.add(code, 1, out=code, where=code >= 1)
-    np.minimum(code, int(block_size).bit_length() - 1, out=code)
-    off = own < 0
-    if skip is not None:
-        off |= np.asarray(skip, bool).reshape(-1)[at]
-    pos = np.unravel_index(at, G)
-    stride = np.cumprod((1, *G[:0:-1]))[::-1]
-    fine_at = {}  # (axis, side): the face neighbour there is in the grid and at level 0 or unloaded
-    for ax in range(3):
-        for side in (-1, 1):
-            p = pos[ax] + side
-            there = (p >= 0) & (p < G[ax])
-            fine_at[ax, side] = there & (flat[np.where(there, at + side * int(stride[ax]), at)] <= 0)
-    cells = np.empty((at.size, 2, 2, 2), np.int8)
-    for o in np.ndindex(2, 2, 2):  # the lower cell along an axis looks at the block before, the upper after
-        near = fine_at[0, 2 * o[0] - 1] | fine_at[1, 2 * o[1] - 1] | fine_at[2, 2 * o[2] - 1]
-        c = np.where((code > 0) & near, code | np.int8(lod_atlas.NEAR_LEVEL0), code)
-        cells[:, o[0], o[1], o[2]] = np.where(off, -c - np.int8(1), c)
-    out = old_steps.copy()
-    out.reshape(G[0], 2, G[1], 2, G[2], 2)[pos[0], :, pos[1], :, pos[2], :] = cells
-    return out
 
 
 def _block_info(eng: Engine, vol: VolumeView, scene: Scene, lut: Lut, lut2: Lut | None) -> tuple[np.ndarray, int]:
